@@ -1,0 +1,663 @@
+"""Partition of a trapezoid virtual tube containing obstacles (Section IV-A of the paper).
+
+The construction is the one pinned down in ``/work/shared/paper/PARTITION.md``:
+
+* each obstacle O_k (obstacle) is grown to O'_k of radius R_k = r_o,k + r_s (ExtObstacle) and
+  wrapped in an isosceles circumscribed triangle I_k whose incircle is O'_k, apex
+  p_oth,k = p_o,k − h_k n_c upstream, base on the line ξ = ξ(p_o,k) + R_k;
+  h_k ≥ h_min,k (pothk), default 1.3 h_min,k, configurable per obstacle
+  (:attr:`~vtube_fleet.tube.Obstacle.apex_distance`);
+* obstacles are taken farthest from the finishing line first (ties: more-left first); each one
+  splits the sub-tube that contains its centre into ``before``, ``left``, ``right`` and ``after``
+  sub trapezoid tubes (FourSub1)/(FourSub2);
+* a side tube that is inverted or violates Assumption 3' is dropped and the triangle is modified
+  as in Remark 5 (one side on the parent's leg, the other the passage-side tangent of O'_k at
+  angle β ∈ [α, α_max] to n_c); both sides invalid → :class:`PartitionError`;
+* the sub-tubes are sorted by (ξ_start, lateral position of the start-base midpoint) and named
+  ``T_o1, T_o2, …`` (for P = 1: before, left, right, after, as the paper numbers them).
+
+:meth:`Partition.locate` implements the switching rule (ObstacleController) with the shared-edge
+conventions of PARTITION.md §5. Everything here is pure numpy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from vtube_fleet.errors import UserError
+from vtube_fleet.tube import GeometryError, Obstacle, Trapezoid
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.controller import ControllerParams, TubeArrays
+
+__all__ = [
+    "DEFAULT_APEX_FACTOR",
+    "Partition",
+    "PartitionError",
+    "Triangle",
+    "Violation",
+    "alpha_max",
+    "check_assumption3",
+    "check_constraint2",
+    "h_min",
+    "partition",
+]
+
+#: Default apex distance h_k = DEFAULT_APEX_FACTOR × h_min,k (PARTITION.md §2).
+DEFAULT_APEX_FACTOR = 1.3
+
+#: Tolerance (metres) of the point-location rule: a point within this distance upstream of a
+#: base counts as on it, and among candidates whose violations differ by less than it the lower
+#: index wins. It makes the shared-edge rules of §5 hold despite rounding (e.g. at the apex).
+LOCATE_TOL = 1e-9
+
+_REL_TOL = 1e-9  # relative tolerance of the ≤ comparisons in Constraint2/3
+_AREA_TOL = 1e-9  # m²: an intersection with less area than this is "zero area"
+
+
+# ----------------------------------------------------------------------------------------------
+# Small value types
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Violation:
+    """One violated condition of the paper: its name (e.g. ``"Constraint3"``) and a message
+    carrying the numbers, e.g. ``Constraint1 violated: v + v'_max = 4.0 > v_max = 3.5``."""
+
+    condition: str
+    message: str
+
+    def __str__(self) -> str:
+        return self.message
+
+
+class PartitionError(UserError):
+    """The tube cannot be partitioned around an obstacle.
+
+    ``obstacle`` is the 0-based index of the obstacle in the sequence given to
+    :func:`partition` (the message counts from 1: ``obstacle #2 at (12.0, 0.0) r_o=0.9``) or
+    ``None`` when the problem is not tied to one obstacle; ``reason`` is the message without the
+    obstacle prefix.
+    """
+
+    def __init__(self, obstacle: int | None, reason: str, where: str = "") -> None:
+        self.obstacle = obstacle
+        self.reason = reason
+        super().__init__(f"{where}: {reason}" if where else reason)
+
+
+@dataclass(frozen=True, eq=False)
+class Triangle:
+    """Circumscribed triangle I_k of one obstacle (apex p_oth, base points p_otu (left) and
+    p_otd (right)).
+
+    ``obstacle`` is the 0-based index of the obstacle in the input sequence, ``h`` the apex
+    distance used, ``alpha`` = asin(R/h) the half apex angle of the isosceles triangle.
+    ``remark5`` is ``None`` for the isosceles triangle, else the side whose sub-tube was dropped
+    (``"right"``: T_o3 = ∅ as in the paper's Fig. 7(b); the side [p_oth, p_otd] then lies on the
+    parent's right leg, direction t_r), and ``beta`` the angle of the kept tangent side to n_c
+    (= alpha when isosceles).
+    """
+
+    obstacle: int
+    center: np.ndarray
+    radius_ext: float
+    h: float
+    alpha: float
+    p_oth: np.ndarray
+    p_otu: np.ndarray
+    p_otd: np.ndarray
+    remark5: Literal["left", "right"] | None = None
+    beta: float = 0.0
+
+    def polygon(self) -> np.ndarray:
+        """Vertices (3, 2): p_oth, p_otu, p_otd."""
+        return np.stack([self.p_oth, self.p_otu, self.p_otd])
+
+    def contains(self, x: np.ndarray, tol: float = 0.0) -> np.ndarray:
+        """Closed membership of points (..., 2) in the triangle, with a tolerance in metres."""
+        x = np.asarray(x, dtype=float)
+        poly = self.polygon()
+        sgn = 1.0 if _cross2(poly[1] - poly[0], poly[2] - poly[0]) > 0 else -1.0
+        ok = np.ones(x.shape[:-1], dtype=bool)
+        for a, b in ((poly[0], poly[1]), (poly[1], poly[2]), (poly[2], poly[0])):
+            e = b - a
+            # signed distance to the edge line, > 0 on the interior side
+            d = sgn * (e[0] * (x[..., 1] - a[1]) - e[1] * (x[..., 0] - a[0])) / np.hypot(*e)
+            ok &= d >= -tol
+        return ok
+
+
+# ----------------------------------------------------------------------------------------------
+# (pothk) and the per-tube conditions
+# ----------------------------------------------------------------------------------------------
+def alpha_max(params: ControllerParams) -> float:
+    """Steepest leg angle to n_c allowed by Constraint2/3 for a narrowing leg:
+    2 v sin(α/2) ≤ v'_max ⇔ α ≤ α_max = 2 asin(v'_max / 2v) (44.05° for v = 2, v'_max = 1.5).
+    """
+    return 2.0 * math.asin(min(params.v_max_prime / (2.0 * params.v), 1.0))
+
+
+def h_min(r_o: float, params: ControllerParams) -> float:
+    """Smallest apex distance ‖p_oth − p_o‖ allowed by (pothk):
+    (r_s + r_o) / ((v'_max/v) √(1 − v'_max²/(4v²))) = R / sin α_max.
+
+    With r_o = 0.9, r_s = 0.25, v = 2, v'_max = 1.5 this is 1.654 m. When α_max ≥ 90° (only
+    for v'_max ≥ √2 v) every triangle satisfies Constraint3 and R = r_o + r_s is returned.
+    """
+    R = float(r_o) + params.r_s
+    a = alpha_max(params)
+    return R if a >= math.pi / 2 else R / math.sin(a)
+
+
+def _num(x: float, nd: int = 3) -> str:
+    """Compact number: at most ``nd`` decimals, at least one (4.0, 0.9, 1.654)."""
+    if not math.isfinite(x):
+        return str(x)
+    s = f"{x:.{nd}f}".rstrip("0")
+    s = s + "0" if s.endswith(".") else s
+    return "0.0" if s == "-0.0" else s
+
+
+def _pt(p: np.ndarray) -> str:
+    return f"({_num(float(p[0]))}, {_num(float(p[1]))})"
+
+
+def check_constraint2(
+    tube: Trapezoid, params: ControllerParams, condition: str = "Constraint2", label: str = ""
+) -> list[Violation]:
+    """(Constraint2) for the main tube, (Constraint3) for a sub-tube: v‖n_c − t_h‖ ≤ v'_max if
+    L exists and v‖n_c − t_r‖ ≤ v'_max if R exists. ``label`` names the tube in messages."""
+    out = []
+    where = f" in {label}" if label else ""
+    for side, t, t_name, has in (
+        ("left", tube.t_h, "t_h", tube.has_L),
+        ("right", tube.t_r, "t_r", tube.has_R),
+    ):
+        if not has:
+            continue
+        val = params.v * float(np.hypot(*(tube.n_c - t)))
+        if val > params.v_max_prime * (1.0 + _REL_TOL):
+            ang = math.degrees(math.acos(max(-1.0, min(1.0, float(t @ tube.n_c)))))
+            out.append(Violation(condition, (
+                f"{condition} violated{where}: {side} leg: v‖n_c − {t_name}‖ = {_num(val)} > "
+                f"v'_max = {_num(params.v_max_prime)} (leg at {_num(ang, 2)}° to n_c, "
+                f"steepest allowed {_num(math.degrees(alpha_max(params)), 2)}°)"
+            )))
+    return out
+
+
+def _cross2(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _clip(poly: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """Sutherland–Hodgman: the part of the convex polygon ``poly`` (N, 2) where
+    normalᵀx ≥ offset (closed half-plane)."""
+    if len(poly) == 0:
+        return poly
+    s = poly @ normal - offset
+    out = []
+    n = len(poly)
+    for i in range(n):
+        a, b = poly[i], poly[(i + 1) % n]
+        sa, sb = s[i], s[(i + 1) % n]
+        if sa >= 0:
+            out.append(a)
+        if (sa >= 0) != (sb >= 0):
+            out.append(a + (b - a) * (sa / (sa - sb)))
+    return np.array(out, dtype=float).reshape(-1, 2)
+
+
+def _area(poly: np.ndarray) -> float:
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+
+
+def _assumption3_reasons(tube: Trapezoid, params: ControllerParams) -> list[str]:
+    """Reasons why ``tube`` violates Assumption 3 (empty if it holds), evaluated exactly by
+    half-plane clipping of the trapezoid polygon: L ∩ R has zero area, M ≠ ∅, and
+    n_cᵀ(p_r1 − p_r0) > 2 r_a."""
+    reasons = []
+    d = params.k_t * params.r_a
+    poly = tube.polygon()
+    # d_Th(x) = n_hᵀx − n_hᵀp_h1 ; d_Tr(x) = n_rᵀx − n_rᵀp_r1.
+    oh, orr = float(tube.n_h @ tube.p_h1), float(tube.n_r @ tube.p_r1)
+    if tube.has_L and tube.has_R:
+        lr = _clip(_clip(poly, -tube.n_h, -(oh + d)), -tube.n_r, -(orr + d))
+        area = _area(lr)
+        if area > _AREA_TOL:
+            reasons.append(
+                f"L ∩ R is not empty (area {_num(area)} m²: somewhere both legs are closer "
+                f"than k_t r_a = {_num(d)} m; bases {_num(float(tube.width(0.0)))} m and "
+                f"{_num(float(tube.width(tube.length)))} m wide)"
+            )
+    mid = poly
+    if tube.has_L:
+        mid = _clip(mid, tube.n_h, oh + d)
+    if tube.has_R:
+        mid = _clip(mid, tube.n_r, orr + d)
+    if len(mid) == 0:
+        reasons.append(
+            f"M is empty (no point is k_t r_a = {_num(d)} m from both narrowing legs; bases "
+            f"{_num(float(tube.width(0.0)))} m and {_num(float(tube.width(tube.length)))} m wide)"
+        )
+    length = float(tube.n_c @ (tube.p_r1 - tube.p_r0))
+    if not length > 2.0 * params.r_a:
+        reasons.append(f"length {_num(length)} m ≤ 2 r_a = {_num(2.0 * params.r_a)} m")
+    return reasons
+
+
+def check_assumption3(
+    tube: Trapezoid, params: ControllerParams, condition: str = "Assumption3", label: str = ""
+) -> list[Violation]:
+    """Assumption 3 (main tube) / Assumption 3' (a sub-tube, ``condition="Assumption3'"``):
+    L ∩ R = ∅ (zero area), M ≠ ∅, n_cᵀ(p_r1 − p_r0) > 2 r_a; one :class:`Violation` per
+    failing part, with the numbers."""
+    where = f" in {label}" if label else ""
+    return [
+        Violation(condition, f"{condition} violated{where}: {r}")
+        for r in _assumption3_reasons(tube, params)
+    ]
+
+
+# ----------------------------------------------------------------------------------------------
+# Point location (§5)
+# ----------------------------------------------------------------------------------------------
+class _Locator:
+    """Precomputed stacked arrays for the §5 rule over K tubes sharing n_c.
+
+    score_k(p) = min(d_Th,k(p), d_Tr,k(p)) = −viol_k(p) comes from one batched matmul
+    (n_h and n_r of all tubes stacked as (2, 2, K)) as min(n_hᵀp, n_rᵀp + δ) − n_hᵀp_h1 with
+    δ = n_hᵀp_h1 − n_rᵀp_r1; the half-open slab test is a ``searchsorted`` of ξ into the
+    sorted base coordinates and a (slabs, K) table holding −n_hᵀp_h1 for candidates and −inf
+    otherwise; k(p) = argmax (first on ties). 7 numpy calls in all.
+    """
+
+    def __init__(self, tubes: Sequence[Trapezoid], xs: np.ndarray, xe: np.ndarray,
+                 n_c: np.ndarray, xi0: float) -> None:
+        K = len(tubes)
+        A = np.empty((2, 2, K))
+        bh = np.empty(K)
+        br = np.empty(K)
+        for k, t in enumerate(tubes):
+            A[0, :, k] = t.n_h
+            A[1, :, k] = t.n_r
+            bh[k] = float(t.n_h @ t.p_h1)
+            br[k] = float(t.n_r @ t.p_r1)
+        # Lower indices get a bonus below LOCATE_TOL so that ties up to rounding go to the
+        # smallest index (the apex rule).
+        bh -= LOCATE_TOL * (K - np.arange(K)) / (K + 1)
+        self.A = A
+        self.delta = bh - br
+        self.n_c = np.array(n_c, dtype=float)
+        bp = np.unique(np.concatenate([xs[np.isfinite(xs)], xe[np.isfinite(xe)]]))
+        # slab j = [lo[j], hi[j]) in ξ; a point within LOCATE_TOL upstream of a base counts as
+        # on it (→ downstream). Compare raw n_cᵀp with ξ-breakpoints shifted by n_cᵀp_h0.
+        self.bps = bp + (xi0 - LOCATE_TOL)
+        lo = np.concatenate([[-np.inf], bp])
+        hi = np.concatenate([bp, [np.inf]])
+        cand = (xs[None, :] <= lo[:, None]) & (xe[None, :] >= hi[:, None])
+        self.pen = np.where(cand, -bh[None, :], -np.inf)
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, dtype=float)
+        if p.ndim > 2:
+            return self(p.reshape(-1, 2)).reshape(p.shape[:-1])
+        D = p @ self.A  # (2, M, K) or (2, K)
+        D[1] += self.delta
+        s = np.minimum(D[0], D[1], out=D[0])
+        s += self.pen.take(self.bps.searchsorted(p @ self.n_c, "right"), axis=0)
+        return s.argmax(axis=-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# The partition
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Partition:
+    """Result of :func:`partition`.
+
+    ``sub_tubes`` are named ``T_o1, T_o2, …`` in the order of (``xi_start``, lateral position of
+    the start-base midpoint); ``xi_start``/``xi_end`` (K,) are the ξ of each sub-tube's start base
+    and finishing line in the main tube's coordinate ξ(x) = n_cᵀ(x − p_h0), with −inf/+inf when
+    that base is one of the main tube's bases (PARTITION.md §3). ``triangles`` are in the order
+    of the input obstacles (obstacles skipped in non-strict mode have none), ``warnings`` are
+    :class:`Violation` s (Constraint3 / Assumption3' per sub-tube, skipped obstacles).
+    """
+
+    tube: Trapezoid
+    sub_tubes: tuple[Trapezoid, ...]
+    xi_start: np.ndarray
+    xi_end: np.ndarray
+    triangles: tuple[Triangle, ...] = ()
+    warnings: tuple[Violation, ...] = ()
+    _locator: _Locator = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        xs = np.asarray(self.xi_start, dtype=float).reshape(-1)
+        xe = np.asarray(self.xi_end, dtype=float).reshape(-1)
+        xs.setflags(write=False)
+        xe.setflags(write=False)
+        object.__setattr__(self, "xi_start", xs)
+        object.__setattr__(self, "xi_end", xe)
+        object.__setattr__(self, "_locator", _Locator(
+            self.sub_tubes, xs, xe, self.tube.n_c, float(self.tube.n_c @ self.tube.p_h0)))
+
+    @property
+    def K(self) -> int:
+        """Number of sub-tubes."""
+        return len(self.sub_tubes)
+
+    @cached_property
+    def arrays(self) -> TubeArrays:
+        """Stacked geometry of the sub-tubes for the controller (``TubeArrays``)."""
+        from vtube_fleet.controller import TubeArrays
+
+        return TubeArrays.from_tubes(self.sub_tubes)
+
+    def locate(self, p: np.ndarray) -> np.ndarray:
+        """Sub-tube index k(p) of points (..., 2) → (...) int, the switching rule
+        (ObstacleController) as in PARTITION.md §5.
+
+        Candidates are the sub-tubes whose half-open slab ξ_start ≤ ξ(p) < ξ_end contains p; the
+        chosen one minimises viol_k = max(−d_Th,k, −d_Tr,k) (≤ 0 iff p is inside), ties to the
+        smallest index. So a point on a shared base belongs to the downstream tube, the apex
+        p_oth to the left tube, a point outside T laterally to the adjacent tube, ξ < 0 to the
+        first and ξ ≥ L to the last. Comparisons use a tolerance of ``LOCATE_TOL`` = 1 nm.
+        """
+        return self._locator(p)
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.sub_tubes)
+
+
+@dataclass
+class _Node:
+    """A sub-tube under construction."""
+
+    tube: Trapezoid
+    xs: float  # −inf when the start base is T's
+    xe: float  # +inf when the finishing line is T's
+    origin: str  # for messages: "the tube before obstacle #2"
+    obstacle: int | None  # 0-based index of the obstacle that created it
+
+
+def _obstacle_label(i: int, ob: Obstacle) -> str:
+    return f"obstacle #{i + 1} at {_pt(ob.center)} r_o={_num(float(ob.radius))}"
+
+
+def _check_params(params: ControllerParams) -> None:
+    bad = []
+    if not params.r_s > 0:
+        bad.append(f"r_s = {params.r_s} must be > 0")
+    if not params.r_a > 0:
+        bad.append(f"r_a = {params.r_a} must be > 0")
+    if not params.v > 0:
+        bad.append(f"v = {params.v} must be > 0")
+    if not params.v_max_prime > 0:
+        bad.append(f"v'_max = {params.v_max_prime} must be > 0")
+    if not params.k_t >= 1:
+        bad.append(f"k_t = {params.k_t} must be ≥ 1")
+    if bad:
+        raise PartitionError(None, "invalid parameters for the partition: " + "; ".join(bad))
+
+
+def _dist_to_polygon(p: np.ndarray, poly: np.ndarray) -> float:
+    best = math.inf
+    for i in range(len(poly)):
+        a, b = poly[i], poly[(i + 1) % len(poly)]
+        e = b - a
+        t = min(1.0, max(0.0, float((p - a) @ e) / float(e @ e)))
+        best = min(best, float(np.hypot(*(p - (a + t * e)))))
+    return best
+
+
+def partition(
+    tube: Trapezoid,
+    obstacles: Sequence[Obstacle],
+    params: ControllerParams,
+    strict: bool = True,
+) -> Partition:
+    """Partition ``tube`` into obstacle-free sub trapezoid tubes (Section IV-A, PARTITION.md).
+
+    ``params`` supplies r_s, r_a, k_t, v and v'_max. Raises :class:`PartitionError` (naming the
+    obstacle and the numbers) when a triangle does not fit in its parent sub-tube, when an
+    obstacle blocks the tube (both side tubes invalid), when the Remark 5 apex cannot be placed
+    or its kept side tube violates Assumption 3', and when an obstacle's extended area O' lies
+    entirely outside the tube. With ``strict=False`` the last case and Assumption 3' violations
+    of the before/after tubes are recorded in :attr:`Partition.warnings` instead. Constraint3
+    violations of sub-tubes are always recorded as warnings (the caller decides; see
+    :mod:`vtube_fleet.validation`). With no obstacles the result is the main tube alone.
+    """
+    _check_params(params)
+    return _Builder(tube, obstacles, params, strict).run()
+
+
+class _Builder:
+    """The recursive split of PARTITION.md §3, one obstacle at a time."""
+
+    def __init__(self, tube: Trapezoid, obstacles: Sequence[Obstacle],
+                 params: ControllerParams, strict: bool) -> None:
+        self.tube = tube
+        self.obstacles = obstacles
+        self.params = params
+        self.strict = strict
+        self.n_c, self.m = tube.n_c, tube.m
+        self.xi0 = float(tube.n_c @ tube.p_h0)
+        self.L = tube.length
+        self.a_max = alpha_max(params)
+        self.warnings: list[Violation] = []
+        self.nodes = [_Node(tube, -math.inf, math.inf, "the main tube", None)]
+        self.triangles: dict[int, Triangle] = {}
+
+    # --- helpers ------------------------------------------------------------------------
+    def xi(self, x: np.ndarray) -> float:
+        """Main-tube longitudinal coordinate ξ(x) = n_cᵀ(x − p_h0)."""
+        return float(self.n_c @ x) - self.xi0
+
+    def on_line(self, a: np.ndarray, t: np.ndarray, z: float) -> np.ndarray:
+        """Point of the line through ``a`` with direction ``t`` at ξ = z."""
+        return a + t * ((z - self.xi(a)) / float(t @ self.n_c))
+
+    def side_tube(self, pts: tuple[np.ndarray, ...], gaps: tuple[float, float], side: str,
+                  name: str) -> tuple[Trapezoid | None, str]:
+        """A side tube and "" if it is valid (not inverted, Assumption 3'), else (None, why)."""
+        if min(gaps) <= 0:
+            return None, (f"inverted: the triangle crosses the parent's {side} leg by "
+                          f"{_num(-min(gaps))} m")
+        try:
+            t = Trapezoid(*pts, name=name)
+        except GeometryError as e:  # pragma: no cover - excluded by the gap test
+            return None, f"degenerate ({e})"
+        reasons = _assumption3_reasons(t, self.params)
+        if reasons:
+            return None, "Assumption 3' fails: " + "; ".join(reasons)
+        return t, ""
+
+    # --- the construction ---------------------------------------------------------------
+    def run(self) -> Partition:
+        m = self.m
+        # Farthest from the finishing line first (smallest ξ), ties: more-left first.
+        keyed = [(round(self.xi(ob.center), 9), round(float(m @ ob.center), 9), i)
+                 for i, ob in enumerate(self.obstacles)]
+        for _, _, i in sorted(keyed):
+            self.split(i)
+
+        if not self.triangles:
+            return Partition(self.tube, (self.tube,), np.array([-math.inf]),
+                             np.array([math.inf]), (), tuple(self.warnings))
+        nodes = sorted(self.nodes, key=lambda nd: (
+            nd.xs, float(m @ (nd.tube.p_h0 + nd.tube.p_r0)) / 2.0))
+        subs = tuple(dataclasses.replace(nd.tube, name=f"T_o{k + 1}")
+                     for k, nd in enumerate(nodes))
+        for nd, t in zip(nodes, subs, strict=True):
+            label = f"{t.name} ({nd.origin})"
+            a3 = check_assumption3(t, self.params, "Assumption3'", label)
+            if a3 and self.strict:
+                i = nd.obstacle
+                assert i is not None
+                raise PartitionError(i, "; ".join(v.message for v in a3),
+                                     _obstacle_label(i, self.obstacles[i]))
+            self.warnings += a3
+            self.warnings += check_constraint2(t, self.params, "Constraint3", label)
+        return Partition(
+            self.tube, subs,
+            np.array([nd.xs for nd in nodes]), np.array([nd.xe for nd in nodes]),
+            tuple(self.triangles[k] for k in sorted(self.triangles)), tuple(self.warnings),
+        )
+
+    def split(self, i: int) -> None:
+        """Insert the triangle of obstacle ``i`` into the sub-tube that contains its centre."""
+        ob = self.obstacles[i]
+        params, n_c, m = self.params, self.n_c, self.m
+        where = _obstacle_label(i, ob)
+
+        def fail(reason: str) -> PartitionError:
+            return PartitionError(i, reason, where)
+
+        p_o = ob.center
+        R = float(ob.radius) + params.r_s
+        h_lo = h_min(float(ob.radius), params)
+        h = float(ob.apex_distance) if ob.apex_distance is not None else DEFAULT_APEX_FACTOR * h_lo
+        if not h > R:
+            raise fail(f"apex distance h = {_num(h)} m must exceed r_o + r_s = {_num(R)} m "
+                       f"(the apex would lie inside the extended obstacle O')")
+
+        # An obstacle whose O' does not meet T is not part of the problem.
+        tube = self.tube
+        dist_T = 0.0 if bool(tube.contains(p_o)) else _dist_to_polygon(p_o, tube.polygon())
+        if dist_T >= R:
+            msg = (f"lies outside the tube: O' (radius r_o + r_s = {_num(R)} m) is "
+                   f"{_num(dist_T - R)} m away from T")
+            if self.strict:
+                raise fail(msg)
+            self.warnings.append(Violation("Partition", f"Partition: {where} {msg}; ignored"))
+            return
+
+        # Isosceles triangle with incircle O' (PARTITION.md §2).
+        alpha = math.asin(R / h)
+        x_o = self.xi(p_o)
+        p_oth = p_o - h * n_c
+        half = (h + R) * math.tan(alpha)
+        p_otu = p_o + R * n_c - half * m
+        p_otd = p_o + R * n_c + half * m
+        xA, xB = x_o - h, x_o + R
+
+        # Parent: the current sub-tube that contains p_o (§5 rule).
+        nodes = self.nodes
+        loc = _Locator([nd.tube for nd in nodes], np.array([nd.xs for nd in nodes]),
+                       np.array([nd.xe for nd in nodes]), n_c, self.xi0)
+        k_par = int(loc(p_o))
+        par = nodes[k_par]
+        Q = par.tube
+        xs_a = 0.0 if par.xs == -math.inf else par.xs
+        xe_a = self.L if par.xe == math.inf else par.xe
+
+        # Fit check.
+        if not (xs_a < xA and xB < xe_a):
+            raise fail(
+                f"its circumscribed triangle (apex ξ_A = {_num(xA)}, base ξ_B = {_num(xB)}, "
+                f"h = {_num(h)} m) does not fit in its parent sub-tube ({par.origin}, "
+                f"ξ from {_num(xs_a)} to {_num(xe_a)}): need ξ_s < ξ_A and ξ_B < ξ_e; change "
+                f"the obstacle's apex_distance or the obstacle positions"
+            )
+
+        def lh(z: float) -> np.ndarray:
+            return self.on_line(Q.p_h0, Q.t_h, z)
+
+        def lr(z: float) -> np.ndarray:
+            return self.on_line(Q.p_r0, Q.t_r, z)
+
+        hA, hB, rA, rB = lh(xA), lh(xB), lr(xA), lr(xB)
+        num = i + 1
+        left, why_l = self.side_tube(
+            (hA, hB, p_oth, p_otu), (float(m @ (p_otu - hB)), float(m @ (p_oth - hA))),
+            "left", f"left of obstacle #{num}")
+        right, why_r = self.side_tube(
+            (p_oth, p_otd, rA, rB), (float(m @ (rB - p_otd)), float(m @ (rA - p_oth))),
+            "right", f"right of obstacle #{num}")
+
+        if left is None and right is None:
+            raise fail(f"the obstacle blocks the tube: neither side passage is valid "
+                       f"(left: {why_l}; right: {why_r})")
+
+        if left is not None and right is not None:
+            x_apex = xA
+            tri = Triangle(i, p_o, R, h, alpha, p_oth, p_otu, p_otd, None, alpha)
+            sides = [(left, f"the tube left of obstacle #{num}"),
+                     (right, f"the tube right of obstacle #{num}")]
+        else:
+            # Remark 5: drop the invalid side; keep the passage-side tangent of O' at angle β.
+            dropped: Literal["left", "right"] = "right" if right is None else "left"
+            kept_side = "left" if dropped == "right" else "right"
+            s = 1.0 if dropped == "right" else -1.0  # +1: the left passage is kept
+            leg_a, leg_t = (Q.p_r0, Q.t_r) if dropped == "right" else (Q.p_h0, Q.t_h)
+            target = xs_a + 2.0 * params.r_a
+
+            def apex(b: float) -> tuple[float, np.ndarray | None]:
+                """ξ of (tangent of O' at angle b to n_c) ∩ (dropped side's leg line);
+                −inf when the wedge between the two lines does not open downstream."""
+                nk = -(math.sin(b) * n_c + s * math.cos(b) * m)
+                den = float(nk @ leg_t)
+                if den >= -1e-12:
+                    return -math.inf, None
+                pt = leg_a + leg_t * ((R - float(nk @ (leg_a - p_o))) / den)
+                return self.xi(pt), pt
+
+            beta = alpha
+            x_apex, p_apex = apex(alpha)
+            if x_apex < target:
+                x_hi = apex(self.a_max)[0] if self.a_max > alpha else -math.inf
+                if x_hi < target:
+                    raise fail(
+                        f"Remark 5 (the {dropped} side tube is dropped: "
+                        f"{why_r if dropped == 'right' else why_l}): the apex cannot be "
+                        f"placed: even with β = α_max = {_num(math.degrees(self.a_max), 2)}° "
+                        f"the apex is at ξ = {_num(x_hi)} < ξ_s + 2 r_a = {_num(target)}"
+                    )
+                lo_b, hi_b = alpha, self.a_max  # bisection: smallest β with apex ξ ≥ target
+                for _ in range(60):
+                    mid_b = 0.5 * (lo_b + hi_b)
+                    if apex(mid_b)[0] >= target:
+                        hi_b = mid_b
+                    else:
+                        lo_b = mid_b
+                beta = hi_b
+                x_apex, p_apex = apex(beta)
+            if p_apex is None or not x_apex < xB:
+                raise fail(f"Remark 5: the modified triangle is degenerate (apex ξ = "
+                           f"{_num(x_apex)} is not upstream of the base ξ_B = {_num(xB)})")
+            nk = -(math.sin(beta) * n_c + s * math.cos(beta) * m)
+            tp = p_o + R * nk  # tangent point on O'
+            d = math.cos(beta) * n_c - s * math.sin(beta) * m  # downstream direction
+            p_base = tp + d * ((xB - self.xi(tp)) / math.cos(beta))
+            if dropped == "right":
+                pts = (lh(x_apex), hB, p_apex, p_base)
+                gaps = (float(m @ (p_base - hB)), float(m @ (p_apex - lh(x_apex))))
+                tri = Triangle(i, p_o, R, h, alpha, p_apex, p_base, rB, "right", beta)
+            else:
+                pts = (p_apex, p_base, lr(x_apex), rB)
+                gaps = (float(m @ (rB - p_base)), float(m @ (lr(x_apex) - p_apex)))
+                tri = Triangle(i, p_o, R, h, alpha, p_apex, hB, p_base, "left", beta)
+            kept, why_k = self.side_tube(pts, gaps, kept_side, f"{kept_side} of obstacle #{num}")
+            if kept is None:
+                raise fail(f"Remark 5 (the {dropped} side tube is dropped): the modified "
+                           f"{kept_side} side tube is not valid: {why_k}")
+            sides = [(kept, f"the tube {kept_side} of obstacle #{num}")]
+
+        before = Trapezoid(Q.p_h0, lh(x_apex), Q.p_r0, lr(x_apex), name=f"before #{num}")
+        after = Trapezoid(hB, Q.p_h1, rB, Q.p_r1, name=f"after #{num}")
+        new = [_Node(before, par.xs, x_apex, f"the tube before obstacle #{num}", i)]
+        new += [_Node(t, x_apex, xB, origin, i) for t, origin in sides]
+        new.append(_Node(after, xB, par.xe, f"the tube after obstacle #{num}", i))
+        nodes[k_par:k_par + 1] = new
+        self.triangles[i] = tri
