@@ -1,0 +1,1322 @@
+"""Recording a run to rerun (.rrd) and reading it back for ``vtube-fleet review``.
+
+Both the simulator (``vtube-fleet sim``) and the fleet (``vtube-fleet run`` / ``agent``) record
+through the same small :class:`Recorder` interface:
+
+* :meth:`Recorder.log_scene` — once, static: the main tube, the obstacles O_k (obstacle) with
+  their extended areas O'_k (radius r_o + r_s), the sub-tubes T_o,k and circumscribed triangles
+  I_k of the partition (ObstacleController), and the scenario metadata ``review`` needs (tube
+  points, obstacles, r_s, r_a, v_min, v_max, ε_0, robot count and ids, dt, decimation, run kind)
+  as a JSON :class:`rerun.TextDocument` at ``meta/scenario``.
+* :meth:`Recorder.log_tick` — every control tick / simulation step: positions, velocities,
+  optional phases and commands of ALL vehicles as arrays, and the safety metrics of the step.
+* :meth:`Recorder.log_partition`, :meth:`Recorder.log_event`, :meth:`Recorder.log_summary`.
+
+Cost on the control loop (see ``bench/bench_recording.py``): a call that is not recorded
+(decimation) only updates a counter, the metric extrema and the exit detection; a recorded call
+appends its arrays to a buffer. Every ``batch_ticks`` recorded ticks (or ``max_delay_s`` of wall
+time, whichever comes first) the buffer goes out as ONE :meth:`rerun.RecordingStream.send_columns`
+call per entity with explicit ``mission_time`` / ``tick`` time columns — never one call per
+vehicle, and no reliance on rerun's per-thread ``set_time`` state (shared by every coroutine of an
+asyncio loop). Each recorder owns its own :class:`rerun.RecordingStream` (no global rerun state),
+so several recorders can live in one process.
+
+Decimation keeps the extremes: a recorded tick carries the minimum of every ``min_*`` metric and
+the maximum of every ``max_*`` metric, of ``tick_duration_s`` and of ``link_latency_s`` over the
+ticks since the previous recorded one. The last call before :meth:`close` is always recorded.
+
+Exits (Assumption 2, (TraCondition)) are detected at every call, decimated or not: a vehicle
+whose phase becomes ``exited``, or — when no phases are given (the simulator) — a vehicle present
+at the previous call whose row is now NaN or missing. They are logged at ``events/exits`` with
+the exact time, so ``review`` recovers the exit times the run itself saw.
+
+Layout of a recording (entity paths):
+
+======================  =========================================================
+``meta/scenario``       static JSON (:data:`META_FORMAT`), read by :func:`load_recording`
+``meta/summary``        static JSON: the run's own ``summary.json`` (:meth:`log_summary`)
+``world/tube``          static: the main tube T (closed line strip)
+``world/obstacles``     static: O_k as discs; ``world/obstacles/extended``: O'_k outlines
+``world/sub_tubes``     sub-tubes T_o,k (at t = 0, again at each :meth:`log_partition`)
+``world/triangles``     circumscribed triangles I_k (same)
+``world/vehicles``      Points2D (radius r_s, label "id phase", colour by phase) plus the exact
+                        float64 state as ``vtube_fleet.VehicleState:*`` components
+``world/velocity``      Arrows2D of the measured velocity (length = ``arrow_scale_s`` × v)
+``world/commands``      Arrows2D of the velocity command, when given
+``metrics/<key>``       Scalars, one entity per metric key; ``limits/<key>`` the safety limit
+``status``              TextDocument: a table of every vehicle (id, phase, position, speed)
+``events``              TextLog; ``events/vehicle_<id>`` per vehicle (phase changes, …);
+                        ``events/exits`` exit events
+======================  =========================================================
+
+Timelines: ``mission_time`` (duration, seconds since the mission/simulation start) and ``tick``
+(the control tick / simulation step counter).
+"""
+
+from __future__ import annotations
+
+import argparse
+import atexit
+import dataclasses
+import datetime as _dt
+import json
+import logging
+import math
+import os
+import socket
+import threading
+import time
+import uuid
+import weakref
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from urllib.parse import urlparse
+
+import numpy as np
+
+from vtube_fleet.errors import UserError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.tube import Obstacle, Trapezoid
+
+__all__ = [
+    "DEFAULT_CONNECT_URL",
+    "DEFAULT_RECORDING_NAME",
+    "META_FORMAT",
+    "TIMELINE_TICK",
+    "TIMELINE_TIME",
+    "NullRecorder",
+    "Recorder",
+    "RecordingData",
+    "RecordingError",
+    "RerunRecorder",
+    "add_recording_args",
+    "default_blueprint",
+    "load_recording",
+    "normalize_connect_url",
+    "open_recorder",
+    "recorder_from_args",
+]
+
+log = logging.getLogger(__name__)
+
+#: ``--rerun-connect`` without an address: the viewer's default gRPC proxy.
+DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+#: File name of the recording inside a run's output folder.
+DEFAULT_RECORDING_NAME = "recording.rrd"
+#: ``format`` tag of the ``meta/scenario`` JSON document.
+META_FORMAT = "vtube_fleet.recording"
+META_VERSION = 1
+
+TIMELINE_TIME = "mission_time"
+TIMELINE_TICK = "tick"
+
+E_META = "meta/scenario"
+E_SUMMARY = "meta/summary"
+E_TUBE = "world/tube"
+E_OBSTACLES = "world/obstacles"
+E_OBSTACLES_EXT = "world/obstacles/extended"
+E_SUB_TUBES = "world/sub_tubes"
+E_TRIANGLES = "world/triangles"
+E_VEHICLES = "world/vehicles"
+E_VELOCITY = "world/velocity"
+E_COMMANDS = "world/commands"
+E_STATUS = "status"
+E_EVENTS = "events"
+E_EXITS = "events/exits"
+METRICS_PREFIX = "metrics/"
+LIMITS_PREFIX = "limits/"
+
+_STATE = "vtube_fleet.VehicleState"
+_EXIT = "vtube_fleet.Exit"
+
+#: Metric keys shown in the default blueprint, by view: (view name, metric keys, unit label).
+METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("min pair distance [m]", ("min_pair_distance_m",)),
+    ("min obstacle-centre distance [m]", ("min_obstacle_center_distance_m",)),
+    ("min leg distances [m]", ("min_left_leg_distance_m", "min_right_leg_distance_m")),
+    ("speed min / max [m/s]", ("min_speed_m_s", "max_speed_m_s")),
+    ("tick duration [s]", ("tick_duration_s",)),
+    ("link latency [s]", ("link_latency_s",)),
+)
+
+#: Colour (RGBA) of a vehicle point by phase (``bus.base.Phase`` values); others grey.
+PHASE_COLORS: dict[str, int] = {
+    "connecting": 0x9E9E9EFF,
+    "ready": 0x78909CFF,
+    "arming": 0xFFB300FF,
+    "takeoff": 0xFFB300FF,
+    "in_tube": 0x1E88E5FF,
+    "exited": 0x43A047FF,
+    "holding": 0xFB8C00FF,
+    "landing": 0x8E24AAFF,
+    "landed": 0x6D4C41FF,
+    "lost": 0xE53935FF,
+    "failed": 0xB71C1CFF,
+}
+_DEFAULT_COLOR = 0x1E88E5FF
+_OTHER_COLOR = 0x9E9E9EFF
+
+_LEVELS = {
+    "trace": "TRACE",
+    "debug": "DEBUG",
+    "info": "INFO",
+    "warn": "WARN",
+    "warning": "WARN",
+    "error": "ERROR",
+    "critical": "CRITICAL",
+}
+
+
+class RecordingError(UserError):
+    """A recording cannot be written or read (bad path, not an .rrd, not ours, ...)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# the interface
+# ----------------------------------------------------------------------------------------------
+@runtime_checkable
+class Recorder(Protocol):
+    """What the simulator and the fleet call. See the module docstring for the layout."""
+
+    def log_scene(
+        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
+    ) -> None:
+        """Static scene + scenario metadata. ``scenario`` is a ``Scenario`` (or a ``Mission``,
+        whose ``.scenario`` is used); ``meta`` adds JSON-able keys (``dt_s``, ``rate_hz`` ...)."""
+
+    def log_partition(self, partition: Any, t_s: float) -> None:
+        """The sub-tubes and triangles of a (re)partition, valid from ``t_s`` on."""
+
+    def log_tick(
+        self,
+        *,
+        t_s: float,
+        tick: int,
+        ids: np.ndarray,
+        pos: np.ndarray,
+        vel: np.ndarray,
+        phases: Sequence[str] | None = None,
+        cmd: np.ndarray | None = None,
+        metrics: Mapping[str, float] | None = None,
+    ) -> None:
+        """One control tick: ids (M,) int, pos/vel/cmd (M, 2) tube frame, NaN rows = absent."""
+
+    def log_event(
+        self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
+    ) -> None:
+        """A text event (``events`` or ``events/vehicle_<id>``)."""
+
+    def log_summary(self, summary: Mapping[str, Any]) -> None:
+        """The run's own summary (the ``summary.json`` dict), stored for ``review``."""
+
+    def close(self) -> None:
+        """Send what is buffered, flush, close the file. Idempotent."""
+
+    def __enter__(self) -> Recorder: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+class NullRecorder:
+    """A :class:`Recorder` that records nothing (recording disabled)."""
+
+    path: Path | None = None
+    closed: bool = False
+
+    def log_scene(
+        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
+    ) -> None:
+        pass
+
+    def log_partition(self, partition: Any, t_s: float) -> None:
+        pass
+
+    def log_tick(self, **kwargs: Any) -> None:
+        pass
+
+    def log_event(
+        self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
+    ) -> None:
+        pass
+
+    def log_summary(self, summary: Mapping[str, Any]) -> None:
+        pass
+
+    def close(self) -> None:
+        self.closed = True
+
+    def __enter__(self) -> NullRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------
+def _phase_str(p: Any) -> str:
+    """``Phase.IN_TUBE`` → ``"in_tube"``; plain strings unchanged."""
+    return str(getattr(p, "value", p))
+
+
+def _jsonable(obj: Any) -> Any:
+    """Dataclasses, numpy arrays/scalars, enums, paths → JSON types (inf/NaN → None)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                if not f.name.startswith("_")}
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, bool | None | str):
+        return obj
+    if hasattr(obj, "value") and isinstance(obj.value, str | int):
+        return obj.value
+    if isinstance(obj, np.integer | int):
+        return int(obj)
+    if isinstance(obj, np.floating | float):
+        x = float(obj)
+        return x if math.isfinite(x) else None
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    return str(obj)
+
+
+def _pt(p: np.ndarray) -> list[float]:
+    return [float(p[0]), float(p[1])]
+
+
+def _circle(center: np.ndarray, radius: float, n: int = 48) -> np.ndarray:
+    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    return np.asarray(center, dtype=float) + radius * np.stack([np.cos(a), np.sin(a)], axis=-1)
+
+
+def _closed(poly: np.ndarray) -> np.ndarray:
+    poly = np.asarray(poly, dtype=float)
+    return np.vstack([poly, poly[:1]])
+
+
+def _td_ns(t_s: np.ndarray) -> np.ndarray:
+    """Seconds → numpy timedelta64[ns] (rerun ``duration`` time column)."""
+    return np.round(np.asarray(t_s, dtype=float) * 1e9).astype(np.int64).astype("timedelta64[ns]")
+
+
+def normalize_connect_url(addr: str | None) -> str:
+    """``--rerun-connect`` value → a rerun gRPC URL.
+
+    Accepts a full URL (``rerun+http://host:port/proxy``), ``host:port``, ``:port`` or a bare
+    port number; ``None``/empty gives :data:`DEFAULT_CONNECT_URL`.
+    """
+    if addr is None or not str(addr).strip():
+        return DEFAULT_CONNECT_URL
+    a = str(addr).strip()
+    if "://" in a:
+        u = urlparse(a)
+        if u.scheme not in ("rerun", "rerun+http", "rerun+https"):
+            raise RecordingError(
+                f"--rerun-connect {a}: scheme must be rerun://, rerun+http:// or rerun+https://"
+            )
+        return a if u.path.rstrip("/") == "/proxy" else a.rstrip("/") + "/proxy"
+    host, sep, port = a.rpartition(":")
+    if not sep:
+        host, port = "127.0.0.1", a
+    host = host or "127.0.0.1"
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise RecordingError(f"--rerun-connect {a}: expected HOST:PORT, a port or a rerun URL")
+    return f"rerun+http://{host}:{int(port)}/proxy"
+
+
+def _viewer_reachable(url: str, timeout_s: float) -> bool:
+    u = urlparse(url)
+    port = u.port or (443 if u.scheme == "rerun+https" else 9876)
+    try:
+        with socket.create_connection((u.hostname or "127.0.0.1", port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+@dataclass
+class _Row:
+    t_s: float
+    tick: int
+    ids: np.ndarray
+    pos: np.ndarray
+    vel: np.ndarray
+    cmd: np.ndarray | None
+    phases: list[str] | None
+    labels: list[str]
+    colors: np.ndarray
+    metrics: dict[str, float]
+
+
+# ----------------------------------------------------------------------------------------------
+# the rerun recorder
+# ----------------------------------------------------------------------------------------------
+class RerunRecorder:
+    """A :class:`Recorder` writing to an .rrd file and/or a live viewer, on its own
+    :class:`rerun.RecordingStream`.
+
+    ``decimate`` records every n-th :meth:`log_tick` call; ``batch_ticks`` recorded ticks (or
+    ``max_delay_s`` seconds of wall time) are sent per :meth:`~rerun.RecordingStream.send_columns`
+    call; ``arrow_scale_s`` is the length of a velocity arrow per m/s; the ``status`` table is
+    refreshed every ``status_period_s`` of mission time. ``kind`` is ``"sim"`` or ``"fleet"``.
+    The recording is closed (flushed) by :meth:`close`, by the context manager, and at
+    interpreter exit if the owner forgot.
+    """
+
+    def __init__(
+        self,
+        save_path: str | os.PathLike[str] | None,
+        *,
+        connect: str | None = None,
+        app_id: str = "vtube_fleet",
+        decimate: int = 1,
+        kind: str = "sim",
+        batch_ticks: int = 16,
+        max_delay_s: float = 0.25,
+        arrow_scale_s: float = 0.5,
+        status_period_s: float = 1.0,
+        recording_id: str | None = None,
+        connect_timeout_s: float = 0.5,
+        flush_timeout_s: float = 10.0,
+    ) -> None:
+        import rerun as rr
+
+        if save_path is None and connect is None:
+            raise ValueError("RerunRecorder needs save_path and/or connect (else NullRecorder)")
+        if not (isinstance(decimate, int) and decimate >= 1):
+            raise RecordingError(f"recording decimation must be an integer >= 1, got {decimate!r}")
+        if batch_ticks < 1:
+            raise ValueError(f"batch_ticks must be >= 1, got {batch_ticks}")
+        self._rr = rr
+        self.path = None if save_path is None else Path(save_path)
+        self.decimate = decimate
+        self.kind = kind
+        self.app_id = app_id
+        self.batch_ticks = int(batch_ticks)
+        self.max_delay_s = float(max_delay_s)
+        self.arrow_scale_s = float(arrow_scale_s)
+        self.status_period_s = float(status_period_s)
+        self.flush_timeout_s = float(flush_timeout_s)
+        self.recording_id = recording_id or str(uuid.uuid4())
+        self.connect_url: str | None = None
+        self.closed = False
+
+        self._lock = threading.RLock()
+        self._calls = 0  # log_tick calls
+        self._recorded = 0  # recorded ticks
+        self._rows: list[_Row] = []
+        self._last_send = time.monotonic()
+        self._pending: _Row | None = None  # last skipped call, recorded at close
+        self._agg: dict[str, float] = {}  # metric extrema since the last recorded tick
+        self._label_key: tuple[bytes, tuple[Any, ...] | None] | None = None
+        self._label_val: tuple[list[str], np.ndarray] = ([], np.zeros(0, np.uint32))
+        self._prev_ids: np.ndarray | None = None
+        self._prev_present: np.ndarray | None = None
+        self._prev_phases: tuple[Any, ...] | None = None
+        self._exited: set[int] = set()
+        self._last_tick = 0
+        self._last_t = 0.0
+        self._next_status_t = -math.inf
+        self._limits: dict[str, tuple[float, ...]] = {}
+        self._metric_keys_seen: set[str] = set()
+        self._send_errors = 0
+        self._meta: dict[str, Any] = {}
+
+        if self.path is not None:
+            if self.path.exists() and self.path.is_dir():
+                raise RecordingError(f"--rerun-save {self.path}: is a directory, expected a file")
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                with open(self.path, "wb"):
+                    pass
+            except OSError as exc:
+                raise RecordingError(
+                    f"--rerun-save {self.path}: cannot write: {exc.strerror or exc}"
+                ) from None
+
+        self._rec = rr.RecordingStream(app_id, recording_id=self.recording_id)
+        self._rec.set_log_time_enabled(False)
+        self._rec.set_log_tick_enabled(False)
+        sinks: list[Any] = []
+        if connect is not None:
+            url = normalize_connect_url(connect)
+            if _viewer_reachable(url, connect_timeout_s):
+                self.connect_url = url
+                sinks.append(rr.GrpcSink(url))
+            else:
+                where = f"; recording to {self.path} only" if self.path else "; nothing recorded"
+                log.warning("no rerun viewer answers at %s%s (start one with `rerun`)", url, where)
+        if self.path is not None:
+            sinks.append(rr.FileSink(self.path))
+        if sinks:
+            self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+        self._enabled = bool(sinks)
+        self._send_static_defaults()
+        self._atexit = _make_atexit(self)
+        atexit.register(self._atexit)
+
+    # ----- scene ------------------------------------------------------------------------
+    def _send_static_defaults(self) -> None:
+        rr = self._rr
+        for key in ("min_left_leg_distance_m", "min_right_leg_distance_m",
+                    "min_speed_m_s", "max_speed_m_s"):
+            name = key.replace("min_", "min ").replace("max_", "max ").replace("_", " ")
+            self._rec.log(METRICS_PREFIX + key, rr.SeriesLines(names=[name]), static=True)
+
+    def log_scene(
+        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
+    ) -> None:
+        rr = self._rr
+        mission_cfg = getattr(scenario, "config", None)
+        if hasattr(scenario, "scenario"):
+            scenario = scenario.scenario
+        tube = scenario.tube
+        obstacles = tuple(scenario.obstacles)
+        robots = scenario.robots
+        params = scenario.controller
+        r_s = float(params.r_s)
+        doc = self._scene_meta(scenario, mission_cfg, meta)
+        with self._lock:
+            if self.closed:
+                return
+            self._meta = doc
+            self._rec.log(E_META, rr.TextDocument(json.dumps(doc, indent=1),
+                                                  media_type=rr.MediaType.TEXT), static=True)
+            self._rec.log(E_TUBE, rr.LineStrips2D([_closed(tube.polygon())], colors=[0x000000FF],
+                                                  radii=rr.Radius.ui_points(1.5),
+                                                  labels=[getattr(tube, "name", "T")]),
+                          static=True)
+            if obstacles:
+                centers = np.array([o.center for o in obstacles], dtype=float)
+                radii = np.array([o.radius for o in obstacles], dtype=float)
+                self._rec.log(E_OBSTACLES, rr.Points2D(centers, radii=radii, colors=[0x616161FF],
+                                                       labels=[f"O{i + 1}" for i in
+                                                               range(len(obstacles))]),
+                              static=True)
+                self._rec.log(E_OBSTACLES_EXT, rr.LineStrips2D(
+                    [_circle(c, r + r_s) for c, r in zip(centers, radii, strict=True)],
+                    colors=[0x616161FF], radii=rr.Radius.ui_points(0.7)), static=True)
+            self._rec.log(E_VEHICLES, rr.Points2D.from_fields(radii=[r_s]), static=True)
+            self._set_limits(r_s, obstacles, float(robots.v_min), float(robots.v_max))
+            if partition is not None:
+                self._log_partition_locked(partition, t_s=0.0, tick=0)
+
+    def _scene_meta(self, scenario: Any, mission_cfg: Any, meta: Mapping[str, Any] | None
+                    ) -> dict[str, Any]:
+        tube = scenario.tube
+        robots = scenario.robots
+        params = scenario.controller
+        sim = getattr(scenario, "sim", None)
+        doc: dict[str, Any] = {
+            "format": META_FORMAT,
+            "version": META_VERSION,
+            "kind": self.kind,
+            "app_id": self.app_id,
+            "recording_id": self.recording_id,
+            "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "source": str(getattr(scenario, "source", "")),
+            "decimate": self.decimate,
+            "arrow_scale_s": self.arrow_scale_s,
+            "tube": {k: _pt(getattr(tube, k)) for k in ("p_h0", "p_h1", "p_r0", "p_r1")},
+            "obstacles": [
+                {"center": _pt(o.center), "radius": float(o.radius),
+                 "apex_distance": None if o.apex_distance is None else float(o.apex_distance)}
+                for o in scenario.obstacles
+            ],
+            "r_s": float(params.r_s),
+            "r_a": float(params.r_a),
+            "v_min": float(params.v_min),
+            "v_max": float(params.v_max),
+            "eps_0": float(getattr(params, "eps_0", 0.01)),
+            "robots": int(robots.count),
+            "ids": list(range(int(robots.count))),
+            "model": str(getattr(robots, "model", "single_integrator")),
+            "nid_distance": getattr(robots, "nid_distance", None),
+            "controller": _jsonable(params),
+            "sim": _jsonable(sim) if sim is not None else None,
+            "dt_s": float(sim.dt) if sim is not None and hasattr(sim, "dt") else None,
+        }
+        if mission_cfg is not None:
+            doc["mission"] = _jsonable(mission_cfg)
+        if meta:
+            doc.update(_jsonable(dict(meta)))
+        return doc
+
+    def _set_limits(self, r_s: float, obstacles: Sequence[Obstacle], v_min: float,
+                    v_max: float) -> None:
+        self._limits = {
+            "min_pair_distance_m": (2.0 * r_s,),
+            "min_left_leg_distance_m": (r_s,),
+            "min_right_leg_distance_m": (r_s,),
+            "min_speed_m_s": (v_min,),
+            "max_speed_m_s": (v_max,),
+        }
+        if obstacles:
+            self._limits["min_obstacle_center_distance_m"] = tuple(
+                sorted({float(o.radius) + r_s for o in obstacles}))
+        for key, values in self._limits.items():
+            names = [f"limit {v:g}" for v in values]
+            self._rec.log(LIMITS_PREFIX + key, self._rr.SeriesLines(
+                colors=[0xE53935FF] * len(values), names=names, widths=[1.0] * len(values)),
+                static=True)
+
+    def log_partition(self, partition: Any, t_s: float) -> None:
+        with self._lock:
+            if not self.closed:
+                self._log_partition_locked(partition, t_s=float(t_s), tick=self._last_tick)
+
+    def _log_partition_locked(self, partition: Any, *, t_s: float, tick: int) -> None:
+        rr = self._rr
+        idx = self._index([t_s], [tick])
+        subs = list(getattr(partition, "sub_tubes", ()))
+        tris = list(getattr(partition, "triangles", ()))
+        strips = [_closed(s.polygon()) for s in subs]
+        self._rec.send_columns(E_SUB_TUBES, idx, rr.LineStrips2D.columns(
+            strips=strips, labels=[getattr(s, "name", f"T_o{i + 1}") for i, s in enumerate(subs)],
+            colors=[0x1E88E5A0] * len(subs)).partition([len(subs)]))
+        tri_strips = [_closed(np.stack([t.p_oth, t.p_otu, t.p_otd])) for t in tris]
+        self._rec.send_columns(E_TRIANGLES, idx, rr.LineStrips2D.columns(
+            strips=tri_strips, labels=[f"I{int(getattr(t, 'obstacle', i)) + 1}"
+                                       for i, t in enumerate(tris)],
+            colors=[0xFB8C00FF] * len(tris)).partition([len(tris)]))
+
+    # ----- ticks ------------------------------------------------------------------------
+    def log_tick(
+        self,
+        *,
+        t_s: float,
+        tick: int,
+        ids: np.ndarray,
+        pos: np.ndarray,
+        vel: np.ndarray,
+        phases: Sequence[Any] | None = None,
+        cmd: np.ndarray | None = None,
+        metrics: Mapping[str, float] | None = None,
+    ) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            ids = np.asarray(ids)
+            pos = np.asarray(pos, dtype=float)
+            self._detect_exits(float(t_s), int(tick), ids, pos, phases)
+            if metrics:
+                self._aggregate(metrics)
+            self._last_tick, self._last_t = int(tick), float(t_s)
+            record = self._calls % self.decimate == 0
+            self._calls += 1
+            row = self._make_row(float(t_s), int(tick), ids, pos, vel, phases, cmd,
+                                 copy=not record)
+            if not record:
+                self._pending = row
+                return
+            self._pending = None
+            self._push(row)
+
+    def _make_row(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
+                  vel: np.ndarray, phases: Sequence[Any] | None, cmd: np.ndarray | None,
+                  copy: bool) -> _Row:
+        vel = np.asarray(vel, dtype=float)
+        present = ~np.isnan(pos[:, 0])
+        full = bool(present.all())
+        if full and not copy:
+            r_ids, r_pos, r_vel = ids, pos, vel
+        else:
+            r_ids, r_pos, r_vel = ids[present], pos[present], vel[present]
+        r_cmd = None
+        if cmd is not None:
+            c = np.asarray(cmd, dtype=float)
+            r_cmd = c if full and not copy else c[present]
+        r_ph = None
+        if phases is not None:
+            r_ph = list(phases) if full else [p for p, k in zip(phases, present, strict=True) if k]
+        labels, colors = self._labels(r_ids, r_ph)
+        return _Row(t_s, tick, r_ids, r_pos, r_vel, r_cmd, r_ph, labels, colors, {})
+
+    def _labels(self, ids: np.ndarray, phases: list[Any] | None) -> tuple[list[str], np.ndarray]:
+        key = (ids.tobytes(), None if phases is None else tuple(phases))
+        if key != self._label_key:
+            if phases is None:
+                labels = [str(i) for i in ids.tolist()]
+                colors = np.full(len(labels), _DEFAULT_COLOR, dtype=np.uint32)
+            else:
+                ph = [_phase_str(p) for p in phases]
+                labels = [f"{i} {p}" for i, p in zip(ids.tolist(), ph, strict=True)]
+                colors = np.array([PHASE_COLORS.get(p, _OTHER_COLOR) for p in ph],
+                                  dtype=np.uint32)
+            self._label_key = key
+            self._label_val = (labels, colors)
+        return self._label_val
+
+    def _aggregate(self, metrics: Mapping[str, float]) -> None:
+        agg = self._agg
+        for k, v in metrics.items():
+            v = float(v)
+            old = agg.get(k)
+            if old is None or math.isnan(old):
+                agg[k] = v
+            elif math.isnan(v):
+                continue
+            elif k.startswith("min_"):
+                agg[k] = min(old, v)
+            elif k.startswith("max_") or k in ("tick_duration_s", "link_latency_s"):
+                agg[k] = max(old, v)
+            else:
+                agg[k] = v
+
+    def _push(self, row: _Row) -> None:
+        row.metrics, self._agg = self._agg, {}
+        self._rows.append(row)
+        self._recorded += 1
+        if row.t_s >= self._next_status_t:
+            self._send_status(row)
+            self._next_status_t = row.t_s + self.status_period_s
+        if (len(self._rows) >= self.batch_ticks
+                or time.monotonic() - self._last_send >= self.max_delay_s):
+            self._send_rows()
+
+    def _detect_exits(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
+                      phases: Sequence[Any] | None) -> None:
+        gone: list[int] = []
+        if phases is not None:
+            ph = tuple(phases)
+            if ph != self._prev_phases or not np.array_equal(ids, self._prev_ids):
+                prev = {}
+                if self._prev_phases is not None and self._prev_ids is not None:
+                    prev = dict(zip(self._prev_ids.tolist(), self._prev_phases, strict=True))
+                for i, p in zip(ids.tolist(), ph, strict=True):
+                    q = prev.get(i)
+                    if q != p:
+                        ps = _phase_str(p)
+                        text = (f"vehicle {i}: {_phase_str(q)} → {ps}" if q is not None
+                                else f"vehicle {i}: {ps}")
+                        self._text_log(f"{E_EVENTS}/vehicle_{i}", t_s, tick, text, "info")
+                        if ps == "exited" and i not in self._exited:
+                            gone.append(i)
+                self._prev_phases = ph
+                self._prev_ids = ids.copy()
+        else:
+            present = ~np.isnan(pos[:, 0])
+            pids, pprev = self._prev_ids, self._prev_present
+            if pids is not None and pprev is not None:
+                if np.array_equal(ids, pids):
+                    left = pprev & ~present
+                    if left.any():
+                        gone = [int(i) for i in ids[left]]
+                else:
+                    now = set(ids[present].tolist())
+                    gone = [int(i) for i in pids[pprev].tolist() if int(i) not in now]
+            self._prev_ids = ids.copy() if pids is None or not np.array_equal(ids, pids) else pids
+            self._prev_present = present
+        gone = [i for i in gone if i not in self._exited]
+        if gone:
+            self._exited.update(gone)
+            self._log_exits(t_s, tick, gone)
+
+    def _log_exits(self, t_s: float, tick: int, gone: list[int]) -> None:
+        rr = self._rr
+        import pyarrow as pa
+        from rerun.any_value import AnyBatchValue
+
+        desc = rr.ComponentDescriptor(f"{_EXIT}:vehicle_id", archetype=_EXIT)
+        text = ("vehicle " if len(gone) == 1 else "vehicles ") + ", ".join(map(str, gone)) + \
+            " exited"
+        self._guard(lambda: self._rec.send_columns(
+            E_EXITS, self._index([t_s], [tick]),
+            [*rr.TextLog.columns(text=[text], level=["INFO"]),
+             rr.ComponentColumn(desc, AnyBatchValue(desc, pa.array(np.asarray(gone, np.int64))),
+                                lengths=[len(gone)])]))
+
+    # ----- sending ----------------------------------------------------------------------
+    def _index(self, t_s: Sequence[float] | np.ndarray, ticks: Sequence[int] | np.ndarray
+               ) -> list[Any]:
+        rr = self._rr
+        return [rr.TimeColumn(TIMELINE_TIME, duration=_td_ns(np.asarray(t_s, dtype=float))),
+                rr.TimeColumn(TIMELINE_TICK, sequence=np.asarray(ticks, dtype=np.int64))]
+
+    def _guard(self, fn: Any) -> None:
+        """Run a rerun call; recording problems are logged, never raised into the loop."""
+        try:
+            fn()
+        except Exception as exc:  # noqa: BLE001 - recording must not kill the control loop
+            self._send_errors += 1
+            if self._send_errors <= 3:
+                log.warning("rerun recording: %s: %s", type(exc).__name__, exc)
+
+    def _send_rows(self) -> None:
+        rows, self._rows = self._rows, []
+        self._last_send = time.monotonic()
+        if rows and self._enabled:
+            self._guard(lambda: self._send_rows_now(rows))
+
+    def _send_rows_now(self, rows: list[_Row]) -> None:
+        import pyarrow as pa
+        from rerun.any_value import AnyBatchValue
+
+        rr = self._rr
+        comps = rr.components
+        t = np.array([r.t_s for r in rows])
+        ticks = np.array([r.tick for r in rows], dtype=np.int64)
+        idx = self._index(t, ticks)
+        lengths = np.array([len(r.ids) for r in rows], dtype=np.int32)
+        pos = np.concatenate([r.pos for r in rows]).reshape(-1, 2)
+        vel = np.concatenate([r.vel for r in rows]).reshape(-1, 2)
+        ids = np.concatenate([r.ids for r in rows]).astype(np.int64)
+        labels: list[str] = []
+        for r in rows:
+            labels.extend(r.labels)
+        colors = np.concatenate([r.colors for r in rows])
+
+        def col(desc: Any, batch: Any, lens: np.ndarray = lengths) -> Any:
+            return rr.ComponentColumn(desc, batch, lengths=lens)
+
+        def custom(name: str, values: Any, lens: np.ndarray = lengths) -> Any:
+            desc = rr.ComponentDescriptor(f"{_STATE}:{name}", archetype=_STATE)
+            return col(desc, AnyBatchValue(desc, pa.array(values)), lens)
+
+        pos32 = pos.astype(np.float32)
+        cols = [
+            col(rr.Points2D.descriptor_positions(), comps.Position2DBatch(pos32)),
+            col(rr.Points2D.descriptor_labels(), comps.TextBatch(labels)),
+            col(rr.Points2D.descriptor_colors(), comps.ColorBatch(colors)),
+            custom("vehicle_id", ids),
+            custom("x_m", pos[:, 0]),
+            custom("y_m", pos[:, 1]),
+            custom("vx_m_s", vel[:, 0]),
+            custom("vy_m_s", vel[:, 1]),
+        ]
+        if all(r.phases is not None for r in rows):
+            ph: list[str] = []
+            for r in rows:
+                ph.extend(_phase_str(p) for p in r.phases or ())
+            cols.append(custom("phase", pa.array(ph, type=pa.string())))
+        self._rec.send_columns(E_VEHICLES, idx, cols)
+        self._rec.send_columns(E_VELOCITY, idx, [
+            col(rr.Arrows2D.descriptor_origins(), comps.Position2DBatch(pos32)),
+            col(rr.Arrows2D.descriptor_vectors(),
+                comps.Vector2DBatch((vel * self.arrow_scale_s).astype(np.float32))),
+        ])
+        with_cmd = [k for k, r in enumerate(rows) if r.cmd is not None]
+        if with_cmd:
+            sub = [rows[k] for k in with_cmd]
+            cl = lengths[with_cmd]
+            cpos = np.concatenate([r.pos for r in sub]).reshape(-1, 2)
+            cmd = np.concatenate([r.cmd for r in sub if r.cmd is not None]).reshape(-1, 2)
+            self._rec.send_columns(E_COMMANDS, self._index(t[with_cmd], ticks[with_cmd]), [
+                col(rr.Arrows2D.descriptor_origins(), comps.Position2DBatch(
+                    cpos.astype(np.float32)), cl),
+                col(rr.Arrows2D.descriptor_vectors(), comps.Vector2DBatch(
+                    (cmd * self.arrow_scale_s).astype(np.float32)), cl),
+                custom("cmd_x_m_s", cmd[:, 0], cl),
+                custom("cmd_y_m_s", cmd[:, 1], cl),
+            ])
+        keys: dict[str, None] = {}
+        for r in rows:
+            keys.update(dict.fromkeys(r.metrics))
+        for key in keys:
+            sel = [k for k, r in enumerate(rows) if key in r.metrics]
+            vals = np.array([rows[k].metrics[key] for k in sel], dtype=float)
+            self._rec.send_columns(METRICS_PREFIX + key, self._index(t[sel], ticks[sel]),
+                                   rr.Scalars.columns(scalars=vals))
+        self._metric_keys_seen.update(keys)
+        # safety limits as flat lines over the span of this batch
+        span = [0, len(rows) - 1] if len(rows) > 1 else [0]
+        for key, values in self._limits.items():
+            if key in self._metric_keys_seen:
+                self._rec.send_columns(
+                    LIMITS_PREFIX + key, self._index(t[span], ticks[span]),
+                    rr.Scalars.columns(scalars=np.tile(values, len(span))).partition(
+                        [len(values)] * len(span)))
+
+    def _send_status(self, row: _Row) -> None:
+        if not self._enabled:
+            return
+        speed = np.hypot(row.vel[:, 0], row.vel[:, 1]) if len(row.vel) else np.zeros(0)
+        phases = row.phases if row.phases is not None else ["-"] * len(row.ids)
+        lines = [f"t = {row.t_s:.2f} s, tick {row.tick}, {len(row.ids)} vehicles present, "
+                 f"{len(self._exited)} exited", "",
+                 "| id | phase | x [m] | y [m] | speed [m/s] |", "|---:|---|---:|---:|---:|"]
+        lines += [f"| {i} | {_phase_str(p)} | {x:.2f} | {y:.2f} | {s:.2f} |"
+                  for i, p, (x, y), s in zip(row.ids.tolist(), phases, row.pos.tolist(),
+                                             speed.tolist(), strict=True)]
+        rr = self._rr
+        self._guard(lambda: self._rec.send_columns(
+            E_STATUS, self._index([row.t_s], [row.tick]),
+            rr.TextDocument.columns(text=["\n".join(lines)], media_type=["text/markdown"])))
+
+    def _text_log(self, path: str, t_s: float, tick: int, text: str, level: str) -> None:
+        if not self._enabled:
+            return
+        lvl = _LEVELS.get(level.lower(), level.upper())
+        rr = self._rr
+        self._guard(lambda: self._rec.send_columns(
+            path, self._index([t_s], [tick]), rr.TextLog.columns(text=[text], level=[lvl])))
+
+    # ----- events, summary, close -------------------------------------------------------
+    def log_event(
+        self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
+    ) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            path = E_EVENTS if vehicle_id is None else f"{E_EVENTS}/vehicle_{int(vehicle_id)}"
+            self._text_log(path, float(t_s), self._last_tick, str(text), level)
+
+    def log_summary(self, summary: Mapping[str, Any]) -> None:
+        rr = self._rr
+        with self._lock:
+            if self.closed or not self._enabled:
+                return
+            text = json.dumps(_jsonable(dict(summary)), indent=1)
+            self._guard(lambda: self._rec.log(
+                E_SUMMARY, rr.TextDocument(text, media_type=rr.MediaType.TEXT), static=True))
+
+    @property
+    def recorded_ticks(self) -> int:
+        """Ticks recorded so far (including the final pending one once closed)."""
+        return self._recorded
+
+    @property
+    def calls(self) -> int:
+        """:meth:`log_tick` calls so far."""
+        return self._calls
+
+    def close(self) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            try:
+                atexit.unregister(self._atexit)
+            except Exception:  # noqa: BLE001 - best effort at interpreter exit
+                pass
+            try:
+                if self._pending is not None:
+                    row, self._pending = self._pending, None
+                    self._push(row)
+                if self._rows:
+                    self._send_rows()
+                if self._enabled:
+                    try:
+                        self._rec.flush(timeout_sec=self.flush_timeout_s)
+                    except Exception as exc:  # noqa: BLE001 - e.g. live viewer went away
+                        log.warning("rerun recording: flush: %s", exc)
+            finally:
+                try:
+                    self._rec.disconnect()
+                except Exception as exc:  # noqa: BLE001
+                    log.warning("rerun recording: close: %s", exc)
+            if self.path is not None:
+                size = self.path.stat().st_size if self.path.exists() else 0
+                log.info("recording saved: %s (%d ticks recorded of %d, %.1f kB)", self.path,
+                         self._recorded, self._calls, size / 1e3)
+
+    def __enter__(self) -> RerunRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        where = [str(self.path)] if self.path else []
+        if self.connect_url:
+            where.append(self.connect_url)
+        return f"RerunRecorder({', '.join(where)}, decimate={self.decimate})"
+
+
+def _make_atexit(rec: RerunRecorder) -> Any:
+    ref = weakref.ref(rec)
+
+    def _close_at_exit() -> None:
+        r = ref()
+        if r is not None and not r.closed:
+            r.close()
+
+    return _close_at_exit
+
+
+# ----------------------------------------------------------------------------------------------
+# blueprint
+# ----------------------------------------------------------------------------------------------
+def default_blueprint() -> Any:
+    """The default layout: the 2-D tube view with the status table and event log on the left,
+    the time series (Fig. 11 quantities, tick duration, link latency) on the right."""
+    import rerun.blueprint as rrb
+
+    series = []
+    for name, keys in METRIC_VIEWS:
+        contents = [f"/{METRICS_PREFIX}{k}" for k in keys] + [f"/{LIMITS_PREFIX}{k}" for k in keys]
+        series.append(rrb.TimeSeriesView(origin="/", contents=contents, name=name))
+    known = [k for _, keys in METRIC_VIEWS for k in keys]
+    series.append(rrb.TimeSeriesView(
+        origin="/metrics", name="other metrics",
+        contents=["$origin/**"] + [f"- /{METRICS_PREFIX}{k}" for k in known]))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="/world", name="tube"),
+                rrb.Tabs(
+                    rrb.TextDocumentView(origin=f"/{E_STATUS}", name="status"),
+                    rrb.TextLogView(origin=f"/{E_EVENTS}", name="events"),
+                ),
+                row_shares=[3, 2],
+            ),
+            rrb.Grid(*series, grid_columns=2),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline=TIMELINE_TIME),
+        collapse_panels=False,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# factory and CLI glue
+# ----------------------------------------------------------------------------------------------
+def open_recorder(
+    save_path: str | os.PathLike[str] | None,
+    *,
+    connect: str | None = None,
+    app_id: str = "vtube_fleet",
+    decimate: int = 1,
+    kind: str = "sim",
+    **options: Any,
+) -> Recorder:
+    """A :class:`RerunRecorder`, or a :class:`NullRecorder` when both targets are ``None``."""
+    if save_path is None and connect is None:
+        return NullRecorder()
+    return RerunRecorder(save_path, connect=connect, app_id=app_id, decimate=decimate,
+                         kind=kind, **options)
+
+
+def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int | None = None
+                       ) -> None:
+    """Add ``--rerun-save``, ``--rerun-connect``, ``--rerun-decimate`` and ``--no-rerun``."""
+    g = parser.add_argument_group("recording (rerun)")
+    g.add_argument("--rerun-save", metavar="PATH", type=Path, default=None,
+                   help=f"write the rerun recording here (default: OUT/{DEFAULT_RECORDING_NAME})")
+    g.add_argument("--rerun-connect", metavar="ADDR", nargs="?", const=DEFAULT_CONNECT_URL,
+                   default=None,
+                   help="also stream to a live rerun viewer (default address "
+                        f"{DEFAULT_CONNECT_URL}; HOST:PORT or a port also work)")
+    g.add_argument("--rerun-decimate", metavar="N", type=int, default=default_decimate,
+                   help="record every N-th control tick / simulation step "
+                        "(default: each command's own choice)")
+    g.add_argument("--no-rerun", action="store_true",
+                   help="do not write a recording (and ignore --rerun-save)")
+
+
+def recorder_from_args(
+    args: argparse.Namespace,
+    out_dir: str | os.PathLike[str] | None,
+    *,
+    kind: str = "sim",
+    app_id: str = "vtube_fleet",
+    decimate: int = 1,
+    **options: Any,
+) -> Recorder:
+    """The recorder the command line asks for (see :func:`add_recording_args`).
+
+    ``decimate`` is used unless ``--rerun-decimate`` was given. Without ``--rerun-save`` the
+    file is ``out_dir/recording.rrd`` (no file when ``out_dir`` is ``None``).
+    """
+    if getattr(args, "no_rerun", False):
+        save = None
+    else:
+        save = getattr(args, "rerun_save", None)
+        if save is None and out_dir is not None:
+            save = Path(out_dir) / DEFAULT_RECORDING_NAME
+    connect = getattr(args, "rerun_connect", None)
+    dec = getattr(args, "rerun_decimate", None)
+    if dec is None:
+        dec = decimate
+    if not (isinstance(dec, int) and dec >= 1):
+        raise RecordingError(f"--rerun-decimate must be an integer >= 1, got {dec}")
+    return open_recorder(save, connect=connect, app_id=app_id, decimate=dec, kind=kind,
+                         **options)
+
+
+# ----------------------------------------------------------------------------------------------
+# reading back
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class RecordingData:
+    """A recording read back by :func:`load_recording`.
+
+    ``t_s`` / ``tick`` (T,) are the recorded ticks in order; ``ids`` (M,) every vehicle id seen
+    (the scenario's ids first, in their order); ``pos`` / ``vel`` (T, M, 2) with NaN where a
+    vehicle was absent; ``cmd`` likewise or ``None``; ``phases`` (T, M) object array or ``None``;
+    ``metrics`` key → (T,) array (NaN where not logged); ``exits`` vehicle id → exit time;
+    ``events`` (t_s, entity path, level, text); ``entity_rows`` entity path → temporal row count
+    (static rows counted under ``static_rows``); ``meta`` / ``summary`` the two JSON documents.
+    """
+
+    path: Path
+    meta: dict[str, Any]
+    summary: dict[str, Any] | None
+    t_s: np.ndarray
+    tick: np.ndarray
+    ids: np.ndarray
+    pos: np.ndarray
+    vel: np.ndarray
+    cmd: np.ndarray | None
+    phases: np.ndarray | None
+    metrics: dict[str, np.ndarray]
+    exits: dict[int, float]
+    events: list[tuple[float, str, str, str]]
+    entity_rows: dict[str, int]
+    static_rows: dict[str, int]
+    application_id: str = ""
+    recording_id: str = ""
+    partitions: list[tuple[float, list[np.ndarray], list[np.ndarray]]] = field(
+        default_factory=list)
+
+    @property
+    def kind(self) -> str:
+        return str(self.meta.get("kind", "?"))
+
+    def tube(self) -> Trapezoid:
+        from vtube_fleet.tube import Trapezoid
+
+        t = self.meta["tube"]
+        return Trapezoid(np.array(t["p_h0"]), np.array(t["p_h1"]), np.array(t["p_r0"]),
+                         np.array(t["p_r1"]))
+
+    def obstacles(self) -> tuple[Obstacle, ...]:
+        from vtube_fleet.tube import Obstacle
+
+        return tuple(Obstacle(center=np.array(o["center"], dtype=float), radius=float(o["radius"]),
+                              apex_distance=o.get("apex_distance"))
+                     for o in self.meta.get("obstacles", []))
+
+
+def _list_column(rb: Any, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """A list<…> column → (flat values, per-row lengths) or None if absent."""
+    import pyarrow as pa
+
+    if name not in rb.schema.names:
+        return None
+    arr = rb.column(name)
+    if isinstance(arr, pa.ChunkedArray):
+        arr = arr.combine_chunks()
+    lengths = arr.value_lengths().fill_null(0).to_numpy(zero_copy_only=False)
+    flat = arr.flatten()
+    if pa.types.is_fixed_size_list(flat.type):
+        size = flat.type.list_size
+        values = flat.flatten().to_numpy(zero_copy_only=False).reshape(-1, size)
+    elif pa.types.is_string(flat.type) or pa.types.is_large_string(flat.type):
+        values = np.array(flat.to_pylist(), dtype=object)
+    else:
+        values = flat.to_numpy(zero_copy_only=False)
+    return values, lengths.astype(np.int64)
+
+
+def _index_columns(rb: Any) -> tuple[np.ndarray, np.ndarray]:
+    names = rb.schema.names
+    n = rb.num_rows
+    if TIMELINE_TIME in names:
+        t = rb.column(TIMELINE_TIME).cast("int64").to_numpy(zero_copy_only=False) / 1e9
+    else:
+        t = np.full(n, np.nan)
+    if TIMELINE_TICK in names:
+        k = rb.column(TIMELINE_TICK).to_numpy(zero_copy_only=False).astype(np.int64)
+    else:
+        k = np.full(n, -1, dtype=np.int64)
+    return t, k
+
+
+def load_recording(path: str | os.PathLike[str]) -> RecordingData:
+    """Read a recording written by :class:`RerunRecorder` (with ``rerun.chunk.RrdReader``).
+
+    Raises :class:`RecordingError` when the file is missing, is not an .rrd, or carries no
+    ``meta/scenario`` document of ours.
+    """
+    from rerun.chunk import RrdReader
+
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"{p}: no such file")
+    if p.is_dir():
+        raise RecordingError(f"{p}: is a directory, expected an .rrd file")
+    try:
+        reader = RrdReader(p)
+        stores = reader.recordings()
+        if not stores:
+            raise RecordingError(f"{p}: contains no recording")
+        chunks = reader.stream(store=stores[0]).to_chunks()
+    except RecordingError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - rerun raises several types for bad files
+        raise RecordingError(f"{p}: not a readable rerun recording ({exc})") from None
+
+    meta_text: str | None = None
+    summary_text: str | None = None
+    entity_rows: dict[str, int] = {}
+    static_rows: dict[str, int] = {}
+    veh: list[tuple[np.ndarray, np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
+    cmd_parts: list[tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
+    metric_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    exits: dict[int, float] = {}
+    events: list[tuple[float, str, str, str]] = []
+    parts_sub: dict[int, tuple[float, list[np.ndarray]]] = {}
+    parts_tri: dict[int, tuple[float, list[np.ndarray]]] = {}
+
+    def text_of(rb: Any, name: str) -> list[str]:
+        col = _list_column(rb, name)
+        if col is None:
+            return []
+        vals, lens = col
+        offs = np.concatenate([[0], np.cumsum(lens)])
+        return [str(vals[offs[i]]) if lens[i] else "" for i in range(len(lens))]
+
+    def strips_of(rb: Any) -> list[list[np.ndarray]]:
+        import pyarrow as pa
+
+        name = "LineStrips2D:strips"
+        if name not in rb.schema.names:
+            return []
+        out = []
+        arr = rb.column(name)
+        if isinstance(arr, pa.ChunkedArray):
+            arr = arr.combine_chunks()
+        for row in arr.to_pylist():
+            out.append([np.array(s, dtype=float).reshape(-1, 2) for s in (row or [])])
+        return out
+
+    for ch in chunks:
+        ent = str(ch.entity_path).lstrip("/")
+        if ent.startswith("__"):
+            continue
+        rb = ch.to_record_batch()
+        if ch.is_static:
+            static_rows[ent] = static_rows.get(ent, 0) + ch.num_rows
+            if ent == E_META:
+                texts = text_of(rb, "TextDocument:text")
+                meta_text = texts[-1] if texts else meta_text
+            elif ent == E_SUMMARY:
+                texts = text_of(rb, "TextDocument:text")
+                summary_text = texts[-1] if texts else summary_text
+            continue
+        entity_rows[ent] = entity_rows.get(ent, 0) + ch.num_rows
+        t, k = _index_columns(rb)
+        if ent == E_VEHICLES:
+            comps = {n.split(":", 1)[1]: c for n in rb.schema.names
+                     if n.startswith(_STATE + ":") and (c := _list_column(rb, n)) is not None}
+            veh.append((t, k, comps))
+        elif ent == E_COMMANDS:
+            comps = {n.split(":", 1)[1]: c for n in rb.schema.names
+                     if n.startswith(_STATE + ":") and (c := _list_column(rb, n)) is not None}
+            cmd_parts.append((k, comps))
+        elif ent.startswith(METRICS_PREFIX):
+            col = _list_column(rb, "Scalars:scalars")
+            if col is not None:
+                vals, lens = col
+                offs = np.concatenate([[0], np.cumsum(lens)])
+                v = np.array([vals[offs[i]] if lens[i] else np.nan for i in range(len(lens))],
+                             dtype=float)
+                metric_parts.setdefault(ent[len(METRICS_PREFIX):], []).append((k, v))
+        elif ent == E_EXITS:
+            col = _list_column(rb, f"{_EXIT}:vehicle_id")
+            if col is not None:
+                vals, lens = col
+                offs = np.concatenate([[0], np.cumsum(lens)])
+                for i in range(len(lens)):
+                    for vid in vals[offs[i]:offs[i + 1]]:
+                        exits.setdefault(int(vid), float(t[i]))
+            for i, txt in enumerate(text_of(rb, "TextLog:text")):
+                events.append((float(t[i]), ent, "INFO", txt))
+        elif ent.startswith(E_EVENTS):
+            texts = text_of(rb, "TextLog:text")
+            levels = text_of(rb, "TextLog:level") or ["INFO"] * len(texts)
+            for i, txt in enumerate(texts):
+                events.append((float(t[i]), ent, levels[i] or "INFO", txt))
+        elif ent in (E_SUB_TUBES, E_TRIANGLES):
+            target = parts_sub if ent == E_SUB_TUBES else parts_tri
+            for i, strips in enumerate(strips_of(rb)):
+                target[int(k[i])] = (float(t[i]), strips)
+
+    if meta_text is None:
+        raise RecordingError(f"{p}: not a vtube_fleet recording (no {E_META} document)")
+    try:
+        meta = json.loads(meta_text)
+    except json.JSONDecodeError as exc:
+        raise RecordingError(f"{p}: {E_META} is not valid JSON ({exc})") from None
+    if meta.get("format") != META_FORMAT:
+        raise RecordingError(f"{p}: {E_META} has format {meta.get('format')!r}, "
+                             f"expected {META_FORMAT!r}")
+    summary = json.loads(summary_text) if summary_text else None
+
+    # ---- vehicles: one row per tick ----
+    all_k = np.concatenate([k for _, k, _ in veh]) if veh else np.zeros(0, np.int64)
+    all_t = np.concatenate([t for t, _, _ in veh]) if veh else np.zeros(0)
+    ticks, first = np.unique(all_k, return_index=True)
+    t_s = all_t[first]
+    seen_ids: list[int] = [int(i) for i in meta.get("ids", [])]
+    known = set(seen_ids)
+    for _, _, comps in veh:
+        if "vehicle_id" in comps:
+            for i in np.unique(comps["vehicle_id"][0]).tolist():
+                if int(i) not in known:
+                    known.add(int(i))
+                    seen_ids.append(int(i))
+    ids = np.array(seen_ids, dtype=np.int64)
+    col_of = {int(i): c for c, i in enumerate(seen_ids)}
+    T, M = len(ticks), len(ids)
+    pos = np.full((T, M, 2), np.nan)
+    vel = np.full((T, M, 2), np.nan)
+    have_phase = bool(veh) and all("phase" in comps for _, _, comps in veh)
+    phases = np.full((T, M), None, dtype=object) if have_phase else None
+    for _, k, comps in veh:
+        vids, lens = comps["vehicle_id"]
+        row = np.repeat(np.searchsorted(ticks, k), lens)
+        colidx = np.array([col_of[int(i)] for i in vids.tolist()], dtype=np.int64)
+        pos[row, colidx, 0] = comps["x_m"][0]
+        pos[row, colidx, 1] = comps["y_m"][0]
+        vel[row, colidx, 0] = comps["vx_m_s"][0]
+        vel[row, colidx, 1] = comps["vy_m_s"][0]
+        if phases is not None:
+            phases[row, colidx] = comps["phase"][0]
+    cmd = None
+    if cmd_parts:
+        cmd = np.full((T, M, 2), np.nan)
+        vrows = {}
+        for _, k, comps in veh:  # commands are logged for the same rows as the vehicles
+            vids, lens = comps["vehicle_id"]
+            offs = np.concatenate([[0], np.cumsum(lens)])
+            for j, kk in enumerate(k.tolist()):
+                vrows[kk] = vids[offs[j]:offs[j + 1]]
+        for k, comps in cmd_parts:
+            cx, lens = comps["cmd_x_m_s"]
+            cy, _ = comps["cmd_y_m_s"]
+            offs = np.concatenate([[0], np.cumsum(lens)])
+            for j, kk in enumerate(k.tolist()):
+                r = int(np.searchsorted(ticks, kk))
+                cidx = np.array([col_of[int(i)] for i in vrows.get(kk, [])], dtype=np.int64)
+                cmd[r, cidx, 0] = cx[offs[j]:offs[j + 1]]
+                cmd[r, cidx, 1] = cy[offs[j]:offs[j + 1]]
+    metrics: dict[str, np.ndarray] = {}
+    for key, parts in metric_parts.items():
+        arr = np.full(T, np.nan)
+        for k, v in parts:
+            r = np.searchsorted(ticks, k)
+            ok = (r < T) & (ticks[np.minimum(r, T - 1)] == k) if T else np.zeros(len(k), bool)
+            arr[r[ok]] = v[ok]
+        metrics[key] = arr
+    events.sort(key=lambda e: e[0])
+    partitions = []
+    for kk in sorted(set(parts_sub) | set(parts_tri)):
+        ts = parts_sub.get(kk, parts_tri.get(kk))[0]  # type: ignore[index]
+        partitions.append((ts, parts_sub.get(kk, (ts, []))[1], parts_tri.get(kk, (ts, []))[1]))
+    return RecordingData(
+        path=p, meta=meta, summary=summary, t_s=t_s, tick=ticks, ids=ids, pos=pos, vel=vel,
+        cmd=cmd, phases=phases, metrics=metrics, exits=exits, events=events,
+        entity_rows=entity_rows, static_rows=static_rows,
+        application_id=str(stores[0].application_id), recording_id=str(stores[0].recording_id),
+        partitions=partitions,
+    )
