@@ -1,0 +1,155 @@
+"""Vehicle endpoints in MAVSDK's connection-URL syntax, and PX4 SITL's port scheme.
+
+Accepted forms (the UDP subset of MAVSDK's ``CliArg``):
+
+* ``udpin://HOST:PORT``: bind ``HOST:PORT`` locally and wait for the vehicle; its address is
+  learned from its first packet (what PX4 SITL's "Onboard"/API link expects: PX4 instance ``i``
+  sends from 14580+i to 14540+i). An empty host means ``0.0.0.0``.
+* ``udpout://HOST:PORT``: send to the vehicle at ``HOST:PORT`` from an ephemeral local port;
+  the vehicle learns our address from our heartbeat. ``0.0.0.0`` is invalid here.
+* ``udp://HOST:PORT``: MAVSDK's deprecated form: ``udp://:PORT`` and ``udp://0.0.0.0:PORT`` mean
+  ``udpin``, any other host means ``udpout``. It is normalised to the explicit scheme.
+
+PX4 SITL port scheme (``px4-rc.mavlinksim``): instance ``i`` has its API/Onboard link on
+GCS port ``14540 + i`` (remote) and sends from ``14580 + i`` (local). The scheme collides from
+the 41st instance on: instance 40's GCS port 14540 + 40 = 14580 is instance 0's own sending
+port. :func:`px4_sitl_endpoints` therefore refuses ``n > 40``.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass
+
+from vtube_fleet.errors import UserError
+
+__all__ = [
+    "EndpointError",
+    "Endpoint",
+    "parse_endpoint",
+    "px4_sitl_endpoints",
+    "px4_sitl_sysid",
+    "PX4_SITL_API_PORT",
+    "PX4_SITL_MAX_INSTANCES",
+]
+
+#: GCS-side port of PX4 SITL instance 0's API/Onboard link (instance i: +i).
+PX4_SITL_API_PORT = 14540
+#: PX4 sends from 14580 + i, so 14540 + i collides with instance 0 from i = 40 on.
+PX4_SITL_MAX_INSTANCES = 40
+
+_SCHEMES = ("udpin", "udpout", "udp")
+
+
+class EndpointError(UserError):
+    """A malformed endpoint URL or an impossible SITL instance count."""
+
+
+@dataclass(frozen=True, slots=True)
+class Endpoint:
+    """A parsed endpoint; ``scheme`` is ``"udpin"`` or ``"udpout"`` (``udp://`` normalised)."""
+
+    scheme: str
+    host: str
+    port: int
+
+    @property
+    def url(self) -> str:
+        """The canonical URL, e.g. ``udpin://127.0.0.1:14540``."""
+        return f"{self.scheme}://{self.host}:{self.port}"
+
+    @property
+    def listens(self) -> bool:
+        """True for ``udpin`` (bind locally, learn the vehicle's address)."""
+        return self.scheme == "udpin"
+
+    def __str__(self) -> str:
+        return self.url
+
+
+def parse_endpoint(url: str) -> Endpoint:
+    """Parse a MAVSDK-style UDP URL; raise :class:`EndpointError` (one line) if malformed.
+
+    >>> parse_endpoint("udpin://127.0.0.1:14540")
+    Endpoint(scheme='udpin', host='127.0.0.1', port=14540)
+    >>> parse_endpoint("udp://:14541").url
+    'udpin://0.0.0.0:14541'
+    """
+    if not isinstance(url, str):
+        raise EndpointError(
+            f"endpoint must be a string like 'udpin://127.0.0.1:14540', got {url!r}"
+        )
+    text = url.strip()
+    scheme, sep, rest = text.partition("://")
+    if not sep:
+        raise EndpointError(
+            f"endpoint {url!r}: missing scheme, expected 'udpin://HOST:PORT' or 'udpout://HOST:PORT'"
+        )
+    scheme = scheme.lower()
+    if scheme not in _SCHEMES:
+        raise EndpointError(
+            f"endpoint {url!r}: unsupported scheme {scheme!r} (supported: udpin, udpout, udp)"
+        )
+    host, colon, port_text = rest.rpartition(":")
+    if not colon:
+        raise EndpointError(f"endpoint {url!r}: missing ':PORT'")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not port_text.isdigit():
+        raise EndpointError(f"endpoint {url!r}: port {port_text!r} is not a number")
+    port = int(port_text)
+    if not 1 <= port <= 65535:
+        raise EndpointError(f"endpoint {url!r}: port {port} outside 1..65535")
+    if host and not _valid_host(host):
+        raise EndpointError(f"endpoint {url!r}: invalid host {host!r}")
+    if scheme == "udp":
+        scheme = "udpin" if host in ("", "0.0.0.0") else "udpout"
+    if scheme == "udpin" and host == "":
+        host = "0.0.0.0"
+    if scheme == "udpout" and host in ("", "0.0.0.0"):
+        raise EndpointError(
+            f"endpoint {url!r}: udpout needs the vehicle's address, not {host or 'an empty host'!r}"
+        )
+    return Endpoint(scheme, host, port)
+
+
+def _valid_host(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        pass
+    labels = host.split(".")
+    return all(
+        0 < len(lab) <= 63 and lab.replace("-", "").isalnum() and not lab.startswith("-")
+        for lab in labels
+    )
+
+
+def px4_sitl_endpoints(n: int, host: str = "127.0.0.1", first_instance: int = 0) -> list[str]:
+    """Endpoints of ``n`` PX4 SITL instances: ``udpin://HOST:14540+i`` for each instance ``i``.
+
+    Instance ``i`` has MAVLink system id ``i + 1`` (:func:`px4_sitl_sysid`). Raises
+    :class:`EndpointError` for ``n < 1`` or when an instance index reaches 40: PX4's scheme then
+    collides (14540 + 40 = 14580 is the port instance 0 sends from).
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise EndpointError(f"number of PX4 SITL instances must be an integer >= 1, got {n!r}")
+    if first_instance < 0:
+        raise EndpointError(f"first PX4 SITL instance must be >= 0, got {first_instance}")
+    last = first_instance + n - 1
+    if last >= PX4_SITL_MAX_INSTANCES:
+        raise EndpointError(
+            f"{n} PX4 SITL instances from instance {first_instance}: instance {last} would use "
+            f"port {PX4_SITL_API_PORT + last}, but PX4's port scheme collides from instance "
+            f"{PX4_SITL_MAX_INSTANCES} on (14540+40 = 14580 is instance 0's own port); "
+            f"at most {PX4_SITL_MAX_INSTANCES} instances"
+        )
+    parse_endpoint(f"udpin://{host}:{PX4_SITL_API_PORT}")  # validates host
+    return [f"udpin://{host}:{PX4_SITL_API_PORT + i}" for i in range(first_instance, last + 1)]
+
+
+def px4_sitl_sysid(port: int) -> int | None:
+    """The system id PX4 SITL uses on GCS port ``port`` (14540 + i → i + 1), else None."""
+    i = port - PX4_SITL_API_PORT
+    return i + 1 if 0 <= i < PX4_SITL_MAX_INSTANCES else None
