@@ -67,6 +67,7 @@ import socket
 import threading
 import time
 import uuid
+import warnings
 import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -1145,7 +1146,10 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     if p.is_dir():
         raise RecordingError(f"{p}: is a directory, expected an .rrd file")
     try:
-        reader = RrdReader(p)
+        with warnings.catch_warnings():
+            # a file still being written, or cut short, has no footer: readable all the same
+            warnings.filterwarnings("ignore", message=".*no footer.*")
+            reader = RrdReader(p)
         stores = reader.recordings()
         if not stores:
             raise RecordingError(f"{p}: contains no recording")
