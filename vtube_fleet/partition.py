@@ -256,16 +256,33 @@ def _assumption3_reasons(tube: Trapezoid, params: ControllerParams) -> list[str]
     return reasons
 
 
+def _width_reasons(tube: Trapezoid, params: ControllerParams) -> list[str]:
+    """"Wide enough to contain at least one robot" taken literally: at each base some centre
+    must have d_Th ≥ r_s and d_Tr ≥ r_s, i.e. the base width w ≥ r_s (1/cos θ_h + 1/cos θ_r)
+    with θ the leg angles to n_c. (For a tube with a leg parallel to n_c the letter of
+    Assumption 3 — L ∩ R = ∅, M ≠ ∅ — does not imply this.)"""
+    need = params.r_s * (1.0 / float(tube.t_h @ tube.n_c) + 1.0 / float(tube.t_r @ tube.n_c))
+    out = []
+    for base, z in (("start base", 0.0), ("finishing line", tube.length)):
+        w = float(tube.width(z))
+        if w < need:
+            out.append(f"too narrow to contain one robot: its {base} is {_num(w)} m wide, a "
+                       f"safety disc of radius r_s = {_num(params.r_s)} m needs {_num(need)} m "
+                       f"between the legs")
+    return out
+
+
 def check_assumption3(
     tube: Trapezoid, params: ControllerParams, condition: str = "Assumption3", label: str = ""
 ) -> list[Violation]:
     """Assumption 3 (main tube) / Assumption 3' (a sub-tube, ``condition="Assumption3'"``):
-    L ∩ R = ∅ (zero area), M ≠ ∅, n_cᵀ(p_r1 − p_r0) > 2 r_a; one :class:`Violation` per
-    failing part, with the numbers."""
+    L ∩ R = ∅ (zero area), M ≠ ∅, n_cᵀ(p_r1 − p_r0) > 2 r_a, and — the assumption's words
+    "wide enough to contain at least one robot" — room for one safety disc at both bases; one
+    :class:`Violation` per failing part, with the numbers."""
     where = f" in {label}" if label else ""
     return [
         Violation(condition, f"{condition} violated{where}: {r}")
-        for r in _assumption3_reasons(tube, params)
+        for r in _assumption3_reasons(tube, params) + _width_reasons(tube, params)
     ]
 
 
@@ -295,7 +312,9 @@ class _Locator:
             br[k] = float(t.n_r @ t.p_r1)
         # Lower indices get a bonus below LOCATE_TOL so that ties up to rounding go to the
         # smallest index (the apex rule).
-        bh -= LOCATE_TOL * (K - np.arange(K)) / (K + 1)
+        bonus = LOCATE_TOL * (K - np.arange(K)) / (K + 1)
+        bh -= bonus
+        br -= bonus
         self.A = A
         self.delta = bh - br
         self.n_c = np.array(n_c, dtype=float)
@@ -501,13 +520,18 @@ class _Builder:
                      for k, nd in enumerate(nodes))
         for nd, t in zip(nodes, subs, strict=True):
             label = f"{t.name} ({nd.origin})"
-            a3 = check_assumption3(t, self.params, "Assumption3'", label)
+            a3 = [Violation("Assumption3'", f"Assumption3' violated in {label}: {r}")
+                  for r in _assumption3_reasons(t, self.params)]
             if a3 and self.strict:
                 i = nd.obstacle
                 assert i is not None
                 raise PartitionError(i, "; ".join(v.message for v in a3),
                                      _obstacle_label(i, self.obstacles[i]))
             self.warnings += a3
+            # Not part of the construction's validity test (PARTITION.md), hence a warning
+            # even in strict mode: a passage narrower than one safety disc.
+            self.warnings += [Violation("Assumption3'", f"Assumption3' violated in {label}: {r}")
+                              for r in _width_reasons(t, self.params)]
             self.warnings += check_constraint2(t, self.params, "Constraint3", label)
         return Partition(
             self.tube, subs,
@@ -601,7 +625,7 @@ class _Builder:
             kept_side = "left" if dropped == "right" else "right"
             s = 1.0 if dropped == "right" else -1.0  # +1: the left passage is kept
             leg_a, leg_t = (Q.p_r0, Q.t_r) if dropped == "right" else (Q.p_h0, Q.t_h)
-            target = xs_a + 2.0 * params.r_a
+            target = xs_a + 2.0 * params.r_a + 1e-6  # + 1 µm: before_k longer than 2 r_a
 
             def apex(b: float) -> tuple[float, np.ndarray | None]:
                 """ξ of (tangent of O' at angle b to n_c) ∩ (dropped side's leg line);

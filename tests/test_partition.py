@@ -1,0 +1,378 @@
+"""Tests of the Section IV partition (vtube_fleet.partition, PARTITION.md)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vtube_fleet.controller import ControllerParams, TubeArrays
+from vtube_fleet.errors import UserError
+from vtube_fleet.partition import (
+    DEFAULT_APEX_FACTOR,
+    Partition,
+    PartitionError,
+    alpha_max,
+    h_min,
+    partition,
+)
+from vtube_fleet.tube import Obstacle, Trapezoid
+
+PARAMS = ControllerParams(r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5)
+
+# The recommended paper-like scenario (n_c = +x, left = +y).
+PAPER_TUBE = Trapezoid((0.0, 9.0), (31.0, 4.5), (0.0, -9.0), (31.0, -4.5))
+PAPER_OBSTACLES = [Obstacle(c, 0.9) for c in
+                   [(10.5, 0.0), (15.0, 1.5), (19.5, -1.5), (24.0, 1.0), (28.5, -0.5)]]
+
+RECT = Trapezoid((0.0, 5.0), (20.0, 5.0), (0.0, -5.0), (20.0, -5.0))
+CONVERGING = Trapezoid((0.0, 6.0), (20.0, 4.0), (0.0, -6.0), (20.0, -4.0))
+WIDE = Trapezoid((0.0, 12.0), (40.0, 12.0), (0.0, -12.0), (40.0, -12.0))
+# A big obstacle and a small one nested in its left side tube, then a sequential one.
+NESTED = [Obstacle((20.0, 0.0), 3.0), Obstacle((21.5, 8.5), 0.2)]
+
+
+def reference_locate(part: Partition, p: np.ndarray) -> int:
+    """PARTITION.md §5 literally, one point at a time."""
+    xi = float(part.tube.xi(p))
+    best, best_v = -1, math.inf
+    for k, t in enumerate(part.sub_tubes):
+        if part.xi_start[k] <= xi < part.xi_end[k]:
+            viol = max(-float(t.d_Th(p)), -float(t.d_Tr(p)))
+            if viol < best_v:
+                best, best_v = k, viol
+    return best
+
+
+def sample_in(tube: Trapezoid, n: int, rng: np.random.Generator) -> np.ndarray:
+    poly = tube.polygon()
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    pts = rng.uniform(lo, hi, size=(3 * n, 2))
+    return pts[tube.contains(pts)][:n]
+
+
+def check_cover(part: Partition, obstacles: list[Obstacle], n: int = 20000, seed: int = 1):
+    """(FourSub1)/(FourSub2) by sampling, plus locate == geometric containment."""
+    rng = np.random.default_rng(seed)
+    pts = sample_in(part.tube, n, rng)
+    in_sub = np.stack([t.contains(pts) for t in part.sub_tubes])  # (K, N)
+    in_tri = np.stack([tri.contains(pts) for tri in part.triangles]) if part.triangles else \
+        np.zeros((0, len(pts)), dtype=bool)
+    n_sub, n_tri = in_sub.sum(axis=0), in_tri.sum(axis=0)
+    assert np.all(n_sub + n_tri == 1), "a point of T is uncovered or covered twice"
+    # The sub-tubes are obstacle free (they avoid every O').
+    for ob in obstacles:
+        d = np.hypot(*(pts - ob.center).T)
+        assert not np.any(n_sub.astype(bool) & (d <= ob.radius + PARAMS.r_s))
+    k = part.locate(pts)
+    sel = n_sub == 1
+    assert np.array_equal(k[sel], in_sub[:, sel].argmax(axis=0))
+    return pts, n_tri
+
+
+# ------------------------------------------------------------------------------------------
+def test_h_min_paper_numbers():
+    assert h_min(0.9, PARAMS) == pytest.approx(1.654, abs=5e-4)
+    assert DEFAULT_APEX_FACTOR * h_min(0.9, PARAMS) == pytest.approx(2.150, abs=5e-4)
+    assert math.degrees(alpha_max(PARAMS)) == pytest.approx(44.05, abs=5e-3)
+    # (pothk) is Constraint3 for the isosceles side: sin α_max = R / h_min.
+    R = 0.9 + PARAMS.r_s
+    a = math.asin(R / h_min(0.9, PARAMS))
+    assert 2 * PARAMS.v * math.sin(a / 2) == pytest.approx(PARAMS.v_max_prime)
+
+
+def test_no_obstacles_gives_the_main_tube():
+    part = partition(CONVERGING, [], PARAMS)
+    assert part.K == 1 and part.sub_tubes[0] is CONVERGING
+    assert part.triangles == () and part.warnings == ()
+    pts = np.array([[-3.0, 0.0], [5.0, 1.0], [25.0, 0.0], [5.0, 30.0]])
+    assert part.locate(pts).tolist() == [0, 0, 0, 0]
+    assert isinstance(part.arrays, TubeArrays) and len(part.arrays) == 1
+
+
+def test_single_obstacle_four_tubes_numbered_as_in_the_paper():
+    ob = Obstacle((10.0, 0.5), 0.9)
+    part = partition(CONVERGING, [ob], PARAMS)
+    assert part.K == 4
+    assert part.names() == ("T_o1", "T_o2", "T_o3", "T_o4")
+    tri = part.triangles[0]
+    assert tri.remark5 is None and tri.obstacle == 0
+    h = DEFAULT_APEX_FACTOR * h_min(0.9, PARAMS)
+    R = 0.9 + PARAMS.r_s
+    n_c, m = CONVERGING.n_c, CONVERGING.m
+    # Apex upstream on the n_c line, (p_o − p_oth)/‖·‖ = n_c, ‖p_o − p_oth‖ = h.
+    assert np.allclose((ob.center - tri.p_oth) / np.linalg.norm(ob.center - tri.p_oth), n_c)
+    assert np.linalg.norm(ob.center - tri.p_oth) == pytest.approx(h)
+    assert float(n_c @ (tri.p_otu - tri.p_otd)) == pytest.approx(0.0, abs=1e-12)
+    assert float(m @ (tri.p_otd - tri.p_otu)) > 0  # u on the left, d on the right
+    # O' is the incircle: distance from p_o to each side line = R.
+    for a, b in ((tri.p_oth, tri.p_otu), (tri.p_oth, tri.p_otd), (tri.p_otu, tri.p_otd)):
+        e = (b - a) / np.linalg.norm(b - a)
+        dist = abs(e[0] * (ob.center - a)[1] - e[1] * (ob.center - a)[0])
+        assert dist == pytest.approx(R)
+    before, left, right, after = part.sub_tubes
+    assert part.xi_start[0] == -math.inf and part.xi_end[3] == math.inf
+    assert part.xi_end[0] == part.xi_start[1] == part.xi_start[2] == pytest.approx(10.0 - h)
+    assert part.xi_end[1] == part.xi_end[2] == part.xi_start[3] == pytest.approx(10.0 + R)
+    # left tube: right leg = triangle's left side; right tube: left leg = triangle's right side
+    assert np.allclose(left.p_r0, tri.p_oth) and np.allclose(left.p_r1, tri.p_otu)
+    assert np.allclose(right.p_h0, tri.p_oth) and np.allclose(right.p_h1, tri.p_otd)
+    assert np.allclose(before.p_h0, CONVERGING.p_h0) and np.allclose(after.p_r1, CONVERGING.p_r1)
+    # Side legs at α to n_c; Constraint3 holds with the default h, so no warnings.
+    alpha = math.asin(R / h)
+    assert math.acos(float(left.t_r @ n_c)) == pytest.approx(alpha)
+    assert part.warnings == ()
+    check_cover(part, [ob])
+
+
+def test_paper_scenario_sequential_obstacles_give_3P_plus_1():
+    part = partition(PAPER_TUBE, PAPER_OBSTACLES, PARAMS)
+    assert part.K == 3 * 5 + 1
+    assert all(t.remark5 is None for t in part.triangles)
+    assert part.warnings == ()
+    # Sorted by xi_start, then left to right; named T_o1..T_o16.
+    assert list(part.xi_start) == sorted(part.xi_start)
+    assert part.names() == tuple(f"T_o{k}" for k in range(1, 17))
+    _, n_tri = check_cover(part, PAPER_OBSTACLES, seed=2)
+    assert n_tri.sum() > 0
+
+
+@pytest.mark.parametrize("extra, K", [([], 7), ([Obstacle((32.0, 0.0), 0.9)], 10)])
+def test_nested_obstacles_give_3P_plus_1(extra, K):
+    obstacles = NESTED + extra
+    part = partition(WIDE, obstacles, PARAMS)
+    assert part.K == K
+    assert all(t.remark5 is None for t in part.triangles)
+    # The small obstacle's triangle lies inside the big obstacle's left side tube.
+    big, small = part.triangles[0], part.triangles[1]
+    assert float(WIDE.xi(small.p_oth)) > float(WIDE.xi(big.p_oth))
+    assert float(WIDE.xi(small.p_otd)) < float(WIDE.xi(big.p_otu))
+    # Sub-tubes: before_1, {before_2, right_1}, {left_2, right_2}, after_2, after_1, ...
+    assert part.locate(np.array([21.3, 10.5])) == 3  # left of the small obstacle
+    assert part.locate(np.array([21.3, 6.0])) == 4  # between the small and the big one
+    assert part.locate(np.array([18.0, -8.0])) == 2  # right of the big one
+    check_cover(part, obstacles, seed=3)
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_remark5_obstacle_near_a_leg(side):
+    y = -4.6 if side == "right" else 4.6
+    ob = Obstacle((10.0, y), 0.9)
+    part = partition(CONVERGING, [ob], PARAMS)
+    assert part.K == 3
+    tri = part.triangles[0]
+    assert tri.remark5 == side
+    assert tri.beta == pytest.approx(tri.alpha)  # the apex fits without turning the tangent
+    n_c = CONVERGING.n_c
+    assert float(n_c @ (tri.p_otu - tri.p_otd)) == pytest.approx(0.0, abs=1e-12)
+    if side == "right":  # side [p_oth, p_otd] on the right leg, direction t_r
+        e = (tri.p_otd - tri.p_oth) / np.linalg.norm(tri.p_otd - tri.p_oth)
+        assert np.allclose(e, CONVERGING.t_r)
+        assert float(CONVERGING.d_Tr(tri.p_oth)) == pytest.approx(0.0, abs=1e-9)
+        kept = part.sub_tubes[1]
+        assert np.allclose(kept.p_r0, tri.p_oth) and np.allclose(kept.p_r1, tri.p_otu)
+    else:  # mirror: side [p_oth, p_otu] on the left leg, direction t_h
+        e = (tri.p_otu - tri.p_oth) / np.linalg.norm(tri.p_otu - tri.p_oth)
+        assert np.allclose(e, CONVERGING.t_h)
+        kept = part.sub_tubes[1]
+        assert np.allclose(kept.p_h0, tri.p_oth) and np.allclose(kept.p_h1, tri.p_otd)
+    # The before tube ends at the new apex and spans the full parent width.
+    assert part.xi_end[0] == pytest.approx(float(CONVERGING.xi(tri.p_oth)))
+    # The modified triangle contains O' ∩ T.
+    rng = np.random.default_rng(4)
+    r = (0.9 + PARAMS.r_s) * np.sqrt(rng.uniform(0, 1, 4000))
+    th = rng.uniform(0, 2 * np.pi, 4000)
+    disc = ob.center + np.stack([r * np.cos(th), r * np.sin(th)], axis=1)
+    disc = disc[CONVERGING.contains(disc)]
+    assert np.all(tri.contains(disc, tol=1e-9))
+    check_cover(part, [ob], seed=5)
+
+
+def test_remark5_bisection_turns_the_tangent_to_place_the_apex():
+    ob = Obstacle((4.2, -4.6), 0.9)  # near the right leg and close to the start base
+    part = partition(CONVERGING, [ob], PARAMS)
+    tri = part.triangles[0]
+    assert tri.remark5 == "right"
+    assert tri.alpha < tri.beta <= alpha_max(PARAMS)
+    xi_apex = float(CONVERGING.xi(tri.p_oth))
+    assert 2 * PARAMS.r_a <= xi_apex <= 2 * PARAMS.r_a + 1e-4  # smallest β that fits
+    # The kept side is the tangent at angle β; Constraint3 still holds (β ≤ α_max).
+    kept = part.sub_tubes[1]
+    assert math.acos(float(kept.t_r @ CONVERGING.n_c)) == pytest.approx(tri.beta)
+    assert part.warnings == ()
+    check_cover(part, [ob], seed=6)
+
+
+# --- errors ---------------------------------------------------------------------------------
+def test_error_triangle_does_not_fit_in_parent():
+    with pytest.raises(PartitionError) as ei:
+        partition(RECT, [Obstacle((1.5, 0.0), 0.9)], PARAMS)
+    e = ei.value
+    assert isinstance(e, UserError) and e.obstacle == 0
+    assert str(e).startswith("obstacle #1 at (1.5, 0.0) r_o=0.9: ")
+    assert "does not fit" in e.reason and "ξ_A = -0.65" in e.reason
+
+
+def test_error_two_obstacles_side_by_side_do_not_fit():
+    # Same ξ: the second one falls into the first one's side tube, which it cannot fit in.
+    obstacles = [Obstacle((10.0, -2.5), 0.9), Obstacle((10.0, 2.0), 0.9)]
+    with pytest.raises(PartitionError) as ei:
+        partition(WIDE, obstacles, PARAMS)
+    # ties go to the more-left obstacle first (y = 2 is left: m = −y), so #1 is the failing one
+    assert ei.value.obstacle == 0
+    assert "obstacle #1 at (10.0, -2.5) r_o=0.9" in str(ei.value)
+    assert "the tube right of obstacle #2" in str(ei.value)
+
+
+def test_error_obstacle_blocks_the_tube_inverted():
+    narrow = Trapezoid((0.0, 2.0), (20.0, 2.0), (0.0, -2.0), (20.0, -2.0))
+    with pytest.raises(PartitionError) as ei:
+        partition(narrow, [Obstacle((2.0, 0.0), 0.5), Obstacle((12.0, 0.0), 0.9)], PARAMS)
+    e = ei.value
+    assert e.obstacle == 1
+    assert str(e).startswith("obstacle #2 at (12.0, 0.0) r_o=0.9: the obstacle blocks the tube")
+    assert "left: inverted" in e.reason and "right: inverted" in e.reason
+
+
+def test_error_obstacle_blocks_the_tube_assumption3():
+    tube = Trapezoid((0.0, 3.4), (20.0, 3.0), (0.0, -3.4), (20.0, -3.0))
+    with pytest.raises(PartitionError) as ei:
+        partition(tube, [Obstacle((10.0, 0.0), 0.9)], PARAMS)
+    assert "blocks the tube" in ei.value.reason
+    assert ei.value.reason.count("L ∩ R is not empty") == 2
+
+
+def test_error_remark5_apex_cannot_be_placed():
+    with pytest.raises(PartitionError) as ei:
+        partition(CONVERGING, [Obstacle((3.2, -4.6), 0.9)], PARAMS)
+    r = ei.value.reason
+    assert "Remark 5" in r and "apex cannot be placed" in r and "α_max = 44.05°" in r
+    assert "< ξ_s + 2 r_a = 1.0" in r
+
+
+def test_error_apex_distance_inside_extended_obstacle():
+    with pytest.raises(PartitionError, match=r"h = 1.0 m must exceed r_o \+ r_s = 1.15 m"):
+        partition(RECT, [Obstacle((10.0, 0.0), 0.9, apex_distance=1.0)], PARAMS)
+
+
+def test_obstacle_outside_the_tube_strict_and_not():
+    ob = [Obstacle((10.0, -7.0), 0.9)]
+    with pytest.raises(PartitionError, match="lies outside the tube"):
+        partition(RECT, ob, PARAMS)
+    part = partition(RECT, ob, PARAMS, strict=False)
+    assert part.K == 1 and [w.condition for w in part.warnings] == ["Partition"]
+
+
+def test_strict_mode_assumption3_prime_on_after_tube():
+    ob = [Obstacle((18.5, 0.0), 0.9)]  # base at ξ = 19.65: after tube 0.35 m long
+    with pytest.raises(PartitionError) as ei:
+        partition(RECT, ob, PARAMS)
+    assert ei.value.obstacle == 0
+    assert "Assumption3' violated in T_o4 (the tube after obstacle #1): length 0.35 m" in str(
+        ei.value)
+    part = partition(RECT, ob, PARAMS, strict=False)
+    assert part.K == 4
+    assert [w.condition for w in part.warnings] == ["Assumption3'"]
+
+
+def test_constraint3_warning_when_apex_too_close():
+    part = partition(RECT, [Obstacle((10.0, 0.0), 0.9, apex_distance=1.5)], PARAMS)
+    msgs = [w.message for w in part.warnings]
+    assert [w.condition for w in part.warnings] == ["Constraint3", "Constraint3"]
+    assert "T_o2" in msgs[0] and "right leg" in msgs[0] and "> v'_max = 1.5" in msgs[0]
+    assert "T_o3" in msgs[1] and "left leg" in msgs[1]
+
+
+def test_narrow_passage_is_reported_even_though_assumption3_letter_holds():
+    # Parallel main legs: a side tube has no L area, so L ∩ R = ∅ and M ≠ ∅ by the letter,
+    # but its finishing line is 0.41 m wide < what one safety disc needs.
+    tube = Trapezoid((0.0, 2.5), (20.0, 2.5), (0.0, -2.5), (20.0, -2.5))
+    part = partition(tube, [Obstacle((10.0, 0.0), 0.9)], PARAMS)
+    assert part.K == 4
+    msgs = [w.message for w in part.warnings if w.condition == "Assumption3'"]
+    assert len(msgs) == 2 and all("too narrow to contain one robot" in m for m in msgs)
+
+
+# --- the switching rule (§5) -----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def exact():
+    """Axis-aligned tube with exactly representable breakpoints: R = 1, h = 2 → ξ_A = 8,
+    ξ_B = 11."""
+    return partition(RECT, [Obstacle((10.0, 0.0), 0.75, apex_distance=2.0)], PARAMS)
+
+
+@pytest.mark.parametrize("point, k", [
+    ((8.0, 2.0), 1),     # on the shared base before|left → downstream (left)
+    ((8.0, -2.0), 2),    # on the shared base before|right → right
+    ((8.0, 0.0), 1),     # the apex: left tube (lower index)
+    ((7.999, 0.0), 0),
+    ((11.0, 0.0), 3),    # on the triangle base → after
+    ((11.0, 4.5), 3),    # on the shared base left|after → after
+    ((0.0, 0.0), 0),     # the main start base
+    ((-1.0, 0.0), 0),    # ξ < 0 → first
+    ((20.0, 0.0), 3),    # the finishing line → last
+    ((25.0, 3.0), 3),    # ξ ≥ L → last
+    ((5.0, 5.0), 0),     # on the main left leg (closed)
+    ((9.0, 5.0), 1),
+    ((5.0, 7.0), 0),     # laterally outside T → adjacent tube
+    ((9.5, 7.0), 1),
+    ((9.5, -7.0), 2),
+    ((10.9, 1.2), 1),    # inside the triangle, nearer its left side → left tube
+    ((10.9, -1.4), 2),
+])
+def test_locate_shared_edges(exact, point, k):
+    p = np.array(point)
+    assert exact.locate(p) == k
+    assert reference_locate(exact, p) == k
+
+
+def test_locate_apex_and_base_points(exact):
+    tri = exact.triangles[0]
+    assert exact.locate(tri.p_oth) == 1
+    assert exact.locate(tri.p_otu) == 3 and exact.locate(tri.p_otd) == 3
+    paper = partition(PAPER_TUBE, PAPER_OBSTACLES, PARAMS)
+    for t in paper.triangles:  # apex → the left side tube, base points → the after tube
+        k = int(paper.locate(t.p_oth))
+        assert paper.sub_tubes[k].p_r0 is not None and np.allclose(paper.sub_tubes[k].p_r0,
+                                                                   t.p_oth)
+        k_u, k_d = int(paper.locate(t.p_otu)), int(paper.locate(t.p_otd))
+        assert k_u == k_d and paper.xi_start[k_u] == pytest.approx(float(
+            PAPER_TUBE.xi(t.p_otu)))
+
+
+@pytest.mark.parametrize("case", ["paper", "nested", "remark5"])
+def test_locate_matches_the_reference_rule_everywhere(case):
+    tube, obs = {
+        "paper": (PAPER_TUBE, PAPER_OBSTACLES),
+        "nested": (WIDE, NESTED + [Obstacle((32.0, 0.0), 0.9)]),
+        "remark5": (CONVERGING, [Obstacle((4.2, -4.6), 0.9), Obstacle((12.0, 4.0), 0.9)]),
+    }[case]
+    part = partition(tube, obs, PARAMS)
+    rng = np.random.default_rng(7)
+    poly = tube.polygon()
+    lo, hi = poly.min(axis=0) - 3.0, poly.max(axis=0) + 3.0  # includes points outside T
+    pts = rng.uniform(lo, hi, size=(3000, 2))
+    fast = part.locate(pts)
+    ref = np.array([reference_locate(part, q) for q in pts])
+    assert np.array_equal(fast, ref)
+
+
+def test_locate_shapes():
+    part = partition(PAPER_TUBE, PAPER_OBSTACLES, PARAMS)
+    rng = np.random.default_rng(8)
+    pts = rng.uniform((0, -8), (31, 8), size=(6, 2))
+    k = part.locate(pts)
+    assert k.shape == (6,) and k.dtype.kind == "i"
+    assert int(part.locate(pts[2])) == k[2]
+    assert np.array_equal(part.locate(pts.reshape(2, 3, 2)), k.reshape(2, 3))
+    assert np.array_equal(part.locate(pts.tolist()), k)
+
+
+def test_arrays_follow_the_sub_tube_order():
+    part = partition(PAPER_TUBE, PAPER_OBSTACLES, PARAMS)
+    arr = part.arrays
+    assert isinstance(arr, TubeArrays) and len(arr) == part.K
+    for k, t in enumerate(part.sub_tubes):
+        assert np.allclose(arr.n_h[k], t.n_h) and np.allclose(arr.p_r1[k], t.p_r1)
+        assert arr.has_L[k] == t.has_L and arr.has_R[k] == t.has_R
