@@ -1,0 +1,29 @@
+"""The fleet: per-vehicle agents, pilots and the asyncio supervisor (``vtube-fleet run``).
+
+* :mod:`~vtube_fleet.fleet.mission`: mission files (a scenario plus ``[mission]``);
+* :mod:`~vtube_fleet.fleet.agent`: the pure per-vehicle decision logic and the safety budget;
+* :mod:`~vtube_fleet.fleet.pilot`: one vehicle's flight procedure over a link;
+* :mod:`~vtube_fleet.fleet.supervisor`: N pilots on one control clock, faults, summary;
+* :mod:`~vtube_fleet.fleet.view`: the live terminal view.
+
+See ``docs/fleet.md``.
+"""
+
+from vtube_fleet.fleet.agent import Agent, FlightPlan, SafetyBudget, Setpoint
+from vtube_fleet.fleet.mission import Mission, MissionConfig, load_mission
+from vtube_fleet.fleet.pilot import VehiclePilot
+from vtube_fleet.fleet.supervisor import FleetResult, MissionAborted, Supervisor
+
+__all__ = [
+    "Agent",
+    "FleetResult",
+    "FlightPlan",
+    "Mission",
+    "MissionAborted",
+    "MissionConfig",
+    "SafetyBudget",
+    "Setpoint",
+    "Supervisor",
+    "VehiclePilot",
+    "load_mission",
+]

@@ -1,0 +1,594 @@
+"""One vehicle's whole flight: ready → arm → take off → tube → exit behaviour → land.
+
+A :class:`VehiclePilot` ties a :class:`~vtube_fleet.link.VehicleLink` (telemetry in, setpoints
+and commands out), an :class:`~vtube_fleet.fleet.agent.Agent` (the decisions), a
+:class:`~vtube_fleet.bus.NeighbourBus` (own state out, neighbours in) and the mission's
+:class:`~vtube_fleet.frames.TubeFrame`. It is used two ways:
+
+* by the :class:`~vtube_fleet.fleet.supervisor.Supervisor`, which runs N pilots on one control
+  clock and computes the in-tube setpoints of all of them in one controller call
+  (:func:`~vtube_fleet.fleet.agent.fleet_setpoints`); the per-tick steps are the public methods
+  :meth:`sense`, :meth:`publish`, :meth:`check_faults` and :meth:`actuate`;
+* alone (one agent process per vehicle over MQTT): :meth:`fly` runs the procedure with its own
+  control clock, :meth:`tick` doing the same per-tick steps for this one vehicle.
+
+**Frames.** Telemetry comes in as PX4's LOCAL_POSITION_NED about the vehicle's own
+GPS_GLOBAL_ORIGIN; :meth:`TubeFrame.local_ned_to_tube` turns it into the tube frame (x, y, up).
+Setpoints go out as north/east velocity in that vehicle's LOCAL_NED
+(:meth:`TubeFrame.tube_velocity_to_ned`) plus a vertical term that holds the mission altitude:
+``v_up = clamp(k_z (altitude − up), ±max_vertical_speed)`` (during the climb capped at
+``climb_speed_m_s``), ``down = −v_up``.
+
+**Take-off** as in the PX4 SITL captures: velocity setpoints (0, 0, 0) stream first, then
+OFFBOARD is selected, then ARM (retried while PX4 answers TEMPORARILY_REJECTED), then the
+offboard climb; a weak horizontal term (gain 0.5 /s, at most 0.3 m/s) holds the take-off spot
+against drift. The vehicle then hovers at the mission altitude until the tube flight starts.
+
+**Faults** (:meth:`check_faults`): no local position for ``lost_after_s``, OFFBOARD left while
+we fly offboard (after it was confirmed once), or a disarm in the air → phase LOST: the pilot
+stops sending setpoints and publishes LOST at its last position, which the other agents turn
+into a static obstacle (and a new partition).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.bus.base import NeighbourBus, NeighbourState, Phase
+from vtube_fleet.errors import UserError
+from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
+from vtube_fleet.fleet.mission import Mission
+from vtube_fleet.frames import TubeFrame
+from vtube_fleet.link.base import LinkError, VehicleLink
+
+__all__ = [
+    "EventSink",
+    "OFFBOARD_PHASES",
+    "PilotError",
+    "VehiclePilot",
+    "sense_all",
+]
+
+log = logging.getLogger(__name__)
+
+#: Phases in which we stream setpoints and expect PX4 to be in OFFBOARD.
+OFFBOARD_PHASES: frozenset[Phase] = frozenset(
+    {Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED}
+)
+#: Phases in which the vehicle is (or may be) in the air under our responsibility.
+FLYING_PHASES: frozenset[Phase] = frozenset(
+    {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING}
+)
+
+#: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb.
+TAKEOFF_XY_GAIN_1_S = 0.5
+TAKEOFF_XY_MAX_M_S = 0.3
+
+#: ``sink(text, vehicle_id, level)``: where a pilot reports events (phase changes, faults).
+EventSink = Callable[[str, int | None, str], None]
+
+
+class PilotError(UserError):
+    """A vehicle could not complete a step of its procedure (names the vehicle and why)."""
+
+
+def _clamp(x: float, lo: float, hi: float) -> float:
+    return lo if x < lo else hi if x > hi else x
+
+
+class VehiclePilot:
+    """One vehicle's flight procedure (module docstring).
+
+    ``vehicle_id`` is the agent's id (the 0-based slot). ``on_event`` receives events;
+    ``spawn`` schedules background coroutines (mode changes triggered from a tick), defaulting
+    to ``asyncio.create_task`` with the pilot keeping a reference.
+    """
+
+    def __init__(
+        self,
+        link: VehicleLink,
+        agent: Agent,
+        bus: NeighbourBus,
+        mission: Mission,
+        *,
+        frame: TubeFrame | None = None,
+        on_event: EventSink | None = None,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.link = link
+        self.agent = agent
+        self.bus = bus
+        self.mission = mission
+        self.cfg = mission.config
+        self.frame = frame if frame is not None else mission.frame
+        self.on_event = on_event
+        self.wall_clock = wall_clock
+        self.vehicle_id = agent.vehicle_id
+        # tube-frame telemetry
+        self.xy = np.full(2, np.nan)
+        self.up_m = math.nan
+        self.vel_xy = np.full(2, np.nan)
+        self.sample_s: float | None = None  # monotonic time of the position sample in use
+        self._sample_seen: float | None = None
+        self._seq = 0
+        # what we command
+        self.cmd_xy: np.ndarray | None = None  # last horizontal tube-frame command (m/s)
+        self.cmd_in_tube = False
+        self.takeoff_xy: np.ndarray | None = None
+        self.at_altitude = asyncio.Event()
+        self.landed = asyncio.Event()
+        self.sent_setpoint = asyncio.Event()
+        self.lost_xy: np.ndarray | None = None
+        self.reason: str | None = None
+        self.exit_time_s: float | None = None
+        self._offboard_seen = False
+        self._phase_waiters: list[asyncio.Future[None]] = []
+        self._transition: asyncio.Task[None] | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self.setpoints_sent = 0
+
+    # -- naming / events ---------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return f"vehicle {self.vehicle_id} ({self.link.endpoint.url})"
+
+    @property
+    def phase(self) -> Phase:
+        return self.agent.phase
+
+    def event(self, text: str, level: str = "info") -> None:
+        getattr(log, "warning" if level in ("warning", "error") else "info")(
+            "%s: %s", self.name, text)
+        if self.on_event is not None:
+            self.on_event(text, self.vehicle_id, level)
+
+    def set_phase(self, phase: Phase, why: str = "") -> bool:
+        old = self.agent.phase
+        if not self.agent.set_phase(phase):
+            return False
+        waiters, self._phase_waiters = self._phase_waiters, []
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(None)
+        self.event(f"{old.value} → {phase.value}" + (f" ({why})" if why else ""),
+                   "warning" if phase in (Phase.LOST, Phase.FAILED) else "info")
+        return True
+
+    def spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    # -- sensing ---------------------------------------------------------------------------
+    def has_position(self) -> bool:
+        return self.sample_s is not None and bool(np.isfinite(self.xy).all())
+
+    def pending_sample(self) -> bool:
+        """A local position newer than the one in use has arrived (and the origin is known)."""
+        s = self.link.state
+        return (s.last_position_s is not None and s.origin is not None
+                and s.last_position_s != self._sample_seen)
+
+    def sense(self, xyz: tuple[float, float, float] | None = None) -> bool:
+        """Take the link's latest local position into the tube frame; True if it was new.
+
+        ``xyz`` is the already converted tube position (the supervisor converts all vehicles
+        in one vectorized call, :func:`sense_all`).
+        """
+        if not self.pending_sample():
+            return False
+        s = self.link.state
+        if xyz is None:
+            o = s.origin
+            assert o is not None
+            x, y, up = self.frame.local_ned_to_tube(
+                s.north_m, s.east_m, s.down_m, o.lat_deg, o.lon_deg, o.alt_m)
+            xyz = (float(x), float(y), float(up))
+        vx, vy = self.frame.ned_velocity_to_tube(s.vn_m_s, s.ve_m_s)
+        self.xy = np.array([xyz[0], xyz[1]], dtype=float)
+        self.up_m = float(xyz[2])
+        self.vel_xy = np.array([float(vx), float(vy)])
+        self.sample_s = self._sample_seen = s.last_position_s
+        if (self.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
+                and abs(self.up_m - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
+            self.at_altitude.set()
+        return True
+
+    def sample_age_s(self, now_mono: float) -> float:
+        """Age of the position in use: since it arrived plus the one-way link latency."""
+        if self.sample_s is None:
+            return math.inf
+        return (now_mono - self.sample_s) + (self.link.latency_s or 0.0)
+
+    def position(self) -> np.ndarray:
+        """The position others should see: the frozen last position once LOST."""
+        return self.lost_xy if self.lost_xy is not None else self.xy
+
+    def state(self, now_mono: float, now_wall: float) -> NeighbourState | None:
+        if self.sample_s is None:
+            return None
+        p = self.position()
+        v = (0.0, 0.0) if self.lost_xy is not None else (float(self.vel_xy[0]),
+                                                          float(self.vel_xy[1]))
+        self._seq += 1
+        stamp = now_wall - self.sample_age_s(now_mono)
+        return NeighbourState(self.vehicle_id, float(p[0]), float(p[1]), v[0], v[1],
+                              self.phase, stamp, self._seq)
+
+    def publish(self, now_mono: float, now_wall: float) -> None:
+        st = self.state(now_mono, now_wall)
+        if st is not None:
+            self.bus.publish(st)
+
+    # -- faults ---------------------------------------------------------------------------
+    def check_faults(self, now_mono: float) -> str | None:
+        """Detect a lost vehicle; on a fault switch to LOST and return the reason."""
+        phase = self.phase
+        s = self.link.state
+        if phase in (Phase.LANDING,) and s.landed_state == "ON_GROUND" and s.armed is False:
+            self.set_phase(Phase.LANDED, "on the ground, disarmed")
+            self.landed.set()
+            return None
+        if phase == Phase.HOLDING and s.landed_state == "ON_GROUND" and s.armed is False:
+            self.set_phase(Phase.LANDED, "on the ground, disarmed")
+            self.landed.set()
+            return None
+        if phase not in FLYING_PHASES and phase != Phase.ARMING:
+            return None
+        if phase in OFFBOARD_PHASES and s.flight_mode == "OFFBOARD":
+            self._offboard_seen = True
+        reason = None
+        last = s.last_position_s
+        if last is None or now_mono - last > self.cfg.lost_after_s:
+            age = "never" if last is None else f"{now_mono - last:.2f} s ago"
+            reason = (f"no telemetry for more than lost_after_s = {self.cfg.lost_after_s:g} s "
+                      f"(last position {age})")
+        elif (phase in OFFBOARD_PHASES and self._offboard_seen
+              and self._transition is None and s.flight_mode != "OFFBOARD"):
+            reason = f"left OFFBOARD unexpectedly (mode {s.flight_mode}, status "\
+                     f"{s.system_status})"
+        elif phase in (Phase.IN_TUBE, Phase.EXITED) and s.armed is False:
+            reason = "disarmed in the air"
+        if reason is None:
+            return None
+        if phase == Phase.ARMING:
+            self.reason = reason
+            self.set_phase(Phase.FAILED, reason)
+            return reason
+        self.declare_lost(reason)
+        return reason
+
+    def declare_lost(self, reason: str) -> None:
+        """Become a static obstacle at the last known position; stop commanding."""
+        if self.phase == Phase.LOST:
+            return
+        self.reason = reason
+        self.lost_xy = self.xy.copy() if self.has_position() else None
+        self.cmd_xy = None
+        self.cmd_in_tube = False
+        where = ("" if self.lost_xy is None else
+                 f"; static obstacle at ({self.lost_xy[0]:.2f}, {self.lost_xy[1]:.2f})")
+        self.set_phase(Phase.LOST, reason + where)
+
+    # -- actuation ---------------------------------------------------------------------------
+    def vertical_down_m_s(self, climb: bool = False) -> float:
+        """Altitude-hold term (NED down velocity)."""
+        if not math.isfinite(self.up_m):
+            return 0.0
+        cfg = self.cfg
+        up = cfg.altitude_gain_1_s * (cfg.altitude_m - self.up_m)
+        hi = cfg.climb_speed_m_s if climb else cfg.max_vertical_speed_m_s
+        return -_clamp(up, -cfg.max_vertical_speed_m_s, hi)
+
+    def send_tube_velocity(self, vx: float, vy: float, down: float) -> None:
+        vn, ve = self.frame.tube_velocity_to_ned(vx, vy)
+        self.link.send_velocity_ned(float(vn), float(ve), float(down))
+        self.setpoints_sent += 1
+        if not self.sent_setpoint.is_set():
+            self.sent_setpoint.set()
+
+    def actuate(
+        self,
+        now_mono: float,
+        cmd_xy: np.ndarray | None = None,
+        view: NeighbourView | None = None,
+    ) -> None:
+        """Send this tick's setpoint for the current phase.
+
+        ``cmd_xy`` is the controller's command when IN_TUBE; ``view`` the neighbour view used by
+        the exit behaviour when EXITED.
+        """
+        phase = self.phase
+        self.cmd_in_tube = False
+        if self.link.closed:
+            return
+        try:
+            if self._transition is not None or phase == Phase.ARMING:
+                # streaming before OFFBOARD / while a mode change is in flight: stay put
+                self.cmd_xy = np.zeros(2)
+                self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s()
+                                        if phase != Phase.ARMING else 0.0)
+            elif phase == Phase.TAKEOFF:
+                vx = vy = 0.0
+                if self.takeoff_xy is not None and self.has_position():
+                    d = TAKEOFF_XY_GAIN_1_S * (self.takeoff_xy - self.xy)
+                    n = float(np.hypot(*d))
+                    if n > TAKEOFF_XY_MAX_M_S:
+                        d *= TAKEOFF_XY_MAX_M_S / n
+                    vx, vy = float(d[0]), float(d[1])
+                self.cmd_xy = np.array([vx, vy])
+                self.send_tube_velocity(vx, vy, self.vertical_down_m_s(climb=True))
+            elif phase == Phase.IN_TUBE:
+                if cmd_xy is None:
+                    cmd_xy = np.zeros(2)
+                self.cmd_xy = np.asarray(cmd_xy, dtype=float)
+                self.cmd_in_tube = True
+                self.send_tube_velocity(float(cmd_xy[0]), float(cmd_xy[1]),
+                                        self.vertical_down_m_s())
+            elif phase == Phase.EXITED:
+                self._actuate_exited(now_mono, view)
+            else:
+                self.cmd_xy = None
+        except LinkError as exc:
+            self.event(f"setpoint not sent: {exc}", "warning")
+
+    def _actuate_exited(self, now_mono: float, view: NeighbourView | None) -> None:
+        cfg = self.cfg
+        plan = self.agent.plan
+        past = float(plan.tube.xi(self.xy) - plan.tube.length) if self.has_position() else 0.0
+        if cfg.after_exit in ("hold", "land") and past >= cfg.exit_clear_m:
+            self.cmd_xy = np.zeros(2)
+            self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s())
+            if cfg.after_exit == "hold":
+                self.begin_hold(f"{past:.1f} m past the finishing line")
+            else:
+                self.begin_land(f"{past:.1f} m past the finishing line")
+            return
+        v = None
+        if view is not None and self.has_position():
+            stop = 2.0 * plan.params.r_s + plan.params.v * (
+                cfg.tracking_dead_time_s + cfg.tracking_t63_s + cfg.period_s)
+            v = exit_velocity(plan, self.xy, view, stop_distance_m=stop)
+            if v is None:
+                self.cmd_xy = np.zeros(2)
+                self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s())
+                self.begin_hold("a stopped vehicle ahead past the finishing line")
+                return
+        if v is None:
+            v = plan.params.v * plan.tube.n_c
+        self.cmd_xy = np.asarray(v, dtype=float)
+        self.send_tube_velocity(float(v[0]), float(v[1]), self.vertical_down_m_s())
+
+    # -- mode changes (background) -----------------------------------------------------------
+    def _run_transition(self, coro: Awaitable[None], what: str) -> None:
+        async def run() -> None:
+            try:
+                await coro
+            except (LinkError, UserError) as exc:
+                self.event(f"{what} failed: {exc}", "warning")
+            finally:
+                self._transition = None
+
+        self._transition = self.spawn(run())
+
+    def begin_hold(self, why: str) -> None:
+        """Leave OFFBOARD into Hold (keeps streaming zero velocity until PX4 confirms)."""
+        if self.phase in (Phase.HOLDING, Phase.LANDING, Phase.LANDED, Phase.LOST):
+            return
+        self.set_phase(Phase.HOLDING, why)
+        self._offboard_seen = False
+        self._run_transition(self.link.stop_offboard(), "hold")
+
+    def begin_land(self, why: str) -> None:
+        if self.phase in (Phase.LANDING, Phase.LANDED, Phase.LOST):
+            return
+        self.set_phase(Phase.LANDING, why)
+        self._offboard_seen = False
+        self._run_transition(self.link.land(), "land")
+
+    # -- the procedure -------------------------------------------------------------------------
+    async def wait_ready(self) -> None:
+        """Heartbeat, positions, home, GPS origin and health (``ready_timeout_s``)."""
+        self.set_phase(Phase.CONNECTING) if self.phase != Phase.CONNECTING else None
+        await self.link.wait_ready(self.cfg.ready_timeout_s)
+        if not self.sense() and not self.has_position():
+            await self.link.wait_until(lambda s: s.last_position_s is not None,
+                                       self.cfg.ready_timeout_s, "a local position")
+            self.sense()
+        self.set_phase(Phase.READY, f"at ({self.xy[0]:.2f}, {self.xy[1]:.2f}) "
+                                    f"up {self.up_m:.2f} m")
+
+    def check_altitude_margin(self, minimum_m: float = 1.0) -> str | None:
+        """A problem if the mission altitude is less than ``minimum_m`` above the vehicle."""
+        if not math.isfinite(self.up_m):
+            return f"{self.name}: height unknown"
+        if self.cfg.altitude_m - self.up_m < minimum_m:
+            return (f"{self.name}: mission altitude {self.cfg.altitude_m:g} m above "
+                    f"origin_alt_m is only {self.cfg.altitude_m - self.up_m:.2f} m above the "
+                    f"vehicle (at {self.up_m:.2f} m), need >= {minimum_m:g} m")
+        return None
+
+    async def arm_and_climb(self) -> None:
+        """OFFBOARD (setpoints streaming first), ARM, offboard climb to the mission altitude.
+
+        Requires a control clock calling :meth:`actuate` (the supervisor's or :meth:`fly`'s).
+        """
+        cfg = self.cfg
+        self.set_phase(Phase.ARMING)
+        try:
+            async with asyncio.timeout(cfg.arm_timeout_s):
+                await self.sent_setpoint.wait()
+        except TimeoutError:
+            raise PilotError(f"{self.name}: no setpoint streamed within "
+                             f"{cfg.arm_timeout_s:g} s (control loop not running?)") from None
+        await self.link.start_offboard()
+        await self.link.arm(timeout_s=cfg.arm_timeout_s)
+        self.takeoff_xy = self.xy.copy() if self.has_position() else None
+        self.set_phase(Phase.TAKEOFF, f"climbing to {cfg.altitude_m:g} m")
+        try:
+            async with asyncio.timeout(cfg.takeoff_timeout_s):
+                await self.at_altitude.wait()
+        except TimeoutError:
+            raise PilotError(
+                f"{self.name}: did not reach {cfg.altitude_m:g} m ± {cfg.altitude_tolerance_m:g}"
+                f" within takeoff_timeout_s = {cfg.takeoff_timeout_s:g} s (at {self.up_m:.2f} m,"
+                f" mode {self.link.state.flight_mode})") from None
+        self.event(f"at altitude ({self.up_m:.2f} m)")
+
+    def enter_tube(self) -> None:
+        if self.phase == Phase.TAKEOFF:
+            self.set_phase(Phase.IN_TUBE)
+
+    def mark_exit(self, t_s: float) -> None:
+        self.exit_time_s = t_s
+        self.set_phase(Phase.EXITED, f"crossed the finishing line at t = {t_s:.2f} s")
+
+    async def hold(self) -> None:
+        """Hold now (PX4 Hold); no-op on the ground or when already holding/landing/lost."""
+        if self.phase in OFFBOARD_PHASES or self.phase == Phase.HOLDING:
+            if self.phase != Phase.HOLDING:
+                self.begin_hold("hold requested")
+            t = self._transition
+            if t is not None:
+                await asyncio.shield(t)
+
+    async def land(self) -> None:
+        """Land now; waits for the LAND command's acknowledgement (not for touch-down)."""
+        if self.phase in FLYING_PHASES and self.phase != Phase.LANDING:
+            t = self._transition
+            if t is not None:
+                await asyncio.shield(t)
+            self.begin_land("land requested")
+            t = self._transition
+            if t is not None:
+                await asyncio.shield(t)
+        elif self.phase in (Phase.ARMING, Phase.READY) and self.link.state.armed:
+            try:
+                await self.link.disarm()
+            except LinkError as exc:
+                self.event(f"disarm failed: {exc}", "warning")
+            self.set_phase(Phase.LANDED, "disarmed on the ground")
+            self.landed.set()
+        elif self.phase in (Phase.ARMING, Phase.READY, Phase.CONNECTING):
+            self.set_phase(Phase.LANDED, "never took off") if self.phase != Phase.CONNECTING \
+                else None
+            self.landed.set()
+
+    def needs_landing(self) -> bool:
+        return self.phase in (Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING,
+                              Phase.LANDING)
+
+    # -- standalone operation -------------------------------------------------------------
+    def tick(self, now_mono: float, now_wall: float) -> None:
+        """All per-tick steps for this vehicle alone (the MQTT agent's control clock)."""
+        self.sense()
+        self.check_faults(now_mono)
+        self.publish(now_mono, now_wall)
+        agent = self.agent
+        agent.observe(self.bus.latest())
+        view = agent.view(now_wall)
+        agent.update_plan(view)
+        cmd = None
+        if self.phase == Phase.IN_TUBE and self.has_position():
+            if agent.has_exited(self.xy):
+                self.mark_exit(now_wall)
+            else:
+                sp = agent.setpoint(self.xy, view)
+                cmd = np.array([sp.vx_m_s, sp.vy_m_s])
+        self.actuate(now_mono, cmd, view)
+
+    async def run_clock(self, stop: asyncio.Event) -> None:
+        """Call :meth:`tick` at ``rate_hz`` until ``stop`` is set."""
+        loop = asyncio.get_running_loop()
+        period = self.cfg.period_s
+        next_t = loop.time()
+        while not stop.is_set():
+            self.tick(loop.time(), self.wall_clock())
+            next_t += period
+            now = loop.time()
+            if next_t < now:
+                next_t = now
+            try:
+                async with asyncio.timeout(next_t - now):
+                    await stop.wait()
+            except TimeoutError:
+                pass
+
+    async def wait_phase(self, predicate: Callable[[Phase], bool], timeout_s: float,
+                         what: str) -> Phase:
+        """Wait until ``predicate(phase)`` holds; :class:`PilotError` after ``timeout_s``."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                while not predicate(self.phase):
+                    fut = asyncio.get_running_loop().create_future()
+                    self._phase_waiters.append(fut)
+                    await fut
+        except TimeoutError:
+            raise PilotError(f"{self.name}: {what} not reached within {timeout_s:g} s "
+                             f"(phase {self.phase.value})") from None
+        return self.phase
+
+    async def fly(
+        self,
+        start: Callable[[], Awaitable[None]] | None = None,
+        finish: Callable[[], Awaitable[None]] | None = None,
+    ) -> Phase:
+        """The whole procedure for this vehicle alone, with its own control clock.
+
+        ``start`` is awaited at altitude before entering the tube (e.g. the fleet's "start"
+        command), ``finish`` after this vehicle exited (e.g. "all vehicles exited") before
+        ``on_complete`` (land or hold). Returns the final phase once landed / holding / lost.
+        """
+        stop = asyncio.Event()
+        clock = asyncio.get_running_loop().create_task(self.run_clock(stop))
+        cfg = self.cfg
+        try:
+            await self.wait_ready()
+            await self.arm_and_climb()
+            if start is not None:
+                await start()
+            self.enter_tube()
+            await self.wait_phase(lambda ph: ph != Phase.IN_TUBE, cfg.mission_timeout_s,
+                                  "the finishing line")
+            if self.phase == Phase.EXITED and finish is not None:
+                await finish()
+            if self.phase in (Phase.EXITED, Phase.HOLDING):
+                if cfg.on_complete == "land":
+                    await self.land()
+                else:
+                    await self.hold()
+            if self.phase == Phase.LANDING:
+                await self.wait_phase(lambda ph: ph != Phase.LANDING, cfg.land_timeout_s,
+                                      "touch-down")
+            return self.phase
+        finally:
+            stop.set()
+            await clock
+
+
+def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
+    """:meth:`VehiclePilot.sense` for many vehicles with ONE vectorized frame conversion
+    (pymap3d on arrays); returns how many had a new sample."""
+    todo = [p for p in pilots if p.pending_sample()]
+    if not todo:
+        return 0
+    st = [p.link.state for p in todo]
+    n = np.array([s.north_m for s in st])
+    e = np.array([s.east_m for s in st])
+    d = np.array([s.down_m for s in st])
+    olat = np.array([s.origin.lat_deg for s in st])  # type: ignore[union-attr]
+    olon = np.array([s.origin.lon_deg for s in st])  # type: ignore[union-attr]
+    oalt = np.array([s.origin.alt_m for s in st])  # type: ignore[union-attr]
+    x, y, up = frame.local_ned_to_tube(n, e, d, olat, olon, oalt)
+    x, y, up = np.atleast_1d(x), np.atleast_1d(y), np.atleast_1d(up)
+    for i, p in enumerate(todo):
+        p.sense((float(x[i]), float(y[i]), float(up[i])))
+    return len(todo)

@@ -1,0 +1,897 @@
+"""The fleet supervisor: one asyncio process flies every vehicle of a mission.
+
+Procedure (:meth:`Supervisor.run`):
+
+1. **connect** every endpoint concurrently (``connect_timeout_s``); the error names every
+   vehicle that did not answer;
+2. **ready**: heartbeat, local + global position, home, GPS origin, health
+   (``ready_timeout_s``); the control clock starts (sensing only);
+3. **safety budget**: the link latency and the age of the position samples are measured for
+   about a second; δ = v'_max·(T + L + τ_d + t63) (:class:`~vtube_fleet.fleet.agent.
+   SafetyBudget`) inflates r_s and r_a; the inflated scenario is validated (Assumption 1 with
+   the vehicles' actual positions in the tube frame, Assumption 3/3', (pothk), the partition);
+   if anything fails nothing arms and the report names each offending vehicle, its position and
+   the numbers;
+4. **take-off**: all vehicles together (each stays over its own slot, which Assumption 1 keeps
+   2 r_s' apart): setpoints stream, OFFBOARD, ARM, offboard climb; all must reach the mission
+   altitude, then Assumption 1 is checked again at altitude;
+5. **tube**: every vehicle becomes IN_TUBE on the same tick; each tick (``rate_hz``) senses all
+   vehicles (one vectorized frame conversion), publishes their states on the in-process bus,
+   detects faults, re-partitions around LOST vehicles, detects exits (TraCondition), computes
+   all in-tube setpoints in one ``velocity_command`` call and sends them;
+6. **end**: when every vehicle has exited (or is lost), ``on_complete`` (land / hold); a
+   summary is written on every exit path.
+
+Faults: a LOST vehicle (silent for ``lost_after_s``, or out of OFFBOARD) becomes a static
+obstacle of radius r_s + ``lost_obstacle_margin_m`` at its last position and the tube is
+re-partitioned online; if no valid partition exists the others hold (OFFBOARD → Hold) and the
+mission aborts (:class:`MissionAborted`, exit code 3). SIGINT / SIGTERM: every vehicle holds,
+then lands; the summary and the recording are complete (exit code 130).
+
+The summary (``summary.json``) is built by :class:`vtube_fleet.metrics.SummaryAccumulator`, the
+simulator's own accumulator, fed every tick from **telemetry** positions: the ``""`` stream holds
+the vehicles in the tube (and lost vehicles at their frozen positions) with the *commanded*
+horizontal velocities, so ``min_speed_m_s``/``max_speed_m_s`` are the commanded speeds in the
+tube; the measured speeds are ``min_measured_speed_m_s``/``max_measured_speed_m_s``;
+``min_pair_distance_airborne_m`` also counts vehicles that have exited.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import os
+import re
+import signal
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.bus.base import InProcessBus, Phase
+from vtube_fleet.errors import UserError
+from vtube_fleet.fleet.agent import (
+    Agent,
+    FlightPlan,
+    NeighbourView,
+    SafetyBudget,
+    classify,
+    fleet_setpoints,
+    lost_obstacles,
+)
+from vtube_fleet.fleet.mission import Mission
+from vtube_fleet.fleet.pilot import FLYING_PHASES, VehiclePilot, sense_all
+from vtube_fleet.fleet.view import FleetStatus, FleetView
+from vtube_fleet.link.base import VehicleLink
+from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator
+from vtube_fleet.neighbours import pairs_within
+from vtube_fleet.partition import PartitionError
+from vtube_fleet.validation import validate_scenario
+
+__all__ = [
+    "FleetError",
+    "FleetResult",
+    "MissionAborted",
+    "PreflightError",
+    "Supervisor",
+    "TickTrace",
+    "preflight_report",
+]
+
+log = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_ABORTED = 3
+EXIT_INTERRUPTED = 130
+
+#: Seconds of sensing used to measure latency / sample age before the budget is fixed.
+MEASURE_S = 1.0
+#: Minimum height of the mission altitude above every vehicle before take-off.
+MIN_CLIMB_M = 1.0
+
+
+class FleetError(UserError):
+    """The fleet could not start (connect / ready / preflight); nothing armed."""
+
+
+class PreflightError(FleetError):
+    """The vehicles' positions or the safety budget break the paper's conditions."""
+
+
+class MissionAborted(UserError):
+    """The mission was aborted in flight (no valid partition, take-off failure, timeout)."""
+
+    exit_code = EXIT_ABORTED
+
+
+@dataclass
+class FleetResult:
+    """What :meth:`Supervisor.run` returns: exit code, outcome, the summary dict."""
+
+    exit_code: int
+    outcome: str
+    reason: str
+    summary: dict[str, Any]
+    summary_path: Path | None
+
+
+@dataclass
+class TickTrace:
+    """One tick as flown (kept when ``keep_trace``): telemetry in the tube frame."""
+
+    t_s: float
+    pos: np.ndarray  # (M, 2) telemetry positions (frozen for LOST), NaN = unknown
+    vel: np.ndarray  # (M, 2) measured velocities
+    cmd: np.ndarray  # (M, 2) horizontal commands sent this tick, NaN = none
+    in_tube: np.ndarray  # (M,) bool: commanded by the tube controller this tick
+    phases: tuple[str, ...]
+
+
+def _pct(values: Sequence[float] | np.ndarray, q: float) -> float:
+    a = np.asarray(values, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, q)) if a.size else math.nan
+
+
+def _num(x: float | None) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def preflight_report(
+    mission: Mission,
+    params: Any,
+    positions: np.ndarray,
+    names: Sequence[str],
+    *,
+    where: str = "on the ground",
+) -> tuple[Any, list[str]]:
+    """Validate the (inflated) scenario with the vehicles' actual positions.
+
+    Returns (partition or None, problems). Each problem is one line naming the vehicles
+    (``robot i`` of :func:`vtube_fleet.validation.validate_scenario` becomes ``vehicle i
+    (endpoint)``) with the numbers.
+    """
+    sc = mission.scenario
+    part, violations = validate_scenario(sc.tube, sc.obstacles, params, positions)
+
+    def one(text: str) -> str:
+        i = int(text)
+        return names[i] if 0 <= i < len(names) else f"robot {i}"
+
+    problems = []
+    for v in violations:
+        msg = re.sub(r"\brobots (\d+) and (\d+)",
+                     lambda m: f"{one(m.group(1))} and {one(m.group(2))}", v.message)
+        msg = re.sub(r"\brobot (\d+)", lambda m: one(m.group(1)), msg)
+        problems.append(f"{msg} ({where}, r_s' = {params.r_s:.3f} m)")
+    return part, problems
+
+
+class Supervisor:
+    """Fly ``mission`` with one pilot per link (link i flies slot i). See the module docstring.
+
+    ``recorder``: a :class:`vtube_fleet.recording.Recorder` (default: records nothing);
+    ``view``: the live terminal view (default: none); ``out_dir``: where ``summary.json`` goes;
+    ``keep_trace``: keep every tick's telemetry in :attr:`trace` (tests);
+    ``tick_hook(tick, supervisor)``: called at the end of every tick (fault injection in tests);
+    ``signals``: install SIGINT/SIGTERM handlers (hold, then land, exit 130).
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        links: Sequence[VehicleLink],
+        *,
+        backend: str = "mavlink",
+        recorder: Any = None,
+        view: FleetView | None = None,
+        out_dir: str | os.PathLike[str] | None = None,
+        keep_trace: bool = False,
+        tick_hook: Callable[[int, Supervisor], None] | None = None,
+        signals: bool = True,
+    ) -> None:
+        if not links:
+            raise FleetError("no vehicles to fly")
+        if len(links) > mission.count:
+            raise FleetError(f"{len(links)} endpoints but the mission has only "
+                             f"{mission.count} slots ([robots] of {mission.source})")
+        if len(links) < mission.count:
+            mission = mission.with_vehicles(len(links))
+        self.mission = mission
+        self.cfg = mission.config
+        self.frame = mission.frame
+        self.links = list(links)
+        self.backend = backend
+        if recorder is None:
+            from vtube_fleet.recording import NullRecorder
+
+            recorder = NullRecorder()
+        self.recorder = recorder
+        self.view = view
+        self.out_dir = None if out_dir is None else Path(out_dir)
+        self.keep_trace = keep_trace
+        self.trace: list[TickTrace] = []
+        self.tick_hook = tick_hook
+        self.signals = signals
+
+        sc = mission.scenario
+        self.params = sc.controller  # as configured (physical r_s, r_a)
+        # the plan before the budget is measured: latency 0 (replaced in _budget())
+        self.budget = self._make_budget(0.0)
+        flown = self.budget.inflate(self.params)
+        try:
+            self.plan = FlightPlan.build(sc.tube, sc.obstacles, flown)
+        except PartitionError as exc:
+            raise PreflightError(
+                f"{mission.source}: with the safety budget {self.budget.describe(self.params)}"
+                f" the tube cannot be partitioned: {exc}") from None
+        self.bus = InProcessBus()
+        self.pilots: list[VehiclePilot] = []
+        for i, link in enumerate(self.links):
+            agent = Agent(i, self.plan, max_age_s=self.cfg.neighbour_max_age_s,
+                          lost_after_s=self.cfg.lost_after_s,
+                          lost_radius_m=self.params.r_s + self.cfg.lost_obstacle_margin_m)
+            self.pilots.append(VehiclePilot(link, agent, self.bus, mission, frame=self.frame,
+                                            on_event=self._on_pilot_event))
+        self.names = [p.name for p in self.pilots]
+        self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, self.params)
+        self.acc = SummaryAccumulator(len(self.pilots))
+        self.t0 = time.monotonic()
+        self.tube_start_s: float | None = None
+        self.stage = "connecting"
+        self.tick = 0
+        self.tick_durations: list[float] = []
+        self.tick_lateness: list[float] = []
+        self.latencies: list[float] = []
+        self.sample_ages: list[float] = []
+        self._sample_ages_window: list[float] = []
+        self.measured_speed = [math.inf, -math.inf]
+        self.cmd_speed = [math.inf, -math.inf]
+        self.min_pair_airborne = math.inf
+        self.events: list[dict[str, Any]] = []
+        self.partitions = 1
+        self._abort_reason: str | None = None
+        self._abort_event = asyncio.Event()
+        self._progress = asyncio.Event()
+        self._interrupted: str | None = None
+        self._clock_task: asyncio.Task[None] | None = None
+        self._clock_stop = asyncio.Event()
+        self._main: asyncio.Task[None] | None = None
+        self._warned_latency = False
+        self.outcome = "failed"
+        self.reason = ""
+
+    # -- small helpers -------------------------------------------------------------------------
+    def _make_budget(self, latency_s: float) -> SafetyBudget:
+        cfg = self.cfg
+        return SafetyBudget.compute(
+            self.params, period_s=cfg.period_s,
+            latency_s=cfg.latency_s if cfg.latency_s is not None else latency_s,
+            dead_time_s=cfg.tracking_dead_time_s, t63_s=cfg.tracking_t63_s,
+            override_m=cfg.safety_margin_m)
+
+    def t_s(self) -> float:
+        return time.monotonic() - self.t0
+
+    def event(self, text: str, *, vehicle_id: int | None = None, level: str = "info") -> None:
+        t = self.t_s()
+        self.events.append({"t_s": round(t, 3), "vehicle": vehicle_id, "level": level,
+                            "text": text})
+        try:
+            self.recorder.log_event(t, text, vehicle_id=vehicle_id, level=level)
+        except Exception as exc:  # the recorder must never stop the fleet
+            log.warning("recorder: log_event failed: %s", exc)
+        line = text if vehicle_id is None else f"{self.names[vehicle_id]}: {text}"
+        if level in ("warning", "error"):
+            log.warning("%s", line)
+        else:
+            log.info("%s", line)
+        if self.view is not None and (level != "info" or vehicle_id is None):
+            self.view.message(f"[{t:7.1f}s] {level.upper() if level != 'info' else ''}"
+                              f"{' ' if level != 'info' else ''}{line}")
+        self._progress.set()
+
+    def _on_pilot_event(self, text: str, vehicle_id: int | None, level: str) -> None:
+        self.event(text, vehicle_id=vehicle_id, level=level)
+
+    def _set_stage(self, stage: str) -> None:
+        self.stage = stage
+        self.event(f"stage: {stage}")
+
+    # -- the control clock ---------------------------------------------------------------------
+    async def _clock(self) -> None:
+        loop = asyncio.get_running_loop()
+        period = self.cfg.period_s
+        next_t = loop.time()
+        while not self._clock_stop.is_set():
+            start = loop.time()
+            self.tick_lateness.append(start - next_t)
+            t0 = time.perf_counter()
+            try:
+                self._tick()
+            except Exception as exc:  # a bug must not leave vehicles without setpoints silently
+                log.exception("control tick failed")
+                self.request_abort(f"control tick failed: {type(exc).__name__}: {exc}")
+            self.tick_durations.append(time.perf_counter() - t0)
+            if self.tick_hook is not None:
+                self.tick_hook(self.tick, self)
+            self.tick += 1
+            next_t += period
+            now = loop.time()
+            if next_t < now - period:  # more than a period behind: do not try to catch up
+                next_t = now
+            delay = next_t - now
+            if delay > 0:
+                try:
+                    async with asyncio.timeout(delay):
+                        await self._clock_stop.wait()
+                except TimeoutError:
+                    pass
+            else:
+                await asyncio.sleep(0)
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        wall = time.time()
+        t = now - self.t0
+        pilots = self.pilots
+        cfg = self.cfg
+        sense_all(pilots, self.frame)
+        for p in pilots:
+            p.check_faults(now)
+            p.publish(now, wall)
+            if p.sample_s is not None and p.phase in FLYING_PHASES:
+                self._sample_ages_window.append(p.sample_age_s(now))
+        view = classify(self.bus.latest().values(), wall, max_age_s=cfg.neighbour_max_age_s,
+                        lost_after_s=cfg.lost_after_s)
+        self._update_partition(view, t)
+        in_tube = self.tube_start_s is not None
+        # exits (TraCondition), then the controller for everyone still in the tube
+        rows: list[int] = []
+        row_pilots: list[VehiclePilot] = []
+        if in_tube:
+            ids = view.ids()
+            index = {int(v): k for k, v in enumerate(ids)}
+            for p in pilots:
+                if p.phase != Phase.IN_TUBE or not p.has_position():
+                    continue
+                if p.agent.has_exited(p.xy):
+                    p.mark_exit(t)
+                    self.acc.add_exits(t, [p.vehicle_id])
+                    continue
+                k = index.get(p.vehicle_id)
+                if k is not None:
+                    rows.append(k)
+                    row_pilots.append(p)
+        cmds: dict[int, np.ndarray] = {}
+        if rows:
+            out = fleet_setpoints(self.plan, view.points(), rows)
+            for p, c in zip(row_pilots, out, strict=True):
+                cmds[p.vehicle_id] = c
+        for p in pilots:
+            p.actuate(now, cmds.get(p.vehicle_id), view)
+        self._measure(t, now, view)
+
+    def _update_partition(self, view: NeighbourView, t: float) -> None:
+        if not view.lost_ids.size:
+            return
+        root = self.pilots[0].agent.root_plan
+        lost = lost_obstacles(view, root.tube, self.params.r_s + self.cfg.lost_obstacle_margin_m)
+        try:
+            new = root.with_lost(lost)
+        except PartitionError as exc:
+            if self._abort_reason is None:
+                self.request_abort(
+                    f"no valid partition with the lost vehicle(s) "
+                    f"{', '.join(str(int(i)) for i in view.lost_ids)} as obstacles: {exc}")
+            return
+        if new is not self.plan:
+            self.plan = new
+            for p in self.pilots:
+                p.agent.plan = new
+            self.partitions += 1
+            where = ", ".join(f"({o.center[0]:.2f}, {o.center[1]:.2f}) r={o.radius:.2f}"
+                              for o in new.lost)
+            self.event(f"re-partitioned around lost vehicle(s): {len(new.partition.sub_tubes)} "
+                       f"sub-tubes; lost obstacles {where or 'none inside the tube'}",
+                       level="warning")
+            try:
+                self.recorder.log_partition(new.partition, t)
+            except Exception as exc:
+                log.warning("recorder: log_partition failed: %s", exc)
+
+    def request_abort(self, reason: str) -> None:
+        """Abort the mission: vehicles in the tube hold now; the main procedure ends."""
+        if self._abort_reason is not None:
+            return
+        self._abort_reason = reason
+        self.event(f"ABORT: {reason}", level="error")
+        for p in self.pilots:
+            if p.phase in (Phase.IN_TUBE, Phase.EXITED):
+                p.begin_hold("mission aborted")
+        self._abort_event.set()
+        self._progress.set()
+
+    # -- per-tick measurements -----------------------------------------------------------------
+    def _measure(self, t: float, now: float, view: NeighbourView) -> None:
+        pilots = self.pilots
+        m = len(pilots)
+        pos = np.full((m, 2), np.nan)
+        vel = np.full((m, 2), np.nan)
+        cmd = np.full((m, 2), np.nan)
+        tube_rows = np.zeros(m, dtype=bool)
+        airborne = np.zeros(m, dtype=bool)
+        for i, p in enumerate(pilots):
+            if p.has_position():
+                pos[i] = p.position()
+                vel[i] = p.vel_xy
+            if p.cmd_xy is not None:
+                cmd[i] = p.cmd_xy
+            tube_rows[i] = p.cmd_in_tube or (p.phase == Phase.LOST and p.lost_xy is not None
+                                             and self.tube_start_s is not None
+                                             and bool(self.mission.scenario.tube.contains(
+                                                 p.lost_xy)))
+            airborne[i] = p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.LOST) or (
+                p.phase in (Phase.HOLDING, Phase.LANDING) and p.exit_time_s is not None)
+        lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
+        latency = float(np.median(lat)) if lat else math.nan
+        if lat:
+            self.latencies.append(latency)
+        metrics: dict[str, float] = {}
+        if self.tube_start_s is not None:
+            # the "" stream: in the tube (telemetry position, commanded velocity)
+            p_tube = np.where(tube_rows[:, None], pos, np.nan)
+            v_tube = np.where((tube_rows & np.isfinite(cmd[:, 0]))[:, None], cmd, np.nan)
+            for i, p in enumerate(pilots):
+                if tube_rows[i] and p.phase == Phase.LOST:
+                    v_tube[i] = np.nan
+            sm = self.monitor.evaluate(p_tube, v_tube)
+            self.acc.add(t, sm)
+            for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
+                        "min_left_leg_distance_m", "min_right_leg_distance_m",
+                        "min_speed_m_s", "max_speed_m_s"):
+                val = float(getattr(sm, key)[0])
+                if math.isfinite(val):
+                    metrics[key] = val
+            cs = np.hypot(*cmd[tube_rows & np.isfinite(cmd[:, 0])].T)
+            if cs.size:
+                self.cmd_speed[0] = min(self.cmd_speed[0], float(cs.min()))
+                self.cmd_speed[1] = max(self.cmd_speed[1], float(cs.max()))
+            inside = np.array([p.cmd_in_tube for p in pilots])
+            ms = np.hypot(*vel[inside & np.isfinite(vel[:, 0])].T)
+            if ms.size:
+                self.measured_speed[0] = min(self.measured_speed[0], float(ms.min()))
+                self.measured_speed[1] = max(self.measured_speed[1], float(ms.max()))
+            q = pos[airborne & np.isfinite(pos[:, 0])]
+            if q.shape[0] > 1:
+                i_idx, j_idx = pairs_within(q, 4.0 * self.plan.params.r_s + 1.0)
+                if len(i_idx):
+                    d = float(np.hypot(*(q[i_idx] - q[j_idx]).T).min())
+                    self.min_pair_airborne = min(self.min_pair_airborne, d)
+            # latency budget check
+            if self._sample_ages_window:
+                self.sample_ages.extend(self._sample_ages_window)
+                worst = max(self._sample_ages_window)
+                if worst > self.budget.latency_s + self.cfg.period_s and not self._warned_latency:
+                    self._warned_latency = True
+                    self.event(f"position sample {worst * 1000:.0f} ms old > budgeted latency "
+                               f"{self.budget.latency_s * 1000:.0f} ms + one period; the "
+                               f"clearance flown may fall below 2 r_s", level="warning")
+        self._sample_ages_window.clear()
+        if self.tick_durations:
+            metrics["tick_duration_s"] = self.tick_durations[-1]
+        if math.isfinite(latency):
+            metrics["link_latency_s"] = latency
+        try:
+            self.recorder.log_tick(
+                t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
+                phases=[p.phase.value for p in pilots], cmd=cmd, metrics=metrics)
+        except Exception as exc:
+            log.warning("recorder: log_tick failed: %s", exc)
+        if self.keep_trace:
+            self.trace.append(TickTrace(t, pos, vel, cmd, tube_rows & np.isfinite(cmd[:, 0]),
+                                        tuple(p.phase.value for p in pilots)))
+        if self.view is not None:
+            self.view.update(self.status())
+
+    def status(self) -> FleetStatus:
+        st = FleetStatus(t_s=self.t_s(), stage=self.stage, vehicles=len(self.pilots))
+        counts: dict[str, int] = {}
+        for p in self.pilots:
+            counts[p.phase.value] = counts.get(p.phase.value, 0) + 1
+            s = p.link.state
+            if s.last_heartbeat_s is not None and not p.link.closed:
+                st.connected += 1
+            if s.armed:
+                st.armed += 1
+        st.phases = counts
+        st.in_tube = counts.get("in_tube", 0)
+        st.exited = int(sum(p.exit_time_s is not None for p in self.pilots))
+        st.lost = counts.get("lost", 0)
+        st.landed = counts.get("landed", 0)
+        summ = self.acc.summary()
+        st.min_pair_m = min(summ.get("min_pair_distance_m") or math.inf, self.min_pair_airborne)
+        st.pair_limit_m = 2.0 * self.params.r_s
+        st.min_obstacle_m = summ.get("min_obstacle_center_distance_m") or math.inf
+        obs = self.mission.scenario.obstacles
+        st.obstacle_limit_m = (min(float(o.radius) for o in obs) + self.params.r_s
+                               if obs else math.nan)
+        st.min_leg_m = min(summ.get("min_left_leg_distance_m") or math.inf,
+                           summ.get("min_right_leg_distance_m") or math.inf)
+        st.leg_limit_m = self.params.r_s
+        st.delta_m = self.budget.delta_m
+        d = self.tick_durations[-400:]
+        st.tick_p50_ms = 1000 * _pct(d, 50)
+        st.tick_p99_ms = 1000 * _pct(d, 99)
+        st.rate_hz = self._achieved_rate(window=40)
+        late = self.tick_lateness[-400:]
+        if late:
+            st.on_time = float(np.mean(np.asarray(late) <= self.cfg.period_s / 2))
+        st.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
+        return st
+
+    def _achieved_rate(self, window: int | None = None) -> float:
+        n = len(self.tick_lateness)
+        if n < 2:
+            return math.nan
+        lat = np.asarray(self.tick_lateness if window is None else self.tick_lateness[-window:])
+        k = len(lat)
+        if k < 2:
+            return math.nan
+        # scheduled times advance by one period per tick; actual start = scheduled + lateness
+        span = (k - 1) * self.cfg.period_s + (lat[-1] - lat[0])
+        return (k - 1) / span if span > 0 else math.nan
+
+    # -- the procedure -------------------------------------------------------------------------
+    async def _gather_named(self, what: str, coros: Sequence[Any]) -> list[str]:
+        results = await asyncio.gather(*coros, return_exceptions=True)
+        problems = []
+        for p, r in zip(self.pilots, results, strict=True):
+            if isinstance(r, asyncio.CancelledError):
+                raise r
+            if isinstance(r, BaseException):
+                if not isinstance(r, UserError | OSError):
+                    log.error("%s: %s failed", p.name, what, exc_info=r)
+                msg = str(r)
+                problems.append(msg if p.link.endpoint.url in msg else f"{p.name}: {msg}")
+        return problems
+
+    async def _connect(self) -> None:
+        self._set_stage("connecting")
+        cfg = self.cfg
+
+        async def one(link: VehicleLink) -> None:
+            await link.connect(timeout_s=cfg.connect_timeout_s)
+
+        problems = await self._gather_named("connect", [one(p.link) for p in self.pilots])
+        if problems:
+            raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles did not connect "
+                             f"within connect_timeout_s = {cfg.connect_timeout_s:g} s: "
+                             + "; ".join(problems))
+        self.event(f"connected {len(self.pilots)} vehicles ({self.backend})")
+
+    async def _ready(self) -> None:
+        self._set_stage("ready")
+        problems = await self._gather_named("ready", [p.wait_ready() for p in self.pilots])
+        if problems:
+            raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles not ready: "
+                             + "; ".join(problems))
+
+    async def _measure_budget(self) -> None:
+        """Measure latency + sample age for ``MEASURE_S``, fix δ, validate, rebuild the plan."""
+        self._set_stage("preflight")
+        cfg = self.cfg
+        loop = asyncio.get_running_loop()
+        ages: list[float] = []
+        end = loop.time() + MEASURE_S
+        while loop.time() < end:
+            now = time.monotonic()
+            ages.extend(p.sample_age_s(now) for p in self.pilots)
+            await asyncio.sleep(cfg.period_s)
+        measured = _pct(ages, 95)
+        measured = 0.0 if not math.isfinite(measured) else measured
+        self.measured_latency_s = measured
+        self.budget = self._make_budget(measured)
+        flown = self.budget.inflate(self.params)
+        self.event(f"safety budget: {self.budget.describe(self.params)} (measured link latency "
+                   f"+ position age p95 {measured * 1000:.1f} ms)")
+        positions = np.array([p.xy for p in self.pilots])
+        part, problems = preflight_report(self.mission, flown, positions, self.names)
+        for i, p in enumerate(self.pilots):
+            slot = self.mission.slots[i]
+            off = float(np.hypot(*(p.xy - slot)))
+            if off > 1.0:
+                self.event(f"at ({p.xy[0]:.2f}, {p.xy[1]:.2f}), {off:.2f} m from its slot "
+                           f"({slot[0]:.2f}, {slot[1]:.2f})", vehicle_id=i, level="warning")
+            prob = p.check_altitude_margin(MIN_CLIMB_M)
+            if prob:
+                problems.append(prob)
+        if problems or part is None:
+            raise PreflightError(
+                f"preflight failed, nothing armed ({len(problems)} problem"
+                f"{'s' if len(problems) != 1 else ''}; safety budget "
+                f"{self.budget.describe(self.params)}): " + "; ".join(problems))
+        self.plan = FlightPlan.build(self.mission.scenario.tube, self.mission.scenario.obstacles,
+                                     flown, part=part)
+        for p in self.pilots:
+            p.agent.root_plan = p.agent.plan = self.plan
+        try:
+            self.recorder.log_scene(self.mission, self.plan.partition, meta={
+                "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
+                "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
+                "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
+        except Exception as exc:
+            log.warning("recorder: log_scene failed: %s", exc)
+
+    async def _takeoff(self) -> None:
+        self._set_stage("takeoff")
+        problems = await self._gather_named("take-off",
+                                            [p.arm_and_climb() for p in self.pilots])
+        if problems:
+            raise MissionAborted(f"take-off failed for {len(problems)} of {len(self.pilots)} "
+                                 f"vehicles: " + "; ".join(problems))
+        positions = np.array([p.xy for p in self.pilots])
+        _, problems = preflight_report(self.mission, self.plan.params, positions, self.names,
+                                       where=f"at {self.cfg.altitude_m:g} m")
+        if problems:
+            raise MissionAborted("Assumption 1 broken at altitude: " + "; ".join(problems))
+
+    async def _fly_tube(self) -> None:
+        self._set_stage("tube")
+        self.tube_start_s = self.t_s()
+        for p in self.pilots:
+            p.enter_tube()
+        deadline = asyncio.get_running_loop().time() + self.cfg.mission_timeout_s
+        while True:
+            if self._abort_reason is not None:
+                raise MissionAborted(self._abort_reason)
+            if not any(p.phase == Phase.IN_TUBE for p in self.pilots):
+                return
+            self._progress.clear()
+            remaining = deadline - asyncio.get_running_loop().time()
+            if remaining <= 0:
+                left = [p.name for p in self.pilots if p.phase == Phase.IN_TUBE]
+                raise MissionAborted(f"mission_timeout_s = {self.cfg.mission_timeout_s:g} s "
+                                     f"reached with {len(left)} vehicle(s) still in the tube: "
+                                     + ", ".join(left))
+            try:
+                async with asyncio.timeout(min(remaining, 1.0)):
+                    await self._progress.wait()
+            except TimeoutError:
+                pass
+
+    async def _finish(self, action: str) -> None:
+        """Hold or land every airborne vehicle; wait for touch-down when landing."""
+        self._set_stage("landing" if action == "land" else "holding")
+        if action == "hold":
+            await self._gather_named("hold", [p.hold() for p in self.pilots])
+            return
+        await self._gather_named("land", [p.land() for p in self.pilots])
+        await self._wait_landed()
+
+    async def _wait_landed(self) -> None:
+        cfg = self.cfg
+        waiting = [p for p in self.pilots if p.phase == Phase.LANDING]
+        if not waiting:
+            return
+        try:
+            async with asyncio.timeout(cfg.land_timeout_s):
+                await asyncio.gather(*(p.landed.wait() for p in waiting))
+        except TimeoutError:
+            left = [p.name for p in waiting if p.phase == Phase.LANDING]
+            self.event(f"{len(left)} vehicle(s) not on the ground after land_timeout_s = "
+                       f"{cfg.land_timeout_s:g} s: {', '.join(left)}", level="warning")
+            return
+        self.event("all vehicles on the ground")
+
+    async def _emergency(self, why: str) -> None:
+        """Everyone holds, then lands (Ctrl-C / SIGTERM)."""
+        self.event(f"{why}: every vehicle holds, then lands", level="warning")
+        self._set_stage("interrupted")
+        await self._gather_named("hold", [p.hold() for p in self.pilots])
+        await self._gather_named("land", [p.land() for p in self.pilots])
+        await self._wait_landed()
+
+    async def _mission(self) -> None:
+        await self._connect()
+        self._clock_task = asyncio.get_running_loop().create_task(self._clock())
+        await self._ready()
+        await self._measure_budget()
+        await self._takeoff()
+        await self._fly_tube()
+        lost = [p for p in self.pilots if p.phase == Phase.LOST]
+        exited = sum(p.exit_time_s is not None for p in self.pilots)
+        self.event(f"all vehicles out of the tube: {exited} exited, {len(lost)} lost")
+        await self._finish(self.cfg.on_complete)
+
+    # -- run -------------------------------------------------------------------------------------
+    def _on_signal(self, name: str) -> None:
+        if self._interrupted is None:
+            self._interrupted = name
+            self.event(f"{name} received", level="warning")
+            if self._main is not None:
+                self._main.cancel()
+        else:
+            self.event(f"second {name}: not waiting for touch-down", level="warning")
+            self._abort_event.set()
+            if self._main is not None:
+                self._main.cancel()
+
+    async def run(self) -> FleetResult:
+        """Fly the mission; always writes ``summary.json`` (when ``out_dir`` is set)."""
+        loop = asyncio.get_running_loop()
+        installed: list[int] = []
+        if self.signals:
+            for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
+                try:
+                    loop.add_signal_handler(sig, self._on_signal, name)
+                    installed.append(sig)
+                except (NotImplementedError, RuntimeError, ValueError):
+                    pass
+        exit_code = EXIT_OK
+        error: BaseException | None = None
+        try:
+            self._main = loop.create_task(self._mission())
+            try:
+                await self._main
+                self.outcome = "completed"
+                n_exit = sum(p.exit_time_s is not None for p in self.pilots)
+                if n_exit < len(self.pilots):
+                    self.outcome = "incomplete"
+                    self.reason = (f"{len(self.pilots) - n_exit} of {len(self.pilots)} vehicles "
+                                   f"did not exit: " + ", ".join(
+                                       f"{p.name} {p.phase.value}"
+                                       + (f" ({p.reason})" if p.reason else "")
+                                       for p in self.pilots if p.exit_time_s is None))
+                    exit_code = EXIT_ABORTED
+            except asyncio.CancelledError:
+                if self._interrupted is None:
+                    raise
+                self.outcome = "interrupted"
+                self.reason = f"{self._interrupted}: held, then landed"
+                exit_code = EXIT_INTERRUPTED
+                self._main = loop.create_task(self._emergency(self._interrupted))
+                try:
+                    await self._main
+                except asyncio.CancelledError:
+                    pass
+            except MissionAborted as exc:
+                self.outcome = "aborted"
+                self.reason = str(exc)
+                exit_code = EXIT_ABORTED
+                error = exc
+                await self._after_abort(exc)
+            except UserError as exc:
+                self.outcome = "failed"
+                self.reason = str(exc)
+                exit_code = exc.exit_code
+                error = exc
+                await self._after_abort(exc)
+        finally:
+            for sig in installed:
+                loop.remove_signal_handler(sig)
+            summary, path = await self._shutdown()
+        if error is not None:
+            self.event(f"{self.outcome}: {self.reason}", level="error")
+        return FleetResult(exit_code, self.outcome, self.reason, summary, path)
+
+    async def _after_abort(self, exc: BaseException) -> None:
+        """After an abort: in-tube vehicles already hold; vehicles still climbing or hovering
+        over their slots (take-off phase) land; a partition failure leaves the others holding.
+        """
+        if self._abort_reason is None:
+            self.request_abort(str(exc))
+        try:
+            climbing = [p for p in self.pilots if p.phase in (Phase.ARMING, Phase.TAKEOFF)]
+            if climbing:
+                await asyncio.gather(*(p.land() for p in climbing), return_exceptions=True)
+                await self._wait_landed()
+            holding = [p for p in self.pilots if p.phase == Phase.HOLDING]
+            if holding:
+                await asyncio.gather(*(p.hold() for p in holding), return_exceptions=True)
+        except asyncio.CancelledError:
+            pass
+
+    async def _shutdown(self) -> tuple[dict[str, Any], Path | None]:
+        self._clock_stop.set()
+        if self._clock_task is not None:
+            try:
+                await self._clock_task
+            except BaseException as exc:  # noqa: BLE001 - report, never lose the summary
+                log.warning("control clock ended with %r", exc)
+        for p in self.pilots:
+            for t in list(p._tasks):
+                t.cancel()
+        summary = self.summary()
+        path = None
+        try:
+            self.recorder.log_summary(summary)
+        except Exception as exc:
+            log.warning("recorder: log_summary failed: %s", exc)
+        if self.out_dir is not None:
+            try:
+                self.out_dir.mkdir(parents=True, exist_ok=True)
+                path = self.out_dir / "summary.json"
+                tmp = path.with_suffix(".json.tmp")
+                tmp.write_text(json.dumps(summary, indent=2) + "\n")
+                tmp.replace(path)
+            except OSError as exc:
+                log.error("cannot write summary.json in %s: %s", self.out_dir, exc)
+                path = None
+        try:
+            self.recorder.close()
+        except Exception as exc:
+            log.warning("recorder: close failed: %s", exc)
+        await asyncio.gather(*(p.link.close() for p in self.pilots), return_exceptions=True)
+        if self.view is not None:
+            self.view.close()
+        return summary, path
+
+    # -- the summary -------------------------------------------------------------------------
+    def summary(self) -> dict[str, Any]:
+        cfg = self.cfg
+        dur = np.asarray(self.tick_durations)
+        late = np.asarray(self.tick_lateness)
+        on_time = float(np.mean(late <= cfg.period_s / 2)) if late.size else None
+        flown = self.plan.params
+        vehicles = []
+        for p in self.pilots:
+            vehicles.append({
+                "id": p.vehicle_id, "endpoint": p.link.endpoint.url, "phase": p.phase.value,
+                "exit_s": _num(p.exit_time_s), "reason": p.reason,
+                "last_position": None if not p.has_position() else [
+                    round(float(p.xy[0]), 3), round(float(p.xy[1]), 3)],
+                "setpoints_sent": p.setpoints_sent,
+            })
+        last_exit = [p.exit_time_s for p in self.pilots if p.exit_time_s is not None]
+        extra: dict[str, Any] = {
+            "kind": "fleet",
+            "source": self.mission.source,
+            "backend": self.backend,
+            "outcome": self.outcome,
+            "reason": self.reason,
+            "vehicles": len(self.pilots),
+            "lost": [p.vehicle_id for p in self.pilots if p.phase == Phase.LOST],
+            "r_s": self.params.r_s,
+            "r_a": self.params.r_a,
+            "r_s_flown": flown.r_s,
+            "r_a_flown": flown.r_a,
+            "pair_limit_m": 2.0 * self.params.r_s,
+            "safety_budget": self.budget.as_dict(),
+            "min_pair_distance_airborne_m": _num(self.min_pair_airborne),
+            "min_commanded_speed_m_s": _num(self.cmd_speed[0]),
+            "max_commanded_speed_m_s": _num(self.cmd_speed[1]),
+            "min_measured_speed_m_s": _num(self.measured_speed[0]),
+            "max_measured_speed_m_s": _num(self.measured_speed[1]),
+            "rate_hz": cfg.rate_hz,
+            "achieved_rate_hz": _num(self._achieved_rate()),
+            "ticks": int(dur.size),
+            "ticks_on_time_share": on_time,
+            "tick_duration_p50_s": _num(_pct(dur, 50)),
+            "tick_duration_p99_s": _num(_pct(dur, 99)),
+            "tick_duration_max_s": _num(float(dur.max()) if dur.size else math.nan),
+            "link_latency_p50_s": _num(_pct(self.latencies, 50)),
+            "link_latency_p99_s": _num(_pct(self.latencies, 99)),
+            "position_age_p50_s": _num(_pct(self.sample_ages, 50)),
+            "position_age_p99_s": _num(_pct(self.sample_ages, 99)),
+            "tube_start_s": _num(self.tube_start_s),
+            "flight_time_s": (_num(max(last_exit) - self.tube_start_s)
+                              if last_exit and self.tube_start_s is not None else None),
+            "partitions": self.partitions,
+            "wall_s": round(self.t_s(), 3),
+            "vehicle_states": vehicles,
+            "events": self.events[-200:],
+        }
+        try:
+            return self.acc.summary(**extra)
+        except Exception as exc:  # never lose the summary
+            log.error("summary accumulator failed: %s", exc)
+            return extra
