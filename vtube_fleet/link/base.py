@@ -1,0 +1,397 @@
+"""The vehicle-link interface shared by the ``mavlink`` and ``mavsdk`` backends.
+
+A :class:`VehicleLink` is one PX4 vehicle seen through one endpoint. It keeps the latest telemetry
+in a :class:`VehicleState` (updated in place as messages arrive), sends velocity setpoints from
+*our* control loop (:meth:`VehicleLink.send_velocity_ned`, non-blocking) and runs commands with
+retries (``async`` methods raising :class:`LinkError` subclasses). Units are in the names, as in
+MAVSDK-Python; telemetry streams are async generators.
+
+Errors are :class:`~vtube_fleet.errors.UserError` subclasses with one-line messages that name the
+vehicle (``vehicle 3 (udpin://127.0.0.1:14542)``) and the numbers.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import dataclasses
+import math
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from vtube_fleet.errors import UserError
+from vtube_fleet.link.endpoints import Endpoint, parse_endpoint
+
+__all__ = [
+    "LinkError",
+    "LinkTimeout",
+    "CommandRejected",
+    "GeoPoint",
+    "StatusText",
+    "VehicleState",
+    "VehicleLink",
+    "READY_MAX_AGE_S",
+]
+
+#: A heartbeat / position older than this does not count for :meth:`VehicleLink.wait_ready`.
+READY_MAX_AGE_S = 3.0
+
+
+class LinkError(UserError):
+    """Anything that went wrong talking to a vehicle (one line, names the vehicle)."""
+
+
+class LinkTimeout(LinkError):
+    """The vehicle did not answer / did not reach a state in time."""
+
+
+class CommandRejected(LinkError):
+    """A command was answered with a MAV_RESULT other than ACCEPTED.
+
+    Attributes: ``command`` (e.g. ``"COMPONENT_ARM_DISARM"``), ``result`` (MAV_RESULT name, e.g.
+    ``"TEMPORARILY_REJECTED"``; for the mavsdk backend the MAVSDK result name).
+    """
+
+    def __init__(self, message: str, *, command: str, result: str) -> None:
+        super().__init__(message)
+        self.command = command
+        self.result = result
+
+
+class GeoPoint(NamedTuple):
+    """A WGS84 position; ``alt_m`` above mean sea level (as PX4 reports it)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+
+class StatusText(NamedTuple):
+    """One STATUSTEXT (chunks joined, PX4's trailing tab stripped)."""
+
+    time_s: float  #: time.monotonic() when received
+    severity: int  #: MAV_SEVERITY (0 emergency … 7 debug); -1 if unknown (mavsdk backend)
+    text: str
+
+
+_NAN = math.nan
+
+
+@dataclass(eq=False)
+class VehicleState:
+    """Latest telemetry snapshot of one vehicle (updated in place by its link).
+
+    Local position/velocity are PX4's LOCAL_POSITION_NED, relative to ``origin``
+    (GPS_GLOBAL_ORIGIN), not to home. ``alt_m`` is AMSL (GLOBAL_POSITION_INT.alt);
+    ``relative_alt_m`` is above home, and jumps by 1-2 m in PX4 SIH because home's altitude does:
+    use ``down_m`` for height. NaN / None = not received yet. Timestamps are ``time.monotonic()``.
+    """
+
+    endpoint: str = ""
+    sysid: int | None = None
+    time_boot_ms: int | None = None
+    north_m: float = _NAN
+    east_m: float = _NAN
+    down_m: float = _NAN
+    vn_m_s: float = _NAN
+    ve_m_s: float = _NAN
+    vd_m_s: float = _NAN
+    lat_deg: float = _NAN
+    lon_deg: float = _NAN
+    alt_m: float = _NAN
+    relative_alt_m: float = _NAN
+    heading_deg: float = _NAN  #: yaw, degrees clockwise from north (GLOBAL_POSITION_INT.hdg)
+    origin: GeoPoint | None = None
+    home: GeoPoint | None = None
+    armed: bool | None = None
+    flight_mode: str = "UNKNOWN"  #: MAVSDK-style: HOLD, OFFBOARD, POSCTL, LAND, TAKEOFF …
+    px4_mode: str = "UNKNOWN"  #: PX4's name: AUTO.LOITER, OFFBOARD, POSCTL … (mavlink backend)
+    custom_mode: int | None = None
+    base_mode: int | None = None
+    landed_state: str = "UNKNOWN"  #: ON_GROUND, IN_AIR, TAKING_OFF, LANDING, UNKNOWN
+    system_status: str = "UNKNOWN"  #: MAV_STATE name: UNINIT, STANDBY, ACTIVE, CRITICAL …
+    health_ok: bool = False
+    health_problems: tuple[str, ...] = ("no SYS_STATUS",)
+    last_heartbeat_s: float | None = None
+    last_position_s: float | None = None
+    last_global_s: float | None = None
+    last_packet_s: float | None = None
+    statustexts: deque[StatusText] = field(default_factory=lambda: deque(maxlen=32))
+    rx_packets: int = 0
+    bad_packets: int = 0  #: datagrams (or parts) that failed to parse: garbage, bad CRC, cut off
+    foreign_packets: int = 0  #: valid packets from another system id / a GCS, ignored
+
+    def copy(self) -> VehicleState:
+        """An independent copy (the link keeps updating the original)."""
+        new = dataclasses.replace(self)
+        new.statustexts = deque(self.statustexts, maxlen=self.statustexts.maxlen)
+        return new
+
+    @property
+    def has_local_position(self) -> bool:
+        return self.last_position_s is not None
+
+    @property
+    def has_global_position(self) -> bool:
+        return self.last_global_s is not None
+
+
+class VehicleLink(abc.ABC):
+    """One PX4 vehicle behind one endpoint. See ``docs/links.md``.
+
+    Subclasses implement the transport; this base class holds the state, the waiters behind
+    :meth:`states`/:meth:`positions`/:meth:`wait_until`, and the readiness check.
+    """
+
+    #: Seconds a setpoint may be old for :meth:`start_offboard` to accept that we stream.
+    offboard_setpoint_max_age_s: float = 0.5
+
+    def __init__(self, endpoint: str | Endpoint, sysid: int | None = None) -> None:
+        self.endpoint: Endpoint = (
+            endpoint if isinstance(endpoint, Endpoint) else parse_endpoint(endpoint)
+        )
+        if sysid is not None and not 1 <= int(sysid) <= 255:
+            raise LinkError(f"{self.endpoint}: system id must be 1..255, got {sysid}")
+        self.state = VehicleState(endpoint=self.endpoint.url, sysid=sysid)
+        self._state_waiters: list[asyncio.Future[None]] = []
+        self._position_waiters: list[asyncio.Future[None]] = []
+        self._closed = False
+        self._last_setpoint_s: float | None = None
+        self._setpoints_sent = 0
+
+    # -- naming ------------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        """``vehicle 3 (udpin://127.0.0.1:14542)``: how errors and logs name this vehicle."""
+        sysid = self.state.sysid
+        return f"vehicle {sysid if sysid is not None else '?'} ({self.endpoint.url})"
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name}>"
+
+    @property
+    def sysid(self) -> int | None:
+        return self.state.sysid
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # -- notification (called by backends on every update) -----------------------------------
+    def _notify_state(self) -> None:
+        waiters = self._state_waiters
+        if waiters:
+            self._state_waiters = []
+            for fut in waiters:
+                if not fut.done():
+                    fut.set_result(None)
+
+    def _notify_position(self) -> None:
+        waiters = self._position_waiters
+        if waiters:
+            self._position_waiters = []
+            for fut in waiters:
+                if not fut.done():
+                    fut.set_result(None)
+        self._notify_state()
+
+    def _wake_all_closed(self) -> None:
+        for lst in (self._state_waiters, self._position_waiters):
+            for fut in lst:
+                if not fut.done():
+                    fut.set_result(None)
+            lst.clear()
+
+    async def _next(self, waiters_attr: str) -> None:
+        if self._closed:
+            raise LinkError(f"{self.name}: link is closed")
+        fut = asyncio.get_running_loop().create_future()
+        getattr(self, waiters_attr).append(fut)
+        await fut
+
+    # -- telemetry streams -------------------------------------------------------------------
+    async def states(self) -> AsyncIterator[VehicleState]:
+        """Yield :attr:`state` (the live object, updated in place: use ``.copy()`` to keep one)
+        after every telemetry update. A slow consumer skips updates (latest-value semantics).
+        Ends when the link is closed."""
+        while not self._closed:
+            await self._next("_state_waiters")
+            if self._closed:
+                return
+            yield self.state
+
+    async def positions(self) -> AsyncIterator[VehicleState]:
+        """Like :meth:`states` but only after local-position (LOCAL_POSITION_NED) updates."""
+        while not self._closed:
+            await self._next("_position_waiters")
+            if self._closed:
+                return
+            yield self.state
+
+    async def wait_until(
+        self, predicate: Callable[[VehicleState], bool], timeout_s: float, what: str
+    ) -> VehicleState:
+        """Wait until ``predicate(state)`` holds; :class:`LinkTimeout` naming ``what`` and the
+        current mode/armed/landed state otherwise."""
+        if predicate(self.state):
+            return self.state
+        try:
+            async with asyncio.timeout(timeout_s):
+                while True:
+                    await self._next("_state_waiters")
+                    if self._closed:
+                        raise LinkError(f"{self.name}: link closed while waiting for {what}")
+                    if predicate(self.state):
+                        return self.state
+        except TimeoutError:
+            s = self.state
+            raise LinkTimeout(
+                f"{self.name}: {what} not reached within {timeout_s:.1f} s (mode {s.flight_mode}, "
+                f"armed {s.armed}, landed {s.landed_state}, status {s.system_status})"
+            ) from None
+
+    # -- readiness -----------------------------------------------------------------------------
+    def missing_for_ready(self, now: float | None = None) -> list[str]:
+        """What :meth:`wait_ready` still waits for (empty list = ready)."""
+        s = self.state
+        now = time.monotonic() if now is None else now
+        missing = []
+        if s.last_heartbeat_s is None:
+            missing.append("no HEARTBEAT")
+        elif now - s.last_heartbeat_s > READY_MAX_AGE_S:
+            missing.append(f"last HEARTBEAT {now - s.last_heartbeat_s:.1f} s ago")
+        if s.last_position_s is None:
+            missing.append("no local position")
+        elif now - s.last_position_s > READY_MAX_AGE_S:
+            missing.append(f"last local position {now - s.last_position_s:.1f} s ago")
+        if s.last_global_s is None:
+            missing.append("no global position")
+        if s.home is None:
+            missing.append("no home position")
+        if s.origin is None:
+            missing.append("no GPS global origin")
+        if not s.health_ok:
+            missing.append(
+                f"not healthy ({', '.join(s.health_problems) or '?'}; "
+                f"system_status {s.system_status})"
+            )
+        return missing
+
+    async def _ready_tick(self, missing: list[str]) -> None:
+        """Called about once a second while :meth:`wait_ready` waits (backends re-request)."""
+        return None
+
+    async def wait_ready(self, timeout_s: float = 30.0) -> VehicleState:
+        """Wait for heartbeat, local and global position, home, GPS origin and health.
+
+        Raises :class:`LinkTimeout` listing what is still missing.
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        next_tick = loop.time() + 1.0
+        while True:
+            missing = self.missing_for_ready()
+            if not missing:
+                return self.state
+            now = loop.time()
+            if now >= deadline:
+                raise LinkTimeout(
+                    f"{self.name}: not ready after {timeout_s:.1f} s: {'; '.join(missing)}"
+                )
+            if now >= next_tick:
+                next_tick = now + 1.0
+                await self._ready_tick(missing)
+            try:
+                async with asyncio.timeout(max(0.0, min(deadline, next_tick) - now)):
+                    await self._next("_state_waiters")
+            except TimeoutError:
+                pass
+
+    # -- setpoints bookkeeping ---------------------------------------------------------------
+    def _check_setpoint(self, north_m_s: float, east_m_s: float, down_m_s: float) -> None:
+        if self._closed:
+            raise LinkError(f"{self.name}: link is closed")
+        if not (math.isfinite(north_m_s) and math.isfinite(east_m_s) and math.isfinite(down_m_s)):
+            raise ValueError(
+                f"{self.name}: velocity setpoint must be finite, got "
+                f"({north_m_s}, {east_m_s}, {down_m_s}) m/s"
+            )
+
+    def _require_fresh_setpoints(self) -> None:
+        last = self._last_setpoint_s
+        age = None if last is None else time.monotonic() - last
+        if age is None or age > self.offboard_setpoint_max_age_s:
+            when = "never sent one" if age is None else f"last one {age:.2f} s ago"
+            raise LinkError(
+                f"{self.name}: cannot start offboard: stream velocity setpoints first "
+                f"(PX4 needs them before and during OFFBOARD; {when}, need one within "
+                f"{self.offboard_setpoint_max_age_s:.2f} s)"
+            )
+
+    @property
+    def setpoint_age_s(self) -> float | None:
+        """Seconds since the last :meth:`send_velocity_ned`, None if never."""
+        last = self._last_setpoint_s
+        return None if last is None else time.monotonic() - last
+
+    # -- the interface -----------------------------------------------------------------------
+    @abc.abstractmethod
+    async def connect(self, timeout_s: float = 10.0) -> None:
+        """Open the endpoint and wait for the vehicle's first HEARTBEAT."""
+
+    @abc.abstractmethod
+    async def arm(self, timeout_s: float = 10.0) -> None:
+        """Arm; PX4 answers TEMPORARILY_REJECTED for ~3-4 s after boot, so retry until
+        ``timeout_s``; other rejections raise :class:`CommandRejected` at once."""
+
+    @abc.abstractmethod
+    async def disarm(self) -> None: ...
+
+    @abc.abstractmethod
+    async def takeoff(self, altitude_m: float) -> None:
+        """Take off (AUTO.TAKEOFF) to ``altitude_m`` above the current position."""
+
+    @abc.abstractmethod
+    async def land(self) -> None: ...
+
+    @abc.abstractmethod
+    async def hold(self) -> None:
+        """Switch to Hold (PX4 AUTO.LOITER)."""
+
+    @abc.abstractmethod
+    async def start_offboard(self) -> None:
+        """Switch to OFFBOARD; requires setpoints sent within
+        :attr:`offboard_setpoint_max_age_s` (else :class:`LinkError`)."""
+
+    @abc.abstractmethod
+    async def stop_offboard(self) -> None:
+        """Leave OFFBOARD into Hold."""
+
+    @abc.abstractmethod
+    def send_velocity_ned(
+        self,
+        north_m_s: float,
+        east_m_s: float,
+        down_m_s: float,
+        yaw_deg: float | None = None,
+    ) -> None:
+        """Send one velocity setpoint in the vehicle's LOCAL_NED frame now (non-blocking)."""
+
+    @property
+    @abc.abstractmethod
+    def latency_s(self) -> float | None:
+        """One-way link latency estimate in seconds (half a smoothed round trip), None if no
+        sample yet. Each backend documents its source."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Stop background work and release the endpoint; idempotent."""
+
+    async def __aenter__(self) -> VehicleLink:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()

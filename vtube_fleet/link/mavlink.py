@@ -1,0 +1,808 @@
+"""``mavlink`` backend: pymavlink's MAVLink 2 codec on an asyncio UDP socket, one per vehicle.
+
+* One :class:`asyncio.DatagramProtocol` per endpoint. ``udpin://HOST:PORT`` binds locally and
+  learns the vehicle's address from its first valid packet (PX4 SITL's API link sends from
+  14580+i to 14540+i); ``udpout://HOST:PORT`` sends to the vehicle from an ephemeral port.
+* Decoding: a pymavlink ``MAVLink`` object (``robust_parsing``) fed one datagram at a time with
+  ``parse_buffer``; leftovers of a datagram are discarded (a datagram never continues in the next
+  one). Cheap path for 200 vehicles in one process: once the vehicle is known, a datagram that is
+  exactly one MAVLink 2 packet from it whose message id we do not use (ATTITUDE at 100 Hz,
+  HIGHRES_IMU …) is only counted, never decoded; used ids dispatch through a dict to handlers
+  that update :class:`~vtube_fleet.link.base.VehicleState` in place and wake waiters only when
+  someone waits. Garbage, bad CRCs and cut-off packets are counted (``bad_packets``) with a
+  rate-limited warning; other systems' packets and other GCSs' heartbeats are counted
+  (``foreign_packets``) and ignored; message ids the dialect lacks (PX4's 8, 380, 410, 411, 436)
+  are fine.
+* GCS identity sysid 255 / compid 190, HEARTBEAT (type GCS, autopilot INVALID) every second,
+  as the capture GCS did. On connect: SET_MESSAGE_INTERVAL for LOCAL_POSITION_NED (50 Hz),
+  GLOBAL_POSITION_INT (10 Hz), EXTENDED_SYS_STATE (5 Hz), HOME_POSITION (1 Hz) and
+  REQUEST_MESSAGE for HOME_POSITION and GPS_GLOBAL_ORIGIN (re-requested every second while
+  :meth:`~vtube_fleet.link.base.VehicleLink.wait_ready` still misses them).
+* Commands: COMMAND_LONG, ``command_tries`` tries (default 3) of ``command_timeout_s`` (0.5 s)
+  each, ``confirmation`` incremented per try; one command per id in flight (PX4 ACKs carry only
+  the command id). IN_PROGRESS extends the wait. Non-ACCEPTED → :class:`CommandRejected`.
+* Setpoints: :meth:`MavlinkLink.send_velocity_ned` sends one SET_POSITION_TARGET_LOCAL_NED
+  (frame LOCAL_NED, type_mask 3527 = velocity only, or 2503 = velocity + yaw) immediately and
+  nothing else ever does: if our control loop stalls, the stream stops and PX4's offboard-loss
+  failsafe fires after COM_OF_LOSS_T (1.0 s default; captures: "Failsafe activated" 1.07 s
+  after the last setpoint, then POSCTL and descent). The link only logs a warning then.
+* Latency: half the smoothed round trip of TIMESYNC requests (1 Hz; PX4 answers them) or, until
+  one is answered, of first-try COMMAND_ACKs (those include PX4's ~10 ms command handling).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from vtube_fleet.link import px4
+from vtube_fleet.link.base import (
+    CommandRejected,
+    GeoPoint,
+    LinkError,
+    LinkTimeout,
+    StatusText,
+    VehicleLink,
+)
+from vtube_fleet.link.endpoints import Endpoint
+
+__all__ = [
+    "MavlinkLink",
+    "DEFAULT_MESSAGE_RATES_HZ",
+    "TYPE_MASK_VELOCITY",
+    "TYPE_MASK_VELOCITY_YAW",
+    "command_name",
+]
+
+log = logging.getLogger(__name__)
+
+#: SET_POSITION_TARGET_LOCAL_NED type_mask: ignore position, acceleration, yaw, yaw rate.
+TYPE_MASK_VELOCITY = 3527
+#: Same but with yaw used (bit 10 cleared).
+TYPE_MASK_VELOCITY_YAW = TYPE_MASK_VELOCITY & ~1024
+
+MSG_HEARTBEAT = 0
+MSG_SYS_STATUS = 1
+MSG_LOCAL_POSITION_NED = 32
+MSG_GLOBAL_POSITION_INT = 33
+MSG_GPS_GLOBAL_ORIGIN = 49
+MSG_COMMAND_ACK = 77
+MSG_TIMESYNC = 111
+MSG_HOME_POSITION = 242
+MSG_EXTENDED_SYS_STATE = 245
+MSG_STATUSTEXT = 253
+
+CMD_NAV_LAND = 21
+CMD_NAV_TAKEOFF = 22
+CMD_DO_SET_MODE = 176
+CMD_COMPONENT_ARM_DISARM = 400
+CMD_SET_MESSAGE_INTERVAL = 511
+CMD_REQUEST_MESSAGE = 512
+
+#: Message id → rate requested on connect (as the capture GCS did). 0 disables a stream.
+DEFAULT_MESSAGE_RATES_HZ: Mapping[int, float] = {
+    MSG_LOCAL_POSITION_NED: 50.0,
+    MSG_GLOBAL_POSITION_INT: 10.0,
+    MSG_EXTENDED_SYS_STATE: 5.0,
+    MSG_HOME_POSITION: 1.0,
+}
+
+_RESULT_ACCEPTED = 0
+_RESULT_TEMPORARILY_REJECTED = 1
+_RESULT_IN_PROGRESS = 5
+_MAV_COMP_ID_AUTOPILOT1 = 1
+_WARN_INTERVAL_S = 5.0
+_HEARTBEAT_LOST_S = 3.0
+_RTT_ALPHA = 0.2
+
+
+def command_name(command: int) -> str:
+    """``COMPONENT_ARM_DISARM`` for 400 (MAV_CMD name without prefix)."""
+    entry = mavlink2.enums["MAV_CMD"].get(command)
+    return entry.name.removeprefix("MAV_CMD_") if entry is not None else f"MAV_CMD({command})"
+
+
+def _message_name(msgid: int) -> str:
+    cls = mavlink2.mavlink_map.get(msgid)
+    return cls.msgname if cls is not None else f"MSG({msgid})"
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    __slots__ = ("link",)
+
+    def __init__(self, link: MavlinkLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.link.feed_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # e.g. ICMP port unreachable for udpout while the vehicle is not up yet
+        self.link._warn_limited("socket", f"{self.link.name}: socket error: {exc}")
+
+
+class MavlinkLink(VehicleLink):
+    """One PX4 vehicle over pymavlink + asyncio UDP. See the module docstring.
+
+    ``sysid``: the vehicle's system id, or None to lock onto the first autopilot (compid 1)
+    that sends a valid packet. ``message_rates_hz`` overrides/extends
+    :data:`DEFAULT_MESSAGE_RATES_HZ` (0 disables a stream, e.g. ``{30: 0}`` for ATTITUDE).
+    ``decode_all`` disables the skip-undecoded cheap path (tests, debugging).
+    """
+
+    def __init__(
+        self,
+        endpoint: str | Endpoint,
+        sysid: int | None = None,
+        *,
+        gcs_sysid: int = 255,
+        gcs_compid: int = 190,
+        target_compid: int = _MAV_COMP_ID_AUTOPILOT1,
+        message_rates_hz: Mapping[int, float] | None = None,
+        command_tries: int = 3,
+        command_timeout_s: float = 0.5,
+        heartbeat_period_s: float = 1.0,
+        decode_all: bool = False,
+    ) -> None:
+        super().__init__(endpoint, sysid)
+        if command_tries < 1 or not command_timeout_s > 0:
+            raise LinkError(
+                f"{self.name}: command_tries must be >= 1 and command_timeout_s > 0, got "
+                f"{command_tries} and {command_timeout_s}"
+            )
+        self.gcs_sysid = gcs_sysid
+        self.gcs_compid = gcs_compid
+        self.target_compid = target_compid
+        rates = dict(DEFAULT_MESSAGE_RATES_HZ)
+        rates.update(message_rates_hz or {})
+        self.message_rates_hz = rates
+        self.command_tries = command_tries
+        self.command_timeout_s = command_timeout_s
+        self.heartbeat_period_s = heartbeat_period_s
+        self.decode_all = decode_all
+
+        mav = mavlink2.MAVLink(None, srcSystem=gcs_sysid, srcComponent=gcs_compid)
+        mav.robust_parsing = True
+        self._mav = mav
+        self._sysid: int | None = sysid
+        self._remote: Any = None if self.endpoint.listens else (
+            self.endpoint.host, self.endpoint.port
+        )
+        self._transport: asyncio.DatagramTransport | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._connect_lock = asyncio.Lock()
+        self._streams_requested = False
+        self._pending: dict[int, asyncio.Future[int]] = {}
+        self._cmd_locks: dict[int, asyncio.Lock] = {}
+        self._handlers: dict[int, Callable[[Any, float], None]] = {
+            MSG_HEARTBEAT: self._on_heartbeat,
+            MSG_SYS_STATUS: self._on_sys_status,
+            MSG_LOCAL_POSITION_NED: self._on_local_position,
+            MSG_GLOBAL_POSITION_INT: self._on_global_position,
+            MSG_GPS_GLOBAL_ORIGIN: self._on_origin,
+            MSG_COMMAND_ACK: self._on_command_ack,
+            MSG_TIMESYNC: self._on_timesync,
+            MSG_HOME_POSITION: self._on_home,
+            MSG_EXTENDED_SYS_STATE: self._on_extended_sys_state,
+            MSG_STATUSTEXT: self._on_statustext,
+        }
+        self._t0 = time.monotonic()
+        self._warned_at: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+        self._text_chunks: dict[int, list[str]] = {}
+        self._text_severity: dict[int, int] = {}
+        self._text_started: dict[int, float] = {}
+        self._rtt_s: float | None = None
+        self._rtt_source: str | None = None
+        self._timesync_ts1: int | None = None
+        self._stall_warned = False
+        self._hb_lost_warned = False
+        self.tx_packets = 0
+
+    # -- properties ----------------------------------------------------------------------------
+    @property
+    def latency_s(self) -> float | None:
+        """Half the smoothed round trip (TIMESYNC, else first-try COMMAND_ACK); None if none."""
+        return None if self._rtt_s is None else self._rtt_s / 2.0
+
+    @property
+    def latency_source(self) -> str | None:
+        """``"TIMESYNC"`` or ``"COMMAND_ACK"``: where :attr:`latency_s` comes from."""
+        return self._rtt_source
+
+    @property
+    def remote_address(self) -> Any:
+        """The vehicle's (host, port) once known."""
+        return self._remote
+
+    @property
+    def local_address(self) -> Any:
+        """The bound (host, port) of our socket (None before :meth:`open`)."""
+        if self._transport is None:
+            return None
+        return self._transport.get_extra_info("sockname")
+
+    # -- warnings --------------------------------------------------------------------------------
+    def _warn_limited(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        last = self._warned_at.get(key)
+        if last is not None and now - last < _WARN_INTERVAL_S:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return
+        suppressed = self._suppressed.pop(key, 0)
+        self._warned_at[key] = now
+        if suppressed:
+            message += f" ({suppressed} more like this in the last {now - last:.0f} s)"
+        log.warning(message)
+
+    # -- receive path ----------------------------------------------------------------------------
+    def feed_datagram(self, data: bytes, addr: Any, now: float | None = None) -> None:
+        """Handle one received datagram (the protocol calls this; tests may too)."""
+        if now is None:
+            now = time.monotonic()
+        st = self.state
+        # Cheap path: exactly one MAVLink 2 packet from the known vehicle, id we do not use.
+        if (
+            not self.decode_all
+            and addr == self._remote
+            and len(data) >= 12
+            and data[0] == 0xFD
+            and len(data) == data[1] + (25 if data[2] & 1 else 12)
+            and data[5] == self._sysid
+            and (data[7] | (data[8] << 8) | (data[9] << 16)) not in self._handlers
+        ):
+            st.rx_packets += 1
+            st.last_packet_s = now
+            return
+        self._decode(data, addr, now)
+
+    def _decode(self, data: bytes, addr: Any, now: float) -> None:
+        mav = self._mav
+        st = self.state
+        bad: str | None = None
+        try:
+            msgs = mav.parse_buffer(data)
+        except Exception as exc:  # robust_parsing should prevent this; never crash
+            msgs = None
+            bad = f"parser error {exc!r}"
+        if mav.buf_len():
+            bad = bad or f"{mav.buf_len()} trailing bytes (cut-off packet)"
+            mav.buf = bytearray()
+            mav.buf_index = 0
+            mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+        if msgs:
+            for m in msgs:
+                if isinstance(m, mavlink2.MAVLink_bad_data):
+                    bad = bad or str(m.reason)
+                    continue
+                if isinstance(m, mavlink2.MAVLink_unknown):
+                    buf = m._msgbuf
+                    sysid = buf[5] if buf[0] == 0xFD else buf[3]
+                    if self._sysid is not None and sysid != self._sysid:
+                        st.foreign_packets += 1
+                    else:
+                        st.rx_packets += 1
+                        st.last_packet_s = now
+                    continue
+                hdr = m._header
+                sysid = hdr.srcSystem
+                msgid = hdr.msgId
+                if sysid != self._sysid:
+                    if (
+                        self._sysid is None
+                        and hdr.srcComponent == _MAV_COMP_ID_AUTOPILOT1
+                        and not (msgid == MSG_HEARTBEAT and m.autopilot == 8)
+                    ):
+                        self._sysid = sysid
+                        st.sysid = sysid
+                    else:
+                        st.foreign_packets += 1
+                        continue
+                if msgid == MSG_HEARTBEAT and m.autopilot == 8:  # a GCS using the vehicle's id
+                    st.foreign_packets += 1
+                    continue
+                if addr != self._remote:
+                    if self.endpoint.listens:
+                        if self._remote is not None:
+                            log.info("%s: vehicle address changed %s -> %s", self.name,
+                                     self._remote, addr)
+                        self._remote = addr
+                    else:
+                        st.foreign_packets += 1
+                        continue
+                st.rx_packets += 1
+                st.last_packet_s = now
+                handler = self._handlers.get(msgid)
+                if handler is not None:
+                    handler(m, now)
+        if bad is not None:
+            st.bad_packets += 1
+            self._warn_limited(
+                "bad",
+                f"{self.name}: dropped malformed datagram of {len(data)} bytes from {addr}: "
+                f"{bad} (bad so far: {st.bad_packets})",
+            )
+            self._notify_state()
+
+    # -- message handlers ------------------------------------------------------------------------
+    def _on_heartbeat(self, m: Any, now: float) -> None:
+        st = self.state
+        st.last_heartbeat_s = now
+        st.base_mode = m.base_mode
+        st.armed = bool(m.base_mode & 0x80)
+        st.system_status = px4.system_status_name(m.system_status)
+        if m.base_mode & 0x01:  # MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            cm = m.custom_mode
+            if cm != st.custom_mode:
+                st.custom_mode = cm
+                st.flight_mode = px4.flight_mode_name(cm)
+                st.px4_mode = px4.px4_mode_name(cm)
+        else:
+            st.custom_mode = None
+            st.flight_mode = st.px4_mode = "UNKNOWN"
+        if self._hb_lost_warned:
+            self._hb_lost_warned = False
+            log.warning("%s: HEARTBEAT back", self.name)
+        self._notify_state()
+
+    def _on_sys_status(self, m: Any, now: float) -> None:
+        st = self.state
+        problems = tuple(px4.health_problems(m.onboard_control_sensors_health))
+        if problems != st.health_problems:
+            st.health_problems = problems
+            st.health_ok = not problems
+            self._notify_state()
+
+    def _on_local_position(self, m: Any, now: float) -> None:
+        st = self.state
+        st.time_boot_ms = m.time_boot_ms
+        st.north_m = m.x
+        st.east_m = m.y
+        st.down_m = m.z
+        st.vn_m_s = m.vx
+        st.ve_m_s = m.vy
+        st.vd_m_s = m.vz
+        st.last_position_s = now
+        self._notify_position()
+
+    def _on_global_position(self, m: Any, now: float) -> None:
+        st = self.state
+        st.lat_deg = m.lat * 1e-7
+        st.lon_deg = m.lon * 1e-7
+        st.alt_m = m.alt * 1e-3
+        st.relative_alt_m = m.relative_alt * 1e-3
+        st.heading_deg = m.hdg * 0.01 if m.hdg != 65535 else math.nan
+        st.last_global_s = now
+        self._notify_state()
+
+    def _on_origin(self, m: Any, now: float) -> None:
+        st = self.state
+        origin = GeoPoint(m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+        if st.origin is not None and origin != st.origin:
+            log.warning("%s: GPS global origin changed from %s to %s", self.name, st.origin,
+                        origin)
+        st.origin = origin
+        self._notify_state()
+
+    def _on_home(self, m: Any, now: float) -> None:
+        self.state.home = GeoPoint(m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+        self._notify_state()
+
+    def _on_extended_sys_state(self, m: Any, now: float) -> None:
+        name = px4.landed_state_name(m.landed_state)
+        if name != self.state.landed_state:
+            self.state.landed_state = name
+            self._notify_state()
+
+    def _on_command_ack(self, m: Any, now: float) -> None:
+        if m.target_system not in (0, self.gcs_sysid):
+            return
+        fut = self._pending.get(m.command)
+        if fut is not None and not fut.done():
+            fut.set_result(m.result)
+
+    def _on_timesync(self, m: Any, now: float) -> None:
+        if m.tc1 != 0 and self._timesync_ts1 is not None and m.ts1 == self._timesync_ts1:
+            self._timesync_ts1 = None
+            self._rtt_sample(time.monotonic_ns() * 1e-9 - m.ts1 * 1e-9, "TIMESYNC")
+            self._notify_state()
+
+    def _on_statustext(self, m: Any, now: float) -> None:
+        text = m.text if isinstance(m.text, str) else bytes(m.text).decode("ascii", "replace")
+        chunks = self._text_chunks
+        key = m.id
+        for other in [k for k in chunks if k != key]:  # an unfinished message: flush it
+            self._text_started.pop(other, None)
+            self._emit_statustext(self._text_severity.pop(other), "".join(chunks.pop(other)), now)
+        if key not in chunks:
+            self._text_started[key] = now
+        chunks.setdefault(key, []).append(text)
+        self._text_severity[key] = m.severity
+        if len(text) < 50:  # the last chunk is NUL-terminated (PX4: first chunks exactly 50)
+            self._text_started.pop(key, None)
+            self._emit_statustext(self._text_severity.pop(key), "".join(chunks.pop(key)), now)
+
+    def _flush_statustexts(self, now: float, older_than_s: float = 0.5) -> None:
+        """Emit chunked texts whose last chunk never came (e.g. exactly 50 characters)."""
+        for key in [k for k, t in self._text_started.items() if now - t > older_than_s]:
+            del self._text_started[key]
+            if key in self._text_chunks:
+                self._emit_statustext(
+                    self._text_severity.pop(key), "".join(self._text_chunks.pop(key)), now
+                )
+
+    def _emit_statustext(self, severity: int, text: str, now: float) -> None:
+        text = text.rstrip("\t\r\n \x00")
+        self.state.statustexts.append(StatusText(now, severity, text))
+        level = logging.WARNING if severity <= 4 else logging.INFO
+        log.log(level, "%s says [%s]: %s", self.name, _severity_name(severity), text)
+        self._notify_state()
+
+    def _rtt_sample(self, rtt_s: float, source: str) -> None:
+        if not 0.0 <= rtt_s < 10.0:
+            return
+        if source == "COMMAND_ACK" and self._rtt_source == "TIMESYNC":
+            return
+        if self._rtt_s is None or self._rtt_source != source:
+            self._rtt_s = rtt_s
+        else:
+            self._rtt_s += _RTT_ALPHA * (rtt_s - self._rtt_s)
+        self._rtt_source = source
+
+    # -- send path --------------------------------------------------------------------------------
+    def _send(self, msg: Any) -> None:
+        transport = self._transport
+        if transport is None or transport.is_closing():
+            raise LinkError(f"{self.name}: link is closed")
+        if self._remote is None:
+            raise LinkError(f"{self.name}: vehicle not seen yet; call connect() first")
+        mav = self._mav
+        buf = msg.pack(mav)
+        mav.seq = (mav.seq + 1) & 0xFF
+        if self.endpoint.listens:
+            transport.sendto(buf, self._remote)
+        else:
+            transport.sendto(buf)
+        self.tx_packets += 1
+
+    def _time_boot_ms(self) -> int:
+        return int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
+
+    def send_velocity_ned(
+        self,
+        north_m_s: float,
+        east_m_s: float,
+        down_m_s: float,
+        yaw_deg: float | None = None,
+    ) -> None:
+        """Send one SET_POSITION_TARGET_LOCAL_NED (LOCAL_NED, velocity only; with yaw if given)
+        now. Raises :class:`LinkError` before the vehicle is known or after close."""
+        self._check_setpoint(north_m_s, east_m_s, down_m_s)
+        if yaw_deg is None:
+            mask, yaw = TYPE_MASK_VELOCITY, 0.0
+        else:
+            mask, yaw = TYPE_MASK_VELOCITY_YAW, math.radians(yaw_deg)
+        msg = self._mav.set_position_target_local_ned_encode(
+            self._time_boot_ms(), self._sysid or 0, self.target_compid,
+            mavlink2.MAV_FRAME_LOCAL_NED, mask,
+            0.0, 0.0, 0.0, north_m_s, east_m_s, down_m_s, 0.0, 0.0, 0.0, yaw, 0.0,
+        )
+        self._send(msg)
+        self._last_setpoint_s = time.monotonic()
+        self._setpoints_sent += 1
+        self._stall_warned = False
+
+    def send_heartbeat(self) -> None:
+        """Send one GCS HEARTBEAT (type GCS, autopilot INVALID, state ACTIVE)."""
+        self._send(self._mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
+            mavlink2.MAV_STATE_ACTIVE, 3,
+        ))
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    async def open(self) -> None:
+        """Bind/open the UDP socket and start the GCS heartbeat (no waiting)."""
+        if self._closed:
+            raise LinkError(f"{self.name}: link is closed")
+        if self._transport is not None:
+            return
+        loop = asyncio.get_running_loop()
+        ep = self.endpoint
+        try:
+            if ep.listens:
+                transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _Protocol(self), local_addr=(ep.host, ep.port)
+                )
+            else:
+                transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _Protocol(self), remote_addr=(ep.host, ep.port)
+                )
+        except OSError as exc:
+            verb = "bind" if ep.listens else "open"
+            raise LinkError(f"{self.name}: cannot {verb} {ep.url}: {exc.strerror or exc}") from None
+        self._transport = transport  # type: ignore[assignment]
+        if not ep.listens:  # compare received addresses with the resolved peer
+            self._remote = transport.get_extra_info("peername") or self._remote
+        self._t0 = time.monotonic()
+        self._tasks.append(loop.create_task(self._heartbeat_loop(), name=f"gcs-hb {ep.url}"))
+
+    async def connect(self, timeout_s: float = 10.0) -> None:
+        """Open the socket, wait for the vehicle's HEARTBEAT, request the telemetry streams.
+
+        Raises :class:`LinkTimeout` saying what arrived (nothing / packets but no HEARTBEAT).
+        Safe to call concurrently and repeatedly.
+        """
+        async with self._connect_lock:
+            await self.open()
+            if self.state.last_heartbeat_s is None:
+                try:
+                    await self.wait_until(
+                        lambda s: s.last_heartbeat_s is not None, timeout_s, "first HEARTBEAT"
+                    )
+                except LinkTimeout:
+                    st = self.state
+                    if st.rx_packets:
+                        what = f"{st.rx_packets} packets from system {st.sysid} but no HEARTBEAT"
+                    else:
+                        what = "nothing received"
+                    raise LinkTimeout(
+                        f"{self.name}: no HEARTBEAT within {timeout_s:.1f} s ({what}; "
+                        f"{st.bad_packets} malformed, {st.foreign_packets} from others)"
+                    ) from None
+            if not self._streams_requested:
+                self._streams_requested = True
+                await self._request_streams()
+            log.info("%s: connected", self.name)
+
+    async def _request_streams(self) -> None:
+        for msgid, rate in self.message_rates_hz.items():
+            interval_us = -1.0 if rate <= 0 else 1e6 / rate
+            await self._try_command(CMD_SET_MESSAGE_INTERVAL, float(msgid), interval_us,
+                                    what=f"{_message_name(msgid)} at {rate:g} Hz")
+        for msgid in (MSG_HOME_POSITION, MSG_GPS_GLOBAL_ORIGIN):
+            await self._try_command(CMD_REQUEST_MESSAGE, float(msgid),
+                                    what=_message_name(msgid))
+
+    async def _try_command(self, command: int, *params: float, what: str) -> None:
+        result = await self.command_long(command, *params, raise_on_reject=False)
+        if result != "ACCEPTED":
+            log.warning("%s: %s %s answered %s", self.name, command_name(command), what, result)
+
+    async def _ready_tick(self, missing: list[str]) -> None:
+        if self._remote is None or self._closed:
+            return
+        # Fire and forget: the vehicle sends these (again) once it has them.
+        for msgid, what in ((MSG_HOME_POSITION, "no home position"),
+                            (MSG_GPS_GLOBAL_ORIGIN, "no GPS global origin")):
+            if what in missing:
+                self._send(self._mav.command_long_encode(
+                    self._sysid or 0, self.target_compid, CMD_REQUEST_MESSAGE, 0,
+                    float(msgid), 0, 0, 0, 0, 0, 0,
+                ))
+
+    async def _heartbeat_loop(self) -> None:
+        period = self.heartbeat_period_s
+        while not self._closed:
+            if self._remote is not None and self._transport is not None:
+                try:
+                    self.send_heartbeat()
+                    ts1 = time.monotonic_ns()
+                    self._timesync_ts1 = ts1
+                    self._send(self._mav.timesync_encode(0, ts1))
+                    self._check_liveness()
+                except LinkError:
+                    return
+                except Exception:  # never let the heartbeat die silently
+                    log.exception("%s: GCS heartbeat failed", self.name)
+            await asyncio.sleep(period)
+
+    def _check_liveness(self) -> None:
+        now = time.monotonic()
+        st = self.state
+        if self._text_started:
+            self._flush_statustexts(now)
+        if st.last_heartbeat_s is not None and not self._hb_lost_warned:
+            age = now - st.last_heartbeat_s
+            if age > _HEARTBEAT_LOST_S:
+                self._hb_lost_warned = True
+                log.warning("%s: no HEARTBEAT for %.1f s (last packet %.1f s ago)", self.name,
+                            age, now - (st.last_packet_s or st.last_heartbeat_s))
+        if (
+            st.flight_mode == "OFFBOARD"
+            and st.armed
+            and self._last_setpoint_s is not None
+            and not self._stall_warned
+        ):
+            age = now - self._last_setpoint_s
+            if age > 1.0:
+                self._stall_warned = True
+                log.warning(
+                    "%s: no velocity setpoint sent for %.1f s while in OFFBOARD; PX4's "
+                    "offboard-loss failsafe (COM_OF_LOSS_T, default 1.0 s) takes over",
+                    self.name, age,
+                )
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            try:
+                await task
+            except (asyncio.CancelledError, Exception):
+                pass
+        self._tasks.clear()
+        for fut in self._pending.values():
+            if not fut.done():
+                fut.set_exception(LinkError(f"{self.name}: link closed"))
+        self._pending.clear()
+        if self._transport is not None:
+            self._transport.close()
+        self._wake_all_closed()
+
+    # -- commands -------------------------------------------------------------------------------
+    async def command_long(
+        self,
+        command: int,
+        *params: float,
+        tries: int | None = None,
+        timeout_s: float | None = None,
+        raise_on_reject: bool = True,
+        in_progress_timeout_s: float = 10.0,
+    ) -> str:
+        """Send COMMAND_LONG ``command`` (params 1..7, missing ones 0) with retries; return the
+        MAV_RESULT name. :class:`LinkTimeout` if no ACK after all tries;
+        :class:`CommandRejected` for a non-ACCEPTED result if ``raise_on_reject``."""
+        if len(params) > 7:
+            raise ValueError(f"COMMAND_LONG has 7 params, got {len(params)}")
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        tries = self.command_tries if tries is None else tries
+        per_try = self.command_timeout_s if timeout_s is None else timeout_s
+        name = command_name(command)
+        if self._remote is None:
+            raise LinkError(f"{self.name}: {name}: vehicle not seen yet; call connect() first")
+        lock = self._cmd_locks.get(command)
+        if lock is None:
+            lock = self._cmd_locks[command] = asyncio.Lock()
+        loop = asyncio.get_running_loop()
+        async with lock:
+            result: int | None = None
+            for attempt in range(tries):
+                fut: asyncio.Future[int] = loop.create_future()
+                self._pending[command] = fut
+                t_sent = loop.time()
+                try:
+                    self._send(self._mav.command_long_encode(
+                        self._sysid or 0, self.target_compid, command, attempt, *p
+                    ))
+                    async with asyncio.timeout(per_try):
+                        result = await fut
+                except TimeoutError:
+                    continue
+                finally:
+                    if self._pending.get(command) is fut:
+                        del self._pending[command]
+                if attempt == 0:
+                    self._rtt_sample(loop.time() - t_sent, "COMMAND_ACK")
+                if result == _RESULT_IN_PROGRESS:
+                    result = await self._wait_final_ack(command, in_progress_timeout_s, name)
+                break
+            if result is None:
+                raise LinkTimeout(
+                    f"{self.name}: no COMMAND_ACK for {name} after {tries} tries of "
+                    f"{per_try:.2f} s (last packet from the vehicle "
+                    f"{self._age(self.state.last_packet_s)})"
+                )
+        rname = px4.result_name(result)
+        if result != _RESULT_ACCEPTED and raise_on_reject:
+            raise CommandRejected(
+                f"{self.name}: {name} {rname}{self._recent_text()}", command=name, result=rname
+            )
+        return rname
+
+    async def _wait_final_ack(self, command: int, timeout_s: float, name: str) -> int:
+        loop = asyncio.get_running_loop()
+        try:
+            async with asyncio.timeout(timeout_s):
+                while True:
+                    fut: asyncio.Future[int] = loop.create_future()
+                    self._pending[command] = fut
+                    try:
+                        result = await fut
+                    finally:
+                        if self._pending.get(command) is fut:
+                            del self._pending[command]
+                    if result != _RESULT_IN_PROGRESS:
+                        return result
+        except TimeoutError:
+            raise LinkTimeout(
+                f"{self.name}: {name} still IN_PROGRESS after {timeout_s:.1f} s"
+            ) from None
+
+    def _age(self, t: float | None) -> str:
+        return "never" if t is None else f"{time.monotonic() - t:.1f} s ago"
+
+    def _recent_text(self, window_s: float = 2.0) -> str:
+        texts = self.state.statustexts
+        if texts and time.monotonic() - texts[-1].time_s <= window_s and texts[-1].severity <= 4:
+            return f'; vehicle says "{texts[-1].text}"'
+        return ""
+
+    async def set_flight_mode(self, flight_mode: str) -> None:
+        """DO_SET_MODE(1, main, sub) for a MAVSDK-style name (``HOLD``, ``OFFBOARD`` …) or a
+        PX4 name (``AUTO.LOITER``)."""
+        try:
+            main, sub = px4.mode_for_flight_mode(flight_mode)
+        except ValueError as exc:
+            raise LinkError(f"{self.name}: {exc}") from None
+        await self.command_long(CMD_DO_SET_MODE, 1.0, float(main), float(sub))
+
+    async def arm(self, timeout_s: float = 10.0, retry_interval_s: float = 0.5) -> None:
+        """ARM; retries TEMPORARILY_REJECTED (PX4 in its first ~3-4 s, pre-arm checks failing)
+        every ``retry_interval_s`` until ``timeout_s``. Returns on ACCEPTED (the HEARTBEAT shows
+        armed up to 1 s later)."""
+        loop = asyncio.get_running_loop()
+        t_start = loop.time()
+        attempts = 0
+        while True:
+            attempts += 1
+            result = await self.command_long(CMD_COMPONENT_ARM_DISARM, 1.0, raise_on_reject=False)
+            if result == "ACCEPTED":
+                return
+            elapsed = loop.time() - t_start
+            if (
+                result != px4.result_name(_RESULT_TEMPORARILY_REJECTED)
+                or elapsed + retry_interval_s > timeout_s
+            ):
+                raise CommandRejected(
+                    f"{self.name}: COMPONENT_ARM_DISARM (arm) {result} after {attempts} "
+                    f"attempt(s) in {elapsed:.1f} s{self._recent_text(5.0)}",
+                    command="COMPONENT_ARM_DISARM",
+                    result=result,
+                )
+            await asyncio.sleep(retry_interval_s)  # back-off between attempts, not a sync
+
+    async def disarm(self) -> None:
+        await self.command_long(CMD_COMPONENT_ARM_DISARM, 0.0)
+
+    async def takeoff(self, altitude_m: float) -> None:
+        """NAV_TAKEOFF to ``altitude_m`` above the current global altitude (param7 is AMSL in
+        PX4); lat/lon/yaw NaN = here. Arm first."""
+        if not (math.isfinite(altitude_m) and altitude_m > 0):
+            raise LinkError(f"{self.name}: takeoff altitude must be > 0 m, got {altitude_m}")
+        alt = self.state.alt_m
+        if not math.isfinite(alt):
+            raise LinkError(f"{self.name}: takeoff needs the global position (none received yet)")
+        nan = math.nan
+        await self.command_long(CMD_NAV_TAKEOFF, 0.0, 0.0, 0.0, nan, nan, nan, alt + altitude_m)
+
+    async def land(self) -> None:
+        """NAV_LAND here (PX4 AUTO.LAND); PX4 disarms by itself ~2 s after landing."""
+        nan = math.nan
+        await self.command_long(CMD_NAV_LAND, 0.0, 0.0, 0.0, nan, nan, nan, nan)
+
+    async def hold(self) -> None:
+        await self.set_flight_mode("HOLD")
+
+    async def start_offboard(self) -> None:
+        """DO_SET_MODE OFFBOARD after checking that we stream setpoints (PX4 would ACCEPT it
+        even without, then refuse to arm: captures 1d). Returns on the ACK; the HEARTBEAT shows
+        OFFBOARD up to 1 s later (``wait_until(lambda s: s.flight_mode == "OFFBOARD", …)``)."""
+        self._require_fresh_setpoints()
+        await self.set_flight_mode("OFFBOARD")
+
+    async def stop_offboard(self) -> None:
+        await self.hold()
+
+
+def _severity_name(severity: int) -> str:
+    entry = mavlink2.enums["MAV_SEVERITY"].get(severity)
+    return entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)
