@@ -1,0 +1,71 @@
+"""The local broker launcher (vtube_fleet.bus.broker): mosquitto and the amqtt fallback."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from vtube_fleet.bus.broker import (
+    BrokerError,
+    LocalBroker,
+    find_mosquitto,
+    free_port,
+    mqtt_handshake,
+)
+
+KINDS = ["mosquitto", "amqtt"] if find_mosquitto() else ["amqtt"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_start_kill_restart_same_port(kind):
+    with LocalBroker(kind=kind) as broker:
+        assert broker.kind == kind and broker.running
+        assert broker.url == f"mqtt://127.0.0.1:{broker.port}"
+        assert mqtt_handshake(broker.host, broker.port)
+        port, pid = broker.port, broker.pid
+        broker.kill()
+        assert not broker.running
+        assert not mqtt_handshake(broker.host, broker.port)
+        broker.restart()
+        assert broker.running and broker.port == port and broker.pid != pid
+        assert mqtt_handshake(broker.host, broker.port)
+    assert not broker.running
+
+
+def test_auto_prefers_mosquitto():
+    broker = LocalBroker()
+    try:
+        assert broker.kind == ("mosquitto" if find_mosquitto() else "amqtt")
+    finally:
+        broker.close()
+
+
+def test_restart_while_running_is_refused():
+    with LocalBroker() as broker, pytest.raises(BrokerError, match="still running"):
+        broker.restart()
+
+
+def test_port_in_use_is_a_clear_error():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        broker = LocalBroker(port=port, ready_timeout_s=5)
+        with pytest.raises(BrokerError, match=f"127.0.0.1:{port}"):
+            broker.start()
+        broker.close()
+
+
+def test_handshake_false_on_a_non_mqtt_listener():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        # Accepted by the kernel, never answered: the probe times out and says no.
+        assert not mqtt_handshake("127.0.0.1", s.getsockname()[1], timeout_s=0.2)
+    assert not mqtt_handshake("127.0.0.1", free_port(), timeout_s=0.2)
+
+
+def test_unknown_kind():
+    with pytest.raises(BrokerError, match="unknown broker kind"):
+        LocalBroker(kind="rabbit")  # type: ignore[arg-type]

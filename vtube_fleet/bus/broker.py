@@ -1,0 +1,328 @@
+"""Start and stop a local MQTT broker process on a free loopback port (tests, bench, demos).
+
+:class:`LocalBroker` runs **mosquitto** when it is installed (on ``PATH`` or in ``/usr/sbin``,
+where Debian puts it) and otherwise falls back to **amqtt**'s broker in a Python subprocess
+(``python -m vtube_fleet.bus.broker --amqtt PORT``), so the test suite also passes on a machine
+without the Debian package. Readiness is checked by an MQTT CONNECT/CONNACK handshake, never by
+sleeping. ``kill()`` (SIGKILL: no clean shutdown, clients see their TCP connection drop) and
+``restart()`` on the same port serve the broker-loss fault tests::
+
+    with LocalBroker() as broker:          # mosquitto on 127.0.0.1:<free port>
+        bus = MqttBus(broker.url, ...)
+        broker.kill(); broker.restart()
+
+Production fleets use their own broker (``--broker mqtt://HOST:PORT``); this module only
+launches one for local use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Literal
+
+from vtube_fleet.errors import UserError
+
+__all__ = [
+    "BrokerError",
+    "LocalBroker",
+    "find_mosquitto",
+    "free_port",
+    "mqtt_handshake",
+]
+
+log = logging.getLogger(__name__)
+
+BrokerKind = Literal["auto", "mosquitto", "amqtt"]
+
+
+class BrokerError(UserError):
+    """A local broker could not be started (or did not become ready in time)."""
+
+
+def find_mosquitto() -> str | None:
+    """Path of the mosquitto binary: ``PATH`` first, then ``/usr/sbin`` and ``/usr/local/sbin``."""
+    found = shutil.which("mosquitto")
+    if found:
+        return found
+    for d in ("/usr/sbin", "/usr/local/sbin"):
+        p = Path(d) / "mosquitto"
+        if p.is_file() and os.access(p, os.X_OK):
+            return str(p)
+    return None
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago (bind to port 0 and read what the kernel chose)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+# MQTT 3.1.1 CONNECT: protocol "MQTT" level 4, clean session, keepalive 5 s, client id "probe".
+_CONNECT = bytes([0x10, 17, 0, 4]) + b"MQTT" + bytes([4, 0x02, 0, 5, 0, 5]) + b"probe"
+_DISCONNECT = bytes([0xE0, 0])
+
+
+def mqtt_handshake(host: str, port: int, timeout_s: float = 1.0) -> bool:
+    """True if an MQTT broker at ``host:port`` answers CONNECT with an accepting CONNACK."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s) as s:
+            s.sendall(_CONNECT)
+            ack = b""
+            while len(ack) < 4:
+                chunk = s.recv(4 - len(ack))
+                if not chunk:
+                    return False
+                ack += chunk
+            with contextlib.suppress(OSError):
+                s.sendall(_DISCONNECT)
+            return ack[0] == 0x20 and ack[3] == 0
+    except OSError:
+        return False
+
+
+class LocalBroker:
+    """A broker subprocess on ``host:port`` (a free port unless given).
+
+    ``kind="auto"`` uses mosquitto if found, else amqtt; ``"mosquitto"``/``"amqtt"`` force one.
+    """
+
+    def __init__(
+        self,
+        *,
+        kind: BrokerKind = "auto",
+        host: str = "127.0.0.1",
+        port: int | None = None,
+        ready_timeout_s: float = 15.0,
+    ) -> None:
+        if kind not in ("auto", "mosquitto", "amqtt"):
+            raise BrokerError(f"unknown broker kind {kind!r}: use auto, mosquitto or amqtt")
+        mosquitto = find_mosquitto()
+        if kind == "mosquitto" and mosquitto is None:
+            raise BrokerError(
+                "mosquitto not found on PATH or in /usr/sbin (apt-get install mosquitto)"
+            )
+        self.kind: Literal["mosquitto", "amqtt"] = (
+            "mosquitto" if kind != "amqtt" and mosquitto is not None else "amqtt"
+        )
+        self._mosquitto = mosquitto
+        self.host = host
+        self._fixed_port = port
+        self.port = port if port is not None else 0
+        self.ready_timeout_s = ready_timeout_s
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._dir = tempfile.TemporaryDirectory(prefix="vtube-broker-")
+        self._log_file: Path = Path(self._dir.name) / "broker.log"
+
+    # -- properties ---------------------------------------------------------------------------
+    @property
+    def url(self) -> str:
+        return f"mqtt://{self.host}:{self.port}"
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def log_tail(self, lines: int = 20) -> str:
+        """The last lines the broker wrote (for error messages)."""
+        try:
+            text = self._log_file.read_text(errors="replace")
+        except OSError:
+            return ""
+        return "\n".join(text.splitlines()[-lines:])
+
+    # -- lifecycle ----------------------------------------------------------------------------
+    def _command(self) -> list[str]:
+        if self.kind == "mosquitto":
+            conf = Path(self._dir.name) / "mosquitto.conf"
+            conf.write_text(
+                f"listener {self.port} {self.host}\n"
+                "allow_anonymous true\n"
+                "persistence false\n"
+                # Small messages at 20 Hz: do not let Nagle hold them back.
+                "set_tcp_nodelay true\n"
+                "log_dest stderr\n"
+                "log_type error\nlog_type warning\nlog_type notice\n"
+            )
+            assert self._mosquitto is not None
+            return [self._mosquitto, "-c", str(conf)]
+        return [
+            sys.executable,
+            "-m",
+            "vtube_fleet.bus.broker",
+            "--amqtt",
+            str(self.port),
+            "--host",
+            self.host,
+        ]
+
+    def _spawn(self) -> None:
+        with open(self._log_file, "ab") as logf:
+            self._proc = subprocess.Popen(  # noqa: S603
+                self._command(),
+                stdin=subprocess.DEVNULL,
+                stdout=logf,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # Ctrl-C in a terminal goes to us; we stop it
+            )
+
+    def start(self, *, wait: bool = True) -> LocalBroker:
+        """Launch the broker (a new free port unless one was given) and wait until it answers."""
+        if self.running:
+            raise BrokerError(f"broker already running on {self.url}")
+        attempts = 1 if self._fixed_port is not None else 3
+        for attempt in range(attempts):
+            if self._fixed_port is None:
+                self.port = free_port(self.host)
+            self._spawn()
+            if not wait:
+                return self
+            try:
+                self.wait_ready()
+                return self
+            except BrokerError:
+                # The free port may have been taken between probing and binding: retry.
+                if attempt == attempts - 1 or self.running:
+                    self.stop()
+                    raise
+                self.stop()
+        raise AssertionError("unreachable")
+
+    def _check_alive(self) -> None:
+        if self._proc is not None and self._proc.poll() is not None:
+            raise BrokerError(
+                f"{self.kind} broker on {self.url} exited with code {self._proc.returncode}: "
+                f"{self.log_tail(5) or '(no output)'}"
+            )
+
+    def wait_ready(self, timeout_s: float | None = None) -> None:
+        """Block until an MQTT handshake succeeds; :class:`BrokerError` on exit or timeout."""
+        timeout = self.ready_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        while True:
+            self._check_alive()
+            if mqtt_handshake(self.host, self.port, timeout_s=0.5):
+                return
+            if time.monotonic() > deadline:
+                raise BrokerError(
+                    f"{self.kind} broker on {self.url} did not answer an MQTT CONNECT within "
+                    f"{timeout:.1f} s: {self.log_tail(5) or '(no output)'}"
+                )
+            time.sleep(0.02)  # polling interval of the readiness probe
+
+    async def wait_ready_async(self, timeout_s: float | None = None) -> None:
+        """:meth:`wait_ready` without blocking the event loop."""
+        await asyncio.to_thread(self.wait_ready, timeout_s)
+
+    def kill(self) -> None:
+        """SIGKILL the broker: no goodbye to clients, their connections just drop."""
+        if self._proc is None:
+            return
+        if self._proc.poll() is None:
+            self._proc.send_signal(signal.SIGKILL)
+        self._proc.wait()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Terminate the broker (SIGTERM, then SIGKILL after ``timeout_s``); idempotent."""
+        if self._proc is None:
+            return
+        if self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+        self._proc = None
+
+    def restart(self, *, wait: bool = True) -> LocalBroker:
+        """Start again on the SAME port (after :meth:`kill` or :meth:`stop`)."""
+        if self.running:
+            raise BrokerError(f"broker still running on {self.url}; kill() or stop() it first")
+        self._proc = None
+        self._spawn()
+        if wait:
+            self.wait_ready()
+        return self
+
+    def close(self) -> None:
+        self.stop()
+        self._dir.cleanup()
+
+    def __enter__(self) -> LocalBroker:
+        if not self.running:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = f"pid {self.pid}" if self.running else "stopped"
+        return f"LocalBroker({self.kind} {self.url}, {state})"
+
+
+# -- amqtt fallback (runs in the subprocess) ------------------------------------------------
+async def _run_amqtt(host: str, port: int) -> None:
+    from amqtt.broker import Broker  # imported here: optional dependency
+
+    config = {
+        "listeners": {"default": {"type": "tcp", "bind": f"{host}:{port}"}},
+        "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
+    }
+    broker = Broker(config)
+    await broker.start()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await stop.wait()
+    await broker.shutdown()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m vtube_fleet.bus.broker",
+        description="Run a local MQTT broker on loopback (mosquitto if installed, else amqtt).",
+    )
+    parser.add_argument("--amqtt", type=int, metavar="PORT", help="run amqtt's broker on PORT")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=None, help="port (default: a free one)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    if args.amqtt is not None:
+        try:
+            import amqtt  # noqa: F401
+        except ImportError:
+            print("error: amqtt is not installed (pip install amqtt)", file=sys.stderr)
+            return 2
+        asyncio.run(_run_amqtt(args.host, args.amqtt))
+        return 0
+    with LocalBroker(host=args.host, port=args.port) as broker:
+        print(
+            f"{broker.kind} broker at {broker.url} (pid {broker.pid}); Ctrl-C stops it", flush=True
+        )
+        with contextlib.suppress(KeyboardInterrupt):
+            while broker.running:
+                time.sleep(0.5)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,276 @@
+"""Wire formats of the MQTT bus: a compact binary state, small JSON control messages.
+
+State payload (``vtube/<m>/state/<id>`` and ``vtube/<m>/last/<id>``), little-endian, 32 bytes::
+
+    offset size type  field
+    0      1    u8    format version (STATE_VERSION = 1)
+    1      1    u8    phase code (index into PHASES)
+    2      2    u16   vehicle id
+    4      4    u32   seq (per-vehicle counter, wraps at 2**32)
+    8      8    f64   stamp_s: wall-clock time (time.time()) the position was measured
+    16     4    f32   x_m   tube frame
+    20     4    f32   y_m
+    24     4    f32   vx_m_s
+    28     4    f32   vy_m_s
+
+float32 keeps 0.1 mm resolution up to 1.6 km from the tube origin, ample for metre-scale
+clearances. Status, config and command messages are rare (on change / once per mission), so
+they are compact JSON objects with a ``"v"`` version field, readable with ``mosquitto_sub``.
+
+Every decoder raises :class:`CodecError` (a ``ValueError``) naming what is wrong; the bus logs
+and drops such messages (malformed network input never stops an agent).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+from vtube_fleet.bus.base import NeighbourState, Phase
+
+__all__ = [
+    "STATE_VERSION",
+    "CONTROL_VERSION",
+    "PHASES",
+    "STATE_SIZE",
+    "CodecError",
+    "encode_state",
+    "decode_state",
+    "STATUSES",
+    "Status",
+    "encode_status",
+    "decode_status",
+    "Command",
+    "COMMANDS",
+    "encode_command",
+    "decode_command",
+    "MissionConfigMsg",
+    "encode_config",
+    "decode_config",
+]
+
+STATE_VERSION = 1
+CONTROL_VERSION = 1
+#: Phase codes on the wire: the index in this tuple (append only; never reorder).
+PHASES: tuple[Phase, ...] = tuple(Phase)
+_PHASE_CODE = {p: i for i, p in enumerate(PHASES)}
+
+_STATE = struct.Struct("<BBHIdffff")
+STATE_SIZE = _STATE.size  # 32
+
+
+class CodecError(ValueError):
+    """A payload that is not a valid message of the expected kind and version."""
+
+
+# -- state --------------------------------------------------------------------------------------
+def encode_state(state: NeighbourState) -> bytes:
+    """Pack ``state`` into the 32-byte wire format."""
+    try:
+        return _STATE.pack(
+            STATE_VERSION,
+            _PHASE_CODE[Phase(state.phase)],
+            state.vehicle_id,
+            state.seq & 0xFFFFFFFF,
+            state.stamp_s,
+            state.x_m,
+            state.y_m,
+            state.vx_m_s,
+            state.vy_m_s,
+        )
+    except (struct.error, KeyError, ValueError) as exc:
+        raise CodecError(f"cannot encode {state!r}: {exc}") from None
+
+
+def decode_state(payload: bytes) -> NeighbourState:
+    """Unpack a state payload; :class:`CodecError` on a wrong size, version or phase code."""
+    if len(payload) != STATE_SIZE:
+        raise CodecError(f"state payload has {len(payload)} bytes, expected {STATE_SIZE}")
+    version, phase, vid, seq, stamp, x, y, vx, vy = _STATE.unpack(payload)
+    if version != STATE_VERSION:
+        raise CodecError(f"state payload version {version}, this build reads {STATE_VERSION}")
+    if phase >= len(PHASES):
+        raise CodecError(f"state payload phase code {phase} unknown (max {len(PHASES) - 1})")
+    if not all(math.isfinite(v) for v in (stamp, x, y, vx, vy)):
+        raise CodecError(f"state payload of vehicle {vid} has non-finite numbers")
+    return NeighbourState(
+        vehicle_id=vid,
+        x_m=x,
+        y_m=y,
+        vx_m_s=vx,
+        vy_m_s=vy,
+        phase=PHASES[phase],
+        stamp_s=stamp,
+        seq=seq,
+    )
+
+
+# -- JSON control messages ------------------------------------------------------------------------
+def _dumps(obj: dict[str, Any]) -> bytes:
+    return json.dumps(obj, separators=(",", ":"), sort_keys=True).encode()
+
+
+def _loads(payload: bytes, what: str) -> dict[str, Any]:
+    try:
+        obj = json.loads(payload.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CodecError(f"{what} payload is not JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise CodecError(f"{what} payload is not a JSON object: {payload[:60]!r}")
+    if obj.get("v") != CONTROL_VERSION:
+        raise CodecError(f"{what} payload version {obj.get('v')!r}, expected {CONTROL_VERSION}")
+    return obj
+
+
+def _field(obj: dict[str, Any], key: str, typ: type | tuple[type, ...], what: str) -> Any:
+    value = obj.get(key)
+    if isinstance(value, bool) or not isinstance(value, typ):
+        raise CodecError(f"{what} payload: field {key!r} = {value!r} has the wrong type")
+    return value
+
+
+#: Agent presence values: ``online`` (connected; with its config hash and the run it joined),
+#: ``offline`` (left cleanly), ``refused`` (will not fly this run: ``detail`` says why), ``lost``
+#: (the broker published the last will: the connection dropped unexpectedly).
+STATUSES = ("online", "offline", "refused", "lost")
+
+
+@dataclass(frozen=True, slots=True)
+class Status:
+    """Presence of one agent (retained; the last will says ``lost``)."""
+
+    vehicle_id: int
+    status: str
+    config_hash: str = ""
+    run_id: str = ""  # the coordinator run this agent accepted ("" before any)
+    stamp_s: float = 0.0  # 0 in a last will (its payload is fixed at connect time)
+    detail: str = ""
+
+
+def encode_status(status: Status) -> bytes:
+    if status.status not in STATUSES:
+        raise CodecError(f"unknown status {status.status!r}; expected one of {STATUSES}")
+    return _dumps(
+        {
+            "v": CONTROL_VERSION,
+            "id": status.vehicle_id,
+            "status": status.status,
+            "hash": status.config_hash,
+            "run": status.run_id,
+            "t": status.stamp_s,
+            "detail": status.detail,
+        }
+    )
+
+
+def decode_status(payload: bytes) -> Status:
+    obj = _loads(payload, "status")
+    st = _field(obj, "status", str, "status")
+    if st not in STATUSES:
+        raise CodecError(f"status payload: unknown status {st!r}")
+    return Status(
+        vehicle_id=_field(obj, "id", int, "status"),
+        status=st,
+        config_hash=str(obj.get("hash", "")),
+        run_id=str(obj.get("run", "")),
+        stamp_s=float(_field(obj, "t", (int, float), "status")),
+        detail=str(obj.get("detail", "")),
+    )
+
+
+#: Fleet commands a coordinator may publish.
+COMMANDS = ("start", "abort")
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A fleet command (retained on ``vtube/<m>/cmd``) for one coordinator run.
+
+    Agents obey only commands whose ``run_id`` is the run they joined, so a retained command
+    left over from an earlier run of the same mission never starts anybody. ``seq`` grows
+    with every command (milliseconds since the epoch), so a command re-published after a broker
+    restart is recognised as already handled.
+    """
+
+    command: str
+    mission_id: str
+    run_id: str
+    config_hash: str
+    seq: int
+    stamp_s: float
+
+
+def encode_command(cmd: Command) -> bytes:
+    if cmd.command not in COMMANDS:
+        raise CodecError(f"unknown command {cmd.command!r}; expected one of {COMMANDS}")
+    return _dumps(
+        {
+            "v": CONTROL_VERSION,
+            "cmd": cmd.command,
+            "mission": cmd.mission_id,
+            "run": cmd.run_id,
+            "hash": cmd.config_hash,
+            "seq": cmd.seq,
+            "t": cmd.stamp_s,
+        }
+    )
+
+
+def decode_command(payload: bytes) -> Command:
+    obj = _loads(payload, "command")
+    name = _field(obj, "cmd", str, "command")
+    if name not in COMMANDS:
+        raise CodecError(f"command payload: unknown command {name!r}; expected one of {COMMANDS}")
+    return Command(
+        command=name,
+        mission_id=_field(obj, "mission", str, "command"),
+        run_id=_field(obj, "run", str, "command"),
+        config_hash=_field(obj, "hash", str, "command"),
+        seq=_field(obj, "seq", int, "command"),
+        stamp_s=float(_field(obj, "t", (int, float), "command")),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class MissionConfigMsg:
+    """The retained mission announcement of one coordinator run.
+
+    Agents compare ``config_hash`` with the hash of their own mission file and refuse to fly
+    on a difference; ``run_id`` is new for every ``mission start``.
+    """
+
+    mission_id: str
+    run_id: str
+    config_hash: str
+    vehicles: int
+    stamp_s: float
+    source: str = ""  # the coordinator's mission file name, for error messages
+
+
+def encode_config(cfg: MissionConfigMsg) -> bytes:
+    return _dumps(
+        {
+            "v": CONTROL_VERSION,
+            "mission": cfg.mission_id,
+            "run": cfg.run_id,
+            "hash": cfg.config_hash,
+            "vehicles": cfg.vehicles,
+            "t": cfg.stamp_s,
+            "source": cfg.source,
+        }
+    )
+
+
+def decode_config(payload: bytes) -> MissionConfigMsg:
+    obj = _loads(payload, "config")
+    return MissionConfigMsg(
+        mission_id=_field(obj, "mission", str, "config"),
+        run_id=_field(obj, "run", str, "config"),
+        config_hash=_field(obj, "hash", str, "config"),
+        vehicles=_field(obj, "vehicles", int, "config"),
+        stamp_s=float(_field(obj, "t", (int, float), "config")),
+        source=str(obj.get("source", "")),
+    )

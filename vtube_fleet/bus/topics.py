@@ -1,0 +1,108 @@
+"""MQTT topic names of a mission: everything lives under ``vtube/<mission>/``.
+
+==========================  ===  ========  ==================================================
+topic                       QoS  retained  payload (``vtube_fleet.bus.codec``)
+==========================  ===  ========  ==================================================
+``vtube/<m>/state/<id>``    0    no        binary :class:`NeighbourState` (32 B), control rate
+``vtube/<m>/status/<id>``   1    yes       JSON ``online`` (+ config hash) / ``offline``;
+                                           the last will is ``lost``
+``vtube/<m>/last/<id>``     0    yes       binary state at ~1 Hz: where a vehicle was last seen
+``vtube/<m>/config``        1    yes       JSON mission announcement (id, config hash, count)
+``vtube/<m>/cmd``           1    yes       JSON fleet command (start / abort)
+==========================  ===  ========  ==================================================
+
+The QoS choices are justified in ``docs/mqtt.md``. Vehicle ids are the 0-based fleet slots.
+"""
+
+from __future__ import annotations
+
+import re
+
+from vtube_fleet.errors import UserError
+
+__all__ = [
+    "ROOT",
+    "TopicError",
+    "MissionTopics",
+    "validate_mission_id",
+]
+
+#: First topic level of everything this package publishes.
+ROOT = "vtube"
+
+_MISSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+class TopicError(UserError):
+    """A mission id that cannot be used as an MQTT topic level."""
+
+
+def validate_mission_id(mission_id: str) -> str:
+    """Return ``mission_id`` if it is a safe topic level (letters, digits, ``_.-``, ≤ 64)."""
+    if not isinstance(mission_id, str) or not _MISSION_ID.match(mission_id):
+        raise TopicError(
+            f"mission id {mission_id!r} is not usable as an MQTT topic level: use 1-64 letters, "
+            "digits, '_', '.' or '-' (no '/', '+', '#', spaces)"
+        )
+    return mission_id
+
+
+class MissionTopics:
+    """The topic names of one mission (``vtube/<mission>/…``) and their parsers."""
+
+    __slots__ = ("mission_id", "base", "config", "cmd", "_state", "_status", "_last")
+
+    def __init__(self, mission_id: str) -> None:
+        self.mission_id = validate_mission_id(mission_id)
+        self.base = f"{ROOT}/{mission_id}"
+        self.config = f"{self.base}/config"
+        self.cmd = f"{self.base}/cmd"
+        self._state = f"{self.base}/state/"
+        self._status = f"{self.base}/status/"
+        self._last = f"{self.base}/last/"
+
+    # -- per-vehicle topics -------------------------------------------------------------------
+    def state(self, vehicle_id: int) -> str:
+        return f"{self._state}{int(vehicle_id)}"
+
+    def status(self, vehicle_id: int) -> str:
+        return f"{self._status}{int(vehicle_id)}"
+
+    def last(self, vehicle_id: int) -> str:
+        return f"{self._last}{int(vehicle_id)}"
+
+    # -- subscription filters -------------------------------------------------------------------
+    @property
+    def all_states(self) -> str:
+        return f"{self._state}+"
+
+    @property
+    def all_statuses(self) -> str:
+        return f"{self._status}+"
+
+    @property
+    def all_lasts(self) -> str:
+        return f"{self._last}+"
+
+    # -- parsing --------------------------------------------------------------------------------
+    def classify(self, topic: str) -> tuple[str, int | None]:
+        """``(kind, vehicle_id)`` of a topic of this mission.
+
+        ``kind`` is ``"state"``, ``"status"``, ``"last"`` (with the vehicle id), ``"config"``,
+        ``"cmd"`` (id ``None``) or ``"unknown"`` (also for a malformed vehicle id).
+        """
+        for kind, prefix in (
+            ("state", self._state),
+            ("status", self._status),
+            ("last", self._last),
+        ):
+            if topic.startswith(prefix):
+                tail = topic[len(prefix) :]
+                if tail.isdigit():
+                    return kind, int(tail)
+                return "unknown", None
+        if topic == self.config:
+            return "config", None
+        if topic == self.cmd:
+            return "cmd", None
+        return "unknown", None
