@@ -1,0 +1,300 @@
+"""Scenario validation: every condition of the paper checked before anything moves.
+
+:func:`validate_scenario` returns all violations, each a :class:`Violation` carrying the
+condition's name and the numbers; :func:`check_scenario` raises :class:`ScenarioError` (a
+:class:`~vtube_fleet.errors.UserError`) listing them. Checked:
+
+* ``Parameters``: r_a > r_s > 0, v_max > v_min ≥ 0, v > 0, v'_max > 0, k_t ≥ 1, k2, k3 > 0,
+  k4 ≥ 0 and every ε > 0;
+* ``Constraint1``: v + v'_max ≤ v_max and v − v'_max ≥ v_min (Constraint1);
+* ``Constraint2``: the main tube's narrowing legs, v‖n_c − t‖ ≤ v'_max (Constraint2);
+* ``Assumption3``: the main tube (L ∩ R = ∅, M ≠ ∅, length > 2 r_a, room for one robot);
+* ``pothk``: every obstacle with a configured apex distance satisfies (pothk);
+* ``Partition``: the partition of Section IV can be built (:mod:`vtube_fleet.partition`);
+* ``Assumption3'`` and ``Constraint3``: every sub-tube of the partition;
+* ``Assumption1``: the initial positions — S_i ⊂ T (both leg distances ≥ r_s, centre between
+  the bases), S_i ∩ S_j = ∅ (‖p_i − p_j‖ > 2 r_s, found with a k-d tree), S_i ∩ O_k = ∅
+  (‖p_i − p_o,k‖ > r_o,k + r_s), and no robot starting inside a circumscribed triangle (it
+  would belong to no sub-tube).
+
+Robot indices in messages are 0-based (config order); obstacles are numbered from 1 (#1 is the
+first obstacle of the config). Pure numpy/scipy, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vtube_fleet.errors import UserError
+from vtube_fleet.partition import (
+    Partition,
+    PartitionError,
+    Violation,
+    _num,
+    _obstacle_label,
+    _pt,
+    check_assumption3,
+    check_constraint2,
+    h_min,
+    partition,
+)
+from vtube_fleet.tube import Obstacle, Trapezoid
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.controller import ControllerParams
+
+__all__ = [
+    "MAX_LISTED",
+    "ScenarioError",
+    "Violation",
+    "check_scenario",
+    "validate_scenario",
+]
+
+#: At most this many robots (or robot pairs) are listed per kind of Assumption 1 violation; the
+#: rest are summarised as "… and N more".
+MAX_LISTED = 10
+
+_TOL = 1e-9
+
+
+def _ob(i: int, ob: Obstacle) -> str:
+    return _obstacle_label(i, ob)
+
+
+class ScenarioError(UserError):
+    """The scenario violates conditions of the paper. ``violations`` lists them; the message's
+    first line is a summary, then one line per violation."""
+
+    def __init__(self, violations: Sequence[Violation]) -> None:
+        self.violations = tuple(violations)
+        counts = Counter(v.condition for v in self.violations)
+        kinds = ", ".join(f"{c} ×{n}" if n > 1 else c for c, n in counts.items())
+        n = len(self.violations)
+        summary = f"scenario rejected: {n} violation{'s' if n != 1 else ''} ({kinds})"
+        super().__init__("\n".join([summary] + [f"  {v.message}" for v in self.violations]))
+
+
+# ----------------------------------------------------------------------------------------------
+# Individual checks
+# ----------------------------------------------------------------------------------------------
+def _check_parameters(params: ControllerParams) -> list[Violation]:
+    out: list[str] = []
+
+    def get(name: str) -> float | None:
+        val = getattr(params, name, None)
+        if val is None:
+            return None
+        val = float(val)
+        if not math.isfinite(val):
+            out.append(f"{name} = {val} is not finite")
+            return None
+        return val
+
+    r_s, r_a = get("r_s"), get("r_a")
+    v_min, v_max = get("v_min"), get("v_max")
+    if r_s is not None and not r_s > 0:
+        out.append(f"r_s = {_num(r_s)} must be > 0")
+    if r_s is not None and r_a is not None and not r_a > r_s:
+        out.append(f"r_a = {_num(r_a)} must be > r_s = {_num(r_s)}")
+    if v_min is not None and not v_min >= 0:
+        out.append(f"v_min = {_num(v_min)} must be ≥ 0")
+    if v_min is not None and v_max is not None and not v_max > v_min:
+        out.append(f"v_max = {_num(v_max)} must be > v_min = {_num(v_min)}")
+    for name in ("v", "v_max_prime", "k2", "k3", "eps_m", "eps_t", "eps_s", "eps_0", "eps_o"):
+        val = get(name)
+        if val is not None and not val > 0:
+            out.append(f"{name} = {_num(val)} must be > 0")
+    k4 = get("k4")
+    if k4 is not None and not k4 >= 0:
+        out.append(f"k4 = {_num(k4)} must be ≥ 0")
+    k_t = get("k_t")
+    if k_t is not None and not k_t >= 1:
+        out.append(f"k_t = {_num(k_t)} must be ≥ 1")
+    return [Violation("Parameters", f"Parameters invalid: {m}") for m in out]
+
+
+def _check_constraint1(params: ControllerParams) -> list[Violation]:
+    v, vp, v_min, v_max = params.v, params.v_max_prime, params.v_min, params.v_max
+    out = []
+    if v + vp > v_max + _TOL * max(1.0, abs(v_max)):
+        out.append(Violation("Constraint1", (
+            f"Constraint1 violated: v + v'_max = {_num(v + vp)} > v_max = {_num(v_max)} "
+            f"(v = {_num(v)}, v'_max = {_num(vp)})")))
+    if v - vp < v_min - _TOL * max(1.0, abs(v_min)):
+        out.append(Violation("Constraint1", (
+            f"Constraint1 violated: v - v'_max = {_num(v - vp)} < v_min = {_num(v_min)} "
+            f"(v = {_num(v)}, v'_max = {_num(vp)})")))
+    return out
+
+
+def _check_pothk(obstacles: Sequence[Obstacle], params: ControllerParams) -> list[Violation]:
+    out = []
+    for i, ob in enumerate(obstacles):
+        if ob.apex_distance is None:
+            continue
+        hm = h_min(float(ob.radius), params)
+        h = float(ob.apex_distance)
+        if h < hm * (1.0 - _TOL):
+            out.append(Violation("pothk", (
+                f"pothk violated: {_ob(i, ob)}: apex_distance h = {_num(h)} m < h_min = "
+                f"(r_o + r_s)/((v'_max/v)·√(1 − v'_max²/4v²)) = {_num(hm)} m")))
+    return out
+
+
+def _capped(n: int, describe: Callable[[int], str], more: str) -> list[Violation]:
+    """Assumption1 violations for items 0..n-1: the first MAX_LISTED described one by one
+    (only those are formatted), the rest summarised as "… and N more <more>"."""
+    out = [Violation("Assumption1", f"Assumption1 violated: {describe(k)}")
+           for k in range(min(n, MAX_LISTED))]
+    if n > MAX_LISTED:
+        out.append(Violation("Assumption1",
+                             f"Assumption1 violated: … and {n - MAX_LISTED} more {more}"))
+    return out
+
+
+def _check_assumption1(
+    tube: Trapezoid,
+    obstacles: Sequence[Obstacle],
+    params: ControllerParams,
+    p: np.ndarray,
+    part: Partition | None,
+) -> list[Violation]:
+    r_s = params.r_s
+    out: list[Violation] = []
+    finite = np.all(np.isfinite(p), axis=1)
+    bad = np.flatnonzero(~finite)
+    out += _capped(len(bad), lambda k: f"robot {bad[k]} position {_pt(p[bad[k]])} is not a "
+                   "finite point", "robots with non-finite positions")
+    idx = np.flatnonzero(finite)
+    q = p[idx]
+
+    # S_i ⊂ T: d_Th ≥ r_s, d_Tr ≥ r_s and the centre between the bases.
+    d_h, d_r, xi = tube.d_Th(q), tube.d_Tr(q), tube.xi(q)
+    L = tube.length
+    outside = np.flatnonzero((d_h < r_s) | (d_r < r_s) | (xi < 0) | (xi > L))
+
+    def not_in_T(n: int) -> str:
+        k = outside[n]
+        why = []
+        if d_h[k] < r_s:
+            why.append(f"distance to the left leg {_num(float(d_h[k]), 2)} m < r_s = "
+                       f"{_num(r_s)} m")
+        if d_r[k] < r_s:
+            why.append(f"distance to the right leg {_num(float(d_r[k]), 2)} m < r_s = "
+                       f"{_num(r_s)} m")
+        if xi[k] < 0:
+            why.append(f"ξ = {_num(float(xi[k]), 2)} m is before the start base")
+        if xi[k] > L:
+            why.append(f"ξ = {_num(float(xi[k]), 2)} m is beyond the finishing line "
+                       f"(L = {_num(L, 2)} m)")
+        return f"robot {idx[k]} at {_pt(q[k])} is not inside T (S_i ⊄ T): " + "; ".join(why)
+
+    out += _capped(len(outside), not_in_T, "robots not inside T")
+
+    # S_i ∩ S_j = ∅: ‖p_i − p_j‖ > 2 r_s (k-d tree, no O(M²) memory).
+    if len(q) > 1:
+        pairs = cKDTree(q).query_pairs(2.0 * r_s, output_type="ndarray")
+        if len(pairs):
+            pairs = np.sort(idx[pairs], axis=1)
+            pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+            def overlap(n: int) -> str:
+                i, j = pairs[n]
+                d = float(np.hypot(*(p[i] - p[j])))
+                return (f"robots {i} and {j} overlap: distance {_num(d, 2)} m ≤ 2 r_s = "
+                        f"{_num(2 * r_s, 2)} m")
+
+            out += _capped(len(pairs), overlap, "overlapping pairs")
+
+    # S_i ∩ O_k = ∅: ‖p_i − p_o‖ > r_o + r_s.
+    hits: list[tuple[int, int, float]] = []  # (robot row in q, obstacle index, distance)
+    n_hits = 0
+    for k_ob, ob in enumerate(obstacles):
+        d = np.hypot(*(q - ob.center).T)
+        rows = np.flatnonzero(d <= float(ob.radius) + r_s)
+        n_hits += len(rows)
+        hits += [(int(k), k_ob, float(d[k])) for k in rows[:MAX_LISTED]]
+
+    def on_obstacle(n: int) -> str:
+        k, k_ob, d = hits[n]
+        ob = obstacles[k_ob]
+        return (f"robot {idx[k]} at {_pt(q[k])} overlaps {_ob(k_ob, ob)}: centre distance "
+                f"{_num(d, 2)} m ≤ r_o + r_s = {_num(float(ob.radius) + r_s, 2)} m")
+
+    out += _capped(n_hits, on_obstacle, "robot–obstacle overlaps")
+
+    # Not inside a circumscribed triangle (such a robot belongs to no sub-tube).
+    if part is not None:
+        in_tri = []  # (robot row in q, triangle)
+        for tri in part.triangles:
+            inside = tri.contains(q, tol=-1e-9) & (np.hypot(*(q - tri.center).T) > tri.radius_ext)
+            in_tri += [(k, tri) for k in np.flatnonzero(inside)]
+
+        def in_triangle(n: int) -> str:
+            k, tri = in_tri[n]
+            return (f"robot {idx[k]} at {_pt(q[k])} starts inside the circumscribed triangle "
+                    f"of {_ob(tri.obstacle, obstacles[tri.obstacle])} (apex {_pt(tri.p_oth)}), "
+                    f"i.e. in no sub-tube")
+
+        out += _capped(len(in_tri), in_triangle, "robots inside circumscribed triangles")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Entry points
+# ----------------------------------------------------------------------------------------------
+def validate_scenario(
+    tube: Trapezoid,
+    obstacles: Sequence[Obstacle],
+    params: ControllerParams,
+    positions: np.ndarray | None = None,
+) -> tuple[Partition | None, list[Violation]]:
+    """Check a scenario against the paper's conditions (module docstring) before anything
+    moves. Returns (the partition, or ``None`` if it could not be built or the parameters are
+    unusable; every violation found). ``positions`` (M, 2) are the robots' initial positions
+    (``None``: Assumption 1 is not checked)."""
+    violations = _check_parameters(params)
+    sane = not violations
+    if all(math.isfinite(float(x)) for x in (params.v, params.v_max_prime, params.v_min,
+                                            params.v_max)):
+        violations += _check_constraint1(params)
+    part: Partition | None = None
+    if sane:
+        violations += check_constraint2(tube, params, "Constraint2")
+        violations += check_assumption3(tube, params, "Assumption3")
+        violations += _check_pothk(obstacles, params)
+        try:
+            part = partition(tube, obstacles, params, strict=False)
+        except PartitionError as e:
+            violations.append(Violation("Partition", f"Partition failed: {e}"))
+        else:
+            violations += list(part.warnings)
+    if positions is not None:
+        p = np.asarray(positions, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 2:
+            raise ValueError(f"positions must have shape (M, 2), got {p.shape}")
+        if float(params.r_s) > 0:
+            violations += _check_assumption1(tube, obstacles, params, p, part)
+    return part, violations
+
+
+def check_scenario(
+    tube: Trapezoid,
+    obstacles: Sequence[Obstacle],
+    params: ControllerParams,
+    positions: np.ndarray | None = None,
+) -> Partition:
+    """:func:`validate_scenario`, raising :class:`ScenarioError` if anything is violated;
+    returns the partition otherwise."""
+    part, violations = validate_scenario(tube, obstacles, params, positions)
+    if violations:
+        raise ScenarioError(violations)
+    assert part is not None
+    return part
