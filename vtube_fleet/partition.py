@@ -39,6 +39,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "DEFAULT_APEX_FACTOR",
+    "LOCATE_TOL",
     "Partition",
     "PartitionError",
     "Triangle",
@@ -97,7 +98,8 @@ class Triangle:
     """Circumscribed triangle I_k of one obstacle (apex p_oth, base points p_otu (left) and
     p_otd (right)).
 
-    ``obstacle`` is the 0-based index of the obstacle in the input sequence, ``h`` the apex
+    ``obstacle`` is the 0-based index of the obstacle in the input sequence, ``center`` its
+    centre p_o, ``radius_ext`` R = r_o + r_s (the incircle O', ExtObstacle), ``h`` the apex
     distance used, ``alpha`` = asin(R/h) the half apex angle of the isosceles triangle.
     ``remark5`` is ``None`` for the isosceles triangle, else the side whose sub-tube was dropped
     (``"right"``: T_o3 = ∅ as in the paper's Fig. 7(b); the side [p_oth, p_otd] then lies on the
@@ -396,6 +398,7 @@ class Partition:
         return self._locator(p)
 
     def names(self) -> tuple[str, ...]:
+        """The sub-tube names, ``("T_o1", "T_o2", …)``."""
         return tuple(t.name for t in self.sub_tubes)
 
 
@@ -455,7 +458,9 @@ def partition(
     entirely outside the tube. With ``strict=False`` the last case and Assumption 3' violations
     of the before/after tubes are recorded in :attr:`Partition.warnings` instead. Constraint3
     violations of sub-tubes are always recorded as warnings (the caller decides; see
-    :mod:`vtube_fleet.validation`). With no obstacles the result is the main tube alone.
+    :mod:`vtube_fleet.validation`), and so is a sub-tube too narrow to contain one safety disc
+    (Assumption 3' in words; not part of the construction's validity test, which follows the
+    letter of PARTITION.md). With no obstacles the result is the main tube alone.
     """
     _check_params(params)
     return _Builder(tube, obstacles, params, strict).run()
