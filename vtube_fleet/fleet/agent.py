@@ -55,11 +55,12 @@ import numpy as np
 
 from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.controller import ControllerParams, velocity_command
-from vtube_fleet.partition import Partition, partition
+from vtube_fleet.partition import Partition, h_min, partition
 from vtube_fleet.tube import Obstacle, Trapezoid
 
 __all__ = [
     "AIRBORNE_PHASES",
+    "LOST_APEX_FACTOR",
     "Agent",
     "FlightPlan",
     "NeighbourView",
@@ -322,15 +323,24 @@ def classify(
     return NeighbourView(li, lp, lv, si, sp, oi, op)
 
 
+#: Apex distance of a lost vehicle's triangle: this × h_min (pothk). Smaller than the default
+#: 1.3 for configured obstacles so that the triangle fits more often between a vehicle lost
+#: mid-tube and the others.
+LOST_APEX_FACTOR = 1.05
+
+
 def lost_obstacles(
-    view: NeighbourView, tube: Trapezoid, radius_m: float
+    view: NeighbourView, tube: Trapezoid, radius_m: float, params: ControllerParams
 ) -> tuple[Obstacle, ...]:
-    """Obstacles for the lost vehicles inside the main tube (sorted by vehicle id); lost
+    """Obstacles (radius ``radius_m``, apex distance ``LOST_APEX_FACTOR`` × h_min under
+    ``params``) for the lost vehicles inside the main tube (sorted by vehicle id); lost
     vehicles outside it (e.g. past the finishing line) stay static points only."""
     out = []
+    apex = LOST_APEX_FACTOR * h_min(float(radius_m), params)
     for p in view.lost_pos:
         if bool(tube.contains(p)):
-            out.append(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m)))
+            out.append(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
+                                apex_distance=apex))
     return tuple(out)
 
 
@@ -411,7 +421,7 @@ class Agent:
         Raises :class:`~vtube_fleet.partition.PartitionError` when no valid partition exists
         (the caller holds and aborts).
         """
-        lost = lost_obstacles(view, self.root_plan.tube, self.lost_radius_m)
+        lost = lost_obstacles(view, self.root_plan.tube, self.lost_radius_m, self.plan.params)
         new = self.root_plan.with_lost(lost)
         if new is self.plan:
             return False

@@ -384,7 +384,8 @@ class Supervisor:
         if not view.lost_ids.size:
             return
         root = self.pilots[0].agent.root_plan
-        lost = lost_obstacles(view, root.tube, self.params.r_s + self.cfg.lost_obstacle_margin_m)
+        lost = lost_obstacles(view, root.tube, self.params.r_s + self.cfg.lost_obstacle_margin_m,
+                              root.params)
         try:
             new = root.with_lost(lost)
         except PartitionError as exc:

@@ -1,0 +1,204 @@
+"""The per-vehicle Agent: neighbour table and staleness, setpoint = the core controller,
+speed bounds, exits, lost vehicles → obstacles and re-partition, the safety budget."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vtube_fleet.bus.base import NeighbourState, Phase
+from vtube_fleet.controller import velocity_command
+from vtube_fleet.fleet.agent import (
+    Agent,
+    FlightPlan,
+    SafetyBudget,
+    classify,
+    exit_velocity,
+    fleet_setpoints,
+)
+from vtube_fleet.fleet.mission import load_mission
+from vtube_fleet.partition import PartitionError
+
+ROOT = Path(__file__).resolve().parents[1]
+NOW = 1_000_000.0
+
+
+@pytest.fixture(scope="module")
+def mission():
+    return load_mission(ROOT / "configs" / "mock_fleet.toml")
+
+
+@pytest.fixture(scope="module")
+def budget(mission):
+    return SafetyBudget.compute(mission.scenario.controller, period_s=0.05, latency_s=0.02,
+                                dead_time_s=0.3, t63_s=1.0)
+
+
+@pytest.fixture()
+def plan(mission, budget):
+    sc = mission.scenario
+    return FlightPlan.build(sc.tube, sc.obstacles, budget.inflate(sc.controller))
+
+
+def st(i, x, y, phase=Phase.IN_TUBE, age=0.0, seq=1, vx=1.0, vy=0.0):
+    return NeighbourState(i, x, y, vx, vy, phase, NOW - age, seq)
+
+
+def test_budget_formula(mission, budget) -> None:
+    p = mission.scenario.controller
+    assert budget.delay_s == pytest.approx(0.05 + 0.02 + 0.3 + 1.0)
+    assert budget.delta_m == pytest.approx(p.v_max_prime * budget.delay_s)
+    flown = budget.inflate(p)
+    assert flown.r_s == pytest.approx(p.r_s + budget.delta_m)
+    assert flown.r_a == pytest.approx(p.r_a + budget.delta_m)
+    assert (flown.v, flown.v_max_prime, flown.v_min, flown.v_max) == (
+        p.v, p.v_max_prime, p.v_min, p.v_max)
+    text = budget.describe(p)
+    assert "v'_max·(T + L + τ_d + t63)" in text and f"{budget.delta_m:.3f}" in text
+    fixed = SafetyBudget.compute(p, period_s=0.05, latency_s=0.0, dead_time_s=0.3, t63_s=1.0,
+                                 override_m=0.2)
+    assert fixed.delta_m == 0.2 and fixed.overridden
+    with pytest.raises(ValueError, match="latency_s"):
+        SafetyBudget.compute(p, period_s=0.05, latency_s=float("nan"), dead_time_s=0.3,
+                             t63_s=1.0)
+
+
+def test_classify_staleness() -> None:
+    states = [
+        st(0, 1.0, 0.0),                              # self: excluded
+        st(1, 2.0, 0.0, age=0.1),                     # live
+        st(2, 3.0, 0.0, age=0.7),                     # stale (> max_age) → static point
+        st(3, 4.0, 0.0, age=1.5),                     # silent > lost_after → lost
+        st(4, 5.0, 0.0, phase=Phase.LOST, age=30.0),  # said LOST (any age) → lost
+        st(5, 6.0, 0.0, phase=Phase.LANDED),          # on the ground → ignored
+        st(6, 7.0, 0.0, phase=Phase.READY),           # on the ground → ignored
+        st(7, float("nan"), 0.0),                     # no position → ignored
+        st(8, 8.0, 0.0, phase=Phase.EXITED, age=0.2),  # exited, still flying → live
+    ]
+    v = classify(states, NOW, max_age_s=0.5, lost_after_s=1.0, exclude=0)
+    assert v.live_ids.tolist() == [1, 8]
+    assert v.static_ids.tolist() == [2]
+    assert v.lost_ids.tolist() == [3, 4]
+    np.testing.assert_allclose(v.live_vel, [[1.0, 0.0], [1.0, 0.0]])
+    assert v.points().shape == (5, 2)
+
+
+def test_agent_table_keeps_newest(plan) -> None:
+    a = Agent(0, plan, max_age_s=0.5, lost_after_s=1.0)
+    a.observe({1: st(1, 2.0, 0.0, seq=5), 0: st(0, 9.0, 9.0)})
+    a.observe([st(1, 7.0, 0.0, seq=4)])  # older seq: ignored
+    assert set(a.table) == {1}
+    assert a.table[1].x_m == 2.0
+    a.observe([st(1, 3.0, 0.0, seq=6)])
+    assert a.table[1].x_m == 3.0
+    assert a.set_phase(Phase.READY) and not a.set_phase(Phase.READY)
+    with pytest.raises(ValueError):
+        Agent(0, plan, max_age_s=2.0, lost_after_s=1.0)
+
+
+def test_setpoint_is_the_controller_output(plan) -> None:
+    own = np.array([4.0, 0.3])
+    a = Agent(0, plan)
+    a.observe([st(1, 5.2, 0.6), st(2, 30.0, 0.0), st(3, 4.5, -1.2, age=0.7)])
+    view = a.view(NOW)
+    sp = a.setpoint(own, view)
+    # neighbours within r_s' + r_a': 1 (live) and 3 (static); 2 is far away
+    assert sp.neighbours == 2
+    p = np.array([own, [5.2, 0.6], [4.5, -1.2]])
+    k = plan.partition.locate(p)
+    ref = velocity_command(p, k, plan.partition.arrays, plan.params, rows=[0])[0]
+    np.testing.assert_allclose([sp.vx_m_s, sp.vy_m_s], ref, rtol=0, atol=1e-12)
+    assert sp.sub_tube == int(k[0])
+    # the barrier acts: the command differs from the one without neighbours
+    alone = a.setpoint(own, classify([], NOW, max_age_s=0.5, lost_after_s=1.0))
+    assert not np.allclose([alone.vx_m_s, alone.vy_m_s], [sp.vx_m_s, sp.vy_m_s])
+
+
+def test_batched_equals_per_agent(plan) -> None:
+    rng = np.random.default_rng(7)
+    tube = plan.tube
+    pts = []
+    while len(pts) < 25:
+        q = rng.uniform([0.5, -4.5], [18.5, 4.5])
+        if tube.contains(q, tol=-1.0) and all(np.hypot(*(q - r)) > 1.0 for r in pts):
+            if not any(t.contains(q[None], tol=0.0)[0] for t in plan.partition.triangles):
+                pts.append(q)
+    p = np.array(pts)
+    states = [st(i, *p[i]) for i in range(len(p))]
+    view = classify(states, NOW, max_age_s=0.5, lost_after_s=1.0)
+    batch = fleet_setpoints(plan, view.points(), np.arange(len(p)))
+    for i in range(len(p)):
+        a = Agent(i, plan)
+        a.observe(states)
+        sp = a.setpoint(p[i], a.view(NOW))
+        np.testing.assert_allclose([sp.vx_m_s, sp.vy_m_s], batch[i], rtol=1e-9, atol=1e-9)
+
+
+def test_speed_bounds(plan) -> None:
+    rng = np.random.default_rng(3)
+    params = plan.params
+    p = rng.uniform([0.0, -5.0], [19.0, 5.0], size=(300, 2))
+    cmd = fleet_setpoints(plan, p, np.arange(len(p)))
+    speed = np.hypot(*cmd.T)
+    assert np.all(np.isfinite(speed))
+    assert speed.min() >= params.v_min - 1e-9
+    assert speed.max() <= params.v_max + 1e-9
+
+
+def test_exit_condition(plan) -> None:
+    a = Agent(0, plan)
+    L = plan.tube.length
+    eps = plan.params.eps_0
+    x_finish = float(plan.tube.p_r1[0])
+    assert a.has_exited([x_finish - eps / 2, 0.0])
+    assert not a.has_exited([x_finish - 2 * eps, 0.0])
+    assert L == pytest.approx(x_finish)
+
+
+def test_lost_neighbour_becomes_obstacle_and_repartitions(mission, budget) -> None:
+    sc = mission.scenario
+    plan = FlightPlan.build(sc.tube, (), budget.inflate(sc.controller))
+    a = Agent(0, plan, lost_radius_m=0.8)
+    a.observe([st(5, 9.0, 1.0, age=2.0)])  # silent for 2 s > lost_after_s
+    view = a.view(NOW)
+    assert view.lost_ids.tolist() == [5]
+    assert a.update_plan(view)
+    assert len(a.plan.lost) == 1 and a.plan.lost[0].radius == 0.8
+    np.testing.assert_allclose(a.plan.lost[0].center, [9.0, 1.0])
+    assert a.plan.partition.K > plan.partition.K
+    # the same loss seen by another agent: the cached plan, partitioned once
+    b = Agent(1, plan, lost_radius_m=0.8)
+    b.observe([st(5, 9.0, 1.0, phase=Phase.LOST)])
+    b.update_plan(b.view(NOW))
+    assert b.plan is a.plan
+    assert not a.update_plan(view)
+    # lost outside the tube (past the finishing line): no obstacle, no new partition
+    c = Agent(2, plan)
+    c.observe([st(6, 25.0, 0.0, phase=Phase.LOST)])
+    assert not c.update_plan(c.view(NOW))
+
+
+def test_no_valid_partition_raises(plan) -> None:
+    a = Agent(0, plan, lost_radius_m=0.8)
+    a.observe([st(5, 0.5, 0.0, phase=Phase.LOST)])  # at the start base: no room for a triangle
+    with pytest.raises(PartitionError):
+        a.update_plan(a.view(NOW))
+
+
+def test_exit_velocity_guard(plan) -> None:
+    own = np.array([20.0, 0.0])
+    v = plan.params.v
+    free = exit_velocity(plan, own, classify([], NOW, max_age_s=0.5, lost_after_s=1.0),
+                         stop_distance_m=3.0)
+    np.testing.assert_allclose(free, v * plan.tube.n_c)
+    # a hovering vehicle 2 m ahead in the corridor → stop
+    view = classify([st(1, 22.0, 0.5, phase=Phase.HOLDING, vx=0.0)], NOW, max_age_s=0.5,
+                    lost_after_s=1.0)
+    assert exit_velocity(plan, own, view, stop_distance_m=3.0) is None
+    # one flying on at v ahead, or a hovering one far to the side → keep going
+    view = classify([st(1, 22.0, 0.5, phase=Phase.EXITED, vx=v),
+                     st(2, 22.0, 4.0, phase=Phase.HOLDING, vx=0.0)], NOW, max_age_s=0.5,
+                    lost_after_s=1.0)
+    assert exit_velocity(plan, own, view, stop_distance_m=3.0) is not None
