@@ -528,3 +528,23 @@ async def test_concurrent_connects_share_one_socket() -> None:
             assert len(fake.commands(511)) == 4  # streams requested once
         finally:
             await link.close()
+
+
+async def test_open_links_factory() -> None:
+    from vtube_fleet.link import EndpointError, open_links
+
+    port = free_udp_port()
+    async with FakeVehicle(gcs_addr=("127.0.0.1", port)) as fake:
+        await fake.start()
+        async with open_links([f"udp://:{port}"], command_timeout_s=0.3) as links:
+            (link,) = links
+            assert isinstance(link, MavlinkLink) and link.command_timeout_s == 0.3
+            await link.connect(5.0)
+            assert link.endpoint.url == f"udpin://0.0.0.0:{port}"
+        assert link.closed
+    with pytest.raises(LinkError, match="unknown link backend 'grpc'"):
+        async with open_links(["udpin://127.0.0.1:14540"], "grpc"):
+            pass
+    with pytest.raises(EndpointError, match="more than once: udpin://0.0.0.0:14540"):
+        async with open_links(["udpin://0.0.0.0:14540", "udp://:14540"]):
+            pass

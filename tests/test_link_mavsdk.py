@@ -130,3 +130,18 @@ def test_stall_detection_logic() -> None:
     assert link._stall_s(now) == pytest.approx(0.7)
     with pytest.raises(LinkError, match="watchdog_s must be > 0"):
         MavsdkHub(watchdog_s=0.0)
+
+
+async def test_open_links_mavsdk_backend() -> None:
+    from vtube_fleet.link import open_links
+
+    port = free_udp_port()
+    async with FakeVehicle(sysid=5, gcs_addr=("127.0.0.1", port)) as fake:
+        await fake.start()
+        async with open_links([f"udpin://127.0.0.1:{port}"], "mavsdk", sysids=[5],
+                              watchdog_s=0.2) as links:
+            (link,) = links
+            assert isinstance(link, MavsdkLink) and link.watchdog_s == 0.2
+            await link.connect(10.0)
+            await link.wait_until(lambda s: s.flight_mode == "HOLD", 5.0, "HOLD")
+        assert link.closed

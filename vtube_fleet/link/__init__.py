@@ -13,6 +13,10 @@ See ``docs/links.md``.
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from typing import Any
+
 from vtube_fleet.link.base import (
     CommandRejected,
     GeoPoint,
@@ -40,6 +44,7 @@ __all__ = [
     "LinkError",
     "LinkTimeout",
     "MavlinkLink",
+    "open_links",
     "StatusText",
     "VehicleLink",
     "VehicleState",
@@ -50,3 +55,52 @@ __all__ = [
 
 #: Backend names accepted by the fleet (``--link``).
 BACKENDS = ("mavlink", "mavsdk")
+
+
+@asynccontextmanager
+async def open_links(
+    endpoints: Sequence[str],
+    backend: str = "mavlink",
+    *,
+    sysids: Sequence[int | None] | None = None,
+    watchdog_s: float | None = None,
+    **options: Any,
+) -> AsyncIterator[list[VehicleLink]]:
+    """Create (not connect) one link per endpoint with ``backend``; close them all on exit.
+
+    ``sysids`` (optional, one per endpoint) pins system ids; the mavsdk backend otherwise uses
+    PX4 SITL's scheme (port 14540 + i → i + 1). ``watchdog_s`` is the mavsdk backend's stall
+    limit (ignored by ``mavlink``, whose stall is caught by PX4's own failsafe). ``options`` go
+    to the link constructor (e.g. ``command_timeout_s`` for mavlink). Connecting is left to the
+    caller (concurrently, with its own timeouts and error report).
+    """
+    if backend not in BACKENDS:
+        raise LinkError(f"unknown link backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    eps = [parse_endpoint(e) for e in endpoints]
+    urls = [e.url for e in eps]
+    dupes = sorted({u for u in urls if urls.count(u) > 1})
+    if dupes:
+        raise EndpointError(f"endpoint listed more than once: {', '.join(dupes)}")
+    ids = list(sysids) if sysids is not None else [None] * len(eps)
+    if len(ids) != len(eps):
+        raise LinkError(f"{len(ids)} system ids for {len(eps)} endpoints")
+    links: list[VehicleLink] = []
+    hub = None
+    try:
+        if backend == "mavlink":
+            links = [MavlinkLink(ep, sid, **options) for ep, sid in zip(eps, ids, strict=True)]
+        else:
+            from vtube_fleet.link.mavsdk_link import DEFAULT_WATCHDOG_S, MavsdkHub
+
+            hub = MavsdkHub(watchdog_s=watchdog_s or DEFAULT_WATCHDOG_S)
+            await hub.start()
+            links = [hub.link(ep, sid, **options) for ep, sid in zip(eps, ids, strict=True)]
+        yield links
+    finally:
+        for link in links:
+            try:
+                await link.close()
+            except Exception:  # closing must not hide the original error
+                pass
+        if hub is not None:
+            await hub.close()
