@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from vtube_fleet.controller import ControllerParams, TubeArrays
 from vtube_fleet.errors import UserError
@@ -376,3 +378,31 @@ def test_arrays_follow_the_sub_tube_order():
     for k, t in enumerate(part.sub_tubes):
         assert np.allclose(arr.n_h[k], t.n_h) and np.allclose(arr.p_r1[k], t.p_r1)
         assert arr.has_L[k] == t.has_L and arr.has_R[k] == t.has_R
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.floats(2.0, 19.0), st.floats(-6.5, 6.5), st.floats(0.1, 1.5),
+                  st.sampled_from([None, 1.0, 1.5, 3.0])),
+        min_size=1, max_size=3,
+    ),
+    st.integers(0, 2**31),
+)
+def test_property_any_successful_partition_covers_the_tube(obs_spec, seed):
+    """Random obstacles: either a PartitionError or a partition that covers T exactly once
+    (sub-tubes ∪ triangles), keeps every sub-tube clear of O', and whose fast locate agrees
+    with the literal §5 rule everywhere (inside and outside T)."""
+    obstacles = [Obstacle((x, y), r, None if f is None else f * h_min(r, PARAMS))
+                 for x, y, r, f in obs_spec]
+    try:
+        part = partition(CONVERGING, obstacles, PARAMS, strict=False)
+    except PartitionError as e:
+        assert e.obstacle is not None and str(e).startswith(f"obstacle #{e.obstacle + 1} at ")
+        return
+    kept = [obstacles[t.obstacle] for t in part.triangles]
+    assert part.K == 3 * len(kept) + 1 - sum(t.remark5 is not None for t in part.triangles)
+    check_cover(part, kept, n=2000, seed=seed)
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform((-2.0, -9.0), (22.0, 9.0), size=(300, 2))
+    assert np.array_equal(part.locate(pts), [reference_locate(part, q) for q in pts])
