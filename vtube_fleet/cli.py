@@ -18,7 +18,7 @@ from vtube_fleet.errors import UserError
 __all__ = ["main", "build_parser"]
 
 #: Modules that register sub-commands, in the order they appear in ``--help``.
-COMMAND_MODULES: tuple[str, ...] = ("vtube_fleet.simcli",)
+COMMAND_MODULES: tuple[str, ...] = ("vtube_fleet.simcli", "vtube_fleet.fleetcli")
 
 
 def build_parser() -> argparse.ArgumentParser:
