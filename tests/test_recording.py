@@ -164,7 +164,7 @@ def test_fleet_ids_phases_commands_and_events(tmp_path: Path) -> None:
         phases_seen.append(phases)
         rec.log_tick(t_s=0.05 * k, tick=100 + k, ids=ids, pos=pos, vel=vel, phases=phases,
                      cmd=cmd, metrics={"link_latency_s": 0.002, "tick_duration_s": 0.0004})
-    rec.log_event(0.3, "vehicle 3 slow to answer", vehicle_id=3, level="warning")
+    rec.log_event(0.3, "slow to answer", vehicle_id=3, level="warning")
     rec.log_event(0.4, "mission complete")
     rec.log_summary({"robots": 4, "exited": 1, "violations": 0})
     rec.close()
@@ -181,10 +181,10 @@ def test_fleet_ids_phases_commands_and_events(tmp_path: Path) -> None:
     np.testing.assert_array_equal(d.cmd[5, col[1]], motion(5, 4)[1][0] * 1.01)
     assert d.exits == {2: pytest.approx(0.4)}
     texts = [(e[1], e[2], e[3]) for e in d.events]
-    assert ("events/vehicle_3", "WARN", "vehicle 3 slow to answer") in texts
+    assert ("events/vehicles", "WARN", "vehicle 3: slow to answer") in texts
     assert ("events", "INFO", "mission complete") in texts
-    assert ("events/vehicle_2", "INFO", "vehicle 2: in_tube → exited") in texts
-    assert ("events/vehicle_7", "INFO", "vehicle 7: in_tube") in texts
+    assert ("events/vehicles", "INFO", "vehicle 2: in_tube → exited") in texts
+    assert ("events/vehicles", "INFO", "vehicle 7: in_tube") in texts
     assert d.entity_rows["world/commands"] == 12
     assert d.entity_rows["metrics/link_latency_s"] == 12
 

@@ -45,8 +45,9 @@ Layout of a recording (entity paths):
 ``world/commands``      Arrows2D of the velocity command, when given
 ``metrics/<key>``       Scalars, one entity per metric key; ``limits/<key>`` the safety limit
 ``status``              TextDocument: a table of every vehicle (id, phase, position, speed)
-``events``              TextLog; ``events/vehicle_<id>`` per vehicle (phase changes, …);
-                        ``events/exits`` exit events
+``events``              TextLog of run-wide events; ``events/vehicles``: per-vehicle events
+                        (phase changes, :meth:`log_event` with a vehicle id; the id also as
+                        ``vtube_fleet.Event:vehicle_id``); ``events/exits``: exit events
 ======================  =========================================================
 
 Timelines: ``mission_time`` (duration, seconds since the mission/simulation start) and ``tick``
@@ -63,6 +64,7 @@ import json
 import logging
 import math
 import os
+import queue
 import socket
 import threading
 import time
@@ -127,11 +129,15 @@ E_COMMANDS = "world/commands"
 E_STATUS = "status"
 E_EVENTS = "events"
 E_EXITS = "events/exits"
+E_VEHICLE_EVENTS = "events/vehicles"
 METRICS_PREFIX = "metrics/"
+#: The limit lines (``limits/*``) get a point every this many seconds of mission time.
+LIMIT_PERIOD_S = 5.0
 LIMITS_PREFIX = "limits/"
 
 _STATE = "vtube_fleet.VehicleState"
 _EXIT = "vtube_fleet.Exit"
+_EVENT = "vtube_fleet.Event"
 
 #: Metric keys shown in the default blueprint, by view: (view name, metric keys, unit label).
 METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -303,6 +309,13 @@ def _closed(poly: np.ndarray) -> np.ndarray:
     return np.vstack([poly, poly[:1]])
 
 
+def _offsets(lengths: np.ndarray) -> np.ndarray:
+    """Per-row lengths → int32 offsets with the leading 0 (``rerun.ComponentColumn``)."""
+    out = np.zeros(len(lengths) + 1, dtype=np.int32)
+    np.cumsum(lengths, out=out[1:])
+    return out
+
+
 def _td_ns(t_s: np.ndarray) -> np.ndarray:
     """Seconds → numpy timedelta64[ns] (rerun ``duration`` time column)."""
     return np.round(np.asarray(t_s, dtype=float) * 1e9).astype(np.int64).astype("timedelta64[ns]")
@@ -343,6 +356,16 @@ def _viewer_reachable(url: str, timeout_s: float) -> bool:
         return False
 
 
+@dataclass(frozen=True, eq=False)
+class _Looks:
+    """Display data of one (ids, phases) combination, converted to arrow once and reused."""
+
+    labels: Any  # pyarrow StringArray "id phase"
+    phases: Any | None  # pyarrow StringArray of phase names, or None
+    phase_strs: list[str] | None
+    colors: np.ndarray  # (M,) uint32 RGBA
+
+
 @dataclass
 class _Row:
     t_s: float
@@ -351,9 +374,7 @@ class _Row:
     pos: np.ndarray
     vel: np.ndarray
     cmd: np.ndarray | None
-    phases: list[str] | None
-    labels: list[str]
-    colors: np.ndarray
+    looks: _Looks
     metrics: dict[str, float]
 
 
@@ -364,12 +385,18 @@ class RerunRecorder:
     """A :class:`Recorder` writing to an .rrd file and/or a live viewer, on its own
     :class:`rerun.RecordingStream`.
 
-    ``decimate`` records every n-th :meth:`log_tick` call; ``batch_ticks`` recorded ticks (or
-    ``max_delay_s`` seconds of wall time) are sent per :meth:`~rerun.RecordingStream.send_columns`
-    call; ``arrow_scale_s`` is the length of a velocity arrow per m/s; the ``status`` table is
+    ``decimate`` records every n-th :meth:`log_tick` call. Recorded ticks are buffered (copies)
+    and handed, ``batch_ticks`` at a time or after ``max_delay_s`` of wall time, to a sender
+    thread that converts them to arrow and calls :meth:`~rerun.RecordingStream.send_columns`
+    once per entity — so the caller's loop only pays for the copy (``background=False`` sends
+    from the caller's thread instead). At most ``max_queued_batches`` batches wait for the
+    sender; beyond that ticks are dropped with a warning rather than stalling the loop.
+    ``arrow_scale_s`` is the length of a velocity arrow per m/s; the ``status`` table is
     refreshed every ``status_period_s`` of mission time. ``kind`` is ``"sim"`` or ``"fleet"``.
-    The recording is closed (flushed) by :meth:`close`, by the context manager, and at
-    interpreter exit if the owner forgot.
+
+    The recording is closed — buffer sent, sender joined, stream flushed, file closed — by
+    :meth:`close` (idempotent), by the context manager, and at interpreter exit if the owner
+    forgot. Recording errors are logged, never raised into the control loop.
     """
 
     def __init__(
@@ -382,12 +409,15 @@ class RerunRecorder:
         kind: str = "sim",
         batch_ticks: int = 16,
         max_delay_s: float = 0.25,
+        background: bool = True,
+        max_queued_batches: int = 256,
         arrow_scale_s: float = 0.5,
         status_period_s: float = 1.0,
         recording_id: str | None = None,
         connect_timeout_s: float = 0.5,
         flush_timeout_s: float = 10.0,
     ) -> None:
+        import pyarrow as pa
         import rerun as rr
 
         if save_path is None and connect is None:
@@ -397,39 +427,43 @@ class RerunRecorder:
         if batch_ticks < 1:
             raise ValueError(f"batch_ticks must be >= 1, got {batch_ticks}")
         self._rr = rr
+        self._pa = pa
         self.path = None if save_path is None else Path(save_path)
         self.decimate = decimate
         self.kind = kind
         self.app_id = app_id
         self.batch_ticks = int(batch_ticks)
         self.max_delay_s = float(max_delay_s)
+        self.max_queued_batches = int(max_queued_batches)
         self.arrow_scale_s = float(arrow_scale_s)
         self.status_period_s = float(status_period_s)
         self.flush_timeout_s = float(flush_timeout_s)
         self.recording_id = recording_id or str(uuid.uuid4())
         self.connect_url: str | None = None
         self.closed = False
+        self.dropped_ticks = 0
 
         self._lock = threading.RLock()
         self._calls = 0  # log_tick calls
-        self._recorded = 0  # recorded ticks
+        self._recorded = 0  # recorded ticks (sent or queued)
         self._rows: list[_Row] = []
         self._last_send = time.monotonic()
         self._pending: _Row | None = None  # last skipped call, recorded at close
         self._agg: dict[str, float] = {}  # metric extrema since the last recorded tick
-        self._label_key: tuple[bytes, tuple[Any, ...] | None] | None = None
-        self._label_val: tuple[list[str], np.ndarray] = ([], np.zeros(0, np.uint32))
+        self._looks_key: tuple[bytes, tuple[Any, ...] | None] | None = None
+        self._looks: _Looks | None = None
         self._prev_ids: np.ndarray | None = None
         self._prev_present: np.ndarray | None = None
         self._prev_phases: tuple[Any, ...] | None = None
         self._exited: set[int] = set()
         self._last_tick = 0
-        self._last_t = 0.0
         self._next_status_t = -math.inf
         self._limits: dict[str, tuple[float, ...]] = {}
+        self._next_limit_t = -math.inf
         self._metric_keys_seen: set[str] = set()
         self._send_errors = 0
         self._meta: dict[str, Any] = {}
+        self._descriptors: dict[str, Any] = {}
 
         if self.path is not None:
             if self.path.exists() and self.path.is_dir():
@@ -461,8 +495,55 @@ class RerunRecorder:
             self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
         self._enabled = bool(sinks)
         self._send_static_defaults()
+
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._qlock = threading.Lock()
+        self._queued = 0  # jobs waiting for the sender
+        self._worker: threading.Thread | None = None
+        if background and self._enabled:
+            self._worker = threading.Thread(target=self._work, name="rerun-recorder",
+                                            daemon=True)
+            self._worker.start()
         self._atexit = _make_atexit(self)
         atexit.register(self._atexit)
+
+    # ----- sender thread ----------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            if job is None:
+                return
+            self._guard(job)
+            with self._qlock:
+                self._queued -= 1
+
+    def _submit(self, job: Any, *, ticks: int = 0) -> None:
+        """Run ``job`` (a rerun call) on the sender thread, or here without one."""
+        if not self._enabled:
+            return
+        if self._worker is None:
+            self._guard(job)
+            return
+        with self._qlock:
+            full = self._queued >= self.max_queued_batches
+            if not full:
+                self._queued += 1
+        if full:
+            self.dropped_ticks += ticks
+            if self.dropped_ticks == ticks or self.dropped_ticks % 1000 < ticks:
+                log.warning("rerun recording falls behind (%d jobs queued): %d ticks dropped "
+                            "so far", self.max_queued_batches, self.dropped_ticks)
+            return
+        self._queue.put(job)
+
+    def _guard(self, fn: Any) -> None:
+        """Run a rerun call; recording problems are logged, never raised into the loop."""
+        try:
+            fn()
+        except Exception as exc:  # noqa: BLE001 - recording must not kill the control loop
+            self._send_errors += 1
+            if self._send_errors <= 3:
+                log.warning("rerun recording: %s: %s", type(exc).__name__, exc)
 
     # ----- scene ------------------------------------------------------------------------
     def _send_static_defaults(self) -> None:
@@ -508,7 +589,7 @@ class RerunRecorder:
             self._rec.log(E_VEHICLES, rr.Points2D.from_fields(radii=[r_s]), static=True)
             self._set_limits(r_s, obstacles, float(robots.v_min), float(robots.v_max))
             if partition is not None:
-                self._log_partition_locked(partition, t_s=0.0, tick=0)
+                self._log_partition_now(partition, t_s=0.0, tick=0)
 
     def _scene_meta(self, scenario: Any, mission_cfg: Any, meta: Mapping[str, Any] | None
                     ) -> dict[str, Any]:
@@ -571,10 +652,12 @@ class RerunRecorder:
 
     def log_partition(self, partition: Any, t_s: float) -> None:
         with self._lock:
-            if not self.closed:
-                self._log_partition_locked(partition, t_s=float(t_s), tick=self._last_tick)
+            if not self.closed and self._enabled:
+                tick = self._last_tick
+                self._submit(lambda: self._log_partition_now(partition, t_s=float(t_s),
+                                                             tick=tick))
 
-    def _log_partition_locked(self, partition: Any, *, t_s: float, tick: int) -> None:
+    def _log_partition_now(self, partition: Any, *, t_s: float, tick: int) -> None:
         rr = self._rr
         idx = self._index([t_s], [tick])
         subs = list(getattr(partition, "sub_tubes", ()))
@@ -605,56 +688,54 @@ class RerunRecorder:
         with self._lock:
             if self.closed:
                 return
+            t_s, tick = float(t_s), int(tick)
             ids = np.asarray(ids)
             pos = np.asarray(pos, dtype=float)
-            self._detect_exits(float(t_s), int(tick), ids, pos, phases)
+            self._detect_changes(t_s, tick, ids, pos, phases)
             if metrics:
                 self._aggregate(metrics)
-            self._last_tick, self._last_t = int(tick), float(t_s)
+            self._last_tick = tick
             record = self._calls % self.decimate == 0
             self._calls += 1
-            row = self._make_row(float(t_s), int(tick), ids, pos, vel, phases, cmd,
-                                 copy=not record)
-            if not record:
+            row = self._make_row(t_s, tick, ids, pos, vel, phases, cmd)
+            if record:
+                self._pending = None
+                self._push(row)
+            else:
                 self._pending = row
-                return
-            self._pending = None
-            self._push(row)
 
     def _make_row(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
-                  vel: np.ndarray, phases: Sequence[Any] | None, cmd: np.ndarray | None,
-                  copy: bool) -> _Row:
+                  vel: Any, phases: Sequence[Any] | None, cmd: Any) -> _Row:
+        """Copies of the present rows (the caller may reuse its arrays)."""
         vel = np.asarray(vel, dtype=float)
         present = ~np.isnan(pos[:, 0])
-        full = bool(present.all())
-        if full and not copy:
-            r_ids, r_pos, r_vel = ids, pos, vel
+        if present.all():
+            r_ids, r_pos, r_vel = ids.copy(), pos.copy(), vel.copy()
+            r_cmd = None if cmd is None else np.array(cmd, dtype=float)
+            r_ph = phases
         else:
             r_ids, r_pos, r_vel = ids[present], pos[present], vel[present]
-        r_cmd = None
-        if cmd is not None:
-            c = np.asarray(cmd, dtype=float)
-            r_cmd = c if full and not copy else c[present]
-        r_ph = None
-        if phases is not None:
-            r_ph = list(phases) if full else [p for p, k in zip(phases, present, strict=True) if k]
-        labels, colors = self._labels(r_ids, r_ph)
-        return _Row(t_s, tick, r_ids, r_pos, r_vel, r_cmd, r_ph, labels, colors, {})
+            r_cmd = None if cmd is None else np.asarray(cmd, dtype=float)[present]
+            r_ph = None if phases is None else [p for p, k in zip(phases, present, strict=True)
+                                                if k]
+        return _Row(t_s, tick, r_ids, r_pos, r_vel, r_cmd, self._looks_for(r_ids, r_ph), {})
 
-    def _labels(self, ids: np.ndarray, phases: list[Any] | None) -> tuple[list[str], np.ndarray]:
+    def _looks_for(self, ids: np.ndarray, phases: Sequence[Any] | None) -> _Looks:
         key = (ids.tobytes(), None if phases is None else tuple(phases))
-        if key != self._label_key:
+        if key != self._looks_key or self._looks is None:
+            pa = self._pa
             if phases is None:
                 labels = [str(i) for i in ids.tolist()]
-                colors = np.full(len(labels), _DEFAULT_COLOR, dtype=np.uint32)
+                looks = _Looks(pa.array(labels, type=pa.string()), None, None,
+                               np.full(len(labels), _DEFAULT_COLOR, dtype=np.uint32))
             else:
                 ph = [_phase_str(p) for p in phases]
                 labels = [f"{i} {p}" for i, p in zip(ids.tolist(), ph, strict=True)]
-                colors = np.array([PHASE_COLORS.get(p, _OTHER_COLOR) for p in ph],
-                                  dtype=np.uint32)
-            self._label_key = key
-            self._label_val = (labels, colors)
-        return self._label_val
+                looks = _Looks(pa.array(labels, type=pa.string()), pa.array(ph, type=pa.string()),
+                               ph, np.array([PHASE_COLORS.get(p, _OTHER_COLOR) for p in ph],
+                                            dtype=np.uint32))
+            self._looks_key, self._looks = key, looks
+        return self._looks
 
     def _aggregate(self, metrics: Mapping[str, float]) -> None:
         agg = self._agg
@@ -677,14 +758,21 @@ class RerunRecorder:
         self._rows.append(row)
         self._recorded += 1
         if row.t_s >= self._next_status_t:
-            self._send_status(row)
             self._next_status_t = row.t_s + self.status_period_s
+            self._submit(lambda: self._send_status(row))
         if (len(self._rows) >= self.batch_ticks
                 or time.monotonic() - self._last_send >= self.max_delay_s):
             self._send_rows()
 
-    def _detect_exits(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
-                      phases: Sequence[Any] | None) -> None:
+    def _send_rows(self) -> None:
+        rows, self._rows = self._rows, []
+        self._last_send = time.monotonic()
+        if rows:
+            self._submit(lambda: self._send_rows_now(rows), ticks=len(rows))
+
+    def _detect_changes(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
+                        phases: Sequence[Any] | None) -> None:
+        """Phase changes (→ ``events/vehicles``) and exits (→ ``events/exits``), every call."""
         gone: list[int] = []
         if phases is not None:
             ph = tuple(phases)
@@ -692,15 +780,19 @@ class RerunRecorder:
                 prev = {}
                 if self._prev_phases is not None and self._prev_ids is not None:
                     prev = dict(zip(self._prev_ids.tolist(), self._prev_phases, strict=True))
+                changed_ids, texts = [], []
                 for i, p in zip(ids.tolist(), ph, strict=True):
                     q = prev.get(i)
                     if q != p:
                         ps = _phase_str(p)
-                        text = (f"vehicle {i}: {_phase_str(q)} → {ps}" if q is not None
-                                else f"vehicle {i}: {ps}")
-                        self._text_log(f"{E_EVENTS}/vehicle_{i}", t_s, tick, text, "info")
-                        if ps == "exited" and i not in self._exited:
+                        changed_ids.append(i)
+                        texts.append(f"vehicle {i}: {_phase_str(q)} → {ps}" if q is not None
+                                     else f"vehicle {i}: {ps}")
+                        if ps == "exited":
                             gone.append(i)
+                if texts:
+                    self._submit(lambda: self._send_vehicle_events(t_s, tick, changed_ids, texts,
+                                                                   ["INFO"] * len(texts)))
                 self._prev_phases = ph
                 self._prev_ids = ids.copy()
         else:
@@ -714,90 +806,85 @@ class RerunRecorder:
                 else:
                     now = set(ids[present].tolist())
                     gone = [int(i) for i in pids[pprev].tolist() if int(i) not in now]
-            self._prev_ids = ids.copy() if pids is None or not np.array_equal(ids, pids) else pids
+            if pids is None or not np.array_equal(ids, pids):
+                self._prev_ids = ids.copy()
             self._prev_present = present
         gone = [i for i in gone if i not in self._exited]
         if gone:
             self._exited.update(gone)
-            self._log_exits(t_s, tick, gone)
+            self._submit(lambda: self._send_exits(t_s, tick, gone))
 
-    def _log_exits(self, t_s: float, tick: int, gone: list[int]) -> None:
-        rr = self._rr
-        import pyarrow as pa
-        from rerun.any_value import AnyBatchValue
-
-        desc = rr.ComponentDescriptor(f"{_EXIT}:vehicle_id", archetype=_EXIT)
-        text = ("vehicle " if len(gone) == 1 else "vehicles ") + ", ".join(map(str, gone)) + \
-            " exited"
-        self._guard(lambda: self._rec.send_columns(
-            E_EXITS, self._index([t_s], [tick]),
-            [*rr.TextLog.columns(text=[text], level=["INFO"]),
-             rr.ComponentColumn(desc, AnyBatchValue(desc, pa.array(np.asarray(gone, np.int64))),
-                                lengths=[len(gone)])]))
-
-    # ----- sending ----------------------------------------------------------------------
+    # ----- sending (sender thread) ------------------------------------------------------
     def _index(self, t_s: Sequence[float] | np.ndarray, ticks: Sequence[int] | np.ndarray
                ) -> list[Any]:
         rr = self._rr
         return [rr.TimeColumn(TIMELINE_TIME, duration=_td_ns(np.asarray(t_s, dtype=float))),
                 rr.TimeColumn(TIMELINE_TICK, sequence=np.asarray(ticks, dtype=np.int64))]
 
-    def _guard(self, fn: Any) -> None:
-        """Run a rerun call; recording problems are logged, never raised into the loop."""
-        try:
-            fn()
-        except Exception as exc:  # noqa: BLE001 - recording must not kill the control loop
-            self._send_errors += 1
-            if self._send_errors <= 3:
-                log.warning("rerun recording: %s: %s", type(exc).__name__, exc)
-
-    def _send_rows(self) -> None:
-        rows, self._rows = self._rows, []
-        self._last_send = time.monotonic()
-        if rows and self._enabled:
-            self._guard(lambda: self._send_rows_now(rows))
-
-    def _send_rows_now(self, rows: list[_Row]) -> None:
-        import pyarrow as pa
+    def _custom(self, archetype: str, name: str, values: Any, offsets: np.ndarray) -> Any:
+        """A column of our own component ``archetype:name``; ``offsets`` (int32, leading 0)
+        split the values into rows (see :func:`_offsets`)."""
         from rerun.any_value import AnyBatchValue
 
+        key = f"{archetype}:{name}"
+        desc = self._descriptors.get(key)
+        if desc is None:
+            desc = self._descriptors[key] = self._rr.ComponentDescriptor(key, archetype=archetype)
+        arr = values if isinstance(values, self._pa.Array) else self._pa.array(values)
+        return self._rr.ComponentColumn(desc, AnyBatchValue(desc, arr), offsets=offsets)
+
+    def _send_exits(self, t_s: float, tick: int, gone: list[int]) -> None:
         rr = self._rr
+        text = ("vehicle " if len(gone) == 1 else "vehicles ") + ", ".join(map(str, gone)) + \
+            " exited"
+        self._rec.send_columns(E_EXITS, self._index([t_s], [tick]), [
+            *rr.TextLog.columns(text=[text], level=["INFO"]),
+            self._custom(_EXIT, "vehicle_id", np.asarray(gone, np.int64),
+                         _offsets(np.array([len(gone)])))])
+
+    def _send_vehicle_events(self, t_s: float, tick: int, vids: list[int], texts: list[str],
+                             levels: list[str]) -> None:
+        n = len(texts)
+        rr = self._rr
+        self._rec.send_columns(E_VEHICLE_EVENTS, self._index([t_s] * n, [tick] * n), [
+            *rr.TextLog.columns(text=texts, level=levels),
+            self._custom(_EVENT, "vehicle_id", np.asarray(vids, np.int64),
+                         _offsets(np.ones(n, np.int32)))])
+
+    def _send_rows_now(self, rows: list[_Row]) -> None:
+        rr, pa = self._rr, self._pa
         comps = rr.components
         t = np.array([r.t_s for r in rows])
         ticks = np.array([r.tick for r in rows], dtype=np.int64)
         idx = self._index(t, ticks)
         lengths = np.array([len(r.ids) for r in rows], dtype=np.int32)
+        offsets = _offsets(lengths)
         pos = np.concatenate([r.pos for r in rows]).reshape(-1, 2)
         vel = np.concatenate([r.vel for r in rows]).reshape(-1, 2)
         ids = np.concatenate([r.ids for r in rows]).astype(np.int64)
-        labels: list[str] = []
-        for r in rows:
-            labels.extend(r.labels)
-        colors = np.concatenate([r.colors for r in rows])
+        labels = pa.concat_arrays([r.looks.labels for r in rows])
+        colors = np.concatenate([r.looks.colors for r in rows])
 
-        def col(desc: Any, batch: Any, lens: np.ndarray = lengths) -> Any:
-            return rr.ComponentColumn(desc, batch, lengths=lens)
+        def col(desc: Any, batch: Any, offs: np.ndarray = offsets) -> Any:
+            return rr.ComponentColumn(desc, batch, offsets=offs)
 
-        def custom(name: str, values: Any, lens: np.ndarray = lengths) -> Any:
-            desc = rr.ComponentDescriptor(f"{_STATE}:{name}", archetype=_STATE)
-            return col(desc, AnyBatchValue(desc, pa.array(values)), lens)
+        from rerun.any_value import AnyBatchValue
 
+        lab_desc = rr.Points2D.descriptor_labels()
         pos32 = pos.astype(np.float32)
         cols = [
             col(rr.Points2D.descriptor_positions(), comps.Position2DBatch(pos32)),
-            col(rr.Points2D.descriptor_labels(), comps.TextBatch(labels)),
+            col(lab_desc, AnyBatchValue(lab_desc, labels)),
             col(rr.Points2D.descriptor_colors(), comps.ColorBatch(colors)),
-            custom("vehicle_id", ids),
-            custom("x_m", pos[:, 0]),
-            custom("y_m", pos[:, 1]),
-            custom("vx_m_s", vel[:, 0]),
-            custom("vy_m_s", vel[:, 1]),
+            self._custom(_STATE, "vehicle_id", ids, offsets),
+            self._custom(_STATE, "x_m", pos[:, 0], offsets),
+            self._custom(_STATE, "y_m", pos[:, 1], offsets),
+            self._custom(_STATE, "vx_m_s", vel[:, 0], offsets),
+            self._custom(_STATE, "vy_m_s", vel[:, 1], offsets),
         ]
-        if all(r.phases is not None for r in rows):
-            ph: list[str] = []
-            for r in rows:
-                ph.extend(_phase_str(p) for p in r.phases or ())
-            cols.append(custom("phase", pa.array(ph, type=pa.string())))
+        if all(r.looks.phases is not None for r in rows):
+            cols.append(self._custom(_STATE, "phase", pa.concat_arrays(
+                [r.looks.phases for r in rows]), offsets))
         self._rec.send_columns(E_VEHICLES, idx, cols)
         self._rec.send_columns(E_VELOCITY, idx, [
             col(rr.Arrows2D.descriptor_origins(), comps.Position2DBatch(pos32)),
@@ -807,7 +894,7 @@ class RerunRecorder:
         with_cmd = [k for k, r in enumerate(rows) if r.cmd is not None]
         if with_cmd:
             sub = [rows[k] for k in with_cmd]
-            cl = lengths[with_cmd]
+            cl = _offsets(lengths[with_cmd])
             cpos = np.concatenate([r.pos for r in sub]).reshape(-1, 2)
             cmd = np.concatenate([r.cmd for r in sub if r.cmd is not None]).reshape(-1, 2)
             self._rec.send_columns(E_COMMANDS, self._index(t[with_cmd], ticks[with_cmd]), [
@@ -815,8 +902,8 @@ class RerunRecorder:
                     cpos.astype(np.float32)), cl),
                 col(rr.Arrows2D.descriptor_vectors(), comps.Vector2DBatch(
                     (cmd * self.arrow_scale_s).astype(np.float32)), cl),
-                custom("cmd_x_m_s", cmd[:, 0], cl),
-                custom("cmd_y_m_s", cmd[:, 1], cl),
+                self._custom(_STATE, "cmd_x_m_s", cmd[:, 0], cl),
+                self._custom(_STATE, "cmd_y_m_s", cmd[:, 1], cl),
             ])
         keys: dict[str, None] = {}
         for r in rows:
@@ -824,41 +911,38 @@ class RerunRecorder:
         for key in keys:
             sel = [k for k, r in enumerate(rows) if key in r.metrics]
             vals = np.array([rows[k].metrics[key] for k in sel], dtype=float)
-            self._rec.send_columns(METRICS_PREFIX + key, self._index(t[sel], ticks[sel]),
-                                   rr.Scalars.columns(scalars=vals))
+            self._rec.send_columns(
+                METRICS_PREFIX + key,
+                idx if len(sel) == len(rows) else self._index(t[sel], ticks[sel]),
+                [rr.ComponentColumn(rr.Scalars.descriptor_scalars(), comps.ScalarBatch(vals))])
+        new_keys = keys.keys() - self._metric_keys_seen
         self._metric_keys_seen.update(keys)
-        # safety limits as flat lines over the span of this batch
-        span = [0, len(rows) - 1] if len(rows) > 1 else [0]
+        # the safety limits as flat lines: a point at the first tick of each metric, then one
+        # every LIMIT_PERIOD_S of mission time and at the last batch (close)
+        last = len(rows) - 1
+        due = t[last] >= self._next_limit_t or self.closed
         for key, values in self._limits.items():
-            if key in self._metric_keys_seen:
+            if key in new_keys or (due and key in self._metric_keys_seen):
+                at = [0] if key in new_keys else [last]
                 self._rec.send_columns(
-                    LIMITS_PREFIX + key, self._index(t[span], ticks[span]),
-                    rr.Scalars.columns(scalars=np.tile(values, len(span))).partition(
-                        [len(values)] * len(span)))
+                    LIMITS_PREFIX + key, self._index(t[at], ticks[at]),
+                    rr.Scalars.columns(scalars=np.asarray(values, dtype=float)).partition(
+                        [len(values)]))
+        if due:
+            self._next_limit_t = t[last] + LIMIT_PERIOD_S
 
     def _send_status(self, row: _Row) -> None:
-        if not self._enabled:
-            return
         speed = np.hypot(row.vel[:, 0], row.vel[:, 1]) if len(row.vel) else np.zeros(0)
-        phases = row.phases if row.phases is not None else ["-"] * len(row.ids)
-        lines = [f"t = {row.t_s:.2f} s, tick {row.tick}, {len(row.ids)} vehicles present, "
-                 f"{len(self._exited)} exited", "",
+        phases = row.looks.phase_strs or ["-"] * len(row.ids)
+        lines = [f"t = {row.t_s:.2f} s, tick {row.tick}, {len(row.ids)} vehicles present", "",
                  "| id | phase | x [m] | y [m] | speed [m/s] |", "|---:|---|---:|---:|---:|"]
-        lines += [f"| {i} | {_phase_str(p)} | {x:.2f} | {y:.2f} | {s:.2f} |"
+        lines += [f"| {i} | {p} | {x:.2f} | {y:.2f} | {s:.2f} |"
                   for i, p, (x, y), s in zip(row.ids.tolist(), phases, row.pos.tolist(),
                                              speed.tolist(), strict=True)]
         rr = self._rr
-        self._guard(lambda: self._rec.send_columns(
+        self._rec.send_columns(
             E_STATUS, self._index([row.t_s], [row.tick]),
-            rr.TextDocument.columns(text=["\n".join(lines)], media_type=["text/markdown"])))
-
-    def _text_log(self, path: str, t_s: float, tick: int, text: str, level: str) -> None:
-        if not self._enabled:
-            return
-        lvl = _LEVELS.get(level.lower(), level.upper())
-        rr = self._rr
-        self._guard(lambda: self._rec.send_columns(
-            path, self._index([t_s], [tick]), rr.TextLog.columns(text=[text], level=[lvl])))
+            rr.TextDocument.columns(text=["\n".join(lines)], media_type=["text/markdown"]))
 
     # ----- events, summary, close -------------------------------------------------------
     def log_event(
@@ -867,16 +951,25 @@ class RerunRecorder:
         with self._lock:
             if self.closed:
                 return
-            path = E_EVENTS if vehicle_id is None else f"{E_EVENTS}/vehicle_{int(vehicle_id)}"
-            self._text_log(path, float(t_s), self._last_tick, str(text), level)
+            lvl = _LEVELS.get(level.lower(), level.upper())
+            t_s, tick, text = float(t_s), self._last_tick, str(text)
+            if vehicle_id is None:
+                rr = self._rr
+                self._submit(lambda: self._rec.send_columns(
+                    E_EVENTS, self._index([t_s], [tick]),
+                    rr.TextLog.columns(text=[text], level=[lvl])))
+            else:
+                vid = int(vehicle_id)
+                self._submit(lambda: self._send_vehicle_events(
+                    t_s, tick, [vid], [f"vehicle {vid}: {text}"], [lvl]))
 
     def log_summary(self, summary: Mapping[str, Any]) -> None:
         rr = self._rr
         with self._lock:
-            if self.closed or not self._enabled:
+            if self.closed:
                 return
             text = json.dumps(_jsonable(dict(summary)), indent=1)
-            self._guard(lambda: self._rec.log(
+            self._submit(lambda: self._rec.log(
                 E_SUMMARY, rr.TextDocument(text, media_type=rr.MediaType.TEXT), static=True))
 
     @property
@@ -902,22 +995,33 @@ class RerunRecorder:
                 if self._pending is not None:
                     row, self._pending = self._pending, None
                     self._push(row)
-                if self._rows:
-                    self._send_rows()
-                if self._enabled:
-                    try:
-                        self._rec.flush(timeout_sec=self.flush_timeout_s)
-                    except Exception as exc:  # noqa: BLE001 - e.g. live viewer went away
-                        log.warning("rerun recording: flush: %s", exc)
+                self._send_rows()
             finally:
+                worker = self._worker
+        if worker is not None:  # outside the lock: the sender takes it per job
+            self._queue.put(None)
+            worker.join(timeout=self.flush_timeout_s + 30.0)
+            if worker.is_alive():
+                log.warning("rerun recording: the sender did not finish within %.0f s",
+                            self.flush_timeout_s + 30.0)
+        try:
+            if self._enabled:
                 try:
-                    self._rec.disconnect()
-                except Exception as exc:  # noqa: BLE001
-                    log.warning("rerun recording: close: %s", exc)
-            if self.path is not None:
-                size = self.path.stat().st_size if self.path.exists() else 0
-                log.info("recording saved: %s (%d ticks recorded of %d, %.1f kB)", self.path,
-                         self._recorded, self._calls, size / 1e3)
+                    self._rec.flush(timeout_sec=self.flush_timeout_s)
+                except Exception as exc:  # noqa: BLE001 - e.g. live viewer went away
+                    log.warning("rerun recording: flush: %s", exc)
+        finally:
+            try:
+                self._rec.disconnect()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("rerun recording: close: %s", exc)
+        if self.dropped_ticks:
+            log.warning("rerun recording: %d ticks were dropped (sender fell behind)",
+                        self.dropped_ticks)
+        if self.path is not None:
+            size = self.path.stat().st_size if self.path.exists() else 0
+            log.info("recording saved: %s (%d ticks recorded of %d, %.1f kB)", self.path,
+                     self._recorded, self._calls, size / 1e3)
 
     def __enter__(self) -> RerunRecorder:
         return self
