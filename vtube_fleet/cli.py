@@ -18,7 +18,11 @@ from vtube_fleet.errors import UserError
 __all__ = ["main", "build_parser"]
 
 #: Modules that register sub-commands, in the order they appear in ``--help``.
-COMMAND_MODULES: tuple[str, ...] = ("vtube_fleet.simcli", "vtube_fleet.fleetcli")
+COMMAND_MODULES: tuple[str, ...] = (
+    "vtube_fleet.simcli",
+    "vtube_fleet.fleetcli",
+    "vtube_fleet.reviewcli",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

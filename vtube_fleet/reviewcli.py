@@ -1,0 +1,272 @@
+"""``vtube-fleet review RUN.rrd [--json]``: a recorded run's summary and figures.
+
+The recording (see :mod:`vtube_fleet.recording`) is read back with ``rerun.chunk.RrdReader``;
+the summary is recomputed from the recorded positions and velocities with the same
+:class:`~vtube_fleet.metrics.SafetyMonitor` / :class:`~vtube_fleet.metrics.SummaryAccumulator`
+the simulator and the fleet use, and the figures are drawn with the same
+:mod:`vtube_fleet.plots` functions (Fig. 11 safety curves, swarm snapshots).
+
+The summary has the keys of the run's ``summary.json``. Keys that cannot be recomputed from
+positions (wall-clock time, settings) are copied from the summary the run stored in the
+recording. The text output puts the recomputed value next to the run's own and marks every
+difference; ``--json`` prints exactly the summary JSON on stdout and nothing else.
+
+A decimated recording (``--rerun-decimate N``) holds every N-th step: extrema recomputed from
+positions are then over the recorded steps only, and ``steps`` counts recorded steps. The
+per-step metric series the run logged (``metrics/*``) keep the extremes of the skipped steps;
+the text output shows their extrema too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.recording import RecordingData, RecordingError, load_recording
+
+__all__ = [
+    "ReviewResult",
+    "compare_summaries",
+    "register",
+    "review",
+    "summary_from_recording",
+    "write_review_plots",
+]
+
+#: Keys whose values come from positions/velocities/exits (recomputed by review).
+_CHUNK_STEPS = 256
+
+
+@dataclass
+class ReviewResult:
+    """What :func:`review` produced."""
+
+    data: RecordingData
+    summary: dict[str, Any]
+    recomputed_keys: tuple[str, ...]
+    differences: list[tuple[str, Any, Any]]
+    plots: list[Path] = field(default_factory=list)
+
+
+def _monitor(data: RecordingData) -> Any:
+    from vtube_fleet.metrics import SafetyMonitor
+
+    meta = data.meta
+    params = SimpleNamespace(r_s=meta["r_s"], r_a=meta["r_a"], v_min=meta["v_min"],
+                             v_max=meta["v_max"])
+    return SafetyMonitor.from_params(data.tube(), data.obstacles(), params)
+
+
+def step_metrics(data: RecordingData) -> Any:
+    """:class:`~vtube_fleet.metrics.StepMetrics` of every recorded tick."""
+    from vtube_fleet.metrics import StepMetrics
+
+    mon = _monitor(data)
+    parts = []
+    for s in range(0, len(data.t_s), _CHUNK_STEPS):
+        sl = slice(s, s + _CHUNK_STEPS)
+        parts.append(mon.evaluate(data.pos[sl], data.vel[sl]))
+    return StepMetrics.concatenate(parts)
+
+
+def summary_from_recording(data: RecordingData, metrics: Any | None = None
+                           ) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """The run summary recomputed from the recording → (summary, recomputed keys).
+
+    Uses :class:`~vtube_fleet.metrics.SummaryAccumulator`; exits come from the recorded exit
+    events (exact times), indexed in the scenario's id order. Keys of the stored run summary
+    that are not recomputed are copied over, in the stored summary's key order.
+    """
+    from vtube_fleet.metrics import SummaryAccumulator
+
+    meta = data.meta
+    ids = [int(i) for i in meta.get("ids", [])] or [int(i) for i in data.ids]
+    index = {vid: k for k, vid in enumerate(ids)}
+    acc = SummaryAccumulator(robots=int(meta.get("robots", len(ids))))
+    sm = step_metrics(data) if metrics is None else metrics
+    acc.add(data.t_s, sm)
+    by_time: dict[float, list[int]] = {}
+    for vid, t in data.exits.items():
+        if vid in index:
+            by_time.setdefault(t, []).append(index[vid])
+    for t, rows in sorted(by_time.items()):
+        acc.add_exits(t, rows)
+    fresh = acc.summary()
+    recomputed = tuple(fresh)
+    stored = data.summary or {}
+    if stored:
+        out = {k: fresh[k] if k in fresh else v for k, v in stored.items()}
+        out.update({k: v for k, v in fresh.items() if k not in out})
+    else:
+        out = fresh
+    return out, recomputed
+
+
+def _close(a: Any, b: Any, rel: float, abs_: float) -> bool:
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        return a.keys() == b.keys() and all(_close(a[k], b[k], rel, abs_) for k in a)
+    if isinstance(a, bool) or isinstance(b, bool) or isinstance(a, int) and isinstance(b, int):
+        return a == b
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return math.isclose(float(a), float(b), rel_tol=rel, abs_tol=abs_)
+    return a == b
+
+
+def compare_summaries(
+    recomputed: Mapping[str, Any], stored: Mapping[str, Any], keys: tuple[str, ...] | None = None,
+    *, rel: float = 1e-9, abs_: float = 1e-9
+) -> list[tuple[str, Any, Any]]:
+    """Keys (of ``keys``, default all of ``recomputed``) whose values differ: counts and
+    integers exactly, floats within ``rel``/``abs_`` → [(key, recomputed, stored)]."""
+    out = []
+    for k in keys if keys is not None else tuple(recomputed):
+        if k not in stored:
+            continue
+        if not _close(recomputed.get(k), stored[k], rel, abs_):
+            out.append((k, recomputed.get(k), stored[k]))
+    return out
+
+
+def _reconstruct_partition(data: RecordingData) -> tuple[list[Any], list[Any]]:
+    """Sub-tubes (Trapezoid) and triangles (p_oth, p_otu, p_otd) of the first partition."""
+    from vtube_fleet.tube import Trapezoid
+
+    if not data.partitions:
+        return [], []
+    _, subs, tris = data.partitions[0]
+    sub_tubes = []
+    for k, s in enumerate(subs):
+        if len(s) >= 4:  # closed strip p_h0, p_h1, p_r1, p_r0, p_h0
+            try:
+                sub_tubes.append(Trapezoid(s[0], s[1], s[3], s[2], name=f"T_o{k + 1}"))
+            except Exception:  # noqa: BLE001 - drawing only; skip a degenerate outline
+                continue
+    triangles = [SimpleNamespace(p_oth=t[0], p_otu=t[1], p_otd=t[2]) for t in tris if len(t) >= 3]
+    return sub_tubes, triangles
+
+
+def write_review_plots(data: RecordingData, out_dir: Path, metrics: Any | None = None,
+                       *, stem: str | None = None) -> list[Path]:
+    """The Fig. 11 safety curves and the swarm snapshots as PNGs in ``out_dir``."""
+    from vtube_fleet.plots import pick_snapshot_frames, plot_safety, plot_snapshots
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = stem or data.path.stem
+    meta = data.meta
+    sm = step_metrics(data) if metrics is None else metrics
+    title = f"{data.path.name} ({data.kind}, {int(meta.get('robots', len(data.ids)))} robots)"
+    safety = out_dir / f"{stem}-safety.png"
+    plot_safety(safety, data.t_s, sm, r_s=meta["r_s"], v_min=meta["v_min"], v_max=meta["v_max"],
+                obstacle_radii=[o["radius"] for o in meta.get("obstacles", [])], title=title)
+    written = [safety]
+    if len(data.t_s):
+        sub_tubes, triangles = _reconstruct_partition(data)
+        frames = pick_snapshot_frames(data.t_s, data.pos, count=4)
+        snaps = out_dir / f"{stem}-snapshots.png"
+        plot_snapshots(snaps, data.tube(), [(float(data.t_s[i]), data.pos[i]) for i in frames],
+                       r_s=meta["r_s"], obstacles=data.obstacles(), sub_tubes=sub_tubes,
+                       triangles=triangles, title=title)
+        written.append(snaps)
+    return written
+
+
+def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True) -> ReviewResult:
+    """Load a recording, recompute its summary, compare with the run's own, draw the plots."""
+    data = load_recording(path)
+    for key in ("tube", "r_s", "r_a", "v_min", "v_max"):
+        if key not in data.meta:
+            raise RecordingError(f"{data.path}: scenario metadata lacks {key!r} "
+                                 "(recorded without log_scene?)")
+    sm = step_metrics(data)
+    summary, keys = summary_from_recording(data, sm)
+    diffs = compare_summaries(summary, data.summary or {}, keys, rel=1e-9, abs_=1e-9)
+    written: list[Path] = []
+    if plots:
+        written = write_review_plots(data, out_dir or data.path.parent, sm)
+    return ReviewResult(data=data, summary=summary, recomputed_keys=keys, differences=diffs,
+                        plots=written)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, Mapping):
+        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
+    return "-" if v is None else str(v)
+
+
+def _print_text(res: ReviewResult) -> None:
+    d = res.data
+    meta = d.meta
+    span = f"{d.t_s[0]:.3f}–{d.t_s[-1]:.3f} s" if len(d.t_s) else "no ticks"
+    print(f"recording  {d.path}")
+    print(f"run        {d.kind}, source {meta.get('source') or '-'}, "
+          f"{int(meta.get('robots', len(d.ids)))} robots, recorded every "
+          f"{meta.get('decimate', 1)} step(s)")
+    print(f"ticks      {len(d.t_s)} recorded ({span}), {len(d.exits)} exits, "
+          f"{len(d.events)} events")
+    stored = d.summary or {}
+    if not stored:
+        print("note       the run stored no summary in the recording; nothing to compare")
+    print()
+    width = max(len(k) for k in res.summary) if res.summary else 10
+    print(f"{'key':<{width}}  {'review':>14}  {'run':>14}")
+    diff_keys = {k for k, _, _ in res.differences}
+    for k, v in res.summary.items():
+        src = "" if k in res.recomputed_keys else "  (copied from the run)"
+        run = _fmt(stored[k]) if k in stored else "-"
+        mark = "  ≠" if k in diff_keys else ""
+        print(f"{k:<{width}}  {_fmt(v):>14}  {run:>14}{mark}{src}")
+    recorded = {k: v for k, v in d.metrics.items() if np.any(np.isfinite(v))}
+    if recorded:
+        print()
+        print("per-step metrics as logged by the run (extrema over all steps, decimated ones too):")
+        for k, v in recorded.items():
+            f = v[np.isfinite(v)]
+            print(f"  {k:<34} min {f.min():.6g}  max {f.max():.6g}")
+    print()
+    if res.differences:
+        print(f"{len(res.differences)} key(s) differ from the run's own summary: "
+              + ", ".join(k for k, _, _ in res.differences)
+              + (" (expected with a decimated recording)" if meta.get("decimate", 1) > 1
+                 else ""))
+    elif stored:
+        print("the recomputed summary matches the run's own summary")
+    for p in res.plots:
+        print(f"wrote {p}")
+
+
+def _cmd_review(args: argparse.Namespace) -> int:
+    res = review(args.recording, out_dir=args.out, plots=not args.no_plots)
+    if args.json:
+        json.dump(res.summary, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        _print_text(res)
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "review",
+        help="summary and plots of a recorded run (.rrd)",
+        description="Read a run's rerun recording back, recompute its summary with the "
+                    "simulator's metrics, compare it with the run's own summary, and write the "
+                    "Fig. 11 safety plot and swarm snapshots next to the recording.",
+    )
+    p.add_argument("recording", type=Path, metavar="RUN.rrd", help="the recording to review")
+    p.add_argument("--json", action="store_true",
+                   help="print only the summary JSON (the keys of summary.json) on stdout")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="write the PNGs here (default: next to the recording)")
+    p.add_argument("--no-plots", action="store_true", help="do not write PNGs")
+    p.set_defaults(func=_cmd_review)
