@@ -162,8 +162,12 @@ def test_fleet_ids_phases_commands_and_events(tmp_path: Path) -> None:
             phases[1] = "exited"
             pos[1] = np.nan  # exited vehicles may keep reporting or not: phases decide
         phases_seen.append(phases)
+        p_tube = pos.copy()
+        p_tube[0] = np.nan  # vehicle 1 not counted by the safety metrics (e.g. still climbing)
+        safety = {"": (p_tube, cmd)} if k % 2 == 0 else None
         rec.log_tick(t_s=0.05 * k, tick=100 + k, ids=ids, pos=pos, vel=vel, phases=phases,
-                     cmd=cmd, metrics={"link_latency_s": 0.002, "tick_duration_s": 0.0004})
+                     cmd=cmd, metrics={"link_latency_s": 0.002, "tick_duration_s": 0.0004},
+                     safety=safety)
     rec.log_event(0.3, "slow to answer", vehicle_id=3, level="warning")
     rec.log_event(0.4, "mission complete")
     rec.log_summary({"robots": 4, "exited": 1, "violations": 0})
@@ -180,6 +184,11 @@ def test_fleet_ids_phases_commands_and_events(tmp_path: Path) -> None:
     assert d.cmd is not None
     np.testing.assert_array_equal(d.cmd[5, col[1]], motion(5, 4)[1][0] * 1.01)
     assert d.exits == {2: pytest.approx(0.4)}
+    sp, sv = d.safety[""]
+    assert np.isnan(sp[:, col[1]]).all() and np.isnan(sp[1::2]).all()  # odd ticks: not given
+    np.testing.assert_array_equal(sp[6, col[2]], motion(6, 4)[0][1])
+    np.testing.assert_array_equal(sv[6, col[7]], motion(6, 4)[1][3] * 1.01)
+    assert d.entity_rows["safety/main"] == 6
     texts = [(e[1], e[2], e[3]) for e in d.events]
     assert ("events/vehicles", "WARN", "vehicle 3: slow to answer") in texts
     assert ("events", "INFO", "mission complete") in texts

@@ -131,6 +131,7 @@ E_EVENTS = "events"
 E_EXITS = "events/exits"
 E_VEHICLE_EVENTS = "events/vehicles"
 METRICS_PREFIX = "metrics/"
+SAFETY_PREFIX = "safety/"
 #: The limit lines (``limits/*``) get a point every this many seconds of mission time.
 LIMIT_PERIOD_S = 5.0
 LIMITS_PREFIX = "limits/"
@@ -138,6 +139,7 @@ LIMITS_PREFIX = "limits/"
 _STATE = "vtube_fleet.VehicleState"
 _EXIT = "vtube_fleet.Exit"
 _EVENT = "vtube_fleet.Event"
+_SAFETY = "vtube_fleet.SafetyInput"
 
 #: Metric keys shown in the default blueprint, by view: (view name, metric keys, unit label).
 METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -208,8 +210,15 @@ class Recorder(Protocol):
         phases: Sequence[str] | None = None,
         cmd: np.ndarray | None = None,
         metrics: Mapping[str, float] | None = None,
+        safety: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
-        """One control tick: ids (M,) int, pos/vel/cmd (M, 2) tube frame, NaN rows = absent."""
+        """One control tick: ids (M,) int, pos/vel/cmd (M, 2) tube frame, NaN rows = absent.
+
+        ``safety``: the (positions, velocities) (M, 2) each, rows as ``ids``, that the run fed
+        to :class:`vtube_fleet.metrics.SafetyMonitor`, per summary stream suffix (``""``, and
+        ``"_center"`` for unicycle centres), when they differ from (pos, vel) — e.g. the fleet
+        counts only vehicles in the tube, with their commanded velocity. ``review`` recomputes
+        the summary from exactly these."""
 
     def log_event(
         self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
@@ -309,6 +318,21 @@ def _closed(poly: np.ndarray) -> np.ndarray:
     return np.vstack([poly, poly[:1]])
 
 
+def _present_rows(ids: np.ndarray, pos: Any, vel: Any
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Copies of (ids, pos, vel) restricted to the rows with a finite position."""
+    pos = np.asarray(pos, dtype=float)
+    vel = np.asarray(vel, dtype=float)
+    present = ~np.isnan(pos[:, 0])
+    return ids[present], pos[present], vel[present]
+
+
+def _stream_entity(suffix: str) -> str:
+    """Summary stream suffix → entity path: ``""`` → ``safety/main``, ``"_center"`` →
+    ``safety/center``."""
+    return SAFETY_PREFIX + (suffix.lstrip("_") or "main")
+
+
 def _offsets(lengths: np.ndarray) -> np.ndarray:
     """Per-row lengths → int32 offsets with the leading 0 (``rerun.ComponentColumn``)."""
     out = np.zeros(len(lengths) + 1, dtype=np.int32)
@@ -376,6 +400,7 @@ class _Row:
     cmd: np.ndarray | None
     looks: _Looks
     metrics: dict[str, float]
+    safety: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -684,6 +709,7 @@ class RerunRecorder:
         phases: Sequence[Any] | None = None,
         cmd: np.ndarray | None = None,
         metrics: Mapping[str, float] | None = None,
+        safety: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
         with self._lock:
             if self.closed:
@@ -698,6 +724,8 @@ class RerunRecorder:
             record = self._calls % self.decimate == 0
             self._calls += 1
             row = self._make_row(t_s, tick, ids, pos, vel, phases, cmd)
+            if safety:
+                row.safety = {sfx: _present_rows(ids, sp, sv) for sfx, (sp, sv) in safety.items()}
             if record:
                 self._pending = None
                 self._push(row)
@@ -891,6 +919,27 @@ class RerunRecorder:
             col(rr.Arrows2D.descriptor_vectors(),
                 comps.Vector2DBatch((vel * self.arrow_scale_s).astype(np.float32))),
         ])
+        streams: dict[str, None] = {}
+        for r in rows:
+            streams.update(dict.fromkeys(r.safety))
+        for sfx in streams:
+            sel = [k for k, r in enumerate(rows) if sfx in r.safety]
+            parts = [rows[k].safety[sfx] for k in sel]
+            s_offs = _offsets(np.array([len(q[0]) for q in parts], dtype=np.int32))
+            s_pos = np.concatenate([q[1] for q in parts]).reshape(-1, 2)
+            s_vel = np.concatenate([q[2] for q in parts]).reshape(-1, 2)
+            self._rec.send_columns(
+                _stream_entity(sfx),
+                idx if len(sel) == len(rows) else self._index(t[sel], ticks[sel]), [
+                    self._custom(_SAFETY, "suffix", [sfx] * len(sel), _offsets(
+                        np.ones(len(sel), np.int32))),
+                    self._custom(_SAFETY, "vehicle_id", np.concatenate(
+                        [q[0] for q in parts]).astype(np.int64), s_offs),
+                    self._custom(_SAFETY, "x_m", s_pos[:, 0], s_offs),
+                    self._custom(_SAFETY, "y_m", s_pos[:, 1], s_offs),
+                    self._custom(_SAFETY, "vx_m_s", s_vel[:, 0], s_offs),
+                    self._custom(_SAFETY, "vy_m_s", s_vel[:, 1], s_offs),
+                ])
         with_cmd = [k for k, r in enumerate(rows) if r.cmd is not None]
         if with_cmd:
             sub = [rows[k] for k in with_cmd]
@@ -902,6 +951,8 @@ class RerunRecorder:
                     cpos.astype(np.float32)), cl),
                 col(rr.Arrows2D.descriptor_vectors(), comps.Vector2DBatch(
                     (cmd * self.arrow_scale_s).astype(np.float32)), cl),
+                self._custom(_STATE, "vehicle_id", np.concatenate(
+                    [r.ids for r in sub]).astype(np.int64), cl),
                 self._custom(_STATE, "cmd_x_m_s", cmd[:, 0], cl),
                 self._custom(_STATE, "cmd_y_m_s", cmd[:, 1], cl),
             ])
@@ -1157,6 +1208,8 @@ class RecordingData:
     ``t_s`` / ``tick`` (T,) are the recorded ticks in order; ``ids`` (M,) every vehicle id seen
     (the scenario's ids first, in their order); ``pos`` / ``vel`` (T, M, 2) with NaN where a
     vehicle was absent; ``cmd`` likewise or ``None``; ``phases`` (T, M) object array or ``None``;
+    ``safety`` summary stream suffix → (pos, vel) (T, M, 2) the run's metrics were computed from
+    when it said so (see :meth:`Recorder.log_tick`; otherwise review uses ``pos``/``vel``);
     ``metrics`` key → (T,) array (NaN where not logged); ``exits`` vehicle id → exit time;
     ``events`` (t_s, entity path, level, text); ``entity_rows`` entity path → temporal row count
     (static rows counted under ``static_rows``); ``meta`` / ``summary`` the two JSON documents.
@@ -1172,6 +1225,7 @@ class RecordingData:
     vel: np.ndarray
     cmd: np.ndarray | None
     phases: np.ndarray | None
+    safety: dict[str, tuple[np.ndarray, np.ndarray]]
     metrics: dict[str, np.ndarray]
     exits: dict[int, float]
     events: list[tuple[float, str, str, str]]
@@ -1269,6 +1323,7 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     static_rows: dict[str, int] = {}
     veh: list[tuple[np.ndarray, np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
     cmd_parts: list[tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
+    safety_parts: dict[str, list[tuple[np.ndarray, dict[str, Any]]]] = {}
     metric_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     exits: dict[int, float] = {}
     events: list[tuple[float, str, str, str]] = []
@@ -1321,6 +1376,12 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
             comps = {n.split(":", 1)[1]: c for n in rb.schema.names
                      if n.startswith(_STATE + ":") and (c := _list_column(rb, n)) is not None}
             cmd_parts.append((k, comps))
+        elif ent.startswith(SAFETY_PREFIX):
+            comps = {n.split(":", 1)[1]: c for n in rb.schema.names
+                     if n.startswith(_SAFETY + ":") and (c := _list_column(rb, n)) is not None}
+            if "suffix" in comps:
+                sfx = str(comps["suffix"][0][0]) if len(comps["suffix"][0]) else ""
+                safety_parts.setdefault(sfx, []).append((k, comps))
         elif ent.startswith(METRICS_PREFIX):
             col = _list_column(rb, "Scalars:scalars")
             if col is not None:
@@ -1367,7 +1428,8 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     t_s = all_t[first]
     seen_ids: list[int] = [int(i) for i in meta.get("ids", [])]
     known = set(seen_ids)
-    for _, _, comps in veh:
+    for _, _, comps in veh + [(None, None, c) for parts in safety_parts.values()
+                              for _, c in parts]:
         if "vehicle_id" in comps:
             for i in np.unique(comps["vehicle_id"][0]).tolist():
                 if int(i) not in known:
@@ -1376,38 +1438,41 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     ids = np.array(seen_ids, dtype=np.int64)
     col_of = {int(i): c for c, i in enumerate(seen_ids)}
     T, M = len(ticks), len(ids)
-    pos = np.full((T, M, 2), np.nan)
-    vel = np.full((T, M, 2), np.nan)
-    have_phase = bool(veh) and all("phase" in comps for _, _, comps in veh)
-    phases = np.full((T, M), None, dtype=object) if have_phase else None
-    for _, k, comps in veh:
-        vids, lens = comps["vehicle_id"]
-        row = np.repeat(np.searchsorted(ticks, k), lens)
-        colidx = np.array([col_of[int(i)] for i in vids.tolist()], dtype=np.int64)
-        pos[row, colidx, 0] = comps["x_m"][0]
-        pos[row, colidx, 1] = comps["y_m"][0]
-        vel[row, colidx, 0] = comps["vx_m_s"][0]
-        vel[row, colidx, 1] = comps["vy_m_s"][0]
-        if phases is not None:
-            phases[row, colidx] = comps["phase"][0]
+
+    def scatter(parts: list[tuple[np.ndarray, dict[str, Any]]], names: tuple[str, ...],
+                fill: Any = np.nan, dtype: Any = float) -> list[np.ndarray]:
+        """Per-row flat components → (T, M) arrays, one per name."""
+        out = [np.full((T, M), fill, dtype=dtype) for _ in names]
+        for k, comps in parts:
+            if "vehicle_id" not in comps or not all(n in comps for n in names):
+                continue
+            vids, lens = comps["vehicle_id"]
+            r = np.searchsorted(ticks, k)
+            ok = (r < T) & (ticks[np.minimum(r, max(T - 1, 0))] == k) if T else r < 0
+            row = np.repeat(np.where(ok, r, -1), lens)
+            colidx = np.array([col_of[int(i)] for i in vids.tolist()], dtype=np.int64)
+            keep = row >= 0
+            for arr, n in zip(out, names, strict=True):
+                arr[row[keep], colidx[keep]] = comps[n][0][keep]
+        return out
+
+    def xy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.stack([a, b], axis=-1)
+
+    vparts = [(k, comps) for _, k, comps in veh]
+    x, y, vx, vy = scatter(vparts, ("x_m", "y_m", "vx_m_s", "vy_m_s"))
+    pos, vel = xy(x, y), xy(vx, vy)
+    phases = None
+    if veh and all("phase" in comps for _, _, comps in veh):
+        (phases,) = scatter(vparts, ("phase",), fill=None, dtype=object)
     cmd = None
     if cmd_parts:
-        cmd = np.full((T, M, 2), np.nan)
-        vrows = {}
-        for _, k, comps in veh:  # commands are logged for the same rows as the vehicles
-            vids, lens = comps["vehicle_id"]
-            offs = np.concatenate([[0], np.cumsum(lens)])
-            for j, kk in enumerate(k.tolist()):
-                vrows[kk] = vids[offs[j]:offs[j + 1]]
-        for k, comps in cmd_parts:
-            cx, lens = comps["cmd_x_m_s"]
-            cy, _ = comps["cmd_y_m_s"]
-            offs = np.concatenate([[0], np.cumsum(lens)])
-            for j, kk in enumerate(k.tolist()):
-                r = int(np.searchsorted(ticks, kk))
-                cidx = np.array([col_of[int(i)] for i in vrows.get(kk, [])], dtype=np.int64)
-                cmd[r, cidx, 0] = cx[offs[j]:offs[j + 1]]
-                cmd[r, cidx, 1] = cy[offs[j]:offs[j + 1]]
+        cx, cy = scatter(cmd_parts, ("cmd_x_m_s", "cmd_y_m_s"))
+        cmd = xy(cx, cy)
+    safety: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for sfx, parts in safety_parts.items():
+        sx, sy, svx, svy = scatter(parts, ("x_m", "y_m", "vx_m_s", "vy_m_s"))
+        safety[sfx] = (xy(sx, sy), xy(svx, svy))
     metrics: dict[str, np.ndarray] = {}
     for key, parts in metric_parts.items():
         arr = np.full(T, np.nan)
@@ -1423,7 +1488,7 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         partitions.append((ts, parts_sub.get(kk, (ts, []))[1], parts_tri.get(kk, (ts, []))[1]))
     return RecordingData(
         path=p, meta=meta, summary=summary, t_s=t_s, tick=ticks, ids=ids, pos=pos, vel=vel,
-        cmd=cmd, phases=phases, metrics=metrics, exits=exits, events=events,
+        cmd=cmd, phases=phases, safety=safety, metrics=metrics, exits=exits, events=events,
         entity_rows=entity_rows, static_rows=static_rows,
         application_id=str(stores[0].application_id), recording_id=str(stores[0].recording_id),
         partitions=partitions,

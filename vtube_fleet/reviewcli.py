@@ -66,15 +66,20 @@ def _monitor(data: RecordingData) -> Any:
     return SafetyMonitor.from_params(data.tube(), data.obstacles(), params)
 
 
-def step_metrics(data: RecordingData) -> Any:
-    """:class:`~vtube_fleet.metrics.StepMetrics` of every recorded tick."""
+def step_metrics(data: RecordingData, suffix: str = "") -> Any:
+    """:class:`~vtube_fleet.metrics.StepMetrics` of every recorded tick, for one summary
+    stream: the (positions, velocities) the run said its metrics used (``data.safety``), else
+    the recorded vehicle positions and velocities."""
     from vtube_fleet.metrics import StepMetrics
 
+    pos, vel = data.safety.get(suffix, (data.pos, data.vel) if suffix == "" else (None, None))
+    if pos is None:
+        raise KeyError(suffix)
     mon = _monitor(data)
     parts = []
     for s in range(0, len(data.t_s), _CHUNK_STEPS):
         sl = slice(s, s + _CHUNK_STEPS)
-        parts.append(mon.evaluate(data.pos[sl], data.vel[sl]))
+        parts.append(mon.evaluate(pos[sl], vel[sl]))
     return StepMetrics.concatenate(parts)
 
 
@@ -82,9 +87,11 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
                            ) -> tuple[dict[str, Any], tuple[str, ...]]:
     """The run summary recomputed from the recording → (summary, recomputed keys).
 
-    Uses :class:`~vtube_fleet.metrics.SummaryAccumulator`; exits come from the recorded exit
-    events (exact times), indexed in the scenario's id order. Keys of the stored run summary
-    that are not recomputed are copied over, in the stored summary's key order.
+    Uses :class:`~vtube_fleet.metrics.SummaryAccumulator` on every summary stream the run
+    recorded (``""``, ``"_center"`` …); exits come from the recorded exit events (exact times),
+    indexed in the scenario's id order. Keys of the stored run summary that are not recomputed
+    are copied over, in the stored summary's key order. ``metrics``: precomputed
+    :func:`step_metrics` of the ``""`` stream.
     """
     from vtube_fleet.metrics import SummaryAccumulator
 
@@ -92,8 +99,10 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
     ids = [int(i) for i in meta.get("ids", [])] or [int(i) for i in data.ids]
     index = {vid: k for k, vid in enumerate(ids)}
     acc = SummaryAccumulator(robots=int(meta.get("robots", len(ids))))
-    sm = step_metrics(data) if metrics is None else metrics
-    acc.add(data.t_s, sm)
+    acc.add(data.t_s, step_metrics(data) if metrics is None else metrics)
+    for suffix in sorted(data.safety):
+        if suffix:
+            acc.add(data.t_s, step_metrics(data, suffix), suffix)
     by_time: dict[float, list[int]] = {}
     for vid, t in data.exits.items():
         if vid in index:
