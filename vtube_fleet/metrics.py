@@ -1,0 +1,372 @@
+"""Safety metrics of a swarm run (the quantities of the paper's Fig. 11) and the run summary.
+
+Per time step, from robot positions p (M, 2) and velocities (M, 2):
+
+* the minimum distance between two robots, safe iff > 2 r_s (S_i ∩ S_j = ∅);
+* the minimum robot–obstacle **centre** distance ‖p_i − p_o,k‖, safe iff > r_o,k + r_s
+  (S_i ∩ O_k = ∅; NOTES.md item 7: the triangle sides of the partition are virtual walls,
+  this is the figure that matters);
+* the minimum distance to the MAIN tube's left and right legs, d_Th (dtl) and d_Tr (dtr),
+  safe iff > r_s (S_i ∩ ∂T = ∅);
+* the minimum and maximum speed, safe iff within [v_min, v_max] (vminvmax), with a 1e-9 m/s
+  tolerance for rounding.
+
+A step *violates* when any of these fails. Everything is vectorized over a leading time axis:
+``pos`` may be (K, M, 2), with NaN rows for robots that are not (or no longer) in the tube, so a
+caller can evaluate a whole chunk of steps in one call. Pair distances are taken over candidate
+pairs (I, J) — the controller's neighbour list, or :func:`vtube_fleet.neighbours.pairs_within`
+within ``pair_radius`` — never an O(M²) matrix: a minimum pair distance of ``inf`` means "no two
+robots closer than the search radius".
+
+:class:`SummaryAccumulator` folds per-step metrics and exit events into the ``summary.json``
+dictionary. The simulator, the fleet (from telemetry) and ``review`` (from a recording) all use
+this module, so the numbers mean the same everywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.tube import Obstacle, Trapezoid
+
+__all__ = [
+    "CONDITIONS",
+    "METRIC_KEYS",
+    "SafetyMonitor",
+    "StepMetrics",
+    "SummaryAccumulator",
+]
+
+#: Names of the safety conditions, as used in ``violations_by_condition``.
+CONDITIONS: tuple[str, ...] = ("pair", "obstacle", "left_leg", "right_leg", "speed")
+
+#: Per-step metric names (also the summary keys of their extrema over the run).
+METRIC_KEYS: tuple[str, ...] = (
+    "min_pair_distance_m",
+    "min_obstacle_center_distance_m",
+    "min_obstacle_clearance_m",
+    "min_left_leg_distance_m",
+    "min_right_leg_distance_m",
+    "min_speed_m_s",
+    "max_speed_m_s",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class StepMetrics:
+    """Metrics of K steps, each field an array of shape (K,).
+
+    ``min_obstacle_clearance_m`` is min ‖p_i − p_o,k‖ − r_o,k (compare with r_s; equals the
+    centre distance minus r_o when all radii are equal). Minima over an empty set are ``inf``
+    (no robot, no obstacle, no pair within the search radius); speeds are NaN when no velocity
+    was given. ``robots`` is the number of robots present at each step. The ``*_violation``
+    flags follow :data:`CONDITIONS`; ``violation`` is their OR.
+    """
+
+    min_pair_distance_m: np.ndarray
+    min_obstacle_center_distance_m: np.ndarray
+    min_obstacle_clearance_m: np.ndarray
+    min_left_leg_distance_m: np.ndarray
+    min_right_leg_distance_m: np.ndarray
+    min_speed_m_s: np.ndarray
+    max_speed_m_s: np.ndarray
+    robots: np.ndarray
+    pair_violation: np.ndarray
+    obstacle_violation: np.ndarray
+    left_leg_violation: np.ndarray
+    right_leg_violation: np.ndarray
+    speed_violation: np.ndarray
+
+    @property
+    def violation(self) -> np.ndarray:
+        """(K,) bool: the step breaks at least one condition."""
+        return (
+            self.pair_violation
+            | self.obstacle_violation
+            | self.left_leg_violation
+            | self.right_leg_violation
+            | self.speed_violation
+        )
+
+    def __len__(self) -> int:
+        return int(self.robots.shape[0])
+
+    def flags(self, condition: str) -> np.ndarray:
+        """The (K,) flags of one condition of :data:`CONDITIONS`."""
+        return getattr(self, f"{condition}_violation")
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[StepMetrics]) -> StepMetrics:
+        """Join batches along the time axis (an empty sequence gives K = 0)."""
+        names = [f.name for f in fields(cls)]
+        if not parts:
+            empty = {n: np.zeros(0, dtype=bool if n.endswith("violation") else float)
+                     for n in names}
+            empty["robots"] = np.zeros(0, dtype=np.int64)
+            return cls(**empty)
+        return cls(**{n: np.concatenate([getattr(p, n) for p in parts]) for n in names})
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        """Field name → array, plus ``violation`` (handy for ``np.savez``)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["violation"] = self.violation
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class SafetyMonitor:
+    """The fixed data the metrics need: the MAIN tube, the obstacles and the limits.
+
+    ``pair_radius`` is the neighbour search radius used when no candidate pairs are given
+    (``from_params`` uses r_s + r_a, the controller's own neighbourhood, which is larger than
+    2 r_s so every violating pair is found). Build with :meth:`from_params`.
+    """
+
+    tube: Trapezoid
+    obstacle_centers: np.ndarray
+    obstacle_radii: np.ndarray
+    r_s: float
+    v_min: float
+    v_max: float
+    pair_radius: float
+    speed_tol: float = 1e-9
+    _geom: dict[str, Any] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.obstacle_centers, dtype=float).reshape(-1, 2)
+        r = np.asarray(self.obstacle_radii, dtype=float).reshape(-1)
+        if c.shape[0] != r.shape[0]:
+            raise ValueError("obstacle_centers and obstacle_radii differ in length")
+        object.__setattr__(self, "obstacle_centers", c)
+        object.__setattr__(self, "obstacle_radii", r)
+        t = self.tube
+        # d_Th(x) = n_hᵀx − n_hᵀp_h1 = Re(x conj(n_h)) − n_hᵀp_h1 in complex form; same for d_Tr
+        geom = {
+            "nh": complex(t.n_h[0], -t.n_h[1]),
+            "nr": complex(t.n_r[0], -t.n_r[1]),
+            "off_h": float(t.n_h @ t.p_h1),
+            "off_r": float(t.n_r @ t.p_r1),
+            "oc": (c[:, 0] + 1j * c[:, 1])[:, None],  # (P, 1)
+        }
+        object.__setattr__(self, "_geom", geom)
+
+    @classmethod
+    def from_params(
+        cls, tube: Trapezoid, obstacles: Iterable[Obstacle], params: Any
+    ) -> SafetyMonitor:
+        """From the main tube, the obstacles and a ``ControllerParams`` (r_s, r_a, v_min, v_max)."""
+        obstacles = tuple(obstacles)
+        return cls(
+            tube=tube,
+            obstacle_centers=np.array([o.center for o in obstacles], dtype=float).reshape(-1, 2),
+            obstacle_radii=np.array([o.radius for o in obstacles], dtype=float),
+            r_s=float(params.r_s),
+            v_min=float(params.v_min),
+            v_max=float(params.v_max),
+            pair_radius=float(params.r_s + params.r_a),
+        )
+
+    # ----- the metrics ------------------------------------------------------------------
+    def evaluate(
+        self,
+        pos: np.ndarray,
+        vel: np.ndarray | None = None,
+        *,
+        pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> StepMetrics:
+        """Metrics of one step (``pos`` (M, 2)) or of K steps (``pos`` (K, M, 2)).
+
+        NaN rows in ``pos`` are absent robots. ``pairs`` = (I, J) candidate pairs valid for all
+        K steps (e.g. a Verlet list); without it, pairs within :attr:`pair_radius` are searched
+        step by step with :func:`vtube_fleet.neighbours.pairs_within`.
+        """
+        pos = np.asarray(pos, dtype=float)
+        single = pos.ndim == 2
+        if single:
+            pos = pos[None]
+            vel = None if vel is None else np.asarray(vel, dtype=float)[None]
+        if pos.ndim != 3 or pos.shape[-1] != 2:
+            raise ValueError(f"pos must be (M, 2) or (K, M, 2), got {pos.shape}")
+        k, m = pos.shape[0], pos.shape[1]
+        # 2-D points as complex numbers: every array below has the robots on its last,
+        # contiguous axis, so each numpy call is one tight loop (a trailing axis of length 2
+        # would make broadcasting and reductions an order of magnitude slower)
+        z = _as_complex(pos)  # (K, M)
+        present = ~np.isnan(z.real)
+        robots = present.sum(axis=1)
+        g = self._geom
+        fmin = np.fmin.reduce
+
+        # legs of the MAIN tube, (dtl)/(dtr): d = Re(z conj(n)) − nᵀp_1
+        left = fmin((z * g["nh"]).real, axis=1, initial=np.inf) - g["off_h"]
+        right = fmin((z * g["nr"]).real, axis=1, initial=np.inf) - g["off_r"]
+
+        # obstacle centres: (K, P, M)
+        if self.obstacle_radii.size and m:
+            dist = np.abs(z[:, None, :] - g["oc"])
+            dmin = fmin(dist, axis=2, initial=np.inf)  # (K, P)
+            min_center = fmin(dmin, axis=1, initial=np.inf)
+            min_clear = fmin(dmin - self.obstacle_radii, axis=1, initial=np.inf)
+        else:
+            min_center = np.full(k, np.inf)
+            min_clear = np.full(k, np.inf)
+
+        # pairs
+        if pairs is not None:
+            i_idx, j_idx = np.asarray(pairs[0]), np.asarray(pairs[1])
+            if i_idx.size:
+                dpair = np.abs(z.take(i_idx, axis=1) - z.take(j_idx, axis=1))
+                min_pair = fmin(dpair, axis=1, initial=np.inf)
+            else:
+                min_pair = np.full(k, np.inf)
+        else:
+            min_pair = np.array([self._min_pair_search(pos[s], present[s]) for s in range(k)])
+
+        # speeds
+        if vel is not None:
+            vel = np.asarray(vel, dtype=float)
+            if vel.shape != pos.shape:
+                raise ValueError(f"vel shape {vel.shape} differs from pos shape {pos.shape}")
+            speed = np.abs(_as_complex(vel))
+            speed[~present] = np.nan
+            vmin = fmin(speed, axis=1, initial=np.inf)
+            vmax = np.fmax.reduce(speed, axis=1, initial=-np.inf)
+            empty = robots == 0
+            vmin[empty] = np.nan
+            vmax[empty] = np.nan
+            speed_bad = (vmin < self.v_min - self.speed_tol) | (vmax > self.v_max + self.speed_tol)
+        else:
+            vmin = np.full(k, np.nan)
+            vmax = np.full(k, np.nan)
+            speed_bad = np.zeros(k, dtype=bool)
+
+        r_s = self.r_s
+        return StepMetrics(
+            min_pair_distance_m=min_pair,
+            min_obstacle_center_distance_m=min_center,
+            min_obstacle_clearance_m=min_clear,
+            min_left_leg_distance_m=left,
+            min_right_leg_distance_m=right,
+            min_speed_m_s=vmin,
+            max_speed_m_s=vmax,
+            robots=robots.astype(np.int64),
+            pair_violation=min_pair <= 2.0 * r_s,
+            obstacle_violation=min_clear <= r_s,
+            left_leg_violation=left <= r_s,
+            right_leg_violation=right <= r_s,
+            speed_violation=speed_bad,
+        )
+
+    def _min_pair_search(self, p: np.ndarray, present: np.ndarray) -> float:
+        from vtube_fleet.neighbours import pairs_within
+
+        q = p[present]
+        if q.shape[0] < 2:
+            return math.inf
+        i_idx, j_idx = pairs_within(q, self.pair_radius)
+        if len(i_idx) == 0:
+            return math.inf
+        d = q[i_idx] - q[j_idx]
+        return float(np.sqrt(np.einsum("pd,pd->p", d, d)).min())
+
+
+def _as_complex(a: np.ndarray) -> np.ndarray:
+    """(..., 2) float → (...) complex view (copy only if the last axis is not contiguous)."""
+    if a.strides[-1] != a.itemsize:
+        a = np.ascontiguousarray(a)
+    return a.view(np.complex128)[..., 0]
+
+
+def _json_number(x: float) -> float | None:
+    """JSON has no inf/NaN: report them as null."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+class SummaryAccumulator:
+    """Folds per-step :class:`StepMetrics` and exit events into the ``summary.json`` dict.
+
+    Several metric *streams* can be fed, distinguished by a key suffix: the simulator feeds the
+    unicycle's control points as ``""`` and its robot centres as ``"_center"`` (NOTES.md
+    item 10). Steps are counted on the ``""`` stream.
+
+    Summary keys: ``robots``, ``exited``, ``last_exit_s``, ``median_exit_s``, the extrema of
+    :data:`METRIC_KEYS` (``min_…`` are minima, ``max_speed_m_s`` a maximum, ``None`` when
+    nothing was measured), ``violations`` (steps breaking any condition),
+    ``violations_by_condition`` and ``first_violation_s``, each with the stream's suffix, and
+    ``steps``; callers add their own (``dt_s``, ``wall_s`` ...) through :meth:`summary`.
+    """
+
+    def __init__(self, robots: int) -> None:
+        self.robots = int(robots)
+        self.exit_time_s = np.full(self.robots, np.nan)
+        self.steps = 0
+        self._streams: dict[str, dict[str, Any]] = {}
+
+    def _stream(self, suffix: str) -> dict[str, Any]:
+        st = self._streams.get(suffix)
+        if st is None:
+            st = {key: (-math.inf if key.startswith("max_") else math.inf) for key in METRIC_KEYS}
+            st["violations"] = 0
+            st["by_condition"] = dict.fromkeys(CONDITIONS, 0)
+            st["first_violation_s"] = None
+            self._streams[suffix] = st
+        return st
+
+    def add(self, t_s: np.ndarray | float, metrics: StepMetrics, suffix: str = "") -> None:
+        """Add K steps of metrics taken at times ``t_s`` (K,)."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        if len(metrics) == 0:
+            return
+        st = self._stream(suffix)
+        for key in METRIC_KEYS:
+            vals = getattr(metrics, key)
+            if key.startswith("max_"):
+                st[key] = float(np.fmax(st[key], np.fmax.reduce(vals, initial=-np.inf)))
+            else:
+                st[key] = float(np.fmin(st[key], np.fmin.reduce(vals, initial=np.inf)))
+        bad = metrics.violation
+        n_bad = int(np.count_nonzero(bad))
+        if n_bad:
+            st["violations"] += n_bad
+            for c in CONDITIONS:
+                st["by_condition"][c] += int(np.count_nonzero(metrics.flags(c)))
+            if st["first_violation_s"] is None:
+                st["first_violation_s"] = float(t[np.argmax(bad)])
+        if suffix == "":
+            self.steps += len(metrics)
+
+    def add_exits(self, t_s: float, robot_ids: Iterable[int] | np.ndarray) -> None:
+        """Robots ``robot_ids`` (indices in config order) reached the finishing line at ``t_s``."""
+        ids = np.asarray(list(robot_ids) if not isinstance(robot_ids, np.ndarray) else robot_ids,
+                         dtype=np.int64)
+        self.exit_time_s[ids] = float(t_s)
+
+    @property
+    def exited(self) -> int:
+        return int(np.count_nonzero(~np.isnan(self.exit_time_s)))
+
+    def summary(self, **extra: Any) -> dict[str, Any]:
+        """The summary dict (JSON-ready); ``extra`` keys are added (and win on conflicts)."""
+        done = self.exit_time_s[~np.isnan(self.exit_time_s)]
+        out: dict[str, Any] = {
+            "robots": self.robots,
+            "exited": int(done.size),
+            "last_exit_s": _json_number(done.max()) if done.size else None,
+            "median_exit_s": _json_number(np.median(done)) if done.size else None,
+        }
+        for suffix in sorted(self._streams or {"": None}, key=lambda s: (s != "", s)):
+            st = self._stream(suffix)
+            for key in METRIC_KEYS:
+                out[f"{key}{suffix}"] = _json_number(st[key])
+            out[f"violations{suffix}"] = int(st["violations"])
+            out[f"violations_by_condition{suffix}"] = dict(st["by_condition"])
+            out[f"first_violation_s{suffix}"] = st["first_violation_s"]
+        out["steps"] = self.steps
+        out.update(extra)
+        return out
