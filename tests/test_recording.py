@@ -466,3 +466,27 @@ def test_meta_is_plain_json(tmp_path: Path) -> None:
     assert d.meta["arr"] == [1.0, None] and d.meta["path"] == str(tmp_path)
     assert json.loads(json.dumps(d.meta)) == d.meta
     assert d.meta["controller"]["r_a"] == 0.5
+
+
+def test_bulk_metrics_and_explicit_exits(tmp_path: Path) -> None:
+    """The simulator's way: metrics per chunk of steps (reduced per block), exact exits."""
+    rec = open_recorder(tmp_path / "s.rrd")
+    rec.log_scene(scenario(3))
+    ticks = np.arange(20)
+    rec.log_metrics(ticks * 0.01, ticks, {
+        "min_pair_distance_m": np.where(ticks == 7, np.inf, 1.0 - 0.01 * ticks),
+        "max_speed_m_s": 2.0 + 0.1 * (ticks % 5),
+    }, every=5)
+    for k in (0, 5, 10, 15):
+        rec.log_tick(t_s=0.01 * k, tick=k, ids=np.arange(3) if k < 10 else np.array([0, 2]),
+                     pos=motion(k, 3)[0] if k < 10 else motion(k, 2)[0],
+                     vel=motion(k, 3)[1] if k < 10 else motion(k, 2)[1])
+        if k == 5:
+            rec.log_exits(0.08, 8, [1])  # between two recorded frames
+    rec.close()
+    d = load_recording(tmp_path / "s.rrd")
+    np.testing.assert_array_equal(d.tick, [0, 5, 10, 15])
+    np.testing.assert_allclose(d.metrics["min_pair_distance_m"], [0.96, 0.91, 0.86, 0.81])
+    np.testing.assert_allclose(d.metrics["max_speed_m_s"], [2.4] * 4)
+    assert d.exits == {1: pytest.approx(0.08)}  # the explicit time, not the next frame's
+    assert d.entity_rows["events/exits"] == 1

@@ -220,6 +220,14 @@ class Recorder(Protocol):
         counts only vehicles in the tube, with their commanded velocity. ``review`` recomputes
         the summary from exactly these."""
 
+    def log_metrics(self, t_s: np.ndarray, ticks: np.ndarray,
+                    metrics: Mapping[str, np.ndarray], *, every: int = 1) -> None:
+        """Per-step metric series in bulk (K,) each — for a caller that evaluates metrics in
+        chunks (the simulator); blocks of ``every`` ticks are reduced to their extrema."""
+
+    def log_exits(self, t_s: float, tick: int, ids: Sequence[int] | np.ndarray) -> None:
+        """Vehicles ``ids`` crossed the finishing line at ``t_s`` (TraCondition)."""
+
     def log_event(
         self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
     ) -> None:
@@ -251,6 +259,13 @@ class NullRecorder:
         pass
 
     def log_tick(self, **kwargs: Any) -> None:
+        pass
+
+    def log_metrics(self, t_s: np.ndarray, ticks: np.ndarray,
+                    metrics: Mapping[str, np.ndarray], *, every: int = 1) -> None:
+        pass
+
+    def log_exits(self, t_s: float, tick: int, ids: Sequence[int] | np.ndarray) -> None:
         pass
 
     def log_event(
@@ -962,23 +977,32 @@ class RerunRecorder:
         for key in keys:
             sel = [k for k, r in enumerate(rows) if key in r.metrics]
             vals = np.array([rows[k].metrics[key] for k in sel], dtype=float)
+            vals[~np.isfinite(vals)] = np.nan  # no pair in range etc.: a gap in the plot
             self._rec.send_columns(
                 METRICS_PREFIX + key,
                 idx if len(sel) == len(rows) else self._index(t[sel], ticks[sel]),
                 [rr.ComponentColumn(rr.Scalars.descriptor_scalars(), comps.ScalarBatch(vals))])
         new_keys = keys.keys() - self._metric_keys_seen
         self._metric_keys_seen.update(keys)
-        # the safety limits as flat lines: a point at the first tick of each metric, then one
-        # every LIMIT_PERIOD_S of mission time and at the last batch (close)
-        last = len(rows) - 1
-        due = t[last] >= self._next_limit_t or self.closed
+        self._send_limits(t, ticks, new_keys, due=t[-1] >= self._next_limit_t or self.closed)
+
+    def _send_limits(self, t: np.ndarray, ticks: np.ndarray, new_keys: Any, *, due: bool
+                     ) -> None:
+        """The safety limits as flat lines: a point at the first tick of each metric, then
+        one every LIMIT_PERIOD_S of mission time and at the last batch (close)."""
+        rr = self._rr
+        last = len(t) - 1
         for key, values in self._limits.items():
             if key in new_keys or (due and key in self._metric_keys_seen):
-                at = [0] if key in new_keys else [last]
+                at = [0] if key in new_keys and not due else [0, last] if key in new_keys \
+                    else [last]
+                at = sorted(set(at))
+                vals = np.tile(np.asarray(values, dtype=float), len(at))
                 self._rec.send_columns(
                     LIMITS_PREFIX + key, self._index(t[at], ticks[at]),
-                    rr.Scalars.columns(scalars=np.asarray(values, dtype=float)).partition(
-                        [len(values)]))
+                    [rr.ComponentColumn(rr.Scalars.descriptor_scalars(),
+                                        rr.components.ScalarBatch(vals),
+                                        lengths=[len(values)] * len(at))])
         if due:
             self._next_limit_t = t[last] + LIMIT_PERIOD_S
 
@@ -996,6 +1020,66 @@ class RerunRecorder:
             rr.TextDocument.columns(text=["\n".join(lines)], media_type=["text/markdown"]))
 
     # ----- events, summary, close -------------------------------------------------------
+    def log_metrics(self, t_s: np.ndarray, ticks: np.ndarray,
+                    metrics: Mapping[str, np.ndarray], *, every: int = 1) -> None:
+        """Per-step metric series (K,) in bulk, e.g. a simulator's chunk of steps.
+
+        With ``every`` > 1 the steps are grouped by ``tick // every`` and each group is
+        logged once, at its first tick, with its extreme (``min_*`` → min, ``max_*``,
+        ``tick_duration_s``, ``link_latency_s`` → max, others → last). ±inf become NaN (a gap).
+        """
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        k = np.asarray(ticks, dtype=np.int64).reshape(-1)
+        if t.size == 0:
+            return
+        with self._lock:
+            if self.closed or not self._enabled:
+                return
+            self._last_tick = max(self._last_tick, int(k[-1]))
+            if every > 1:
+                block = k // int(every)
+                starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
+            else:
+                starts = np.arange(k.size)
+            out: dict[str, np.ndarray] = {}
+            for key, vals in metrics.items():
+                v = np.asarray(vals, dtype=float).reshape(-1)
+                if every > 1:
+                    if key.startswith("min_"):
+                        v = np.fmin.reduceat(v, starts)
+                    elif key.startswith("max_") or key in ("tick_duration_s", "link_latency_s"):
+                        v = np.fmax.reduceat(v, starts)
+                    else:
+                        v = v[np.r_[starts[1:] - 1, v.size - 1]]
+                out[key] = np.where(np.isfinite(v), v, np.nan)
+            tt, kk = t[starts].copy(), k[starts].copy()
+            self._submit(lambda: self._send_metric_series(tt, kk, out), ticks=len(tt))
+
+    def _send_metric_series(self, t: np.ndarray, k: np.ndarray,
+                            series: Mapping[str, np.ndarray]) -> None:
+        rr = self._rr
+        idx = self._index(t, k)
+        for key, vals in series.items():
+            self._rec.send_columns(METRICS_PREFIX + key, idx, [
+                rr.ComponentColumn(rr.Scalars.descriptor_scalars(),
+                                   rr.components.ScalarBatch(vals))])
+        new_keys = series.keys() - self._metric_keys_seen
+        self._metric_keys_seen.update(series)
+        self._send_limits(t, k, new_keys, due=t[-1] >= self._next_limit_t)
+
+    def log_exits(self, t_s: float, tick: int, ids: Sequence[int] | np.ndarray) -> None:
+        """Explicit exits (the simulator knows the exact step); vehicles already reported
+        exited are ignored, and the automatic detection will not report them again."""
+        with self._lock:
+            if self.closed:
+                return
+            gone = [int(i) for i in np.asarray(ids).reshape(-1).tolist() if int(i) not in
+                    self._exited]
+            if gone:
+                self._exited.update(gone)
+                t_s, tick = float(t_s), int(tick)
+                self._submit(lambda: self._send_exits(t_s, tick, gone))
+
     def log_event(
         self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
     ) -> None:
