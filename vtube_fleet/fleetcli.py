@@ -27,7 +27,7 @@ from typing import Any
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.mission import Mission, load_mission
 
-__all__ = ["register", "make_links", "mock_fleet", "sitl_home_lines"]
+__all__ = ["fly", "mock_fleet", "parse_endpoint_list", "register", "sitl_home_lines"]
 
 log = logging.getLogger(__name__)
 
@@ -71,24 +71,6 @@ async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
         yield fleet
 
 
-def make_links(backend: str, endpoints: Sequence[str], hub: Any = None,
-               sysids: Sequence[int | None] | None = None) -> list[Any]:
-    """Links for ``endpoints`` (``hub``: the :class:`MavsdkHub` for the mavsdk backend)."""
-    from vtube_fleet.link.endpoints import parse_endpoint
-
-    eps = [parse_endpoint(u) for u in endpoints]
-    ids = list(sysids) if sysids is not None else [None] * len(eps)
-    if backend == "mavlink":
-        from vtube_fleet.link.mavlink import MavlinkLink
-
-        return [MavlinkLink(e, s) for e, s in zip(eps, ids, strict=True)]
-    if backend == "mavsdk":
-        if hub is None:
-            raise FleetCliError("the mavsdk backend needs a MavsdkHub")
-        return [hub.link(e, s) for e, s in zip(eps, ids, strict=True)]
-    raise FleetCliError(f"unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
-
-
 def parse_endpoint_list(text: str, slots: int) -> list[str]:
     from vtube_fleet.link.endpoints import parse_endpoint
 
@@ -118,11 +100,13 @@ async def fly(
     recorder: Any = None,
     view: Any = None,
     mock_kwargs: dict[str, Any] | None = None,
+    link_options: dict[str, Any] | None = None,
     **supervisor_kwargs: Any,
 ) -> Any:
     """Fly ``mission`` (an in-process mock fleet when ``endpoints`` is None); returns the
     :class:`~vtube_fleet.fleet.supervisor.FleetResult`."""
     from vtube_fleet.fleet.supervisor import Supervisor
+    from vtube_fleet.link import open_links
 
     async with contextlib.AsyncExitStack() as stack:
         if endpoints is None:
@@ -131,17 +115,16 @@ async def fly(
             endpoints = list(fleet.endpoints)
             if sysids is None:
                 sysids = [i + 1 for i in range(len(endpoints))]
-        hub = None
-        if backend == "mavsdk":
-            from vtube_fleet.link.mavsdk_link import MavsdkHub
+        if backend not in BACKENDS:
+            raise FleetCliError(f"unknown backend {backend!r} (choose from "
+                                f"{', '.join(BACKENDS)})")
+        if sysids is None and backend == "mavsdk":
+            from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
 
-            hub = await stack.enter_async_context(MavsdkHub())
-            if sysids is None:
-                from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
-
-                sysids = [px4_sitl_sysid(parse_endpoint(u).port) or i + 1
-                          for i, u in enumerate(endpoints)]
-        links = make_links(backend, endpoints, hub, sysids)
+            sysids = [px4_sitl_sysid(parse_endpoint(u).port) or i + 1
+                      for i, u in enumerate(endpoints)]
+        links = await stack.enter_async_context(
+            open_links(list(endpoints), backend, sysids=sysids, **(link_options or {})))
         sup = Supervisor(mission, links, backend=backend, recorder=recorder, view=view,
                          out_dir=out_dir, **supervisor_kwargs)
         return await sup.run()

@@ -470,6 +470,18 @@ class VehiclePilot:
             t = self._transition
             if t is not None:
                 await asyncio.shield(t)
+        elif self.phase == Phase.LOST:
+            # best effort: a lost vehicle that still answers (e.g. it left OFFBOARD) is told
+            # to land; it stays LOST (a static obstacle) for the others
+            s = self.link.state
+            fresh = (s.last_position_s is not None
+                     and time.monotonic() - s.last_position_s < self.cfg.lost_after_s)
+            if fresh and s.armed and s.landed_state != "ON_GROUND" and not self.link.closed:
+                try:
+                    await self.link.land()
+                    self.event("lost vehicle still answers: LAND sent", "warning")
+                except LinkError as exc:
+                    self.event(f"LAND to the lost vehicle failed: {exc}", "warning")
         elif self.phase in (Phase.ARMING, Phase.READY) and self.link.state.armed:
             try:
                 await self.link.disarm()

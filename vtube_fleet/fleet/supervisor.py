@@ -39,6 +39,7 @@ tube; the measured speeds are ``min_measured_speed_m_s``/``max_measured_speed_m_
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -242,7 +243,11 @@ class Supervisor:
             self.pilots.append(VehiclePilot(link, agent, self.bus, mission, frame=self.frame,
                                             on_event=self._on_pilot_event))
         self.names = [p.name for p in self.pilots]
-        self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, self.params)
+        # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' (+1 m) so that the
+        # minimum pair distance is reported even when nobody came within r_s + r_a
+        self.monitor = dataclasses.replace(
+            SafetyMonitor.from_params(sc.tube, sc.obstacles, self.params),
+            pair_radius=float(flown.r_s + flown.r_a + 1.0))
         self.acc = SummaryAccumulator(len(self.pilots))
         self.t0 = time.monotonic()
         self.tube_start_s: float | None = None
@@ -254,6 +259,8 @@ class Supervisor:
         self.sample_ages: list[float] = []
         self._sample_ages_window: list[float] = []
         self.measured_speed = [math.inf, -math.inf]
+        self.settled_speed = [math.inf, -math.inf]
+        self.settle_s = self.cfg.tracking_dead_time_s + 3.0 * self.cfg.tracking_t63_s
         self.cmd_speed = [math.inf, -math.inf]
         self.min_pair_airborne = math.inf
         self.events: list[dict[str, Any]] = []
@@ -366,6 +373,10 @@ class Supervisor:
                 if p.agent.has_exited(p.xy):
                     p.mark_exit(t)
                     self.acc.add_exits(t, [p.vehicle_id])
+                    try:
+                        self.recorder.log_exits(t, self.tick, [p.vehicle_id])
+                    except Exception as exc:
+                        log.warning("recorder: log_exits failed: %s", exc)
                     continue
                 k = index.get(p.vehicle_id)
                 if k is not None:
@@ -447,6 +458,7 @@ class Supervisor:
         if lat:
             self.latencies.append(latency)
         metrics: dict[str, float] = {}
+        safety = None
         if self.tube_start_s is not None:
             # the "" stream: in the tube (telemetry position, commanded velocity)
             p_tube = np.where(tube_rows[:, None], pos, np.nan)
@@ -456,6 +468,7 @@ class Supervisor:
                     v_tube[i] = np.nan
             sm = self.monitor.evaluate(p_tube, v_tube)
             self.acc.add(t, sm)
+            safety = {"": (p_tube, v_tube)}
             for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
                         "min_left_leg_distance_m", "min_right_leg_distance_m",
                         "min_speed_m_s", "max_speed_m_s"):
@@ -467,10 +480,15 @@ class Supervisor:
                 self.cmd_speed[0] = min(self.cmd_speed[0], float(cs.min()))
                 self.cmd_speed[1] = max(self.cmd_speed[1], float(cs.max()))
             inside = np.array([p.cmd_in_tube for p in pilots])
-            ms = np.hypot(*vel[inside & np.isfinite(vel[:, 0])].T)
+            ok = inside & np.isfinite(vel[:, 0])
+            ms = np.hypot(*vel[ok].T)
             if ms.size:
                 self.measured_speed[0] = min(self.measured_speed[0], float(ms.min()))
                 self.measured_speed[1] = max(self.measured_speed[1], float(ms.max()))
+                # after the vehicles had time to follow the first command (τ_d + 3 t63)
+                if t - self.tube_start_s > self.settle_s:
+                    self.settled_speed[0] = min(self.settled_speed[0], float(ms.min()))
+                    self.settled_speed[1] = max(self.settled_speed[1], float(ms.max()))
             q = pos[airborne & np.isfinite(pos[:, 0])]
             if q.shape[0] > 1:
                 i_idx, j_idx = pairs_within(q, 4.0 * self.plan.params.r_s + 1.0)
@@ -494,7 +512,8 @@ class Supervisor:
         try:
             self.recorder.log_tick(
                 t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
-                phases=[p.phase.value for p in pilots], cmd=cmd, metrics=metrics)
+                phases=[p.phase.value for p in pilots], cmd=cmd, metrics=metrics,
+                safety=safety)
         except Exception as exc:
             log.warning("recorder: log_tick failed: %s", exc)
         if self.keep_trace:
@@ -872,6 +891,9 @@ class Supervisor:
             "max_commanded_speed_m_s": _num(self.cmd_speed[1]),
             "min_measured_speed_m_s": _num(self.measured_speed[0]),
             "max_measured_speed_m_s": _num(self.measured_speed[1]),
+            "settle_s": self.settle_s,
+            "min_measured_speed_settled_m_s": _num(self.settled_speed[0]),
+            "max_measured_speed_settled_m_s": _num(self.settled_speed[1]),
             "rate_hz": cfg.rate_hz,
             "achieved_rate_hz": _num(self._achieved_rate()),
             "ticks": int(dur.size),
