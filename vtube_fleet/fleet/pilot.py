@@ -116,6 +116,13 @@ class VehiclePilot:
         self.up_m = math.nan
         self.vel_xy = np.full(2, np.nan)
         self.sample_s: float | None = None  # monotonic time of the position sample in use
+        self._has_pos = False
+        # the frame's (linear) horizontal rotations as 2×2 matrices, evaluated once on the
+        # basis vectors, so a tick costs float arithmetic instead of numpy calls per vehicle
+        n, e = self.frame.tube_velocity_to_ned(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
+        self._to_ned = (float(n[0]), float(n[1]), float(e[0]), float(e[1]))
+        x, y = self.frame.ned_velocity_to_tube(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
+        self._to_tube = (float(x[0]), float(x[1]), float(y[0]), float(y[1]))
         self._sample_seen: float | None = None
         self._seq = 0
         # what we command
@@ -144,10 +151,11 @@ class VehiclePilot:
         return self.agent.phase
 
     def event(self, text: str, level: str = "info") -> None:
-        getattr(log, "warning" if level in ("warning", "error") else "info")(
-            "%s: %s", self.name, text)
         if self.on_event is not None:
             self.on_event(text, self.vehicle_id, level)
+        else:
+            getattr(log, "warning" if level in ("warning", "error") else "info")(
+                "%s: %s", self.name, text)
 
     def set_phase(self, phase: Phase, why: str = "") -> bool:
         old = self.agent.phase
@@ -169,7 +177,7 @@ class VehiclePilot:
 
     # -- sensing ---------------------------------------------------------------------------
     def has_position(self) -> bool:
-        return self.sample_s is not None and bool(np.isfinite(self.xy).all())
+        return self._has_pos
 
     def pending_sample(self) -> bool:
         """A local position newer than the one in use has arrived (and the origin is known)."""
@@ -192,11 +200,13 @@ class VehiclePilot:
             x, y, up = self.frame.local_ned_to_tube(
                 s.north_m, s.east_m, s.down_m, o.lat_deg, o.lon_deg, o.alt_m)
             xyz = (float(x), float(y), float(up))
-        vx, vy = self.frame.ned_velocity_to_tube(s.vn_m_s, s.ve_m_s)
+        a, b, c, d = self._to_tube
+        vn, ve = s.vn_m_s, s.ve_m_s
         self.xy = np.array([xyz[0], xyz[1]], dtype=float)
         self.up_m = float(xyz[2])
-        self.vel_xy = np.array([float(vx), float(vy)])
+        self.vel_xy = np.array([a * vn + b * ve, c * vn + d * ve])
         self.sample_s = self._sample_seen = s.last_position_s
+        self._has_pos = math.isfinite(xyz[0]) and math.isfinite(xyz[1])
         if (self.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
                 and abs(self.up_m - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
             self.at_altitude.set()
@@ -289,8 +299,8 @@ class VehiclePilot:
         return -_clamp(up, -cfg.max_vertical_speed_m_s, hi)
 
     def send_tube_velocity(self, vx: float, vy: float, down: float) -> None:
-        vn, ve = self.frame.tube_velocity_to_ned(vx, vy)
-        self.link.send_velocity_ned(float(vn), float(ve), float(down))
+        a, b, c, d = self._to_ned
+        self.link.send_velocity_ned(a * vx + b * vy, c * vx + d * vy, float(down))
         self.setpoints_sent += 1
         if not self.sent_setpoint.is_set():
             self.sent_setpoint.set()

@@ -297,7 +297,7 @@ class Supervisor:
         except Exception as exc:  # the recorder must never stop the fleet
             log.warning("recorder: log_event failed: %s", exc)
         line = text if vehicle_id is None else f"{self.names[vehicle_id]}: {text}"
-        if level in ("warning", "error"):
+        if level in ("warning", "error") and self.view is None:
             log.warning("%s", line)
         else:
             log.info("%s", line)
@@ -356,7 +356,9 @@ class Supervisor:
             p.check_faults(now)
             p.publish(now, wall)
             if p.sample_s is not None and p.phase in FLYING_PHASES:
-                self._sample_ages_window.append(p.sample_age_s(now))
+                age = p.sample_age_s(now)
+                if age <= cfg.neighbour_max_age_s:  # older: a stale vehicle, handled as a fault
+                    self._sample_ages_window.append(age)
         view = classify(self.bus.latest().values(), wall, max_age_s=cfg.neighbour_max_age_s,
                         lost_after_s=cfg.lost_after_s)
         self._update_partition(view, t)
@@ -367,21 +369,22 @@ class Supervisor:
         if in_tube:
             ids = view.ids()
             index = {int(v): k for k, v in enumerate(ids)}
-            for p in pilots:
-                if p.phase != Phase.IN_TUBE or not p.has_position():
-                    continue
-                if p.agent.has_exited(p.xy):
-                    p.mark_exit(t)
-                    self.acc.add_exits(t, [p.vehicle_id])
-                    try:
-                        self.recorder.log_exits(t, self.tick, [p.vehicle_id])
-                    except Exception as exc:
-                        log.warning("recorder: log_exits failed: %s", exc)
-                    continue
-                k = index.get(p.vehicle_id)
-                if k is not None:
-                    rows.append(k)
-                    row_pilots.append(p)
+            flying = [p for p in pilots if p.phase == Phase.IN_TUBE and p.has_position()]
+            if flying:
+                done = self.plan.exited(np.array([p.xy for p in flying]))
+                for p, gone in zip(flying, done.tolist(), strict=True):
+                    if gone:
+                        p.mark_exit(t)
+                        self.acc.add_exits(t, [p.vehicle_id])
+                        try:
+                            self.recorder.log_exits(t, self.tick, [p.vehicle_id])
+                        except Exception as exc:
+                            log.warning("recorder: log_exits failed: %s", exc)
+                        continue
+                    k = index.get(p.vehicle_id)
+                    if k is not None:
+                        rows.append(k)
+                        row_pilots.append(p)
         cmds: dict[int, np.ndarray] = {}
         if rows:
             out = fleet_setpoints(self.plan, view.points(), rows)

@@ -1,0 +1,191 @@
+"""Benchmark: one supervisor process drives N sim_stub vehicles (in ANOTHER process) at 20 Hz.
+
+    python bench/bench_fleet.py [--count 200] [--seconds 30] [--rate 20] [--backend mavlink]
+
+1. writes a mission with N slots (a wide straight tube, one obstacle, 2.5 m grid) to a temp dir;
+2. starts ``vtube-fleet mock-fleet MISSION`` in a child process (sim_stub vehicles in the slots;
+   PX4's port scheme up to 40 vehicles, the mock's wide scheme beyond) and reads its endpoints;
+3. runs the :class:`~vtube_fleet.fleet.supervisor.Supervisor` in this process (connect, preflight,
+   take-off, tube) and measures, over ``--seconds`` of tube flight: ticks, the share of ticks on
+   time (started less than half a period after schedule), p50/p99/max tick duration, achieved
+   rate, and the CPU time of THIS process (user + system) per wall second;
+4. aborts (every vehicle holds), stops the mock process, prints the numbers (and JSON with
+   ``--json``).
+
+Run by hand (not in CI): it needs about 60-90 s and both cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from vtube_fleet.bus.base import Phase  # noqa: E402
+from vtube_fleet.fleet.mission import load_mission  # noqa: E402
+from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
+from vtube_fleet.link import open_links  # noqa: E402
+
+
+def mission_text(count: int, rate_hz: float, seconds: float) -> str:
+    cols = 10 if count >= 20 else max(1, min(count, 4))
+    rows = math.ceil(count / cols)
+    spacing = 2.5
+    width = (cols - 1) * spacing + 2 * 2.5
+    length = rows * spacing + 2.0 + 15.0 + seconds * 1.2
+    positions = []
+    for k in range(count):
+        i, j = divmod(k, cols)
+        positions.append([1.5 + i * spacing, -width / 2 + 2.5 + j * spacing])
+    half = width / 2
+    ob_x = rows * spacing + 12.0
+    return f"""
+[tube]
+p_h0 = [0.0, {half}]
+p_h1 = [{length}, {half + 0.5}]
+p_r0 = [0.0, {-half}]
+p_r1 = [{length}, {-half - 0.5}]
+
+[[obstacles]]
+center = [{ob_x}, 0.0]
+radius = 0.5
+
+[robots]
+r_s = 0.3
+r_a = 1.0
+v_min = 0.3
+v_max = 1.6
+positions = {json.dumps(positions)}
+
+[controller]
+v = 1.0
+v_max_prime = 0.5
+
+[mission]
+origin_lat_deg = 47.397742
+origin_lon_deg = 8.545594
+origin_alt_m = 488.0
+heading_deg = 0.0
+altitude_m = 3.0
+rate_hz = {rate_hz}
+climb_speed_m_s = 1.5
+connect_timeout_s = 60.0
+ready_timeout_s = 90.0
+arm_timeout_s = 60.0
+takeoff_timeout_s = 90.0
+mission_timeout_s = {seconds + 60.0}
+"""
+
+
+def start_mock(mission_path: Path, count: int) -> tuple[subprocess.Popen[str], list[str]]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
+         str(count)],
+        stdout=subprocess.PIPE, stderr=sys.stderr, text=True, cwd=ROOT)
+    assert proc.stdout is not None
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            raise SystemExit(f"mock fleet exited early (code {proc.poll()})")
+        if line.startswith(("udpin://", "udpout://", "udp://")):
+            return proc, line.strip().split(",")
+    raise SystemExit("mock fleet did not print its endpoints within 60 s")
+
+
+async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]) -> dict:
+    mission = load_mission(mission_path)
+    window: dict[str, float] = {}
+
+    def hook(tick: int, sup: Supervisor) -> None:
+        if sup.tube_start_s is None:
+            return
+        if "t0" not in window:
+            ru = resource.getrusage(resource.RUSAGE_SELF)
+            window.update(t0=time.monotonic(), cpu0=ru.ru_utime + ru.ru_stime,
+                          k0=len(sup.tick_durations))
+        elif time.monotonic() - window["t0"] >= args.seconds and "t1" not in window:
+            ru = resource.getrusage(resource.RUSAGE_SELF)
+            window.update(t1=time.monotonic(), cpu1=ru.ru_utime + ru.ru_stime,
+                          k1=len(sup.tick_durations))
+            sup.request_abort(f"benchmark: {args.seconds:g} s of tube flight measured")
+
+    sysids = [i + 1 for i in range(len(endpoints))]
+    async with open_links(endpoints, args.backend, sysids=sysids) as links:
+        sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook, signals=True)
+        result = await sup.run()
+    if "t1" not in window:
+        raise SystemExit(f"the tube flight did not last {args.seconds} s: {result.outcome}: "
+                         f"{result.reason}")
+    k0, k1 = int(window["k0"]), int(window["k1"])
+    dur = np.asarray(sup.tick_durations[k0:k1])
+    late = np.asarray(sup.tick_lateness[k0:k1])
+    wall = window["t1"] - window["t0"]
+    period = 1.0 / args.rate
+    in_tube = sum(p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING) for p in sup.pilots)
+    return {
+        "vehicles": len(endpoints),
+        "backend": args.backend,
+        "rate_hz": args.rate,
+        "seconds": round(wall, 2),
+        "ticks": int(dur.size),
+        "expected_ticks": int(round(wall / period)),
+        "achieved_rate_hz": round(dur.size / wall, 2),
+        "on_time_share": round(float(np.mean(late <= period / 2)), 4),
+        "overruns": int(np.sum(dur > period)),
+        "tick_p50_ms": round(1000 * float(np.percentile(dur, 50)), 2),
+        "tick_p99_ms": round(1000 * float(np.percentile(dur, 99)), 2),
+        "tick_max_ms": round(1000 * float(dur.max()), 2),
+        "cpu_share": round((window["cpu1"] - window["cpu0"]) / wall, 3),
+        "vehicles_airborne_at_end": int(in_tube),
+        "min_pair_distance_airborne_m": result.summary.get("min_pair_distance_airborne_m"),
+        "link_latency_p50_ms": (None if result.summary.get("link_latency_p50_s") is None
+                                else round(1000 * result.summary["link_latency_p50_s"], 2)),
+        "outcome": result.outcome,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--count", type=int, default=200)
+    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--rate", type=float, default=20.0)
+    ap.add_argument("--backend", choices=("mavlink", "mavsdk"), default="mavlink")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    os.environ.setdefault("MAVLINK20", "1")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"bench_{args.count}.toml"
+        path.write_text(mission_text(args.count, args.rate, args.seconds))
+        proc, endpoints = start_mock(path, args.count)
+        try:
+            out = asyncio.run(run(args, path, endpoints))
+        finally:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        for k, v in out.items():
+            print(f"{k:30s} {v}")
+
+
+if __name__ == "__main__":
+    main()
