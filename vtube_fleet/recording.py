@@ -151,6 +151,18 @@ METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("link latency [s]", ("link_latency_s",)),
 )
 
+#: Legend names of the known metric series.
+METRIC_NAMES: dict[str, str] = {
+    "min_pair_distance_m": "min pair distance",
+    "min_obstacle_center_distance_m": "min robot–obstacle centre distance",
+    "min_left_leg_distance_m": "min left leg distance",
+    "min_right_leg_distance_m": "min right leg distance",
+    "min_speed_m_s": "min speed",
+    "max_speed_m_s": "max speed",
+    "tick_duration_s": "tick duration",
+    "link_latency_s": "link latency",
+}
+
 #: Colour (RGBA) of a vehicle point by phase (``bus.base.Phase`` values); others grey.
 PHASE_COLORS: dict[str, int] = {
     "connecting": 0x9E9E9EFF,
@@ -531,8 +543,9 @@ class RerunRecorder:
                 log.warning("no rerun viewer answers at %s%s (start one with `rerun`)", url, where)
         if self.path is not None:
             sinks.append(rr.FileSink(self.path))
+        self._blueprint_sent = False
         if sinks:
-            self._rec.set_sinks(*sinks, default_blueprint=default_blueprint())
+            self._rec.set_sinks(*sinks)
         self._enabled = bool(sinks)
         self._send_static_defaults()
 
@@ -546,6 +559,12 @@ class RerunRecorder:
             self._worker.start()
         self._atexit = _make_atexit(self)
         atexit.register(self._atexit)
+
+    def _send_blueprint(self, bounds: tuple[float, float, float, float] | None) -> None:
+        if self._enabled:
+            self._rec.send_blueprint(default_blueprint(bounds), make_active=True,
+                                     make_default=True)
+            self._blueprint_sent = True
 
     # ----- sender thread ----------------------------------------------------------------
     def _work(self) -> None:
@@ -588,10 +607,10 @@ class RerunRecorder:
     # ----- scene ------------------------------------------------------------------------
     def _send_static_defaults(self) -> None:
         rr = self._rr
-        for key in ("min_left_leg_distance_m", "min_right_leg_distance_m",
-                    "min_speed_m_s", "max_speed_m_s"):
-            name = key.replace("min_", "min ").replace("max_", "max ").replace("_", " ")
+        for key, name in METRIC_NAMES.items():
             self._rec.log(METRICS_PREFIX + key, rr.SeriesLines(names=[name]), static=True)
+        self._rec.log(E_VELOCITY, rr.Arrows2D.from_fields(colors=[0x66BB6AFF]), static=True)
+        self._rec.log(E_COMMANDS, rr.Arrows2D.from_fields(colors=[0xBDBDBD90]), static=True)
 
     def log_scene(
         self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
@@ -610,12 +629,22 @@ class RerunRecorder:
             if self.closed:
                 return
             self._meta = doc
+            poly = tube.polygon()
+            pad = 0.05 * float(np.ptp(poly, axis=0).max())
+            lo, hi = poly.min(axis=0) - pad, poly.max(axis=0) + pad
+            self._send_blueprint((float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
+            # the tube frame has y to the left of the heading: show it y-up
+            self._rec.log("world", rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True)
             self._rec.log(E_META, rr.TextDocument(json.dumps(doc, indent=1),
                                                   media_type=rr.MediaType.TEXT), static=True)
-            self._rec.log(E_TUBE, rr.LineStrips2D([_closed(tube.polygon())], colors=[0x000000FF],
-                                                  radii=rr.Radius.ui_points(1.5),
-                                                  labels=[getattr(tube, "name", "T")]),
+            self._rec.log(E_TUBE, rr.LineStrips2D([_closed(tube.polygon())], colors=[0xE0E0E0FF],
+                                                  radii=rr.Radius.ui_points(2.0), draw_order=25.0),
                           static=True)
+            # display defaults of the partition outlines (their strips are temporal)
+            self._rec.log(E_SUB_TUBES, rr.LineStrips2D.from_fields(
+                radii=[rr.Radius.ui_points(0.8)], draw_order=22.0), static=True)
+            self._rec.log(E_TRIANGLES, rr.LineStrips2D.from_fields(
+                radii=[rr.Radius.ui_points(1.0)], draw_order=23.0), static=True)
             if obstacles:
                 centers = np.array([o.center for o in obstacles], dtype=float)
                 radii = np.array([o.radius for o in obstacles], dtype=float)
@@ -705,12 +734,10 @@ class RerunRecorder:
         strips = [_closed(s.polygon()) for s in subs]
         self._rec.send_columns(E_SUB_TUBES, idx, rr.LineStrips2D.columns(
             strips=strips, labels=[getattr(s, "name", f"T_o{i + 1}") for i, s in enumerate(subs)],
-            colors=[0x1E88E5A0] * len(subs)).partition([len(subs)]))
+            colors=[0x42A5F580] * len(subs)).partition([len(subs)]))
         tri_strips = [_closed(np.stack([t.p_oth, t.p_otu, t.p_otd])) for t in tris]
         self._rec.send_columns(E_TRIANGLES, idx, rr.LineStrips2D.columns(
-            strips=tri_strips, labels=[f"I{int(getattr(t, 'obstacle', i)) + 1}"
-                                       for i, t in enumerate(tris)],
-            colors=[0xFB8C00FF] * len(tris)).partition([len(tris)]))
+            strips=tri_strips, colors=[0xFB8C00FF] * len(tris)).partition([len(tris)]))
 
     # ----- ticks ------------------------------------------------------------------------
     def log_tick(
@@ -1127,6 +1154,8 @@ class RerunRecorder:
             except Exception:  # noqa: BLE001 - best effort at interpreter exit
                 pass
             try:
+                if not self._blueprint_sent:
+                    self._guard(lambda: self._send_blueprint(None))
                 if self._pending is not None:
                     row, self._pending = self._pending, None
                     self._push(row)
@@ -1185,9 +1214,10 @@ def _make_atexit(rec: RerunRecorder) -> Any:
 # ----------------------------------------------------------------------------------------------
 # blueprint
 # ----------------------------------------------------------------------------------------------
-def default_blueprint() -> Any:
-    """The default layout: the 2-D tube view with the status table and event log on the left,
-    the time series (Fig. 11 quantities, tick duration, link latency) on the right."""
+def default_blueprint(bounds: tuple[float, float, float, float] | None = None) -> Any:
+    """The default layout: the 2-D tube view (y up, framed on ``bounds`` = (x0, y0, x1, y1)
+    when given) with the status table and the event log under it, the time series (Fig. 11
+    quantities, tick duration, link latency) on the right."""
     import rerun.blueprint as rrb
 
     series = []
@@ -1198,10 +1228,16 @@ def default_blueprint() -> Any:
     series.append(rrb.TimeSeriesView(
         origin="/metrics", name="other metrics",
         contents=["$origin/**"] + [f"- /{METRICS_PREFIX}{k}" for k in known]))
+    view_kw: dict[str, Any] = {}
+    if bounds is not None:
+        x0, y0, x1, y1 = bounds
+        # the view looks at "/", where "world" is mirrored (y up): its y range is negated
+        view_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[-y1, -y0])
+    tube_view = rrb.Spatial2DView(origin="/", contents=["/world/**"], name="tube", **view_kw)
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial2DView(origin="/world", name="tube"),
+                tube_view,
                 rrb.Tabs(
                     rrb.TextDocumentView(origin=f"/{E_STATUS}", name="status"),
                     rrb.TextLogView(origin=f"/{E_EVENTS}", name="events"),
