@@ -94,7 +94,7 @@ def test_state_encode_rejects_out_of_range_id():
 
 
 def test_control_messages_round_trip():
-    st_ = Status(3, "refused", "abc", "run1", 12.5, "config hash differs")
+    st_ = Status(3, "refused", "abc", "run1", 12.5, "config hash differs", "joined")
     assert decode_status(encode_status(st_)) == st_
     cmd = Command("start", "demo", "run1", "abc", 1700000000123, 1700000000.1)
     assert decode_command(encode_command(cmd)) == cmd

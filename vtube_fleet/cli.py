@@ -22,6 +22,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "vtube_fleet.simcli",
     "vtube_fleet.fleetcli",
     "vtube_fleet.reviewcli",
+    "vtube_fleet.agentcli",
+    "vtube_fleet.missioncli",
 )
 
 

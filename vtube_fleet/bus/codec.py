@@ -148,6 +148,9 @@ class Status:
     run_id: str = ""  # the coordinator run this agent accepted ("" before any)
     stamp_s: float = 0.0  # 0 in a last will (its payload is fixed at connect time)
     detail: str = ""
+    #: Where the agent's procedure is: "" (waiting for a mission), "joined" (accepted the
+    #: run), "at_altitude" (climbed; waits for the fleet to enter the tube together), "done".
+    stage: str = ""
 
 
 def encode_status(status: Status) -> bytes:
@@ -162,6 +165,7 @@ def encode_status(status: Status) -> bytes:
             "run": status.run_id,
             "t": status.stamp_s,
             "detail": status.detail,
+            "stage": status.stage,
         }
     )
 
@@ -178,6 +182,7 @@ def decode_status(payload: bytes) -> Status:
         run_id=str(obj.get("run", "")),
         stamp_s=float(_field(obj, "t", (int, float), "status")),
         detail=str(obj.get("detail", "")),
+        stage=str(obj.get("stage", "")),
     )
 
 

@@ -137,6 +137,8 @@ class MqttBus:
         self.config_hash = config_hash
         #: The coordinator run this agent joined (sent in its status; see :meth:`announce`).
         self.run_id = ""
+        #: Where this agent's procedure is (sent in its status; see :class:`Status`).
+        self.stage = ""
         self._presence: tuple[str, str] = ("online", "")
         self.keepalive_s = max(1, int(keepalive_s))
         self.connect_timeout_s = connect_timeout_s
@@ -176,6 +178,9 @@ class MqttBus:
         self._waiters = 0
         self._listeners: list[Callable[[bool], None]] = []
         self._command_listeners: list[Callable[[Command], None]] = []
+        self._state_listeners: list[Callable[[NeighbourState, float], None]] = []
+        self._sync_topic = f"{self.topics.base}/sync/{self.client_id}"
+        self._sync_seen = ""
         self._disconnected_since: float | None = None
         #: Current back-off: initial after a lost connection, ×2 per failed attempt (≤ max).
         self.backoff_s = backoff_initial_s
@@ -227,6 +232,25 @@ class MqttBus:
     def add_connection_listener(self, callback: Callable[[bool], None]) -> None:
         """``callback(connected)`` on every connect and disconnect (called in the loop)."""
         self._listeners.append(callback)
+
+    def add_state_listener(self, callback: Callable[[NeighbourState, float], None]) -> None:
+        """``callback(state, received_wall_s)`` for every live state accepted from another
+        vehicle (not for retained last-seen states): for measuring ages."""
+        self._state_listeners.append(callback)
+
+    async def sync(self, timeout_s: float = 5.0) -> None:
+        """Return once every message the broker had for us when this was called has arrived.
+
+        Publishes a nonce to this client's own sync topic and waits for it: the broker delivers
+        in order, so the retained messages of our subscriptions come first (used to read the
+        retained state of a mission, e.g. ``vtube-fleet mission status``).
+        """
+        await self.wait_connected(timeout_s)
+        client = self._client
+        assert client is not None
+        nonce = uuid.uuid4().hex
+        await client.publish(self._sync_topic, nonce.encode(), qos=1)
+        await self.wait_for(lambda: self._sync_seen == nonce, timeout_s)
 
     def add_command_listener(self, callback: Callable[[Command], None]) -> None:
         """``callback(command)`` for every new fleet command (higher seq than before)."""
@@ -305,7 +329,7 @@ class MqttBus:
                         )
                     await client.publish(
                         self.topics.status(self.vehicle_id),
-                        encode_status(self._status("offline")),
+                        encode_status(self._status("offline", self._presence[1])),
                         qos=1,
                         retain=True,
                     )
@@ -329,13 +353,26 @@ class MqttBus:
     # -- internals ------------------------------------------------------------------------------
     def _status(self, status: str, detail: str = "") -> Status:
         assert self.vehicle_id is not None
-        return Status(self.vehicle_id, status, self.config_hash, self.run_id, time.time(), detail)
+        return Status(
+            self.vehicle_id,
+            status,
+            self.config_hash,
+            self.run_id,
+            time.time(),
+            detail,
+            self.stage,
+        )
 
-    def announce(self, status: str = "online", detail: str = "") -> None:
-        """Set this agent's retained presence (``online`` with the current ``run_id``, or
-        ``refused`` with the reason); published now if connected and on every reconnect."""
+    def announce(
+        self, status: str = "online", detail: str = "", *, stage: str | None = None
+    ) -> None:
+        """Set this agent's retained presence (``online`` with the current ``run_id`` and
+        ``stage``, or ``refused`` with the reason); published now if connected and on every
+        reconnect."""
         if self.vehicle_id is None:
             raise RuntimeError("an observer MqttBus has no presence")
+        if stage is not None:
+            self.stage = stage
         self._presence = (status, detail)
         payload = encode_status(self._status(status, detail))
         client = self._client
@@ -458,7 +495,14 @@ class MqttBus:
             await client.publish(topic, payload, qos=1, retain=True)
         t = self.topics
         await client.subscribe(
-            [(t.all_states, 0), (t.all_statuses, 1), (t.all_lasts, 0), (t.config, 1), (t.cmd, 1)]
+            [
+                (t.all_states, 0),
+                (t.all_statuses, 1),
+                (t.all_lasts, 0),
+                (t.config, 1),
+                (t.cmd, 1),
+                (self._sync_topic, 1),
+            ]
         )
 
     async def _sender(self, client: aiomqtt.Client) -> None:
@@ -496,6 +540,10 @@ class MqttBus:
 
     def _dispatch(self, topic: str, payload: bytes) -> None:
         kind, vid = self.topics.classify(topic)
+        if kind == "unknown" and topic == self._sync_topic:
+            self._sync_seen = payload.decode(errors="replace")
+            self._notify()
+            return
         try:
             if kind == "state" or kind == "last":
                 if vid == self.vehicle_id:
@@ -538,6 +586,10 @@ class MqttBus:
                 self._lost.discard(vid)  # a live state: its agent is back
         self._states[vid] = state
         self.stats.received += 1
+        if not from_last and self._state_listeners:
+            now = time.time()
+            for cb in self._state_listeners:
+                cb(state, now)
         if self._waiters:
             self._notify()
 

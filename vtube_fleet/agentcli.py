@@ -1,0 +1,636 @@
+"""``vtube-fleet agent MISSION.toml --vehicle I``: one vehicle's agent as its own process.
+
+The agent flies slot ``I`` (0-based; endpoint ``I`` of ``vtube-fleet run``) with ONE
+:class:`~vtube_fleet.fleet.pilot.VehiclePilot` (the fleet's flight procedure and the same
+controller call as the supervisor) and learns its neighbours through an MQTT broker
+(:class:`~vtube_fleet.bus.mqtt.MqttBus`): it publishes its own state at the control rate and
+computes its own setpoint from the neighbours within r_s + r_a. Nobody else computes it.
+
+Procedure (``docs/mqtt.md``):
+
+1. connect to the broker (with back-off) and wait for a run announced by ``vtube-fleet mission
+   start`` (retained config). **Refuse** (status ``refused``, one-line error, exit 2) when the
+   announced config hash differs from this mission file's, when slot I is not in the run, or
+   when the run already started (a late agent never joins a fleet in flight);
+2. join the run, connect to the vehicle (``--endpoint``, default PX4 SITL instance I), wait
+   until it is ready and publish READY; measure the link latency for a second and fix the safety
+   budget δ = v'_max·(T + L + τ_d + t63) with L = link latency + ``--max-age`` (the oldest
+   neighbour state used as a live position: the staleness budget); check the paper's
+   conditions with the READY positions of the whole run;
+3. on ``start``: arm, climb, announce ``at_altitude`` and wait (up to ``takeoff_timeout_s``)
+   until every teammate is at altitude (or gone), so the fleet enters the tube together; fly
+   the tube; past the finishing line wait for the others, then ``on_complete`` (land / hold);
+4. ``abort`` (or Ctrl-C / SIGTERM): hold, then land; exit 3 (130 for a signal).
+
+**Broker loss** (:class:`BusAwarePilot`): while the broker is unreachable, or after it is back
+until every airborne neighbour's state is fresh again (at most ``lost_after_s``, after which a
+silent one is a lost obstacle per the agent's rule), a vehicle in the tube stops: it streams
+zero horizontal velocity with altitude hold instead of its last setpoint, and never computes
+with stale neighbours. After ``--broker-hold-limit`` seconds without the broker it lands.
+
+Exit codes: 0 flew through the tube and landed (or holds, ``on_complete = "hold"``); 2 a user
+error or a refusal (nothing armed); 3 aborted, lost or failed; 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.bus.base import Phase
+from vtube_fleet.bus.codec import MissionConfigMsg
+from vtube_fleet.bus.mqtt import MqttBus
+from vtube_fleet.errors import UserError
+from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan, SafetyBudget
+from vtube_fleet.fleet.pilot import VehiclePilot
+from vtube_fleet.link.base import LinkError
+from vtube_fleet.missioncli import DEFAULT_BROKER, config_hash, default_mission_id
+from vtube_fleet.partition import PartitionError
+
+__all__ = ["AgentProcess", "AgentRefused", "BusAwarePilot", "register"]
+
+log = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_INCOMPLETE = 3
+EXIT_INTERRUPTED = 130
+
+#: Seconds of sensing used to measure the link latency before the safety budget is fixed.
+MEASURE_S = 1.0
+#: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
+_UP_STAGES = ("at_altitude", "in_tube", "done")
+
+
+class AgentRefused(UserError):
+    """This agent will not fly the announced run (config hash, slot, late, preflight)."""
+
+
+class AgentAborted(UserError):
+    """The run was aborted (by the coordinator) or could not be completed after arming."""
+
+    exit_code = EXIT_INCOMPLETE
+
+
+class _Interrupted(Exception):
+    """SIGINT / SIGTERM arrived (the vehicle has been held and landed when this propagates)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# the pilot with the bus-health rule
+# ----------------------------------------------------------------------------------------------
+class BusAwarePilot(VehiclePilot):
+    """A :class:`VehiclePilot` that stops in the tube while its neighbour information is not
+    trustworthy (module docstring, "Broker loss").
+
+    In the tube (IN_TUBE / EXITED) each tick checks the bus: disconnected, or reconnected less
+    than ``agent.lost_after_s`` ago with an airborne neighbour whose state is older than
+    ``agent.max_age_s`` → zero horizontal velocity with altitude hold (the pilot's own
+    vertical term), no controller, no exit behaviour; the neighbour table is not touched. A
+    :class:`~vtube_fleet.partition.PartitionError` while re-partitioning around lost vehicles
+    makes the vehicle hold (PX4 Hold), as the supervisor does.
+    """
+
+    def __init__(
+        self, *args: Any, mqtt: MqttBus, broker_hold_limit_s: float = 30.0, **kwargs: Any
+    ) -> None:
+        super().__init__(*args, **kwargs)
+        self.mqtt = mqtt
+        self.broker_hold_limit_s = broker_hold_limit_s
+        self.bus_hold: str | None = None  # why the vehicle stands still for the bus
+        self.bus_hold_since: float | None = None  # monotonic
+        self.bus_holds = 0
+        self._reconnected_wall: float | None = None
+        mqtt.add_connection_listener(self._on_connection)
+
+    def _on_connection(self, connected: bool) -> None:
+        if connected:
+            self._reconnected_wall = time.time()
+
+    def bus_problem(self, now_wall: float) -> str | None:
+        """Why neighbour information cannot be trusted now (None: it can)."""
+        if not self.mqtt.connected:
+            return f"MQTT broker {self.mqtt.host}:{self.mqtt.port} unreachable"
+        if self.bus_hold is None:
+            return None
+        since = self._reconnected_wall
+        if since is not None and now_wall - since > self.agent.lost_after_s:
+            return None  # the silent ones are lost now (the agent's rule)
+        lost = self.mqtt.lost
+        stale = sorted(
+            vid
+            for vid, st in self.mqtt.latest().items()
+            if st.phase in AIRBORNE_PHASES
+            and vid not in lost
+            and now_wall - st.stamp_s > self.agent.max_age_s
+        )
+        if stale:
+            return f"waiting for fresh states of vehicle(s) {', '.join(map(str, stale))}"
+        return None
+
+    def tick(self, now_mono: float, now_wall: float) -> None:
+        if self.phase in (Phase.IN_TUBE, Phase.EXITED):
+            problem = self.bus_problem(now_wall)
+            if problem is not None:
+                self._hold_for_bus(now_mono, now_wall, problem)
+                return
+            if self.bus_hold is not None:
+                held = now_mono - (self.bus_hold_since or now_mono)
+                self.event(f"resuming after {held:.1f} s: broker back, neighbour states fresh")
+                self.bus_hold = self.bus_hold_since = None
+        try:
+            super().tick(now_mono, now_wall)
+        except PartitionError as exc:
+            self.cmd_xy = None
+            self.begin_hold(f"no valid partition around the lost vehicles: {exc}")
+
+    def _hold_for_bus(self, now_mono: float, now_wall: float, problem: str) -> None:
+        if self.bus_hold is None:
+            self.bus_holds += 1
+            self.bus_hold_since = now_mono
+            self.event(
+                f"{problem}: standing still in the tube (zero horizontal velocity, altitude "
+                f"hold) until the broker is back and neighbour states are fresh",
+                "warning",
+            )
+        self.bus_hold = problem
+        self.sense()
+        self.check_faults(now_mono)
+        self.publish(now_mono, now_wall)  # dropped by the bus while disconnected
+        if self.phase not in (Phase.IN_TUBE, Phase.EXITED):
+            return  # check_faults declared it lost
+        held = now_mono - (self.bus_hold_since or now_mono)
+        if held > self.broker_hold_limit_s and not self.mqtt.connected:
+            self.begin_land(
+                f"no MQTT broker for {held:.0f} s > --broker-hold-limit "
+                f"{self.broker_hold_limit_s:g} s"
+            )
+            return
+        self.cmd_xy = np.zeros(2)
+        self.cmd_in_tube = False
+        try:
+            self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s())
+        except LinkError as exc:
+            self.event(f"setpoint not sent: {exc}", "warning")
+
+
+# ----------------------------------------------------------------------------------------------
+# the agent process
+# ----------------------------------------------------------------------------------------------
+class AgentProcess:
+    """Everything ``vtube-fleet agent`` does (module docstring); :meth:`run` returns the exit
+    code."""
+
+    def __init__(
+        self,
+        mission_path: str | Path,
+        vehicle: int,
+        *,
+        broker: str = DEFAULT_BROKER,
+        endpoint: str | None = None,
+        backend: str = "mavlink",
+        mission_id: str | None = None,
+        max_age_s: float | None = None,
+        join_timeout_s: float = 600.0,
+        broker_hold_limit_s: float = 30.0,
+    ) -> None:
+        from vtube_fleet.fleet.mission import load_mission
+        from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_endpoints
+
+        self.path = Path(mission_path)
+        self.mission = load_mission(self.path)
+        if not 0 <= vehicle < self.mission.count:
+            raise AgentRefused(
+                f"--vehicle {vehicle}: {self.path.name} has slots 0..{self.mission.count - 1}"
+            )
+        self.vehicle = vehicle
+        self.cfg = self.mission.config
+        self.hash = config_hash(self.path)
+        self.mission_id = mission_id or default_mission_id(self.path)
+        self.endpoint = endpoint or px4_sitl_endpoints(vehicle + 1)[vehicle]
+        parse_endpoint(self.endpoint)
+        self.backend = backend
+        self.max_age_s = (
+            max_age_s
+            if max_age_s is not None
+            else min(3 * self.cfg.period_s, self.cfg.neighbour_max_age_s)
+        )
+        if not 0 < self.max_age_s <= self.cfg.lost_after_s:
+            raise AgentRefused(
+                f"--max-age {self.max_age_s:g} s must be > 0 and <= lost_after_s = "
+                f"{self.cfg.lost_after_s:g} s of {self.path.name}"
+            )
+        self.join_timeout_s = join_timeout_s
+        self.broker_hold_limit_s = broker_hold_limit_s
+        self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash)
+        self.run_cfg: MissionConfigMsg | None = None
+        self.pilot: BusAwarePilot | None = None
+        self.budget: SafetyBudget | None = None
+        self._interrupt = asyncio.Event()
+        self._abort = asyncio.Event()
+
+    # -- helpers ----------------------------------------------------------------------------
+    def say(self, text: str) -> None:
+        print(f"agent {self.vehicle}: {text}", file=sys.stderr, flush=True)
+
+    def refuse(self, reason: str) -> AgentRefused:
+        self.bus.announce("refused", reason)
+        return AgentRefused(f"vehicle {self.vehicle} refuses to fly: {reason}")
+
+    def _on_command(self, cmd: Any) -> None:
+        if self.run_cfg is not None and cmd.run_id == self.run_cfg.run_id:
+            if cmd.command == "abort":
+                self._abort.set()
+
+    def _teammates(self) -> range:
+        n = self.run_cfg.vehicles if self.run_cfg is not None else self.mission.count
+        return range(n)
+
+    def _gone(self, vid: int) -> bool:
+        """A teammate that will not fly (on): its agent left, refused or was lost, or its
+        vehicle is lost / failed / landed."""
+        st = self.bus.statuses.get(vid)
+        s = self.bus.latest().get(vid)
+        run = self.run_cfg.run_id if self.run_cfg is not None else ""
+        if st is not None and st.run_id == run and st.status in ("offline", "refused", "lost"):
+            return True
+        return s is not None and s.phase in (Phase.LOST, Phase.FAILED, Phase.LANDED)
+
+    async def _wait(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Wait for ``predicate`` (False on timeout); an abort or a signal raises."""
+
+        def check() -> bool:
+            return predicate() or self._abort.is_set() or self._interrupt.is_set()
+
+        with contextlib.suppress(TimeoutError):
+            await self.bus.wait_for(check, timeout_s)
+        if self._interrupt.is_set():
+            raise _Interrupted
+        if self._abort.is_set():
+            raise AgentAborted(f"vehicle {self.vehicle}: run aborted by the coordinator")
+        return predicate()
+
+    # -- 1. join -----------------------------------------------------------------------------
+    def check_run(self, cfg: MissionConfigMsg) -> None:
+        """Refuse a run we must not fly (raises :class:`AgentRefused`)."""
+        if cfg.config_hash != self.hash:
+            raise self.refuse(
+                f"the announced run {cfg.run_id} of mission {cfg.mission_id} has config hash "
+                f"{cfg.config_hash} (from {cfg.source or '?'}), this agent's {self.path.name} "
+                f"has {self.hash}: the mission files differ"
+            )
+        if not self.vehicle < cfg.vehicles:
+            raise self.refuse(
+                f"run {cfg.run_id} flies vehicles 0..{cfg.vehicles - 1}, not {self.vehicle}"
+            )
+        cmd = self.bus.command
+        if cmd is not None and cmd.run_id == cfg.run_id and cmd.command == "start":
+            raise self.refuse(
+                f"run {cfg.run_id} already started {time.time() - cmd.stamp_s:.0f} s ago; a "
+                f"late agent does not join a fleet in flight"
+            )
+
+    async def join(self) -> None:
+        try:
+            await self.bus.wait_connected(30.0)
+        except TimeoutError:
+            raise AgentRefused(f"cannot reach the MQTT broker {self.bus.url} within 30 s") from None
+        await self.bus.sync()
+        if self.bus.config is None:
+            self.say(
+                f"waiting for `vtube-fleet mission start {self.path.name}` on {self.bus.url} "
+                f"(mission id {self.mission_id})"
+            )
+        if not await self._wait(lambda: self.bus.config is not None, self.join_timeout_s):
+            raise AgentRefused(
+                f"no run of mission {self.mission_id} announced on {self.bus.url} within "
+                f"{self.join_timeout_s:g} s"
+            )
+        await self.bus.sync()  # a retained command comes with it: see check_run
+        cfg = self.bus.config
+        assert cfg is not None
+        self.check_run(cfg)
+        self.run_cfg = cfg
+        self.bus.run_id = cfg.run_id
+        self.bus.announce("online", stage="joined")
+        self.say(f"joined run {cfg.run_id} ({cfg.vehicles} vehicles); vehicle {self.endpoint}")
+
+    # -- 2. vehicle ready, budget, preflight -----------------------------------------------
+    def _make_budget(self, latency_s: float) -> SafetyBudget:
+        cfg = self.cfg
+        link_l = cfg.latency_s if cfg.latency_s is not None else latency_s
+        return SafetyBudget.compute(
+            self.mission.scenario.controller,
+            period_s=cfg.period_s,
+            latency_s=link_l + self.max_age_s,
+            dead_time_s=cfg.tracking_dead_time_s,
+            t63_s=cfg.tracking_t63_s,
+            override_m=cfg.safety_margin_m,
+        )
+
+    def _plan(self, budget: SafetyBudget) -> FlightPlan:
+        sc = self.mission.scenario
+        try:
+            return FlightPlan.build(sc.tube, sc.obstacles, budget.inflate(sc.controller))
+        except PartitionError as exc:
+            raise self.refuse(
+                f"with the safety budget {budget.describe(sc.controller)} the tube cannot be "
+                f"partitioned: {exc}"
+            ) from None
+
+    async def measure_budget(self, pilot: BusAwarePilot) -> None:
+        loop = asyncio.get_running_loop()
+        ages: list[float] = []
+        end = loop.time() + MEASURE_S
+        while loop.time() < end:
+            ages.append(pilot.sample_age_s(time.monotonic()))
+            await asyncio.sleep(self.cfg.period_s)  # sampling period of the measurement
+        a = np.asarray(ages, dtype=float)
+        a = a[np.isfinite(a)]
+        measured = float(np.percentile(a, 95)) if a.size else 0.0
+        self.budget = self._make_budget(measured)
+        plan = self._plan(self.budget)
+        pilot.agent.root_plan = pilot.agent.plan = plan
+        self.say(
+            f"safety budget {self.budget.describe(self.mission.scenario.controller)} (L = link "
+            f"{measured * 1000:.1f} ms + neighbour max age {self.max_age_s * 1000:.0f} ms)"
+        )
+
+    def preflight(self, pilot: BusAwarePilot) -> None:
+        """The paper's conditions with the READY positions of every vehicle of the run."""
+        from vtube_fleet.fleet.supervisor import preflight_report
+
+        assert self.budget is not None and self.run_cfg is not None
+        n = self.run_cfg.vehicles
+        mission = self.mission.with_vehicles(n)
+        pos = np.array(mission.slots, dtype=float)
+        latest = self.bus.latest()
+        for v in range(n):
+            s = latest.get(v)
+            if v == self.vehicle:
+                pos[v] = pilot.xy
+            elif s is not None:
+                pos[v] = (s.x_m, s.y_m)
+        flown = self.budget.inflate(mission.scenario.controller)
+        names = [f"vehicle {v}" for v in range(n)]
+        part, problems = preflight_report(mission, flown, pos, names)
+        mine = [p for p in problems if f"vehicle {self.vehicle}" in p or "vehicle" not in p]
+        altitude = pilot.check_altitude_margin(1.0)
+        if altitude:
+            mine.append(altitude)
+        if mine or part is None:
+            raise self.refuse("preflight failed, nothing armed: " + "; ".join(mine or problems))
+
+    # -- 3. fly ------------------------------------------------------------------------------
+    async def _altitude_barrier(self) -> None:
+        assert self.pilot is not None
+        self.bus.announce("online", stage="at_altitude")
+        mates = [v for v in self._teammates() if v != self.vehicle]
+
+        def all_up() -> bool:
+            for v in mates:
+                st = self.bus.statuses.get(v)
+                up = st is not None and st.run_id == self.bus.run_id and st.stage in _UP_STAGES
+                if not (up or self._gone(v)):
+                    return False
+            return True
+
+        with contextlib.suppress(TimeoutError):
+            await self.bus.wait_for(all_up, self.cfg.takeoff_timeout_s)
+        if not all_up():
+            late = [v for v in mates if not self._gone(v)]
+            self.pilot.event(
+                f"teammates not at altitude after {self.cfg.takeoff_timeout_s:g} s "
+                f"({', '.join(map(str, late))}); entering the tube anyway",
+                "warning",
+            )
+        self.bus.announce("online", stage="in_tube")
+
+    async def _exit_barrier(self) -> None:
+        mates = [v for v in self._teammates() if v != self.vehicle]
+
+        def all_done() -> bool:
+            latest = self.bus.latest()
+            for v in mates:
+                s = latest.get(v)
+                if not (
+                    self._gone(v)
+                    or (
+                        s is not None
+                        and s.phase in (Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.LANDED)
+                    )
+                ):
+                    return False
+            return True
+
+        with contextlib.suppress(TimeoutError):
+            await self.bus.wait_for(all_done, self.cfg.mission_timeout_s)
+
+    async def _land_now(self, pilot: BusAwarePilot, why: str) -> None:
+        """Hold, then land, with our own control clock; until touch-down (or timeout)."""
+        stop = asyncio.Event()
+        clock = asyncio.get_running_loop().create_task(pilot.run_clock(stop))
+        try:
+            pilot.event(f"{why}: hold, then land", "warning")
+            with contextlib.suppress(UserError):
+                await pilot.hold()
+            with contextlib.suppress(UserError):
+                await pilot.land()
+            with contextlib.suppress(UserError):
+                await pilot.wait_phase(
+                    lambda ph: (
+                        ph
+                        in (Phase.LANDED, Phase.LOST, Phase.FAILED, Phase.READY, Phase.CONNECTING)
+                    ),
+                    self.cfg.land_timeout_s,
+                    "touch-down",
+                )
+        finally:
+            stop.set()
+            await clock
+
+    async def fly(self, link: Any) -> int:
+        from vtube_fleet.link.base import VehicleLink
+
+        assert isinstance(link, VehicleLink)
+        cfg = self.cfg
+        sc = self.mission.scenario
+        budget = self._make_budget(0.0)
+        agent = Agent(
+            self.vehicle,
+            self._plan(budget),
+            max_age_s=self.max_age_s,
+            lost_after_s=cfg.lost_after_s,
+            lost_radius_m=sc.controller.r_s + cfg.lost_obstacle_margin_m,
+        )
+        pilot = BusAwarePilot(
+            link,
+            agent,
+            self.bus,
+            self.mission,
+            mqtt=self.bus,
+            broker_hold_limit_s=self.broker_hold_limit_s,
+        )
+        self.pilot = pilot
+        await link.connect(cfg.connect_timeout_s)
+        stop_pre = asyncio.Event()
+        pre_clock = asyncio.get_running_loop().create_task(pilot.run_clock(stop_pre))
+        try:
+            await pilot.wait_ready()
+            self.bus.announce("online", stage="ready")
+            await self.measure_budget(pilot)
+            self.say("vehicle READY; waiting for the start command")
+
+            def started() -> bool:
+                c = self.bus.command
+                return c is not None and c.run_id == self.bus.run_id and c.command == "start"
+
+            await self._wait(started, math.inf)
+            self.preflight(pilot)
+        finally:
+            stop_pre.set()
+            await pre_clock
+        self.say("start: arming")
+        fly_task = asyncio.ensure_future(
+            pilot.fly(start=self._altitude_barrier, finish=self._exit_barrier)
+        )
+        stop_wait = asyncio.ensure_future(_first(self._abort.wait(), self._interrupt.wait()))
+        try:
+            await asyncio.wait({fly_task, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop_wait.cancel()
+        if fly_task.done():
+            try:
+                phase = fly_task.result()
+            except UserError as exc:  # take-off failed, timeouts ...
+                await self._land_now(pilot, str(exc))
+                raise AgentAborted(f"vehicle {self.vehicle}: {exc}") from None
+            self.bus.announce("online", stage="done")
+            ok = phase in (Phase.LANDED, Phase.HOLDING) and pilot.exit_time_s is not None
+            self.say(f"finished: {phase.value}" + ("" if ok else f" ({pilot.reason or ''})"))
+            return EXIT_OK if ok else EXIT_INCOMPLETE
+        fly_task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, UserError):
+            await fly_task
+        why = "interrupted" if self._interrupt.is_set() else "run aborted by the coordinator"
+        await self._land_now(pilot, why)
+        self.bus.announce("online", stage="done")
+        if self._interrupt.is_set():
+            raise _Interrupted
+        raise AgentAborted(f"vehicle {self.vehicle}: {why}; final phase {pilot.phase.value}")
+
+    async def run(self) -> int:
+        from vtube_fleet.link import open_links
+        from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
+
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, self._interrupt.set)
+        self.bus.add_command_listener(self._on_command)
+        sysid = None
+        if self.backend == "mavsdk":
+            sysid = px4_sitl_sysid(parse_endpoint(self.endpoint).port) or self.vehicle + 1
+        async with self.bus:
+            await self.join()
+            try:
+                async with open_links([self.endpoint], self.backend, sysids=[sysid]) as links:
+                    return await self.fly(links[0])
+            except (AgentRefused, AgentAborted):
+                raise
+            except UserError as exc:  # vehicle not reachable / not ready: nothing armed
+                self.bus.announce("refused", str(exc))
+                raise
+
+
+async def _first(*aws: Any) -> None:
+    tasks = [asyncio.ensure_future(a) for a in aws]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for t in tasks:
+            t.cancel()
+
+
+def _cmd_agent(args: argparse.Namespace) -> int:
+    proc = AgentProcess(
+        args.mission,
+        args.vehicle,
+        broker=args.broker,
+        endpoint=args.endpoint,
+        backend=args.link,
+        mission_id=args.mission_id,
+        max_age_s=args.max_age,
+        join_timeout_s=args.join_timeout,
+        broker_hold_limit_s=args.broker_hold_limit,
+    )
+    try:
+        return asyncio.run(proc.run())
+    except _Interrupted:
+        print(f"agent {args.vehicle}: interrupted (vehicle held, then landed)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "agent",
+        help="fly ONE vehicle of a mission as its own process; neighbours over MQTT",
+        description="Fly slot I of MISSION.toml (endpoint I of `vtube-fleet run`) with this "
+        "process's own controller; neighbours' states through an MQTT broker. Start one per "
+        "vehicle, then `vtube-fleet mission start`. See docs/mqtt.md.",
+    )
+    p.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
+    p.add_argument(
+        "--vehicle", type=int, required=True, metavar="I", help="the slot to fly (0-based)"
+    )
+    p.add_argument(
+        "--endpoint",
+        default=None,
+        metavar="URL",
+        help="the vehicle's endpoint (default: PX4 SITL instance I, udpin://127.0.0.1:14540+I)",
+    )
+    p.add_argument(
+        "--broker", default=DEFAULT_BROKER, help=f"MQTT broker URL (default {DEFAULT_BROKER})"
+    )
+    p.add_argument(
+        "--link",
+        choices=("mavlink", "mavsdk"),
+        default="mavlink",
+        help="vehicle link backend (default mavlink)",
+    )
+    p.add_argument(
+        "--mission-id", default=None, help="topic name of the mission (default: the file name)"
+    )
+    p.add_argument(
+        "--max-age",
+        type=float,
+        default=None,
+        metavar="S",
+        help="oldest neighbour state used as a live position, budgeted in δ "
+        "(default: 3 control periods, at most neighbour_max_age_s)",
+    )
+    p.add_argument(
+        "--join-timeout",
+        type=float,
+        default=600.0,
+        metavar="S",
+        help="seconds to wait for `mission start` (default 600)",
+    )
+    p.add_argument(
+        "--broker-hold-limit",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="land after standing still this long without the broker (default 30)",
+    )
+    p.set_defaults(func=_cmd_agent)
