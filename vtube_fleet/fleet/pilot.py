@@ -406,8 +406,10 @@ class VehiclePilot:
 
     # -- the procedure -------------------------------------------------------------------------
     async def wait_ready(self) -> None:
-        """Heartbeat, positions, home, GPS origin and health (``ready_timeout_s``)."""
-        self.set_phase(Phase.CONNECTING) if self.phase != Phase.CONNECTING else None
+        """Heartbeat, positions, home, GPS origin and health (``ready_timeout_s``); phase
+        CONNECTING → READY (no-op when already past CONNECTING)."""
+        if self.phase != Phase.CONNECTING:
+            return
         await self.link.wait_ready(self.cfg.ready_timeout_s)
         if not self.sense() and not self.has_position():
             await self.link.wait_until(lambda s: s.last_position_s is not None,
