@@ -205,3 +205,29 @@ def test_summary_streams_and_empty_values() -> None:
     assert s["violations"] == 0 and s["violations_center"] == 1
     assert s["min_speed_m_s_center"] == 0.0 and s["steps"] == 1
     assert s["min_left_leg_distance_m_center"] < s["min_left_leg_distance_m"]
+
+
+@pytest.mark.parametrize("k", [1, 2, 40])
+def test_pruned_chunk_evaluation_is_exact(monitor: SafetyMonitor, k: int) -> None:
+    """all_present=True (the simulator's chunks) gives the same minima as the full path."""
+    rng = np.random.default_rng(k)
+    m = 150
+    start = rng.uniform([1.0, -4.0], [28.0, 4.0], size=(m, 2))
+    steps = rng.normal(scale=0.05, size=(k, m, 2))
+    steps[0] = 0.0
+    pos = start + np.cumsum(steps, axis=0)  # a random walk, as robots move between steps
+    vel = rng.normal(scale=1.5, size=(k, m, 2))
+    i, j = np.triu_indices(m, 1)
+    near = np.linalg.norm(start[i] - start[j], axis=-1) < 2.0
+    pairs = (i[near], j[near])
+    full = monitor.evaluate(pos, vel, pairs=pairs)
+    fast = monitor.evaluate(pos, vel, pairs=pairs, all_present=True)
+    ref = _brute(pos, vel)
+    for key in METRIC_KEYS:
+        np.testing.assert_allclose(getattr(fast, key), getattr(full, key), rtol=1e-12,
+                                   err_msg=key)
+        if key != "min_pair_distance_m":
+            np.testing.assert_allclose(getattr(fast, key), ref[key], rtol=1e-12, err_msg=key)
+    for c in CONDITIONS:
+        np.testing.assert_array_equal(fast.flags(c), full.flags(c))
+    np.testing.assert_array_equal(fast.robots, full.robots)
