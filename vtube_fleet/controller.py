@@ -1,0 +1,472 @@
+"""Distributed swarm controller within (sub) trapezoid virtual tubes (Sections III-D, IV-B).
+
+One function, :func:`velocity_command`, serves the simulator (all M robots at once) and the
+fleet agents (``rows=``: one robot from itself and its neighbours). Three laws:
+
+* ``kind="new"`` — (ModifiedVectorField) with the switching logic (ObstacleController):
+  v_c = u1'' + sat(u2 + u3' + u4', v'_max). With Constraint1, v_min ≤ ‖v_c‖ ≤ v_max always
+  (NOTES.md item 9).
+* ``kind="old"`` — (Oldcontroller): v_c = sat(u1'' + u2 + u3' + u4', v_max).
+* ``kind="apf"`` — Appendix C: v_c = u1'' + sat(u2 + u3' + u4' + u5, v'_max) with the potential
+  obstacle term u5 = Σ_k −∂V_o,ik/∂p_i, V_o,ik = V_n(k4, ‖p_i − p_o,k‖, r_o,k + r_s,
+  r_o,k + r_a, ε_o, ε_s); meant for the main tube without partition.
+
+Terms (robot i in its own sub-tube k_i, PARTITION.md §4):
+
+* u1'' — smooth line approaching term (NOTES.md item 4):
+  u1'' = v·normalize(n_c + σ_h [n_cᵀn_h < 0](t_h − n_c) + σ_r [n_cᵀn_r < 0](t_r − n_c)),
+  σ_h = σ(d_Th(p_i), r_a, k_t r_a), σ_r likewise.
+* u2 = Σ_j b_ij (p_i − p_j), b_ij = −(∂V_m,ij/∂‖p_ij‖)/‖p_ij‖ with (Vmij)
+  V_m,ij = V_n(k2, ‖p_i − p_j‖, 2r_s, r_s + r_a, ε_m, ε_s) over ALL neighbours, whatever their
+  sub-tube (NOTES.md item 6).
+* u3' = −(∂V'_th/∂d_Th) P_t n_h, u4' = −(∂V'_tr/∂d_Tr) P_t n_r with (Vtli1)/(Vtri1)
+  V'_th = V_n(k3, d_Th(p_i), r_s, r_a, ε_t, ε_s) and P_t = I − n_c n_cᵀ (NOTES.md item 1: the
+  printed n_c n_cᵀ contradicts Remark 4).
+
+Implementation: 2-D vectors are complex numbers (``p.view(complex128)``), so vector algebra is
+one numpy call; all robot–robot and robot–leg barrier derivatives of a step are evaluated in ONE
+fused :class:`~vtube_fleet.barrier.BarrierBank` call, together with the σ's of u1''; the sums
+over neighbours, legs and σ's are one ``np.bincount``. Per-sub-tube constants are precomputed
+once per (TubeArrays, ControllerParams) and gathered with one ``take`` per step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Literal
+
+import numpy as np
+
+from vtube_fleet.barrier import X_MIN, BarrierBank, dV_n_dx
+from vtube_fleet.errors import UserError
+from vtube_fleet.neighbours import pairs_within
+from vtube_fleet.tube import Obstacle, Trapezoid
+
+__all__ = [
+    "ControllerParams",
+    "ParameterError",
+    "TubeArrays",
+    "u1pp",
+    "u2",
+    "u3p_u4p",
+    "u5",
+    "velocity_command",
+]
+
+Kind = Literal["new", "old", "apf"]
+
+
+class ParameterError(UserError):
+    """A controller parameter is out of its domain (names the parameter and the value)."""
+
+
+@dataclass(frozen=True)
+class ControllerParams:
+    """Parameters of (ModifiedVectorField) / (Oldcontroller) / Appendix C, paper's symbols.
+
+    r_s, r_a: safety and avoidance radii (m); v_min, v_max: speed bounds; v: forward speed of
+    u1''; v_max_prime: v'_max, the norm bound of the repulsive part; k2, k3, k4: barrier gains;
+    k_t ≥ 1: width factor of the L/R areas; eps_m, eps_t, eps_o, eps_s: barrier ε's;
+    eps_0: finishing tolerance (TraCondition). Constraint1 is NOT enforced here (see
+    ``validation``); only the domain of each value is.
+    """
+
+    r_s: float
+    r_a: float
+    v_min: float
+    v_max: float
+    v: float
+    v_max_prime: float
+    k2: float = 1.0
+    k3: float = 1.0
+    k_t: float = 1.5
+    eps_m: float = 1e-6
+    eps_t: float = 1e-6
+    eps_s: float = 1e-6
+    eps_0: float = 0.01
+    k4: float = 1.0
+    eps_o: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            val = getattr(self, f.name)
+            if isinstance(val, bool) or not isinstance(val, (int, float)):
+                raise ParameterError(f"controller parameter {f.name} must be a number, got {val!r}")
+            if not math.isfinite(val):
+                raise ParameterError(f"controller parameter {f.name} must be finite, got {val}")
+            object.__setattr__(self, f.name, float(val))
+        positive = ("r_s", "r_a", "v_max", "v", "v_max_prime", "k2", "k3", "k4", "eps_0")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ParameterError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("eps_m", "eps_t", "eps_o"):
+            val = getattr(self, name)
+            if not 1e-12 <= val <= 1.0:
+                raise ParameterError(f"{name} must be in [1e-12, 1], got {val}")
+        if not 1e-12 <= self.eps_s <= 0.1:
+            raise ParameterError(f"eps_s must be in [1e-12, 0.1], got {self.eps_s}")
+        if not self.v_min >= 0:
+            raise ParameterError(f"v_min must be >= 0, got {self.v_min}")
+        if not self.v_min <= self.v_max:
+            raise ParameterError(f"v_min = {self.v_min} must be <= v_max = {self.v_max}")
+        if not self.r_a > self.r_s:
+            raise ParameterError(f"r_a = {self.r_a} must be > r_s = {self.r_s}")
+        if not self.k_t >= 1:
+            raise ParameterError(f"k_t must be >= 1, got {self.k_t}")
+
+
+def _c(v: np.ndarray) -> np.ndarray:
+    """(..., 2) float → (...,) complex."""
+    v = np.asarray(v, dtype=float)
+    return v[..., 0] + 1j * v[..., 1]
+
+
+@dataclass(frozen=True, eq=False)
+class TubeArrays:
+    """Geometry of K (sub) tubes stacked for vectorized evaluation (rows follow the order of
+    the tubes given to :meth:`from_tubes`, i.e. the sub-tube index k of each robot).
+
+    n_c, n_h, n_r, t_h, t_r, p_h1, p_r1: (K, 2); has_L, has_R: (K,) bool (L/R areas exist,
+    n_cᵀn_h < 0 / n_cᵀn_r < 0).
+    """
+
+    n_c: np.ndarray
+    n_h: np.ndarray
+    n_r: np.ndarray
+    t_h: np.ndarray
+    t_r: np.ndarray
+    p_h1: np.ndarray
+    p_r1: np.ndarray
+    has_L: np.ndarray
+    has_R: np.ndarray
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        K = None
+        for f in fields(self):
+            if f.name == "_cache":
+                continue
+            is_flag = f.name in ("has_L", "has_R")
+            a = np.array(getattr(self, f.name), dtype=bool if is_flag else float)
+            K = a.shape[0] if K is None else K
+            want = (K,) if is_flag else (K, 2)
+            if a.shape != want or K == 0:
+                raise ValueError(f"TubeArrays.{f.name}: expected shape {want} with K >= 1, "
+                                 f"got {a.shape}")
+            if not is_flag and not np.all(np.isfinite(a)):
+                raise ValueError(f"TubeArrays.{f.name} must be finite")
+            a.setflags(write=False)
+            object.__setattr__(self, f.name, a)
+
+    @classmethod
+    def from_tubes(cls, tubes: Sequence[Trapezoid]) -> TubeArrays:
+        tubes = list(tubes)
+        if not tubes:
+            raise ValueError("TubeArrays.from_tubes needs at least one tube")
+        st = lambda attr: np.stack([getattr(t, attr) for t in tubes])  # noqa: E731
+        return cls(n_c=st("n_c"), n_h=st("n_h"), n_r=st("n_r"), t_h=st("t_h"), t_r=st("t_r"),
+                   p_h1=st("p_h1"), p_r1=st("p_r1"),
+                   has_L=np.array([t.has_L for t in tubes]),
+                   has_R=np.array([t.has_R for t in tubes]))
+
+    def __len__(self) -> int:
+        return self.n_c.shape[0]
+
+    def d_Th(self, p: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """(dtl) d_Th of each point in its own tube k: n_h,kᵀ(p − p_h1,k), shape (M,)."""
+        p = np.asarray(p, dtype=float)
+        return np.einsum("ij,ij->i", p - self.p_h1[k], self.n_h[k])
+
+    def d_Tr(self, p: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """(dtr) d_Tr of each point in its own tube k: n_r,kᵀ(p − p_r1,k), shape (M,)."""
+        p = np.asarray(p, dtype=float)
+        return np.einsum("ij,ij->i", p - self.p_r1[k], self.n_r[k])
+
+    def _prepared(self, params: ControllerParams) -> _Prepared:
+        last = self._cache.get("last")
+        if last is not None and last.params is params:
+            return last
+        prep = self._cache.get(params)
+        if prep is None:
+            if len(self._cache) > 8:  # bounded: params objects are few in practice
+                self._cache.clear()
+            prep = _Prepared(self, params)
+            self._cache[params] = prep
+        self._cache["last"] = prep
+        return prep
+
+
+class _Layout:
+    """Constants for evaluating n robots out of M (cached per M when all robots are evaluated).
+
+    Fused element layout of one step (floats): X = [d_Th of the n robots | d_Tr | d_Th | d_Tr |
+    ‖p_i − p_j‖ of the P pairs]: the first two blocks feed (Vtli1)/(Vtri1), the next two the
+    σ's of u1'', the last (Vmij). Complex weights W = [legs (2n) | σ (2n) | pairs, i side (P) |
+    pairs, j side (P)] are summed by ONE ``np.bincount`` into float slots giving the complex
+    array B = [q_0 … q_{M−1} | u_rep,0 … u_rep,M−1] (q: direction of u1''; u_rep = u2 + u3'
+    + u4').
+    """
+
+    __slots__ = ("n", "M", "bank", "slot_ls", "cv", "mv", "pair_key", "pair_val")
+
+    def __init__(self, prep: _Prepared, slots: np.ndarray, M: int, n_pairs: int) -> None:
+        p = prep.params
+        n = slots.shape[0]
+        self.n, self.M = n, M
+        cap = max(2 * n_pairs, 4 * n, 64)
+        full = lambda m, v: np.full(m, v)  # noqa: E731
+        self.bank = BarrierBank.concatenate([
+            # (Vtli1)/(Vtri1): V_n(k3, d_T, r_s, r_a, ε_t, ε_s)
+            BarrierBank(full(2 * n, p.k3), p.r_s, p.r_a, p.eps_t, p.eps_s),
+            # σ(d_T, r_a, k_t r_a) of u1'' (k = 0: σ only); k_t = 1 → a hair-thin band
+            BarrierBank(full(2 * n, 0.0), p.r_a, max(p.k_t, 1 + 1e-9) * p.r_a, 1.0, p.eps_s),
+            # (Vmij): V_n(k2, ‖p_ij‖, 2 r_s, r_s + r_a, ε_m, ε_s)
+            BarrierBank(full(cap, p.k2), 2 * p.r_s, p.r_s + p.r_a, p.eps_m, p.eps_s),
+        ])
+        re_im = np.array([0, 1])
+        q_slot = (2 * slots[:, None] + re_im).ravel()  # float slots of q_r
+        u_slot = q_slot + 2 * M  # float slots of u_rep,r
+        self.slot_ls = np.concatenate([u_slot, u_slot, q_slot, q_slot])
+        # final step on [q | u_rep]: × cv/max(|.|, mv) gives [v q/‖q‖ | sat(u_rep, v'_max)]
+        self.cv = np.repeat([p.v, p.v_max_prime], n)
+        self.mv = np.repeat([1e-300, p.v_max_prime], n)
+        self.pair_key: tuple | None = None
+        self.pair_val: tuple | None = None
+
+    def pair_slots(self, I: np.ndarray, J: np.ndarray, cache: bool) -> tuple:
+        """(IJI, float slots of all W elements) for pairs (I, J); memoized on array identity."""
+        pk = self.pair_key
+        if cache and pk is not None and pk[0] is I and pk[1] is J:
+            return self.pair_val
+        re_im = np.array([0, 1]) + 2 * self.M
+        ia = (2 * I[:, None] + re_im).ravel()
+        ib = (2 * J[:, None] + re_im).ravel()
+        val = (np.concatenate([I, J, I]), np.concatenate([self.slot_ls, ia, ib]))
+        if cache:
+            self.pair_key, self.pair_val = (I, J), val
+        return val
+
+
+class _Prepared:
+    """Per-(TubeArrays, ControllerParams) constants, gathered per robot with one ``take``."""
+
+    def __init__(self, tubes: TubeArrays, params: ControllerParams) -> None:
+        self.params = params
+        self.K = len(tubes)
+        n_c, n_h, n_r = _c(tubes.n_c), _c(tubes.n_h), _c(tubes.n_r)
+        t_h, t_r = _c(tubes.t_h), _c(tubes.t_r)
+        c_h = np.einsum("ij,ij->i", tubes.n_h, tubes.p_h1)
+        c_r = np.einsum("ij,ij->i", tubes.n_r, tubes.p_r1)
+        # P_t = I − n_c n_cᵀ (NOTES.md item 1); E = −P_t n: u3' = (∂V'_th/∂d_Th)·E_h
+        pt = lambda n: n - n_c * (n_c.real * n.real + n_c.imag * n.imag)  # noqa: E731
+        # rows, one column per sub-tube:
+        #   0-1 conj(n_h), conj(n_r): Re(conj(n)·z) = nᵀp; 2-3 n_hᵀp_h1, n_rᵀp_r1 → (dtl)/(dtr)
+        #   4-5 E_h, E_r; 6-7 A = [area exists](t − n_c), so that u1'' ∝ q = n_c + σ_h A_h
+        #   + σ_r A_r (NOTES.md item 4); 8 n_c
+        self.table = np.ascontiguousarray(np.stack([
+            np.conj(n_h), np.conj(n_r), c_h + 0j, c_r + 0j, -pt(n_h), -pt(n_r),
+            np.where(tubes.has_L, t_h - n_c, 0), np.where(tubes.has_R, t_r - n_c, 0), n_c]))
+        self.r_pair = params.r_s + params.r_a  # V_m,ij ≡ 0 beyond (Vmij)
+        self._layouts: dict = {}
+
+    def layout(self, M: int, n_pairs: int, rows: np.ndarray | None = None) -> _Layout:
+        """The layout for all M robots (rows=None) or for ``rows``; memoized (bounded)."""
+        key = M if rows is None else (M, rows.tobytes())
+        lay = self._layouts.get(key)
+        n = M if rows is None else rows.shape[0]
+        if lay is None or len(lay.bank) < 4 * n + n_pairs:
+            lay = _Layout(self, np.arange(M) if rows is None else rows, M, n_pairs)
+            if len(self._layouts) > 64:
+                self._layouts.clear()
+            self._layouts[key] = lay
+        return lay
+
+    def evaluate(self, z: np.ndarray, k: np.ndarray, I: np.ndarray, J: np.ndarray,
+                 rows: np.ndarray | None, cache: bool) -> tuple[np.ndarray, _Layout]:
+        """B (2n,) complex = [q of the n robots | u2 + u3' + u4' of the n robots]."""
+        M = z.shape[0]
+        lay = self.layout(M, I.shape[0], rows)
+        if rows is None:
+            zr = z
+        else:
+            zr = z.take(rows)
+            cache = False
+        n, P = zr.shape[0], I.shape[0]
+        if n == 0:
+            return np.zeros(0, np.complex128), lay
+        IJI, slots = lay.pair_slots(I, J, cache)
+        G = self.table.take(k.view(np.uintp), axis=1)  # (9, n); k < 0 → IndexError
+
+        X = np.empty(4 * n + P)
+        # d_Th, d_Tr of each robot in its own sub-tube, written to the legs and σ blocks
+        np.subtract((G[0:2] * zr).real, G[2:4].real, out=X[: 4 * n].reshape(2, 2, n))
+        zz = z.take(IJI)
+        dz = zz[P:] - zz[: 2 * P]  # [p_j − p_i | p_i − p_j]
+        np.abs(dz[:P], out=X[4 * n:])
+
+        y = lay.bank.evaluate(X)  # ∂V/∂x (legs, pairs), σ (σ block); clamps X ≥ X_MIN
+
+        W = np.empty(4 * n + 2 * P, np.complex128)
+        np.multiply(y[: 4 * n], G[4:8].reshape(4 * n), out=W[: 4 * n])
+        # pairs: b_ij (p_i − p_j) = (∂V_m/∂‖p_ij‖ / ‖p_ij‖)(p_j − p_i) for i, the opposite for j
+        np.multiply(y[4 * n:] / X[4 * n:], dz.reshape(2, P), out=W[4 * n:].reshape(2, P))
+        B = np.bincount(slots, W.view(np.float64), 4 * M).view(np.complex128)
+        if rows is not None:
+            B = B.reshape(2, M).take(rows, axis=1).reshape(2 * n)
+        B[:n] += G[8]  # q = n_c + σ_h A_h + σ_r A_r
+        return B, lay
+
+
+def _pairs_arg(pairs, p: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    if pairs is None:
+        pairs = pairs_within(p, radius)
+    I, J = pairs
+    if not (isinstance(I, np.ndarray) and isinstance(J, np.ndarray)):
+        I, J = np.asarray(I), np.asarray(J)
+    if I.ndim != 1 or I.shape != J.shape or I.dtype.kind not in "iu" or J.dtype.kind not in "iu":
+        if I.size == 0 and J.size == 0:
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+        raise ValueError("pairs must be two 1-D integer arrays (I, J) of equal length")
+    return I, J
+
+
+def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
+              ) -> tuple[np.ndarray, _Layout]:
+    """Shared core of all laws and terms: B (2n,) complex as in :meth:`_Prepared.evaluate`."""
+    prep = tubes._prepared(params)
+    if not (isinstance(p, np.ndarray) and p.dtype == np.float64 and p.flags.c_contiguous):
+        p = np.ascontiguousarray(p, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"p must have shape (M, 2), got {p.shape}")
+    M = p.shape[0]
+    z = p.view(np.complex128).reshape(M)
+    if not (isinstance(k, np.ndarray) and k.dtype == np.intp):
+        k = np.asarray(k)
+        if k.dtype.kind not in "iu" and k.size:
+            raise ValueError(f"k must be integer sub-tube indices, got dtype {k.dtype}")
+        k = k.astype(np.intp)
+    I, J = _pairs_arg(pairs, p, prep.r_pair)
+    cache = not (I.flags.writeable or J.flags.writeable)
+    if rows is None:
+        if k.shape != (M,):
+            raise ValueError(f"k must have shape ({M},), got {k.shape}")
+    else:
+        rows = np.asarray(rows, dtype=np.intp).reshape(-1)
+        if rows.size and (rows.min() < 0 or rows.max() >= M):
+            raise ValueError(f"rows must index the {M} robots, got {rows}")
+        if k.shape == (M,):
+            k = k.take(rows)
+        elif k.shape != rows.shape:
+            raise ValueError(f"k must have shape ({M},) or ({rows.shape[0]},), got {k.shape}")
+        inrows = np.zeros(M, bool)
+        inrows[rows] = True
+        keep = inrows[I] | inrows[J]
+        I, J = I[keep], J[keep]
+    if not cache and I.size and (I.min() < 0 or J.max() >= M or I.max() >= M or J.min() < 0):
+        raise ValueError(f"pairs must index the {M} robots")
+    try:
+        return prep.evaluate(z, k, I, J, rows, cache)
+    except IndexError:
+        if k.size and (k.min() < 0 or k.max() >= prep.K):
+            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got values in "
+                             f"[{k.min()}, {k.max()}]") from None
+        raise
+
+
+def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
+                     params: ControllerParams, *, pairs=None, kind: Kind = "new",
+                     obstacles: Sequence[Obstacle] = (), rows=None) -> np.ndarray:
+    """Velocity commands v_c of the robots (ModifiedVectorField)/(ObstacleController).
+
+    p: (M, 2) positions (control points) of ALL robots (the swarm p); k: (M,) int index of
+    each robot's own sub-tube in ``tubes`` (with ``rows``, k may also be (len(rows),));
+    pairs: (I, J) int arrays of neighbour candidates (any superset of the pairs closer than
+    r_s + r_a; farther pairs contribute exactly 0), excluding NaN rows. None → computed with
+    :func:`vtube_fleet.neighbours.pairs_within`. Read-only arrays (as
+    :class:`~vtube_fleet.neighbours.VerletPairs` returns) let derived index arrays be reused.
+    kind: "new" (ModifiedVectorField), "old" (Oldcontroller), "apf" (Appendix C, with
+    ``obstacles``; meant for the main tube without partition). rows: compute only these
+    robots' commands (an agent: its own row).
+
+    Returns a new (M, 2) or (len(rows), 2) float array. For finite input the result is finite;
+    for "new" v_min ≤ ‖v_c‖ ≤ v_max whenever Constraint1 holds and the sub-tubes satisfy
+    Constraint3 (then u1'' never degenerates). NaN rows give NaN rows and do not affect the
+    others provided ``pairs`` excludes them. Calls share only memoized constants (per
+    ``tubes`` and ``params``), never scratch buffers.
+    """
+    if kind != "new" and kind != "old" and kind != "apf":
+        raise ValueError(f"kind must be 'new', 'old' or 'apf', got {kind!r}")
+    B, lay = _evaluate(p, k, tubes, params, pairs, rows)
+    n = B.shape[0] // 2
+    q, u = B[:n], B[n:]
+    if kind == "apf":  # Appendix C: u_rep += u5
+        if not obstacles:
+            raise ValueError("kind='apf' needs obstacles")
+        pr = np.asarray(p, dtype=np.float64)
+        if rows is not None:
+            pr = pr[np.asarray(rows, dtype=np.intp).reshape(-1)]
+        u += u5(pr, obstacles, params).view(np.complex128).reshape(n)
+    if kind == "old":
+        # (Oldcontroller): sat(u1'' + u2 + u3' + u4', v_max)
+        u += q * (params.v / np.maximum(np.abs(q), 1e-300))
+        u *= params.v_max / np.maximum(np.abs(u), params.v_max)
+        return u.view(np.float64).reshape(n, 2)
+    # [v q/‖q‖ | sat(u_rep, v'_max)] in one go, then u1'' + sat(...) (ModifiedVectorField)
+    nb = np.abs(B)
+    np.maximum(nb, lay.mv, out=nb)
+    np.divide(lay.cv, nb, out=nb)
+    B *= nb
+    q += u
+    return q.view(np.float64).reshape(n, 2)
+
+
+# ----------------------------------------------------------------------------------------------
+# individual terms (for tests and plots); they share the implementation above
+# ----------------------------------------------------------------------------------------------
+def u1pp(p, k, tubes: TubeArrays, params: ControllerParams) -> np.ndarray:
+    """u1'' of every robot (NOTES.md item 4), (M, 2)."""
+    p = np.asarray(p, dtype=float)
+    empty = np.zeros(0, np.intp)
+    B, _ = _evaluate(p, k, tubes, params, (empty, empty), None)
+    q = B[: B.shape[0] // 2]
+    return (q * (params.v / np.maximum(np.abs(q), 1e-300))).view(np.float64).reshape(-1, 2)
+
+
+def u2(p, params: ControllerParams, pairs=None) -> np.ndarray:
+    """Robot avoidance term u2 = Σ_j b_ij (p_i − p_j) (Vmij), (M, 2). Tube-independent."""
+    p = np.asarray(p, dtype=float)
+    M = p.shape[0]
+    dummy = _dummy_tube()
+    k = np.zeros(M, np.intp)
+    B, _ = _evaluate(p, k, dummy, params, pairs, None)  # legs 1e6 m away: u3' = u4' = 0
+    return B[B.shape[0] // 2:].view(np.float64).reshape(-1, 2)
+
+
+def u3p_u4p(p, k, tubes: TubeArrays, params: ControllerParams) -> np.ndarray:
+    """Leg avoidance terms u3' + u4' (Vtli1)/(Vtri1) with P_t = I − n_c n_cᵀ, (M, 2)."""
+    p = np.asarray(p, dtype=float)
+    empty = np.zeros(0, np.intp)
+    B, _ = _evaluate(p, k, tubes, params, (empty, empty), None)
+    return B[B.shape[0] // 2:].view(np.float64).reshape(-1, 2)
+
+
+def u5(p, obstacles: Sequence[Obstacle], params: ControllerParams) -> np.ndarray:
+    """Potential obstacle term of Appendix C: Σ_k −∂V_o,ik/∂p_i, (M, 2)."""
+    p = np.asarray(p, dtype=float)
+    out = np.zeros_like(p)
+    for ob in obstacles:
+        d = p - ob.center
+        dist = np.hypot(d[:, 0], d[:, 1])
+        dc = np.maximum(dist, X_MIN)
+        dV = dV_n_dx(params.k4, dc, ob.radius + params.r_s, ob.radius + params.r_a,
+                     params.eps_o, params.eps_s)
+        out -= (dV / dc)[:, None] * d
+    return out
+
+
+def _dummy_tube() -> TubeArrays:
+    """A huge rectangle: zero leg terms, u1'' = v e_y; used to isolate u2."""
+    return TubeArrays.from_tubes([Trapezoid([-1e6, -1e6], [-1e6, 1e6], [1e6, -1e6],
+                                            [1e6, 1e6])])
