@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
-    "control_point",
     "control_point_velocity",
+    "nid_control_point",
     "nid_inputs",
     "single_integrator_step",
     "unicycle_step",
@@ -53,7 +53,7 @@ def wrap_angle(theta: np.ndarray) -> np.ndarray:
     return (np.asarray(theta, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
 
 
-def control_point(p: np.ndarray, theta: np.ndarray, s: float) -> np.ndarray:
+def nid_control_point(p: np.ndarray, theta: np.ndarray, s: float) -> np.ndarray:
     """(NID) control point p + s [cos θ, sin θ] of unicycles at ``p`` (M, 2), heading θ (M,)."""
     _check_s(s)
     p = np.asarray(p, dtype=float)
@@ -61,10 +61,10 @@ def control_point(p: np.ndarray, theta: np.ndarray, s: float) -> np.ndarray:
     return p + s * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
 
 
-def nid_inputs(v_c: np.ndarray, theta: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(NID): linear and angular speed inputs (v, ω) from the control point's command v_c.
-
-    v = cos θ v_cx + sin θ v_cy,  ω = (−sin θ v_cx + cos θ v_cy)/s.
+def nid_inputs(theta: np.ndarray, v_c: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(NID): linear and angular speed inputs (v, ω) of unicycles with heading θ (M,) from the
+    command v_c (M, 2) of their control points: v = cos θ v_cx + sin θ v_cy,
+    ω = (−sin θ v_cx + cos θ v_cy)/s.
     """
     _check_s(s)
     v_c = np.asarray(v_c, dtype=float)
