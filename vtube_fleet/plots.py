@@ -107,17 +107,16 @@ def plot_safety(
 
 
 def pick_snapshot_frames(t: np.ndarray, pos: np.ndarray, count: int = 4) -> list[int]:
-    """Frame indices spread over the part of the run where robots are still in the tube."""
+    """``count`` frame indices spread over the part of the run where robots are in the tube:
+    the first frame, then up to 85 % of the way to the last frame with a robot left."""
     t = np.asarray(t, dtype=float)
     present = ~np.isnan(np.asarray(pos)[..., 0])
     alive = np.flatnonzero(present.any(axis=1))
-    if alive.size == 0:
+    if alive.size == 0 or t.size == 0:
         return [0]
     last = int(alive[-1])
-    picks = np.linspace(0, last, count)
-    times = np.interp(picks, np.arange(t.size), t)
-    idx = sorted({int(np.clip(np.searchsorted(t, x), 0, last)) for x in times})
-    return idx
+    picks = np.round(np.linspace(0.0, 0.85 * last, max(count, 1))).astype(int)
+    return sorted({int(i) for i in picks})
 
 
 def plot_snapshots(
@@ -147,9 +146,9 @@ def plot_snapshots(
     xmin, ymin = poly.min(axis=0)
     xmax, ymax = poly.max(axis=0)
     span_x, span_y = xmax - xmin, ymax - ymin
-    ncols = 1 if span_x >= 1.6 * span_y else 2
+    ncols = 1 if n == 1 or span_x >= 3.0 * span_y else 2
     nrows = int(np.ceil(n / ncols))
-    panel_w = 9.0 if ncols == 1 else 5.5
+    panel_w = 9.0 if ncols == 1 else 7.0
     panel_h = max(2.5, panel_w * span_y / max(span_x, 1e-9) + 0.6)
     fig = Figure(figsize=(panel_w * ncols, panel_h * nrows), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()

@@ -244,12 +244,18 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out}: exists and is not a directory")
     bar = None if args.quiet else ProgressBar(sys.stderr)
+    result = None
     try:
         result = simulate(sc, controller=args.controller, dt=args.dt, duration=args.duration,
                           robots=args.robots, record_every=args.record_every, progress=bar)
     finally:
         if bar is not None:
-            bar.close()
+            note = None
+            if result is not None:
+                s = result.summary
+                note = ("interrupted" if result.interrupted else
+                        "all robots exited" if s["all_exited"] else "duration reached")
+            bar.close(note)
     written = write_outputs(result, out, plots=not args.no_plots)
     print_summary(result.summary)
     print(f"wrote {', '.join(os.fspath(p) for p in written)}")

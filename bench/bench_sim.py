@@ -1,0 +1,116 @@
+"""Benchmark of the offline simulator: time per Euler step.
+
+Every figure is a *difference* between a long and a short run of the same scenario divided by the
+difference in steps, so start-up (validation, partition, allocation) cancels out. Each pair of
+runs is repeated and the best difference is kept (the machine is shared).
+
+1. The paper scenario (configs/paper.toml, dt = 1 ms, 120 robots):
+   * "dense": 1 s vs 8 s of simulated time; all 120 robots are in the tube throughout;
+   * "whole run": 2 s vs the full run until the last robot exits (robots leave after ~10 s,
+     so later steps have fewer robots).
+2. Scaling: 120, 1,000 and 10,000 robots in a long straight-ish tube (20 robots abreast, 0.8 m
+   apart, 5 obstacles ahead of the block), 0.05 s vs 0.25 s of simulated time at dt = 1 ms.
+   Time per step should grow about linearly with M.
+
+Run: ``python bench/bench_sim.py [--quick] [--profile]`` (single core: nothing here is threaded;
+numpy's BLAS threads are not used by the simulator's element-wise operations).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from vtube_fleet.scenario import load_scenario, parse_scenario  # noqa: E402
+from vtube_fleet.sim import simulate  # noqa: E402
+
+
+def long_tube(m: int, cols: int = 20, spacing: float = 0.8):
+    """A long tube holding m robots 20 abreast, with five obstacles beyond the block."""
+    rows = -(-m // cols)
+    block = rows * spacing
+    length = block + 40.0
+    half0, half1 = 0.5 * cols * spacing + 4.0, 0.5 * cols * spacing + 2.0
+    obstacles = [
+        {"center": [block + 6.0 + 6.0 * k, (-1.0) ** k * 2.0], "radius": 0.9} for k in range(5)
+    ]
+    positions = [
+        [0.6 + spacing * (i // cols), -0.5 * (cols - 1) * spacing + spacing * (i % cols)]
+        for i in range(m)
+    ]
+    data = {
+        "tube": {"p_h0": [0.0, half0], "p_h1": [length, half1],
+                 "p_r0": [0.0, -half0], "p_r1": [length, -half1]},
+        "obstacles": obstacles,
+        "robots": {"r_s": 0.25, "r_a": 0.5, "v_min": 0.5, "v_max": 3.5, "positions": positions},
+        "controller": {"v": 2.0, "v_max_prime": 1.5},
+        "sim": {"dt": 0.001, "duration": 1.0},
+    }
+    return parse_scenario(data, f"long_tube_{m}")
+
+
+def timed(scenario, duration: float) -> tuple[float, int]:
+    t0 = time.perf_counter()
+    res = simulate(scenario, duration=duration, record_every=10_000)
+    wall = time.perf_counter() - t0
+    return wall, int(res.summary["steps"])
+
+
+def per_step_us(scenario, short: float, long: float, repeat: int) -> tuple[float, int, int]:
+    best = float("inf")
+    for _ in range(repeat):
+        w1, s1 = timed(scenario, short)
+        w2, s2 = timed(scenario, long)
+        best = min(best, (w2 - w1) / (s2 - s1))
+    return 1e6 * best, s1, s2
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions, skip 10,000 robots")
+    ap.add_argument("--profile", action="store_true",
+                    help="cProfile the dense paper run and print the top functions")
+    args = ap.parse_args()
+    repeat = 1 if args.quick else 3
+    paper = load_scenario(ROOT / "configs" / "paper.toml")
+
+    if args.profile:
+        prof = cProfile.Profile()
+        prof.enable()
+        simulate(paper, duration=4.0, record_every=10_000)
+        prof.disable()
+        pstats.Stats(prof).sort_stats("tottime").print_stats(18)
+
+    print(f"numpy {np.__version__}, python {sys.version.split()[0]}")
+    us, s1, s2 = per_step_us(paper, 1.0, 8.0, repeat)
+    print(f"paper, dense (120 robots in the tube): {us:7.1f} us/step  (steps {s1} vs {s2})")
+    full = paper.sim.duration
+    us, s1, s2 = per_step_us(paper, 2.0, full, repeat)
+    print(f"paper, whole run until all exit:      {us:7.1f} us/step  (steps {s1} vs {s2})")
+    t0 = time.perf_counter()
+    res = simulate(paper)
+    print(f"paper, one full run: {time.perf_counter() - t0:.2f} s wall for "
+          f"{res.summary['steps']} steps (exited {res.summary['exited']}/120, "
+          f"violations {res.summary['violations']})")
+
+    sizes = (120, 1000) if args.quick else (120, 1000, 10_000)
+    base = None
+    for m in sizes:
+        sc = long_tube(m)
+        us, s1, s2 = per_step_us(sc, 0.05, 0.25, repeat if m < 10_000 else 1)
+        base = base or us / m
+        print(f"long tube, {m:6d} robots: {us:9.1f} us/step  {us / m:6.3f} us/step/robot  "
+              f"(x{us / m / base:.2f} per robot vs 120)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,488 @@
+"""Offline simulator: the paper's numerical simulation (Section V-A) with forward Euler.
+
+Each step (all robots still in the tube at once):
+
+1. robots satisfying (TraCondition) for the MAIN tube, −n_cᵀ(p_i − p_r1) ≤ ε_0, exit
+   (Assumption 2): they are removed, recorded as NaN from then on, and are nobody's neighbours;
+2. every robot's sub-tube k_i is located (switching rule (ObstacleController),
+   :meth:`Partition.locate`); for ``controller="apf"`` there is no partition and every robot
+   uses the main tube (Appendix C);
+3. neighbour candidates come from a Verlet list (:class:`~vtube_fleet.neighbours.VerletPairs`);
+4. the velocity commands v_c come from :func:`~vtube_fleet.controller.velocity_command`
+   ("new" = (ModifiedVectorField), "old" = (Oldcontroller), "apf" = Appendix C);
+5. the robots move one Euler step of their model (:mod:`vtube_fleet.models`): the single
+   integrator (Single), or the unicycle driven through (NID), whose controller is evaluated at
+   the control point p + s[cos θ, sin θ] (NOTES.md item 10).
+
+Safety metrics (:mod:`vtube_fleet.metrics`) are taken at every step, in chunks: positions and
+commands are copied into a buffer and evaluated in one vectorized call per chunk (a chunk ends
+when the neighbour list is rebuilt, a robot exits, or the buffer is full), so they cost a copy
+per step. For the unicycle the control points are the primary stream (the controller's
+guarantee) and the robot centres a second stream (``*_center`` keys).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TextIO
+
+import numpy as np
+
+from vtube_fleet import models
+from vtube_fleet.controller import TubeArrays, velocity_command
+from vtube_fleet.errors import UserError
+from vtube_fleet.metrics import SafetyMonitor, StepMetrics, SummaryAccumulator
+from vtube_fleet.neighbours import VerletPairs
+from vtube_fleet.partition import Partition
+from vtube_fleet.scenario import Scenario
+from vtube_fleet.validation import check_scenario
+
+__all__ = [
+    "CONTROLLERS",
+    "ProgressBar",
+    "SimError",
+    "SimResult",
+    "default_record_every",
+    "simulate",
+]
+
+#: Controller laws: (ModifiedVectorField), (Oldcontroller), Appendix C's potential term.
+CONTROLLERS: tuple[str, ...] = ("new", "old", "apf")
+
+#: Default recording rate: one frame per RECORD_PERIOD_S of simulated time at most ...
+RECORD_PERIOD_S = 0.01
+#: ... and the recorded arrays stay below this many bytes.
+RECORD_BUDGET_BYTES = 40_000_000
+
+ProgressFn = Callable[[float, float, int, int], None]
+
+
+class SimError(UserError):
+    """A simulation request that cannot run (bad dt, duration, robot count or controller)."""
+
+
+@dataclass(frozen=True, eq=False)
+class SimResult:
+    """What :func:`simulate` returns.
+
+    Recorded every ``record_every`` steps (frame 0 = initial state, config order):
+    ``t`` (T,), ``pos`` and ``vel`` (T, M, 2) in the tube frame, NaN after a robot exits
+    (robot centres and their velocities; for the unicycle also ``control_pos``/``control_vel``
+    (T, M, 2) and ``heading`` (T, M)). ``exit_time_s`` (M,) is NaN for robots still in the
+    tube. Every step: ``step_t`` (S,) and ``metrics`` (S,) (control points for the unicycle),
+    ``metrics_center`` for unicycle centres. ``summary`` is the ``summary.json`` dict.
+    """
+
+    scenario: Scenario
+    controller: str
+    dt: float
+    record_every: int
+    t: np.ndarray
+    pos: np.ndarray
+    vel: np.ndarray
+    exit_time_s: np.ndarray
+    step_t: np.ndarray
+    metrics: StepMetrics
+    summary: dict[str, Any]
+    partition: Partition | None
+    metrics_center: StepMetrics | None = None
+    control_pos: np.ndarray | None = None
+    control_vel: np.ndarray | None = None
+    heading: np.ndarray | None = None
+    interrupted: bool = False
+
+    def trajectory_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays of ``trajectory.npz``."""
+        out = {"t": self.t, "pos": self.pos, "vel": self.vel, "exit_time_s": self.exit_time_s}
+        for name in ("control_pos", "control_vel", "heading"):
+            val = getattr(self, name)
+            if val is not None:
+                out[name] = val
+        return out
+
+
+def default_record_every(dt: float, steps: int, robots: int, floats_per_robot: int = 4) -> int:
+    """Decimation so that frames are ≥ RECORD_PERIOD_S apart and the arrays stay in budget."""
+    by_rate = max(1, round(RECORD_PERIOD_S / dt))
+    frame_bytes = 8 * floats_per_robot * max(robots, 1)
+    by_size = math.ceil((steps + 1) * frame_bytes / RECORD_BUDGET_BYTES)
+    return max(by_rate, by_size, 1)
+
+
+class ProgressBar:
+    """A dependency-free progress bar on a stream (stderr by default).
+
+    On a terminal it redraws one line at most every ``interval_s`` of wall time; otherwise it
+    stays silent until :meth:`close`, which prints one final line either way.
+    """
+
+    def __init__(self, stream: TextIO | None = None, interval_s: float = 0.1,
+                 width: int = 28) -> None:
+        self.stream = stream if stream is not None else sys.stderr
+        self.interval_s = interval_s
+        self.width = width
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._start = time.perf_counter()
+        self._last = -math.inf
+        self._state = (0.0, 0.0, 0, 0)
+        self.used = False
+
+    def _line(self) -> str:
+        t, total, in_tube, exited = self._state
+        frac = min(1.0, t / total) if total > 0 else 1.0
+        fill = int(round(frac * self.width))
+        wall = time.perf_counter() - self._start
+        return (f"[{'#' * fill}{'.' * (self.width - fill)}] t = {t:6.2f}/{total:.2f} s  "
+                f"exited {exited}/{in_tube + exited}  wall {wall:5.1f} s")
+
+    def __call__(self, t: float, total: float, in_tube: int, exited: int) -> None:
+        self._state = (t, total, in_tube, exited)
+        self.used = True
+        if not self.tty:
+            return
+        now = time.perf_counter()
+        if now - self._last >= self.interval_s:
+            self._last = now
+            self.stream.write("\r" + self._line())
+            self.stream.flush()
+
+    def close(self, message: str | None = None) -> None:
+        """Print the final line (nothing if the bar was never updated)."""
+        if not self.used:
+            return
+        line = self._line() + (f"  {message}" if message else "")
+        self.stream.write(("\r" if self.tty else "") + line + "\n")
+        self.stream.flush()
+
+
+# ----------------------------------------------------------------------------------------
+# the simulation
+# ----------------------------------------------------------------------------------------
+
+
+def simulate(
+    scenario: Scenario,
+    *,
+    controller: str = "new",
+    dt: float | None = None,
+    duration: float | None = None,
+    robots: int | None = None,
+    record_every: int | None = None,
+    progress: ProgressFn | None = None,
+    skin: float | None = None,
+    validate: bool = True,
+) -> SimResult:
+    """Run the scenario with forward Euler (see the module docstring).
+
+    ``dt``/``duration``/``record_every`` override the scenario's [sim] values, ``robots`` keeps
+    the first N robots. ``progress(t, duration, in_tube, exited)`` is called about every 0.1 s
+    of simulated time. The scenario is validated first (:func:`check_scenario`, raising
+    :class:`~vtube_fleet.validation.ScenarioError`) unless ``validate=False``. ``skin`` is the
+    Verlet-list margin (default 0.4 (r_a − r_s) + ..., see code). Ctrl-C stops the run early:
+    the result (``interrupted=True``) holds everything up to that step.
+    """
+    if controller not in CONTROLLERS:
+        raise SimError(f"unknown controller {controller!r} (choose from {', '.join(CONTROLLERS)})")
+    if robots is not None:
+        scenario = scenario.with_robots(robots)
+    dt = scenario.sim.dt if dt is None else float(dt)
+    duration = scenario.sim.duration if duration is None else float(duration)
+    if not (math.isfinite(dt) and dt > 0):
+        raise SimError(f"dt must be > 0, got {dt}")
+    if not (math.isfinite(duration) and duration > 0):
+        raise SimError(f"duration must be > 0, got {duration}")
+    n_steps = int(math.ceil(duration / dt - 1e-9))
+    rcfg = scenario.robots
+    params = scenario.controller
+    unicycle = rcfg.model == "unicycle"
+    m = rcfg.count
+    if record_every is None:
+        record_every = scenario.sim.record_every
+    if record_every is None:
+        record_every = default_record_every(dt, n_steps, m, 7 if unicycle else 4)
+    if record_every < 1:
+        raise SimError(f"record_every must be >= 1, got {record_every}")
+
+    control0 = rcfg.control_points()
+    part: Partition | None = None
+    if validate:
+        part = check_scenario(scenario.tube, scenario.obstacles, params, control0)
+    if controller == "apf":
+        arrays = TubeArrays.from_tubes([scenario.tube])
+        locate = None
+    else:
+        if part is None:
+            from vtube_fleet.partition import partition as build_partition
+
+            part = build_partition(scenario.tube, scenario.obstacles, params)
+        arrays = part.arrays
+        locate = part.locate
+
+    run = _Run(scenario, controller, dt, n_steps, record_every, arrays, locate, progress, skin)
+    run.execute()
+    return run.result(part)
+
+
+class _Run:
+    """State of one simulation; the hot loop lives in :meth:`execute`."""
+
+    def __init__(self, scenario: Scenario, controller: str, dt: float, n_steps: int,
+                 record_every: int, arrays: TubeArrays, locate: Callable | None,
+                 progress: ProgressFn | None, skin: float | None) -> None:
+        self.scenario = scenario
+        self.controller = controller
+        self.dt = dt
+        self.n_steps = n_steps
+        self.record_every = record_every
+        self.arrays = arrays
+        self.locate = locate
+        self.progress = progress
+        p = scenario.controller
+        self.params = p
+        # Verlet skin: rebuild the KD-tree about every skin / (2 v_max dt) steps
+        self.skin = float(skin) if skin is not None else 0.5 * (p.r_a + p.r_s)
+        r = scenario.robots
+        self.unicycle = r.model == "unicycle"
+        self.m = r.count
+        self.monitor = SafetyMonitor.from_params(scenario.tube, scenario.obstacles, p)
+        self.acc = SummaryAccumulator(self.m)
+        self.parts: list[StepMetrics] = []
+        self.parts_center: list[StepMetrics] = []
+        self.step_t_parts: list[np.ndarray] = []
+        self.steps_done = 0
+        self.t_end = 0.0
+        self.wall_s = 0.0
+        self.interrupted = False
+
+    # ----- recording ------------------------------------------------------------------------
+    def _alloc_records(self) -> None:
+        frames = self.n_steps // self.record_every + 1
+        m = self.m
+        self.rec_t = np.full(frames, np.nan)
+        self.rec_pos = np.full((frames, m, 2), np.nan)
+        self.rec_vel = np.full((frames, m, 2), np.nan)
+        if self.unicycle:
+            self.rec_cpos = np.full((frames, m, 2), np.nan)
+            self.rec_cvel = np.full((frames, m, 2), np.nan)
+            self.rec_head = np.full((frames, m), np.nan)
+        self.frames = 0
+
+    def execute(self) -> None:
+        sc = self.scenario
+        dt = self.dt
+        p = self.params
+        tube = sc.tube
+        n_c = np.array(tube.n_c)
+        thresh = float(n_c @ tube.p_r1) - p.eps_0  # (TraCondition): n_cᵀp ≥ n_cᵀp_r1 − ε_0
+        # An upper bound of how far any evaluation point moves per second: ‖v_c‖ ≤ v_max under
+        # Constraint1 (all three laws saturate), and a unicycle's control point moves by at most
+        # √2‖v_c‖dt per Euler step (v_lin and s·ω are the two components of v_c in the body
+        # frame). The exit test and the Verlet-list check are skipped while no point can have
+        # reached the finishing line / moved skin/2 since the list was built.
+        v_bound = (1.5 if self.unicycle else 1.0 + 1e-6) * max(p.v_max, p.v + p.v_max_prime)
+        half_skin = 0.5 * self.skin
+        verlet_safe = max(1, int(half_skin / (v_bound * dt)))
+        kind = self.controller
+        obstacles = sc.obstacles if kind == "apf" else ()
+        arrays, params = self.arrays, p
+        locate = self.locate
+        verlet = VerletPairs(p.r_s + p.r_a, self.skin)
+        monitor, acc = self.monitor, self.acc
+        unicycle = self.unicycle
+        s_nid = sc.robots.nid_distance
+        centre_pairs_ok = unicycle and 2.0 * s_nid <= p.r_a - p.r_s
+
+        # state of the robots still in the tube (compacted; ids = config indices)
+        pos = np.array(sc.robots.positions, dtype=float)  # centres
+        theta = np.array(sc.robots.headings, dtype=float) if unicycle else None
+        ids = np.arange(self.m)
+        kzero = np.zeros(self.m, dtype=np.intp)
+
+        # metric chunks
+        chunk = int(max(4, min(256, 400_000 // max(self.m, 1))))
+        cpos = np.empty((chunk, self.m, 2))
+        cvel = np.empty((chunk, self.m, 2))
+        ct = np.empty(chunk)
+        if unicycle:
+            ccen = np.empty((chunk, self.m, 2))
+            ccvel = np.empty((chunk, self.m, 2))
+        nc = 0
+        cur_I = None
+        cur_pairs: tuple[np.ndarray, np.ndarray] | None = None
+
+        def flush() -> None:
+            nonlocal nc
+            if nc == 0:
+                return
+            n = pos.shape[0]
+            tt = ct[:nc].copy()
+            met = monitor.evaluate(cpos[:nc, :n], cvel[:nc, :n], pairs=cur_pairs,
+                                   all_present=True)
+            acc.add(tt, met)
+            self.parts.append(met)
+            self.step_t_parts.append(tt)
+            if unicycle:
+                # centre pairs closer than r_s + r_a − 2s are control-point pairs closer than
+                # r_s + r_a, hence in the list; otherwise search them step by step
+                metc = monitor.evaluate(ccen[:nc, :n], ccvel[:nc, :n],
+                                        pairs=cur_pairs if centre_pairs_ok else None,
+                                        all_present=True)
+                acc.add(tt, metc, suffix="_center")
+                self.parts_center.append(metc)
+            nc = 0
+
+        self._alloc_records()
+        rec_every = self.record_every
+        next_rec = 0
+        next_exit_check = 0
+        next_verlet = 0
+        builds = -1
+        q_build = np.zeros((0, 2))
+        pairs = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        next_progress = 0
+        progress_every = max(1, int(round(0.1 / dt)))
+        progress = self.progress
+        n_steps = self.n_steps
+        start = time.perf_counter()
+        step = 0
+        try:
+            while step < n_steps:
+                t = step * dt
+                if unicycle:
+                    q = models.nid_control_point(pos, theta, s_nid)
+                else:
+                    q = pos
+                # 1. exits (TraCondition), main tube only (Assumption 2)
+                if step >= next_exit_check:
+                    xi = q @ n_c
+                    xmax = xi.max()
+                    if xmax >= thresh:
+                        flush()
+                        gone = xi >= thresh
+                        acc.add_exits(t, ids[gone])
+                        keep = ~gone
+                        pos = pos[keep]
+                        ids = ids[keep]
+                        q = q[keep]
+                        if unicycle:
+                            theta = theta[keep]
+                        if pos.shape[0] == 0:
+                            break
+                        xmax = xi[keep].max()
+                        next_verlet = step  # the robot set changed: rebuild the list now
+                    next_exit_check = step + max(1, int((thresh - xmax) / (v_bound * dt)))
+                n = pos.shape[0]
+                # 2-4. sub-tube, neighbours, command
+                k = locate(q) if locate is not None else kzero[:n]
+                if step >= next_verlet:
+                    pairs = verlet.candidates(q)
+                    if verlet.builds != builds:
+                        builds = verlet.builds
+                        q_build = q.copy()
+                        next_verlet = step + verlet_safe
+                    else:  # still valid: ask again when the farthest mover may reach skin/2
+                        dq = q - q_build
+                        dmax = float(np.sqrt((dq * dq).sum(axis=1).max()))
+                        next_verlet = step + max(1, int((half_skin - dmax) / (v_bound * dt)))
+                vc = velocity_command(q, k, arrays, params, pairs=pairs, kind=kind,
+                                      obstacles=obstacles)
+                if unicycle:
+                    v_lin, omega = models.nid_inputs(theta, vc, s_nid)
+                    heading = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+                    vcen = heading * v_lin[:, None]
+                # metrics buffer (the chunk must share one pair list and one robot set)
+                if pairs[0] is not cur_I or nc == chunk:
+                    flush()
+                    cur_I, cur_pairs = pairs[0], pairs
+                cpos[nc, :n] = q
+                cvel[nc, :n] = vc
+                ct[nc] = t
+                if unicycle:
+                    ccen[nc, :n] = pos
+                    ccvel[nc, :n] = vcen
+                nc += 1
+                # recording (decimated)
+                if step == next_rec:
+                    f = self.frames
+                    self.rec_t[f] = t
+                    if unicycle:
+                        self.rec_pos[f, ids] = pos
+                        self.rec_vel[f, ids] = vcen
+                        self.rec_cpos[f, ids] = q
+                        self.rec_cvel[f, ids] = vc
+                        self.rec_head[f, ids] = theta
+                    else:
+                        self.rec_pos[f, ids] = pos
+                        self.rec_vel[f, ids] = vc
+                    self.frames = f + 1
+                    next_rec += rec_every
+                # 5. Euler step of the model
+                if unicycle:
+                    pos, theta = models.unicycle_step(pos, theta, v_lin, omega, dt)
+                else:
+                    pos = models.single_integrator_step(pos, vc, dt)
+                step += 1
+                if step >= next_progress and progress is not None:
+                    progress(step * dt, n_steps * dt, pos.shape[0], self.m - pos.shape[0])
+                    next_progress = step + progress_every
+        except KeyboardInterrupt:
+            self.interrupted = True
+        self.wall_s = time.perf_counter() - start
+        flush()
+        self.steps_done = step
+        self.t_end = step * dt
+        if progress is not None and not self.interrupted:
+            try:
+                progress(self.t_end, n_steps * dt, self.m - self.acc.exited, self.acc.exited)
+            except KeyboardInterrupt:
+                self.interrupted = True
+
+    # ----- result ---------------------------------------------------------------------------
+    def result(self, part: Partition | None) -> SimResult:
+        f = self.frames
+        metrics = StepMetrics.concatenate(self.parts)
+        metrics_center = StepMetrics.concatenate(self.parts_center) if self.unicycle else None
+        step_t = (np.concatenate(self.step_t_parts) if self.step_t_parts
+                  else np.zeros(0))
+        sc = self.scenario
+        summary = self.acc.summary(
+            dt_s=self.dt,
+            wall_s=round(self.wall_s, 6),
+            us_per_step=round(1e6 * self.wall_s / max(self.steps_done, 1), 3),
+            duration_s=self.n_steps * self.dt,
+            t_end_s=self.t_end,
+            all_exited=self.acc.exited == self.m,
+            interrupted=self.interrupted,
+            controller=self.controller,
+            model=sc.robots.model,
+            record_every=self.record_every,
+            frames=f,
+            sub_tubes=1 if part is None or self.controller == "apf" else part.K,
+            obstacles=len(sc.obstacles),
+            remark5=[] if part is None else [
+                tri.obstacle for tri in part.triangles if tri.remark5 is not None
+            ],
+        )
+        return SimResult(
+            scenario=sc,
+            controller=self.controller,
+            dt=self.dt,
+            record_every=self.record_every,
+            t=self.rec_t[:f],
+            pos=self.rec_pos[:f],
+            vel=self.rec_vel[:f],
+            exit_time_s=self.acc.exit_time_s.copy(),
+            step_t=step_t,
+            metrics=metrics,
+            metrics_center=metrics_center,
+            summary=summary,
+            partition=part,
+            control_pos=self.rec_cpos[:f] if self.unicycle else None,
+            control_vel=self.rec_cvel[:f] if self.unicycle else None,
+            heading=self.rec_head[:f] if self.unicycle else None,
+            interrupted=self.interrupted,
+        )
