@@ -1,0 +1,169 @@
+"""``vtube-fleet check`` and ``vtube-fleet sim`` via the CLI dispatcher and the console script."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vtube_fleet.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "configs" / "paper.toml"
+ROBOTARIUM = ROOT / "configs" / "robotarium.toml"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+SUMMARY_KEYS = {
+    "robots", "exited", "last_exit_s", "median_exit_s", "min_pair_distance_m",
+    "min_obstacle_center_distance_m", "min_left_leg_distance_m", "min_right_leg_distance_m",
+    "min_speed_m_s", "max_speed_m_s", "steps", "dt_s", "wall_s", "violations",
+}
+
+
+def _toml(d: dict) -> str:
+    """A tiny TOML writer for the scenario documents used here."""
+    def val(v: object) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, list):
+            return "[" + ", ".join(val(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{k} = {val(x)}" for k, x in v.items()) + " }"
+        return repr(v)
+
+    lines = []
+    for name, table in d.items():
+        if isinstance(table, list):
+            for item in table:
+                lines.append(f"[[{name}]]")
+                lines += [f"{k} = {val(v)}" for k, v in item.items()]
+        else:
+            lines.append(f"[{name}]")
+            lines += [f"{k} = {val(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.fixture
+def paper_data() -> dict:
+    with open(PAPER, "rb") as fh:
+        return tomllib.load(fh)
+
+
+def test_check_paper_prints_partition(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", str(PAPER)]) == 0
+    out = capsys.readouterr().out
+    assert "sub-tubes: 15" in out
+    assert "T_o1 " in out and "T_o15" in out
+    assert "Remark 5 used by obstacle(s): #2 (left)" in out
+    assert "120 single_integrator" in out
+    assert out.rstrip().endswith("valid")
+
+
+def test_check_robotarium(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", str(ROBOTARIUM)]) == 0
+    out = capsys.readouterr().out
+    assert "sub-tubes: 7" in out and "Remark 5 used by obstacle(s): none" in out
+    assert "7 unicycle" in out and "NID s = 0.02 m" in out
+
+
+def test_check_invalid_scenario_lists_violations(
+    tmp_path: Path, paper_data: dict, capsys: pytest.CaptureFixture[str]
+) -> None:
+    paper_data["controller"]["v"] = 2.5  # v + v'_max = 4.0 > v_max = 3.5
+    paper_data["robots"]["grid"]["origin"] = [9.0, -4.4]  # overlaps obstacle #1
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(_toml(paper_data))
+    assert main(["check", str(cfg)]) == 2
+    out = capsys.readouterr().out
+    assert "INVALID" in out
+    assert "[Constraint1]" in out and "4" in out
+    assert "[Assumption1]" in out
+
+
+def test_user_errors_are_one_line(tmp_path: Path, paper_data: dict,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    paper_data["robots"]["r_s"] = "abc"
+    cfg = tmp_path / "typo.toml"
+    cfg.write_text(_toml(paper_data))
+    for argv in (["check", str(cfg)], ["sim", str(cfg), "--out", str(tmp_path / "o")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err == f'error: {cfg}: [robots].r_s: expected a number, got "abc"\n'
+    assert main(["sim", str(tmp_path / "missing.toml")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["sim", str(PAPER), "--robots", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--robots must be between 1 and 120" in capsys.readouterr().err
+    assert main(["sim", str(PAPER), "--dt", "-1", "--out", str(tmp_path / "o")]) == 2
+    assert "dt must be > 0" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_sim_writes_all_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    argv = ["sim", str(PAPER), "--out", str(out), "--robots", "12", "--dt", "0.002",
+            "--duration", "25", "--record-every", "5"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "robots 12, exited 12" in printed and "violations 0" in printed
+    s = json.loads((out / "summary.json").read_text())
+    assert SUMMARY_KEYS <= set(s)
+    assert s["robots"] == 12 and s["exited"] == 12 and s["violations"] == 0
+    assert s["dt_s"] == 0.002 and s["record_every"] == 5
+    with np.load(out / "trajectory.npz") as z:
+        t, pos, vel = z["t"], z["pos"], z["vel"]
+        assert pos.shape == (t.size, 12, 2) and vel.shape == pos.shape
+        np.testing.assert_allclose(np.diff(t), 0.01)
+        assert np.isnan(pos[-1]).sum() > 0  # exited robots are NaN
+        grid = np.array([[0.5, -4.4 + 0.8 * j] for j in range(12)])
+        np.testing.assert_allclose(pos[0], grid)
+    with np.load(out / "metrics.npz") as z:
+        assert z["t"].size == s["steps"] and z["violation"].sum() == 0
+    for png in ("safety.png", "snapshots.png"):
+        assert (out / png).read_bytes()[:8] == PNG_MAGIC
+
+
+def test_sim_not_finished_exits_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "short"
+    assert main(["sim", str(PAPER), "--out", str(out), "--robots", "5", "--duration", "0.2",
+                 "--no-plots", "--quiet"]) == 1
+    s = json.loads((out / "summary.json").read_text())
+    assert s["exited"] == 0 and s["steps"] == 200 and not s["all_exited"]
+    assert not (out / "safety.png").exists()
+    assert "duration reached" not in capsys.readouterr().err  # --quiet: no progress bar
+
+
+def test_sim_old_controller_breaks_min_speed(tmp_path: Path) -> None:
+    out = tmp_path / "old"
+    # (Oldcontroller) on a reduced paper scenario: still safe, but slower than v_min somewhere
+    code = main(["sim", str(PAPER), "--controller", "old", "--out", str(out), "--robots", "40",
+                 "--dt", "0.002", "--duration", "30", "--no-plots", "--quiet"])
+    s = json.loads((out / "summary.json").read_text())
+    assert code == 1 and s["controller"] == "old" and s["exited"] == 40
+    assert s["min_speed_m_s"] < 0.5
+    assert s["violations_by_condition"]["pair"] == 0
+    assert s["violations_by_condition"]["obstacle"] == 0
+
+
+def test_console_script_robotarium(tmp_path: Path) -> None:
+    exe = shutil.which("vtube-fleet")
+    cmd = [exe] if exe else [sys.executable, "-m", "vtube_fleet"]
+    out = tmp_path / "rob"
+    env = dict(os.environ, MPLBACKEND="Agg")
+    proc = subprocess.run([*cmd, "sim", str(ROBOTARIUM), "--out", str(out)], capture_output=True,
+                          text=True, timeout=120, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "robots 7, exited 7" in proc.stdout and "violations 0" in proc.stdout
+    assert "all robots exited" in proc.stderr  # the progress bar's final line
+    s = json.loads((out / "summary.json").read_text())
+    assert s["model"] == "unicycle" and s["violations"] == 0 and s["violations_center"] == 0
+    with np.load(out / "trajectory.npz") as z:
+        assert {"control_pos", "control_vel", "heading"} <= set(z.files)
