@@ -67,8 +67,14 @@ def dsigma_dx(x, d1: float, d2: float):
 # ----------------------------------------------------------------------------------------------
 def s_knots(eps_s: float) -> tuple[float, float]:
     """The knots (x1, x2) of s(x, ε_s): x2 = 1 + ε_s/tan 67.5°, x1 = x2 − ε_s sin 45°."""
-    x2 = 1.0 + eps_s / math.tan(math.radians(67.5))
-    return x2 - eps_s * math.sin(math.radians(45.0)), x2
+    d1, d2 = _knot_offsets(eps_s)
+    return 1.0 + d1, 1.0 + d2
+
+
+def _knot_offsets(eps_s: float) -> tuple[float, float]:
+    """(x1 − 1, x2 − 1), computed without cancellation."""
+    c2 = eps_s / math.tan(math.radians(67.5))
+    return c2 - eps_s * math.sin(math.radians(45.0)), c2
 
 
 def _check_eps_s(eps_s: float) -> None:
@@ -76,47 +82,58 @@ def _check_eps_s(eps_s: float) -> None:
         raise ValueError(f"eps_s must be in (0, 0.5], got {eps_s}")
 
 
-def s(x, eps_s: float):
-    """s(x, ε_s) (sat): x for x ≤ x1 (identity extended below 0, NOTES.md item 3), the arc
-    (1 − ε_s) + sqrt(ε_s² − (x − x2)²) on (x1, x2), 1 for x ≥ x2. C¹ at both knots."""
-    _check_eps_s(eps_s)
-    x = np.asarray(x, dtype=float)
-    x1, x2 = s_knots(eps_s)
-    w = np.clip(x, x1, x2) - x2
-    arc = (1.0 - eps_s) + np.sqrt(eps_s * eps_s - w * w)
-    return np.where(x <= x1, x, arc)
-
-
-def ds_dx(x, eps_s: float):
-    """ds/dx: 1 for x ≤ x1, −(x − x2)/sqrt(ε_s² − (x − x2)²) on the arc, 0 for x ≥ x2."""
-    _check_eps_s(eps_s)
-    x = np.asarray(x, dtype=float)
-    x1, x2 = s_knots(eps_s)
-    w = np.clip(x, x1, x2) - x2
-    return np.where(x <= x1, 1.0, -w / np.sqrt(eps_s * eps_s - w * w))
-
-
 class _Fillet:
-    """Constants of h(u) = u − s(u, ε_s) and h'(u) = 1 − s'(u), evaluated so that h is exactly 0
-    on the identity branch (no cancellation in g(x) = (1 + ε)x − d1 s(x/d1) = d1(εu + h(u)))."""
+    """s(u, ε_s) around its arc, in δ = u − 1 so that tiny ε_s keep full relative precision.
 
-    __slots__ = ("eps_s", "es2", "x1", "x2", "k0", "c1")
+    With w = clip(δ, δ1, δ2) − δ2 (δ1, δ2 = x1 − 1, x2 − 1) and r = sqrt(ε_s² − w²):
+    s = u on the identity branch, 1 − ε_s + r on the arc, 1 beyond; s' = −w/r (1, arc, 0).
+    ``h`` returns h = u − s(u) and h' = 1 − s'(u), exactly 0 on the identity branch, so that
+    g(x) = (1 + ε)x − d1 s(x/d1) = d1(εu + h(u)) has no cancellation.
+    """
+
+    __slots__ = ("eps_s", "es2", "dl1", "dl2", "k0", "c1")
 
     def __init__(self, eps_s: float) -> None:
         _check_eps_s(eps_s)
         self.eps_s = float(eps_s)
-        self.x1, self.x2 = s_knots(self.eps_s)
+        self.dl1, self.dl2 = _knot_offsets(self.eps_s)
         self.es2 = self.eps_s * self.eps_s
-        w0 = self.x1 - self.x2  # the value clip(u, x1, x2) − x2 takes for every u ≤ x1
+        w0 = self.dl1 - self.dl2  # the value of w for every δ ≤ δ1
         r0 = math.sqrt(self.es2 - w0 * w0)
-        self.k0 = self.x1 - r0  # = 1 − ε_s up to rounding; makes h(u ≤ x1) == 0.0 exactly
-        self.c1 = -(w0 / r0)  # = 1 up to rounding; makes h'(u ≤ x1) == 0.0 exactly
+        self.k0 = self.dl1 - r0  # = −ε_s up to rounding; makes h(δ ≤ δ1) == 0.0 exactly
+        self.c1 = -(w0 / r0)  # = 1 up to rounding; makes h'(δ ≤ δ1) == 0.0 exactly
+
+    @property
+    def x2(self) -> float:
+        return 1.0 + self.dl2
+
+    def wr(self, delta):
+        w = np.clip(delta, self.dl1, self.dl2) - self.dl2
+        return w, np.sqrt(self.es2 - w * w)
 
     def h(self, u):
         """(h, h') for u = x/d1: h = u − s(u), h' = 1 − s'(u)."""
-        w = np.clip(u, self.x1, self.x2) - self.x2
-        r = np.sqrt(self.es2 - w * w)
-        return (np.maximum(u, self.x1) - r) - self.k0, w / r + self.c1
+        delta = u - 1.0
+        w, r = self.wr(delta)
+        return (np.maximum(delta, self.dl1) - r) - self.k0, w / r + self.c1
+
+
+def s(x, eps_s: float):
+    """s(x, ε_s) (sat): x for x ≤ x1 (identity extended below 0, NOTES.md item 3), the arc
+    (1 − ε_s) + sqrt(ε_s² − (x − x2)²) on (x1, x2), 1 for x ≥ x2. C¹ at both knots."""
+    f = _Fillet(eps_s)
+    x = np.asarray(x, dtype=float)
+    delta = x - 1.0
+    _, r = f.wr(delta)
+    return np.where(delta <= f.dl1, x, (1.0 - f.eps_s) + r)
+
+
+def ds_dx(x, eps_s: float):
+    """ds/dx: 1 for x ≤ x1, −(x − x2)/sqrt(ε_s² − (x − x2)²) on the arc, 0 for x ≥ x2."""
+    f = _Fillet(eps_s)
+    delta = np.asarray(x, dtype=float) - 1.0
+    w, r = f.wr(delta)
+    return np.where(delta <= f.dl1, 1.0, -w / r)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -248,7 +265,7 @@ class BarrierBank:
             return np.zeros(0)
         g = x * E1
         g -= D1  # ĝ = g/g_th
-        if g.min() < 1.0:  # some x < d1·x2: fix those up with the general formula
+        if not g.min() >= 1.0:  # some x < d1·x2 (or NaN): fix those up with the general formula
             np.maximum(x, X_MIN, out=x)
             idx = np.flatnonzero(g < 1.0)
             xb = x.copy()
