@@ -136,6 +136,7 @@ class VehiclePilot:
         self.reason: str | None = None
         self.exit_time_s: float | None = None
         self._offboard_seen = False
+        self._still_since: float | None = None
         self._phase_waiters: list[asyncio.Future[None]] = []
         self._transition: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -267,6 +268,8 @@ class VehiclePilot:
                      f"{s.system_status})"
         elif phase in (Phase.IN_TUBE, Phase.EXITED) and s.armed is False:
             reason = "disarmed in the air"
+        elif phase == Phase.IN_TUBE:
+            reason = self._check_unresponsive(now_mono)
         if reason is None:
             return None
         if phase == Phase.ARMING:
@@ -275,6 +278,31 @@ class VehiclePilot:
             return reason
         self.declare_lost(reason)
         return reason
+
+    #: A vehicle in the tube is always commanded at least v_min (> 0, NOTES.md item 9); one
+    #: whose measured speed stays below this for ``unresponsive_s`` ignores its setpoints.
+    STILL_M_S = 0.05
+
+    @property
+    def unresponsive_s(self) -> float:
+        """τ_d + 3 t63 + 1 s: longer than PX4 needs to follow any command change."""
+        return self.cfg.tracking_dead_time_s + 3.0 * self.cfg.tracking_t63_s + 1.0
+
+    def _check_unresponsive(self, now_mono: float) -> str | None:
+        speed = math.hypot(float(self.vel_xy[0]), float(self.vel_xy[1]))
+        cmd = self.cmd_xy
+        commanded = cmd is not None and math.hypot(float(cmd[0]), float(cmd[1])) > 0.0
+        if not (commanded and speed < self.STILL_M_S):
+            self._still_since = None
+            return None
+        if self._still_since is None:
+            self._still_since = now_mono
+            return None
+        still = now_mono - self._still_since
+        if still < self.unresponsive_s:
+            return None
+        return (f"not following its setpoints: measured speed < {self.STILL_M_S:g} m/s for "
+                f"{still:.1f} s while commanded {math.hypot(*cmd):.2f} m/s")  # type: ignore[misc]
 
     def declare_lost(self, reason: str) -> None:
         """Become a static obstacle at the last known position; stop commanding."""
