@@ -297,7 +297,7 @@ class _Prepared:
         if n == 0:
             return np.zeros(0, np.complex128), lay
         IJI, slots = lay.pair_slots(I, J, cache)
-        G = self.table.take(k.view(np.uintp), axis=1)  # (9, n); k < 0 → IndexError
+        G = self.table.take(k, axis=1)  # (9, n); k ≥ K → IndexError
 
         X = np.empty(4 * n + P)
         # d_Th, d_Tr of each robot in its own sub-tube, written to the legs and σ blocks
@@ -366,6 +366,8 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
         I, J = I[keep], J[keep]
     if not cache and I.size and (I.min() < 0 or J.max() >= M or I.max() >= M or J.min() < 0):
         raise ValueError(f"pairs must index the {M} robots")
+    if k.size and k.min() < 0:  # (k ≥ K makes the gather raise)
+        raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.min()}")
     try:
         return prep.evaluate(z, k, I, J, rows, cache)
     except IndexError:
