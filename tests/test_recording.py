@@ -451,11 +451,23 @@ def test_recording_holds_the_default_blueprint(tmp_path: Path) -> None:
     from rerun.chunk import RrdReader
 
     rec = open_recorder(tmp_path / "bp.rrd")
+    rec.log_event(0.0, "only an event, no scene")
     rec.close()
     assert RrdReader(tmp_path / "bp.rrd").blueprints(), "no blueprint in the file"
-    meta_free = load_recording  # a recording without log_scene has no metadata
     with pytest.raises(RecordingError, match="no meta/scenario"):
-        meta_free(tmp_path / "bp.rrd")
+        load_recording(tmp_path / "bp.rrd")
+
+
+def test_nothing_logged_leaves_no_file_and_no_folder(tmp_path: Path) -> None:
+    """A run that fails before recording anything must not leave an output folder behind."""
+    rec = open_recorder(tmp_path / "out" / "sub" / "r.rrd")
+    assert not (tmp_path / "out").exists()
+    rec.close()
+    assert not (tmp_path / "out").exists()
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(RecordingError, match="is not a directory"):
+        open_recorder(blocker / "r.rrd")
 
 
 def test_meta_is_plain_json(tmp_path: Path) -> None:
@@ -490,3 +502,46 @@ def test_bulk_metrics_and_explicit_exits(tmp_path: Path) -> None:
     np.testing.assert_allclose(d.metrics["max_speed_m_s"], [2.4] * 4)
     assert d.exits == {1: pytest.approx(0.08)}  # the explicit time, not the next frame's
     assert d.entity_rows["events/exits"] == 1
+
+
+@pytest.mark.parametrize("policy", ["block", "drop"])
+def test_backlog_policy(tmp_path: Path, policy: str) -> None:
+    """A stalled sender: "block" waits and loses nothing, "drop" drops ticks and says so."""
+    import threading
+
+    rec = open_recorder(tmp_path / "q.rrd", batch_ticks=1, max_queued_batches=3,
+                        on_backlog=policy, status_period_s=1e9)
+    assert isinstance(rec, RerunRecorder)
+    rec.log_scene(scenario())
+    gate = threading.Event()
+    real = rec._send_rows_now
+
+    def stalled(rows: Any) -> None:
+        gate.wait(timeout=60)
+        real(rows)
+
+    rec._send_rows_now = stalled  # type: ignore[method-assign]
+
+    def produce() -> None:
+        for k in range(10):
+            rec.log_tick(t_s=0.1 * k, tick=k, ids=np.arange(5), pos=motion(k)[0],
+                         vel=motion(k)[1])
+
+    producer = threading.Thread(target=produce)
+    producer.start()
+    with rec._qcond:  # wait until the queue is full
+        assert rec._qcond.wait_for(lambda: rec._queued >= 3, timeout=30)
+    if policy == "drop":
+        producer.join(timeout=30)  # never waits for the sender
+        assert not producer.is_alive()
+    gate.set()
+    producer.join(timeout=30)
+    assert not producer.is_alive()
+    rec.close()
+    d = load_recording(tmp_path / "q.rrd")
+    if policy == "block":
+        assert rec.dropped_ticks == 0
+        np.testing.assert_array_equal(d.tick, np.arange(10))
+    else:
+        assert rec.dropped_ticks > 0
+        assert len(d.tick) == 10 - rec.dropped_ticks

@@ -360,6 +360,19 @@ def _stream_entity(suffix: str) -> str:
     return SAFETY_PREFIX + (suffix.lstrip("_") or "main")
 
 
+def _merge(key: str, old: float, new: float) -> float:
+    """Combine two values of one metric over consecutive ticks (decimation keeps extremes)."""
+    if math.isnan(old):
+        return new
+    if math.isnan(new):
+        return old
+    if key.startswith("min_"):
+        return min(old, new)
+    if key.startswith("max_") or key in ("tick_duration_s", "link_latency_s"):
+        return max(old, new)
+    return new
+
+
 def _offsets(lengths: np.ndarray) -> np.ndarray:
     """Per-row lengths → int32 offsets with the leading 0 (``rerun.ComponentColumn``)."""
     out = np.zeros(len(lengths) + 1, dtype=np.int32)
@@ -395,6 +408,24 @@ def normalize_connect_url(addr: str | None) -> str:
     if not port.isdigit() or not 0 < int(port) < 65536:
         raise RecordingError(f"--rerun-connect {a}: expected HOST:PORT, a port or a rerun URL")
     return f"rerun+http://{host}:{int(port)}/proxy"
+
+
+def _check_writable(path: Path) -> None:
+    """Raise :class:`RecordingError` unless ``path`` can be created as a file later (nothing
+    is created now: a run that fails before recording leaves no folder behind)."""
+    if path.is_dir():
+        raise RecordingError(f"--rerun-save {path}: is a directory, expected a file")
+    if path.exists():
+        if not os.access(path, os.W_OK):
+            raise RecordingError(f"--rerun-save {path}: cannot write: permission denied")
+        return
+    anc = path.parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise RecordingError(f"--rerun-save {path}: {anc} is not a directory")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise RecordingError(f"--rerun-save {path}: cannot write in {anc}: permission denied")
 
 
 def _viewer_reachable(url: str, timeout_s: float) -> bool:
@@ -441,8 +472,10 @@ class RerunRecorder:
     and handed, ``batch_ticks`` at a time or after ``max_delay_s`` of wall time, to a sender
     thread that converts them to arrow and calls :meth:`~rerun.RecordingStream.send_columns`
     once per entity — so the caller's loop only pays for the copy (``background=False`` sends
-    from the caller's thread instead). At most ``max_queued_batches`` batches wait for the
-    sender; beyond that ticks are dropped with a warning rather than stalling the loop.
+    from the caller's thread instead). At most ``max_queued_batches`` jobs wait for the
+    sender; beyond that ``on_backlog`` decides: ``"block"`` waits for the sender (nothing is
+    lost; the default, and the simulator's choice), ``"drop"`` drops ticks with a warning
+    rather than stalling the loop (the default for ``kind="fleet"``).
     ``arrow_scale_s`` is the length of a velocity arrow per m/s; the ``status`` table is
     refreshed every ``status_period_s`` of mission time. ``kind`` is ``"sim"`` or ``"fleet"``.
 
@@ -463,6 +496,7 @@ class RerunRecorder:
         max_delay_s: float = 0.25,
         background: bool = True,
         max_queued_batches: int = 256,
+        on_backlog: str | None = None,
         arrow_scale_s: float = 0.5,
         status_period_s: float = 1.0,
         recording_id: str | None = None,
@@ -487,6 +521,11 @@ class RerunRecorder:
         self.batch_ticks = int(batch_ticks)
         self.max_delay_s = float(max_delay_s)
         self.max_queued_batches = int(max_queued_batches)
+        if on_backlog is None:
+            on_backlog = "drop" if kind == "fleet" else "block"
+        if on_backlog not in ("block", "drop"):
+            raise ValueError(f"on_backlog must be 'block' or 'drop', got {on_backlog!r}")
+        self.on_backlog = on_backlog
         self.arrow_scale_s = float(arrow_scale_s)
         self.status_period_s = float(status_period_s)
         self.flush_timeout_s = float(flush_timeout_s)
@@ -516,55 +555,64 @@ class RerunRecorder:
         self._send_errors = 0
         self._meta: dict[str, Any] = {}
         self._descriptors: dict[str, Any] = {}
+        self._open_block: tuple[int, float, int, dict[str, float]] | None = None
 
         if self.path is not None:
-            if self.path.exists() and self.path.is_dir():
-                raise RecordingError(f"--rerun-save {self.path}: is a directory, expected a file")
-            try:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                with open(self.path, "wb"):
-                    pass
-            except OSError as exc:
-                raise RecordingError(
-                    f"--rerun-save {self.path}: cannot write: {exc.strerror or exc}"
-                ) from None
-
-        self._rec = rr.RecordingStream(app_id, recording_id=self.recording_id)
-        self._rec.set_log_time_enabled(False)
-        self._rec.set_log_tick_enabled(False)
-        sinks: list[Any] = []
+            _check_writable(self.path)
         if connect is not None:
             url = normalize_connect_url(connect)
             if _viewer_reachable(url, connect_timeout_s):
                 self.connect_url = url
-                sinks.append(rr.GrpcSink(url))
             else:
                 where = f"; recording to {self.path} only" if self.path else "; nothing recorded"
                 log.warning("no rerun viewer answers at %s%s (start one with `rerun`)", url, where)
-        if self.path is not None:
-            sinks.append(rr.FileSink(self.path))
+        self._enabled = self.path is not None or self.connect_url is not None
+        self._background = background
+        self._opened = False  # the sinks are opened by the first log call: no empty files
         self._blueprint_sent = False
-        if sinks:
-            self._rec.set_sinks(*sinks)
-        self._enabled = bool(sinks)
-        self._send_static_defaults()
-
+        self._rec: Any = None
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._qlock = threading.Lock()
+        self._qcond = threading.Condition(threading.Lock())
         self._queued = 0  # jobs waiting for the sender
         self._worker: threading.Thread | None = None
-        if background and self._enabled:
-            self._worker = threading.Thread(target=self._work, name="rerun-recorder",
-                                            daemon=True)
-            self._worker.start()
         self._atexit = _make_atexit(self)
         atexit.register(self._atexit)
 
+    def _open(self) -> bool:
+        """Open the sinks (file, live viewer) and the sender thread on first use; False when
+        recording is disabled (no file and no viewer)."""
+        if self._opened:
+            return self._enabled
+        self._opened = True
+        if not self._enabled:
+            return False
+        rr = self._rr
+        sinks: list[Any] = []
+        if self.connect_url is not None:
+            sinks.append(rr.GrpcSink(self.connect_url))
+        if self.path is not None:
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise RecordingError(
+                    f"--rerun-save {self.path}: cannot create the folder: {exc.strerror or exc}"
+                ) from None
+            sinks.append(rr.FileSink(self.path))
+        self._rec = rr.RecordingStream(self.app_id, recording_id=self.recording_id)
+        self._rec.set_log_time_enabled(False)
+        self._rec.set_log_tick_enabled(False)
+        self._rec.set_sinks(*sinks)
+        self._send_static_defaults()
+        if self._background:
+            self._worker = threading.Thread(target=self._work, name="rerun-recorder",
+                                            daemon=True)
+            self._worker.start()
+        return True
+
     def _send_blueprint(self, bounds: tuple[float, float, float, float] | None) -> None:
-        if self._enabled:
-            self._rec.send_blueprint(default_blueprint(bounds), make_active=True,
-                                     make_default=True)
-            self._blueprint_sent = True
+        self._rec.send_blueprint(default_blueprint(bounds), make_active=True,
+                                 make_default=True)
+        self._blueprint_sent = True
 
     # ----- sender thread ----------------------------------------------------------------
     def _work(self) -> None:
@@ -573,21 +621,32 @@ class RerunRecorder:
             if job is None:
                 return
             self._guard(job)
-            with self._qlock:
+            with self._qcond:
                 self._queued -= 1
+                self._qcond.notify_all()
 
     def _submit(self, job: Any, *, ticks: int = 0) -> None:
-        """Run ``job`` (a rerun call) on the sender thread, or here without one."""
-        if not self._enabled:
+        """Run ``job`` (a rerun call) on the sender thread, or here without one. ``ticks``:
+        how many ticks of data the job carries (0: scene, events, exits, summary — never
+        dropped)."""
+        if not self._open():
             return
         if self._worker is None:
             self._guard(job)
             return
-        with self._qlock:
+        with self._qcond:
             full = self._queued >= self.max_queued_batches
-            if not full:
+            if full and self.on_backlog == "block":
+                # never lose data: wait for the sender (the simulator's choice)
+                self._qcond.wait_for(lambda: self._queued < self.max_queued_batches
+                                     or self._worker is None or not self._worker.is_alive(),
+                                     timeout=self.flush_timeout_s + 30.0)
+                full = self._queued >= self.max_queued_batches
+            drop = full and ticks > 0
+            if not drop:
                 self._queued += 1
-        if full:
+                self._qcond.notify_all()
+        if drop:
             self.dropped_ticks += ticks
             if self.dropped_ticks == ticks or self.dropped_ticks % 1000 < ticks:
                 log.warning("rerun recording falls behind (%d jobs queued): %d ticks dropped "
@@ -626,7 +685,7 @@ class RerunRecorder:
         r_s = float(params.r_s)
         doc = self._scene_meta(scenario, mission_cfg, meta)
         with self._lock:
-            if self.closed:
+            if self.closed or not self._open():
                 return
             self._meta = doc
             poly = tube.polygon()
@@ -734,10 +793,11 @@ class RerunRecorder:
         strips = [_closed(s.polygon()) for s in subs]
         self._rec.send_columns(E_SUB_TUBES, idx, rr.LineStrips2D.columns(
             strips=strips, labels=[getattr(s, "name", f"T_o{i + 1}") for i, s in enumerate(subs)],
-            colors=[0x42A5F580] * len(subs)).partition([len(subs)]))
+            colors=np.full(len(subs), 0x42A5F580, dtype=np.uint32)).partition([len(subs)]))
         tri_strips = [_closed(np.stack([t.p_oth, t.p_otu, t.p_otd])) for t in tris]
         self._rec.send_columns(E_TRIANGLES, idx, rr.LineStrips2D.columns(
-            strips=tri_strips, colors=[0xFB8C00FF] * len(tris)).partition([len(tris)]))
+            strips=tri_strips, colors=np.full(len(tris), 0xFB8C00FF, dtype=np.uint32)).partition(
+                [len(tris)]))
 
     # ----- ticks ------------------------------------------------------------------------
     def log_tick(
@@ -810,18 +870,8 @@ class RerunRecorder:
     def _aggregate(self, metrics: Mapping[str, float]) -> None:
         agg = self._agg
         for k, v in metrics.items():
-            v = float(v)
             old = agg.get(k)
-            if old is None or math.isnan(old):
-                agg[k] = v
-            elif math.isnan(v):
-                continue
-            elif k.startswith("min_"):
-                agg[k] = min(old, v)
-            elif k.startswith("max_") or k in ("tick_duration_s", "link_latency_s"):
-                agg[k] = max(old, v)
-            else:
-                agg[k] = v
+            agg[k] = float(v) if old is None else _merge(k, old, float(v))
 
     def _push(self, row: _Row) -> None:
         row.metrics, self._agg = self._agg, {}
@@ -1053,40 +1103,61 @@ class RerunRecorder:
 
         With ``every`` > 1 the steps are grouped by ``tick // every`` and each group is
         logged once, at its first tick, with its extreme (``min_*`` → min, ``max_*``,
-        ``tick_duration_s``, ``link_latency_s`` → max, others → last). ±inf become NaN (a gap).
+        ``tick_duration_s``, ``link_latency_s`` → max, others → last), also when a group spans
+        several calls (the open group is kept until a later tick or :meth:`close`). ±inf
+        become NaN (a gap in the plot).
         """
         t = np.asarray(t_s, dtype=float).reshape(-1)
         k = np.asarray(ticks, dtype=np.int64).reshape(-1)
         if t.size == 0:
             return
+        every = max(1, int(every))
         with self._lock:
             if self.closed or not self._enabled:
                 return
             self._last_tick = max(self._last_tick, int(k[-1]))
-            if every > 1:
-                block = k // int(every)
-                starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
-            else:
-                starts = np.arange(k.size)
+            block = k // every
+            starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
+            ends = np.r_[starts[1:], k.size]
             out: dict[str, np.ndarray] = {}
             for key, vals in metrics.items():
                 v = np.asarray(vals, dtype=float).reshape(-1)
-                if every > 1:
-                    if key.startswith("min_"):
-                        v = np.fmin.reduceat(v, starts)
-                    elif key.startswith("max_") or key in ("tick_duration_s", "link_latency_s"):
-                        v = np.fmax.reduceat(v, starts)
-                    else:
-                        v = v[np.r_[starts[1:] - 1, v.size - 1]]
-                out[key] = np.where(np.isfinite(v), v, np.nan)
-            tt, kk = t[starts].copy(), k[starts].copy()
-            self._submit(lambda: self._send_metric_series(tt, kk, out), ticks=len(tt))
+                if key.startswith("min_"):
+                    out[key] = np.fmin.reduceat(v, starts)
+                elif key.startswith("max_") or key in ("tick_duration_s", "link_latency_s"):
+                    out[key] = np.fmax.reduceat(v, starts)
+                else:
+                    out[key] = v[ends - 1]
+            tt, kk, bb = t[starts], k[starts], block[starts]
+            # merge with the group left open by the previous call
+            op = self._open_block
+            if op is not None and op[0] == bb[0]:
+                tt[0], kk[0] = op[1], op[2]
+                for key, v in out.items():
+                    if key in op[3]:
+                        v[0] = _merge(key, op[3][key], float(v[0]))
+            elif op is not None:
+                self._emit_metric_block(op)
+            # the last group may continue in the next call
+            self._open_block = (int(bb[-1]), float(tt[-1]), int(kk[-1]),
+                                {key: float(v[-1]) for key, v in out.items()})
+            if len(tt) > 1:
+                series = {key: v[:-1] for key, v in out.items()}
+                t_done, k_done = tt[:-1].copy(), kk[:-1].copy()
+                self._submit(lambda: self._send_metric_series(t_done, k_done, series),
+                             ticks=len(t_done))
+
+    def _emit_metric_block(self, op: tuple[int, float, int, dict[str, float]]) -> None:
+        t1, k1 = np.array([op[1]]), np.array([op[2]], dtype=np.int64)
+        series = {key: np.array([v]) for key, v in op[3].items()}
+        self._submit(lambda: self._send_metric_series(t1, k1, series), ticks=1)
 
     def _send_metric_series(self, t: np.ndarray, k: np.ndarray,
                             series: Mapping[str, np.ndarray]) -> None:
         rr = self._rr
         idx = self._index(t, k)
         for key, vals in series.items():
+            vals = np.where(np.isfinite(vals), vals, np.nan)
             self._rec.send_columns(METRICS_PREFIX + key, idx, [
                 rr.ComponentColumn(rr.Scalars.descriptor_scalars(),
                                    rr.components.ScalarBatch(vals))])
@@ -1153,9 +1224,15 @@ class RerunRecorder:
                 atexit.unregister(self._atexit)
             except Exception:  # noqa: BLE001 - best effort at interpreter exit
                 pass
+            if not self._opened or not self._enabled:
+                log.info("rerun recording: nothing was logged, no recording written")
+                return
             try:
                 if not self._blueprint_sent:
                     self._guard(lambda: self._send_blueprint(None))
+                if self._open_block is not None:
+                    op, self._open_block = self._open_block, None
+                    self._emit_metric_block(op)
                 if self._pending is not None:
                     row, self._pending = self._pending, None
                     self._push(row)
@@ -1169,11 +1246,10 @@ class RerunRecorder:
                 log.warning("rerun recording: the sender did not finish within %.0f s",
                             self.flush_timeout_s + 30.0)
         try:
-            if self._enabled:
-                try:
-                    self._rec.flush(timeout_sec=self.flush_timeout_s)
-                except Exception as exc:  # noqa: BLE001 - e.g. live viewer went away
-                    log.warning("rerun recording: flush: %s", exc)
+            try:
+                self._rec.flush(timeout_sec=self.flush_timeout_s)
+            except Exception as exc:  # noqa: BLE001 - e.g. live viewer went away
+                log.warning("rerun recording: flush: %s", exc)
         finally:
             try:
                 self._rec.disconnect()
@@ -1330,7 +1406,9 @@ class RecordingData:
     vehicle was absent; ``cmd`` likewise or ``None``; ``phases`` (T, M) object array or ``None``;
     ``safety`` summary stream suffix → (pos, vel) (T, M, 2) the run's metrics were computed from
     when it said so (see :meth:`Recorder.log_tick`; otherwise review uses ``pos``/``vel``);
-    ``metrics`` key → (T,) array (NaN where not logged); ``exits`` vehicle id → exit time;
+    ``metrics`` key → (T,) array at the recorded ticks (NaN where not logged) and
+    ``metric_series`` key → (t_s, tick, value) as logged (the simulator logs every step's
+    metrics, reduced per recorded frame); ``exits`` vehicle id → exit time;
     ``events`` (t_s, entity path, level, text); ``entity_rows`` entity path → temporal row count
     (static rows counted under ``static_rows``); ``meta`` / ``summary`` the two JSON documents.
     """
@@ -1347,6 +1425,7 @@ class RecordingData:
     phases: np.ndarray | None
     safety: dict[str, tuple[np.ndarray, np.ndarray]]
     metrics: dict[str, np.ndarray]
+    metric_series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
     exits: dict[int, float]
     events: list[tuple[float, str, str, str]]
     entity_rows: dict[str, int]
@@ -1444,7 +1523,7 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     veh: list[tuple[np.ndarray, np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
     cmd_parts: list[tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
     safety_parts: dict[str, list[tuple[np.ndarray, dict[str, Any]]]] = {}
-    metric_parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    metric_parts: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
     exits: dict[int, float] = {}
     events: list[tuple[float, str, str, str]] = []
     parts_sub: dict[int, tuple[float, list[np.ndarray]]] = {}
@@ -1509,7 +1588,7 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
                 offs = np.concatenate([[0], np.cumsum(lens)])
                 v = np.array([vals[offs[i]] if lens[i] else np.nan for i in range(len(lens))],
                              dtype=float)
-                metric_parts.setdefault(ent[len(METRICS_PREFIX):], []).append((k, v))
+                metric_parts.setdefault(ent[len(METRICS_PREFIX):], []).append((t, k, v))
         elif ent == E_EXITS:
             col = _list_column(rb, f"{_EXIT}:vehicle_id")
             if col is not None:
@@ -1594,9 +1673,15 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         sx, sy, svx, svy = scatter(parts, ("x_m", "y_m", "vx_m_s", "vy_m_s"))
         safety[sfx] = (xy(sx, sy), xy(svx, svy))
     metrics: dict[str, np.ndarray] = {}
+    metric_series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for key, parts in metric_parts.items():
+        st = np.concatenate([q[0] for q in parts])
+        sk = np.concatenate([q[1] for q in parts])
+        sv = np.concatenate([q[2] for q in parts])
+        order = np.argsort(sk, kind="stable")
+        metric_series[key] = (st[order], sk[order], sv[order])
         arr = np.full(T, np.nan)
-        for k, v in parts:
+        for _, k, v in parts:
             r = np.searchsorted(ticks, k)
             ok = (r < T) & (ticks[np.minimum(r, T - 1)] == k) if T else np.zeros(len(k), bool)
             arr[r[ok]] = v[ok]
@@ -1608,7 +1693,8 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         partitions.append((ts, parts_sub.get(kk, (ts, []))[1], parts_tri.get(kk, (ts, []))[1]))
     return RecordingData(
         path=p, meta=meta, summary=summary, t_s=t_s, tick=ticks, ids=ids, pos=pos, vel=vel,
-        cmd=cmd, phases=phases, safety=safety, metrics=metrics, exits=exits, events=events,
+        cmd=cmd, phases=phases, safety=safety, metrics=metrics, metric_series=metric_series,
+        exits=exits, events=events,
         entity_rows=entity_rows, static_rows=static_rows,
         application_id=str(stores[0].application_id), recording_id=str(stores[0].recording_id),
         partitions=partitions,

@@ -235,10 +235,11 @@ def _print_text(res: ReviewResult) -> None:
         run = _fmt(stored[k]) if k in stored else "-"
         mark = "  ≠" if k in diff_keys else ""
         print(f"{k:<{width}}  {_fmt(v):>14}  {run:>14}{mark}{src}")
-    recorded = {k: v for k, v in d.metrics.items() if np.any(np.isfinite(v))}
+    recorded = {k: v[2] for k, v in d.metric_series.items() if np.any(np.isfinite(v[2]))}
     if recorded:
         print()
-        print("per-step metrics as logged by the run (extrema over all steps, decimated ones too):")
+        print("per-step metrics as the run logged them (their extrema cover every step, also "
+              "the ones between recorded frames):")
         for k, v in recorded.items():
             f = v[np.isfinite(v)]
             print(f"  {k:<34} min {f.min():.6g}  max {f.max():.6g}")

@@ -1,0 +1,186 @@
+"""``vtube-fleet review``: a run's recording gives back the run's own summary and figures.
+
+End to end with the real simulator and the real mock fleet: the run records, the recording is
+read back, the summary is recomputed with the same metrics code, and compared key by key with
+what the run itself reported.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from vtube_fleet.cli import main
+from vtube_fleet.recording import E_VEHICLES, load_recording, open_recorder
+from vtube_fleet.reviewcli import compare_summaries, review
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: A short scenario: 12 robots packed closer than r_s + r_a (so the pair metric is in range
+#: from the start), one obstacle, a tube that narrows; every robot exits within ~10 s.
+SCENARIO = {
+    "tube": {"p_h0": [0.0, 0.0], "p_h1": [20.0, 1.0], "p_r0": [0.0, 10.0], "p_r1": [20.0, 9.0]},
+    "obstacles": [{"center": [11.0, 5.0], "radius": 0.6}],
+    "robots": {"r_s": 0.2, "r_a": 0.6, "v_min": 0.5, "v_max": 3.5,
+               "grid": {"origin": [0.8, 3.9], "rows": 3, "cols": 4, "spacing": 0.75}},
+    "controller": {"v": 2.0, "v_max_prime": 1.5},
+    "sim": {"dt": 0.01, "duration": 14.0, "record_every": 1},
+}
+
+
+def _scenario(**sim: Any) -> Any:
+    from vtube_fleet.scenario import parse_scenario
+
+    doc = json.loads(json.dumps(SCENARIO))
+    doc["sim"].update(sim)
+    return parse_scenario(doc, "review_test.toml")
+
+
+def _png_ok(path: Path) -> None:
+    """A real, non-blank PNG."""
+    from matplotlib.image import imread
+
+    assert path.exists(), path
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    img = imread(path)
+    assert img.shape[0] > 200 and img.shape[1] > 200
+    assert float(np.std(img[..., :3])) > 0.02, f"{path} looks blank"
+
+
+def _assert_same_summary(recomputed: dict[str, Any], run: dict[str, Any]) -> None:
+    assert list(recomputed) == list(run)  # same keys, same order
+    bad = compare_summaries(recomputed, run, rel=1e-9, abs_=1e-9)
+    assert not bad, bad
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Path]:
+    from vtube_fleet.sim import simulate
+
+    out = tmp_path_factory.mktemp("sim")
+    with open_recorder(out / "recording.rrd", kind="sim") as rec:
+        result = simulate(_scenario(), recorder=rec)
+    return result, out / "recording.rrd"
+
+
+def test_short_sim_recording_loads_back(sim_run: tuple[Any, Path]) -> None:
+    result, path = sim_run
+    s = result.summary
+    assert s["exited"] == s["robots"] == 12 and not s["interrupted"]
+    d = load_recording(path)
+    assert d.kind == "sim" and d.meta["robots"] == 12 and d.meta["dt_s"] == 0.01
+    # one recorded row per recorded frame of the run, every entity of the layout present
+    assert len(d.tick) == s["frames"] == result.t.size
+    assert d.entity_rows[E_VEHICLES] == s["frames"]
+    assert d.entity_rows["world/velocity"] == s["frames"]
+    for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
+                "min_left_leg_distance_m", "min_right_leg_distance_m", "min_speed_m_s",
+                "max_speed_m_s"):
+        assert d.entity_rows[f"metrics/{key}"] == s["steps"], key
+    for ent in ("meta/scenario", "meta/summary", "world/tube", "world/obstacles"):
+        assert d.static_rows.get(ent, 0) >= 1, ent
+    assert d.entity_rows["world/sub_tubes"] == 1 and d.entity_rows["world/triangles"] == 1
+    assert len(d.partitions[0][1]) == result.partition.K
+    # the recorded trajectory is the simulator's, bit for bit
+    np.testing.assert_allclose(d.t_s, result.t, atol=1e-9)
+    np.testing.assert_array_equal(d.pos, result.pos)
+    np.testing.assert_array_equal(d.vel, result.vel)
+    # exits: the exact times the simulator saw
+    exp = {i: float(t) for i, t in enumerate(result.exit_time_s) if math.isfinite(t)}
+    assert d.exits.keys() == exp.keys()
+    for i, t in exp.items():
+        assert d.exits[i] == pytest.approx(t, abs=1e-9)
+    assert d.summary == json.loads(json.dumps(s))
+
+
+def test_review_json_is_exactly_the_run_summary(sim_run: tuple[Any, Path],
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    result, path = sim_run
+    assert main(["review", str(path), "--json", "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    recomputed = json.loads(out)  # stdout is exactly one JSON document
+    run = json.loads(json.dumps(result.summary))
+    _assert_same_summary(recomputed, run)
+    # the recomputed keys really were recomputed (not copied): change the stored summary's
+    # copy in memory and the recomputation still gives the run's numbers
+    res = review(path, plots=False)
+    for key in ("robots", "exited", "steps", "violations", "min_pair_distance_m",
+                "min_obstacle_center_distance_m", "median_exit_s", "max_speed_m_s"):
+        assert key in res.recomputed_keys, key
+    assert not res.differences
+
+
+def test_review_text_and_plots(sim_run: tuple[Any, Path], tmp_path: Path,
+                               capsys: pytest.CaptureFixture[str]) -> None:
+    _, path = sim_run
+    assert main(["review", str(path), "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "the recomputed summary matches the run's own summary" in out
+    assert "min_pair_distance_m" in out and "(copied from the run)" in out
+    _png_ok(tmp_path / "recording-safety.png")
+    _png_ok(tmp_path / "recording-snapshots.png")
+
+
+def test_decimated_recording_reports_its_limits(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from vtube_fleet.sim import simulate
+
+    with open_recorder(tmp_path / "r.rrd", kind="sim") as rec:
+        result = simulate(_scenario(record_every=7), recorder=rec)
+    d = load_recording(tmp_path / "r.rrd")
+    assert len(d.tick) == result.summary["frames"] == result.t.size
+    # the per-step series still hold every step's extremes: their minimum is the run's
+    t_m, k_m, logged = d.metric_series["min_pair_distance_m"]
+    np.testing.assert_array_equal(k_m, d.tick)  # one value per recorded frame ...
+    assert np.nanmin(logged) == result.summary["min_pair_distance_m"]  # ... keeping the minimum
+    assert np.nanmax(d.metric_series["max_speed_m_s"][2]) == result.summary["max_speed_m_s"]
+    assert d.exits == pytest.approx(
+        {i: float(t) for i, t in enumerate(result.exit_time_s) if math.isfinite(t)})
+    assert main(["review", str(tmp_path / "r.rrd"), "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    assert "steps" in out and "differ from the run's own summary" in out
+    res = review(tmp_path / "r.rrd", plots=False)
+    assert res.summary["steps"] == result.summary["frames"]
+    assert res.summary["exited"] == result.summary["exited"]
+    assert res.summary["median_exit_s"] == result.summary["median_exit_s"]
+    # minima over fewer samples can only be larger
+    assert res.summary["min_pair_distance_m"] >= result.summary["min_pair_distance_m"] - 1e-12
+
+
+def test_review_of_a_bad_file_is_a_one_line_error(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["review", str(tmp_path / "none.rrd")]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {tmp_path / 'none.rrd'}: no such file"
+    junk = tmp_path / "junk.rrd"
+    junk.write_text("not a recording\n")
+    assert main(["review", str(junk), "--json"]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err.startswith("error: ") and cap.err.count("\n") == 1
+
+
+def test_mock_fleet_run_recording_reviews(tmp_path: Path) -> None:
+    """A short flight of the built-in mock fleet: the recording gives the fleet's summary."""
+    import asyncio
+
+    from vtube_fleet.fleet.mission import load_mission
+    from vtube_fleet.fleetcli import fly
+
+    mission = load_mission(ROOT / "configs" / "mock_fleet.toml").with_vehicles(3)
+    path = tmp_path / "recording.rrd"
+    with open_recorder(path, kind="fleet") as rec:
+        result = asyncio.run(fly(mission, out_dir=tmp_path, recorder=rec))
+    run = json.loads((tmp_path / "summary.json").read_text())
+    assert run == json.loads(json.dumps(result.summary))
+    d = load_recording(path)
+    assert d.kind == "fleet" and d.summary == run
+    assert d.phases is not None and len(d.tick) == run["ticks"]
+    assert d.entity_rows[E_VEHICLES] == run["ticks"]
+    res = review(path, out_dir=tmp_path)
+    _assert_same_summary(res.summary, run)
+    for p in res.plots:
+        _png_ok(p)
