@@ -35,7 +35,7 @@ import numpy as np
 from vtube_fleet import models
 from vtube_fleet.controller import TubeArrays, velocity_command
 from vtube_fleet.errors import UserError
-from vtube_fleet.metrics import SafetyMonitor, StepMetrics, SummaryAccumulator
+from vtube_fleet.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
 from vtube_fleet.neighbours import VerletPairs
 from vtube_fleet.partition import Partition
 from vtube_fleet.scenario import Scenario
@@ -175,6 +175,7 @@ def simulate(
     progress: ProgressFn | None = None,
     skin: float | None = None,
     validate: bool = True,
+    recorder: Any = None,
 ) -> SimResult:
     """Run the scenario with forward Euler (see the module docstring).
 
@@ -183,7 +184,9 @@ def simulate(
     of simulated time. The scenario is validated first (:func:`check_scenario`, raising
     :class:`~vtube_fleet.validation.ScenarioError`) unless ``validate=False``. ``skin`` is the
     Verlet-list margin (default 0.4 (r_a − r_s) + ..., see code). Ctrl-C stops the run early:
-    the result (``interrupted=True``) holds everything up to that step.
+    the result (``interrupted=True``) holds everything up to that step. ``recorder`` (a
+    :class:`vtube_fleet.recording.Recorder`) gets the scene, every recorded frame, every step's
+    metrics, the exits and the summary; the caller closes it.
     """
     if controller not in CONTROLLERS:
         raise SimError(f"unknown controller {controller!r} (choose from {', '.join(CONTROLLERS)})")
@@ -222,9 +225,16 @@ def simulate(
         arrays = part.arrays
         locate = part.locate
 
-    run = _Run(scenario, controller, dt, n_steps, record_every, arrays, locate, progress, skin)
+    if recorder is not None:
+        recorder.log_scene(scenario, part if controller != "apf" else None, meta={
+            "dt_s": dt, "controller": controller, "record_every": record_every})
+    run = _Run(scenario, controller, dt, n_steps, record_every, arrays, locate, progress, skin,
+               recorder)
     run.execute()
-    return run.result(part)
+    result = run.result(part)
+    if recorder is not None:
+        recorder.log_summary(result.summary)
+    return result
 
 
 class _Run:
@@ -232,8 +242,9 @@ class _Run:
 
     def __init__(self, scenario: Scenario, controller: str, dt: float, n_steps: int,
                  record_every: int, arrays: TubeArrays, locate: Callable | None,
-                 progress: ProgressFn | None, skin: float | None) -> None:
+                 progress: ProgressFn | None, skin: float | None, recorder: Any = None) -> None:
         self.scenario = scenario
+        self.recorder = recorder
         self.controller = controller
         self.dt = dt
         self.n_steps = n_steps
@@ -333,9 +344,15 @@ class _Run:
                                         all_present=True)
                 acc.add(tt, metc, suffix="_center")
                 self.parts_center.append(metc)
+            if rec is not None:
+                series = {key: getattr(met, key) for key in METRIC_KEYS}
+                if unicycle:
+                    series.update({f"{key}_center": getattr(metc, key) for key in METRIC_KEYS})
+                rec.log_metrics(tt, np.rint(tt / dt).astype(np.int64), series, every=rec_every)
             nc = 0
 
         self._alloc_records()
+        rec = self.recorder
         rec_every = self.record_every
         next_rec = 0
         next_exit_check = 0
@@ -364,6 +381,8 @@ class _Run:
                         flush()
                         gone = xi >= thresh
                         acc.add_exits(t, ids[gone])
+                        if rec is not None:
+                            rec.log_exits(t, step, ids[gone])
                         keep = ~gone
                         pos = pos[keep]
                         ids = ids[keep]
@@ -420,6 +439,11 @@ class _Run:
                         self.rec_vel[f, ids] = vc
                     self.frames = f + 1
                     next_rec += rec_every
+                    if rec is not None and unicycle:
+                        rec.log_tick(t_s=t, tick=step, ids=ids, pos=pos, vel=vcen,
+                                     safety={"": (q, vc), "_center": (pos, vcen)})
+                    elif rec is not None:
+                        rec.log_tick(t_s=t, tick=step, ids=ids, pos=pos, vel=vc)
                 # 5. Euler step of the model
                 if unicycle:
                     pos, theta = models.unicycle_step(pos, theta, v_lin, omega, dt)

@@ -63,6 +63,9 @@ def register(subparsers: Any) -> None:
                    "simulated time, coarser if the file would exceed ~40 MB)")
     s.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    from vtube_fleet.recording import add_recording_args
+
+    add_recording_args(s)
     s.set_defaults(func=cmd_sim)
 
 
@@ -243,12 +246,17 @@ def cmd_sim(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else _default_out(args.config, args.controller)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out}: exists and is not a directory")
+    from vtube_fleet.recording import recorder_from_args
+
+    recorder = recorder_from_args(args, out, kind="sim")
     bar = None if args.quiet else ProgressBar(sys.stderr)
     result = None
     try:
         result = simulate(sc, controller=args.controller, dt=args.dt, duration=args.duration,
-                          robots=args.robots, record_every=args.record_every, progress=bar)
+                          robots=args.robots, record_every=args.record_every, progress=bar,
+                          recorder=recorder)
     finally:
+        recorder.close()
         if bar is not None:
             note = None
             if result is not None:
