@@ -199,17 +199,17 @@ class TubeArrays:
 
 
 class _Layout:
-    """Constants for evaluating n robots out of M (cached per M when all robots are evaluated).
+    """Constants for evaluating n robots out of M (memoized per M, or per rows for agents).
 
     Fused element layout of one step (floats): X = [d_Th of the n robots | d_Tr | d_Th | d_Tr |
     ‖p_i − p_j‖ of the P pairs]: the first two blocks feed (Vtli1)/(Vtri1), the next two the
     σ's of u1'', the last (Vmij). Complex weights W = [legs (2n) | σ (2n) | pairs, i side (P) |
     pairs, j side (P)] are summed by ONE ``np.bincount`` into float slots giving the complex
-    array B = [q_0 … q_{M−1} | u_rep,0 … u_rep,M−1] (q: direction of u1''; u_rep = u2 + u3'
-    + u4').
+    array B = [q_0 … q_{n−1} | u_rep,0 … u_rep,n−1] (q: direction of u1''; u_rep = u2 + u3'
+    + u4'); with ``rows`` the slots cover all M robots and the rows are taken afterwards.
     """
 
-    __slots__ = ("n", "M", "bank", "slot_ls", "cv", "mv", "pair_key", "pair_val")
+    __slots__ = ("n", "M", "bank", "slot_ls", "cv", "mv", "pairs")
 
     def __init__(self, prep: _Prepared, slots: np.ndarray, M: int, n_pairs: int) -> None:
         p = prep.params
@@ -232,21 +232,22 @@ class _Layout:
         # final step on [q | u_rep]: × cv/max(|.|, mv) gives [v q/‖q‖ | sat(u_rep, v'_max)]
         self.cv = np.repeat([p.v, p.v_max_prime], n)
         self.mv = np.repeat([1e-300, p.v_max_prime], n)
-        self.pair_key: tuple | None = None
-        self.pair_val: tuple | None = None
+        self.pairs: tuple | None = None
 
-    def pair_slots(self, I: np.ndarray, J: np.ndarray, cache: bool) -> tuple:
-        """(IJI, float slots of all W elements) for pairs (I, J); memoized on array identity."""
-        pk = self.pair_key
-        if cache and pk is not None and pk[0] is I and pk[1] is J:
-            return self.pair_val
+    def pair_arrays(self, I: np.ndarray, J: np.ndarray, cache: bool) -> tuple:
+        """(IJ, float slots of all W elements) for pairs (I, J); memoized on array identity
+        when ``cache`` (read-only arrays)."""
+        pa = self.pairs
+        if cache and pa is not None and pa[0] is I and pa[1] is J:
+            return pa[2], pa[3]
         re_im = np.array([0, 1]) + 2 * self.M
         ia = (2 * I[:, None] + re_im).ravel()
         ib = (2 * J[:, None] + re_im).ravel()
-        val = (np.concatenate([I, J, I]), np.concatenate([self.slot_ls, ia, ib]))
+        IJ = np.concatenate([I, J])
+        slots = np.concatenate([self.slot_ls, ia, ib])
         if cache:
-            self.pair_key, self.pair_val = (I, J), val
-        return val
+            self.pairs = (I, J, IJ, slots)
+        return IJ, slots
 
 
 class _Prepared:
@@ -283,75 +284,44 @@ class _Prepared:
             self._layouts[key] = lay
         return lay
 
-    def evaluate(self, z: np.ndarray, k: np.ndarray, I: np.ndarray, J: np.ndarray,
-                 rows: np.ndarray | None, cache: bool) -> tuple[np.ndarray, _Layout]:
-        """B (2n,) complex = [q of the n robots | u2 + u3' + u4' of the n robots]."""
-        M = z.shape[0]
-        lay = self.layout(M, I.shape[0], rows)
-        if rows is None:
-            zr = z
-        else:
-            zr = z.take(rows)
-            cache = False
-        n, P = zr.shape[0], I.shape[0]
-        if n == 0:
-            return np.zeros(0, np.complex128), lay
-        IJI, slots = lay.pair_slots(I, J, cache)
-        G = self.table.take(k, axis=1)  # (9, n); k ≥ K → IndexError
-
-        X = np.empty(4 * n + P)
-        # d_Th, d_Tr of each robot in its own sub-tube, written to the legs and σ blocks
-        np.subtract((G[0:2] * zr).real, G[2:4].real, out=X[: 4 * n].reshape(2, 2, n))
-        zz = z.take(IJI)
-        dz = zz[P:] - zz[: 2 * P]  # [p_j − p_i | p_i − p_j]
-        np.abs(dz[:P], out=X[4 * n:])
-
-        y = lay.bank.evaluate(X)  # ∂V/∂x (legs, pairs), σ (σ block); clamps X ≥ X_MIN
-
-        W = np.empty(4 * n + 2 * P, np.complex128)
-        np.multiply(y[: 4 * n], G[4:8].reshape(4 * n), out=W[: 4 * n])
-        # pairs: b_ij (p_i − p_j) = (∂V_m/∂‖p_ij‖ / ‖p_ij‖)(p_j − p_i) for i, the opposite for j
-        np.multiply(y[4 * n:] / X[4 * n:], dz.reshape(2, P), out=W[4 * n:].reshape(2, P))
-        B = np.bincount(slots, W.view(np.float64), 4 * M).view(np.complex128)
-        if rows is not None:
-            B = B.reshape(2, M).take(rows, axis=1).reshape(2 * n)
-        B[:n] += G[8]  # q = n_c + σ_h A_h + σ_r A_r
-        return B, lay
-
-
-def _pairs_arg(pairs, p: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    if pairs is None:
-        pairs = pairs_within(p, radius)
-    I, J = pairs
-    if not (isinstance(I, np.ndarray) and isinstance(J, np.ndarray)):
-        I, J = np.asarray(I), np.asarray(J)
-    if I.ndim != 1 or I.shape != J.shape or I.dtype.kind not in "iu" or J.dtype.kind not in "iu":
-        if I.size == 0 and J.size == 0:
-            return np.zeros(0, np.intp), np.zeros(0, np.intp)
-        raise ValueError("pairs must be two 1-D integer arrays (I, J) of equal length")
-    return I, J
-
 
 def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
               ) -> tuple[np.ndarray, _Layout]:
-    """Shared core of all laws and terms: B (2n,) complex as in :meth:`_Prepared.evaluate`."""
+    """The shared core of all laws and terms.
+
+    Returns B (2n,) complex = [q of the n robots | u2 + u3' + u4' of the n robots] (q: the
+    unnormalized direction of u1'') and the layout used. The hot path for the simulator
+    (all robots, read-only pair arrays) costs 34 numpy calls, whatever M.
+    """
     prep = tubes._prepared(params)
-    if not (isinstance(p, np.ndarray) and p.dtype == np.float64 and p.flags.c_contiguous):
+    # --- arguments (cheap checks first; conversions only when needed) --------------------
+    if type(p) is not np.ndarray or p.dtype != np.float64 or not p.flags.c_contiguous:
         p = np.ascontiguousarray(p, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 2:
         raise ValueError(f"p must have shape (M, 2), got {p.shape}")
     M = p.shape[0]
     z = p.view(np.complex128).reshape(M)
-    if not (isinstance(k, np.ndarray) and k.dtype == np.intp):
+    if type(k) is not np.ndarray or k.dtype != np.intp:
         k = np.asarray(k)
         if k.dtype.kind not in "iu" and k.size:
             raise ValueError(f"k must be integer sub-tube indices, got dtype {k.dtype}")
         k = k.astype(np.intp)
-    I, J = _pairs_arg(pairs, p, prep.r_pair)
+    if pairs is None:
+        pairs = pairs_within(p, prep.r_pair)
+    I, J = pairs
+    if type(I) is not np.ndarray or type(J) is not np.ndarray or I.dtype.kind not in "iu" \
+            or J.dtype.kind not in "iu" or I.ndim != 1 or I.shape != J.shape:
+        I, J = np.asarray(I), np.asarray(J)
+        if I.size == 0 and J.size == 0:
+            I = J = np.zeros(0, np.intp)
+        elif I.ndim != 1 or I.shape != J.shape or I.dtype.kind not in "iu" \
+                or J.dtype.kind not in "iu":
+            raise ValueError("pairs must be two 1-D integer arrays (I, J) of equal length")
     cache = not (I.flags.writeable or J.flags.writeable)
     if rows is None:
         if k.shape != (M,):
             raise ValueError(f"k must have shape ({M},), got {k.shape}")
+        zr = z
     else:
         rows = np.asarray(rows, dtype=np.intp).reshape(-1)
         if rows.size and (rows.min() < 0 or rows.max() >= M):
@@ -364,17 +334,50 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
         inrows[rows] = True
         keep = inrows[I] | inrows[J]
         I, J = I[keep], J[keep]
+        zr = z.take(rows)
+        cache = False
     if not cache and I.size and (I.min() < 0 or J.max() >= M or I.max() >= M or J.min() < 0):
         raise ValueError(f"pairs must index the {M} robots")
-    if k.size and k.min() < 0:  # (k ≥ K makes the gather raise)
+    n, P = zr.shape[0], I.shape[0]
+    lay = prep.layout(M, P, rows)
+    if n == 0:
+        return np.zeros(0, np.complex128), lay
+    if k.min() < 0:  # (k ≥ K makes the gather raise)
         raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.min()}")
     try:
-        return prep.evaluate(z, k, I, J, rows, cache)
+        G = prep.table.take(k, axis=1)  # (9, n) per-robot sub-tube constants
     except IndexError:
-        if k.size and (k.min() < 0 or k.max() >= prep.K):
-            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got values in "
-                             f"[{k.min()}, {k.max()}]") from None
-        raise
+        raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.max()}"
+                         ) from None
+    IJ, slots = lay.pair_arrays(I, J, cache)
+
+    # --- distances: d_Th, d_Tr (dtl)/(dtr) of each robot in its own sub-tube, written to the
+    # legs and σ blocks; ‖p_i − p_j‖ of the pairs ---------------------------------------
+    X = np.empty(4 * n + P)
+    np.subtract((G[0:2] * zr).real, G[2:4].real, out=X[: 4 * n].reshape(2, 2, n))
+    zz = z.take(IJ)
+    dz = zz[P:]
+    dz -= zz[:P]  # p_j − p_i
+    xp = X[4 * n:]
+    np.abs(dz, out=xp)
+
+    # --- all barrier derivatives and σ's in one call (clamps X ≥ X_MIN if needed) -------
+    y = lay.bank.evaluate(X)
+
+    # --- weights, summed per robot by one bincount -------------------------------------
+    W = np.empty(4 * n + 2 * P, np.complex128)
+    np.multiply(y[: 4 * n], G[4:8].reshape(4 * n), out=W[: 4 * n])  # u3', u4'; σ·A
+    # u2: b_ij (p_i − p_j) = (∂V_m/∂‖p_ij‖/‖p_ij‖)(p_j − p_i) for i, the opposite for j
+    yp = y[4 * n:]
+    yp /= xp
+    wi = W[4 * n: 4 * n + P]
+    np.multiply(dz, yp, out=wi)
+    np.negative(wi, out=W[4 * n + P:])
+    B = np.bincount(slots, W.view(np.float64), 4 * M).view(np.complex128)
+    if rows is not None:
+        B = B.reshape(2, M).take(rows, axis=1).reshape(2 * n)
+    B[:n] += G[8]  # q = n_c + σ_h A_h + σ_r A_r
+    return B, lay
 
 
 def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
@@ -401,27 +404,31 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
     if kind != "new" and kind != "old" and kind != "apf":
         raise ValueError(f"kind must be 'new', 'old' or 'apf', got {kind!r}")
     B, lay = _evaluate(p, k, tubes, params, pairs, rows)
-    n = B.shape[0] // 2
-    q, u = B[:n], B[n:]
-    if kind == "apf":  # Appendix C: u_rep += u5
+    n = B.shape[0] >> 1
+    q = B[:n]
+    if kind == "new":
+        # [v q/‖q‖ | sat(u_rep, v'_max)] in one go, then u1'' + sat(...) (ModifiedVectorField)
+        nb = np.abs(B)
+        np.maximum(nb, lay.mv, out=nb)
+        np.divide(lay.cv, nb, out=nb)
+        B *= nb
+        q += B[n:]
+        return q.view(np.float64).reshape(n, 2)
+    u = B[n:]
+    if kind == "apf":  # Appendix C: u_rep += u5, then as "new"
         if not obstacles:
             raise ValueError("kind='apf' needs obstacles")
         pr = np.asarray(p, dtype=np.float64)
         if rows is not None:
             pr = pr[np.asarray(rows, dtype=np.intp).reshape(-1)]
         u += u5(pr, obstacles, params).view(np.complex128).reshape(n)
-    if kind == "old":
-        # (Oldcontroller): sat(u1'' + u2 + u3' + u4', v_max)
-        u += q * (params.v / np.maximum(np.abs(q), 1e-300))
-        u *= params.v_max / np.maximum(np.abs(u), params.v_max)
-        return u.view(np.float64).reshape(n, 2)
-    # [v q/‖q‖ | sat(u_rep, v'_max)] in one go, then u1'' + sat(...) (ModifiedVectorField)
-    nb = np.abs(B)
-    np.maximum(nb, lay.mv, out=nb)
-    np.divide(lay.cv, nb, out=nb)
-    B *= nb
-    q += u
-    return q.view(np.float64).reshape(n, 2)
+        B *= lay.cv / np.maximum(np.abs(B), lay.mv)
+        q += u
+        return q.view(np.float64).reshape(n, 2)
+    # (Oldcontroller): sat(u1'' + u2 + u3' + u4', v_max)
+    u += q * (params.v / np.maximum(np.abs(q), 1e-300))
+    u *= params.v_max / np.maximum(np.abs(u), params.v_max)
+    return u.view(np.float64).reshape(n, 2)
 
 
 # ----------------------------------------------------------------------------------------------
