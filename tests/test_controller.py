@@ -366,6 +366,9 @@ def test_rows_agent_view_equals_the_swarm_view():
         local = np.vstack([p[i], p[nb]])
         cmd = velocity_command(local, np.r_[k[i], k[nb]], ta, PAPER, rows=[0])
         np.testing.assert_allclose(cmd[0], full[i], rtol=0, atol=1e-12)
+        # several rows at once, pairs=None (all pairs touching the rows are candidates)
+        cmd2 = velocity_command(local, np.r_[k[i], k[nb]], ta, PAPER, rows=[0, 1])
+        np.testing.assert_allclose(cmd2[0], full[i], rtol=0, atol=1e-12)
 
 
 def test_pairs_argument_superset_and_none_give_the_same_commands():
@@ -430,5 +433,7 @@ def test_empty_swarm_and_bad_arguments():
         velocity_command(p, [0, 0], ta, PAPER, pairs=(np.array([0]), np.array([5])))
     with pytest.raises(ValueError):
         velocity_command(p, [0, 0], ta, PAPER, rows=[2])
+    with pytest.raises(ValueError):
+        velocity_command(p, [0, 0], ta, PAPER, rows=[1, 1])
     with pytest.raises(ValueError):
         velocity_command(p[:, :1], [0, 0], ta, PAPER)

@@ -306,8 +306,22 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
         if k.dtype.kind not in "iu" and k.size:
             raise ValueError(f"k must be integer sub-tube indices, got dtype {k.dtype}")
         k = k.astype(np.intp)
+    if rows is not None:
+        rows = np.asarray(rows, dtype=np.intp).reshape(-1)
+        if rows.size and (rows.min() < 0 or rows.max() >= M):
+            raise ValueError(f"rows must index the {M} robots, got {rows}")
+        if np.unique(rows).size != rows.size:
+            raise ValueError(f"rows must not repeat a robot, got {rows}")
     if pairs is None:
-        pairs = pairs_within(p, prep.r_pair)
+        if rows is None:
+            pairs = pairs_within(p, prep.r_pair)
+        else:  # an agent: every (row, other) pair is a candidate; pairs inside rows once
+            I = np.repeat(rows, M)
+            J = np.tile(np.arange(M), rows.shape[0])
+            inrows = np.zeros(M, bool)
+            inrows[rows] = True
+            keep = (I != J) & ~(inrows[J] & (J < I))
+            pairs = (I[keep], J[keep])
     I, J = pairs
     if type(I) is not np.ndarray or type(J) is not np.ndarray or I.dtype.kind not in "iu" \
             or J.dtype.kind not in "iu" or I.ndim != 1 or I.shape != J.shape:
@@ -323,9 +337,6 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
             raise ValueError(f"k must have shape ({M},), got {k.shape}")
         zr = z
     else:
-        rows = np.asarray(rows, dtype=np.intp).reshape(-1)
-        if rows.size and (rows.min() < 0 or rows.max() >= M):
-            raise ValueError(f"rows must index the {M} robots, got {rows}")
         if k.shape == (M,):
             k = k.take(rows)
         elif k.shape != rows.shape:
