@@ -15,6 +15,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import dataclasses
+import logging
 import math
 import time
 from collections import deque
@@ -78,6 +79,10 @@ class StatusText(NamedTuple):
 
 
 _NAN = math.nan
+_SEVERITY_NAMES = {
+    0: "EMERGENCY", 1: "ALERT", 2: "CRITICAL", 3: "ERROR",
+    4: "WARNING", 5: "NOTICE", 6: "INFO", 7: "DEBUG", -1: "?",
+}
 
 
 @dataclass(eq=False)
@@ -161,6 +166,7 @@ class VehicleLink(abc.ABC):
         self._closed = False
         self._last_setpoint_s: float | None = None
         self._setpoints_sent = 0
+        self._last_logged_text: tuple[str, float] | None = None
 
     # -- naming ------------------------------------------------------------------------------
     @property
@@ -179,6 +185,20 @@ class VehicleLink(abc.ABC):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    def _log_statustext(self, logger: logging.Logger, severity: int, text: str) -> None:
+        """Log a vehicle's STATUSTEXT (WARNING for severity <= 4, else INFO); a repeat of the
+        previous text within 10 s (e.g. "Arming denied" on every arm retry) goes to DEBUG."""
+        now = time.monotonic()
+        last = self._last_logged_text
+        repeat = last is not None and last[0] == text and now - last[1] < 10.0
+        self._last_logged_text = (text, now)
+        if repeat:
+            level = logging.DEBUG
+        else:
+            level = logging.WARNING if 0 <= severity <= 4 else logging.INFO
+        name = _SEVERITY_NAMES.get(severity, str(severity))
+        logger.log(level, "%s says [%s]: %s", self.name, name, text)
 
     # -- notification (called by backends on every update) -----------------------------------
     def _notify_state(self) -> None:

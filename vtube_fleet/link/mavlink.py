@@ -440,8 +440,7 @@ class MavlinkLink(VehicleLink):
     def _emit_statustext(self, severity: int, text: str, now: float) -> None:
         text = text.rstrip("\t\r\n \x00")
         self.state.statustexts.append(StatusText(now, severity, text))
-        level = logging.WARNING if severity <= 4 else logging.INFO
-        log.log(level, "%s says [%s]: %s", self.name, _severity_name(severity), text)
+        self._log_statustext(log, severity, text)
         self._notify_state()
 
     def _rtt_sample(self, rtt_s: float, source: str) -> None:
@@ -801,8 +800,3 @@ class MavlinkLink(VehicleLink):
 
     async def stop_offboard(self) -> None:
         await self.hold()
-
-
-def _severity_name(severity: int) -> str:
-    entry = mavlink2.enums["MAV_SEVERITY"].get(severity)
-    return entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)

@@ -483,8 +483,7 @@ class MavsdkLink(VehicleLink):
         severity = _SEVERITY.get(getattr(text.type, "name", ""), -1)
         msg = str(text.text).rstrip("\t\r\n \x00")
         self.state.statustexts.append(StatusText(time.monotonic(), severity, msg))
-        level = logging.WARNING if 0 <= severity <= 4 else logging.INFO
-        log.log(level, "%s says: %s", self.name, msg)
+        self._log_statustext(log, severity, msg)
         self._notify_state()
 
     async def _ready_tick(self, missing: list[str]) -> None:
