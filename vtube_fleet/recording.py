@@ -556,6 +556,9 @@ class RerunRecorder:
         self._meta: dict[str, Any] = {}
         self._descriptors: dict[str, Any] = {}
         self._open_block: tuple[int, float, int, dict[str, float]] | None = None
+        self._mbuf: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]] = []
+        self._mbuf_n = 0
+        self._xbuf: list[tuple[float, int, list[int]]] = []
 
         if self.path is not None:
             _check_writable(self.path)
@@ -625,15 +628,15 @@ class RerunRecorder:
                 self._queued -= 1
                 self._qcond.notify_all()
 
-    def _submit(self, job: Any, *, ticks: int = 0) -> None:
+    def _submit(self, job: Any, *, ticks: int = 0) -> bool:
         """Run ``job`` (a rerun call) on the sender thread, or here without one. ``ticks``:
         how many ticks of data the job carries (0: scene, events, exits, summary — never
-        dropped)."""
+        dropped). False when the job was dropped or recording is off."""
         if not self._open():
-            return
+            return False
         if self._worker is None:
             self._guard(job)
-            return
+            return True
         with self._qcond:
             full = self._queued >= self.max_queued_batches
             if full and self.on_backlog == "block":
@@ -651,8 +654,9 @@ class RerunRecorder:
             if self.dropped_ticks == ticks or self.dropped_ticks % 1000 < ticks:
                 log.warning("rerun recording falls behind (%d jobs queued): %d ticks dropped "
                             "so far", self.max_queued_batches, self.dropped_ticks)
-            return
+            return False
         self._queue.put(job)
+        return True
 
     def _guard(self, fn: Any) -> None:
         """Run a rerun call; recording problems are logged, never raised into the loop."""
@@ -880,15 +884,32 @@ class RerunRecorder:
         if row.t_s >= self._next_status_t:
             self._next_status_t = row.t_s + self.status_period_s
             self._submit(lambda: self._send_status(row))
-        if (len(self._rows) >= self.batch_ticks
+        self._maybe_send()
+
+    def _maybe_send(self) -> None:
+        if (len(self._rows) >= self.batch_ticks or self._mbuf_n >= 16 * self.batch_ticks
                 or time.monotonic() - self._last_send >= self.max_delay_s):
             self._send_rows()
 
     def _send_rows(self) -> None:
+        """Hand the buffered ticks, metric series and exits to the sender as one job."""
         rows, self._rows = self._rows, []
+        mbuf, self._mbuf, self._mbuf_n = self._mbuf, [], 0
+        xbuf, self._xbuf = self._xbuf, []
         self._last_send = time.monotonic()
-        if rows:
-            self._submit(lambda: self._send_rows_now(rows), ticks=len(rows))
+        if not (rows or mbuf or xbuf):
+            return
+
+        def job() -> None:
+            if rows:
+                self._send_rows_now(rows)
+            if mbuf:
+                self._send_metric_chunks(mbuf)
+            if xbuf:
+                self._send_exits(xbuf)
+
+        if not self._submit(job, ticks=len(rows) + sum(len(m[0]) for m in mbuf)) and xbuf:
+            self._submit(lambda: self._send_exits(xbuf))  # exits are never dropped
 
     def _detect_changes(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
                         phases: Sequence[Any] | None) -> None:
@@ -932,7 +953,7 @@ class RerunRecorder:
         gone = [i for i in gone if i not in self._exited]
         if gone:
             self._exited.update(gone)
-            self._submit(lambda: self._send_exits(t_s, tick, gone))
+            self._xbuf.append((t_s, tick, gone))
 
     # ----- sending (sender thread) ------------------------------------------------------
     def _index(self, t_s: Sequence[float] | np.ndarray, ticks: Sequence[int] | np.ndarray
@@ -953,14 +974,16 @@ class RerunRecorder:
         arr = values if isinstance(values, self._pa.Array) else self._pa.array(values)
         return self._rr.ComponentColumn(desc, AnyBatchValue(desc, arr), offsets=offsets)
 
-    def _send_exits(self, t_s: float, tick: int, gone: list[int]) -> None:
+    def _send_exits(self, exits: list[tuple[float, int, list[int]]]) -> None:
         rr = self._rr
-        text = ("vehicle " if len(gone) == 1 else "vehicles ") + ", ".join(map(str, gone)) + \
-            " exited"
-        self._rec.send_columns(E_EXITS, self._index([t_s], [tick]), [
-            *rr.TextLog.columns(text=[text], level=["INFO"]),
-            self._custom(_EXIT, "vehicle_id", np.asarray(gone, np.int64),
-                         _offsets(np.array([len(gone)])))])
+        texts = [("vehicle " if len(g) == 1 else "vehicles ") + ", ".join(map(str, g)) + " exited"
+                 for _, _, g in exits]
+        ids = np.array([i for _, _, g in exits for i in g], dtype=np.int64)
+        self._rec.send_columns(
+            E_EXITS, self._index([e[0] for e in exits], [e[1] for e in exits]), [
+                *rr.TextLog.columns(text=texts, level=["INFO"] * len(exits)),
+                self._custom(_EXIT, "vehicle_id", ids,
+                             _offsets(np.array([len(g) for _, _, g in exits], np.int32)))])
 
     def _send_vehicle_events(self, t_s: float, tick: int, vids: list[int], texts: list[str],
                              levels: list[str]) -> None:
@@ -1142,15 +1165,30 @@ class RerunRecorder:
             self._open_block = (int(bb[-1]), float(tt[-1]), int(kk[-1]),
                                 {key: float(v[-1]) for key, v in out.items()})
             if len(tt) > 1:
-                series = {key: v[:-1] for key, v in out.items()}
-                t_done, k_done = tt[:-1].copy(), kk[:-1].copy()
-                self._submit(lambda: self._send_metric_series(t_done, k_done, series),
-                             ticks=len(t_done))
+                self._mbuf.append((tt[:-1].copy(), kk[:-1].copy(),
+                                   {key: v[:-1] for key, v in out.items()}))
+                self._mbuf_n += len(tt) - 1
+            self._maybe_send()
 
     def _emit_metric_block(self, op: tuple[int, float, int, dict[str, float]]) -> None:
-        t1, k1 = np.array([op[1]]), np.array([op[2]], dtype=np.int64)
-        series = {key: np.array([v]) for key, v in op[3].items()}
-        self._submit(lambda: self._send_metric_series(t1, k1, series), ticks=1)
+        self._mbuf.append((np.array([op[1]]), np.array([op[2]], dtype=np.int64),
+                           {key: np.array([v]) for key, v in op[3].items()}))
+        self._mbuf_n += 1
+
+    def _send_metric_chunks(self, chunks: list[tuple[np.ndarray, np.ndarray,
+                                                     dict[str, np.ndarray]]]) -> None:
+        """Buffered :meth:`log_metrics` blocks → one send per metric key."""
+        keys: dict[str, None] = {}
+        for _, _, ser in chunks:
+            keys.update(dict.fromkeys(ser))
+        if all(c[2].keys() == keys.keys() for c in chunks):
+            t = np.concatenate([c[0] for c in chunks])
+            k = np.concatenate([c[1] for c in chunks])
+            self._send_metric_series(t, k, {key: np.concatenate([c[2][key] for c in chunks])
+                                            for key in keys})
+            return
+        for c in chunks:  # differing key sets: rare, send chunk by chunk
+            self._send_metric_series(c[0], c[1], c[2])
 
     def _send_metric_series(self, t: np.ndarray, k: np.ndarray,
                             series: Mapping[str, np.ndarray]) -> None:
@@ -1176,7 +1214,8 @@ class RerunRecorder:
             if gone:
                 self._exited.update(gone)
                 t_s, tick = float(t_s), int(tick)
-                self._submit(lambda: self._send_exits(t_s, tick, gone))
+                self._xbuf.append((t_s, tick, gone))
+                self._maybe_send()
 
     def log_event(
         self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
@@ -1224,9 +1263,12 @@ class RerunRecorder:
                 atexit.unregister(self._atexit)
             except Exception:  # noqa: BLE001 - best effort at interpreter exit
                 pass
-            if not self._opened or not self._enabled:
+            buffered = bool(self._rows or self._pending or self._mbuf or self._xbuf
+                            or self._open_block)
+            if not self._enabled or not (self._opened or buffered):
                 log.info("rerun recording: nothing was logged, no recording written")
                 return
+            self._open()
             try:
                 if not self._blueprint_sent:
                     self._guard(lambda: self._send_blueprint(None))
