@@ -180,7 +180,7 @@ def dV_n_dx(k, x, d1, d2, eps, eps_s: float):
 
 class BarrierBank:
     """Per-element parameters (k, d1, d2, ε) of many V_n barriers sharing one ε_s, evaluated
-    by :meth:`evaluate` in ~17 numpy calls whatever the number of elements.
+    by :meth:`evaluate` in 14 numpy calls whatever the number of elements.
 
     Element i is the barrier V_n(k[i], ·, d1[i], d2[i], ε[i], ε_s). An element with k = 0 is
     "σ only": :meth:`evaluate` returns σ(x, d1, d2) for it instead of ∂V_n/∂x (which is 0), so
