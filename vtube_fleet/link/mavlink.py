@@ -571,7 +571,10 @@ class MavlinkLink(VehicleLink):
     async def _try_command(self, command: int, *params: float, what: str) -> None:
         result = await self.command_long(command, *params, raise_on_reject=False)
         if result != "ACCEPTED":
-            log.warning("%s: %s %s answered %s", self.name, command_name(command), what, result)
+            # REQUEST_MESSAGE is repeated by wait_ready while home/origin are missing
+            level = logging.INFO if command == CMD_REQUEST_MESSAGE else logging.WARNING
+            log.log(level, "%s: %s %s answered %s", self.name, command_name(command), what,
+                    result)
 
     async def _ready_tick(self, missing: list[str]) -> None:
         if self._remote is None or self._closed:
