@@ -57,7 +57,8 @@ def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:
 @contextlib.asynccontextmanager
 async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
                      ) -> AsyncIterator[Any]:
-    """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager)."""
+    """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager); PX4's port
+    scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond."""
     try:
         from sim_stub import MockFleet
     except ImportError as exc:  # pragma: no cover - sim_stub ships with the package
@@ -67,6 +68,7 @@ async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
     if not 1 <= n <= mission.count:
         raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
                             f"slots), got {n}")
+    kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
     async with MockFleet(n, homes=_homes(mission, n), **kwargs) as fleet:
         yield fleet
 
@@ -144,9 +146,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path("runs") / Path(args.mission).stem
     recorder = _recorder(args, out)
     view = FleetView(enabled=not args.quiet)
+    mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale}
     try:
         result = asyncio.run(fly(mission, backend=args.backend, endpoints=endpoints,
-                                 out_dir=out, recorder=recorder, view=view))
+                                 out_dir=out, recorder=recorder, view=view,
+                                 mock_kwargs=mock_kwargs))
     finally:
         recorder.close()
     s = result.summary
@@ -199,7 +203,8 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
-        async with mock_fleet(mission, args.count) as fleet:
+        async with mock_fleet(mission, args.count,
+                              boot_time_scale=args.boot_time_scale) as fleet:
             eps = list(fleet.endpoints)
             print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
                   flush=True)
@@ -237,6 +242,9 @@ def register(subparsers: Any) -> None:
                    help="output folder for summary.json and recording.rrd "
                         "(default: runs/<mission name>)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status view")
+    p.add_argument("--mock-boot-time-scale", type=float, default=1.0, metavar="S",
+                   help="without --endpoints: scale the mock vehicles' boot timeline (PX4 is "
+                        "armable ~4 s after boot; 0.3 makes that ~1.2 s)")
     try:
         from vtube_fleet.recording import add_recording_args
 
@@ -252,6 +260,8 @@ def register(subparsers: Any) -> None:
     m.add_argument("mission", type=Path)
     m.add_argument("--count", type=int, default=None, help="number of vehicles (default: all "
                                                            "slots)")
+    m.add_argument("--boot-time-scale", type=float, default=1.0, metavar="S",
+                   help="scale the vehicles' boot timeline (default 1 = as PX4 SITL)")
     m.set_defaults(func=_cmd_mock_fleet)
 
     h = subparsers.add_parser(

@@ -145,7 +145,9 @@ class VehiclePilot:
     # -- naming / events ---------------------------------------------------------------------
     @property
     def name(self) -> str:
-        return f"vehicle {self.vehicle_id} ({self.link.endpoint.url})"
+        """``slot 3 (udpin://127.0.0.1:14543)``: the slot index (= agent id) and endpoint (the
+        link's own messages name the MAVLink system id instead: ``vehicle 4 (…)``)."""
+        return f"slot {self.vehicle_id} ({self.link.endpoint.url})"
 
     @property
     def phase(self) -> Phase:
@@ -491,14 +493,24 @@ class VehiclePilot:
         self.exit_time_s = t_s
         self.set_phase(Phase.EXITED, f"crossed the finishing line at t = {t_s:.2f} s")
 
+    #: Seconds to wait for the vehicle's telemetry to confirm a mode change (HEARTBEAT: 1 Hz).
+    MODE_CONFIRM_S = 3.0
+
     async def hold(self) -> None:
-        """Hold now (PX4 Hold); no-op on the ground or when already holding/landing/lost."""
+        """Hold now (PX4 Hold) and wait until the vehicle reports it (warning if it does not
+        within ``MODE_CONFIRM_S``); no-op on the ground or when landing/lost."""
         if self.phase in OFFBOARD_PHASES or self.phase == Phase.HOLDING:
             if self.phase != Phase.HOLDING:
                 self.begin_hold("hold requested")
             t = self._transition
             if t is not None:
                 await asyncio.shield(t)
+            if self.phase == Phase.HOLDING and not self.link.closed:
+                try:
+                    await self.link.wait_until(lambda s: s.flight_mode == "HOLD",
+                                               self.MODE_CONFIRM_S, "Hold reported")
+                except LinkError as exc:
+                    self.event(f"hold not confirmed: {exc}", "warning")
 
     async def land(self) -> None:
         """Land now; waits for the LAND command's acknowledgement (not for touch-down)."""
