@@ -183,13 +183,15 @@ def simulate(
     the first N robots. ``progress(t, duration, in_tube, exited)`` is called about every 0.1 s
     of simulated time. The scenario is validated first (:func:`check_scenario`, raising
     :class:`~vtube_fleet.validation.ScenarioError`) unless ``validate=False``. ``skin`` is the
-    Verlet-list margin (default 0.4 (r_a − r_s) + ..., see code). Ctrl-C stops the run early:
+    Verlet-list margin in metres (default (r_s + r_a)/2). Ctrl-C stops the run early:
     the result (``interrupted=True``) holds everything up to that step. ``recorder`` (a
     :class:`vtube_fleet.recording.Recorder`) gets the scene, every recorded frame, every step's
     metrics, the exits and the summary; the caller closes it.
     """
     if controller not in CONTROLLERS:
         raise SimError(f"unknown controller {controller!r} (choose from {', '.join(CONTROLLERS)})")
+    if controller == "apf" and not scenario.obstacles:
+        raise SimError("controller 'apf' needs obstacles (its term u5 repels from them)")
     if robots is not None:
         scenario = scenario.with_robots(robots)
     dt = scenario.sim.dt if dt is None else float(dt)
@@ -207,7 +209,7 @@ def simulate(
         record_every = scenario.sim.record_every
     if record_every is None:
         record_every = default_record_every(dt, n_steps, m, 7 if unicycle else 4)
-    if record_every < 1:
+    if not isinstance(record_every, int) or record_every < 1:
         raise SimError(f"record_every must be >= 1, got {record_every}")
 
     control0 = rcfg.control_points()
