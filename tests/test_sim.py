@@ -137,6 +137,10 @@ def test_overrides_and_errors(paper) -> None:
         simulate(paper, duration=-1.0)
     with pytest.raises(ConfigError, match="--robots must be between 1 and 120"):
         simulate(paper, robots=500)
+    import dataclasses
+
+    with pytest.raises(SimError, match="controller 'apf' needs obstacles"):
+        simulate(dataclasses.replace(paper, obstacles=()), controller="apf")
 
 
 def test_invalid_scenario_is_rejected_before_running(paper) -> None:
