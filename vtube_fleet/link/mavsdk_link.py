@@ -209,9 +209,12 @@ class MavsdkHub:
             self._systems_changed.notify_all()
 
     async def _discover(self) -> None:
-        await self._refresh_systems()
-        async for _ in self._mavsdk.on_new_system():
+        try:
             await self._refresh_systems()
+            async for _ in self._mavsdk.on_new_system():
+                await self._refresh_systems()
+        except Exception as exc:
+            log.error("mavsdk: system discovery stopped: %s", exc)
 
     async def system(self, sysid: int, timeout_s: float) -> Any:
         """The MAVSDK system with ``sysid``; waits for its discovery (HEARTBEAT)."""
@@ -404,6 +407,9 @@ class MavsdkLink(VehicleLink):
                     handler(item)
                 except Exception:
                     log.exception("%s: bad telemetry item %r", self.name, item)
+        except Exception as exc:  # a dead subscription must not die silently
+            log.warning("%s: MAVSDK telemetry stream %s ended: %s", self.name,
+                        getattr(subscribe, "__name__", subscribe), exc)
         finally:
             await gen.aclose()  # type: ignore[attr-defined]
 
