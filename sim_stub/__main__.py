@@ -1,0 +1,154 @@
+"""``python -m sim_stub --count N``: run N mock PX4 SITL vehicles until SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+from collections.abc import Sequence
+
+from .errors import SimStubError
+from .faults import Faults, parse_fault_spec
+from .fleet import MockFleet, load_homes
+from .ports import PortScheme
+from .vehicle import DEFAULT_HOME, validate_home
+
+__all__ = ["main", "build_parser"]
+
+
+def _home(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise SimStubError(f"--home must be LAT,LON,ALT (three numbers), got {text!r}")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        raise SimStubError(f"--home must be LAT,LON,ALT (three numbers), got {text!r}") from None
+    return validate_home(values)  # type: ignore[arg-type]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m sim_stub",
+        description="Run mock PX4 SITL vehicles (MAVLink 2 over UDP) in one process.",
+    )
+    ap.add_argument("--count", type=int, default=None, help="number of vehicles (default 1)")
+    ap.add_argument(
+        "--home",
+        default=None,
+        help="LAT,LON,ALT start point of every vehicle "
+        f"(default PX4 SIH's {DEFAULT_HOME[0]},{DEFAULT_HOME[1]},{DEFAULT_HOME[2]})",
+    )
+    ap.add_argument(
+        "--homes",
+        default=None,
+        help="file with one LAT,LON,ALT per vehicle (text/CSV lines or a JSON list)",
+    )
+    ap.add_argument(
+        "--spacing",
+        type=float,
+        default=None,
+        help="place the vehicles on a grid this many metres apart around --home",
+    )
+    ap.add_argument("--seed", type=int, default=0, help="seed for loss/noise/stream phases")
+    ap.add_argument(
+        "--ports",
+        default="px4",
+        help="port scheme: px4 (vehicle binds 14580+i, sends to 14540+i; <= 40 "
+        "vehicles), wide (24000+i -> 20000+i), or VEHICLE_BASE:GCS_BASE",
+    )
+    ap.add_argument("--host", default="127.0.0.1", help="address to bind and send to")
+    ap.add_argument(
+        "--profile",
+        choices=("full", "lite"),
+        default="full",
+        help="telemetry stream set (default full = every stream PX4 sent)",
+    )
+    ap.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="[I:]KEY=VAL,...",
+        help="fault for vehicle I (or all): loss=PCT, latency=S, gps_noise=M, "
+        "die_at=S, die_how=silent|freeze; repeatable",
+    )
+    return ap
+
+
+def _scheme(text: str, host: str) -> PortScheme:
+    if text in ("px4", "wide"):
+        base = {"px4": (14580, 14540), "wide": (24000, 20000)}[text]
+        return PortScheme(text, base[0], base[1], host)
+    try:
+        v, g = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise SimStubError(
+            f"--ports must be px4, wide or VEHICLE_BASE:GCS_BASE, got {text!r}"
+        ) from None
+    return PortScheme("custom", v, g, host)
+
+
+def _faults(specs: Sequence[str], count: int) -> list[Faults]:
+    out = [Faults()] * count
+    for spec in specs:
+        index, f = parse_fault_spec(spec)
+        if index is None:
+            out = [f] * count
+        elif index >= count:
+            raise SimStubError(f"--fault {spec!r}: no vehicle {index} (count is {count})")
+        else:
+            out[index] = f
+    return out
+
+
+async def _run(fleet: MockFleet) -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    async with fleet:
+        print(
+            f"sim_stub: {fleet.count} vehicle(s), ports {fleet.ports.name}, "
+            f"profile {fleet.vehicles[0].profile}; Ctrl-C to stop",
+            flush=True,
+        )
+        for line in fleet.describe():
+            print(line, flush=True)
+        await stop.wait()
+        print("sim_stub: stopping", flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        home = _home(args.home) if args.home is not None else DEFAULT_HOME
+        homes = load_homes(args.homes) if args.homes else None
+        count = args.count
+        if count is None:
+            count = len(homes) if homes is not None else 1
+        if count < 1:
+            raise SimStubError(f"--count must be >= 1, got {count}")
+        if homes is not None and len(homes) != count:
+            raise SimStubError(f"--count {count} but {args.homes} has {len(homes)} homes")
+        fleet = MockFleet(
+            count,
+            homes=homes,
+            home=home,
+            spacing_m=args.spacing,
+            port_scheme=_scheme(args.ports, args.host),
+            faults=_faults(args.fault, count),
+            seed=args.seed,
+            profile=args.profile,
+        )
+        asyncio.run(_run(fleet))
+    except SimStubError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        return 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,104 @@
+"""Per-vehicle fault injection for the mock (link and vehicle faults).
+
+All faults are off by default. Randomness (packet loss, GPS noise) comes from a per-vehicle
+``random.Random``/``numpy`` generator seeded from the fleet seed, so a run is reproducible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .errors import SimStubError
+
+__all__ = ["Faults", "parse_fault_spec"]
+
+DIE_HOWS = ("silent", "freeze")
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Faults of one vehicle.
+
+    ``loss_pct``: each datagram, in both directions, is dropped with this probability (percent);
+    PX4's sequence numbers still advance, as on a real lossy link.
+    ``latency_s``: extra one-way delay added to every datagram in both directions (round trip
+    grows by twice this); granularity is the scheduler tick (10 ms).
+    ``gps_noise_m``: standard deviation of a Gauss-Markov position error (time constant 2 s) added
+    consistently to LOCAL_POSITION_NED, ODOMETRY, GLOBAL_POSITION_INT and GPS_RAW_INT.
+    ``die_at_s``: seconds after the vehicle's start at which it dies. ``die_how="silent"``: the link
+    goes dead (nothing sent, everything received is dropped) while the autopilot keeps running its
+    own logic (so in offboard it fails safe and lands). ``die_how="freeze"``: the vehicle keeps
+    streaming telemetry but stops reacting: it holds its current position (hovering if airborne),
+    ignores commands and setpoints (no COMMAND_ACK) and its state no longer changes.
+    """
+
+    loss_pct: float = 0.0
+    latency_s: float = 0.0
+    gps_noise_m: float = 0.0
+    die_at_s: float | None = None
+    die_how: str = "silent"
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.loss_pct <= 100.0:
+            raise SimStubError(f"fault loss_pct must be in [0, 100] %, got {self.loss_pct}")
+        if not 0.0 <= self.latency_s <= 10.0:
+            raise SimStubError(f"fault latency_s must be in [0, 10] s, got {self.latency_s}")
+        if self.gps_noise_m < 0.0:
+            raise SimStubError(f"fault gps_noise_m must be >= 0 m, got {self.gps_noise_m}")
+        if self.die_at_s is not None and self.die_at_s < 0.0:
+            raise SimStubError(f"fault die_at_s must be >= 0 s, got {self.die_at_s}")
+        if self.die_how not in DIE_HOWS:
+            raise SimStubError(f"fault die_how must be one of {DIE_HOWS}, got {self.die_how!r}")
+
+    @property
+    def affects_link(self) -> bool:
+        """True if datagrams must go through the lossy/delayed path."""
+        return self.loss_pct > 0.0 or self.latency_s > 0.0
+
+
+_KEYS = {
+    "loss": ("loss_pct", float),
+    "loss_pct": ("loss_pct", float),
+    "latency": ("latency_s", float),
+    "latency_s": ("latency_s", float),
+    "gps_noise": ("gps_noise_m", float),
+    "gps_noise_m": ("gps_noise_m", float),
+    "die_at": ("die_at_s", float),
+    "die_at_s": ("die_at_s", float),
+    "die_how": ("die_how", str),
+}
+
+
+def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
+    """Parse a CLI fault spec ``[I:]key=value,...`` into ``(vehicle index or None, Faults)``.
+
+    Example: ``"2:loss=5,latency=0.05,die_at=30,die_how=freeze"``; without ``I:`` it applies to
+    every vehicle. Keys: loss (percent), latency (s), gps_noise (m), die_at (s), die_how.
+    """
+    index: int | None = None
+    body = spec.strip()
+    head, sep, rest = body.partition(":")
+    if sep and "=" not in head:
+        try:
+            index = int(head)
+        except ValueError:
+            raise SimStubError(
+                f"fault spec {spec!r}: vehicle index {head!r} is not an integer"
+            ) from None
+        if index < 0:
+            raise SimStubError(f"fault spec {spec!r}: vehicle index must be >= 0, got {index}")
+        body = rest
+    kwargs: dict[str, object] = {}
+    for item in filter(None, (p.strip() for p in body.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq or key.strip() not in _KEYS:
+            raise SimStubError(
+                f"fault spec {spec!r}: expected key=value with key in "
+                f"{sorted(set(k for k in _KEYS if '_' not in k or k == 'die_how'))}, got {item!r}"
+            )
+        field, conv = _KEYS[key.strip()]
+        try:
+            kwargs[field] = conv(value.strip())
+        except ValueError:
+            raise SimStubError(f"fault spec {spec!r}: {key}={value!r} is not a number") from None
+    return index, Faults(**kwargs)  # type: ignore[arg-type]

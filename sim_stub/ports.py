@@ -1,0 +1,76 @@
+"""UDP port schemes for mock vehicles.
+
+PX4 SITL instance ``i`` binds its MAVLink "Onboard"/API link to ``127.0.0.1:14580+i`` and sends to
+the GCS port ``14540+i`` (README of the captures, 1b). That scheme collides from the 41st vehicle
+on: vehicle 40 would bind 14620 and vehicle 0's GCS port 14540+40 = 14580 is vehicle 0's own bind
+port. :data:`WIDE` keeps the two ranges 4000 ports apart and below the Linux ephemeral range
+(32768+), so it holds up to 4000 vehicles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .errors import SimStubError
+
+__all__ = ["PortScheme", "PX4", "WIDE", "resolve_port_scheme"]
+
+
+@dataclass(frozen=True)
+class PortScheme:
+    """Vehicle ``i`` binds ``vehicle_base + i`` and sends to ``gcs_base + i`` on ``host``."""
+
+    name: str
+    vehicle_base: int
+    gcs_base: int
+    host: str = "127.0.0.1"
+
+    def vehicle_port(self, i: int) -> int:
+        """UDP port the mock vehicle ``i`` binds (PX4: 14580+i)."""
+        return self.vehicle_base + i
+
+    def gcs_port(self, i: int) -> int:
+        """UDP port the GCS binds for vehicle ``i`` (PX4: 14540+i)."""
+        return self.gcs_base + i
+
+    def endpoint(self, i: int) -> str:
+        """MAVSDK connection URL the GCS uses for vehicle ``i``, e.g. ``udpin://127.0.0.1:14540``."""
+        return f"udpin://{self.host}:{self.gcs_port(i)}"
+
+    def capacity(self) -> int:
+        """How many vehicles fit before a vehicle port meets a GCS port or leaves 1..65535."""
+        lo, hi = sorted((self.vehicle_base, self.gcs_base))
+        gap = hi - lo
+        return max(0, min(gap, 65536 - hi))
+
+    def check(self, count: int) -> None:
+        """Raise :class:`SimStubError` if ``count`` vehicles do not fit this scheme."""
+        if count < 0:
+            raise SimStubError(f"vehicle count must be >= 0, got {count}")
+        if not (1 <= self.vehicle_base <= 65535 and 1 <= self.gcs_base <= 65535):
+            raise SimStubError(
+                f"port scheme {self.name!r}: bases must be in 1..65535, got vehicle_base="
+                f"{self.vehicle_base}, gcs_base={self.gcs_base}"
+            )
+        cap = self.capacity()
+        if count > cap:
+            hint = " (use port_scheme='wide' / --ports wide)" if self.name == "px4" else ""
+            raise SimStubError(
+                f"port scheme {self.name!r} (vehicles {self.vehicle_base}+i, GCS {self.gcs_base}+i)"
+                f" holds at most {cap} vehicles, {count} requested{hint}"
+            )
+
+
+PX4 = PortScheme("px4", vehicle_base=14580, gcs_base=14540)
+WIDE = PortScheme("wide", vehicle_base=24000, gcs_base=20000)
+
+
+def resolve_port_scheme(scheme: str | PortScheme) -> PortScheme:
+    """``"px4"`` → :data:`PX4`, ``"wide"`` → :data:`WIDE`; a :class:`PortScheme` passes as is."""
+    if isinstance(scheme, PortScheme):
+        return scheme
+    if scheme == "px4":
+        return PX4
+    if scheme == "wide":
+        return WIDE
+    raise SimStubError(f"unknown port scheme {scheme!r}: expected 'px4', 'wide' or a PortScheme")

@@ -1,0 +1,275 @@
+"""One periodic tick for all mock vehicles of an event loop.
+
+Per tick (default 100 Hz, absolute schedule so it does not drift):
+
+1. the PX4 logic (:meth:`MockVehicle._control`) of half of the vehicles (each vehicle runs at
+   50 Hz, alternating halves to spread the load),
+2. one vectorized dynamics step for all vehicles (:class:`~sim_stub.dynamics.QuadState`), then the
+   state is exported once as Python lists for the message builders,
+3. every telemetry message that is due, from a timing wheel of (due time, vehicle, stream)
+   entries: a stream at rate r is sent at ``t_start + k/r`` exactly (no drift), several times in
+   one tick if the loop fell behind (bounded by ``max_lag_s``), never more often,
+4. datagrams held back by a latency fault.
+
+There is no task per vehicle or per stream; a process serving 200 vehicles runs one callback per
+tick.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .dynamics import GRAVITY, DynamicsParams, QuadState
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .vehicle import MockVehicle, StreamState
+
+__all__ = ["Scheduler"]
+
+_WHEEL_SIZE = 1024  # buckets; the wheel spans 10.24 s at 100 Hz (longer intervals lap)
+
+
+class Scheduler:
+    """Drives ``capacity`` vehicle slots with one ``loop.call_at`` chain."""
+
+    def __init__(
+        self,
+        capacity: int,
+        *,
+        tick_hz: float = 100.0,
+        clock: Callable[[], float] | None = None,
+        dynamics: DynamicsParams | None = None,
+        max_lag_s: float = 0.25,
+    ) -> None:
+        if capacity < 1:
+            raise ValueError(f"scheduler capacity must be >= 1, got {capacity}")
+        if not 20.0 <= tick_hz <= 1000.0:
+            raise ValueError(f"tick_hz must be in [20, 1000], got {tick_hz}")
+        self.capacity = capacity
+        self.tick_hz = float(tick_hz)
+        self.dt = 1.0 / self.tick_hz
+        self._clock = clock
+        self.max_lag_s = max_lag_s
+        self.dyn = QuadState(capacity, dynamics, nominal_dt=self.dt)
+        n = capacity
+        self.u = np.zeros((n, 3))
+        self.airborne = np.zeros(n, dtype=bool)
+        self.frozen = np.zeros(n, dtype=bool)
+        self.yaw_sp = np.full(n, np.nan)
+        self.yaw_rate_sp = np.zeros(n)
+        self.noise = np.zeros((n, 3))
+        self.noise_sigma = np.zeros(n)
+        self._noise_rng = np.random.default_rng(0)
+        self.vehicles: list[MockVehicle | None] = [None] * n
+        self._buckets: list[list[list]] = [[] for _ in range(_WHEEL_SIZE)]
+        self._mask = _WHEEL_SIZE - 1
+        self._t0 = 0.0
+        self._k_done = -1
+        self._ticks = 0
+        self._last = 0.0
+        self._handle: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.delayed: set[MockVehicle] = set()
+        self.late_ticks = 0
+        self.skipped_msgs = 0  # messages dropped because the loop fell > max_lag_s behind
+        self._export()
+
+    # --- time -----------------------------------------------------------------------------
+    def now(self) -> float:
+        if self._clock is not None:
+            return self._clock()
+        loop = self._loop or asyncio.get_running_loop()
+        return loop.time()
+
+    # --- vehicles -------------------------------------------------------------------------
+    def attach(self, vehicle: MockVehicle) -> int:
+        for slot, v in enumerate(self.vehicles):
+            if v is None:
+                self.vehicles[slot] = vehicle
+                return slot
+        raise ValueError(f"scheduler is full ({self.capacity} vehicles)")
+
+    def detach(self, vehicle: MockVehicle) -> None:
+        for slot, v in enumerate(self.vehicles):
+            if v is vehicle:
+                self.vehicles[slot] = None
+                self.u[slot] = 0.0
+                self.airborne[slot] = False
+                self.frozen[slot] = False
+
+    def set_noise(self, slot: int, sigma_m: float, seed: int) -> None:
+        self.noise_sigma[slot] = sigma_m
+        self._noise_rng = np.random.default_rng(seed)
+
+    # --- streams --------------------------------------------------------------------------
+    def schedule(self, vehicle: MockVehicle, st: StreamState, due: float) -> None:
+        """(Re)schedule ``st`` of ``vehicle`` at absolute time ``due``; older entries die."""
+        ent = [due, vehicle, st]
+        st.entry = ent
+        self._insert(ent)
+
+    def _insert(self, ent: list) -> None:
+        k = int((ent[0] - self._t0) * self.tick_hz)
+        if k <= self._k_done:
+            k = self._k_done + 1
+        elif k - self._k_done >= _WHEEL_SIZE:
+            k = self._k_done + _WHEEL_SIZE - 1
+        self._buckets[k & self._mask].append(ent)
+
+    # --- lifecycle ------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._handle is not None:
+            return
+        self._loop = asyncio.get_running_loop()
+        now = self.now()
+        self._t0 = now
+        self._last = now
+        self._k_done = int((now - self._t0) * self.tick_hz) - 1
+        self._handle = self._loop.call_soon(self._tick)
+
+    def stop(self) -> None:
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+    @property
+    def running(self) -> bool:
+        return self._handle is not None
+
+    # --- the tick -------------------------------------------------------------------------
+    def _export(self) -> None:
+        d = self.dyn
+        self.p_rows = (d.p + self.noise).tolist()
+        self.p_true_rows = d.p.tolist()
+        self.v_rows = d.v.tolist()
+        self.acc_rows = d.acc.tolist()
+        self.att_rows = np.stack(
+            (d.roll, d.pitch, d.yaw, d.roll_rate, d.pitch_rate, d.yaw_rate), axis=1
+        ).tolist()
+        self.contact_rows = d.contact.tolist()
+        # attitude quaternion and IMU (specific force, magnetic field) in the body frame
+        hr, hp, hy = 0.5 * d.roll, 0.5 * d.pitch, 0.5 * d.yaw
+        cr, sr, cp, sp, cy, sy = (
+            np.cos(hr),
+            np.sin(hr),
+            np.cos(hp),
+            np.sin(hp),
+            np.cos(hy),
+            np.sin(hy),
+        )
+        self.q_rows = np.stack(
+            (
+                cr * cp * cy + sr * sp * sy,
+                sr * cp * cy - cr * sp * sy,
+                cr * sp * cy + sr * cp * sy,
+                cr * cp * sy - sr * sp * cy,
+            ),
+            axis=1,
+        ).tolist()
+        f = d.acc.copy()
+        f[:, 2] -= GRAVITY
+        mag = np.broadcast_to(np.array([0.21, 0.0, 0.43]), f.shape)  # Zurich field [gauss]
+        self.imu_rows = np.concatenate(
+            (_to_body(f, d.roll, d.pitch, d.yaw), _to_body(mag, d.roll, d.pitch, d.yaw)), axis=1
+        ).tolist()
+
+    def _tick(self) -> None:
+        loop = self._loop
+        assert loop is not None
+        now = self.now()
+        dt = now - self._last
+        self._last = now
+        self._ticks += 1
+        vehicles = self.vehicles
+        parity = self._ticks & 1
+        for slot in range(parity, self.capacity, 2):
+            v = vehicles[slot]
+            if v is not None:
+                v._control(now)
+        # dynamics for everyone
+        if dt > 0.0:
+            self.dyn.step(dt, self.u, self.airborne, self.frozen, self.yaw_sp, self.yaw_rate_sp)
+            if self.noise_sigma.any():
+                self._step_noise(dt)
+        self._export()
+        # telemetry
+        k_now = int((now - self._t0) * self.tick_hz)
+        k_start = self._k_done + 1
+        if k_now - k_start >= _WHEEL_SIZE:  # stalled for longer than the wheel: resync
+            k_start = k_now - _WHEEL_SIZE + 1
+        self._k_done = k_now  # re-inserted entries go to k_now + 1 or later
+        buckets = self._buckets
+        mask = self._mask
+        max_lag = self.max_lag_s
+        horizon = now + self.dt
+        t0 = self._t0
+        hz = self.tick_hz
+        wheel = _WHEEL_SIZE
+        for k in range(k_start, k_now + 1):
+            bucket = buckets[k & mask]
+            if not bucket:
+                continue
+            buckets[k & mask] = []
+            for ent in bucket:
+                due, veh, st = ent
+                if st.entry is not ent:
+                    continue
+                if due > horizon:  # lapped entry (interval longer than the wheel)
+                    self._insert(ent)
+                    continue
+                interval = st.interval
+                payload = st.build(now)
+                if payload is not None:
+                    veh._send(st.spec, payload)
+                due += interval
+                while due <= now:
+                    if now - due > max_lag:
+                        self.skipped_msgs += int((now - due) / interval) + 1
+                        due = now + interval
+                        break
+                    payload = st.build(now)
+                    if payload is not None:
+                        veh._send(st.spec, payload)
+                    due += interval
+                ent[0] = due
+                kk = int((due - t0) * hz)
+                if kk <= k_now:
+                    kk = k_now + 1
+                elif kk - k_now >= wheel:
+                    kk = k_now + wheel - 1
+                buckets[kk & mask].append(ent)
+        if self.delayed:
+            for veh in list(self.delayed):
+                veh._flush_delayed(now)
+        # next tick on the absolute grid
+        nxt = self._t0 + (k_now + 1) * self.dt
+        lt = loop.time()
+        if self._clock is not None:  # custom clock: keep the loop's cadence
+            nxt = lt + max(0.0, nxt - now)
+        if nxt <= lt:
+            self.late_ticks += 1
+        self._handle = loop.call_at(nxt, self._tick)
+
+    def _step_noise(self, dt: float) -> None:
+        tau = 2.0
+        a = math.exp(-dt / tau)
+        sigma = self.noise_sigma[:, None]
+        w = self._noise_rng.standard_normal(self.noise.shape)
+        self.noise = self.noise * a + sigma * math.sqrt(1.0 - a * a) * w
+
+
+def _to_body(v: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Rotate NED vectors (n, 3) into the body frame (ZYX Euler angles, each (n,))."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    x1 = cy * v[:, 0] + sy * v[:, 1]
+    y1 = -sy * v[:, 0] + cy * v[:, 1]
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    x2 = cp * x1 - sp * v[:, 2]
+    z2 = sp * x1 + cp * v[:, 2]
+    cr, sr = np.cos(roll), np.sin(roll)
+    return np.stack((x2, cr * y1 + sr * z2, -sr * y1 + cr * z2), axis=1)
