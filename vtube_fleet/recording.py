@@ -1447,7 +1447,8 @@ class RecordingData:
     (the scenario's ids first, in their order); ``pos`` / ``vel`` (T, M, 2) with NaN where a
     vehicle was absent; ``cmd`` likewise or ``None``; ``phases`` (T, M) object array or ``None``;
     ``safety`` summary stream suffix → (pos, vel) (T, M, 2) the run's metrics were computed from
-    when it said so (see :meth:`Recorder.log_tick`; otherwise review uses ``pos``/``vel``);
+    when it said so (see :meth:`Recorder.log_tick`; otherwise review uses ``pos``/``vel``),
+    ``safety_ticks`` suffix → (T,) bool: the ticks where the run gave that stream;
     ``metrics`` key → (T,) array at the recorded ticks (NaN where not logged) and
     ``metric_series`` key → (t_s, tick, value) as logged (the simulator logs every step's
     metrics, reduced per recorded frame); ``exits`` vehicle id → exit time;
@@ -1466,6 +1467,7 @@ class RecordingData:
     cmd: np.ndarray | None
     phases: np.ndarray | None
     safety: dict[str, tuple[np.ndarray, np.ndarray]]
+    safety_ticks: dict[str, np.ndarray]
     metrics: dict[str, np.ndarray]
     metric_series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
     exits: dict[int, float]
@@ -1711,9 +1713,17 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         cx, cy = scatter(cmd_parts, ("cmd_x_m_s", "cmd_y_m_s"))
         cmd = xy(cx, cy)
     safety: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    safety_ticks: dict[str, np.ndarray] = {}
     for sfx, parts in safety_parts.items():
         sx, sy, svx, svy = scatter(parts, ("x_m", "y_m", "vx_m_s", "vy_m_s"))
         safety[sfx] = (xy(sx, sy), xy(svx, svy))
+        logged = np.zeros(T, dtype=bool)
+        if T:
+            kk = np.concatenate([k for k, _ in parts])
+            r = np.searchsorted(ticks, kk)
+            ok = (r < T) & (ticks[np.minimum(r, T - 1)] == kk)
+            logged[r[ok]] = True
+        safety_ticks[sfx] = logged
     metrics: dict[str, np.ndarray] = {}
     metric_series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for key, parts in metric_parts.items():
@@ -1735,7 +1745,8 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         partitions.append((ts, parts_sub.get(kk, (ts, []))[1], parts_tri.get(kk, (ts, []))[1]))
     return RecordingData(
         path=p, meta=meta, summary=summary, t_s=t_s, tick=ticks, ids=ids, pos=pos, vel=vel,
-        cmd=cmd, phases=phases, safety=safety, metrics=metrics, metric_series=metric_series,
+        cmd=cmd, phases=phases, safety=safety, safety_ticks=safety_ticks, metrics=metrics,
+        metric_series=metric_series,
         exits=exits, events=events,
         entity_rows=entity_rows, static_rows=static_rows,
         application_id=str(stores[0].application_id), recording_id=str(stores[0].recording_id),

@@ -66,21 +66,27 @@ def _monitor(data: RecordingData) -> Any:
     return SafetyMonitor.from_params(data.tube(), data.obstacles(), params)
 
 
-def step_metrics(data: RecordingData, suffix: str = "") -> Any:
-    """:class:`~vtube_fleet.metrics.StepMetrics` of every recorded tick, for one summary
-    stream: the (positions, velocities) the run said its metrics used (``data.safety``), else
-    the recorded vehicle positions and velocities."""
+def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any]:
+    """(t_s, :class:`~vtube_fleet.metrics.StepMetrics`) of one summary stream: the
+    (positions, velocities) the run said its metrics used (``data.safety``, at the ticks where
+    it gave them — e.g. the fleet only once in the tube), else the recorded vehicle positions
+    and velocities at every recorded tick."""
     from vtube_fleet.metrics import StepMetrics
 
-    pos, vel = data.safety.get(suffix, (data.pos, data.vel) if suffix == "" else (None, None))
-    if pos is None:
+    if suffix in data.safety:
+        pos, vel = data.safety[suffix]
+        rows = np.flatnonzero(data.safety_ticks[suffix])
+        pos, vel, t = pos[rows], vel[rows], data.t_s[rows]
+    elif suffix == "":
+        pos, vel, t = data.pos, data.vel, data.t_s
+    else:
         raise KeyError(suffix)
     mon = _monitor(data)
     parts = []
-    for s in range(0, len(data.t_s), _CHUNK_STEPS):
+    for s in range(0, len(t), _CHUNK_STEPS):
         sl = slice(s, s + _CHUNK_STEPS)
         parts.append(mon.evaluate(pos[sl], vel[sl]))
-    return StepMetrics.concatenate(parts)
+    return t, StepMetrics.concatenate(parts)
 
 
 def summary_from_recording(data: RecordingData, metrics: Any | None = None
@@ -91,7 +97,7 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
     recorded (``""``, ``"_center"`` …); exits come from the recorded exit events (exact times),
     indexed in the scenario's id order. Keys of the stored run summary that are not recomputed
     are copied over, in the stored summary's key order. ``metrics``: precomputed
-    :func:`step_metrics` of the ``""`` stream.
+    :func:`step_metrics` (t, metrics) of the ``""`` stream.
     """
     from vtube_fleet.metrics import SummaryAccumulator
 
@@ -99,10 +105,11 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
     ids = [int(i) for i in meta.get("ids", [])] or [int(i) for i in data.ids]
     index = {vid: k for k, vid in enumerate(ids)}
     acc = SummaryAccumulator(robots=int(meta.get("robots", len(ids))))
-    acc.add(data.t_s, step_metrics(data) if metrics is None else metrics)
+    acc.add(*(step_metrics(data) if metrics is None else metrics))
     for suffix in sorted(data.safety):
         if suffix:
-            acc.add(data.t_s, step_metrics(data, suffix), suffix)
+            t, sm = step_metrics(data, suffix)
+            acc.add(t, sm, suffix)
     by_time: dict[float, list[int]] = {}
     for vid, t in data.exits.items():
         if vid in index:
@@ -171,17 +178,23 @@ def write_review_plots(data: RecordingData, out_dir: Path, metrics: Any | None =
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = stem or data.path.stem
     meta = data.meta
-    sm = step_metrics(data) if metrics is None else metrics
+    t, sm = step_metrics(data) if metrics is None else metrics
     title = f"{data.path.name} ({data.kind}, {int(meta.get('robots', len(data.ids)))} robots)"
     safety = out_dir / f"{stem}-safety.png"
-    plot_safety(safety, data.t_s, sm, r_s=meta["r_s"], v_min=meta["v_min"], v_max=meta["v_max"],
+    plot_safety(safety, t, sm, r_s=meta["r_s"], v_min=meta["v_min"], v_max=meta["v_max"],
                 obstacle_radii=[o["radius"] for o in meta.get("obstacles", [])], title=title)
     written = [safety]
-    if len(data.t_s):
+    # snapshots of what the safety metrics counted (the fleet: vehicles in the tube)
+    if "" in data.safety:
+        rows = np.flatnonzero(data.safety_ticks[""])
+        t_snap, p_snap = data.t_s[rows], data.safety[""][0][rows]
+    else:
+        t_snap, p_snap = data.t_s, data.pos
+    if len(t_snap):
         sub_tubes, triangles = _reconstruct_partition(data)
-        frames = pick_snapshot_frames(data.t_s, data.pos, count=4)
+        frames = pick_snapshot_frames(t_snap, p_snap, count=4)
         snaps = out_dir / f"{stem}-snapshots.png"
-        plot_snapshots(snaps, data.tube(), [(float(data.t_s[i]), data.pos[i]) for i in frames],
+        plot_snapshots(snaps, data.tube(), [(float(t_snap[i]), p_snap[i]) for i in frames],
                        r_s=meta["r_s"], obstacles=data.obstacles(), sub_tubes=sub_tubes,
                        triangles=triangles, title=title)
         written.append(snaps)
@@ -205,12 +218,16 @@ def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True)
                         plots=written)
 
 
-def _fmt(v: Any) -> str:
+def _fmt(v: Any, width: int = 14) -> str:
     if isinstance(v, float):
-        return f"{v:.6g}"
-    if isinstance(v, Mapping):
-        return ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
-    return "-" if v is None else str(v)
+        text = f"{v:.6g}"
+    elif isinstance(v, Mapping):
+        text = ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
+    elif isinstance(v, list) and v and isinstance(v[0], Mapping):
+        text = f"[{len(v)} entries]"
+    else:
+        text = "-" if v is None else str(v)
+    return text if len(text) <= max(width, 14) else text[: max(width, 14) - 1] + "…"
 
 
 def _print_text(res: ReviewResult) -> None:
@@ -230,11 +247,19 @@ def _print_text(res: ReviewResult) -> None:
     width = max(len(k) for k in res.summary) if res.summary else 10
     print(f"{'key':<{width}}  {'review':>14}  {'run':>14}")
     diff_keys = {k for k, _, _ in res.differences}
+    copied = []
     for k, v in res.summary.items():
-        src = "" if k in res.recomputed_keys else "  (copied from the run)"
-        run = _fmt(stored[k]) if k in stored else "-"
+        if k not in res.recomputed_keys:
+            copied.append(k)
+            continue
+        run = _fmt(stored[k], 60) if k in stored else "-"
         mark = "  ≠" if k in diff_keys else ""
-        print(f"{k:<{width}}  {_fmt(v):>14}  {run:>14}{mark}{src}")
+        print(f"{k:<{width}}  {_fmt(v, 60):>14}  {run:>14}{mark}")
+    if copied:
+        print()
+        print("not recomputable from the recording, as the run reported them:")
+        for k in copied:
+            print(f"{k:<{width}}  {_fmt(res.summary[k], 60)}")
     recorded = {k: v[2] for k, v in d.metric_series.items() if np.any(np.isfinite(v[2]))}
     if recorded:
         print()
