@@ -107,10 +107,14 @@ class VerletPairs:
 
     def candidates(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A superset of the pairs within ``radius`` (read-only arrays, reused between builds)."""
-        p = _as_points(p)
-        if not p.flags.c_contiguous:
-            p = np.ascontiguousarray(p)
-        z = p.view(np.complex128).ravel()
+        if not (type(p) is np.ndarray and p.dtype == np.float64 and p.ndim == 2
+                and p.shape[1] == 2 and p.flags.c_contiguous):
+            p = np.ascontiguousarray(_as_points(p))
+        z = p.view(np.complex128).reshape(p.shape[0])
+        z0 = self._z0
+        if z0 is not None and z0.shape == z.shape and z.shape[0] \
+                and np.abs(z - z0).max() <= self._half:  # the common case, 3 numpy calls
+            return self._I, self._J
         if self._needs_build(z):
             self._build(p, z)
         return self._I, self._J
