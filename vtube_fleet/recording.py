@@ -613,7 +613,7 @@ class RerunRecorder:
         return True
 
     def _send_blueprint(self, bounds: tuple[float, float, float, float] | None) -> None:
-        self._rec.send_blueprint(default_blueprint(bounds), make_active=True,
+        self._rec.send_blueprint(default_blueprint(bounds, self.kind), make_active=True,
                                  make_default=True)
         self._blueprint_sent = True
 
@@ -1332,14 +1332,17 @@ def _make_atexit(rec: RerunRecorder) -> Any:
 # ----------------------------------------------------------------------------------------------
 # blueprint
 # ----------------------------------------------------------------------------------------------
-def default_blueprint(bounds: tuple[float, float, float, float] | None = None) -> Any:
+def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
+                      kind: str = "fleet") -> Any:
     """The default layout: the 2-D tube view (y up, framed on ``bounds`` = (x0, y0, x1, y1)
     when given) with the status table and the event log under it, the time series (Fig. 11
-    quantities, tick duration, link latency) on the right."""
+    quantities, and for ``kind="fleet"`` tick duration and link latency) on the right."""
     import rerun.blueprint as rrb
 
     series = []
     for name, keys in METRIC_VIEWS:
+        if kind == "sim" and keys[0] in ("tick_duration_s", "link_latency_s"):
+            continue
         contents = [f"/{METRICS_PREFIX}{k}" for k in keys] + [f"/{LIMITS_PREFIX}{k}" for k in keys]
         series.append(rrb.TimeSeriesView(origin="/", contents=contents, name=name))
     known = [k for _, keys in METRIC_VIEWS for k in keys]

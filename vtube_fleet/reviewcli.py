@@ -234,10 +234,11 @@ def _print_text(res: ReviewResult) -> None:
     d = res.data
     meta = d.meta
     span = f"{d.t_s[0]:.3f}–{d.t_s[-1]:.3f} s" if len(d.t_s) else "no ticks"
+    every = _recorded_every(meta)
     print(f"recording  {d.path}")
     print(f"run        {d.kind}, source {meta.get('source') or '-'}, "
-          f"{int(meta.get('robots', len(d.ids)))} robots, recorded every "
-          f"{meta.get('decimate', 1)} step(s)")
+          f"{int(meta.get('robots', len(d.ids)))} robots, positions recorded every "
+          f"{every} {'tick' if d.kind == 'fleet' else 'step'}{'s' if every > 1 else ''}")
     print(f"ticks      {len(d.t_s)} recorded ({span}), {len(d.exits)} exits, "
           f"{len(d.events)} events")
     stored = d.summary or {}
@@ -272,12 +273,17 @@ def _print_text(res: ReviewResult) -> None:
     if res.differences:
         print(f"{len(res.differences)} key(s) differ from the run's own summary: "
               + ", ".join(k for k, _, _ in res.differences)
-              + (" (expected with a decimated recording)" if meta.get("decimate", 1) > 1
-                 else ""))
+              + (f": minima over the recorded 1/{every} of the steps; the per-step series "
+                 "above hold every step's extremes" if every > 1 else ""))
     elif stored:
         print("the recomputed summary matches the run's own summary")
     for p in res.plots:
         print(f"wrote {p}")
+
+
+def _recorded_every(meta: Mapping[str, Any]) -> int:
+    """Steps per recorded tick: the run's own frame decimation × the recorder's."""
+    return int(meta.get("record_every") or 1) * int(meta.get("decimate") or 1)
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
