@@ -10,41 +10,17 @@ The mock vehicles boot with ``boot_time_scale`` 0.3 (armable after ~1.2 s instea
 
 from __future__ import annotations
 
-import random
-import socket
 from pathlib import Path
 
 import numpy as np
 import pytest
-from sim_stub import PortScheme
+from fleet_ports import free_ports
 
 from vtube_fleet.fleet.mission import Mission, load_mission
 from vtube_fleet.fleet.supervisor import Supervisor, TickTrace
 from vtube_fleet.fleetcli import fly, mock_fleet
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def free_ports(count: int) -> PortScheme:
-    """A port scheme whose 2·count UDP ports are free now (other test runs may be using PX4's
-    14540/14580 ranges on this machine)."""
-    rng = random.Random()
-    for _ in range(200):
-        gcs = rng.randrange(15000, 28000, 10)
-        veh = gcs + 2000
-        socks = []
-        try:
-            for port in [*range(gcs, gcs + count), *range(veh, veh + count)]:
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", port))
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-        return PortScheme("test", vehicle_base=veh, gcs_base=gcs)
-    raise RuntimeError("no free UDP port range found")
 
 
 def boot(count: int) -> dict:

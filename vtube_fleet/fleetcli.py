@@ -60,7 +60,7 @@ async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
     """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager); PX4's port
     scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond."""
     try:
-        from sim_stub import MockFleet
+        from sim_stub import MockFleet, SimStubError
     except ImportError as exc:  # pragma: no cover - sim_stub ships with the package
         raise FleetCliError(f"the built-in mock fleet (sim_stub) is not available: {exc}"
                             ) from None
@@ -69,8 +69,15 @@ async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
         raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
                             f"slots), got {n}")
     kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
-    async with MockFleet(n, homes=_homes(mission, n), **kwargs) as fleet:
+    try:
+        fleet = MockFleet(n, homes=_homes(mission, n), **kwargs)
+        await fleet.start()
+    except SimStubError as exc:
+        raise FleetCliError(f"mock fleet: {exc}") from None
+    try:
         yield fleet
+    finally:
+        await fleet.stop()
 
 
 def parse_endpoint_list(text: str, slots: int) -> list[str]:
@@ -203,8 +210,14 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
-        async with mock_fleet(mission, args.count,
-                              boot_time_scale=args.boot_time_scale) as fleet:
+        kwargs: dict[str, Any] = {"boot_time_scale": args.boot_time_scale}
+        if args.gcs_port is not None or args.vehicle_port is not None:
+            from sim_stub import PortScheme
+
+            gcs = 14540 if args.gcs_port is None else args.gcs_port
+            veh = gcs + 40 if args.vehicle_port is None else args.vehicle_port
+            kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
+        async with mock_fleet(mission, args.count, **kwargs) as fleet:
             eps = list(fleet.endpoints)
             print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
                   flush=True)
@@ -262,6 +275,10 @@ def register(subparsers: Any) -> None:
                                                            "slots)")
     m.add_argument("--boot-time-scale", type=float, default=1.0, metavar="S",
                    help="scale the vehicles' boot timeline (default 1 = as PX4 SITL)")
+    m.add_argument("--gcs-port", type=int, default=None, metavar="N",
+                   help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
+    m.add_argument("--vehicle-port", type=int, default=None, metavar="N",
+                   help="port vehicle 0 sends from (vehicle i: N+i; default GCS port + 40)")
     m.set_defaults(func=_cmd_mock_fleet)
 
     h = subparsers.add_parser(

@@ -278,8 +278,14 @@ def classify(
     max_age_s: float,
     lost_after_s: float,
     exclude: int | None = None,
+    heard_since_s: float | None = None,
 ) -> NeighbourView:
-    """Sort neighbour states at wall-clock time ``now_s`` (see the module docstring)."""
+    """Sort neighbour states at wall-clock time ``now_s`` (see the module docstring).
+
+    ``heard_since_s`` (wall clock): when our own loop resumed after a stall; a state cannot be
+    *lost* by silence before ``lost_after_s`` has passed since then (the backlog of a stalled
+    process is not the neighbours' silence); it is still not used as a live position.
+    """
     buckets: dict[str, tuple[list[int], list[tuple[float, float]]]] = {
         "live": ([], []), "static": ([], []), "lost": ([], [])}
     live_vel: list[tuple[float, float]] = []
@@ -289,11 +295,12 @@ def classify(
         if not (math.isfinite(st.x_m) and math.isfinite(st.y_m)):
             continue
         age = now_s - st.stamp_s
+        silence = age if heard_since_s is None else min(age, now_s - heard_since_s)
         if st.phase == Phase.LOST:
             which = "lost"
         elif st.phase not in AIRBORNE_PHASES:
             continue
-        elif age > lost_after_s:
+        elif silence > lost_after_s:
             which = "lost"
         elif age > max_age_s:
             which = "static"
@@ -411,9 +418,11 @@ class Agent:
             if prev is None or (st.seq, st.stamp_s) >= (prev.seq, prev.stamp_s):
                 table[vid] = st
 
-    def view(self, now_s: float) -> NeighbourView:
+    def view(self, now_s: float, heard_since_s: float | None = None) -> NeighbourView:
+        """The table sorted at ``now_s`` (:func:`classify`)."""
         return classify(self.table.values(), now_s, max_age_s=self.max_age_s,
-                        lost_after_s=self.lost_after_s, exclude=self.vehicle_id)
+                        lost_after_s=self.lost_after_s, exclude=self.vehicle_id,
+                        heard_since_s=heard_since_s)
 
     def update_plan(self, view: NeighbourView) -> bool:
         """Re-partition if the set of lost obstacles changed; True if the plan changed.

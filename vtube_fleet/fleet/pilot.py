@@ -137,6 +137,8 @@ class VehiclePilot:
         self.exit_time_s: float | None = None
         self._offboard_seen = False
         self._still_since: float | None = None
+        self._last_tick_s: float | None = None
+        self._listening_since: float | None = None
         self._phase_waiters: list[asyncio.Future[None]] = []
         self._transition: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -242,8 +244,13 @@ class VehiclePilot:
             self.bus.publish(st)
 
     # -- faults ---------------------------------------------------------------------------
-    def check_faults(self, now_mono: float) -> str | None:
-        """Detect a lost vehicle; on a fault switch to LOST and return the reason."""
+    def check_faults(self, now_mono: float, listening_since: float | None = None
+                     ) -> str | None:
+        """Detect a lost vehicle; on a fault switch to LOST and return the reason.
+
+        ``listening_since``: monotonic time our own loop resumed after a stall; silence is only
+        counted from then (after a stall the socket backlog still holds the telemetry).
+        """
         phase = self.phase
         s = self.link.state
         if phase in (Phase.LANDING,) and s.landed_state == "ON_GROUND" and s.armed is False:
@@ -260,7 +267,8 @@ class VehiclePilot:
             self._offboard_seen = True
         reason = None
         last = s.last_position_s
-        if last is None or now_mono - last > self.cfg.lost_after_s:
+        heard = last if listening_since is None or last is None else max(last, listening_since)
+        if last is None or now_mono - heard > self.cfg.lost_after_s:
             age = "never" if last is None else f"{now_mono - last:.2f} s ago"
             reason = (f"no telemetry for more than lost_after_s = {self.cfg.lost_after_s:g} s "
                       f"(last position {age})")
@@ -270,7 +278,8 @@ class VehiclePilot:
                      f"{s.system_status})"
         elif phase in (Phase.IN_TUBE, Phase.EXITED) and s.armed is False:
             reason = "disarmed in the air"
-        elif phase == Phase.IN_TUBE:
+        elif phase == Phase.IN_TUBE and (listening_since is None
+                                         or now_mono - listening_since > self.unresponsive_s):
             reason = self._check_unresponsive(now_mono)
         if reason is None:
             return None
@@ -553,12 +562,18 @@ class VehiclePilot:
     # -- standalone operation -------------------------------------------------------------
     def tick(self, now_mono: float, now_wall: float) -> None:
         """All per-tick steps for this vehicle alone (the MQTT agent's control clock)."""
+        last = self._last_tick_s
+        if last is not None and now_mono - last > 2.0 * self.cfg.period_s + 0.1:
+            self._listening_since = now_mono  # our loop stalled: do not blame the vehicle
+        self._last_tick_s = now_mono
         self.sense()
-        self.check_faults(now_mono)
+        self.check_faults(now_mono, self._listening_since)
         self.publish(now_mono, now_wall)
         agent = self.agent
         agent.observe(self.bus.latest())
-        view = agent.view(now_wall)
+        heard = (None if self._listening_since is None
+                 else now_wall - (now_mono - self._listening_since))
+        view = agent.view(now_wall, heard)
         agent.update_plan(view)
         cmd = None
         if self.phase == Phase.IN_TUBE and self.has_position():

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import inspect
 import json
 import logging
 import math
@@ -182,7 +183,8 @@ class Supervisor:
     ``recorder``: a :class:`vtube_fleet.recording.Recorder` (default: records nothing);
     ``view``: the live terminal view (default: none); ``out_dir``: where ``summary.json`` goes;
     ``keep_trace``: keep every tick's telemetry in :attr:`trace` (tests);
-    ``tick_hook(tick, supervisor)``: called at the end of every tick (fault injection in tests);
+    ``tick_hook(tick, supervisor)``: called at the end of every tick (fault injection in tests;
+    if it returns an awaitable, the control clock awaits it: a stalled control loop);
     ``signals``: install SIGINT/SIGTERM handlers (hold, then land, exit 130).
     """
 
@@ -273,6 +275,7 @@ class Supervisor:
         self._clock_stop = asyncio.Event()
         self._main: asyncio.Task[None] | None = None
         self._warned_latency = False
+        self.listening_since: float | None = None
         self.outcome = "failed"
         self.reason = ""
 
@@ -318,9 +321,15 @@ class Supervisor:
         loop = asyncio.get_running_loop()
         period = self.cfg.period_s
         next_t = loop.time()
+        prev: float | None = None
         while not self._clock_stop.is_set():
             start = loop.time()
             self.tick_lateness.append(start - next_t)
+            if prev is not None and start - prev > 2.0 * period + 0.1:
+                # our own loop stalled: silence is counted from now on (pilot.check_faults)
+                self.listening_since = time.monotonic()
+                self.event(f"control loop stalled for {start - prev:.2f} s", level="warning")
+            prev = start
             t0 = time.perf_counter()
             try:
                 self._tick()
@@ -329,7 +338,9 @@ class Supervisor:
                 self.request_abort(f"control tick failed: {type(exc).__name__}: {exc}")
             self.tick_durations.append(time.perf_counter() - t0)
             if self.tick_hook is not None:
-                self.tick_hook(self.tick, self)
+                stall = self.tick_hook(self.tick, self)
+                if inspect.isawaitable(stall):
+                    await stall  # fault injection: the control loop stalls (event loop alive)
             self.tick += 1
             next_t += period
             now = loop.time()
@@ -353,14 +364,16 @@ class Supervisor:
         cfg = self.cfg
         sense_all(pilots, self.frame)
         for p in pilots:
-            p.check_faults(now)
+            p.check_faults(now, self.listening_since)
             p.publish(now, wall)
             if p.sample_s is not None and p.phase in FLYING_PHASES:
                 age = p.sample_age_s(now)
                 if age <= cfg.neighbour_max_age_s:  # older: a stale vehicle, handled as a fault
                     self._sample_ages_window.append(age)
+        # in-process, a vehicle is lost when its pilot says so (pilot.check_faults, which knows
+        # about stalls of this loop); stale states are static points until then
         view = classify(self.bus.latest().values(), wall, max_age_s=cfg.neighbour_max_age_s,
-                        lost_after_s=cfg.lost_after_s)
+                        lost_after_s=math.inf)
         self._update_partition(view, t)
         in_tube = self.tube_start_s is not None
         # exits (TraCondition), then the controller for everyone still in the tube
@@ -397,6 +410,8 @@ class Supervisor:
     def _update_partition(self, view: NeighbourView, t: float) -> None:
         if not view.lost_ids.size:
             return
+        if not any(p.phase in (Phase.IN_TUBE, Phase.TAKEOFF) for p in self.pilots):
+            return  # nobody left to fly the tube
         root = self.pilots[0].agent.root_plan
         lost = lost_obstacles(view, root.tube, self.params.r_s + self.cfg.lost_obstacle_margin_m,
                               root.params)

@@ -1,0 +1,251 @@
+"""Fault tests of the fleet against sim_stub vehicles running in ANOTHER process
+(``vtube-fleet mock-fleet``), so that freezing the supervisor's event loop does not freeze the
+vehicles:
+
+* the supervisor's control loop is frozen (the fault injected: a tick that does not return
+  until the vehicles' reaction shows in their telemetry, or 15 s) → with the ``mavlink`` backend
+  the vehicles' own offboard-loss failsafe fires (PX4: COM_OF_LOSS_T = 1 s, "Failsafe
+  activated", POSCTL); with ``mavsdk`` (which resends setpoints by itself) the link's watchdog
+  thread stops offboard and the vehicles hold; afterwards the supervisor marks them LOST;
+* SIGINT to a ``vtube-fleet run`` process in the tube → every vehicle holds, then lands; the
+  summary is complete; exit code 130.
+
+Everything is asserted from the vehicles' telemetry (flight modes, status texts, landed state).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fleet_ports import free_ports
+
+from vtube_fleet.fleet.mission import load_mission
+from vtube_fleet.fleet.supervisor import Supervisor
+from vtube_fleet.fleetcli import fly
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+
+MISSION = """
+[tube]
+p_h0 = [0.0, 5.0]
+p_h1 = [30.0, 5.0]
+p_r0 = [0.0, -5.0]
+p_r1 = [30.0, -5.0]
+
+[robots]
+r_s = 0.3
+r_a = 1.0
+v_min = 0.3
+v_max = 1.6
+positions = [[1.5, 2.5], [1.5, -2.5]]
+
+[controller]
+v = 1.0
+v_max_prime = 0.5
+
+[mission]
+origin_lat_deg = 47.397742
+origin_lon_deg = 8.545594
+origin_alt_m = 488.0
+heading_deg = 90.0
+altitude_m = 3.0
+climb_speed_m_s = 1.5
+mission_timeout_s = 120.0
+land_timeout_s = 40.0
+"""
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("MAVLINK20", "1")
+    return env
+
+
+def _read_line(proc: subprocess.Popen[str], stream: str, pred, timeout_s: float) -> str:
+    """Read lines of ``proc.<stream>`` until ``pred(line)``; fail with what was read."""
+    pipe = getattr(proc, stream)
+    seen: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = pipe.readline()
+        if not line:
+            break
+        seen.append(line.rstrip())
+        if pred(line):
+            return line
+    raise AssertionError(f"condition not seen on {stream} (exit {proc.poll()}):\n"
+                         + "\n".join(seen[-30:]))
+
+
+@contextlib.contextmanager
+def mock_process(mission_path: Path, count: int) -> Iterator[list[str]]:
+    """``vtube-fleet mock-fleet`` in a child process on free ports; yields the endpoints."""
+    ports = free_ports(count)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
+         str(count), "--boot-time-scale", "0.3", "--gcs-port", str(ports.gcs_base),
+         "--vehicle-port", str(ports.vehicle_base)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env(), cwd=ROOT)
+    try:
+        line = _read_line(proc, "stdout", lambda s: s.startswith("udpin://"), 60)
+        yield line.strip().split(",")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def freeze_in_tube(after_s: float, until, log: dict, limit_s: float = 15.0):
+    """A tick hook that stalls the control loop once, ``after_s`` into the tube, until
+    ``until(supervisor)`` holds (the vehicles' reaction, seen in their telemetry) or
+    ``limit_s``; the event loop keeps running, so telemetry is still received meanwhile."""
+
+    async def stall(sup: Supervisor) -> None:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        try:
+            async with asyncio.timeout(limit_s):
+                while not until(sup):
+                    # wake on any telemetry update of any vehicle
+                    tasks = [asyncio.ensure_future(_next_state(p.link)) for p in sup.pilots]
+                    try:
+                        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        for t in tasks:
+                            t.cancel()
+        except TimeoutError:
+            log["stall_timeout"] = True
+        log["stalled_s"] = loop.time() - t0
+        log["modes_during"] = [p.link.state.flight_mode for p in sup.pilots]
+        log["landed_during"] = [p.link.state.landed_state for p in sup.pilots]
+
+    def hook(tick: int, sup: Supervisor):
+        log.setdefault("sup", sup)
+        if sup.tube_start_s is None or "frozen" in log:
+            return None
+        if sup.t_s() - sup.tube_start_s >= after_s:
+            log["frozen"] = True
+            log["modes_before"] = [p.link.state.flight_mode for p in sup.pilots]
+            return stall(sup)  # THE FAULT: the control loop stops sending setpoints
+        return None
+
+    return hook
+
+
+async def _next_state(link) -> None:
+    async for _ in link.states():
+        return
+
+
+async def test_frozen_loop_mavlink_px4_failsafe_fires(tmp_path: Path) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    mission = load_mission(path)
+    log: dict = {}
+
+    def failsafe_reported(sup: Supervisor) -> bool:
+        return all(p.link.state.flight_mode == "POSCTL" for p in sup.pilots)
+
+    with mock_process(path, 2) as endpoints:
+        result = await fly(mission, backend="mavlink", endpoints=endpoints, sysids=[1, 2],
+                           out_dir=tmp_path, tick_hook=freeze_in_tube(1.0, failsafe_reported,
+                                                                       log))
+    sup: Supervisor = log["sup"]
+    assert log.get("frozen"), f"never froze: {result.outcome} {result.reason}"
+    assert not log.get("stall_timeout"), log
+    assert log["modes_before"] == ["OFFBOARD", "OFFBOARD"]
+    assert log["modes_during"] == ["POSCTL", "POSCTL"]  # PX4's offboard-loss failsafe mode
+    for p in sup.pilots:
+        texts = [t.text for t in p.link.state.statustexts]
+        assert any("Failsafe activated" in t for t in texts), texts  # as PX4 reports it (1c)
+        assert p.phase.value == "lost"
+        assert "left OFFBOARD unexpectedly (mode POSCTL" in (p.reason or "")
+    assert result.outcome == "incomplete" and result.exit_code == 3
+    print(f"\nfrozen loop (mavlink): failsafe after {log['stalled_s']:.2f} s without setpoints; "
+          f"modes {log['modes_during']}; reasons {[p.reason for p in sup.pilots]}")
+
+
+async def test_frozen_loop_mavsdk_watchdog_holds(tmp_path: Path) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    mission = load_mission(path)
+    log: dict = {}
+
+    def holding(sup: Supervisor) -> bool:
+        return all(p.link.watchdog_trips >= 1 and p.link.state.flight_mode == "HOLD"
+                   for p in sup.pilots)
+
+    with mock_process(path, 2) as endpoints:
+        result = await fly(mission, backend="mavsdk", endpoints=endpoints, sysids=[1, 2],
+                           out_dir=tmp_path, tick_hook=freeze_in_tube(1.0, holding, log))
+    sup: Supervisor = log["sup"]
+    assert log.get("frozen"), f"never froze: {result.outcome} {result.reason}"
+    assert not log.get("stall_timeout"), log
+    assert log["modes_during"] == ["HOLD", "HOLD"]
+    assert log["landed_during"] == ["IN_AIR", "IN_AIR"]  # held in the air
+    for p in sup.pilots:
+        assert p.link.watchdog_trips >= 1
+        assert p.phase.value == "lost"
+        assert "left OFFBOARD unexpectedly (mode HOLD" in (p.reason or "")
+    assert result.exit_code == 3
+    print(f"\nfrozen loop (mavsdk): watchdog held after {log['stalled_s']:.2f} s; trips "
+          f"{[p.link.watchdog_trips for p in sup.pilots]}; modes {log['modes_during']}")
+
+
+def test_sigint_lands_everyone_and_leaves_a_complete_summary(tmp_path: Path) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION.replace("[[1.5, 2.5], [1.5, -2.5]]",
+                                    "[[1.5, 2.5], [1.5, 0.0], [1.5, -2.5]]"))
+    out = tmp_path / "run"
+    with mock_process(path, 3) as endpoints:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "vtube_fleet", "run", str(path), "--endpoints",
+             ",".join(endpoints), "--out", str(out)],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+        try:
+            _read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
+            # the status line (every 5 s when stderr is not a terminal) shows them in the tube
+            _read_line(proc, "stderr", lambda s: "in tube 3" in s, 30)
+            proc.send_signal(signal.SIGINT)
+            tail = proc.stderr.read() if proc.stderr else ""
+            rc = proc.wait(timeout=90)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == 130, tail[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["outcome"] == "interrupted"
+    assert [v["phase"] for v in summary["vehicle_states"]] == ["landed"] * 3
+    for key in ("ticks", "achieved_rate_hz", "tick_duration_p99_s", "safety_budget",
+                "min_pair_distance_m", "min_speed_m_s", "max_speed_m_s",
+                "min_measured_speed_m_s", "max_measured_speed_m_s", "link_latency_p50_s"):
+        assert summary.get(key) is not None, key
+    assert summary["ticks"] > 0 and summary["tube_start_s"] is not None
+    assert any("SIGINT" in e["text"] for e in summary["events"])
+    assert "interrupted" in tail
+    rec = out / "recording.rrd"
+    assert rec.is_file() and rec.stat().st_size > 0
+    from vtube_fleet.recording import load_recording
+
+    data = load_recording(rec)
+    assert len(data.t_s) > 0
+    # the recording runs to the end: its last tick is within a second of the summary's end
+    assert float(data.t_s[-1]) >= summary["wall_s"] - 1.0
+    print(f"\nSIGINT: rc {rc}; phases {[v['phase'] for v in summary['vehicle_states']]}; "
+          f"recorded ticks {len(data.t_s)}, summary ticks {summary['ticks']}")
