@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 from vtube_fleet.bus.base import Phase  # noqa: E402
 from vtube_fleet.fleet.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
+from vtube_fleet.fleetcli import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.link import open_links  # noqa: E402
 
 
@@ -91,10 +92,11 @@ mission_timeout_s = {seconds + 60.0}
 """
 
 
-def start_mock(mission_path: Path, count: int) -> tuple[subprocess.Popen[str], list[str]]:
+def start_mock(mission_path: Path, count: int, profile: str
+               ) -> tuple[subprocess.Popen[str], list[str]]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
-         str(count)],
+         str(count), "--profile", profile],
         stdout=subprocess.PIPE, stderr=sys.stderr, text=True, cwd=ROOT)
     assert proc.stdout is not None
     deadline = time.monotonic() + 60
@@ -125,7 +127,8 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
             sup.request_abort(f"benchmark: {args.seconds:g} s of tube flight measured")
 
     sysids = [i + 1 for i in range(len(endpoints))]
-    async with open_links(endpoints, args.backend, sysids=sysids) as links:
+    options = {"message_rates_hz": dict(UNUSED_STREAMS_OFF)} if args.backend == "mavlink" else {}
+    async with open_links(endpoints, args.backend, sysids=sysids, **options) as links:
         sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook, signals=True)
         result = await sup.run()
     if "t1" not in window:
@@ -165,13 +168,15 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--rate", type=float, default=20.0)
     ap.add_argument("--backend", choices=("mavlink", "mavsdk"), default="mavlink")
+    ap.add_argument("--profile", choices=("full", "lite"), default="lite",
+                    help="sim_stub stream set of the mock process (default lite)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     os.environ.setdefault("MAVLINK20", "1")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"bench_{args.count}.toml"
         path.write_text(mission_text(args.count, args.rate, args.seconds))
-        proc, endpoints = start_mock(path, args.count)
+        proc, endpoints = start_mock(path, args.count, args.profile)
         try:
             out = asyncio.run(run(args, path, endpoints))
         finally:

@@ -33,6 +33,11 @@ log = logging.getLogger(__name__)
 
 BACKENDS = ("mavlink", "mavsdk")
 
+#: mavlink backend: streams the fleet does not use, switched off on connect (SET_MESSAGE_INTERVAL
+#: −1 via rate 0) to save link bandwidth and CPU on both ends: ATTITUDE (100 Hz in the
+#: captures), ATTITUDE_QUATERNION, HIGHRES_IMU, ODOMETRY.
+UNUSED_STREAMS_OFF: dict[int, float] = {30: 0.0, 31: 0.0, 105: 0.0, 331: 0.0}
+
 
 class FleetCliError(UserError):
     """A command-line mistake (endpoint count, backend)."""
@@ -132,8 +137,11 @@ async def fly(
 
             sysids = [px4_sitl_sysid(parse_endpoint(u).port) or i + 1
                       for i, u in enumerate(endpoints)]
+        options = dict(link_options or {})
+        if backend == "mavlink":
+            options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
         links = await stack.enter_async_context(
-            open_links(list(endpoints), backend, sysids=sysids, **(link_options or {})))
+            open_links(list(endpoints), backend, sysids=sysids, **options))
         sup = Supervisor(mission, links, backend=backend, recorder=recorder, view=view,
                          out_dir=out_dir, **supervisor_kwargs)
         return await sup.run()
@@ -210,7 +218,8 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
-        kwargs: dict[str, Any] = {"boot_time_scale": args.boot_time_scale}
+        kwargs: dict[str, Any] = {"boot_time_scale": args.boot_time_scale,
+                                  "profile": args.profile}
         if args.gcs_port is not None or args.vehicle_port is not None:
             from sim_stub import PortScheme
 
@@ -275,6 +284,9 @@ def register(subparsers: Any) -> None:
                                                            "slots)")
     m.add_argument("--boot-time-scale", type=float, default=1.0, metavar="S",
                    help="scale the vehicles' boot timeline (default 1 = as PX4 SITL)")
+    m.add_argument("--profile", choices=("full", "lite"), default="full",
+                   help="sim_stub stream set: every stream PX4 sends (full) or what clients "
+                        "rely on (lite)")
     m.add_argument("--gcs-port", type=int, default=None, metavar="N",
                    help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
     m.add_argument("--vehicle-port", type=int, default=None, metavar="N",
