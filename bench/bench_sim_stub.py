@@ -19,7 +19,6 @@ import argparse
 import asyncio
 import multiprocessing as mp
 import os
-import random
 import selectors
 import socket
 import statistics
@@ -34,6 +33,7 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from sim_stub import MockFleet, PortScheme  # noqa: E402
 from sim_stub.codec import SPECS, Encoder, MsgSpec  # noqa: E402
+from sim_stub.ports import free_port_scheme  # noqa: E402
 from sim_stub.vehicle import STREAM_CATALOG  # noqa: E402
 
 WARMUP_S = 8.0  # boot (~5.6 s) plus the interval requests
@@ -50,27 +50,6 @@ def nominal_rates(profile: str, requests: bool) -> dict[int, float]:
         for msgid, hz in REQUESTS.items():
             rates[msgid] = hz
     return rates
-
-
-def free_scheme(count: int, host: str = "127.0.0.1") -> PortScheme:
-    """A port scheme whose 2*count ports are free right now (below the ephemeral range)."""
-    rng = random.Random()
-    for _ in range(50):
-        vbase = rng.randrange(21000, 32000 - 2 * count)
-        gbase = vbase + count
-        socks = []
-        try:
-            for p in list(range(vbase, vbase + count)) + list(range(gbase, gbase + count)):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind((host, p))
-            return PortScheme("bench", vbase, gbase, host)
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free port range found")
 
 
 def mock_process(count, scheme_args, profile, seconds, ready, results) -> None:
@@ -110,7 +89,7 @@ def main() -> int:
     ap.add_argument("--no-requests", action="store_true", help="keep PX4's default rates")
     args = ap.parse_args()
     n = args.count
-    scheme = free_scheme(n)
+    scheme = free_port_scheme(n)
     nominal = nominal_rates(args.profile, not args.no_requests)
     print(
         f"bench_sim_stub: {n} vehicles, profile {args.profile}, "

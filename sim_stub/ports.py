@@ -9,11 +9,13 @@ port. :data:`WIDE` keeps the two ranges 4000 ports apart and below the Linux eph
 
 from __future__ import annotations
 
+import random
+import socket
 from dataclasses import dataclass
 
 from .errors import SimStubError
 
-__all__ = ["PortScheme", "PX4", "WIDE", "resolve_port_scheme"]
+__all__ = ["PortScheme", "PX4", "WIDE", "resolve_port_scheme", "free_port_scheme"]
 
 
 @dataclass(frozen=True)
@@ -74,3 +76,29 @@ def resolve_port_scheme(scheme: str | PortScheme) -> PortScheme:
     if scheme == "wide":
         return WIDE
     raise SimStubError(f"unknown port scheme {scheme!r}: expected 'px4', 'wide' or a PortScheme")
+
+
+def free_port_scheme(count: int, host: str = "127.0.0.1", *, tries: int = 50) -> PortScheme:
+    """A scheme whose ``2 * count`` UDP ports on ``host`` are free right now.
+
+    For tests and benchmarks that must not collide with PX4's default ports or with each other:
+    vehicles ``base+i``, GCS ``base+count+i`` with ``base`` random in 21000..31999 (below the
+    Linux ephemeral range). The ports are probed by binding and released again, so a race with
+    another process is possible but unlikely.
+    """
+    rng = random.Random()
+    for _ in range(tries):
+        vbase = rng.randrange(21000, 32000 - 2 * count)
+        socks = []
+        try:
+            for port in range(vbase, vbase + 2 * count):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind((host, port))
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+        return PortScheme("free", vbase, vbase + count, host)
+    raise SimStubError(f"no free range of {2 * count} UDP ports found on {host} in {tries} tries")

@@ -17,7 +17,7 @@ import random
 import socket
 import struct
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -336,6 +336,10 @@ class MockVehicle:
         self._delay_out: deque = deque()
         self._delay_in: deque = deque()
         self._last_gcs_heartbeat: float | None = None
+        self.ignored_msgids: Counter[int] = Counter()  # valid messages the mock does not handle
+        self.commands: Counter[int] = Counter()  # MAV_CMD ids received (for tests/diagnostics)
+        # (uptime, MAV_CMD, params 1..7, MAV_RESULT) of the last 1000 commands
+        self.command_log: deque[tuple[float, int, tuple[float, ...], int]] = deque(maxlen=1000)
         self._link_stat = (0.0, 0, 0)
 
     # ------------------------------------------------------------------------------------------
@@ -712,6 +716,7 @@ class MockVehicle:
             handler = _HANDLERS.get(pk.msgid)
             if handler is None:
                 self._rx_ignored += 1
+                self.ignored_msgids[pk.msgid] += 1
                 continue
             handler(self, pk.msg, pk.src_system, pk.src_component, now)
 
@@ -734,10 +739,12 @@ class MockVehicle:
             p += [m.param5, m.param6, m.param7]  # type: ignore[attr-defined]
         cmd = m.command  # type: ignore[attr-defined]
         handler = _COMMANDS.get(cmd)
+        self.commands[cmd] += 1
         if handler is None:
             result = MAV_RESULT_UNSUPPORTED
         else:
             result = handler(self, p, ssys, scomp, now, is_int)
+        self.command_log.append((now - self.t0, cmd, tuple(p), result))
         self._ack(cmd, result, ssys, scomp)
 
     def _h_setpoint_local(self, m: dict, ssys: int, scomp: int, now: float) -> None:
@@ -849,6 +856,11 @@ class MockVehicle:
     def _h_timesync(self, m: object, ssys: int, scomp: int, now: float) -> None:
         if m.tc1 == 0:  # type: ignore[attr-defined]
             self._send_named("TIMESYNC", _S["TIMESYNC"].pack(self._tboot_us(now) * 1000, m.ts1))  # type: ignore[attr-defined]
+
+    def _h_ping(self, m: object, ssys: int, scomp: int, now: float) -> None:
+        # PX4: a PING with target 0/0 is a request; answer it to the sender with the same fields
+        if m.target_system == 0 and m.target_component == 0:  # type: ignore[attr-defined]
+            self._send_named("PING", _S["PING"].pack(m.time_usec, m.seq, ssys, scomp))  # type: ignore[attr-defined]
 
     def _h_mission_request_list(self, m: object, ssys: int, scomp: int, now: float) -> None:
         if not self._for_me(m.target_system, m.target_component):  # type: ignore[attr-defined]
@@ -1662,6 +1674,7 @@ _HANDLERS: dict[int, Callable[..., None]] = {
     21: MockVehicle._h_param_request_list,
     23: MockVehicle._h_param_set,
     111: MockVehicle._h_timesync,
+    4: MockVehicle._h_ping,
     43: MockVehicle._h_mission_request_list,
 }
 _COMMANDS: dict[int, Callable[..., int]] = {
