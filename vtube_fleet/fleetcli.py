@@ -189,7 +189,9 @@ def _closing_line(result: Any, out: Path) -> str:
             f"2 r_s = {s.get('pair_limit_m', 0):.2f} m), obstacle centre "
             f"{f('min_obstacle_center_distance_m')}; commanded speed "
             f"{f('min_speed_m_s', 'm/s')}..{f('max_speed_m_s', 'm/s')}, measured "
-            f"{f('min_measured_speed_m_s', 'm/s')}..{f('max_measured_speed_m_s', 'm/s')}; "
+            f"{f('min_measured_speed_m_s', 'm/s')}..{f('max_measured_speed_m_s', 'm/s')} "
+            f"(after the first {s.get('settle_s', 0):.1f} s: "
+            f"{f('min_measured_speed_settled_m_s', 'm/s')}..); "
             f"rate {f('achieved_rate_hz', 'Hz')}, tick p99 "
             f"{f('tick_duration_p99_s', 'ms', 1000)}; summary {out / 'summary.json'}")
 

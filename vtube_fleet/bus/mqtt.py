@@ -127,6 +127,7 @@ class MqttBus:
         backoff_max_s: float = 2.0,
         max_publish_age_s: float = 0.5,
         last_period_s: float = 1.0,
+        cell_m: float = math.inf,
         client_id: str | None = None,
     ) -> None:
         self.url = url
@@ -146,6 +147,7 @@ class MqttBus:
         self.backoff_max_s = backoff_max_s
         self.max_publish_age_s = max_publish_age_s
         self.last_period_s = last_period_s
+        self.cell_m = math.inf
         if client_id is None:
             client_id = (
                 f"vtube-{mission_id}-{vehicle_id}"
@@ -181,6 +183,13 @@ class MqttBus:
         self._state_listeners: list[Callable[[NeighbourState, float], None]] = []
         self._sync_topic = f"{self.topics.base}/sync/{self.client_id}"
         self._sync_seen = ""
+        # spatial subscription: the cells around our own (None: every state)
+        self._pub_cell: tuple[int, int] | None = None
+        self._window: frozenset[tuple[int, int]] | None = None
+        self._state_filters: set[str] = set()
+        self._want_last: set[int] = set()  # lost vehicles whose retained last state we read
+        self._errors_logged = 0
+        self.set_cell_size(cell_m)
         self._disconnected_since: float | None = None
         #: Current back-off: initial after a lost connection, ×2 per failed attempt (≤ max).
         self.backoff_s = backoff_initial_s
@@ -208,8 +217,52 @@ class MqttBus:
         self._out_event.set()
 
     def latest(self) -> dict[int, NeighbourState]:
-        """Latest state of every other vehicle heard from; lost ones with phase ``LOST``."""
-        return self._states
+        """Latest state of every other vehicle heard from within our cell window (all of them
+        for an observer or without cells); lost ones with phase ``LOST``, wherever they are."""
+        window = self._window
+        if window is None or not math.isfinite(self.cell_m):
+            return self._states
+        cell = self.cell_of
+        lost = self._lost
+        return {v: s for v, s in self._states.items() if v in lost or cell(s.x_m, s.y_m) in window}
+
+    # -- spatial cells ---------------------------------------------------------------------------
+    def set_cell_size(self, cell_m: float) -> None:
+        """Use square cells of ``cell_m`` metres (``inf``: one cell): states are published in
+        the sender's cell and an agent subscribes to its own cell and the 8 around it, so it
+        hears every vehicle within ``cell_m`` of itself (choose ``cell_m`` ≥ the neighbour
+        radius plus the distance a neighbour can close in ``max_publish_age_s``)."""
+        if not (cell_m > 0):
+            raise ValueError(f"cell size must be > 0 (or inf), got {cell_m}")
+        if float(cell_m) != self.cell_m:
+            self.cell_m = float(cell_m)
+            self._pub_cell = None  # the next state re-computes the cell and the window
+
+    def cell_of(self, x_m: float, y_m: float) -> tuple[int, int]:
+        c = self.cell_m
+        if not math.isfinite(c):
+            return (0, 0)
+        return (math.floor(x_m / c), math.floor(y_m / c))
+
+    def _window_around(self, cell: tuple[int, int]) -> frozenset[tuple[int, int]]:
+        if not math.isfinite(self.cell_m):
+            return frozenset({(0, 0)})
+        cx, cy = cell
+        return frozenset((cx + i, cy + j) for i in (-1, 0, 1) for j in (-1, 0, 1))
+
+    async def _apply_window(self, client: aiomqtt.Client) -> None:
+        """Subscribe to the state filters of the current window (new ones first, then drop
+        the old ones); every state while we have no position of our own."""
+        t = self.topics
+        window = self._window
+        wanted = {t.all_states} if window is None else {t.cell_states(c) for c in window}
+        new = wanted - self._state_filters
+        old = self._state_filters - wanted
+        if new:
+            await client.subscribe([(f, 0) for f in sorted(new)])
+        self._state_filters = wanted
+        if old:
+            await client.unsubscribe(sorted(old))
 
     # -- state --------------------------------------------------------------------------------
     @property
@@ -406,6 +459,15 @@ class MqttBus:
             will = aiomqtt.Will(
                 self.topics.status(self.vehicle_id), encode_status(lost), qos=1, retain=True
             )
+        bus = self
+
+        class _DispatchQueue(asyncio.Queue):  # type: ignore[type-arg]
+            """aiomqtt's incoming queue, replaced: each message is handled at once (no
+            per-message task, no backlog of old states)."""
+
+            def put_nowait(self, item: aiomqtt.Message) -> None:
+                bus._on_message(item)
+
         return aiomqtt.Client(
             self.host,
             self.port,
@@ -417,6 +479,7 @@ class MqttBus:
             keepalive=self.keepalive_s,
             timeout=self.connect_timeout_s,
             socket_options=_NODELAY,
+            queue_type=_DispatchQueue,
         )
 
     def _who(self) -> str:
@@ -495,15 +558,11 @@ class MqttBus:
             await client.publish(topic, payload, qos=1, retain=True)
         t = self.topics
         await client.subscribe(
-            [
-                (t.all_states, 0),
-                (t.all_statuses, 1),
-                (t.all_lasts, 0),
-                (t.config, 1),
-                (t.cmd, 1),
-                (self._sync_topic, 1),
-            ]
+            [(t.all_statuses, 1), (t.config, 1), (t.cmd, 1), (self._sync_topic, 1)]
+            + [(t.last(v), 0) for v in sorted(self._want_last)]
         )
+        self._state_filters = set()
+        await self._apply_window(client)
 
     async def _sender(self, client: aiomqtt.Client) -> None:
         assert self._out_event is not None
@@ -511,8 +570,8 @@ class MqttBus:
         self._out_slot = None
         if self.vehicle_id is None:
             return
-        state_topic = self.topics.state(self.vehicle_id)
-        last_topic = self.topics.last(self.vehicle_id)
+        vid = self.vehicle_id
+        last_topic = self.topics.last(vid)
         while True:
             await event.wait()
             event.clear()
@@ -523,8 +582,16 @@ class MqttBus:
                 self.stats.dropped_stale += 1
                 continue
             payload = encode_state(state)
-            await client.publish(state_topic, payload, qos=0)
+            cell = self.cell_of(state.x_m, state.y_m)
+            await client.publish(self.topics.state(vid, cell), payload, qos=0)
             self.stats.published += 1
+            if cell != self._pub_cell:
+                if self._pub_cell is not None:
+                    # tell the old cell's subscribers where we went (they may not hear us again)
+                    await client.publish(self.topics.state(vid, self._pub_cell), payload, qos=0)
+                self._pub_cell = cell
+                self._window = self._window_around(cell)
+                await self._apply_window(client)
             now = time.monotonic()
             if state.phase != self._last_phase or now - self._last_sent_mono >= self.last_period_s:
                 self._last_phase = state.phase
@@ -532,11 +599,22 @@ class MqttBus:
                 await client.publish(last_topic, payload, qos=0, retain=True)
 
     async def _receiver(self, client: aiomqtt.Client) -> None:
-        async for message in client.messages:
+        # Messages are dispatched as paho reads them (see _make_client); this only waits for
+        # the connection to end (the iterator raises MqttError then).
+        async for _ in client.messages:
+            pass
+
+    def _on_message(self, message: aiomqtt.Message) -> None:
+        try:
             payload = message.payload
-            if not isinstance(payload, bytes | bytearray):
-                continue
-            self._dispatch(message.topic.value, bytes(payload))
+            if isinstance(payload, bytes | bytearray):
+                self._dispatch(message.topic.value, bytes(payload))
+        except Exception:  # a bug here must not break paho's socket reader
+            self._errors_logged += 1
+            if self._errors_logged <= 5:
+                log.exception(
+                    "%s: failed to handle a message on %s", self._who(), message.topic.value
+                )
 
     def _dispatch(self, topic: str, payload: bytes) -> None:
         kind, vid = self.topics.classify(topic)
@@ -607,12 +685,22 @@ class MqttBus:
             if vid not in self._lost:
                 log.warning("%s: vehicle %d lost (its last will arrived)", self._who(), vid)
             self._lost.add(vid)
+            if vid not in self._want_last:
+                # where was it? its retained last-seen state (it may never have been near us)
+                self._want_last.add(vid)
+                client = self._client  # set while connected, also during _on_connect
+                if client is not None:
+                    asyncio.get_running_loop().create_task(self._subscribe_last(client, vid))
             prev = self._states.get(vid)
             if prev is not None:
                 self._states[vid] = dataclasses.replace(prev, phase=Phase.LOST)
         elif status.status == "online":
             self._lost.discard(vid)
         self._notify()
+
+    async def _subscribe_last(self, client: aiomqtt.Client, vid: int) -> None:
+        with contextlib.suppress(aiomqtt.MqttError):
+            await client.subscribe(self.topics.last(vid), qos=0)
 
     def _on_command(self, cmd: Command) -> None:
         if cmd.mission_id != self.mission_id:

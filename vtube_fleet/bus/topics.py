@@ -1,15 +1,17 @@
 """MQTT topic names of a mission: everything lives under ``vtube/<mission>/``.
 
-==========================  ===  ========  ==================================================
-topic                       QoS  retained  payload (``vtube_fleet.bus.codec``)
-==========================  ===  ========  ==================================================
-``vtube/<m>/state/<id>``    0    no        binary :class:`NeighbourState` (32 B), control rate
-``vtube/<m>/status/<id>``   1    yes       JSON ``online`` (+ config hash) / ``offline``;
-                                           the last will is ``lost``
-``vtube/<m>/last/<id>``     0    yes       binary state at ~1 Hz: where a vehicle was last seen
-``vtube/<m>/config``        1    yes       JSON mission announcement (id, config hash, count)
-``vtube/<m>/cmd``           1    yes       JSON fleet command (start / abort)
-==========================  ===  ========  ==================================================
+==================================  ===  ========  ==========================================
+topic                               QoS  retained  payload (``vtube_fleet.bus.codec``)
+==================================  ===  ========  ==========================================
+``vtube/<m>/state/<cx>/<cy>/<id>``  0    no        binary :class:`NeighbourState` (32 B) at
+                                                   the control rate, in spatial cell (cx, cy)
+``vtube/<m>/status/<id>``           1    yes       JSON ``online`` (+ hash, run, stage) /
+                                                   ``offline`` / ``refused``; will: ``lost``
+``vtube/<m>/last/<id>``             0    yes       binary state at ~1 Hz: last seen position
+``vtube/<m>/config``                1    yes       JSON run announcement (hash, run, count)
+``vtube/<m>/cmd``                   1    yes       JSON fleet command (start / abort)
+``vtube/<m>/sync/<client>``         1    no        a client's own in-order delivery marker
+==================================  ===  ========  ==========================================
 
 The QoS choices are justified in ``docs/mqtt.md``. Vehicle ids are the 0-based fleet slots.
 """
@@ -47,6 +49,10 @@ def validate_mission_id(mission_id: str) -> str:
     return mission_id
 
 
+def _is_int(text: str) -> bool:
+    return text.lstrip("-").isdigit()
+
+
 class MissionTopics:
     """The topic names of one mission (``vtube/<mission>/…``) and their parsers."""
 
@@ -62,8 +68,13 @@ class MissionTopics:
         self._last = f"{self.base}/last/"
 
     # -- per-vehicle topics -------------------------------------------------------------------
-    def state(self, vehicle_id: int) -> str:
-        return f"{self._state}{int(vehicle_id)}"
+    def state(self, vehicle_id: int, cell: tuple[int, int] = (0, 0)) -> str:
+        """The state topic of a vehicle in spatial cell ``cell`` (see ``docs/mqtt.md``)."""
+        return f"{self._state}{int(cell[0])}/{int(cell[1])}/{int(vehicle_id)}"
+
+    def cell_states(self, cell: tuple[int, int]) -> str:
+        """Subscription filter: the states of every vehicle in ``cell``."""
+        return f"{self._state}{int(cell[0])}/{int(cell[1])}/+"
 
     def status(self, vehicle_id: int) -> str:
         return f"{self._status}{int(vehicle_id)}"
@@ -74,7 +85,7 @@ class MissionTopics:
     # -- subscription filters -------------------------------------------------------------------
     @property
     def all_states(self) -> str:
-        return f"{self._state}+"
+        return f"{self._state}+/+/+"
 
     @property
     def all_statuses(self) -> str:
@@ -98,6 +109,11 @@ class MissionTopics:
         ):
             if topic.startswith(prefix):
                 tail = topic[len(prefix) :]
+                if kind == "state":
+                    parts = tail.split("/")
+                    if len(parts) != 3 or not all(_is_int(p) for p in parts[:2]):
+                        return "unknown", None
+                    tail = parts[2]
                 if tail.isdigit():
                     return kind, int(tail)
                 return "unknown", None

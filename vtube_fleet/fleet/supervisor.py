@@ -711,6 +711,7 @@ class Supervisor:
         self._set_stage("landing" if action == "land" else "holding")
         if action == "hold":
             await self._gather_named("hold", [p.hold() for p in self.pilots])
+            await self._wait_landed()  # those that landed after exiting (after_exit = "land")
             return
         await self._gather_named("land", [p.land() for p in self.pilots])
         await self._wait_landed()
