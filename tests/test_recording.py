@@ -366,6 +366,12 @@ def test_cli_args(tmp_path: Path) -> None:
     assert rec.path == tmp_path / "x.rrd" and rec.decimate == 2
     rec.close()
     assert isinstance(recorder_from_args(_parse(["--no-rerun"]), tmp_path), NullRecorder)
+    rec = recorder_from_args(args, tmp_path / "out", kind="sim")  # the simulator's default
+    assert isinstance(rec, RerunRecorder) and rec.min_period_s == 0.04 and rec.decimate == 1
+    rec.close()
+    rec = recorder_from_args(_parse(["--rerun-decimate", "1"]), tmp_path / "out", kind="sim")
+    assert isinstance(rec, RerunRecorder) and rec.min_period_s == 0.0  # explicit: every frame
+    rec.close()
     assert isinstance(recorder_from_args(args, None), NullRecorder)
     with pytest.raises(RecordingError, match="--rerun-decimate"):
         recorder_from_args(_parse(["--rerun-decimate", "0"]), tmp_path)
@@ -545,3 +551,16 @@ def test_backlog_policy(tmp_path: Path, policy: str) -> None:
     else:
         assert rec.dropped_ticks > 0
         assert len(d.tick) == 10 - rec.dropped_ticks
+
+
+def test_min_period_gate(tmp_path: Path) -> None:
+    rec = open_recorder(tmp_path / "g.rrd", min_period_s=0.04, decimate=2)
+    rec.log_scene(scenario())
+    for k in range(31):  # frames every 10 ms
+        rec.log_tick(t_s=0.01 * k, tick=10 * k, ids=np.arange(5), pos=motion(k)[0],
+                     vel=motion(k)[1])
+    rec.close()
+    d = load_recording(tmp_path / "g.rrd")
+    # every 4th frame passes the 40 ms gate, every 2nd of those is recorded, then the last
+    np.testing.assert_array_equal(d.tick, [0, 80, 160, 240, 300])
+    assert d.meta["min_period_s"] == 0.04 and d.meta["decimate"] == 2

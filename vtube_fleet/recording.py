@@ -8,18 +8,23 @@ through the same small :class:`Recorder` interface:
   I_k of the partition (ObstacleController), and the scenario metadata ``review`` needs (tube
   points, obstacles, r_s, r_a, v_min, v_max, ε_0, robot count and ids, dt, decimation, run kind)
   as a JSON :class:`rerun.TextDocument` at ``meta/scenario``.
-* :meth:`Recorder.log_tick` — every control tick / simulation step: positions, velocities,
-  optional phases and commands of ALL vehicles as arrays, and the safety metrics of the step.
-* :meth:`Recorder.log_partition`, :meth:`Recorder.log_event`, :meth:`Recorder.log_summary`.
+* :meth:`Recorder.log_tick` — every control tick / simulation frame: positions, velocities,
+  optional phases and commands of ALL vehicles as arrays, the safety metrics of the tick, and
+  optionally the exact inputs of the run's safety metrics (``safety=``).
+* :meth:`Recorder.log_metrics` (per-step metric series in bulk, the simulator),
+  :meth:`Recorder.log_exits`, :meth:`Recorder.log_partition`, :meth:`Recorder.log_event`,
+  :meth:`Recorder.log_summary`.
 
-Cost on the control loop (see ``bench/bench_recording.py``): a call that is not recorded
-(decimation) only updates a counter, the metric extrema and the exit detection; a recorded call
-appends its arrays to a buffer. Every ``batch_ticks`` recorded ticks (or ``max_delay_s`` of wall
-time, whichever comes first) the buffer goes out as ONE :meth:`rerun.RecordingStream.send_columns`
-call per entity with explicit ``mission_time`` / ``tick`` time columns — never one call per
-vehicle, and no reliance on rerun's per-thread ``set_time`` state (shared by every coroutine of an
-asyncio loop). Each recorder owns its own :class:`rerun.RecordingStream` (no global rerun state),
-so several recorders can live in one process.
+Cost on the control loop (see ``bench/bench_recording.py`` and ``docs/recording.md``): a call
+that is not recorded (decimation) only copies its arrays, updates the metric extrema and the
+exit detection; a recorded call appends the copies to a buffer. Every ``batch_ticks`` recorded
+ticks (or ``max_delay_s`` of wall time, whichever comes first) a sender thread sends the buffer
+as ONE :meth:`rerun.RecordingStream.send_columns` call per entity with explicit
+``mission_time`` / ``tick`` time columns — never one call per vehicle, and no reliance on
+rerun's per-thread ``set_time`` state (shared by every coroutine of an asyncio loop). Each
+recorder owns its own :class:`rerun.RecordingStream` (no global rerun state), so several
+recorders can live in one process. Nothing touches the file system before the first thing is
+recorded.
 
 Decimation keeps the extremes: a recorded tick carries the minimum of every ``min_*`` metric and
 the maximum of every ``max_*`` metric, of ``tick_duration_s`` and of ``link_latency_s`` over the
@@ -43,6 +48,8 @@ Layout of a recording (entity paths):
                         float64 state as ``vtube_fleet.VehicleState:*`` components
 ``world/velocity``      Arrows2D of the measured velocity (length = ``arrow_scale_s`` × v)
 ``world/commands``      Arrows2D of the velocity command, when given
+``safety/main|center``  the exact (position, velocity) inputs of the run's safety metrics per
+                        summary stream, when given (``log_tick(safety=...)``)
 ``metrics/<key>``       Scalars, one entity per metric key; ``limits/<key>`` the safety limit
 ``status``              TextDocument: a table of every vehicle (id, phase, position, speed)
 ``events``              TextLog of run-wide events; ``events/vehicles``: per-vehicle events
@@ -88,6 +95,7 @@ __all__ = [
     "DEFAULT_CONNECT_URL",
     "DEFAULT_RECORDING_NAME",
     "META_FORMAT",
+    "SIM_MIN_PERIOD_S",
     "TIMELINE_TICK",
     "TIMELINE_TIME",
     "NullRecorder",
@@ -109,6 +117,8 @@ log = logging.getLogger(__name__)
 DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
 #: File name of the recording inside a run's output folder.
 DEFAULT_RECORDING_NAME = "recording.rrd"
+#: ``vtube-fleet sim`` records a frame at most this often (simulated seconds) by default.
+SIM_MIN_PERIOD_S = 0.04
 #: ``format`` tag of the ``meta/scenario`` JSON document.
 META_FORMAT = "vtube_fleet.recording"
 META_VERSION = 1
@@ -468,7 +478,9 @@ class RerunRecorder:
     """A :class:`Recorder` writing to an .rrd file and/or a live viewer, on its own
     :class:`rerun.RecordingStream`.
 
-    ``decimate`` records every n-th :meth:`log_tick` call. Recorded ticks are buffered (copies)
+    ``decimate`` records every n-th :meth:`log_tick` call (among the calls at least
+    ``min_period_s`` of mission time after the previous recorded one, when that is > 0; the
+    simulator's command line uses 0.04 s). Recorded ticks are buffered (copies)
     and handed, ``batch_ticks`` at a time or after ``max_delay_s`` of wall time, to a sender
     thread that converts them to arrow and calls :meth:`~rerun.RecordingStream.send_columns`
     once per entity — so the caller's loop only pays for the copy (``background=False`` sends
@@ -491,6 +503,7 @@ class RerunRecorder:
         connect: str | None = None,
         app_id: str = "vtube_fleet",
         decimate: int = 1,
+        min_period_s: float = 0.0,
         kind: str = "sim",
         batch_ticks: int = 16,
         max_delay_s: float = 0.25,
@@ -516,6 +529,9 @@ class RerunRecorder:
         self._pa = pa
         self.path = None if save_path is None else Path(save_path)
         self.decimate = decimate
+        if not (math.isfinite(min_period_s) and min_period_s >= 0):
+            raise RecordingError(f"recording min_period_s must be >= 0, got {min_period_s}")
+        self.min_period_s = float(min_period_s)
         self.kind = kind
         self.app_id = app_id
         self.batch_ticks = int(batch_ticks)
@@ -536,6 +552,8 @@ class RerunRecorder:
 
         self._lock = threading.RLock()
         self._calls = 0  # log_tick calls
+        self._eligible = 0  # calls past the min_period_s gate
+        self._next_record_t = -math.inf
         self._recorded = 0  # recorded ticks (sent or queued)
         self._rows: list[_Row] = []
         self._last_send = time.monotonic()
@@ -738,6 +756,7 @@ class RerunRecorder:
             "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "source": str(getattr(scenario, "source", "")),
             "decimate": self.decimate,
+            "min_period_s": self.min_period_s,
             "arrow_scale_s": self.arrow_scale_s,
             "tube": {k: _pt(getattr(tube, k)) for k in ("p_h0", "p_h1", "p_r0", "p_r1")},
             "obstacles": [
@@ -827,7 +846,11 @@ class RerunRecorder:
             if metrics:
                 self._aggregate(metrics)
             self._last_tick = tick
-            record = self._calls % self.decimate == 0
+            record = False
+            if t_s >= self._next_record_t:  # the time gate (min_period_s), then the count
+                record = self._eligible % self.decimate == 0
+                self._eligible += 1
+                self._next_record_t = t_s + self.min_period_s - 1e-9
             self._calls += 1
             row = self._make_row(t_s, tick, ids, pos, vel, phases, cmd)
             if safety:
@@ -1420,8 +1443,12 @@ def recorder_from_args(
 ) -> Recorder:
     """The recorder the command line asks for (see :func:`add_recording_args`).
 
-    ``decimate`` is used unless ``--rerun-decimate`` was given. Without ``--rerun-save`` the
-    file is ``out_dir/recording.rrd`` (no file when ``out_dir`` is ``None``).
+    ``decimate`` is used unless ``--rerun-decimate`` was given. For ``kind="sim"`` without
+    ``--rerun-decimate``, frames are recorded at most every :data:`SIM_MIN_PERIOD_S` of
+    simulated time (25 per simulated second: smooth in the viewer, a fraction of the cost of
+    the simulator's 100 frames/s); ``--rerun-decimate N`` counts the simulator's own frames
+    instead. Without ``--rerun-save`` the file is ``out_dir/recording.rrd`` (no file when
+    ``out_dir`` is ``None``).
     """
     if getattr(args, "no_rerun", False):
         save = None
@@ -1433,6 +1460,8 @@ def recorder_from_args(
     dec = getattr(args, "rerun_decimate", None)
     if dec is None:
         dec = decimate
+        if kind == "sim":
+            options.setdefault("min_period_s", SIM_MIN_PERIOD_S)
     if not (isinstance(dec, int) and dec >= 1):
         raise RecordingError(f"--rerun-decimate must be an integer >= 1, got {dec}")
     return open_recorder(save, connect=connect, app_id=app_id, decimate=dec, kind=kind,

@@ -234,7 +234,7 @@ def _print_text(res: ReviewResult) -> None:
     d = res.data
     meta = d.meta
     span = f"{d.t_s[0]:.3f}–{d.t_s[-1]:.3f} s" if len(d.t_s) else "no ticks"
-    every = _recorded_every(meta)
+    every = _recorded_every(d)
     print(f"recording  {d.path}")
     print(f"run        {d.kind}, source {meta.get('source') or '-'}, "
           f"{int(meta.get('robots', len(d.ids)))} robots, positions recorded every "
@@ -273,7 +273,7 @@ def _print_text(res: ReviewResult) -> None:
     if res.differences:
         print(f"{len(res.differences)} key(s) differ from the run's own summary: "
               + ", ".join(k for k, _, _ in res.differences)
-              + (f": minima over the recorded 1/{every} of the steps; the per-step series "
+              + (f": extremes over the recorded 1/{every} of the steps only; the per-step series "
                  "above hold every step's extremes" if every > 1 else ""))
     elif stored:
         print("the recomputed summary matches the run's own summary")
@@ -281,9 +281,11 @@ def _print_text(res: ReviewResult) -> None:
         print(f"wrote {p}")
 
 
-def _recorded_every(meta: Mapping[str, Any]) -> int:
-    """Steps per recorded tick: the run's own frame decimation × the recorder's."""
-    return int(meta.get("record_every") or 1) * int(meta.get("decimate") or 1)
+def _recorded_every(d: RecordingData) -> int:
+    """Steps (ticks) per recorded tick, typically (the median spacing of the recorded ticks)."""
+    if len(d.tick) < 2:
+        return 1
+    return max(1, int(np.median(np.diff(d.tick))))
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
