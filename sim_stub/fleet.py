@@ -68,9 +68,11 @@ def load_homes(path: str | Path) -> list[Home]:
         if len(parts) != 3:
             raise SimStubError(f"{p}:{lineno}: expected 'lat,lon,alt', got {line!r}")
         try:
-            homes.append(validate_home(tuple(float(x) for x in parts)))  # type: ignore[arg-type]
+            values = tuple(float(x) for x in parts)
         except ValueError:
             raise SimStubError(f"{p}:{lineno}: not a number in {line!r}") from None
+        try:
+            homes.append(validate_home(values))  # type: ignore[arg-type]
         except SimStubError as exc:
             raise SimStubError(f"{p}:{lineno}: {exc}") from None
     return homes

@@ -1,0 +1,493 @@
+"""sim_stub's PX4 rules over real UDP, driven by a small pymavlink GCS (one vehicle per test).
+
+These tests are about behaviour, not boot timing: they run the mock with ``boot_time_scale=0.2``
+(documented option; ready ~0.9 s after start instead of ~4.3 s) and short auto-disarm/takeoff
+parameters to keep the suite quick. Every wait is on a message or a state, with a timeout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+import struct
+from collections.abc import Callable
+
+import pytest
+from pymavlink.dialects.v20 import common as mav
+
+from sim_stub import Faults, MockFleet, MockVehicle
+from sim_stub.codec import DatagramParser
+from sim_stub.geo import project
+from sim_stub.ports import free_port_scheme
+
+pytestmark = pytest.mark.timeout(120)
+
+SCALE = 0.2
+ACCEPTED, TEMP_REJECTED, DENIED, UNSUPPORTED = 0, 1, 2, 3
+VEL_ONLY = 3527  # SET_POSITION_TARGET_LOCAL_NED type_mask: velocity only, no yaw
+VEL_YAW = 0xDC7 & ~0x400  # velocity + yaw
+
+
+class Gcs(asyncio.DatagramProtocol):
+    """Receives everything the vehicle sends (decoded), sends MAVLink as sysid 255 / compid 190."""
+
+    def __init__(self, vehicle: MockVehicle, bind: tuple[str, int] | None = None) -> None:
+        self.v = vehicle
+        self.bind = bind or vehicle.gcs_address
+        self.mav = mav.MAVLink(None, 255, 190)
+        self.rx = mav.MAVLink(None, 255, 190)
+        self.rx.robust_parsing = True
+        self.msgs: list[tuple[float, object]] = []
+        self.datagrams = 0
+        self.seqs: list[int] = []  # MAVLink seq of every datagram received
+        self._new = asyncio.Event()
+        self.transport: asyncio.DatagramTransport | None = None
+
+    async def __aenter__(self) -> Gcs:
+        loop = asyncio.get_running_loop()
+        self.transport, _ = await loop.create_datagram_endpoint(lambda: self, local_addr=self.bind)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self.transport is not None
+        self.transport.close()
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.datagrams += 1
+        self.seqs.append(data[4] if len(data) > 4 else -1)
+        t = asyncio.get_running_loop().time()
+        for m in self.rx.parse_buffer(data) or []:
+            self.msgs.append((t, m))
+        self._new.set()
+
+    def mark(self) -> int:
+        return len(self.msgs)
+
+    async def wait(
+        self, pred: Callable[[object], bool], timeout: float = 10.0, since: int = 0, what: str = ""
+    ) -> object:
+        """First message (at index >= since) satisfying ``pred``."""
+        i = since
+
+        async def scan() -> object:
+            nonlocal i
+            while True:
+                while i < len(self.msgs):
+                    m = self.msgs[i][1]
+                    i += 1
+                    if pred(m):
+                        return m
+                self._new.clear()
+                await self._new.wait()
+
+        try:
+            return await asyncio.wait_for(scan(), timeout)
+        except TimeoutError:
+            raise AssertionError(f"no {what or 'matching message'} within {timeout} s") from None
+
+    async def wait_type(self, name: str, pred=lambda m: True, **kw) -> object:
+        return await self.wait(lambda m: m.get_type() == name and pred(m), what=name, **kw)
+
+    async def until(self, cond: Callable[[], bool], timeout: float = 20.0, what: str = "") -> None:
+        """Wait (on incoming telemetry) until ``cond()`` holds."""
+
+        async def loop() -> None:
+            while not cond():
+                self._new.clear()
+                await self._new.wait()
+
+        try:
+            await asyncio.wait_for(loop(), timeout)
+        except TimeoutError:
+            raise AssertionError(f"not reached within {timeout} s: {what}") from None
+
+    def send(self, msg: object) -> None:
+        assert self.transport is not None
+        self.transport.sendto(msg.pack(self.mav), self.v.bind_address)  # type: ignore[attr-defined]
+
+    async def command(self, cmd: int, *params: float, int_: bool = False, target: int | None = None,
+                      comp: int = 1) -> object:  # fmt: skip
+        p = list(params) + [0.0] * (7 - len(params))
+        tgt = self.v.sysid if target is None else target
+        since = self.mark()
+        if int_:
+            lat, lon = int(p[4] * 1e7), int(p[5] * 1e7)
+            self.send(
+                mav.MAVLink_command_int_message(tgt, comp, 0, cmd, 0, 0, *p[:4], lat, lon, p[6])
+            )
+        else:
+            self.send(mav.MAVLink_command_long_message(tgt, comp, cmd, 0, *p))
+        return await self.wait_type("COMMAND_ACK", lambda m: m.command == cmd, since=since)
+
+    def setpoint(self, vx=0.0, vy=0.0, vz=0.0, *, mask=VEL_ONLY, frame=1, x=0.0, y=0.0, z=0.0,
+                 yaw=0.0) -> None:  # fmt: skip
+        self.send(mav.MAVLink_set_position_target_local_ned_message(
+            0, self.v.sysid, 1, frame, mask, x, y, z, vx, vy, vz, 0, 0, 0, yaw, 0))  # fmt: skip
+
+    def heartbeats(self, since: int = 0) -> list[object]:
+        return [m for _, m in self.msgs[since:] if m.get_type() == "HEARTBEAT"]
+
+    def texts(self) -> list[str]:
+        return [m.text for _, m in self.msgs if m.get_type() == "STATUSTEXT"]
+
+
+class Streamer:
+    """A 20 Hz setpoint stream (the control loop of a GCS; the sleep is its period)."""
+
+    def __init__(self, gcs: Gcs) -> None:
+        self.gcs = gcs
+        self.kw: dict = {}
+        self.task: asyncio.Task | None = None
+
+    async def _run(self) -> None:
+        while True:
+            self.gcs.setpoint(**self.kw)
+            await asyncio.sleep(0.05)
+
+    def __enter__(self) -> Streamer:
+        self.task = asyncio.get_running_loop().create_task(self._run())
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        assert self.task is not None
+        self.task.cancel()
+
+
+def vehicle(**kw) -> MockVehicle:
+    kw.setdefault("boot_time_scale", SCALE)
+    return MockVehicle(0, ports=free_port_scheme(1), **kw)
+
+
+async def ready(gcs: Gcs) -> None:
+    await gcs.wait_type("HEARTBEAT", lambda m: m.system_status == 3, timeout=10)
+
+
+async def test_commands_acks_and_px4_rules() -> None:
+    async with vehicle(params={"COM_DISARM_PRFLT": 1.0}) as v, Gcs(v) as g:
+        await g.wait_type("HEARTBEAT")
+        # arming is rejected for the first seconds after boot, with PX4's 2-chunk STATUSTEXT
+        ack = await g.command(400, 1)
+        assert ack.result == TEMP_REJECTED and ack.target_system == 255
+        assert ack.target_component == 190 and ack.progress == 0 and ack.result_param2 == 0
+        assert "Arming denied: Resolve system health failures firs" in g.texts()
+        await ready(g)
+        for int_ in (False, True):
+            assert (await g.command(31999, 1, 2, 3, 4, 5, 6, 7, int_=int_)).result == UNSUPPORTED
+        assert (await g.command(400, 0)).result == ACCEPTED  # disarm while disarmed
+        # OFFBOARD without setpoints: ACCEPTED, heartbeat base_mode 1 / UNINIT, not armable
+        mark = g.mark()
+        assert (await g.command(176, 1, 6)).result == ACCEPTED
+        await g.wait_type("HEARTBEAT", lambda m: (m.base_mode, m.system_status) == (1, 0),
+                          since=mark)  # fmt: skip
+        assert (await g.command(400, 1)).result == TEMP_REJECTED
+        # Hold: armable; armed heartbeat 157 / ACTIVE
+        assert (await g.command(176, 1, 4, 3)).result == ACCEPTED
+        await ready(g)
+        mark = g.mark()
+        assert (await g.command(400, 1)).result == ACCEPTED
+        await g.wait_type("HEARTBEAT", lambda m: (m.base_mode, m.system_status) == (157, 4),
+                          since=mark)  # fmt: skip
+        # armed: a mode that cannot run (POSCTL needs RC) is refused with PX4's text
+        assert (await g.command(176, 1, 3)).result == TEMP_REJECTED
+        assert "Switching to Position is currently not available\t" in g.texts()
+        assert (await g.command(176, 1, 4, 99)).result == TEMP_REJECTED
+        assert "Unsupported auto mode\t" in g.texts()
+        # a command for another system is not answered (the next ACK is for the next command)
+        ignored = v.counters.rx_ignored
+        mark = g.mark()
+        g.send(mav.MAVLink_command_long_message(9, 1, 400, 0, 0, 0, 0, 0, 0, 0, 0))
+        ack = await g.command(512, 148)
+        assert ack.result == ACCEPTED
+        assert [m.command for _, m in g.msgs[mark:] if m.get_type() == "COMMAND_ACK"] == [512]
+        assert v.counters.rx_ignored == ignored + 1
+        # armed on the ground without taking off: auto-disarm (COM_DISARM_PRFLT, here 1 s)
+        await g.wait_type(
+            "STATUSTEXT", lambda m: m.text == "Disarmed by auto preflight disarming\t"
+        )
+        mark = g.mark()
+        await g.wait_type("HEARTBEAT", lambda m: m.base_mode == 29, since=mark)
+        assert not v.armed and v.mode_name == "AUTO.LOITER"
+
+
+async def test_message_requests_and_intervals() -> None:
+    async with vehicle() as v, Gcs(v) as g:
+        await g.wait_type("HEARTBEAT")
+        for msgid, name in ((148, "AUTOPILOT_VERSION"), (242, "HOME_POSITION"),
+                            (49, "GPS_GLOBAL_ORIGIN")):  # fmt: skip
+            mark = g.mark()
+            ack = await g.command(512, msgid)
+            assert ack.result == ACCEPTED
+            after = [m.get_type() for _, m in g.msgs[mark:]]
+            # the requested message arrives before its ACK (capture: 1-3 ms before)
+            assert name in after[: after.index("COMMAND_ACK")]
+        caps = [m for _, m in g.msgs if m.get_type() == "AUTOPILOT_VERSION"][0].capabilities
+        assert (
+            caps & 8 and caps & 16 and caps & 8192
+        )  # COMMAND_INT, PARAM_ENCODE_BYTEWISE, MAVLINK2
+        assert (await g.command(512, 9999)).result == DENIED
+        assert (await g.command(511, 32, 20000)).result == ACCEPTED
+        assert v.stream_rates()["LOCAL_POSITION_NED"] == pytest.approx(50.0)
+        mark = g.mark()
+        assert (await g.command(510, 32)).result == ACCEPTED
+        mi = await g.wait_type("MESSAGE_INTERVAL", since=mark)
+        assert (mi.message_id, mi.interval_us) == (32, 20000)
+        assert (await g.command(511, 32, -1)).result == ACCEPTED  # off
+        assert v.stream_rates()["LOCAL_POSITION_NED"] == 0.0
+        assert (await g.command(511, 32, 0)).result == ACCEPTED  # default again (PX4: 30 Hz)
+        assert v.stream_rates()["LOCAL_POSITION_NED"] == pytest.approx(30.0)
+        assert (await g.command(511, 9999, 1000)).result == DENIED
+        mark = g.mark()
+        ack = await g.command(511, 242, 1e6)  # like the capture: one HOME_POSITION before the ACK
+        after = [m.get_type() for _, m in g.msgs[mark:]]
+        assert ack.result == ACCEPTED and "HOME_POSITION" in after[: after.index("COMMAND_ACK")]
+
+
+async def test_parameter_protocol() -> None:
+    async with vehicle() as v, Gcs(v) as g:
+        await g.wait_type("HEARTBEAT")
+
+        async def read(name: str | None = None, index: int = -1) -> object:
+            mark = g.mark()
+            pid = (name or "").encode()
+            g.send(mav.MAVLink_param_request_read_message(v.sysid, 1, pid, index))
+            return await g.wait_type("PARAM_VALUE", since=mark)
+
+        p = await read("COM_OBL_RC_ACT")
+        assert (p.param_type, p.param_value) == (6, 0.0)
+        count = p.param_count
+        p = await read("COM_RC_IN_MODE")
+        assert p.param_type == 6 and p.param_value == pytest.approx(1.401298464324817e-45)
+        by_index = await read(index=p.param_index)
+        assert by_index.param_id == "COM_RC_IN_MODE"
+        # a nonexistent name gets no reply at all: the next reply is for the next request
+        mark = g.mark()
+        g.send(mav.MAVLink_param_request_read_message(v.sysid, 1, b"COM_DISARM_PRELAND", -1))
+        p = await read("MIS_TAKEOFF_ALT")
+        assert [m.param_id for _, m in g.msgs[mark:] if m.get_type() == "PARAM_VALUE"] == [
+            "MIS_TAKEOFF_ALT"
+        ]
+        # set: REAL32 and INT32 (bytewise), echoed as PARAM_VALUE, and used by the vehicle
+        mark = g.mark()
+        g.send(mav.MAVLink_param_set_message(v.sysid, 1, b"COM_OF_LOSS_T", 2.5, 9))
+        p = await g.wait_type("PARAM_VALUE", since=mark)
+        assert (p.param_id, p.param_value) == ("COM_OF_LOSS_T", 2.5)
+        assert v.params["COM_OF_LOSS_T"].value == 2.5
+        mark = g.mark()
+        raw = struct.unpack("<f", struct.pack("<i", 4))[0]  # PX4 packs INT32 bytewise
+        g.send(mav.MAVLink_param_set_message(v.sysid, 1, b"COM_OBL_RC_ACT", raw, 6))
+        p = await g.wait_type("PARAM_VALUE", since=mark)
+        assert p.param_value == pytest.approx(raw) and v.params["COM_OBL_RC_ACT"].value == 4
+        mark = g.mark()
+        g.send(mav.MAVLink_param_set_message(v.sysid, 1, b"NO_SUCH_PARAM", 1.0, 9))
+        t = await g.wait_type("STATUSTEXT", since=mark)
+        assert t.text == "[pm] unknown param: NO_SUCH_PARAM\t"
+        mark = g.mark()
+        g.send(mav.MAVLink_param_request_list_message(v.sysid, 1))
+        await g.until(
+            lambda: sum(1 for _, m in g.msgs[mark:] if m.get_type() == "PARAM_VALUE") == count,
+            what="the whole list",
+        )
+        got = [m for _, m in g.msgs[mark:] if m.get_type() == "PARAM_VALUE"]
+        assert sorted(m.param_index for m in got) == list(range(count))
+
+
+async def test_takeoff_offboard_frames_and_land() -> None:
+    params = {"MIS_TAKEOFF_ALT": 2.0}
+    async with vehicle(params=params) as v, Gcs(v) as g:
+        await ready(g)
+        assert (await g.command(400, 1)).result == ACCEPTED
+        assert (await g.command(22, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)).result == 0
+        assert v.mode_name == "AUTO.TAKEOFF"
+        await g.wait_type("STATUSTEXT", lambda m: m.text == "Takeoff detected\t")
+        await g.wait_type("EXTENDED_SYS_STATE", lambda m: m.landed_state == 2)
+        # NaN altitude → MIS_TAKEOFF_ALT; PX4 then switches to Hold
+        await g.wait_type("HEARTBEAT", lambda m: m.custom_mode == 50593792, timeout=30)
+        await g.until(lambda: abs(v.position_ned[2] + 2.0) < 0.15, what="hold at 2 m")
+        st = Streamer(g)
+        with st:
+            # heading east via a LOCAL_NED setpoint with yaw, then BODY_NED forward = east
+            st.kw = {"mask": VEL_YAW, "yaw": math.pi / 2}
+            # armed, PX4 only switches to OFFBOARD once setpoints are streaming
+            assert (await g.command(176, 1, 6)).result == TEMP_REJECTED
+            await g.until(lambda: v.sp_fresh, what="setpoints received")
+            assert (await g.command(176, 1, 6)).result == ACCEPTED
+            await g.until(lambda: abs(v._yaw() - math.pi / 2) < 0.05, what="yaw 90°")
+            e0 = v.position_ned[1]
+            st.kw = {"vx": 1.0, "frame": 8}
+            await g.until(lambda: v.position_ned[1] > e0 + 1.5, what="1.5 m east in BODY_NED")
+            assert abs(v.velocity_ned[0]) < 0.3
+            # a position setpoint (velocity ignored): flies there
+            st.kw = {"mask": 0xDF8, "x": 1.0, "y": 1.0, "z": -2.5}
+            await g.until(
+                lambda: math.dist(v.position_ned, (1.0, 1.0, -2.5)) < 0.4, what="position sp"
+            )
+            tgt = await g.wait_type("POSITION_TARGET_LOCAL_NED", since=g.mark())
+            assert tgt.type_mask & 0x7 == 0 and tgt.x == pytest.approx(1.0)
+            mark = g.mark()
+            assert (await g.command(21)).result == ACCEPTED
+            assert "Landing at current position\t" in g.texts()
+        await g.wait_type("STATUSTEXT", lambda m: m.text == "Landing detected\t", since=mark,
+                          timeout=30)  # fmt: skip
+        await g.wait_type("STATUSTEXT", lambda m: m.text == "Disarmed by landing\t", since=mark)
+        assert v.position_ned[2] == 0.0 and not v.armed
+        # home was re-set to the landing point
+        home = await g.wait_type("HOME_POSITION", since=g.mark(), timeout=5)
+        assert home.x == pytest.approx(v.position_ned[0], abs=0.05)
+
+
+async def test_offboard_loss_failsafe_and_recovery() -> None:
+    async with vehicle() as v, Gcs(v) as g:
+        await g.wait_type("HEARTBEAT")
+        st = Streamer(g)
+        with st:
+            st.kw = {"vz": -1.5}
+            assert (await g.command(176, 1, 6)).result == ACCEPTED
+            await ready(g)
+            assert (await g.command(400, 1)).result == ACCEPTED
+            await g.until(lambda: v.position_ned[2] < -2.0, what="2 m climb")
+            st.kw = {}
+        # setpoints stop; ~COM_OF_LOSS_T later PX4's failsafe: POSCTL, CRITICAL, descent
+        mark = g.mark()
+        await g.wait_type("STATUSTEXT", lambda m: m.text == "Failsafe activated\t" and
+                          m.severity == 2, since=mark)  # fmt: skip
+        await g.wait_type("HEARTBEAT", lambda m: (m.custom_mode, m.base_mode, m.system_status)
+                          == (196608, 209, 5), since=mark)  # fmt: skip
+        await g.until(lambda: v.velocity_ned[2] > 0.4, what="descending")
+        # the setpoints come back: the mode fallback clears, OFFBOARD again (PX4 failsafe rules)
+        with Streamer(g) as st2:
+            st2.kw = {}
+            await g.until(lambda: v.mode_name == "OFFBOARD", what="back in OFFBOARD")
+            # with COM_OBL_RC_ACT = 4 (Land) the next loss lands instead
+            mark = g.mark()
+            raw = struct.unpack("<f", struct.pack("<i", 4))[0]
+            g.send(mav.MAVLink_param_set_message(v.sysid, 1, b"COM_OBL_RC_ACT", raw, 6))
+            await g.wait_type("PARAM_VALUE", since=mark)
+        await g.until(lambda: v.mode_name == "AUTO.LAND", what="failsafe Land")
+        await g.wait_type("STATUSTEXT", lambda m: m.text == "Disarmed by landing\t", timeout=30)
+        mark = g.mark()
+        await g.wait_type("HEARTBEAT", since=mark)
+        hb = await g.wait_type("HEARTBEAT", since=g.mark())
+        assert (hb.custom_mode, hb.base_mode, hb.system_status) == (393216, 17, 0)
+
+
+async def test_answers_whoever_last_sent() -> None:
+    v = vehicle()
+    async with v, Gcs(v) as a:
+        other = free_port_scheme(1)
+        async with Gcs(v, bind=(other.host, other.gcs_port(0))) as b:
+            await a.wait_type("HEARTBEAT")
+            assert (await b.command(512, 148)).result == ACCEPTED  # answered to B
+            mark = b.mark()
+            await b.wait_type("HEARTBEAT", since=mark)  # and the stream follows B
+            assert (await a.command(512, 148)).result == ACCEPTED
+            n = a.mark()
+            await a.wait_type("HEARTBEAT", since=n)
+
+
+async def test_malformed_truncated_and_foreign_datagrams_never_stall() -> None:
+    rng = random.Random(7)
+    async with vehicle() as v, Gcs(v) as g:
+        await g.wait_type("HEARTBEAT")
+        good = mav.MAVLink_command_long_message(1, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0).pack(g.mav)
+        garbage = [rng.randbytes(rng.randrange(1, 300)) for _ in range(200)]
+        garbage += [good[:n] for n in range(1, len(good))]  # every truncation
+        bad_crc = bytearray(good)
+        bad_crc[-2] ^= 0x55
+        garbage.append(bytes(bad_crc))
+        parser = DatagramParser()
+        expect_malformed = sum(1 for d in garbage if parser.parse(d)[1])
+        expect_unknown = sum(parser.parse(d)[2] for d in garbage)
+        for d in garbage:
+            g.transport.sendto(d, v.bind_address)
+        # a foreign valid message (a heartbeat from another vehicle's id) is fine too
+        ack = await g.command(512, 148)  # still answers, in order, after the junk
+        assert ack.result == ACCEPTED
+        c = v.counters
+        assert c.rx_malformed == expect_malformed and c.rx_unknown == expect_unknown
+        assert c.rx_datagrams >= len(garbage) + 1
+        mark = g.mark()
+        await g.wait_type("ATTITUDE", since=mark)  # streams continue
+        assert rng.random() >= 0  # (the junk was seeded: reproducible)
+
+
+async def test_kill_silent_and_freeze() -> None:
+    async with MockFleet(2, port_scheme=free_port_scheme(2), boot_time_scale=SCALE) as f:
+        v0, v1 = f.vehicles
+        async with Gcs(v0) as g0, Gcs(v1) as g1:
+            await g0.wait_type("HEARTBEAT")
+            await g1.wait_type("HEARTBEAT")
+            # freeze vehicle 1 in flight: keeps streaming, holds position, ignores commands
+            st = Streamer(g1)
+            with st:
+                st.kw = {"vz": -1.5}
+                assert (await g1.command(176, 1, 6)).result == ACCEPTED
+                await ready(g1)
+                assert (await g1.command(400, 1)).result == ACCEPTED
+                await g1.until(lambda: v1.position_ned[2] < -1.0, what="airborne")
+                st.kw = {"vx": 1.0}
+                await g1.until(lambda: v1.velocity_ned[0] > 0.3, what="moving north")
+                f.kill(1, "freeze")
+                frozen_at = v1.position_ned
+                mark = g1.mark()
+                g1.send(mav.MAVLink_command_long_message(2, 1, 400, 0, 0, 21196, 0, 0, 0, 0, 0))
+                for _ in range(2):
+                    await g1.wait_type("HEARTBEAT", since=g1.mark())
+                assert not [m for _, m in g1.msgs[mark:] if m.get_type() == "COMMAND_ACK"]
+                lpn = [m for _, m in g1.msgs[mark:] if m.get_type() == "LOCAL_POSITION_NED"]
+                assert len(lpn) > 10 and all(
+                    (m.x, m.y, m.z) == pytest.approx(frozen_at, abs=1e-3) for m in lpn[2:]
+                )
+                assert v1.armed and v1.position_ned == frozen_at
+            # kill vehicle 0 silently: nothing it generates after the kill reaches the GCS
+            f.kill(0, "silent")
+            t_kill_ms = v0._tboot_ms(v0._now())
+            dropped = v0.counters.rx_dropped
+            g0.send(mav.MAVLink_command_long_message(1, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0))
+            await g1.until(lambda: v0.counters.rx_dropped > dropped, what="probe dropped")
+            await g1.until(lambda: v0.uptime * 1000 > t_kill_ms + 1500, what="1.5 s later")
+            late = [
+                m for _, m in g0.msgs
+                if hasattr(m, "time_boot_ms") and m.time_boot_ms > t_kill_ms + 50
+            ]  # fmt: skip
+            assert not late
+            assert f.vehicles[0].dead == "silent" and f.vehicles[1].dead == "freeze"
+
+
+async def test_link_faults_loss_latency_and_gps_noise() -> None:
+    faults = [
+        Faults(loss_pct=30.0),
+        Faults(latency_s=0.2, die_at_s=3.0, die_how="silent"),
+        Faults(gps_noise_m=1.0),
+    ]
+    async with MockFleet(3, port_scheme=free_port_scheme(3), faults=faults,
+                         boot_time_scale=SCALE, seed=3) as f:  # fmt: skip
+        lossy, slow, noisy = f.vehicles
+        async with Gcs(lossy) as gl, Gcs(slow) as gs, Gcs(noisy) as gn:
+            # loss: PX4's seq still advances, so the GCS sees the gaps
+            await gl.until(lambda: len(gl.msgs) > 400, what="400 packets")
+            seqs = gl.seqs
+            gaps = sum((b - a - 1) % 256 for a, b in zip(seqs, seqs[1:], strict=False))
+            assert 0.15 < gaps / (gaps + len(seqs)) < 0.45
+            assert lossy.counters.tx_dropped > 0
+            # latency: the command is held by the vehicle before it is processed, then answered
+            await gs.wait_type("HEARTBEAT")
+            since = gs.mark()
+            gs.send(mav.MAVLink_command_long_message(2, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0))
+            await gs.until(lambda: len(slow._delay_in) == 1, 2.0, "the request in the delay queue")
+            await gs.wait_type("COMMAND_ACK", since=since)
+            # die_at_s: the link dies by itself
+            await gn.until(lambda: slow.dead == "silent", 10.0, "death at 3 s")
+            # GPS noise: the reported position wanders while the vehicle sits at its origin,
+            # consistently in the local and the global position
+            await gn.until(lambda: len([m for _, m in gn.msgs if m.get_type() ==
+                                        "GLOBAL_POSITION_INT"]) > 20, what="positions")  # fmt: skip
+            lpn = {m.time_boot_ms: m for _, m in gn.msgs if m.get_type() == "LOCAL_POSITION_NED"}
+            assert max(math.hypot(m.x, m.y) for m in lpn.values()) > 0.05
+            assert noisy.position_ned == (0.0, 0.0, 0.0)
+            lat0, lon0, _ = noisy.origin
+            for _, g in gn.msgs:
+                if g.get_type() == "GLOBAL_POSITION_INT" and g.time_boot_ms in lpn:
+                    x, y = project(lat0, lon0, g.lat / 1e7, g.lon / 1e7)
+                    m = lpn[g.time_boot_ms]
+                    assert abs(x - m.x) < 0.03 and abs(y - m.y) < 0.03

@@ -1,0 +1,98 @@
+"""``python -m sim_stub``: endpoints printed, runs until SIGINT/SIGTERM, clean exit; one-line
+errors with exit status 2 for bad input."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from pymavlink.dialects.v20 import common as mav
+
+from sim_stub.ports import free_port_scheme
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.timeout(60)
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run(
+        [sys.executable, "-m", "sim_stub", *args], capture_output=True, text=True, timeout=30,
+        cwd=ROOT, env=env,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--home", "47.4,8.5"],
+         "error: --home must be LAT,LON,ALT (three numbers), got '47.4,8.5'"),
+        (["--home", "95,8.5,400"], "error: home latitude must be in (-90, 90) deg, got 95.0"),
+        (["--count", "41"], "error: port scheme 'px4' (vehicles 14580+i, GCS 14540+i) holds at "
+                            "most 40 vehicles, 41 requested (use port_scheme='wide' / --ports "
+                            "wide)"),
+        (["--count", "0"], "error: --count must be >= 1, got 0"),
+        (["--ports", "abc"],
+         "error: --ports must be px4, wide or VEHICLE_BASE:GCS_BASE, got 'abc'"),
+        (["--fault", "3:loss=5"], "error: --fault '3:loss=5': no vehicle 3 (count is 1)"),
+        (["--homes", "/nonexistent/homes.csv"], "error: /nonexistent/homes.csv: cannot read homes "
+                                                "file: No such file or directory"),
+    ],
+)  # fmt: skip
+def test_bad_input_is_one_line_and_exit_2(args: list[str], message: str) -> None:
+    r = _run(*args)
+    assert r.returncode == 2
+    assert r.stderr.strip() == message
+    assert "Traceback" not in r.stderr
+
+
+def test_port_in_use_is_reported() -> None:
+    ports = free_port_scheme(1)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((ports.host, ports.vehicle_port(0)))
+        r = _run("--ports", f"{ports.vehicle_base}:{ports.gcs_base}")
+    assert r.returncode == 2
+    assert r.stderr.startswith(f"error: vehicle 0: cannot bind UDP 127.0.0.1:{ports.vehicle_base}")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_runs_prints_endpoints_streams_and_stops_cleanly(sig: int, tmp_path) -> None:
+    ports = free_port_scheme(2)
+    homes = tmp_path / "homes.csv"
+    homes.write_text("47.397742,8.545594,489.4\n47.397842,8.545594,489.4\n")
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind((ports.host, ports.gcs_port(1)))
+    gcs.settimeout(10.0)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.Popen(
+        [sys.executable, "-m", "sim_stub", "--homes", str(homes), "--ports",
+         f"{ports.vehicle_base}:{ports.gcs_base}", "--seed", "5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+    )  # fmt: skip
+    try:
+        assert p.stdout is not None
+        head = p.stdout.readline()
+        assert head.startswith("sim_stub: 2 vehicle(s), ports custom, profile full")
+        lines = [p.stdout.readline().strip() for _ in range(2)]
+        assert lines[1] == (
+            f"vehicle 1: sysid 2 compid 1, binds udp 127.0.0.1:{ports.vehicle_port(1)} -> GCS "
+            f"udpin://127.0.0.1:{ports.gcs_port(1)}, home 47.3978420,8.5455940,489.40"
+        )
+        # vehicle 1 streams MAVLink to its GCS port
+        m = mav.MAVLink(None, 255, 190)
+        data, _ = gcs.recvfrom(2048)
+        msg = m.parse_buffer(data)[0]
+        assert msg.get_srcSystem() == 2
+        p.send_signal(sig)
+        out, err = p.communicate(timeout=10)
+        assert p.returncode == 0, err
+        assert "sim_stub: stopping" in out and "Traceback" not in err
+    finally:
+        if p.poll() is None:
+            p.kill()
+        gcs.close()
