@@ -2,7 +2,9 @@
 
 Every figure is a *difference* between a long and a short run of the same scenario divided by the
 difference in steps, so start-up (validation, partition, allocation) cancels out. Each pair of
-runs is repeated and the best difference is kept (the machine is shared).
+runs is repeated (``--repeat``) and the minimum and the median of the differences are printed
+(the machine is shared), with a calibration line (the cost of two small numpy calls and the
+load average) before and after.
 
 1. The paper scenario (configs/paper.toml, dt = 1 ms, 120 robots):
    * "dense": 1 s vs 8 s of simulated time; all 120 robots are in the tube throughout;
@@ -12,17 +14,21 @@ runs is repeated and the best difference is kept (the machine is shared).
    apart, 5 obstacles ahead of the block), 0.05 s vs 0.25 s of simulated time at dt = 1 ms.
    Time per step should grow about linearly with M.
 
-Run: ``python bench/bench_sim.py [--quick] [--profile]`` (single core: nothing here is threaded;
-numpy's BLAS threads are not used by the simulator's element-wise operations).
+Run: ``python bench/bench_sim.py [--quick] [--paper-only] [--repeat N] [--profile]`` (single
+core: nothing here is threaded; numpy's BLAS threads are not used by the simulator's
+element-wise operations).
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import os
 import pstats
+import statistics
 import sys
 import time
+import timeit
 from pathlib import Path
 
 import numpy as np
@@ -65,22 +71,38 @@ def timed(scenario, duration: float) -> tuple[float, int]:
     return wall, int(res.summary["steps"])
 
 
-def per_step_us(scenario, short: float, long: float, repeat: int) -> tuple[float, int, int]:
-    best = float("inf")
+def per_step_us(scenario, short: float, long: float, repeat: int
+                ) -> tuple[float, float, int, int]:
+    """(min, median) over ``repeat`` pairs of runs of µs per step, and the two step counts."""
+    diffs = []
     for _ in range(repeat):
         w1, s1 = timed(scenario, short)
         w2, s2 = timed(scenario, long)
-        best = min(best, (w2 - w1) / (s2 - s1))
-    return 1e6 * best, s1, s2
+        diffs.append(1e6 * (w2 - w1) / (s2 - s1))
+    return min(diffs), statistics.median(diffs), s1, s2
+
+
+def calibration() -> str:
+    """What two small numpy calls cost right now (as in bench_controller.py) and the load."""
+    x = np.random.default_rng(0).uniform(0.5, 1.5, 540)
+    y = x[::-1].copy()
+    z = x + 1j * y
+    per = lambda f: min(timeit.repeat(f, number=20000, repeat=7)) / 20000 * 1e6  # noqa: E731
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"calibration: x*y (540 floats) {per(lambda: x * y):.2f} µs, abs (540 complex) "
+            f"{per(lambda: np.abs(z)):.2f} µs, load average {load:.2f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions, skip 10,000 robots")
+    ap.add_argument("--paper-only", action="store_true", help="skip the long-tube scaling")
+    ap.add_argument("--repeat", type=int, default=None,
+                    help="pairs of runs per figure (default 3, 1 with --quick)")
     ap.add_argument("--profile", action="store_true",
                     help="cProfile the dense paper run and print the top functions")
     args = ap.parse_args()
-    repeat = 1 if args.quick else 3
+    repeat = args.repeat or (1 if args.quick else 3)
     paper = load_scenario(ROOT / "configs" / "paper.toml")
 
     if args.profile:
@@ -90,26 +112,31 @@ def main() -> None:
         prof.disable()
         pstats.Stats(prof).sort_stats("tottime").print_stats(18)
 
-    print(f"numpy {np.__version__}, python {sys.version.split()[0]}")
-    us, s1, s2 = per_step_us(paper, 1.0, 8.0, repeat)
-    print(f"paper, dense (120 robots in the tube): {us:7.1f} us/step  (steps {s1} vs {s2})")
+    print(f"numpy {np.__version__}, python {sys.version.split()[0]}, {repeat} repeats: "
+          "min / median")
+    print(calibration())
+    us, med, s1, s2 = per_step_us(paper, 1.0, 8.0, repeat)
+    print(f"paper, dense (120 robots in the tube): {us:7.1f} / {med:5.1f} us/step  "
+          f"(steps {s1} vs {s2})")
     full = paper.sim.duration
-    us, s1, s2 = per_step_us(paper, 2.0, full, repeat)
-    print(f"paper, whole run until all exit:      {us:7.1f} us/step  (steps {s1} vs {s2})")
+    us, med, s1, s2 = per_step_us(paper, 2.0, full, repeat)
+    print(f"paper, whole run until all exit:      {us:7.1f} / {med:5.1f} us/step  "
+          f"(steps {s1} vs {s2})")
     t0 = time.perf_counter()
     res = simulate(paper)
     print(f"paper, one full run: {time.perf_counter() - t0:.2f} s wall for "
           f"{res.summary['steps']} steps (exited {res.summary['exited']}/120, "
           f"violations {res.summary['violations']})")
 
-    sizes = (120, 1000) if args.quick else (120, 1000, 10_000)
+    sizes = () if args.paper_only else (120, 1000) if args.quick else (120, 1000, 10_000)
     base = None
     for m in sizes:
         sc = long_tube(m)
-        us, s1, s2 = per_step_us(sc, 0.05, 0.25, repeat if m < 10_000 else 1)
+        us, med, s1, s2 = per_step_us(sc, 0.05, 0.25, repeat if m < 10_000 else 1)
         base = base or us / m
-        print(f"long tube, {m:6d} robots: {us:9.1f} us/step  {us / m:6.3f} us/step/robot  "
-              f"(x{us / m / base:.2f} per robot vs 120)")
+        print(f"long tube, {m:6d} robots: {us:9.1f} / {med:9.1f} us/step  {us / m:6.3f} "
+              f"us/step/robot  (x{us / m / base:.2f} per robot vs 120)")
+    print(calibration())
 
 
 if __name__ == "__main__":

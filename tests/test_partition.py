@@ -406,3 +406,144 @@ def test_property_any_successful_partition_covers_the_tube(obs_spec, seed):
     rng = np.random.default_rng(seed)
     pts = rng.uniform((-2.0, -9.0), (22.0, 9.0), size=(300, 2))
     assert np.array_equal(part.locate(pts), [reference_locate(part, q) for q in pts])
+
+
+# ------------------------------------------------------------------------------------------
+# SubTubeTracker: locate for a moving swarm, identical to locate at every call
+# ------------------------------------------------------------------------------------------
+_TRACKER_CASES = {
+    "paper": (PAPER_TUBE, PAPER_OBSTACLES),
+    "exact": (RECT, [Obstacle((10.0, 0.0), 0.75, apex_distance=2.0)]),
+    "nested": (WIDE, NESTED + [Obstacle((32.0, 0.0), 0.9)]),
+    "remark5": (CONVERGING, [Obstacle((4.2, -4.6), 0.9), Obstacle((12.0, 4.0), 0.9)]),
+    "none": (CONVERGING, []),
+}
+_TRACKER_PARTS: dict[str, Partition] = {}
+
+
+def _tracker_part(case: str) -> Partition:
+    if case not in _TRACKER_PARTS:
+        tube, obs = _TRACKER_CASES[case]
+        _TRACKER_PARTS[case] = partition(tube, obs, PARAMS)
+    return _TRACKER_PARTS[case]
+
+
+def _special_points(part: Partition) -> np.ndarray:
+    """Apexes, triangle base points, sub-tube corners, base midpoints and points outside T
+    laterally: where the §5 rule has its ties and shared edges."""
+    pts = [t.polygon() for t in part.triangles] + [t.polygon() for t in part.sub_tubes]
+    pts = np.concatenate(pts) if pts else np.zeros((0, 2))
+    mids = np.array([(t.p_h0 + t.p_r0) / 2 for t in part.sub_tubes])
+    T = part.tube
+    out = np.array([T.lh(x) + 1.5 * T.m for x in np.linspace(0, T.length, 5)]
+                   + [T.lr(x) - 1.5 * T.m for x in np.linspace(0, T.length, 5)])
+    return np.concatenate([pts, mids, out])
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.sampled_from(sorted(_TRACKER_CASES)),
+    st.integers(0, 2**31),
+    st.lists(st.sampled_from([0.0, 1e-15, 1e-12, 1e-10, 1e-9, 1e-7, 1e-4, 3e-3, 0.05, 0.5]),
+             min_size=5, max_size=60),
+    st.booleans(),
+)
+def test_tracker_equals_locate_on_random_walks(case, seed, scales, hint):
+    """Random walks of step sizes from 0 to 0.5 m (down to 1e-15 m: rounding level) starting
+    at and around apexes, shared bases, corners and outside T laterally, with occasional
+    jumps onto such points, robots leaving (M changes) and a walk straight across the tube
+    side: the tracker returns exactly locate's array at every call."""
+    part = _tracker_part(case)
+    rng = np.random.default_rng(seed)
+    sp = _special_points(part)
+    M = 40
+    p = sp[rng.integers(0, len(sp), M)] + rng.normal(size=(M, 2)) * rng.choice(
+        [0.0, 1e-12, 1e-9, 1e-3, 0.3], size=(M, 1))
+    tr = part.tracker()
+    lateral = part.tube.m * rng.choice([-1.0, 1.0])
+    for scale in scales:
+        step = rng.normal(size=p.shape) * scale
+        step[0] = lateral * scale  # robot 0 walks across a leg and out of T
+        q = p + step
+        if rng.random() < 0.15:  # jump exactly onto special points
+            idx = rng.integers(0, len(q), 3)
+            q[idx] = sp[rng.integers(0, len(sp), 3)]
+        if rng.random() < 0.1 and len(q) > 5:  # robots leave
+            q = q[rng.random(len(q)) > 0.2]
+            q = np.ascontiguousarray(q)
+        moved = float(np.hypot(*(q - p).T).max()) if q.shape == p.shape else None
+        k = tr.update(q, max_move=moved if hint else None)
+        assert np.array_equal(k, part.locate(q)), (case, scale)
+        assert not k.flags.writeable
+        p = q
+
+
+def test_tracker_reuses_the_array_and_relocates_rarely():
+    part = _tracker_part("paper")
+    rng = np.random.default_rng(3)
+    p = np.column_stack([rng.uniform(0.5, 8.0, 60), rng.uniform(-4.0, 4.0, 60)])
+    tr = part.tracker()
+    k0 = tr.update(p)
+    assert tr.update(p.copy()) is k0 and tr.update(p, max_move=0.0) is k0
+    v = np.array([2e-3, 0.0])  # 2 mm per call along n_c: 15 m in 7500 calls
+    for _ in range(7500):
+        p = p + v
+        k = tr.update(p, max_move=2e-3)
+        if k is not k0:
+            assert not np.array_equal(k, k0)
+            k0 = k
+    assert np.array_equal(k0, part.locate(p))
+    assert tr.locates < 7500 / 10 and tr.checks < 7500
+    with pytest.raises(ValueError):
+        tr.update(np.zeros((3, 3)))
+
+
+def test_tracker_handles_nan_rows():
+    part = _tracker_part("paper")
+    p = np.array([[3.0, 0.0], [np.nan, np.nan], [20.0, 1.0]])
+    tr = part.tracker()
+    for _ in range(3):
+        assert np.array_equal(tr.update(p), part.locate(p))
+
+
+def _rows_hold(tr, p: np.ndarray) -> np.ndarray:
+    """(M,) bool: every row of each point, as set at the tracker's last full locate, is > 0."""
+    z = np.ascontiguousarray(p).view(np.complex128)[:, 0]
+    return ((tr._C * z).real + tr._B > 0).all(axis=0)
+
+
+@pytest.mark.parametrize("case", sorted(_TRACKER_CASES))
+def test_tracker_rows_are_sufficient_across_every_boundary(case):
+    """The tracker's claim, point by point: while a point's rows (set at one full locate and
+    then frozen) hold, locate still gives its k. Robots walk in 0.1 mm steps across every
+    slab boundary (both ways), and in 1 mm steps laterally through every triangle (where the
+    left and right side tubes switch); the rows must also fail once k changed."""
+    part = _tracker_part(case)
+    T = part.tube
+    xi0 = float(T.n_c @ T.p_h0)
+    mid = (T.p_h0 + T.p_r0) / 2
+    bps = np.unique(np.concatenate([part.xi_start, part.xi_end]))
+    bps = bps[np.isfinite(bps)]
+    lat = np.linspace(-1.2, 1.2, 9)[:, None] * (T.width(0.0) / 2) * T.m
+    walks = []
+    for sign in (1.0, -1.0):
+        start = [mid + (b - sign * 2e-3 + xi0 - float(T.n_c @ mid)) * T.n_c + lat for b in bps]
+        walks.append((np.concatenate(start) if start else mid + lat, sign * 1e-4 * T.n_c, 41))
+    rows = []
+    for tri in part.triangles:
+        xa, xb = float(T.n_c @ tri.p_oth), float(T.n_c @ tri.p_otu)
+        for x in np.linspace(xa - 0.01, xb + 0.01, 25):
+            rows.append(tri.center + (x - float(T.n_c @ tri.center)) * T.n_c - 3.0 * T.m)
+    if rows:
+        walks.append((np.array(rows), 1e-3 * T.m, 6001))
+    for p, step, n in walks:
+        frozen = part.tracker()
+        k0 = frozen.update(p).copy()
+        tr = part.tracker()
+        for _ in range(n):
+            k = part.locate(p)
+            hold = _rows_hold(frozen, p)
+            assert np.array_equal(k[hold], k0[hold])
+            assert np.array_equal(tr.update(p, max_move=float(np.hypot(*step))), k)
+            p = p + step
+        assert not _rows_hold(frozen, p)[k != k0].any()

@@ -99,6 +99,30 @@ def test_full_paper_run_new_and_old(paper) -> None:
     assert old["violations_by_condition"]["obstacle"] == 0
 
 
+def test_full_paper_run_sub_tubes_equal_locate_at_every_step(paper, monkeypatch) -> None:
+    """The simulator's sub-tube indices come from a SubTubeTracker: at every step of the full
+    paper run they equal Partition.locate of the same positions, while the full locate runs
+    at a small fraction of the steps."""
+    from vtube_fleet.partition import SubTubeTracker
+
+    seen = {"steps": 0, "trackers": []}
+    update = SubTubeTracker.update
+
+    def checked(self, p, max_move=None):
+        k = update(self, p, max_move)
+        np.testing.assert_array_equal(k, self._loc(p))
+        seen["steps"] += 1
+        if self not in seen["trackers"]:
+            seen["trackers"].append(self)
+        return k
+
+    monkeypatch.setattr(SubTubeTracker, "update", checked)
+    s = simulate(paper).summary
+    assert s["exited"] == 120 and seen["steps"] == s["steps"]
+    (tr,) = seen["trackers"]
+    assert tr.locates < 0.1 * s["steps"]
+
+
 def test_robotarium_unicycles_all_exit() -> None:
     sc = load_scenario(ROBOTARIUM)
     res = simulate(sc)

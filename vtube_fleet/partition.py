@@ -42,6 +42,7 @@ __all__ = [
     "LOCATE_TOL",
     "Partition",
     "PartitionError",
+    "SubTubeTracker",
     "Triangle",
     "Violation",
     "alpha_max",
@@ -327,6 +328,8 @@ class _Locator:
         lo = np.concatenate([[-np.inf], bp])
         hi = np.concatenate([bp, [np.inf]])
         cand = (xs[None, :] <= lo[:, None]) & (xe[None, :] >= hi[:, None])
+        self.cand = cand
+        self.bh, self.br = bh, br
         self.pen = np.where(cand, -bh[None, :], -np.inf)
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
@@ -335,9 +338,14 @@ class _Locator:
             return self(p.reshape(-1, 2)).reshape(p.shape[:-1])
         D = p @ self.A  # (2, M, K) or (2, K)
         D[1] += self.delta
+        return self.finish(D, p)[0]
+
+    def finish(self, D: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(k, slab index) from D = [n_hᵀp, n_rᵀp + δ] of every tube (overwrites D[0])."""
         s = np.minimum(D[0], D[1], out=D[0])
-        s += self.pen.take(self.bps.searchsorted(p @ self.n_c, "right"), axis=0)
-        return s.argmax(axis=-1)
+        slab = self.bps.searchsorted(p @ self.n_c, "right")
+        s += self.pen.take(slab, axis=0)
+        return s.argmax(axis=-1), slab
 
 
 # ----------------------------------------------------------------------------------------------
@@ -397,9 +405,192 @@ class Partition:
         """
         return self._locator(p)
 
+    def tracker(self) -> SubTubeTracker:
+        """A :class:`SubTubeTracker`: ``locate`` for a moving swarm, re-run only when needed."""
+        return SubTubeTracker(self)
+
     def names(self) -> tuple[str, ...]:
         """The sub-tube names, ``("T_o1", "T_o2", …)``."""
         return tuple(t.name for t in self.sub_tubes)
+
+
+class SubTubeTracker:
+    """:meth:`Partition.locate` for points that move a little between calls, exactly.
+
+    :meth:`update` returns, for every ``p``, an array equal element for element to
+    ``partition.locate(p)``, but runs the full locate only when a point may have changed its
+    sub-tube. At each full locate, every point i gets a few half-planes ("rows") on whose
+    intersection locate provably returns the same k_i; each later call evaluates the rows
+    (3 numpy calls for all points, with 2-D points as complex numbers z = x + iy)::
+
+        Re(C_ri z_i) + B_ri > 0 for every row r        (C_ri: unit normal, B_ri: offset)
+
+    and re-runs the full locate only when one fails. The rows of a point in slab s (the
+    candidates are the tubes whose half-open ξ-range contains s) choosing tube k:
+
+    * slab: ξ_s,lo < n_cᵀp < ξ_s,hi (the candidate set is unchanged), with ±W = 10⁴ m (or 100×
+      the size of the tube, if larger) around the tube for the unbounded first/last slab;
+    * a lateral window |mᵀ(p − c)| < W (bounds |p|, hence the rounding errors below);
+    * against every other candidate j, with j's active leg a_j, β_j at the locate (the one
+      giving score_j = min(n_h,jᵀp − b_h,j, n_r,jᵀp − b_r,j), ties bonuses included):
+      (n_h,k − a_j)ᵀp − (b_h,k − β_j) > 0 and (n_r,k − a_j)ᵀp − (b_r,k − β_j) > 0, which
+      imply score_k − score_j > 0 since score_j ≤ a_jᵀp − β_j: k still wins outright, so the
+      tie rule (lower index) never decides.
+
+    Every row is normalized (|C| = 1, so its value is a distance) and shifted by a tolerance
+    of 1e-9 m + 1e-14 × (size of the scene) (about 90 ε: the rounding of these rows and of
+    locate's own scores is below 10 ε × size), so "the rows computed in floats are > 0"
+    implies "locate computed in floats gives k". Rows are tabulated per (slab, k, active legs
+    of the others), so a full locate costs about 20 numpy calls.
+
+    ``update(p, max_move=d)``: the caller promises that no point moved farther than ``d``
+    since the previous call (the simulator: v_max·dt); the rows are then evaluated only when
+    the moves summed since the last evaluation may have used up the smallest row value. A
+    change in the number of points forces a full locate (rows follow positions, not robot
+    identities, so re-ordered or replaced points are handled by the rows themselves).
+    ``locates`` counts the full locates, ``checks`` the row evaluations.
+    """
+
+    #: absolute part of the row tolerance (metres)
+    ABS_TOL = 1e-9
+    #: relative part (× the scene size S): ~90 machine epsilons
+    REL_TOL = 1e-14
+
+    def __init__(self, partition: Partition) -> None:
+        loc = partition._locator
+        self._loc = loc
+        self.locates = 0
+        self.checks = 0
+        self._k = np.zeros(0, np.intp)
+        self._k.setflags(write=False)
+        self._C: np.ndarray | None = None
+        self._B: np.ndarray | None = None
+        self._slack = -math.inf
+        self._M = -1
+        self._tables = self._build_tables(partition)
+
+    # --- tables -----------------------------------------------------------------------------
+    def _build_tables(self, part: Partition) -> tuple | None:
+        loc = self._loc
+        cand = loc.cand
+        nslab, K = cand.shape
+        cm1 = int(cand.sum(axis=1).max()) - 1
+        if nslab * K << cm1 > 1 << 16:  # pragma: no cover - absurd numbers of side tubes
+            return None
+        n_c = loc.n_c
+        m = np.array([-n_c[1], n_c[0]])
+        polys = [part.tube.polygon()] + [t.polygon() for t in part.sub_tubes]
+        pts = np.concatenate(polys)
+        center = pts.mean(axis=0)
+        size = float(np.hypot(*(pts - center).T).max())
+        W = max(1e4, 100.0 * size)
+        bps = loc.bps
+        finite = np.abs(np.concatenate([bps, loc.bh, loc.br]))
+        S = float(np.hypot(*center)) + size + 2.0 * W + float(finite.max(initial=0.0))
+        xi_c, m_c = float(center @ n_c), float(center @ m)
+        lo = np.concatenate([[xi_c - W], bps])
+        hi = np.concatenate([bps, [xi_c + W]])
+        A = loc.A  # (2, 2, K): A[0, :, k] = n_h,k, A[1, :, k] = n_r,k
+        bh, br = loc.bh, loc.br
+        n_rows = 4 + 2 * cm1
+        ncode = (nslab * K) << cm1
+        Ctab = np.zeros((n_rows, ncode), np.complex128)
+        Btab = np.full((n_rows, ncode), -np.inf)  # (slab, k) never chosen: always re-locate
+
+        def row(N: np.ndarray, off: float) -> tuple[complex, float]:
+            """Normalized, shifted row for Nᵀp + off > 0."""
+            tol = self.ABS_TOL + self.REL_TOL * (S + abs(off))
+            nn = float(np.hypot(*N))
+            if nn == 0.0:
+                return 0j, (math.inf if off > tol else -math.inf)
+            return complex(N[0], -N[1]) / nn, (off - tol) / nn
+
+        for s in range(nslab):
+            cs = np.flatnonzero(cand[s])
+            for k in cs:
+                others = [int(j) for j in cs if j != k]
+                fixed = [row(n_c, -lo[s]), row(-n_c, hi[s]),
+                         row(m, -(m_c - W)), row(-m, m_c + W)]
+                for bits in range(1 << cm1):
+                    code = ((s * K + int(k)) << cm1) | bits
+                    rows = list(fixed)
+                    for t in range(cm1):
+                        if t >= len(others):
+                            rows += [(0j, math.inf)] * 2
+                            continue
+                        j = others[t]
+                        h = (bits >> t) & 1
+                        a, beta = (A[0, :, j], bh[j]) if h else (A[1, :, j], br[j])
+                        rows.append(row(A[0, :, k] - a, -(bh[k] - beta)))
+                        rows.append(row(A[1, :, k] - a, -(br[k] - beta)))
+                    Ctab[:, code] = [c for c, _ in rows]
+                    Btab[:, code] = [b for _, b in rows]
+        others_tab = np.full((nslab * K, max(cm1, 1)), -1, np.intp)
+        for s in range(nslab):
+            cs = np.flatnonzero(cand[s])
+            for k in cs:
+                oth = [int(j) for j in cs if j != k]
+                others_tab[s * K + k, :len(oth)] = oth
+        pw = (1 << np.arange(max(cm1, 1))).astype(np.intp) if cm1 else np.zeros(1, np.intp)
+        return Ctab, Btab, others_tab, pw, cm1
+
+    # --- the work ---------------------------------------------------------------------------
+    def _full(self, p: np.ndarray) -> None:
+        """Full locate (the same computation as :meth:`Partition.locate`) and new rows."""
+        loc = self._loc
+        D = p @ loc.A
+        D[1] += loc.delta
+        tab = self._tables
+        if tab is not None:
+            H = D[0] <= D[1]  # active leg of every tube: n_h (True) or n_r
+        k, slab = loc.finish(D, p)
+        self.locates += 1
+        M = p.shape[0]
+        if self._k.shape != k.shape or not np.array_equal(self._k, k):
+            k.setflags(write=False)
+            self._k = k
+        self._M = M
+        if tab is None:  # pragma: no cover
+            return
+        Ctab, Btab, others_tab, pw, cm1 = tab
+        K = loc.A.shape[2]
+        sk = slab * K
+        sk += k
+        code = sk << cm1
+        if cm1:
+            oth = others_tab.take(sk, axis=0)  # (M, cm1), −1 = none (any bit: same rows)
+            oth += (np.arange(M) * K)[:, None]
+            code += H.reshape(-1).take(oth) @ pw
+        self._C = Ctab.take(code, axis=1)
+        self._B = Btab.take(code, axis=1)
+        self._slack = -math.inf
+
+    def update(self, p: np.ndarray, max_move: float | None = None) -> np.ndarray:
+        """Sub-tube index of each point (M, 2) → (M,) int, equal to ``locate(p)``.
+
+        The returned array is read-only and is the same object as the previous call's when
+        no point changed its sub-tube. ``max_move``: see the class docstring.
+        """
+        if not (type(p) is np.ndarray and p.dtype == np.float64 and p.ndim == 2
+                and p.shape[1] == 2 and p.flags.c_contiguous):
+            p = np.ascontiguousarray(p, dtype=np.float64)
+            if p.ndim != 2 or p.shape[1] != 2:
+                raise ValueError(f"positions must have shape (M, 2), got {p.shape}")
+        if p.shape[0] != self._M or self._C is None:
+            self._full(p)
+            return self._k
+        if max_move is not None:
+            self._slack -= max_move * (1.0 + 1e-9) + 1e-9
+            if self._slack > 0.0:
+                return self._k
+        self.checks += 1
+        v = self._C * p.view(np.complex128).reshape(p.shape[0])
+        vmin = float((v.real + self._B).min()) if p.shape[0] else math.inf
+        if vmin > 0.0:
+            self._slack = vmin
+        else:  # some row fails (or NaN): a point may have changed sub-tube
+            self._full(p)
+        return self._k
 
 
 @dataclass

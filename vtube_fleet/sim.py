@@ -5,7 +5,9 @@ Each step (all robots still in the tube at once):
 1. robots satisfying (TraCondition) for the MAIN tube, −n_cᵀ(p_i − p_r1) ≤ ε_0, exit
    (Assumption 2): they are removed, recorded as NaN from then on, and are nobody's neighbours;
 2. every robot's sub-tube k_i is located (switching rule (ObstacleController),
-   :meth:`Partition.locate`); for ``controller="apf"`` there is no partition and every robot
+   :meth:`Partition.locate`, through a :class:`~vtube_fleet.partition.SubTubeTracker`, which
+   gives the same result but re-runs the full locate only when a robot may have changed
+   sub-tube); for ``controller="apf"`` there is no partition and every robot
    uses the main tube (Appendix C);
 3. neighbour candidates come from a Verlet list (:class:`~vtube_fleet.neighbours.VerletPairs`);
 4. the velocity commands v_c come from :func:`~vtube_fleet.controller.velocity_command`
@@ -37,7 +39,7 @@ from vtube_fleet.controller import TubeArrays, velocity_command
 from vtube_fleet.errors import UserError
 from vtube_fleet.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
 from vtube_fleet.neighbours import VerletPairs
-from vtube_fleet.partition import Partition
+from vtube_fleet.partition import Partition, SubTubeTracker
 from vtube_fleet.scenario import Scenario
 from vtube_fleet.validation import check_scenario
 
@@ -218,19 +220,19 @@ def simulate(
         part = check_scenario(scenario.tube, scenario.obstacles, params, control0)
     if controller == "apf":
         arrays = TubeArrays.from_tubes([scenario.tube])
-        locate = None
+        tracker = None
     else:
         if part is None:
             from vtube_fleet.partition import partition as build_partition
 
             part = build_partition(scenario.tube, scenario.obstacles, params)
         arrays = part.arrays
-        locate = part.locate
+        tracker = part.tracker()
 
     if recorder is not None:
         recorder.log_scene(scenario, part if controller != "apf" else None, meta={
             "dt_s": dt, "controller": controller, "record_every": record_every})
-    run = _Run(scenario, controller, dt, n_steps, record_every, arrays, locate, progress, skin,
+    run = _Run(scenario, controller, dt, n_steps, record_every, arrays, tracker, progress, skin,
                recorder)
     run.execute()
     result = run.result(part)
@@ -243,7 +245,7 @@ class _Run:
     """State of one simulation; the hot loop lives in :meth:`execute`."""
 
     def __init__(self, scenario: Scenario, controller: str, dt: float, n_steps: int,
-                 record_every: int, arrays: TubeArrays, locate: Callable | None,
+                 record_every: int, arrays: TubeArrays, tracker: SubTubeTracker | None,
                  progress: ProgressFn | None, skin: float | None, recorder: Any = None) -> None:
         self.scenario = scenario
         self.recorder = recorder
@@ -252,7 +254,7 @@ class _Run:
         self.n_steps = n_steps
         self.record_every = record_every
         self.arrays = arrays
-        self.locate = locate
+        self.tracker = tracker
         self.progress = progress
         p = scenario.controller
         self.params = p
@@ -302,7 +304,8 @@ class _Run:
         kind = self.controller
         obstacles = sc.obstacles if kind == "apf" else ()
         arrays, params = self.arrays, p
-        locate = self.locate
+        tracker = self.tracker
+        max_move = v_bound * dt
         verlet = VerletPairs(p.r_s + p.r_a, self.skin)
         monitor, acc = self.monitor, self.acc
         unicycle = self.unicycle
@@ -398,7 +401,7 @@ class _Run:
                     next_exit_check = step + max(1, int((thresh - xmax) / (v_bound * dt)))
                 n = pos.shape[0]
                 # 2-4. sub-tube, neighbours, command
-                k = locate(q) if locate is not None else kzero[:n]
+                k = tracker.update(q, max_move) if tracker is not None else kzero[:n]
                 if step >= next_verlet:
                     pairs = verlet.candidates(q)
                     if verlet.builds != builds:
