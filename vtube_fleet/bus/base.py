@@ -21,7 +21,7 @@ from typing import Protocol
 __all__ = ["Phase", "NeighbourState", "NeighbourBus", "InProcessBus"]
 
 
-class Phase(str, Enum):
+class Phase(str, Enum):  # noqa: UP042 (str() and format() kept as in 3.10 semantics callers use)
     """Mission phase of one vehicle, as its agent sees it."""
 
     CONNECTING = "connecting"
