@@ -35,10 +35,24 @@ __all__ = [
     "VehicleState",
     "VehicleLink",
     "READY_MAX_AGE_S",
+    "cancel_tasks",
 ]
 
 #: A heartbeat / position older than this does not count for :meth:`VehicleLink.wait_ready`.
 READY_MAX_AGE_S = 3.0
+
+
+async def cancel_tasks(tasks: list[asyncio.Task]) -> None:
+    """Cancel a link's background tasks and wait for them to end; errors are swallowed (a link
+    being closed has nobody left to report them to). Clears ``tasks``."""
+    for task in tasks:
+        task.cancel()
+    for task in tasks:
+        try:
+            await task
+        except (asyncio.CancelledError, Exception):
+            pass
+    tasks.clear()
 
 
 class LinkError(UserError):

@@ -49,6 +49,7 @@ from vtube_fleet.link.base import (
     LinkTimeout,
     StatusText,
     VehicleLink,
+    cancel_tasks,
 )
 from vtube_fleet.link.endpoints import Endpoint
 
@@ -634,14 +635,7 @@ class MavlinkLink(VehicleLink):
         if self._closed:
             return
         self._closed = True
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            try:
-                await task
-            except (asyncio.CancelledError, Exception):
-                pass
-        self._tasks.clear()
+        await cancel_tasks(self._tasks)
         for fut in self._pending.values():
             if not fut.done():
                 fut.set_exception(LinkError(f"{self.name}: link closed"))

@@ -46,6 +46,7 @@ from vtube_fleet.link.base import (
     LinkTimeout,
     StatusText,
     VehicleLink,
+    cancel_tasks,
 )
 from vtube_fleet.link.endpoints import Endpoint, px4_sitl_sysid
 
@@ -623,14 +624,7 @@ class MavsdkLink(VehicleLink):
         self._closed = True
         self._offboard_active = False
         self.hub._unregister(self)
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            try:
-                await task
-            except (asyncio.CancelledError, Exception):
-                pass
-        self._tasks.clear()
+        await cancel_tasks(self._tasks)
         for plugin in (self._action, self._telemetry, self._offboard):
             if plugin is not None:
                 try:
