@@ -136,16 +136,21 @@ def test_encode_rejects_unknown_names():
 # -- topics ---------------------------------------------------------------------------------
 def test_topic_names_and_classification():
     t = MissionTopics("mock-fleet_1.2")
-    assert t.state(3) == "vtube/mock-fleet_1.2/state/3"
+    assert t.state(3) == "vtube/mock-fleet_1.2/state/0/0/3"
+    assert t.state(3, (-2, 5)) == "vtube/mock-fleet_1.2/state/-2/5/3"
+    assert t.cell_states((4, -1)) == "vtube/mock-fleet_1.2/state/4/-1/+"
     assert t.status(3) == "vtube/mock-fleet_1.2/status/3"
     assert t.last(3) == "vtube/mock-fleet_1.2/last/3"
-    assert t.all_states == "vtube/mock-fleet_1.2/state/+"
+    assert t.all_states == "vtube/mock-fleet_1.2/state/+/+/+"
     assert t.classify(t.state(12)) == ("state", 12)
+    assert t.classify(t.state(12, (-3, 7))) == ("state", 12)
+    assert t.classify("vtube/mock-fleet_1.2/state/1/x/3") == ("unknown", None)
+    assert t.classify("vtube/mock-fleet_1.2/state/3") == ("unknown", None)
     assert t.classify(t.status(0)) == ("status", 0)
     assert t.classify(t.last(5)) == ("last", 5)
     assert t.classify(t.config) == ("config", None)
     assert t.classify(t.cmd) == ("cmd", None)
-    assert t.classify("vtube/mock-fleet_1.2/state/x1") == ("unknown", None)
+    assert t.classify("vtube/mock-fleet_1.2/status/x1") == ("unknown", None)
     assert t.classify("vtube/other/state/1") == ("unknown", None)
 
 

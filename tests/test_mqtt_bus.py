@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import dataclasses
 import os
 import signal
 import subprocess
@@ -240,3 +242,50 @@ def test_bad_broker_urls(url, match):
 
 def test_sanity_env():
     assert os.environ.get("MAVLINK20") == "1"
+
+
+async def test_cells_limit_what_an_agent_hears(broker):
+    """Square cells of 5 m: an agent hears the 3×3 cells around its own, a vehicle leaving
+    them says so once, and a lost vehicle is known wherever it was last seen."""
+
+    def at(vid: int, seq: int, x: float) -> NeighbourState:
+        return NeighbourState(vid, x, 0.0, 1.0, 0.0, Phase.IN_TUBE, time.time(), seq)
+
+    async with (
+        MqttBus(broker.url, MISSION, 0, cell_m=5.0) as a,
+        MqttBus(broker.url, MISSION, 1, cell_m=5.0) as b,
+        MqttBus(broker.url, MISSION) as obs,
+    ):
+        for bus in (a, b, obs):
+            await bus.wait_connected(10)
+
+        async def put(bus: MqttBus, st: NeighbourState) -> None:
+            # publish until the observer (subscribed to every cell) has it: then the broker
+            # has routed it to every subscriber, and a sync shows what `a` got.
+            while not (st.vehicle_id in obs.latest() and obs.latest()[st.vehicle_id].seq >= st.seq):
+                bus.publish(dataclasses.replace(st, stamp_s=time.time()))
+                with contextlib.suppress(TimeoutError):
+                    await obs.wait_for(
+                        lambda: (
+                            obs.latest().get(st.vehicle_id) is not None
+                            and obs.latest()[st.vehicle_id].seq >= st.seq
+                        ),
+                        0.2,
+                    )
+            await a.sync()
+
+        await put(a, at(0, 1, 0.5))  # cell (0, 0): a's window is cells -1..1
+        await put(b, at(1, 1, 100.0))  # cell (20, 0): far away
+        assert 1 not in a.latest() and a.stats.received == 0
+        await put(b, at(1, 2, 6.0))  # cell (1, 0): a neighbour cell
+        assert a.latest()[1].x_m == 6.0
+        await put(b, at(1, 3, 100.0))  # leaves: one copy goes to the old cell
+        assert a.stats.received == 2 and 1 not in a.latest()
+        # b's agent is lost far away: a learns where it was last seen (retained)
+        await b.close()  # (quietly: a live agent would answer a "lost" status with "online")
+        async with aiomqtt.Client(broker.host, broker.port) as raw:
+            from vtube_fleet.bus.codec import Status, encode_status
+
+            await raw.publish(a.topics.status(1), encode_status(Status(1, "lost")), qos=1)
+        await a.wait_for(lambda: 1 in a.latest(), 10)
+        assert a.latest()[1].phase == Phase.LOST and a.latest()[1].x_m == 100.0

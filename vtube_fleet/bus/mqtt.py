@@ -359,6 +359,7 @@ class MqttBus:
         if self._task is not None:
             return
         self._closing = False
+        self._stop = asyncio.Event()
         self._out_event = asyncio.Event()
         self._task = asyncio.get_running_loop().create_task(
             self._run(), name=f"mqtt-bus-{self.client_id}"
@@ -391,9 +392,13 @@ class MqttBus:
             with contextlib.suppress(TimeoutError):
                 await self.wait_for(lambda: not self._connecting, self.connect_timeout_s + 1)
         task, self._task = self._task, None
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        self._stop.set()  # the task disconnects cleanly (no last will) and ends
+        try:
+            await asyncio.wait_for(asyncio.shield(task), timeout_s + self.connect_timeout_s)
+        except TimeoutError:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
         self._set_connected(False)
 
     async def __aenter__(self) -> MqttBus:
@@ -511,18 +516,15 @@ class MqttBus:
                     attempts = 0
                     backoff = self.backoff_initial_s
                     self._set_connected(True)
-                    async with asyncio.TaskGroup() as tg:
-                        tg.create_task(self._sender(client))
-                        tg.create_task(self._receiver(client))
-            except* aiomqtt.MqttError as group:
-                reason = "; ".join(str(e) for e in group.exceptions)
+                    await self._serve(client)
+            except aiomqtt.MqttError as exc:
                 if self._connected:
                     log.warning(
                         "%s: lost the MQTT broker %s:%d (%s); reconnecting with back-off",
                         self._who(),
                         self.host,
                         self.port,
-                        reason,
+                        exc,
                     )
                 else:
                     self.stats.connect_failures += 1
@@ -532,9 +534,9 @@ class MqttBus:
                         self._who(),
                         self.host,
                         self.port,
-                        reason,
+                        exc,
                     )
-            except* Exception:  # a bug must not silently end the bus: log, reconnect
+            except Exception:  # a bug must not silently end the bus: log, reconnect
                 log.exception("%s: MQTT bus task failed; reconnecting", self._who())
             finally:
                 self._connecting = False
@@ -543,8 +545,28 @@ class MqttBus:
             if self._closing:
                 break
             self.backoff_s = backoff
-            await asyncio.sleep(backoff * random.uniform(0.8, 1.2))  # back-off, not a sync
+            with contextlib.suppress(TimeoutError):  # the back-off wait; close() ends it early
+                await asyncio.wait_for(self._stop.wait(), backoff * random.uniform(0.8, 1.2))
             backoff = min(backoff * 2.0, self.backoff_max_s)
+
+    async def _serve(self, client: aiomqtt.Client) -> None:
+        """Run the sender and the receiver until the connection fails (their MqttError is
+        raised) or :meth:`close` asks to stop (return; the caller disconnects cleanly)."""
+        workers = [asyncio.ensure_future(self._receiver(client))]
+        if self.vehicle_id is not None:
+            workers.append(asyncio.ensure_future(self._sender(client)))
+        tasks = [*workers, asyncio.ensure_future(self._stop.wait())]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        for t in workers:
+            if t in done and not t.cancelled() and t.exception() is not None:
+                raise t.exception()  # type: ignore[misc]
+        if not self._stop.is_set():
+            raise RuntimeError("MQTT bus worker ended unexpectedly")
 
     async def _on_connect(self, client: aiomqtt.Client) -> None:
         if self.vehicle_id is not None:
@@ -568,9 +590,8 @@ class MqttBus:
         assert self._out_event is not None
         event = self._out_event
         self._out_slot = None
-        if self.vehicle_id is None:
-            return
         vid = self.vehicle_id
+        assert vid is not None
         last_topic = self.topics.last(vid)
         while True:
             await event.wait()
