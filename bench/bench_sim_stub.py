@@ -156,8 +156,9 @@ def main() -> int:
                     c[msgid] = c.get(msgid, 0) + 1
                 if msgid == 0 and not requested[i] and not args.no_requests:
                     requested[i] = True
+                    sysid = i % 254 + 1  # MockFleet's sysids wrap beyond 254 vehicles
                     for mid, hz in REQUESTS.items():
-                        payload = cl_struct.pack(mid, 1e6 / hz, 0, 0, 0, 0, 0, 511, i + 1, 1, 0)
+                        payload = cl_struct.pack(mid, 1e6 / hz, 0, 0, 0, 0, 0, 511, sysid, 1, 0)
                         s.sendto(enc.frame(cl_spec, payload), addr)  # type: ignore[union-attr]
     res = results.get(timeout=30.0)
     proc.join(timeout=10.0)

@@ -89,6 +89,10 @@ class MockFleet:
     index → Faults. ``profile``: ``"full"`` or ``"lite"`` stream set. ``boot_time_scale``: see
     :class:`~sim_stub.vehicle.MockVehicle`.
 
+    Vehicle i has sysid i+1 like PX4; MAVLink sysids are 8-bit, so from the 255th vehicle on they
+    repeat (i % 254 + 1): each vehicle keeps its own UDP port pair, so a GCS that keeps one link
+    per endpoint still tells them apart (one MAVSDK instance for all would not).
+
     ``async with MockFleet(count=3) as fleet:`` starts all vehicles on one scheduler;
     ``fleet.endpoints[i]`` is the MAVSDK URL the GCS binds for vehicle i, ``fleet.vehicles[i]``
     the vehicle (true state, counters), ``fleet.kill(i, how)`` kills one.
@@ -147,6 +151,7 @@ class MockFleet:
                 profile=profile,
                 boot_time_scale=boot_time_scale,
                 scheduler=self.scheduler,
+                sysid=i % 254 + 1,
             )
             for i in range(count)
         ]

@@ -233,7 +233,8 @@ class MockVehicle:
     captures) or ``"lite"`` (what clients rely on). ``boot_time_scale``: multiplies the boot
     timeline (1.0 = PX4's; tests that are not about boot may shorten it). ``scheduler``: share
     a :class:`~sim_stub.scheduler.Scheduler` (a :class:`MockFleet` does); by default the vehicle
-    runs its own.
+    runs its own. ``sysid``: MAVLink system id (default PX4's ``instance + 1``; must be given
+    from instance 254 on, since sysids are 8-bit).
 
     Use ``async with MockVehicle(0) as v:`` or ``await v.start()`` / ``await v.stop()``.
     """
@@ -251,15 +252,25 @@ class MockVehicle:
         profile: str = "full",
         boot_time_scale: float = 1.0,
         scheduler: Scheduler | None = None,
+        sysid: int | None = None,
     ) -> None:
-        if instance < 0 or instance > 253:
-            raise SimStubError(f"instance must be in 0..253 (sysid = instance+1), got {instance}")
+        if instance < 0:
+            raise SimStubError(f"instance must be >= 0, got {instance}")
+        if sysid is None:
+            if instance > 253:
+                raise SimStubError(
+                    f"instance {instance}: PX4's sysid = instance+1 exceeds 254 (MAVLink sysids "
+                    "are 8-bit, 255 is the GCS); pass sysid= explicitly"
+                )
+            sysid = instance + 1
+        if not 1 <= sysid <= 254:
+            raise SimStubError(f"sysid must be in 1..254, got {sysid}")
         if profile not in PROFILES:
             raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
         if not 0.0 < boot_time_scale <= 10.0:
             raise SimStubError(f"boot_time_scale must be in (0, 10], got {boot_time_scale}")
         self.instance = instance
-        self.sysid = instance + 1
+        self.sysid = sysid
         self.compid = 1
         self.origin = validate_home(home)
         self.ports = resolve_port_scheme(ports)
@@ -395,7 +406,8 @@ class MockVehicle:
         s = self.slot
         d.p[s] = d.v[s] = d.vf[s] = d.vs[s] = d.c[s] = d.acc[s] = 0.0
         d.yaw[s] = d.yaw_rate[s] = d.roll[s] = d.pitch[s] = 0.0
-        self._sched._export()
+        if self._own_scheduler:
+            self._sched._export()
         self._setup_streams()
         self.started = True
 
@@ -701,6 +713,8 @@ class MockVehicle:
         self._process_datagram(data, addr, self._now())
 
     def _process_datagram(self, data: bytes, addr: tuple[str, int], now: float) -> None:
+        if self.stage < len(_STAGES) and self.dead is None:  # boot state is current for commands
+            self._boot_stages(now, now - self.t0)
         packets, malformed, unknown = self._parser.parse(data)
         if malformed:
             self._rx_malformed += 1
@@ -1341,6 +1355,8 @@ class MockVehicle:
     # ------------------------------------------------------------------------------------------
     # message builders: return the full payload, or None to skip this time
     def _b_heartbeat(self, now: float) -> bytes:
+        if self.stage < len(_STAGES) and self.dead is None:
+            self._boot_stages(now, now - self.t0)  # (home/origin valid by the first heartbeat)
         return _S["HEARTBEAT"].pack(self.custom_mode, 2, 12, self.base_mode, self.system_status, 3)
 
     def _b_sys_status(self, now: float) -> bytes:

@@ -8,10 +8,18 @@ import socket
 
 import pytest
 
-from sim_stub import DEFAULT_HOME, Faults, MockFleet, SimStubError, grid_homes, load_homes, px4
+from sim_stub import (
+    DEFAULT_HOME,
+    Faults,
+    MockFleet,
+    MockVehicle,
+    SimStubError,
+    grid_homes,
+    load_homes,
+    px4,
+)
 from sim_stub.captures import CAPTURE_DIR, load_capture
 from sim_stub.faults import parse_fault_spec
-from sim_stub.fleet import MockFleet as _MF  # noqa: F401  (import path used by vtube_fleet)
 from sim_stub.geo import project, reproject
 from sim_stub.ports import PX4, WIDE, PortScheme, free_port_scheme, resolve_port_scheme
 
@@ -93,6 +101,13 @@ def test_port_schemes() -> None:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.bind((s.host, port))
     assert PortScheme("x", 100, 50).capacity() == 50
+    # ≥ 500 vehicles: the wide scheme, sysids wrap (8-bit) but every vehicle has its own ports
+    big = MockFleet(500, port_scheme="wide")
+    assert len({v.bind_address for v in big.vehicles}) == 500
+    assert big.vehicles[253].sysid == 254 and big.vehicles[254].sysid == 1
+    assert big.endpoints[499] == "udpin://127.0.0.1:20499"
+    with pytest.raises(SimStubError, match="pass sysid= explicitly"):
+        MockVehicle(254)
 
 
 def test_fault_specs() -> None:
