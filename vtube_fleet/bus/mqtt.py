@@ -371,6 +371,8 @@ class MqttBus:
             return
         self._closing = True
         client = self._client
+        # a refusal stays readable after we leave; anything else becomes "offline"
+        goodbye = "refused" if self._presence[0] == "refused" else "offline"
         if client is not None and self._connected and self.vehicle_id is not None:
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(timeout_s):
@@ -383,7 +385,7 @@ class MqttBus:
                         )
                     await client.publish(
                         self.topics.status(self.vehicle_id),
-                        encode_status(self._status("offline", self._presence[1])),
+                        encode_status(self._status(goodbye, self._presence[1])),
                         qos=1,
                         retain=True,
                     )
