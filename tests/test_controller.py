@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from vtube_fleet.barrier import X_MIN, dV_n_dx, sat, sigma
 from vtube_fleet.controller import (
+    CommandEvaluator,
     ControllerParams,
     ParameterError,
     TubeArrays,
@@ -437,3 +438,74 @@ def test_empty_swarm_and_bad_arguments():
         velocity_command(p, [0, 0], ta, PAPER, rows=[1, 1])
     with pytest.raises(ValueError):
         velocity_command(p[:, :1], [0, 0], ta, PAPER)
+
+
+# ------------------------------------------------------------------------------ CommandEvaluator
+@pytest.mark.parametrize("kind", ["new", "old", "apf"])
+def test_command_evaluator_equals_velocity_command_bitwise(kind):
+    """The simulator's entry point gives exactly velocity_command's result while k, the pair
+    list and the robot count change under it (cached constants must follow), with read-only
+    (cached) and writeable (re-derived) k and pairs, into ``out`` or a new array."""
+    rng = np.random.default_rng(12)
+    tubes = [make_tube(a_h=0.3, a_r=0.2, length=8.0),
+             make_tube(phi=0.5, origin=(8.0, 0.0), a_h=-0.2, a_r=0.35, w0=4.0, length=4.0),
+             make_tube(phi=-0.3, origin=(0.0, 9.0), a_h=0.1, a_r=0.1, w0=3.0, length=8.0)]
+    ta = TubeArrays.from_tubes(tubes)
+    ob = (Obstacle([8.0, 0.5], 0.9),) if kind == "apf" else ()
+    ev = CommandEvaluator(ta, PAPER, kind, ob)
+    M = 70
+    p = np.column_stack([rng.uniform(-1, 14, M), rng.uniform(-3, 10, M)])
+    p[5] = p[6] + 1e-3  # a violating pair (slow path of the barriers)
+    k = rng.integers(0, 3, M).astype(np.intp)
+    k.setflags(write=False)
+    pairs = pairs_within(p, 1.5)
+    out = np.empty((M, 2))
+    for step in range(12):
+        if step == 3:  # a new k (the tracker's array changes)
+            k = k.copy()
+            k[:10] = (k[:10] + 1) % 3
+            k.setflags(write=False)
+        if step == 5:  # robots jump next to others: a new pair list with new close pairs
+            p[20:30] = p[40:50] + 0.3
+            pairs = pairs_within(p, 1.2)
+        if step == 7:  # robots leave: new M, new k and pairs
+            p = np.ascontiguousarray(p[10:])
+            M = p.shape[0]
+            k = np.ascontiguousarray(k[10:])
+            k.setflags(write=False)
+            pairs = pairs_within(p, 1.5)
+            out = np.empty((M, 2))
+        kk = k.copy() if step == 9 else k  # writeable k: re-gathered
+        pp = (np.array(pairs[0]), np.array(pairs[1])) if step == 10 else pairs
+        want = velocity_command(p, kk, ta, PAPER, pairs=pp, kind=kind, obstacles=ob)
+        got = ev(p, kk, pp, out=out) if step % 2 else ev(p, kk, pp)
+        assert np.array_equal(got, want, equal_nan=True), step
+        if step % 2:
+            assert np.shares_memory(got, out)
+        p = p + 0.01 * want
+
+
+def test_command_evaluator_checks_its_arguments():
+    ta = TubeArrays.from_tubes([make_tube()])
+    ev = CommandEvaluator(ta, PAPER)
+    p = np.array([[1.0, 0.0], [2.0, 0.0]])
+    pairs = pairs_within(p, 1.0)
+    k0 = np.zeros(2, np.intp)
+    assert ev(np.zeros((0, 2)), np.zeros(0, np.intp), pairs_within(np.zeros((0, 2)), 1.0)
+              ).shape == (0, 2)
+    with pytest.raises(ValueError, match="sub-tube"):
+        ev(p, np.array([0, 1]), pairs)
+    with pytest.raises(ValueError, match="sub-tube"):
+        ev(p, np.array([0, -1]), pairs)
+    with pytest.raises(ValueError):
+        ev(p, np.zeros(3, np.intp), pairs)
+    with pytest.raises(ValueError):
+        ev(p.tolist(), k0, pairs)
+    with pytest.raises(ValueError):
+        ev(p, k0, (np.array([0]), np.array([5])))
+    with pytest.raises(ValueError):
+        ev(p, k0, pairs, out=np.empty((3, 2)))
+    with pytest.raises(ValueError):
+        CommandEvaluator(ta, PAPER, "fast")
+    with pytest.raises(ValueError):
+        CommandEvaluator(ta, PAPER, "apf")

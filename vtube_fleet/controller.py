@@ -45,6 +45,7 @@ from vtube_fleet.neighbours import pairs_within
 from vtube_fleet.tube import Obstacle, Trapezoid
 
 __all__ = [
+    "CommandEvaluator",
     "ControllerParams",
     "ParameterError",
     "TubeArrays",
@@ -204,12 +205,13 @@ class _Layout:
     Fused element layout of one step (floats): X = [d_Th of the n robots | d_Tr | d_Th | d_Tr |
     ‖p_i − p_j‖ of the P pairs]: the first two blocks feed (Vtli1)/(Vtri1), the next two the
     σ's of u1'', the last (Vmij). Complex weights W = [legs (2n) | σ (2n) | pairs, i side (P) |
-    pairs, j side (P)] are summed by ONE ``np.bincount`` into float slots giving the complex
-    array B = [q_0 … q_{n−1} | u_rep,0 … u_rep,n−1] (q: direction of u1''; u_rep = u2 + u3'
-    + u4'); with ``rows`` the slots cover all M robots and the rows are taken afterwards.
+    pairs, j side (P) | n_c (n)] are summed by ONE ``np.bincount`` into float slots giving the
+    complex array B = [q_0 … q_{n−1} | u_rep,0 … u_rep,n−1] (q = n_c + σ_h A_h + σ_r A_r: the
+    direction of u1''; u_rep = u2 + u3' + u4'); with ``rows`` the slots cover all M robots and
+    the rows are taken afterwards.
     """
 
-    __slots__ = ("n", "M", "bank", "slot_ls", "cv", "mv", "pairs")
+    __slots__ = ("n", "M", "bank", "slot_ls", "q_slot", "cv", "mv", "pairs", "spare")
 
     def __init__(self, prep: _Prepared, slots: np.ndarray, M: int, n_pairs: int) -> None:
         p = prep.params
@@ -229,25 +231,32 @@ class _Layout:
         q_slot = (2 * slots[:, None] + re_im).ravel()  # float slots of q_r
         u_slot = q_slot + 2 * M  # float slots of u_rep,r
         self.slot_ls = np.concatenate([u_slot, u_slot, q_slot, q_slot])
+        self.q_slot = q_slot
         # final step on [q | u_rep]: × cv/max(|.|, mv) gives [v q/‖q‖ | sat(u_rep, v'_max)]
         self.cv = np.repeat([p.v, p.v_max_prime], n)
         self.mv = np.repeat([1e-300, p.v_max_prime], n)
         self.pairs: tuple | None = None
+        self.spare: _Scratch | None = None  # scratch arrays of a finished call, for the next
+
+    def scratch(self, n: int, P: int) -> _Scratch:
+        """Scratch arrays for (n, P): the spare ones if they fit and nobody holds them."""
+        w, self.spare = self.spare, None
+        return w if w is not None and w.n == n and w.P == P else _Scratch(n, P)
 
     def pair_arrays(self, I: np.ndarray, J: np.ndarray, cache: bool) -> tuple:
-        """(IJ, float slots of all W elements) for pairs (I, J); memoized on array identity
-        when ``cache`` (read-only arrays)."""
+        """(IJI = [I, J, I], float slots of all W elements) for pairs (I, J); memoized on
+        array identity when ``cache`` (read-only arrays)."""
         pa = self.pairs
         if cache and pa is not None and pa[0] is I and pa[1] is J:
             return pa[2], pa[3]
         re_im = np.array([0, 1]) + 2 * self.M
         ia = (2 * I[:, None] + re_im).ravel()
         ib = (2 * J[:, None] + re_im).ravel()
-        IJ = np.concatenate([I, J])
-        slots = np.concatenate([self.slot_ls, ia, ib])
+        IJI = np.concatenate([I, J, I])
+        slots = np.concatenate([self.slot_ls, ia, ib, self.q_slot])
         if cache:
-            self.pairs = (I, J, IJ, slots)
-        return IJ, slots
+            self.pairs = (I, J, IJI, slots)
+        return IJI, slots
 
 
 class _Prepared:
@@ -285,13 +294,91 @@ class _Prepared:
         return lay
 
 
+class _Gathered:
+    """Per-robot sub-tube constants of one ``k`` (rows of :attr:`_Prepared.table`): G01 the
+    conj(n_h), conj(n_r) (2, n); G23 n_hᵀp_h1, n_rᵀp_r1 (2, n); GA E_h, E_r, A_h, A_r (4n,);
+    n_c (n,)."""
+
+    __slots__ = ("k", "G01", "G23", "GA", "n_c")
+
+    def __init__(self, prep: _Prepared, k: np.ndarray) -> None:
+        if k.size and k.min() < 0:  # (k ≥ K makes the gather raise)
+            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.min()}")
+        try:
+            G = prep.table.take(k, axis=1)  # (9, n)
+        except IndexError:
+            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.max()}"
+                             ) from None
+        n = k.shape[0]
+        self.k = k
+        self.G01 = G[0:2]
+        self.G23 = np.ascontiguousarray(G[2:4].real)
+        self.GA = G[4:8].reshape(4 * n)
+        self.n_c = G[8]
+
+
+class _Scratch:
+    """Work arrays for n evaluated robots and P pairs, with the views :func:`_core` uses.
+
+    X (4n + P): distances (the :class:`_Layout` element order); Y (4n + P, complex, imaginary
+    parts 0): the barrier values in the real parts, so that the products with the complex
+    weights are complex × complex (numpy casts a float operand of a complex product through a
+    buffer, which costs more than the product); W (5n + 2P, complex): the weights, its last n
+    elements n_c; NB (2n, complex, imaginary parts 0): the final scale factors.
+    """
+
+    __slots__ = ("n", "P", "X", "X4", "xp", "Y", "Yr", "Yl", "Yp", "Ypr", "W", "Wf", "Wl",
+                 "Wp", "Wnc", "NB", "NBr")
+
+    def __init__(self, n: int, P: int) -> None:
+        self.n, self.P = n, P
+        n4 = 4 * n
+        self.X = np.empty(n4 + P)
+        self.X4 = self.X[:n4].reshape(2, 2, n)
+        self.xp = self.X[n4:]
+        self.Y = np.zeros(n4 + P, np.complex128)
+        self.Yr = self.Y.real
+        self.Yl, self.Yp, self.Ypr = self.Y[:n4], self.Y[n4:], self.Yr[n4:]
+        self.W = np.empty(5 * n + 2 * P, np.complex128)
+        self.Wf = self.W.view(np.float64)
+        self.Wl = self.W[:n4]
+        self.Wp = self.W[n4: n4 + 2 * P].reshape(2, P)
+        self.Wnc = self.W[n4 + 2 * P:]
+        self.NB = np.zeros(2 * n, np.complex128)
+        self.NBr = self.NB.real
+
+
+def _core(z: np.ndarray, zr: np.ndarray, g: _Gathered, bank: BarrierBank, IJI: np.ndarray,
+          slots: np.ndarray, w: _Scratch, M: int) -> np.ndarray:
+    """The equations shared by every entry point: B (4M floats, viewed as 2M complex) =
+    [q of the M robots | u2 + u3' + u4' of the M robots] (slots of robots not evaluated stay
+    0). ``zr``: the n evaluated robots; ``w``: scratch arrays whose n_c block (``w.Wnc``)
+    holds ``g.n_c``. 17 numpy calls for any M.
+    """
+    P = w.P
+    # --- distances: d_Th, d_Tr (dtl)/(dtr) of each robot in its own sub-tube, written to the
+    # legs and σ blocks; ‖p_i − p_j‖ of the pairs ---------------------------------------
+    np.subtract((g.G01 * zr).real, g.G23, out=w.X4)
+    zz = z.take(IJI)
+    D2 = zz[P:] - zz[: 2 * P]  # [p_j − p_i | p_i − p_j]
+    np.abs(D2[:P], out=w.xp)
+    # --- all barrier derivatives and σ's in one call (clamps X ≥ X_MIN if needed) -------
+    bank.evaluate(w.X, out=w.Yr)
+    # --- weights, summed per robot by one bincount -------------------------------------
+    np.multiply(w.Yl, g.GA, out=w.Wl)  # u3', u4'; σ·A
+    # u2: b_ij (p_i − p_j) = (∂V_m/∂‖p_ij‖/‖p_ij‖)(p_j − p_i) for i, the opposite for j
+    np.divide(w.Ypr, w.xp, out=w.Ypr)
+    np.multiply(D2.reshape(2, P), w.Yp, out=w.Wp)
+    # + n_c (the last block of W) → q = n_c + σ_h A_h + σ_r A_r
+    return np.bincount(slots, w.Wf, 4 * M).view(np.complex128)
+
+
 def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
-              ) -> tuple[np.ndarray, _Layout]:
-    """The shared core of all laws and terms.
+              ) -> tuple[np.ndarray, _Layout, _Scratch]:
+    """Checks and converts the arguments, then :func:`_core`.
 
     Returns B (2n,) complex = [q of the n robots | u2 + u3' + u4' of the n robots] (q: the
-    unnormalized direction of u1'') and the layout used. The hot path for the simulator
-    (all robots, read-only pair arrays) costs 34 numpy calls, whatever M.
+    unnormalized direction of u1''), the layout and the scratch arrays used.
     """
     prep = tubes._prepared(params)
     # --- arguments (cheap checks first; conversions only when needed) --------------------
@@ -322,15 +409,7 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
             inrows[rows] = True
             keep = (I != J) & ~(inrows[J] & (J < I))
             pairs = (I[keep], J[keep])
-    I, J = pairs
-    if type(I) is not np.ndarray or type(J) is not np.ndarray or I.dtype.kind not in "iu" \
-            or J.dtype.kind not in "iu" or I.ndim != 1 or I.shape != J.shape:
-        I, J = np.asarray(I), np.asarray(J)
-        if I.size == 0 and J.size == 0:
-            I = J = np.zeros(0, np.intp)
-        elif I.ndim != 1 or I.shape != J.shape or I.dtype.kind not in "iu" \
-                or J.dtype.kind not in "iu":
-            raise ValueError("pairs must be two 1-D integer arrays (I, J) of equal length")
+    I, J = _check_pairs(pairs)
     cache = not (I.flags.writeable or J.flags.writeable)
     if rows is None:
         if k.shape != (M,):
@@ -347,48 +426,73 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
         I, J = I[keep], J[keep]
         zr = z.take(rows)
         cache = False
-    if not cache and I.size and (I.min() < 0 or J.max() >= M or I.max() >= M or J.min() < 0):
-        raise ValueError(f"pairs must index the {M} robots")
+    if not cache:
+        _check_pair_range(I, J, M)
     n, P = zr.shape[0], I.shape[0]
     lay = prep.layout(M, P, rows)
+    w = lay.scratch(n, P)
     if n == 0:
-        return np.zeros(0, np.complex128), lay
-    if k.min() < 0:  # (k ≥ K makes the gather raise)
-        raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.min()}")
-    try:
-        G = prep.table.take(k, axis=1)  # (9, n) per-robot sub-tube constants
-    except IndexError:
-        raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.max()}"
-                         ) from None
-    IJ, slots = lay.pair_arrays(I, J, cache)
-
-    # --- distances: d_Th, d_Tr (dtl)/(dtr) of each robot in its own sub-tube, written to the
-    # legs and σ blocks; ‖p_i − p_j‖ of the pairs ---------------------------------------
-    X = np.empty(4 * n + P)
-    np.subtract((G[0:2] * zr).real, G[2:4].real, out=X[: 4 * n].reshape(2, 2, n))
-    zz = z.take(IJ)
-    dz = zz[P:]
-    dz -= zz[:P]  # p_j − p_i
-    xp = X[4 * n:]
-    np.abs(dz, out=xp)
-
-    # --- all barrier derivatives and σ's in one call (clamps X ≥ X_MIN if needed) -------
-    y = lay.bank.evaluate(X)
-
-    # --- weights, summed per robot by one bincount -------------------------------------
-    W = np.empty(4 * n + 2 * P, np.complex128)
-    np.multiply(y[: 4 * n], G[4:8].reshape(4 * n), out=W[: 4 * n])  # u3', u4'; σ·A
-    # u2: b_ij (p_i − p_j) = (∂V_m/∂‖p_ij‖/‖p_ij‖)(p_j − p_i) for i, the opposite for j
-    yp = y[4 * n:]
-    yp /= xp
-    wi = W[4 * n: 4 * n + P]
-    np.multiply(dz, yp, out=wi)
-    np.negative(wi, out=W[4 * n + P:])
-    B = np.bincount(slots, W.view(np.float64), 4 * M).view(np.complex128)
+        return np.zeros(0, np.complex128), lay, w
+    g = _Gathered(prep, k)
+    IJI, slots = lay.pair_arrays(I, J, cache)
+    w.Wnc[:] = g.n_c
+    B = _core(z, zr, g, lay.bank, IJI, slots, w, M)
     if rows is not None:
         B = B.reshape(2, M).take(rows, axis=1).reshape(2 * n)
-    B[:n] += G[8]  # q = n_c + σ_h A_h + σ_r A_r
-    return B, lay
+    return B, lay, w
+
+
+def _check_pairs(pairs) -> tuple[np.ndarray, np.ndarray]:
+    I, J = pairs
+    if type(I) is not np.ndarray or type(J) is not np.ndarray or I.dtype.kind not in "iu" \
+            or J.dtype.kind not in "iu" or I.ndim != 1 or I.shape != J.shape:
+        I, J = np.asarray(I), np.asarray(J)
+        if I.size == 0 and J.size == 0:
+            I = J = np.zeros(0, np.intp)
+        elif I.ndim != 1 or I.shape != J.shape or I.dtype.kind not in "iu" \
+                or J.dtype.kind not in "iu":
+            raise ValueError("pairs must be two 1-D integer arrays (I, J) of equal length")
+    return I, J
+
+
+def _check_pair_range(I: np.ndarray, J: np.ndarray, M: int) -> None:
+    if I.size and (I.min() < 0 or J.max() >= M or I.max() >= M or J.min() < 0):
+        raise ValueError(f"pairs must index the {M} robots")
+
+
+def _finish(B: np.ndarray, lay: _Layout, kind: str, params: ControllerParams, p, rows,
+            obstacles: Sequence[Obstacle], out: np.ndarray | None = None,
+            w: _Scratch | None = None) -> np.ndarray:
+    """v_c from B = [q | u_rep] (2n,) complex (overwritten) for the law ``kind``; written to
+    ``out`` ((n,) complex) if given; ``w``: scratch arrays for these n robots. Returns (n, 2)
+    floats."""
+    n = B.shape[0] >> 1
+    q = B[:n]
+    if kind == "new":
+        # [v q/‖q‖ | sat(u_rep, v'_max)] in one go, then u1'' + sat(...) (ModifiedVectorField)
+        if w is None:
+            w = _Scratch(n, 0)
+        nb = np.abs(B)
+        np.maximum(nb, lay.mv, out=nb)
+        np.divide(lay.cv, nb, out=w.NBr)
+        B *= w.NB
+        res = np.add(q, B[n:], out=out)
+        return res.view(np.float64).reshape(n, 2)
+    u = B[n:]
+    if kind == "apf":  # Appendix C: u_rep += u5, then as "new"
+        if not obstacles:
+            raise ValueError("kind='apf' needs obstacles")
+        pr = np.asarray(p, dtype=np.float64)
+        if rows is not None:
+            pr = pr[np.asarray(rows, dtype=np.intp).reshape(-1)]
+        u += u5(pr, obstacles, params).view(np.complex128).reshape(n)
+        B *= lay.cv / np.maximum(np.abs(B), lay.mv)
+        res = np.add(q, u, out=out)
+        return res.view(np.float64).reshape(n, 2)
+    # (Oldcontroller): sat(u1'' + u2 + u3' + u4', v_max)
+    u += q * (params.v / np.maximum(np.abs(q), 1e-300))
+    res = np.multiply(u, params.v_max / np.maximum(np.abs(u), params.v_max), out=out)
+    return res.view(np.float64).reshape(n, 2)
 
 
 def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
@@ -410,37 +514,85 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
     the result is finite; for "new" v_min ≤ ‖v_c‖ ≤ v_max whenever Constraint1 holds and the
     sub-tubes satisfy Constraint3 (then u1'' never degenerates). NaN rows give NaN rows and do
     not affect the others provided ``pairs`` excludes them. Calls share only memoized
-    constants (per ``tubes`` and ``params``), never scratch buffers. The first call for a new
-    robot count builds a layout (~0.1–1 ms); later calls cost 34 numpy calls.
+    constants (per ``tubes`` and ``params``), and scratch arrays only one at a time (a call
+    takes them and puts them back when done), so concurrent calls are safe. The first call for a new
+    robot count builds a layout (~0.1–1 ms). A simulator loop calling this every step should
+    use :class:`CommandEvaluator` (same equations and results, state kept between calls).
     """
     if kind != "new" and kind != "old" and kind != "apf":
         raise ValueError(f"kind must be 'new', 'old' or 'apf', got {kind!r}")
-    B, lay = _evaluate(p, k, tubes, params, pairs, rows)
-    n = B.shape[0] >> 1
-    q = B[:n]
-    if kind == "new":
-        # [v q/‖q‖ | sat(u_rep, v'_max)] in one go, then u1'' + sat(...) (ModifiedVectorField)
-        nb = np.abs(B)
-        np.maximum(nb, lay.mv, out=nb)
-        np.divide(lay.cv, nb, out=nb)
-        B *= nb
-        q += B[n:]
-        return q.view(np.float64).reshape(n, 2)
-    u = B[n:]
-    if kind == "apf":  # Appendix C: u_rep += u5, then as "new"
-        if not obstacles:
+    B, lay, w = _evaluate(p, k, tubes, params, pairs, rows)
+    v = _finish(B, lay, kind, params, p, rows, obstacles, None, w)
+    lay.spare = w  # (the result never refers to w's arrays)
+    return v
+
+
+class CommandEvaluator:
+    """:func:`velocity_command` for all robots of a simulator, called every step.
+
+    ``evaluator(p, k, pairs, out=None)`` returns exactly (bitwise) what
+    ``velocity_command(p, k, tubes, params, pairs=pairs, kind=kind, obstacles=obstacles)``
+    returns, through the same code (:func:`_core`, :func:`_finish`), but keeps between calls:
+    the per-robot sub-tube constants while ``k`` is the same read-only array (as
+    :meth:`~vtube_fleet.partition.SubTubeTracker.update` returns), the pair index arrays and
+    scratch buffers while ``pairs`` are the same read-only arrays (as
+    :class:`~vtube_fleet.neighbours.VerletPairs` returns); ``k`` and ``pairs`` are validated
+    when they change, not at every call. ``p``: (M, 2) float64 C-contiguous; ``out``: an
+    optional (M, 2) float64 C-contiguous array receiving the result (else a new array).
+    About 25 numpy calls per step in the common case, whatever M. Not thread-safe (scratch
+    buffers); one evaluator per loop.
+    """
+
+    def __init__(self, tubes: TubeArrays, params: ControllerParams, kind: Kind = "new",
+                 obstacles: Sequence[Obstacle] = ()) -> None:
+        if kind != "new" and kind != "old" and kind != "apf":
+            raise ValueError(f"kind must be 'new', 'old' or 'apf', got {kind!r}")
+        if kind == "apf" and not obstacles:
             raise ValueError("kind='apf' needs obstacles")
-        pr = np.asarray(p, dtype=np.float64)
-        if rows is not None:
-            pr = pr[np.asarray(rows, dtype=np.intp).reshape(-1)]
-        u += u5(pr, obstacles, params).view(np.complex128).reshape(n)
-        B *= lay.cv / np.maximum(np.abs(B), lay.mv)
-        q += u
-        return q.view(np.float64).reshape(n, 2)
-    # (Oldcontroller): sat(u1'' + u2 + u3' + u4', v_max)
-    u += q * (params.v / np.maximum(np.abs(q), 1e-300))
-    u *= params.v_max / np.maximum(np.abs(u), params.v_max)
-    return u.view(np.float64).reshape(n, 2)
+        self.tubes, self.params, self.kind = tubes, params, kind
+        self.obstacles = tuple(obstacles)
+        self._prep = tubes._prepared(params)
+        self._g: _Gathered | None = None
+        self._pairs: tuple | None = None  # (I, J, M, lay, IJI, slots, scratch)
+
+    def __call__(self, p: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
+                 out: np.ndarray | None = None) -> np.ndarray:
+        if not (type(p) is np.ndarray and p.dtype == np.float64 and p.ndim == 2
+                and p.shape[1] == 2 and p.flags.c_contiguous):
+            raise ValueError("p must be a C-contiguous float64 array of shape (M, 2)")
+        M = p.shape[0]
+        g = self._g
+        pa = self._pairs
+        if g is None or g.k is not k or k.flags.writeable:
+            if type(k) is not np.ndarray or k.dtype != np.intp or k.shape != (M,):
+                raise ValueError(f"k must be an intp array of shape ({M},)")
+            g = self._g = _Gathered(self._prep, k)
+            if pa is not None and pa[2] == M:
+                pa[6].Wnc[:] = g.n_c
+        I, J = pairs
+        if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M \
+                or I.flags.writeable or J.flags.writeable:
+            pa = self._pairs = self._new_pairs(I, J, M, g)
+        if M == 0:
+            return np.zeros((0, 2))
+        w = pa[6]
+        z = p.view(np.complex128).reshape(M)
+        B = _core(z, z, g, pa[3].bank, pa[4], pa[5], w, M)
+        if out is not None:
+            if out.shape != (M, 2) or out.dtype != np.float64 or not out.flags.c_contiguous:
+                raise ValueError(f"out must be a C-contiguous float64 array of shape ({M}, 2)")
+            out = out.view(np.complex128).reshape(M)
+        return _finish(B, pa[3], self.kind, self.params, p, None, self.obstacles, out, w)
+
+    def _new_pairs(self, I, J, M: int, g: _Gathered) -> tuple:
+        I, J = _check_pairs((I, J))
+        _check_pair_range(I, J, M)
+        P = I.shape[0]
+        lay = self._prep.layout(M, P)
+        IJI, slots = lay.pair_arrays(I, J, cache=False)
+        w = _Scratch(M, P)
+        w.Wnc[:] = g.n_c
+        return (I, J, M, lay, IJI, slots, w)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -450,7 +602,7 @@ def u1pp(p, k, tubes: TubeArrays, params: ControllerParams) -> np.ndarray:
     """u1'' of every robot (NOTES.md item 4), (M, 2)."""
     p = np.asarray(p, dtype=float)
     empty = np.zeros(0, np.intp)
-    B, _ = _evaluate(p, k, tubes, params, (empty, empty), None)
+    B, _, _ = _evaluate(p, k, tubes, params, (empty, empty), None)
     q = B[: B.shape[0] // 2]
     return (q * (params.v / np.maximum(np.abs(q), 1e-300))).view(np.float64).reshape(-1, 2)
 
@@ -462,7 +614,7 @@ def u2(p, params: ControllerParams, pairs=None) -> np.ndarray:
     M = p.shape[0]
     dummy = _dummy_tube()
     k = np.zeros(M, np.intp)
-    B, _ = _evaluate(p, k, dummy, params, pairs, None)  # legs 1e6 m away: u3' = u4' = 0
+    B, _, _ = _evaluate(p, k, dummy, params, pairs, None)  # legs 1e6 m away: u3' = u4' = 0
     return B[B.shape[0] // 2:].view(np.float64).reshape(-1, 2)
 
 
@@ -470,7 +622,7 @@ def u3p_u4p(p, k, tubes: TubeArrays, params: ControllerParams) -> np.ndarray:
     """Leg avoidance terms u3' + u4' (Vtli1)/(Vtri1) with P_t = I − n_c n_cᵀ, (M, 2)."""
     p = np.asarray(p, dtype=float)
     empty = np.zeros(0, np.intp)
-    B, _ = _evaluate(p, k, tubes, params, (empty, empty), None)
+    B, _, _ = _evaluate(p, k, tubes, params, (empty, empty), None)
     return B[B.shape[0] // 2:].view(np.float64).reshape(-1, 2)
 
 

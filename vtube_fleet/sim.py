@@ -11,6 +11,7 @@ Each step (all robots still in the tube at once):
    uses the main tube (Appendix C);
 3. neighbour candidates come from a Verlet list (:class:`~vtube_fleet.neighbours.VerletPairs`);
 4. the velocity commands v_c come from :func:`~vtube_fleet.controller.velocity_command`
+   (through its per-loop form :class:`~vtube_fleet.controller.CommandEvaluator`)
    ("new" = (ModifiedVectorField), "old" = (Oldcontroller), "apf" = Appendix C);
 5. the robots move one Euler step of their model (:mod:`vtube_fleet.models`): the single
    integrator (Single), or the unicycle driven through (NID), whose controller is evaluated at
@@ -35,7 +36,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from vtube_fleet import models
-from vtube_fleet.controller import TubeArrays, velocity_command
+from vtube_fleet.controller import CommandEvaluator, TubeArrays
 from vtube_fleet.errors import UserError
 from vtube_fleet.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
 from vtube_fleet.neighbours import VerletPairs
@@ -316,7 +317,8 @@ class _Run:
         pos = np.array(sc.robots.positions, dtype=float)  # centres
         theta = np.array(sc.robots.headings, dtype=float) if unicycle else None
         ids = np.arange(self.m)
-        kzero = np.zeros(self.m, dtype=np.intp)
+        kzero = np.zeros(0, dtype=np.intp)  # apf: everyone in the main tube (read-only)
+        command = CommandEvaluator(arrays, params, kind, obstacles)
 
         # metric chunks
         chunk = int(max(4, min(256, 400_000 // max(self.m, 1))))
@@ -401,7 +403,13 @@ class _Run:
                     next_exit_check = step + max(1, int((thresh - xmax) / (v_bound * dt)))
                 n = pos.shape[0]
                 # 2-4. sub-tube, neighbours, command
-                k = tracker.update(q, max_move) if tracker is not None else kzero[:n]
+                if tracker is not None:
+                    k = tracker.update(q, max_move)
+                else:
+                    if kzero.shape[0] != n:
+                        kzero = np.zeros(n, dtype=np.intp)
+                        kzero.setflags(write=False)
+                    k = kzero
                 if step >= next_verlet:
                     pairs = verlet.candidates(q)
                     if verlet.builds != builds:
@@ -412,8 +420,7 @@ class _Run:
                         dq = q - q_build
                         dmax = float(np.sqrt((dq * dq).sum(axis=1).max()))
                         next_verlet = step + max(1, int((half_skin - dmax) / (v_bound * dt)))
-                vc = velocity_command(q, k, arrays, params, pairs=pairs, kind=kind,
-                                      obstacles=obstacles)
+                vc = command(q, k, pairs)
                 if unicycle:
                     v_lin, omega = models.nid_inputs(theta, vc, s_nid)
                     heading = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
@@ -453,7 +460,7 @@ class _Run:
                 if unicycle:
                     pos, theta = models.unicycle_step(pos, theta, v_lin, omega, dt)
                 else:
-                    pos = models.single_integrator_step(pos, vc, dt)
+                    pos = models._single_step(pos, vc, dt)  # (Single); dt checked above
                 step += 1
                 if step >= next_progress and progress is not None:
                     progress(step * dt, n_steps * dt, pos.shape[0], self.m - pos.shape[0])
