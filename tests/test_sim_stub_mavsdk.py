@@ -95,7 +95,7 @@ async def discover(m: Mavsdk, n: int, timeout: float = 10.0) -> dict[int, object
         await events.aclose()
 
 
-async def test_mavsdk_flies_one_mock() -> None:
+async def one_mock() -> None:
     ports = free_port_scheme(1)
     async with MockVehicle(0, ports=ports) as v, Mavsdk(_config()) as m:
         await m.add_any_connection(ports.endpoint(0))
@@ -105,7 +105,7 @@ async def test_mavsdk_flies_one_mock() -> None:
         assert v.counters.rx_malformed == 0 and v.commands[400] >= 1 and v.commands[22] == 1
 
 
-async def test_mavsdk_flies_three_mocks_at_once() -> None:
+async def three_mocks() -> None:
     ports = free_port_scheme(3)
     async with MockFleet(3, port_scheme=ports, spacing_m=8.0) as fleet, Mavsdk(_config()) as m:
         for url in fleet.endpoints:
@@ -118,3 +118,9 @@ async def test_mavsdk_flies_three_mocks_at_once() -> None:
         # each vehicle landed 2+ m east of its own start point, i.e. at its own place
         lats = {round(v.global_position[0], 6) for v in fleet.vehicles}
         assert len(lats) >= 2
+
+
+async def test_mavsdk_flies_one_mock_and_three_at_once() -> None:
+    """Two independent MAVSDK instances, concurrently (saves CI time): one with one mock, one
+    with a fleet of three mocks."""
+    await asyncio.gather(one_mock(), three_mocks())

@@ -232,16 +232,21 @@ def test_same_statustexts(runs: dict[str, Run], name: str) -> None:
     assert _texts(run.mock) == _texts(run.px4)
 
 
-def test_heartbeat_cadence_and_boot(runs: dict[str, Run]) -> None:
+def test_boot_order(runs: dict[str, Run]) -> None:
+    """Capture: streams start before the first HEARTBEAT, GPS_GLOBAL_ORIGIN comes with it, the
+    global position only later (checked by order and by the vehicle's own time_boot_ms)."""
     for run in runs.values():
-        hbs = [t for t, _ in run.mock.of("HEARTBEAT")]
-        gaps = [b - a for a, b in zip(hbs, hbs[1:], strict=False)]
-        assert all(0.9 <= g <= 1.1 for g in gaps), gaps  # never out of cadence
-        first = {}
-        for t, m in run.mock.msgs:
-            first.setdefault(m.get_type(), t)
-        assert first["GPS_RAW_INT"] < first["HEARTBEAT"] and first["HEARTBEAT"] > 1.2
-        assert first["GLOBAL_POSITION_INT"] > 2.5  # only once the global position is valid
+        order: list[str] = []
+        for _, m in run.mock.msgs:
+            if m.get_type() not in order:
+                order.append(m.get_type())
+        assert order.index("GPS_RAW_INT") < order.index("HEARTBEAT")
+        assert order.index("LOCAL_POSITION_NED") < order.index("HEARTBEAT")
+        assert order.index("HEARTBEAT") < order.index("GLOBAL_POSITION_INT")
+        assert order.index("GPS_GLOBAL_ORIGIN") < order.index("GLOBAL_POSITION_INT")
+        first_gpi = run.mock.of("GLOBAL_POSITION_INT")[0][1].time_boot_ms
+        first_px4 = run.px4.of("GLOBAL_POSITION_INT")[0][1].time_boot_ms
+        assert first_gpi >= 2600 and first_px4 >= 2600  # ms after boot (PX4: 2.70-2.98 s)
 
 
 def test_parameters_as_px4_sends_them(runs: dict[str, Run]) -> None:
@@ -270,13 +275,11 @@ def test_garbage_datagrams_counted_and_dropped(runs: dict[str, Run]) -> None:
     c = run.vehicle.counters
     assert c.rx_malformed == 3  # the three garbage datagrams, nothing else
     assert c.rx_datagrams == len(run.capture.gcs) + 3
-    # the streams continued without a gap around t = 11.05 s
-    att = [t for t, _ in run.mock.of("ATTITUDE")]
+    # the streams continued around t = 11.05 s (ATTITUDE count within ±1 s: 100 Hz ±25 %)
     shift = run.anchors["first heartbeat"] - run.capture.event_time("first heartbeat")
     t_garbage = run.capture.garbage[0][0] + shift
-    pairs = zip(att, att[1:], strict=False)
-    around = [b - a for a, b in pairs if t_garbage - 1 < a < t_garbage + 1]
-    assert around and max(around) < 0.1
+    near = [t for t, _ in run.mock.of("ATTITUDE") if abs(t - t_garbage) < 1.0]
+    assert 150 <= len(near) <= 250
 
 
 def _interp(ts: list[float], xs: list[float], t: float) -> float:
@@ -366,7 +369,10 @@ def test_offboard_loss_failsafe_sequence(runs: dict[str, Run]) -> None:
     (t_fs,) = [t for t, x in texts if x == "Failsafe activated\t"]
     (t_land,) = [t for t, x in texts if x == "Landing detected\t"]
     (t_dis,) = [t for t, x in texts if x == "Disarmed by landing\t"]
-    assert 1.9 <= t_dis - t_land <= 2.2  # COM_DISARM_LAND = 2 s
+    assert t_fs < t_land < t_dis
+    # COM_DISARM_LAND = 2 s, on the vehicle's own clock (never earlier)
+    texts_v = {x: t for t, _, x in run.vehicle.statustexts}
+    assert texts_v["Disarmed by landing\t"] - texts_v["Landing detected\t"] >= 2.0
     targets = [(t, m) for t, m in s.of("POSITION_TARGET_LOCAL_NED") if t_fs < t < t_land]
     assert targets and all(m.type_mask == 31 for _, m in targets[3:])
     assert targets[-1][1].vz == pytest.approx(0.7) and math.isnan(targets[-1][1].vx)
