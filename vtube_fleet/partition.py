@@ -467,6 +467,7 @@ class SubTubeTracker:
         self._B: np.ndarray | None = None
         self._slack = -math.inf
         self._M = -1
+        self._shape: tuple = ()  # (M, 2) once the rows are set
         self._tables = self._build_tables(partition)
 
     # --- tables -----------------------------------------------------------------------------
@@ -546,20 +547,26 @@ class SubTubeTracker:
         k, slab = loc.finish(D, p)
         self.locates += 1
         M = p.shape[0]
-        if self._k.shape != k.shape or not np.array_equal(self._k, k):
+        if self._k.shape != k.shape or (self._k != k).any():
             k.setflags(write=False)
             self._k = k
-        self._M = M
         if tab is None:  # pragma: no cover
+            self._M = M
             return
         Ctab, Btab, others_tab, pw, cm1 = tab
         K = loc.A.shape[2]
+        if M != self._M:
+            self._rowoff = (np.arange(M) * K)[:, None]
+            self._v = np.empty((Ctab.shape[0], M), np.complex128)
+            self._vr = np.empty((Ctab.shape[0], M))
+            self._M = M
+        self._shape = (M, 2)
         sk = slab * K
         sk += k
         code = sk << cm1
         if cm1:
             oth = others_tab.take(sk, axis=0)  # (M, cm1), −1 = none (any bit: same rows)
-            oth += (np.arange(M) * K)[:, None]
+            oth += self._rowoff
             code += H.reshape(-1).take(oth) @ pw
         self._C = Ctab.take(code, axis=1)
         self._B = Btab.take(code, axis=1)
@@ -571,21 +578,25 @@ class SubTubeTracker:
         The returned array is read-only and is the same object as the previous call's when
         no point changed its sub-tube. ``max_move``: see the class docstring.
         """
+        if max_move is not None and type(p) is np.ndarray and p.shape == self._shape:
+            self._slack -= max_move * (1.0 + 1e-9) + 1e-9
+            if self._slack > 0.0:
+                return self._k
         if not (type(p) is np.ndarray and p.dtype == np.float64 and p.ndim == 2
                 and p.shape[1] == 2 and p.flags.c_contiguous):
             p = np.ascontiguousarray(p, dtype=np.float64)
             if p.ndim != 2 or p.shape[1] != 2:
                 raise ValueError(f"positions must have shape (M, 2), got {p.shape}")
-        if p.shape[0] != self._M or self._C is None:
+        M = p.shape[0]
+        if M != self._M or self._C is None:
             self._full(p)
             return self._k
-        if max_move is not None:
-            self._slack -= max_move * (1.0 + 1e-9) + 1e-9
-            if self._slack > 0.0:
-                return self._k
         self.checks += 1
-        v = self._C * p.view(np.complex128).reshape(p.shape[0])
-        vmin = float((v.real + self._B).min()) if p.shape[0] else math.inf
+        if M:
+            v = np.multiply(self._C, p.view(np.complex128).reshape(M), out=self._v)
+            vmin = float(np.add(v.real, self._B, out=self._vr).min())
+        else:
+            vmin = math.inf
         if vmin > 0.0:
             self._slack = vmin
         else:  # some row fails (or NaN): a point may have changed sub-tube
