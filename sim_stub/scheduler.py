@@ -18,6 +18,7 @@ tick.
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -30,6 +31,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from .vehicle import MockVehicle, StreamState
 
 __all__ = ["Scheduler"]
+
+log = logging.getLogger("sim_stub")
 
 _WHEEL_SIZE = 1024  # buckets; the wheel spans 10.24 s at 100 Hz (longer intervals lap)
 
@@ -76,6 +79,7 @@ class Scheduler:
         self._loop: asyncio.AbstractEventLoop | None = None
         self.delayed: set[MockVehicle] = set()
         self.late_ticks = 0
+        self.errors = 0  # exceptions caught in the tick (logged, the first 5 with traceback)
         self.skipped_msgs = 0  # messages dropped because the loop fell > max_lag_s behind
         self._export()
 
@@ -179,8 +183,26 @@ class Scheduler:
         ).tolist()
 
     def _tick(self) -> None:
-        loop = self._loop
-        assert loop is not None
+        """One tick; whatever happens, the next tick is scheduled (a failing vehicle is logged
+        and skipped, it never stops the fleet's clock)."""
+        try:
+            self._tick_body()
+        except Exception:  # pragma: no cover - defensive: a bug must not freeze every vehicle
+            self.errors += 1
+            if self.errors <= 5:
+                log.exception("sim_stub scheduler tick failed (error %d)", self.errors)
+        finally:
+            loop = self._loop
+            if self._handle is not None and loop is not None:
+                nxt = self._t0 + (int((self.now() - self._t0) * self.tick_hz) + 1) * self.dt
+                lt = loop.time()
+                if self._clock is not None:  # custom clock: keep the loop's cadence
+                    nxt = lt + max(0.0, nxt - self.now())
+                if nxt <= lt:
+                    self.late_ticks += 1
+                self._handle = loop.call_at(nxt, self._tick)
+
+    def _tick_body(self) -> None:
         now = self.now()
         dt = now - self._last
         self._last = now
@@ -190,7 +212,10 @@ class Scheduler:
         for slot in range(parity, self.capacity, 2):
             v = vehicles[slot]
             if v is not None:
-                v._control(now)
+                try:
+                    v._control(now)
+                except Exception:
+                    self._vehicle_error(v, "PX4 logic")
         # dynamics for everyone
         if dt > 0.0:
             self.dyn.step(dt, self.u, self.airborne, self.frozen, self.yaw_sp, self.yaw_rate_sp)
@@ -223,19 +248,23 @@ class Scheduler:
                     self._insert(ent)
                     continue
                 interval = st.interval
-                payload = st.build(now)
-                if payload is not None:
-                    veh._send(st.spec, payload)
-                due += interval
-                while due <= now:
-                    if now - due > max_lag:
-                        self.skipped_msgs += int((now - due) / interval) + 1
-                        due = now + interval
-                        break
+                try:
                     payload = st.build(now)
                     if payload is not None:
                         veh._send(st.spec, payload)
                     due += interval
+                    while due <= now:
+                        if now - due > max_lag:
+                            self.skipped_msgs += int((now - due) / interval) + 1
+                            due = now + interval
+                            break
+                        payload = st.build(now)
+                        if payload is not None:
+                            veh._send(st.spec, payload)
+                        due += interval
+                except Exception:
+                    self._vehicle_error(veh, st.name)
+                    due = now + interval
                 ent[0] = due
                 kk = int((due - t0) * hz)
                 if kk <= k_now:
@@ -245,15 +274,17 @@ class Scheduler:
                 buckets[kk & mask].append(ent)
         if self.delayed:
             for veh in list(self.delayed):
-                veh._flush_delayed(now)
-        # next tick on the absolute grid
-        nxt = self._t0 + (k_now + 1) * self.dt
-        lt = loop.time()
-        if self._clock is not None:  # custom clock: keep the loop's cadence
-            nxt = lt + max(0.0, nxt - now)
-        if nxt <= lt:
-            self.late_ticks += 1
-        self._handle = loop.call_at(nxt, self._tick)
+                try:
+                    veh._flush_delayed(now)
+                except Exception:
+                    self.delayed.discard(veh)
+                    self._vehicle_error(veh, "delayed datagrams")
+
+    def _vehicle_error(self, vehicle: MockVehicle, what: str) -> None:
+        self.errors += 1
+        if self.errors <= 5:
+            log.exception("sim_stub vehicle %d: %s failed (error %d)", vehicle.instance, what,
+                          self.errors)  # fmt: skip
 
     def _step_noise(self, dt: float) -> None:
         tau = 2.0

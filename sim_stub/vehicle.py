@@ -12,6 +12,7 @@ then on it answers (and streams to) whoever sent the last valid MAVLink datagram
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import random
 import socket
@@ -50,6 +51,8 @@ __all__ = [
     "validate_home",
 ]
 
+log = logging.getLogger("sim_stub")
+
 DEFAULT_HOME = (47.397742, 8.545594, 489.4)  # PX4 SIH default SIH_LOC_LAT0/LON0/H0
 
 # Boot timeline, seconds after start (capture: first packet 0.37-0.44 s, HEARTBEAT 1.3-1.45 s,
@@ -75,6 +78,10 @@ TAKEOFF_DETECT_S = 0.9
 LIFTOFF_S = 2.0
 LAND_DETECT_S = 1.5
 TAKEOFF_ACCEPT_M = 0.8  # NAV_MC_ALT_RAD: takeoff counts as done within this of the target
+MAX_STREAM_HZ = 500.0  # SET_MESSAGE_INTERVAL requests above this rate are capped (mock)
+# hard speed caps whatever the parameters say (PX4 parameter metadata maxima of MPC_XY_VEL_MAX,
+# MPC_Z_VEL_MAX_UP, MPC_Z_VEL_MAX_DN)
+XY_SPEED_CAP, UP_SPEED_CAP, DOWN_SPEED_CAP = 20.0, 8.0, 4.0
 
 
 @dataclass(frozen=True)
@@ -184,6 +191,7 @@ class VehicleCounters:
     tx_packets: int = 0
     tx_dropped: int = 0  # dropped by a loss fault or because the vehicle is dead
     tx_errors: int = 0  # socket errors (e.g. send buffer full)
+    rx_errors: int = 0  # valid packets whose handling raised (logged; should stay 0)
 
 
 class StreamState:
@@ -305,7 +313,7 @@ class MockVehicle:
         # counters
         self._rx_datagrams = self._rx_packets = self._rx_malformed = 0
         self._rx_unknown = self._rx_ignored = self._rx_dropped = 0
-        self._tx_packets = self._tx_dropped = self._tx_errors = 0
+        self._tx_packets = self._tx_dropped = self._tx_errors = self._rx_errors = 0
         self._tx_bytes = self._rx_bytes = 0
         self._reset_state()
 
@@ -507,6 +515,7 @@ class MockVehicle:
             self._tx_packets,
             self._tx_dropped,
             self._tx_errors,
+            self._rx_errors,
         )
 
     @property
@@ -550,7 +559,7 @@ class MockVehicle:
         if hz is None:
             st.interval = st.default_interval
         else:
-            st.interval = 1.0 / hz if hz > 0 else 0.0
+            st.interval = 1.0 / min(hz, MAX_STREAM_HZ) if hz > 0 else 0.0
         if st.interval > 0 and self.dead != "silent":
             now = self._now()
             sd = _STREAM_BY_NAME[name]
@@ -732,7 +741,15 @@ class MockVehicle:
                 self._rx_ignored += 1
                 self.ignored_msgids[pk.msgid] += 1
                 continue
-            handler(self, pk.msg, pk.src_system, pk.src_component, now)
+            try:
+                handler(self, pk.msg, pk.src_system, pk.src_component, now)
+            except Exception:  # a pathological value must not break the link: count, log
+                self._rx_errors += 1
+                if self._rx_errors <= 3:
+                    src = f"{pk.src_system}/{pk.src_component}"
+                    log.exception(
+                        "sim_stub vehicle %d: msgid %d from %s failed", self.instance, pk.msgid, src
+                    )
 
     def _for_me(self, tsys: int, tcomp: int) -> bool:
         return (tsys == self.sysid or tsys == 0) and (tcomp == self.compid or tcomp == 0)
@@ -1025,7 +1042,12 @@ class MockVehicle:
         if math.isfinite(p[0]) and p[0] > 0.5:
             self._set_home(now)
             return MAV_RESULT_ACCEPTED
-        if all(math.isfinite(v) for v in p[4:7]):
+        if (
+            all(math.isfinite(v) for v in p[4:7])
+            and abs(p[4]) < 90.0
+            and abs(p[5]) <= 180.0
+            and -500.0 <= p[6] <= 9000.0
+        ):
             x, y = project(self.origin[0], self.origin[1], p[4], p[5])
             self.home = (p[4], p[5], p[6])
             self.home_ned = (x, y, self.origin[2] - p[6])
@@ -1039,6 +1061,8 @@ class MockVehicle:
         msgid = int(p[0]) if math.isfinite(p[0]) else -1
         interval_us = p[1]
         if msgid == 49:  # GPS_GLOBAL_ORIGIN: PX4 sends it only when it changes or on request
+            return MAV_RESULT_ACCEPTED
+        if msgid == 0:  # HEARTBEAT stays at 1 Hz, in cadence (mock: never disabled)
             return MAV_RESULT_ACCEPTED
         sd = _STREAM_BY_ID.get(msgid)
         if sd is None or not math.isfinite(interval_us):
@@ -1055,13 +1079,15 @@ class MockVehicle:
         self, p: list[float], ssys: int, scomp: int, now: float, is_int: bool
     ) -> int:
         msgid = int(p[0]) if math.isfinite(p[0]) else -1
+        if not 0 <= msgid <= 0xFFFF:
+            return MAV_RESULT_DENIED
         sd = _STREAM_BY_ID.get(msgid)
         if sd is None:
             interval = 0
         else:
             st = self._streams[sd.name]
-            interval = int(st.interval * 1e6) if st.interval > 0 else -1
-        self._send_named("MESSAGE_INTERVAL", _S["MESSAGE_INTERVAL"].pack(interval, max(msgid, 0)))
+            interval = min(int(st.interval * 1e6), 2**31 - 1) if st.interval > 0 else -1
+        self._send_named("MESSAGE_INTERVAL", _S["MESSAGE_INTERVAL"].pack(interval, msgid))
         return MAV_RESULT_ACCEPTED
 
     def _c_request_message(
@@ -1268,13 +1294,17 @@ class MockVehicle:
             self._sched.yaw_rate_sp[slot] = sp.yaw_rate or 0.0
 
     def _limit(self, out: list[float], xy_max: float) -> None:
+        xy_max = min(xy_max, XY_SPEED_CAP)
         n = math.hypot(out[0], out[1])
         if n > xy_max > 0:
             out[0] *= xy_max / n
             out[1] *= xy_max / n
-        out[2] = min(max(out[2], -self._param("MPC_Z_VEL_MAX_UP")), self._param("MPC_Z_VEL_MAX_DN"))
+        up = min(self._param("MPC_Z_VEL_MAX_UP"), UP_SPEED_CAP)
+        out[2] = min(max(out[2], -up), min(self._param("MPC_Z_VEL_MAX_DN"), DOWN_SPEED_CAP))
 
     def _goto(self, target: list[float], xy_max: float, z_up: float, z_dn: float) -> list[float]:
+        xy_max = min(xy_max, XY_SPEED_CAP)
+        z_up, z_dn = min(z_up, UP_SPEED_CAP), min(z_dn, DOWN_SPEED_CAP)
         p = self._pos()
         kp_xy = self._param("MPC_XY_P")
         out = [kp_xy * (target[0] - p[0]), kp_xy * (target[1] - p[1]), 0.0]
