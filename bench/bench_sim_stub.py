@@ -87,6 +87,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="measurement window")
     ap.add_argument("--profile", choices=("full", "lite"), default="full")
     ap.add_argument("--no-requests", action="store_true", help="keep PX4's default rates")
+    ap.add_argument("--setpoint-hz", type=float, default=0.0,
+                    help="also send each vehicle SET_POSITION_TARGET_LOCAL_NED at this rate, "
+                    "like a fleet controller (e.g. 20)")  # fmt: skip
     args = ap.parse_args()
     n = args.count
     scheme = free_port_scheme(n)
@@ -130,6 +133,15 @@ def main() -> int:
         "COMMAND_LONG", cl.id, cl.crc_extra, cl_struct, tuple(cl.ordered_fieldnames), (1,) * 11
     )
     requested = [False] * n
+    addrs: list[tuple[str, int] | None] = [None] * n
+    sp = mav.MAVLink_set_position_target_local_ned_message
+    sp_struct = struct.Struct(sp.unpacker.format)
+    sp_spec = MsgSpec(
+        "SET_POSITION_TARGET_LOCAL_NED", sp.id, sp.crc_extra, sp_struct,
+        tuple(sp.ordered_fieldnames), (1,) * 16,
+    )  # fmt: skip
+    next_sp = time.monotonic()
+    setpoints_sent = 0
     counts: list[dict[int, int]] = [dict() for _ in range(n)]
     t_meas0 = t0 + WARMUP_S
     t_meas1 = t_meas0 + args.seconds
@@ -139,7 +151,15 @@ def main() -> int:
         if now >= t_meas1:
             break
         measuring = now >= t_meas0
-        for key, _ in sel.select(timeout=0.05):
+        if args.setpoint_hz > 0 and now >= next_sp:
+            next_sp += 1.0 / args.setpoint_hz
+            for i, a in enumerate(addrs):
+                if a is not None:  # time_boot_ms, x..yaw_rate (11 f), type_mask, target, frame
+                    payload = sp_struct.pack(0, 0, 0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0, 3527,
+                                             i % 254 + 1, 1, 1)  # fmt: skip
+                    socks[i].sendto(enc.frame(sp_spec, payload), a)
+                    setpoints_sent += 1
+        for key, _ in sel.select(timeout=0.01):
             s = key.fileobj
             i = key.data
             c = counts[i]
@@ -154,6 +174,8 @@ def main() -> int:
                 msgid = data[7] | (data[8] << 8) | (data[9] << 16)
                 if measuring:
                     c[msgid] = c.get(msgid, 0) + 1
+                if addrs[i] is None:
+                    addrs[i] = addr
                 if msgid == 0 and not requested[i] and not args.no_requests:
                     requested[i] = True
                     sysid = i % 254 + 1  # MockFleet's sysids wrap beyond 254 vehicles
@@ -179,11 +201,15 @@ def main() -> int:
     got = sum(sum(c.values()) for c in counts) / window
     names = {sp.msgid: name for name, sp in SPECS.items()}
     print(f"received {got:.0f} msg/s total ({got / n:.1f} per vehicle) over {window:.0f} s")
+    if args.setpoint_hz > 0:
+        elapsed = time.monotonic() - t0
+        print(f"sent {setpoints_sent / elapsed:.0f} setpoints/s to the vehicles "
+              f"({args.setpoint_hz:g} Hz each)")  # fmt: skip
     print(
         f"mock process CPU: {res['cpu_s']:.2f} s in {res['wall_s']:.2f} s wall = "
-        f"{res['cpu_s'] / res['wall_s']:.2f} cores; late ticks {res['late_ticks']} of "
-        f"{res['ticks']}, skipped {res['skipped_msgs']} msgs (loop > 0.25 s behind), "
-        f"tx errors {res['tx_errors']}"
+        f"{res['cpu_s'] / res['wall_s']:.2f} cores; {res['ticks']} ticks run, "
+        f"{res['late_ticks']} grid ticks missed (100 Hz); skipped {res['skipped_msgs']} msgs "
+        f"(loop > 0.25 s behind); tx errors {res['tx_errors']}"
     )
     print(
         f"rate ratio (received / nominal) over {len(ratios)} vehicle-streams: min "

@@ -78,7 +78,7 @@ class Scheduler:
         self._handle: asyncio.TimerHandle | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.delayed: set[MockVehicle] = set()
-        self.late_ticks = 0
+        self.late_ticks = 0  # grid ticks missed (the loop was busy or the process starved)
         self.errors = 0  # exceptions caught in the tick (logged, the first 5 with traceback)
         self.skipped_msgs = 0  # messages dropped because the loop fell > max_lag_s behind
         self._export()
@@ -198,8 +198,6 @@ class Scheduler:
                 lt = loop.time()
                 if self._clock is not None:  # custom clock: keep the loop's cadence
                     nxt = lt + max(0.0, nxt - self.now())
-                if nxt <= lt:
-                    self.late_ticks += 1
                 self._handle = loop.call_at(nxt, self._tick)
 
     def _tick_body(self) -> None:
@@ -225,6 +223,8 @@ class Scheduler:
         # telemetry
         k_now = int((now - self._t0) * self.tick_hz)
         k_start = self._k_done + 1
+        if k_now > k_start:
+            self.late_ticks += k_now - k_start  # grid ticks that did not get their own call
         if k_now - k_start >= _WHEEL_SIZE:  # stalled for longer than the wheel: resync
             k_start = k_now - _WHEEL_SIZE + 1
         self._k_done = k_now  # re-inserted entries go to k_now + 1 or later
