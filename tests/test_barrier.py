@@ -208,6 +208,31 @@ def test_bank_concatenate():
         BarrierBank([-1.0], 0.5, 0.75, 1e-6, 1e-6)
 
 
+def test_bank_concatenate_prefixes_equals_concatenate_bitwise():
+    """Prefixes of big banks give exactly the bank built from those elements (the
+    controller's layouts are assembled this way), also on the slow path and with out=."""
+    rng = np.random.default_rng(3)
+    big = [BarrierBank(rng.uniform(0.5, 2.0, 50), 0.5, 0.75, 1e-6, 1e-6),
+           BarrierBank(np.zeros(50), 0.5, 0.75, 1.0, 1e-6),
+           BarrierBank(rng.uniform(0.5, 2.0, 80), rng.uniform(0.3, 0.5, 80), 0.9, 1e-4, 1e-6)]
+    for n in ([7, 7, 20], [0, 3, 80], [50, 50, 0]):
+        pre = BarrierBank.concatenate_prefixes(list(zip(big, n, strict=True)))
+        ref = BarrierBank.concatenate([
+            BarrierBank(b.k[:m], b.d1[:m], b.d2[:m], b.eps[:m], 1e-6) for b, m in zip(
+                big, n, strict=True)])
+        assert len(pre) == len(ref) == sum(n)
+        for x in (rng.uniform(0.6, 1.2, sum(n)), rng.uniform(-0.1, 1.2, sum(n))):
+            out = np.zeros(sum(n), complex)
+            y = pre.evaluate(x.copy(), out=out.real)
+            assert np.array_equal(y, ref.evaluate(x.copy()))
+            assert np.array_equal(out.real, y) and np.all(out.imag == 0)
+    with pytest.raises(ValueError):
+        BarrierBank.concatenate_prefixes([(big[0], 51)])
+    with pytest.raises(ValueError):
+        BarrierBank.concatenate_prefixes([(big[0], 1), (BarrierBank([1.0], 0.5, 0.75, 1e-6,
+                                                                    1e-3), 1)])
+
+
 # ----------------------------------------------------------------------------- sat, κ
 @settings(max_examples=50, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), a=st.floats(1e-3, 1e3), log_scale=st.floats(-6, 30))

@@ -251,6 +251,31 @@ class BarrierBank:
         return cls(cat([b.k for b in banks]), cat([b.d1 for b in banks]),
                    cat([b.d2 for b in banks]), cat([b.eps for b in banks]), eps_s.pop())
 
+    #: per-element arrays (all of the bank's length)
+    _ELEMENT_ARRAYS = ("k", "d1", "d2", "eps", "sigma_only", "_Q0", "_R1", "_R2", "_B", "_E1",
+                       "_D1", "_TH")
+
+    @classmethod
+    def concatenate_prefixes(cls, parts: list[tuple[BarrierBank, int]]) -> BarrierBank:
+        """One bank holding the first n elements of each bank of ``parts`` = [(bank, n), …],
+        in order: what :meth:`concatenate` of banks of those elements gives, element for
+        element (each element's coefficients depend on its own parameters only), without
+        recomputing the coefficients (a few concatenations instead of ~40 numpy calls)."""
+        eps_s = {b.eps_s for b, _ in parts}
+        if len(eps_s) != 1:
+            raise ValueError(f"banks with different eps_s cannot be concatenated: {eps_s}")
+        for b, n in parts:
+            if not 0 <= n <= len(b):
+                raise ValueError(f"prefix of {n} elements of a bank of {len(b)}")
+        new = cls.__new__(cls)
+        first = parts[0][0]
+        new.fillet, new.eps_s = first.fillet, first.eps_s
+        for name in cls._ELEMENT_ARRAYS:
+            setattr(new, name, np.concatenate([getattr(b, name)[:n] for b, n in parts]))
+        new._zero, new._one = np.zeros(()), np.ones(())
+        new._sl = (-1, ())
+        return new
+
     def evaluate(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """y[i] = ∂V_n/∂x (k[i] > 0) or σ(x[i], d1[i], d2[i]) (k[i] = 0) for i < len(x).
 

@@ -218,15 +218,8 @@ class _Layout:
         n = slots.shape[0]
         self.n, self.M = n, M
         cap = max(2 * n_pairs, 4 * n, 64)
-        full = lambda m, v: np.full(m, v)  # noqa: E731
-        self.bank = BarrierBank.concatenate([
-            # (Vtli1)/(Vtri1): V_n(k3, d_T, r_s, r_a, ε_t, ε_s)
-            BarrierBank(full(2 * n, p.k3), p.r_s, p.r_a, p.eps_t, p.eps_s),
-            # σ(d_T, r_a, k_t r_a) of u1'' (k = 0: σ only); k_t = 1 → a hair-thin band
-            BarrierBank(full(2 * n, 0.0), p.r_a, max(p.k_t, 1 + 1e-9) * p.r_a, 1.0, p.eps_s),
-            # (Vmij): V_n(k2, ‖p_ij‖, 2 r_s, r_s + r_a, ε_m, ε_s)
-            BarrierBank(full(cap, p.k2), 2 * p.r_s, p.r_s + p.r_a, p.eps_m, p.eps_s),
-        ])
+        legs, sig, pair = prep.blocks(2 * n, cap)
+        self.bank = BarrierBank.concatenate_prefixes([(legs, 2 * n), (sig, 2 * n), (pair, cap)])
         re_im = np.array([0, 1])
         q_slot = (2 * slots[:, None] + re_im).ravel()  # float slots of q_r
         u_slot = q_slot + 2 * M  # float slots of u_rep,r
@@ -280,6 +273,26 @@ class _Prepared:
             np.where(tubes.has_L, t_h - n_c, 0), np.where(tubes.has_R, t_r - n_c, 0), n_c]))
         self.r_pair = params.r_s + params.r_a  # V_m,ij ≡ 0 beyond (Vmij)
         self._layouts: dict = {}
+        self._blocks: tuple[BarrierBank, BarrierBank, BarrierBank] | None = None
+
+    def blocks(self, n_legs: int, n_pairs: int) -> tuple[BarrierBank, BarrierBank, BarrierBank]:
+        """The three kinds of barrier elements, as banks of at least n_legs, n_legs and
+        n_pairs elements (grown by doubling; layouts take prefixes)."""
+        b = self._blocks
+        if b is None or len(b[0]) < n_legs or len(b[2]) < n_pairs:
+            m = max(n_legs, 64 if b is None else 2 * len(b[0]))
+            c = max(n_pairs, 64 if b is None else 2 * len(b[2]))
+            p = self.params
+            full = np.full
+            b = self._blocks = (
+                # (Vtli1)/(Vtri1): V_n(k3, d_T, r_s, r_a, ε_t, ε_s)
+                BarrierBank(full(m, p.k3), p.r_s, p.r_a, p.eps_t, p.eps_s),
+                # σ(d_T, r_a, k_t r_a) of u1'' (k = 0: σ only); k_t = 1 → a hair-thin band
+                BarrierBank(full(m, 0.0), p.r_a, max(p.k_t, 1 + 1e-9) * p.r_a, 1.0, p.eps_s),
+                # (Vmij): V_n(k2, ‖p_ij‖, 2 r_s, r_s + r_a, ε_m, ε_s)
+                BarrierBank(full(c, p.k2), 2 * p.r_s, p.r_s + p.r_a, p.eps_m, p.eps_s),
+            )
+        return b
 
     def layout(self, M: int, n_pairs: int, rows: np.ndarray | None = None) -> _Layout:
         """The layout for all M robots (rows=None) or for ``rows``; memoized (bounded)."""
@@ -464,8 +477,8 @@ def _finish(B: np.ndarray, lay: _Layout, kind: str, params: ControllerParams, p,
             obstacles: Sequence[Obstacle], out: np.ndarray | None = None,
             w: _Scratch | None = None) -> np.ndarray:
     """v_c from B = [q | u_rep] (2n,) complex (overwritten) for the law ``kind``; written to
-    ``out`` ((n,) complex) if given; ``w``: scratch arrays for these n robots. Returns (n, 2)
-    floats."""
+    ``out`` ((n,) complex) if given; ``w``: scratch arrays for these n robots; ``p``: the (M, 2)
+    positions (used by "apf" only). Returns v_c as (n,) complex."""
     n = B.shape[0] >> 1
     q = B[:n]
     if kind == "new":
@@ -476,8 +489,7 @@ def _finish(B: np.ndarray, lay: _Layout, kind: str, params: ControllerParams, p,
         np.maximum(nb, lay.mv, out=nb)
         np.divide(lay.cv, nb, out=w.NBr)
         B *= w.NB
-        res = np.add(q, B[n:], out=out)
-        return res.view(np.float64).reshape(n, 2)
+        return np.add(q, B[n:], out=out)
     u = B[n:]
     if kind == "apf":  # Appendix C: u_rep += u5, then as "new"
         if not obstacles:
@@ -487,12 +499,10 @@ def _finish(B: np.ndarray, lay: _Layout, kind: str, params: ControllerParams, p,
             pr = pr[np.asarray(rows, dtype=np.intp).reshape(-1)]
         u += u5(pr, obstacles, params).view(np.complex128).reshape(n)
         B *= lay.cv / np.maximum(np.abs(B), lay.mv)
-        res = np.add(q, u, out=out)
-        return res.view(np.float64).reshape(n, 2)
+        return np.add(q, u, out=out)
     # (Oldcontroller): sat(u1'' + u2 + u3' + u4', v_max)
     u += q * (params.v / np.maximum(np.abs(q), 1e-300))
-    res = np.multiply(u, params.v_max / np.maximum(np.abs(u), params.v_max), out=out)
-    return res.view(np.float64).reshape(n, 2)
+    return np.multiply(u, params.v_max / np.maximum(np.abs(u), params.v_max), out=out)
 
 
 def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
@@ -524,7 +534,7 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
     B, lay, w = _evaluate(p, k, tubes, params, pairs, rows)
     v = _finish(B, lay, kind, params, p, rows, obstacles, None, w)
     lay.spare = w  # (the result never refers to w's arrays)
-    return v
+    return v.view(np.float64).reshape(-1, 2)
 
 
 class CommandEvaluator:
@@ -561,6 +571,19 @@ class CommandEvaluator:
                 and p.shape[1] == 2 and p.flags.c_contiguous):
             raise ValueError("p must be a C-contiguous float64 array of shape (M, 2)")
         M = p.shape[0]
+        if out is not None:
+            if out.shape != (M, 2) or out.dtype != np.float64 or not out.flags.c_contiguous:
+                raise ValueError(f"out must be a C-contiguous float64 array of shape ({M}, 2)")
+            out = out.view(np.complex128).reshape(M)
+        v = self.step(p.view(np.complex128).reshape(M), k, pairs, out)
+        return v.view(np.float64).reshape(M, 2)
+
+    def step(self, z: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
+             out: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`__call__` on complex numbers (the simulator's state): ``z`` (M,) complex128
+        C-contiguous positions x + iy, ``out`` an optional (M,) complex128 array receiving
+        the commands; returns the (M,) complex commands. ``z`` is not checked."""
+        M = z.shape[0]
         g = self._g
         pa = self._pairs
         if g is None or g.k is not k or k.flags.writeable:
@@ -574,14 +597,10 @@ class CommandEvaluator:
                 or I.flags.writeable or J.flags.writeable:
             pa = self._pairs = self._new_pairs(I, J, M, g)
         if M == 0:
-            return np.zeros((0, 2))
+            return np.zeros(0, np.complex128)
         w = pa[6]
-        z = p.view(np.complex128).reshape(M)
         B = _core(z, z, g, pa[3].bank, pa[4], pa[5], w, M)
-        if out is not None:
-            if out.shape != (M, 2) or out.dtype != np.float64 or not out.flags.c_contiguous:
-                raise ValueError(f"out must be a C-contiguous float64 array of shape ({M}, 2)")
-            out = out.view(np.complex128).reshape(M)
+        p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
         return _finish(B, pa[3], self.kind, self.params, p, None, self.obstacles, out, w)
 
     def _new_pairs(self, I, J, M: int, g: _Gathered) -> tuple:
