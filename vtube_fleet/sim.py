@@ -18,10 +18,11 @@ Each step (all robots still in the tube at once):
    the control point p + s[cos θ, sin θ] (NOTES.md item 10).
 
 Safety metrics (:mod:`vtube_fleet.metrics`) are taken at every step, in chunks: positions and
-commands are copied into a buffer and evaluated in one vectorized call per chunk (a chunk ends
-when the neighbour list is rebuilt, a robot exits, or the buffer is full), so they cost a copy
-per step. For the unicycle the control points are the primary stream (the controller's
-guarantee) and the robot centres a second stream (``*_center`` keys).
+commands are kept in a buffer and evaluated in one vectorized call per chunk (a chunk ends when
+the neighbour list is rebuilt, a robot exits, or the buffer is full). For the single integrator
+the buffer holds the state itself (the controller and the Euler step write their rows), so the
+metrics cost no copy per step. For the unicycle the control points are the primary stream (the
+controller's guarantee) and the robot centres a second stream (``*_center`` keys).
 """
 
 from __future__ import annotations
@@ -320,24 +321,26 @@ class _Run:
         kzero = np.zeros(0, dtype=np.intp)  # apf: everyone in the main tube (read-only)
         command = CommandEvaluator(arrays, params, kind, obstacles)
 
-        # metric chunks
+        # metric chunks: rows 0 … nc−1 of the buffers hold the steps taken since the last
+        # flush (evaluation points and commands). For the single integrator the state lives
+        # in the buffer: row nc holds the current positions, the Euler step writes row nc + 1
+        # and the commands are written to their row directly (no copies).
         chunk = int(max(4, min(256, 400_000 // max(self.m, 1))))
-        cpos = np.empty((chunk, self.m, 2))
-        cvel = np.empty((chunk, self.m, 2))
-        ct = np.empty(chunk)
+        cpos = np.empty((chunk + 1, self.m, 2))
+        cvel = np.empty((chunk + 1, self.m, 2))
         if unicycle:
-            ccen = np.empty((chunk, self.m, 2))
-            ccvel = np.empty((chunk, self.m, 2))
+            ccen = np.empty((chunk + 1, self.m, 2))
+            ccvel = np.empty((chunk + 1, self.m, 2))
         nc = 0
         cur_I = None
         cur_pairs: tuple[np.ndarray, np.ndarray] | None = None
 
-        def flush() -> None:
+        def flush(n: int, step: int) -> None:
+            """Metrics of the nc buffered steps (the last before ``step``), n robots."""
             nonlocal nc
             if nc == 0:
                 return
-            n = pos.shape[0]
-            tt = ct[:nc].copy()
+            tt = (step - nc + np.arange(nc)) * dt  # == (step − nc + i)·dt of the loop
             met = monitor.evaluate(cpos[:nc, :n], cvel[:nc, :n], pairs=cur_pairs,
                                    all_present=True)
             acc.add(tt, met)
@@ -355,7 +358,7 @@ class _Run:
                 series = {key: getattr(met, key) for key in METRIC_KEYS}
                 if unicycle:
                     series.update({f"{key}_center": getattr(metc, key) for key in METRIC_KEYS})
-                rec.log_metrics(tt, np.rint(tt / dt).astype(np.int64), series, every=rec_every)
+                rec.log_metrics(tt, step - nc + np.arange(nc), series, every=rec_every)
             nc = 0
 
         self._alloc_records()
@@ -371,37 +374,47 @@ class _Run:
         progress_every = max(1, int(round(0.1 / dt)))
         progress = self.progress
         n_steps = self.n_steps
+        euler = models._single_step  # (Single) without re-checking dt (checked above)
+        n = pos.shape[0]
+        # single integrator: the rows of the first n robots, as (n, 2) floats (P2) and as
+        # complex x + iy (Z2: positions, V2: commands), the form the controller works in
+        P2, Z2, V2 = cpos[:, :n], cpos.view(np.complex128)[:, :n, 0], cvel.view(
+            np.complex128)[:, :n, 0]
+        if not unicycle:
+            P2[0] = pos
+            pos = P2[0]  # the state: row nc of the buffer
         start = time.perf_counter()
         step = 0
         try:
             while step < n_steps:
-                t = step * dt
-                if unicycle:
-                    q = models.nid_control_point(pos, theta, s_nid)
-                else:
-                    q = pos
+                q = models.nid_control_point(pos, theta, s_nid) if unicycle else pos
                 # 1. exits (TraCondition), main tube only (Assumption 2)
                 if step >= next_exit_check:
                     xi = q @ n_c
                     xmax = xi.max()
                     if xmax >= thresh:
-                        flush()
+                        flush(n, step)
+                        t = step * dt
                         gone = xi >= thresh
                         acc.add_exits(t, ids[gone])
                         if rec is not None:
                             rec.log_exits(t, step, ids[gone])
                         keep = ~gone
-                        pos = pos[keep]
                         ids = ids[keep]
                         q = q[keep]
+                        n = q.shape[0]
+                        P2, Z2, V2 = P2[:, :n], Z2[:, :n], V2[:, :n]
                         if unicycle:
+                            pos = pos[keep]
                             theta = theta[keep]
-                        if pos.shape[0] == 0:
+                        else:
+                            P2[0] = q
+                            q = pos = P2[0]
+                        if n == 0:
                             break
                         xmax = xi[keep].max()
                         next_verlet = step  # the robot set changed: rebuild the list now
                     next_exit_check = step + max(1, int((thresh - xmax) / (v_bound * dt)))
-                n = pos.shape[0]
                 # 2-4. sub-tube, neighbours, command
                 if tracker is not None:
                     k = tracker.update(q, max_move)
@@ -420,24 +433,28 @@ class _Run:
                         dq = q - q_build
                         dmax = float(np.sqrt((dq * dq).sum(axis=1).max()))
                         next_verlet = step + max(1, int((half_skin - dmax) / (v_bound * dt)))
-                vc = command(q, k, pairs)
-                if unicycle:
+                # metrics buffer (the chunk must share one pair list and one robot set)
+                if pairs[0] is not cur_I or nc == chunk:
+                    if nc:
+                        flush(n, step)
+                        if not unicycle:  # the current positions move to row 0
+                            P2[0] = pos
+                            q = pos = P2[0]
+                    cur_I, cur_pairs = pairs[0], pairs
+                if not unicycle:
+                    vz = command.step(Z2[nc], k, pairs, out=V2[nc])
+                else:
+                    vc = command(q, k, pairs, out=cvel[nc, :n])
                     v_lin, omega = models.nid_inputs(theta, vc, s_nid)
                     heading = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
                     vcen = heading * v_lin[:, None]
-                # metrics buffer (the chunk must share one pair list and one robot set)
-                if pairs[0] is not cur_I or nc == chunk:
-                    flush()
-                    cur_I, cur_pairs = pairs[0], pairs
-                cpos[nc, :n] = q
-                cvel[nc, :n] = vc
-                ct[nc] = t
-                if unicycle:
+                    cpos[nc, :n] = q
                     ccen[nc, :n] = pos
                     ccvel[nc, :n] = vcen
-                nc += 1
                 # recording (decimated)
                 if step == next_rec:
+                    t = step * dt
+                    vc = cvel[nc, :n]
                     f = self.frames
                     self.rec_t[f] = t
                     if unicycle:
@@ -459,16 +476,17 @@ class _Run:
                 # 5. Euler step of the model
                 if unicycle:
                     pos, theta = models.unicycle_step(pos, theta, v_lin, omega, dt)
-                else:
-                    pos = models._single_step(pos, vc, dt)  # (Single); dt checked above
-                step += 1
+                else:  # p + dt v_c, on x + iy
+                    euler(Z2[nc], vz, dt, out=Z2[nc + 1])
+                    pos = P2[nc + 1]
+                nc, step = nc + 1, step + 1  # the step is done (and in the buffer)
                 if step >= next_progress and progress is not None:
-                    progress(step * dt, n_steps * dt, pos.shape[0], self.m - pos.shape[0])
+                    progress(step * dt, n_steps * dt, n, self.m - n)
                     next_progress = step + progress_every
         except KeyboardInterrupt:
             self.interrupted = True
         self.wall_s = time.perf_counter() - start
-        flush()
+        flush(n, step)
         self.steps_done = step
         self.t_end = step * dt
         if progress is not None and not self.interrupted:
