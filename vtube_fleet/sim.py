@@ -62,6 +62,9 @@ RECORD_PERIOD_S = 0.01
 #: ... and the recorded arrays stay below this many bytes.
 RECORD_BUDGET_BYTES = 40_000_000
 
+#: Per-step metric series go to the recorder in blocks of at least this many steps.
+REC_METRIC_BLOCK = 2048
+
 ProgressFn = Callable[[float, float, int, int], None]
 
 
@@ -354,12 +357,26 @@ class _Run:
                                         all_present=True)
                 acc.add(tt, metc, suffix="_center")
                 self.parts_center.append(metc)
-            if rec is not None:
+            if rec is not None:  # handed to the recorder in blocks of >= REC_METRIC_BLOCK steps
                 series = {key: getattr(met, key) for key in METRIC_KEYS}
                 if unicycle:
                     series.update({f"{key}_center": getattr(metc, key) for key in METRIC_KEYS})
-                rec.log_metrics(tt, step - nc + np.arange(nc), series, every=rec_every)
+                rec_metrics.append((tt, step - nc + np.arange(nc), series))
+                if sum(len(b[0]) for b in rec_metrics) >= REC_METRIC_BLOCK:
+                    send_metrics()
             nc = 0
+
+        rec_metrics: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]] = []
+
+        def send_metrics() -> None:
+            if not rec_metrics:
+                return
+            blocks = rec_metrics[:]
+            rec_metrics.clear()
+            rec.log_metrics(np.concatenate([b[0] for b in blocks]),
+                            np.concatenate([b[1] for b in blocks]),
+                            {key: np.concatenate([b[2][key] for b in blocks])
+                             for key in blocks[0][2]}, every=rec_every)
 
         self._alloc_records()
         rec = self.recorder
@@ -487,6 +504,8 @@ class _Run:
             self.interrupted = True
         self.wall_s = time.perf_counter() - start
         flush(n, step)
+        if rec is not None:
+            send_metrics()
         self.steps_done = step
         self.t_end = step * dt
         if progress is not None and not self.interrupted:
