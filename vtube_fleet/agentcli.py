@@ -262,7 +262,12 @@ class AgentProcess:
         st = self.bus.statuses.get(vid)
         s = self.bus.latest().get(vid)
         run = self.run_cfg.run_id if self.run_cfg is not None else ""
-        if st is not None and st.run_id == run and st.status in ("offline", "refused", "lost"):
+        # (a last will carries the run id its agent had when it connected: often none yet)
+        if (
+            st is not None
+            and st.run_id in (run, "")
+            and st.status in ("offline", "refused", "lost")
+        ):
             return True
         return s is not None and s.phase in (Phase.LOST, Phase.FAILED, Phase.LANDED)
 

@@ -348,9 +348,10 @@ class Coordinator:
         s = self.bus.latest().get(vid)
         if s is not None and s.phase in (Phase.LANDED, Phase.FAILED):
             return True
+        # (a last will carries the run id the agent had when it connected: often none yet)
         return (
             st is not None
-            and st.run_id == self.run_id
+            and st.run_id in (self.run_id, "")
             and st.status in ("offline", "lost", "refused")
         )
 

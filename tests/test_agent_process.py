@@ -1,0 +1,415 @@
+"""End-to-end: one `vtube-fleet agent` PROCESS per vehicle, a real mosquitto (or amqtt), the
+`vtube-fleet mission` coordinator process and sim_stub mock vehicles (in this process).
+
+Safety is asserted from telemetry: the states the agents published on the broker (what each
+vehicle reported, in the tube frame), sampled here at 20 Hz by an observer — every pair of
+airborne vehicles ≥ 2 r_s apart, obstacle clearance ≥ r_s and leg distances ≥ r_s while in the
+tube — and every horizontal velocity setpoint the mock vehicles received while in the tube in
+[v_min, v_max]. Faults: the broker killed for 3 s mid-flight and restarted; one agent process
+killed (its vehicle's offboard-loss failsafe fires; the others treat it as an obstacle). No sleeps
+as synchronisation (the 3 s is the fault's duration), no timing asserts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fleet_ports import free_ports
+
+from vtube_fleet.bus.base import Phase
+from vtube_fleet.bus.broker import LocalBroker
+from vtube_fleet.bus.mqtt import MqttBus
+from vtube_fleet.fleet.mission import Mission, load_mission
+from vtube_fleet.fleetcli import mock_fleet
+from vtube_fleet.missioncli import default_mission_id
+
+ROOT = Path(__file__).resolve().parents[1]
+MISSION = ROOT / "configs" / "mock_fleet.toml"
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+
+@dataclass
+class Sample:
+    t: float
+    phases: list[str | None]
+    pos: np.ndarray  # (M, 2) telemetry (bus states), NaN = none
+    sp_speed: np.ndarray  # (M,) horizontal speed of the setpoint each mock vehicle holds
+    sp_age: np.ndarray  # (M,) seconds since that setpoint arrived
+    truth: np.ndarray  # (M, 2) true tube-frame positions of the mock vehicles
+
+
+@dataclass
+class Run:
+    mission: Mission
+    path: Path
+    broker: LocalBroker
+    fleet: object
+    out: Path
+    agents: list[asyncio.subprocess.Process] = field(default_factory=list)
+    logs: list[Path] = field(default_factory=list)
+    samples: list[Sample] = field(default_factory=list)
+    observer: MqttBus | None = None
+
+    def log_text(self, i: int) -> str:
+        return self.logs[i].read_text(errors="replace")
+
+    def phase(self, vid: int) -> str | None:
+        assert self.observer is not None
+        s = self.observer.latest().get(vid)
+        return None if s is None else s.phase.value
+
+
+def _h_speed(vel: object) -> float:
+    vn, ve = vel[0], vel[1]  # type: ignore[index]
+    return math.nan if vn is None or ve is None else math.hypot(vn, ve)
+
+
+async def _sampler(run: Run, n: int, stop: asyncio.Event) -> None:
+    frame = run.mission.frame
+    vehicles = run.fleet.vehicles  # type: ignore[attr-defined]
+    while not stop.is_set():
+        now = time.time()
+        latest = run.observer.latest()  # type: ignore[union-attr]
+        phases: list[str | None] = []
+        pos = np.full((n, 2), np.nan)
+        for v in range(n):
+            s = latest.get(v)
+            phases.append(None if s is None else s.phase.value)
+            if s is not None:
+                pos[v] = (s.x_m, s.y_m)
+        sp_speed = np.array([_h_speed(veh.sp.vel) for veh in vehicles[:n]])
+        mono = asyncio.get_running_loop().time()  # the mock vehicles' clock
+        sp_age = np.array(
+            [mono - veh.sp_time if veh.sp_time is not None else np.inf for veh in vehicles[:n]]
+        )
+        geo = np.array([veh.global_position for veh in vehicles[:n]])
+        x, y, _ = frame.geodetic_to_tube(geo[:, 0], geo[:, 1], geo[:, 2])
+        run.samples.append(Sample(now, phases, pos, sp_speed, sp_age, np.stack([x, y], axis=1)))
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), 0.05)  # the observer's 20 Hz sampling period
+
+
+@contextlib.asynccontextmanager
+async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION):
+    mission = load_mission(mission_path).with_vehicles(n)
+    with LocalBroker() as broker:
+        async with mock_fleet(mission, n, boot_time_scale=0.3, port_scheme=free_ports(n)) as fl:
+            run = Run(mission, mission_path, broker, fl, tmp_path / "out")
+            env = dict(os.environ, PYTHONUNBUFFERED="1")
+            for i in range(n):
+                log = tmp_path / f"agent{i}.log"
+                run.logs.append(log)
+                with open(log, "wb") as fh:
+                    run.agents.append(
+                        await asyncio.create_subprocess_exec(
+                            sys.executable,
+                            "-m",
+                            "vtube_fleet",
+                            "-v",
+                            "agent",
+                            str(mission_path),
+                            "--vehicle",
+                            str(i),
+                            "--endpoint",
+                            fl.endpoints[i],
+                            "--broker",
+                            broker.url,
+                            "--join-timeout",
+                            "120",
+                            stdout=fh,
+                            stderr=fh,
+                            cwd=ROOT,
+                            env=env,
+                        )
+                    )
+            stop = asyncio.Event()
+            async with MqttBus(broker.url, default_mission_id(mission_path)) as obs:
+                run.observer = obs
+                sampler = asyncio.create_task(_sampler(run, n, stop))
+                try:
+                    yield run
+                finally:
+                    stop.set()
+                    await sampler
+                    for p in run.agents:
+                        if p.returncode is None:
+                            p.send_signal(signal.SIGTERM)
+                    for p in run.agents:
+                        with contextlib.suppress(TimeoutError):
+                            await asyncio.wait_for(p.wait(), 60)
+                        if p.returncode is None:
+                            p.kill()
+                            await p.wait()
+
+
+async def start_coordinator(run: Run, n: int) -> asyncio.subprocess.Process:
+    return await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "vtube_fleet",
+        "mission",
+        "start",
+        str(run.path),
+        "--broker",
+        run.broker.url,
+        "--vehicles",
+        str(n),
+        "--wait",
+        "--out",
+        str(run.out),
+        "--ready-timeout",
+        "90",
+        "--timeout",
+        "200",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        cwd=ROOT,
+    )
+
+
+async def finish(proc: asyncio.subprocess.Process) -> tuple[int, str]:
+    _, err = await asyncio.wait_for(proc.communicate(), 260)
+    assert proc.returncode is not None
+    return proc.returncode, err.decode()
+
+
+async def until(predicate, timeout_s: float, what: str) -> None:
+    """Wait for a condition (checked every 50 ms) or fail naming it."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while not predicate():
+        assert loop.time() < deadline, f"timed out after {timeout_s:g} s waiting for {what}"
+        await asyncio.sleep(0.05)  # polling period of the condition
+
+
+def all_in_tube_past(run: Run, n: int, x_m: float) -> bool:
+    latest = run.observer.latest()  # type: ignore[union-attr]
+    return all(
+        (s := latest.get(v)) is not None and s.phase == Phase.IN_TUBE and s.x_m > x_m
+        for v in range(n)
+    )
+
+
+def check_safety(run: Run, *, speeds: bool = True, lost: tuple[int, ...] = ()) -> dict:
+    """The fleet issue's safety figures, from the agents' telemetry; asserted; returned."""
+    sc = run.mission.scenario
+    r_s, tube = sc.robots.r_s, sc.tube
+    worst = {
+        "pair": np.inf,
+        "obstacle": np.inf,
+        "leg": np.inf,
+        "sp_min": np.inf,
+        "sp_max": -np.inf,
+        "in_tube_samples": 0,
+        "lost_truth_pair": np.inf,
+    }
+    prev: list[str | None] = []
+    prev2: list[str | None] = []
+    for s in run.samples:
+        ph = np.array([p or "" for p in s.phases])
+        airborne = np.isin(ph, ["in_tube", "exited", "lost"]) & np.isfinite(s.pos[:, 0])
+        q = s.pos[airborne]
+        if len(q) > 1:
+            d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
+            worst["pair"] = min(worst["pair"], float(d[np.triu_indices(len(q), 1)].min()))
+        rows = (ph == "in_tube") & np.isfinite(s.pos[:, 0])
+        if rows.any():
+            worst["in_tube_samples"] += 1
+            p = s.pos[rows]
+            for ob in sc.obstacles:
+                clear = np.hypot(*(p - ob.center).T) - ob.radius
+                worst["obstacle"] = min(worst["obstacle"], float(clear.min()))
+            worst["leg"] = min(worst["leg"], float(tube.d_Th(p).min()), float(tube.d_Tr(p).min()))
+        # setpoints the vehicles held while in the tube for three samples in a row (the
+        # first tube setpoint may arrive a tick after the phase is published)
+        if prev2:
+            steady = [
+                i
+                for i in range(len(ph))
+                if ph[i] == "in_tube"
+                and prev[i] == "in_tube"
+                and prev2[i] == "in_tube"
+                and s.sp_age[i] < 0.2
+            ]
+            if steady:
+                worst["sp_min"] = min(worst["sp_min"], float(s.sp_speed[steady].min()))
+                worst["sp_max"] = max(worst["sp_max"], float(s.sp_speed[steady].max()))
+        for k in lost:  # the lost vehicle's TRUE position vs the others' telemetry
+            if ph[k] == "lost":
+                others = [i for i in range(len(ph)) if i != k and ph[i] in ("in_tube", "exited")]
+                if others:
+                    d = np.hypot(*(s.pos[others] - s.truth[k]).T)
+                    worst["lost_truth_pair"] = min(worst["lost_truth_pair"], float(d.min()))
+        prev2, prev = prev, list(ph)
+    assert worst["in_tube_samples"] > 0
+    if speeds:
+        assert math.isfinite(worst["sp_min"]), "no setpoint sampled in the tube"
+    assert worst["pair"] >= 2 * r_s, f"pair distance {worst['pair']:.3f} m < 2 r_s"
+    assert worst["obstacle"] >= r_s, f"obstacle clearance {worst['obstacle']:.3f} m < r_s"
+    assert worst["leg"] >= r_s, f"leg distance {worst['leg']:.3f} m < r_s"
+    if speeds:
+        assert worst["sp_min"] >= sc.robots.v_min - 1e-6, worst
+        assert worst["sp_max"] <= sc.robots.v_max + 1e-6, worst
+    return worst
+
+
+def summary(run: Run) -> dict:
+    return json.loads((run.out / "summary.json").read_text())
+
+
+# ----------------------------------------------------------------------------------------------
+async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
+    n = 8
+    async with fleet_run(tmp_path, n) as run:
+        code, err = await finish(await start_coordinator(run, n))
+        codes = [await p.wait() for p in run.agents]
+    assert code == 0, err + run.log_text(0)[-3000:]
+    assert codes == [0] * n, [run.log_text(i)[-1500:] for i, c in enumerate(codes) if c]
+    s = summary(run)
+    assert s["outcome"] == "completed" and s["exited"] == n and s["lost"] == []
+    assert s["violations"] == 0
+    assert all(v["phase"] == "landed" for v in s["vehicle_states"])
+    worst = check_safety(run)
+    print(
+        f"\n8 agents: pair {worst['pair']:.3f} m (2 r_s = {s['pair_limit_m']:.2f}), obstacle "
+        f"clearance {worst['obstacle']:.3f} m, legs {worst['leg']:.3f} m, setpoints "
+        f"{worst['sp_min']:.3f}..{worst['sp_max']:.3f} m/s; coordinator: state age p50/p99 "
+        f"{1000 * s['state_age_p50_s']:.1f}/{1000 * s['state_age_p99_s']:.1f} ms, flight "
+        f"{s['flight_time_s']:.1f} s"
+    )
+
+
+async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_path: Path) -> None:
+    n = 4
+    async with fleet_run(tmp_path, n) as run:
+        coord = await start_coordinator(run, n)
+        await until(lambda: all_in_tube_past(run, n, 5.0), 120, "all vehicles in the tube")
+        vehicles = run.fleet.vehicles  # type: ignore[attr-defined]
+        run.broker.kill()
+        killed_at = time.monotonic()
+        # every vehicle stops: its agent streams zero horizontal velocity, not its last command
+        await until(
+            lambda: all(_h_speed(v.sp.vel) == 0.0 for v in vehicles[:n]),
+            10,
+            "every vehicle holding (zero horizontal setpoint)",
+        )
+        await until(
+            lambda: all(math.hypot(*v.velocity_ned[:2]) < 0.15 for v in vehicles[:n]),
+            10,
+            "every vehicle stopped",
+        )
+        held = [v.global_position for v in vehicles[:n]]
+        await asyncio.sleep(max(0.0, 3.0 - (time.monotonic() - killed_at)))  # the outage
+        still = [v.global_position for v in vehicles[:n]]
+        run.broker.restart(wait=False)
+        await run.broker.wait_ready_async()
+        code, err = await finish(coord)
+        codes = [await p.wait() for p in run.agents]
+    assert code == 0, err
+    assert codes == [0] * n, [run.log_text(i)[-1500:] for i, c in enumerate(codes) if c]
+    s = summary(run)
+    assert s["outcome"] == "completed" and s["exited"] == n and s["violations"] == 0
+    for i in range(n):
+        log = run.log_text(i)
+        assert "unreachable: standing still in the tube" in log, log[-2000:]
+        assert "resuming after" in log, log[-2000:]
+    # while the broker was down the vehicles stayed put (true positions, tube frame)
+    frame = run.mission.frame
+    a = np.array(frame.geodetic_to_tube(*np.array(held).T)[:2]).T
+    b = np.array(frame.geodetic_to_tube(*np.array(still).T)[:2]).T
+    drift = float(np.hypot(*(b - a).T).max())
+    assert drift < 0.3, f"a holding vehicle drifted {drift:.2f} m"
+    worst = check_safety(run, speeds=False)
+    print(
+        f"\nbroker outage: held, drift during the hold {drift:.3f} m; pair "
+        f"{worst['pair']:.3f} m, obstacle clearance {worst['obstacle']:.3f} m, legs "
+        f"{worst['leg']:.3f} m"
+    )
+
+
+#: A straight 24 m tube without obstacles (a lost vehicle in the mock-fleet mission's tube
+#: leaves no valid partition next to its pole: the others would hold and land, as the fleet
+#: does). Vehicle 0 leads; it is the one whose agent dies.
+STRAIGHT = """
+[tube]
+p_h0 = [0.0, 5.0]
+p_h1 = [24.0, 5.0]
+p_r0 = [0.0, -5.0]
+p_r1 = [24.0, -5.0]
+
+[robots]
+r_s = 0.3
+r_a = 1.0
+v_min = 0.3
+v_max = 1.6
+positions = [[4.0, 0.0], [1.5, 2.5], [1.5, 0.0], [1.5, -2.5]]
+
+[controller]
+v = 1.0
+v_max_prime = 0.5
+
+[mission]
+origin_lat_deg = 47.397742
+origin_lon_deg = 8.545594
+origin_alt_m = 488.0
+heading_deg = 20.0
+altitude_m = 3.0
+climb_speed_m_s = 1.5
+mission_timeout_s = 120.0
+"""
+
+
+async def test_killed_agent_its_vehicle_fails_safe_and_the_others_pass(tmp_path: Path) -> None:
+    n, k = 4, 0
+    path = tmp_path / "straight.toml"
+    path.write_text(STRAIGHT)
+    async with fleet_run(tmp_path, n, path) as run:
+        coord = await start_coordinator(run, n)
+        await until(lambda: all_in_tube_past(run, n, 1.0), 120, "all vehicles in the tube")
+        await until(lambda: run.observer.latest()[k].x_m > 9.0, 60, "vehicle 0 past x = 9 m")
+        run.agents[k].send_signal(signal.SIGKILL)
+        await run.agents[k].wait()
+        vehicle = run.fleet.vehicles[k]  # type: ignore[attr-defined]
+        await until(
+            lambda: vehicle.failsafe is not None,
+            10,
+            "the offboard-loss failsafe of the orphaned vehicle",
+        )
+        failsafe_mode = vehicle.mode_name
+        await until(lambda: k in run.observer.lost, 10, "the others told by its last will")
+        code, err = await finish(coord)
+        codes = [await p.wait() for p in run.agents]
+    assert code == 3, err  # incomplete: one vehicle never exited
+    assert codes[k] == -signal.SIGKILL
+    assert [c for i, c in enumerate(codes) if i != k] == [0] * (n - 1)
+    s = summary(run)
+    assert s["outcome"] == "incomplete" and s["lost"] == [k] and s["exited"] == n - 1
+    dead = [smp.pos[k] for smp in run.samples if smp.phases[k] == "lost"]
+    assert dead, "no sample with the lost vehicle"
+    last = dead[-1]
+    others_x = max(
+        float(smp.pos[i, 0])
+        for smp in run.samples
+        for i in range(n)
+        if i != k and smp.phases[i] in ("in_tube", "exited")
+    )
+    assert others_x > last[0] + 3.0  # the others did pass it
+    worst = check_safety(run, lost=(k,))
+    assert worst["lost_truth_pair"] >= 2 * run.mission.scenario.robots.r_s
+    print(
+        f"\nagent {k} killed: vehicle failsafe {failsafe_mode}; the others passed its last "
+        f"position ({last[0]:.2f}, {last[1]:.2f}); closest approach to its true position "
+        f"{worst['lost_truth_pair']:.3f} m; pair {worst['pair']:.3f} m"
+    )
