@@ -312,7 +312,7 @@ class _Gathered:
     conj(n_h), conj(n_r) (2, n); G23 n_hᵀp_h1, n_rᵀp_r1 (2, n); GA E_h, E_r, A_h, A_r (4n,);
     n_c (n,)."""
 
-    __slots__ = ("k", "G01", "G23", "GA", "n_c")
+    __slots__ = ("k", "writeable", "G01", "G23", "GA", "n_c")
 
     def __init__(self, prep: _Prepared, k: np.ndarray) -> None:
         if k.size and k.min() < 0:  # (k ≥ K makes the gather raise)
@@ -324,6 +324,7 @@ class _Gathered:
                              ) from None
         n = k.shape[0]
         self.k = k
+        self.writeable = k.flags.writeable  # (then it may change in place: gather every time)
         self.G01 = G[0:2]
         self.G23 = np.ascontiguousarray(G[2:4].real)
         self.GA = G[4:8].reshape(4 * n)
@@ -547,7 +548,8 @@ class CommandEvaluator:
     :meth:`~vtube_fleet.partition.SubTubeTracker.update` returns), the pair index arrays and
     scratch buffers while ``pairs`` are the same read-only arrays (as
     :class:`~vtube_fleet.neighbours.VerletPairs` returns); ``k`` and ``pairs`` are validated
-    when they change, not at every call. ``p``: (M, 2) float64 C-contiguous; ``out``: an
+    when they change, not at every call (read-only arrays must not be made writeable and
+    changed in between). ``p``: (M, 2) float64 C-contiguous; ``out``: an
     optional (M, 2) float64 C-contiguous array receiving the result (else a new array).
     About 25 numpy calls per step in the common case, whatever M. Not thread-safe (scratch
     buffers); one evaluator per loop.
@@ -563,7 +565,7 @@ class CommandEvaluator:
         self.obstacles = tuple(obstacles)
         self._prep = tubes._prepared(params)
         self._g: _Gathered | None = None
-        self._pairs: tuple | None = None  # (I, J, M, lay, IJI, slots, scratch)
+        self._pairs: tuple | None = None  # (I, J, M, lay, IJI, slots, scratch, writeable)
 
     def __call__(self, p: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                  out: np.ndarray | None = None) -> np.ndarray:
@@ -586,22 +588,21 @@ class CommandEvaluator:
         M = z.shape[0]
         g = self._g
         pa = self._pairs
-        if g is None or g.k is not k or k.flags.writeable:
+        if g is None or g.k is not k or g.writeable:
             if type(k) is not np.ndarray or k.dtype != np.intp or k.shape != (M,):
                 raise ValueError(f"k must be an intp array of shape ({M},)")
             g = self._g = _Gathered(self._prep, k)
             if pa is not None and pa[2] == M:
                 pa[6].Wnc[:] = g.n_c
         I, J = pairs
-        if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M \
-                or I.flags.writeable or J.flags.writeable:
+        if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M or pa[7]:
             pa = self._pairs = self._new_pairs(I, J, M, g)
         if M == 0:
             return np.zeros(0, np.complex128)
-        w = pa[6]
-        B = _core(z, z, g, pa[3].bank, pa[4], pa[5], w, M)
+        lay, w = pa[3], pa[6]
+        B = _core(z, z, g, lay.bank, pa[4], pa[5], w, M)
         p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
-        return _finish(B, pa[3], self.kind, self.params, p, None, self.obstacles, out, w)
+        return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
 
     def _new_pairs(self, I, J, M: int, g: _Gathered) -> tuple:
         I, J = _check_pairs((I, J))
@@ -611,7 +612,7 @@ class CommandEvaluator:
         IJI, slots = lay.pair_arrays(I, J, cache=False)
         w = _Scratch(M, P)
         w.Wnc[:] = g.n_c
-        return (I, J, M, lay, IJI, slots, w)
+        return (I, J, M, lay, IJI, slots, w, I.flags.writeable or J.flags.writeable)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -113,7 +113,7 @@ class VerletPairs:
         z = p.view(np.complex128).reshape(p.shape[0])
         z0 = self._z0
         if z0 is not None and z0.shape == z.shape and z.shape[0] \
-                and np.abs(z - z0).max() <= self._half:  # the common case, 3 numpy calls
+                and np.maximum.reduce(np.abs(z - z0)) <= self._half:  # common: 3 numpy calls
             return self._I, self._J
         if self._needs_build(z):
             self._build(p, z)

@@ -594,7 +594,7 @@ class SubTubeTracker:
         self.checks += 1
         if M:
             v = np.multiply(self._C, p.view(np.complex128).reshape(M), out=self._v)
-            vmin = float(np.add(v.real, self._B, out=self._vr).min())
+            vmin = float(np.minimum.reduce(np.add(v.real, self._B, out=self._vr), axis=None))
         else:
             vmin = math.inf
         if vmin > 0.0:
