@@ -509,3 +509,28 @@ def test_command_evaluator_checks_its_arguments():
         CommandEvaluator(ta, PAPER, "fast")
     with pytest.raises(ValueError):
         CommandEvaluator(ta, PAPER, "apf")
+
+
+def test_command_evaluator_tracks_the_minimum_pair_distance():
+    """track_min_pair: the smallest candidate-pair distance of the last call, the number the
+    safety metrics compute from the same list (inf without pairs)."""
+    from vtube_fleet.metrics import SafetyMonitor
+
+    rng = np.random.default_rng(13)
+    tube = make_tube(w0=8.0, length=12.0)
+    ta = TubeArrays.from_tubes([tube])
+    ev = CommandEvaluator(ta, PAPER, track_min_pair=True)
+    mon = SafetyMonitor(tube, np.zeros((0, 2)), np.zeros(0), PAPER.r_s, PAPER.v_min,
+                        PAPER.v_max, PAPER.r_s + PAPER.r_a)
+    p = np.column_stack([rng.uniform(0, 10, 60), rng.uniform(-3, 3, 60)])
+    p[7] = p[8] + [1e-12, 0.0]  # coincident up to 1e-12 m (below the barriers' clamp)
+    k = np.zeros(60, np.intp)
+    k.setflags(write=False)
+    pairs = pairs_within(p, 1.5)
+    ev(p, k, pairs)
+    want = mon.evaluate(p, pairs=pairs).min_pair_distance_m[0]
+    assert ev.min_pair_distance == want == pytest.approx(1e-12, rel=1e-3)
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    ev(p, k, empty)
+    assert ev.min_pair_distance == math.inf
+    assert CommandEvaluator(ta, PAPER).min_pair_distance == math.inf  # not tracked

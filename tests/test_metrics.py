@@ -231,3 +231,25 @@ def test_pruned_chunk_evaluation_is_exact(monitor: SafetyMonitor, k: int) -> Non
     for c in CONDITIONS:
         np.testing.assert_array_equal(fast.flags(c), full.flags(c))
     np.testing.assert_array_equal(fast.robots, full.robots)
+
+
+@pytest.mark.parametrize("all_present", [False, True])
+def test_given_min_pair_is_used_as_is_and_copied(monitor: SafetyMonitor,
+                                                 all_present: bool) -> None:
+    """min_pair= (the simulator passes its controller's per-step minimum over the same
+    list) replaces the pair computation; the other metrics are unchanged; the array is
+    copied (the simulator reuses its buffer)."""
+    rng = np.random.default_rng(9)
+    pos, vel = _cloud(rng, 12, 40)
+    i, j = np.triu_indices(40, 1)
+    pairs = (i, j)
+    ref = monitor.evaluate(pos, vel, pairs=pairs, all_present=all_present)
+    given = ref.min_pair_distance_m.copy()
+    buf = given.copy()
+    got = monitor.evaluate(pos, vel, pairs=pairs, all_present=all_present, min_pair=buf)
+    buf[:] = -1.0
+    for key in METRIC_KEYS:
+        np.testing.assert_array_equal(getattr(got, key), getattr(ref, key), err_msg=key)
+    np.testing.assert_array_equal(got.pair_violation, ref.pair_violation)
+    with pytest.raises(ValueError):
+        monitor.evaluate(pos, vel, pairs=pairs, min_pair=given[:3])

@@ -58,6 +58,8 @@ __all__ = [
 
 Kind = Literal["new", "old", "apf"]
 
+_min = np.minimum.reduce  # ndarray.min without its Python wrapper
+
 
 class ParameterError(UserError):
     """A controller parameter is out of its domain (names the parameter and the value)."""
@@ -342,10 +344,12 @@ class _Scratch:
     """
 
     __slots__ = ("n", "P", "X", "X4", "xp", "Y", "Yr", "Yl", "Yp", "Ypr", "W", "Wf", "Wl",
-                 "Wp", "Wnc", "NB", "NBr")
+                 "Wp", "Wnc", "NB", "NBr", "track", "pmin")
 
-    def __init__(self, n: int, P: int) -> None:
+    def __init__(self, n: int, P: int, track: bool = False) -> None:
         self.n, self.P = n, P
+        # track: keep min ‖p_i − p_j‖ over the pairs (before the barriers clamp it) in pmin
+        self.track, self.pmin = track, math.inf
         n4 = 4 * n
         self.X = np.empty(n4 + P)
         self.X4 = self.X[:n4].reshape(2, 2, n)
@@ -376,6 +380,8 @@ def _core(z: np.ndarray, zr: np.ndarray, g: _Gathered, bank: BarrierBank, IJI: n
     zz = z.take(IJI)
     D2 = zz[P:] - zz[: 2 * P]  # [p_j − p_i | p_i − p_j]
     np.abs(D2[:P], out=w.xp)
+    if w.track:
+        w.pmin = float(_min(w.xp)) if P else math.inf
     # --- all barrier derivatives and σ's in one call (clamps X ≥ X_MIN if needed) -------
     bank.evaluate(w.X, out=w.Yr)
     # --- weights, summed per robot by one bincount -------------------------------------
@@ -553,16 +559,23 @@ class CommandEvaluator:
     optional (M, 2) float64 C-contiguous array receiving the result (else a new array).
     About 25 numpy calls per step in the common case, whatever M. Not thread-safe (scratch
     buffers); one evaluator per loop.
+
+    ``track_min_pair=True``: after each call, :attr:`min_pair_distance` is the smallest
+    ‖p_i − p_j‖ over ``pairs`` (inf without pairs), computed exactly as the metrics do
+    (:mod:`vtube_fleet.metrics`), so the simulator need not compute it again.
     """
 
+    min_pair_distance: float = math.inf
+
     def __init__(self, tubes: TubeArrays, params: ControllerParams, kind: Kind = "new",
-                 obstacles: Sequence[Obstacle] = ()) -> None:
+                 obstacles: Sequence[Obstacle] = (), track_min_pair: bool = False) -> None:
         if kind != "new" and kind != "old" and kind != "apf":
             raise ValueError(f"kind must be 'new', 'old' or 'apf', got {kind!r}")
         if kind == "apf" and not obstacles:
             raise ValueError("kind='apf' needs obstacles")
         self.tubes, self.params, self.kind = tubes, params, kind
         self.obstacles = tuple(obstacles)
+        self.track_min_pair = bool(track_min_pair)
         self._prep = tubes._prepared(params)
         self._g: _Gathered | None = None
         self._pairs: tuple | None = None  # (I, J, M, lay, IJI, slots, scratch, writeable)
@@ -598,9 +611,12 @@ class CommandEvaluator:
         if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M or pa[7]:
             pa = self._pairs = self._new_pairs(I, J, M, g)
         if M == 0:
+            self.min_pair_distance = math.inf
             return np.zeros(0, np.complex128)
         lay, w = pa[3], pa[6]
         B = _core(z, z, g, lay.bank, pa[4], pa[5], w, M)
+        if w.track:
+            self.min_pair_distance = w.pmin
         p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
         return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
 
@@ -610,7 +626,7 @@ class CommandEvaluator:
         P = I.shape[0]
         lay = self._prep.layout(M, P)
         IJI, slots = lay.pair_arrays(I, J, cache=False)
-        w = _Scratch(M, P)
+        w = _Scratch(M, P, self.track_min_pair)
         w.Wnc[:] = g.n_c
         return (I, J, M, lay, IJI, slots, w, I.flags.writeable or J.flags.writeable)
 

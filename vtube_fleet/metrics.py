@@ -179,6 +179,7 @@ class SafetyMonitor:
         *,
         pairs: tuple[np.ndarray, np.ndarray] | None = None,
         all_present: bool = False,
+        min_pair: np.ndarray | None = None,
     ) -> StepMetrics:
         """Metrics of one step (``pos`` (M, 2)) or of K steps (``pos`` (K, M, 2)).
 
@@ -192,6 +193,11 @@ class SafetyMonitor:
         within D_i of its value at the first step (within D_i + D_j for a pair), so only the
         robots whose lower bound can reach the smallest upper bound are evaluated at every step.
         The minima are the same as without pruning.
+
+        ``min_pair`` (K,): the minimum pair distances of the steps over ``pairs``, when the
+        caller has them already (the simulator's controller computes every candidate pair's
+        distance each step, :class:`vtube_fleet.controller.CommandEvaluator`); they are used
+        as given.
         """
         pos = np.asarray(pos, dtype=float)
         single = pos.ndim == 2
@@ -205,9 +211,13 @@ class SafetyMonitor:
         # contiguous axis, so each numpy call is one tight loop (a trailing axis of length 2
         # would make broadcasting and reductions an order of magnitude slower)
         z = _as_complex(pos)  # (K, M)
-        if all_present and m and pairs is not None:
+        if min_pair is not None:
+            min_pair = np.array(min_pair, dtype=float).reshape(-1)  # (a copy: kept)
+            if min_pair.shape != (k,):
+                raise ValueError(f"min_pair must have shape ({k},), got {min_pair.shape}")
+        if all_present and m and (pairs is not None or min_pair is not None):
             return self._evaluate_pruned(z, None if vel is None else np.asarray(vel, float),
-                                         pairs)
+                                         pairs, min_pair)
         present = ~np.isnan(z.real)
         robots = present.sum(axis=1)
         g = self._geom
@@ -227,15 +237,15 @@ class SafetyMonitor:
             min_center = np.full(k, np.inf)
             min_clear = np.full(k, np.inf)
 
-        # pairs
-        if pairs is not None:
+        # pairs (unless given by the caller)
+        if min_pair is None and pairs is not None:
             i_idx, j_idx = np.asarray(pairs[0]), np.asarray(pairs[1])
             if i_idx.size:
                 dpair = np.abs(z.take(i_idx, axis=1) - z.take(j_idx, axis=1))
                 min_pair = fmin(dpair, axis=1, initial=np.inf)
             else:
                 min_pair = np.full(k, np.inf)
-        else:
+        elif min_pair is None:
             min_pair = np.array([self._min_pair_search(pos[s], present[s]) for s in range(k)])
 
         # speeds
@@ -260,7 +270,8 @@ class SafetyMonitor:
                             robots.astype(np.int64), speed_bad)
 
     def _evaluate_pruned(
-        self, z: np.ndarray, vel: np.ndarray | None, pairs: tuple[np.ndarray, np.ndarray]
+        self, z: np.ndarray, vel: np.ndarray | None, pairs: tuple[np.ndarray, np.ndarray] | None,
+        min_pair: np.ndarray | None = None,
     ) -> StepMetrics:
         """:meth:`evaluate` for NaN-free chunks, evaluating only candidates (see there).
 
@@ -298,15 +309,16 @@ class SafetyMonitor:
             min_center = np.full(k, np.inf)
             min_clear = np.full(k, np.inf)
 
-        i_idx, j_idx = np.asarray(pairs[0]), np.asarray(pairs[1])
-        if i_idx.size:
-            d0 = np.abs(z0.take(i_idx) - z0.take(j_idx))
-            slack = disp.take(i_idx) + disp.take(j_idx)
-            cand = np.flatnonzero(d0 - slack <= (d0 + slack).min())
-            ci, cj = i_idx.take(cand), j_idx.take(cand)
-            min_pair = minimum(np.abs(zt.take(ci, axis=0) - zt.take(cj, axis=0)), axis=0)
-        else:
-            min_pair = np.full(k, np.inf)
+        if min_pair is None:  # (else given by the caller)
+            i_idx, j_idx = np.asarray(pairs[0]), np.asarray(pairs[1])
+            if i_idx.size:
+                d0 = np.abs(z0.take(i_idx) - z0.take(j_idx))
+                slack = disp.take(i_idx) + disp.take(j_idx)
+                cand = np.flatnonzero(d0 - slack <= (d0 + slack).min())
+                ci, cj = i_idx.take(cand), j_idx.take(cand)
+                min_pair = minimum(np.abs(zt.take(ci, axis=0) - zt.take(cj, axis=0)), axis=0)
+            else:
+                min_pair = np.full(k, np.inf)
 
         if vel is not None:
             if vel.shape != (k, m, 2):

@@ -322,7 +322,9 @@ class _Run:
         theta = np.array(sc.robots.headings, dtype=float) if unicycle else None
         ids = np.arange(self.m)
         kzero = np.zeros(0, dtype=np.intp)  # apf: everyone in the main tube (read-only)
-        command = CommandEvaluator(arrays, params, kind, obstacles)
+        # the controller computes every candidate pair's distance anyway: it keeps their
+        # minimum for the metrics (the same number SafetyMonitor would compute from the list)
+        command = CommandEvaluator(arrays, params, kind, obstacles, track_min_pair=True)
 
         # metric chunks: rows 0 … nc−1 of the buffers hold the steps taken since the last
         # flush (evaluation points and commands). For the single integrator the state lives
@@ -331,6 +333,7 @@ class _Run:
         chunk = int(max(4, min(256, 400_000 // max(self.m, 1))))
         cpos = np.empty((chunk + 1, self.m, 2))
         cvel = np.empty((chunk + 1, self.m, 2))
+        cpm = np.empty(chunk + 1)  # minimum pair distance over the neighbour list
         if unicycle:
             ccen = np.empty((chunk + 1, self.m, 2))
             ccvel = np.empty((chunk + 1, self.m, 2))
@@ -345,7 +348,7 @@ class _Run:
                 return
             tt = (step - nc + np.arange(nc)) * dt  # == (step − nc + i)·dt of the loop
             met = monitor.evaluate(cpos[:nc, :n], cvel[:nc, :n], pairs=cur_pairs,
-                                   all_present=True)
+                                   all_present=True, min_pair=cpm[:nc])
             acc.add(tt, met)
             self.parts.append(met)
             self.step_t_parts.append(tt)
@@ -468,6 +471,7 @@ class _Run:
                     cpos[nc, :n] = q
                     ccen[nc, :n] = pos
                     ccvel[nc, :n] = vcen
+                cpm[nc] = command.min_pair_distance
                 # recording (decimated)
                 if step == next_rec:
                     t = step * dt
