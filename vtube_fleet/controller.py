@@ -239,19 +239,19 @@ class _Layout:
         return w if w is not None and w.n == n and w.P == P else _Scratch(n, P)
 
     def pair_arrays(self, I: np.ndarray, J: np.ndarray, cache: bool) -> tuple:
-        """(IJI = [I, J, I], float slots of all W elements) for pairs (I, J); memoized on
-        array identity when ``cache`` (read-only arrays)."""
+        """(IJ = [I, J], float slots of all W elements) for pairs (I, J); memoized on array
+        identity when ``cache`` (read-only arrays)."""
         pa = self.pairs
         if cache and pa is not None and pa[0] is I and pa[1] is J:
             return pa[2], pa[3]
         re_im = np.array([0, 1]) + 2 * self.M
         ia = (2 * I[:, None] + re_im).ravel()
         ib = (2 * J[:, None] + re_im).ravel()
-        IJI = np.concatenate([I, J, I])
+        IJ = np.concatenate([I, J])
         slots = np.concatenate([self.slot_ls, ia, ib, self.q_slot])
         if cache:
-            self.pairs = (I, J, IJI, slots)
-        return IJI, slots
+            self.pairs = (I, J, IJ, slots)
+        return IJ, slots
 
 
 class _Prepared:
@@ -273,6 +273,9 @@ class _Prepared:
         self.table = np.ascontiguousarray(np.stack([
             np.conj(n_h), np.conj(n_r), c_h + 0j, c_r + 0j, -pt(n_h), -pt(n_r),
             np.where(tubes.has_L, t_h - n_c, 0), np.where(tubes.has_R, t_r - n_c, 0), n_c]))
+        t = self.table  # and its blocks, contiguous
+        self.T01, self.TA, self.Tnc = t[0:2].copy(), t[4:8].copy(), t[8].copy()
+        self.T23 = np.ascontiguousarray(t[2:4].real)
         self.r_pair = params.r_s + params.r_a  # V_m,ij ≡ 0 beyond (Vmij)
         self._layouts: dict = {}
         self._blocks: tuple[BarrierBank, BarrierBank, BarrierBank] | None = None
@@ -310,85 +313,99 @@ class _Prepared:
 
 
 class _Gathered:
-    """Per-robot sub-tube constants of one ``k`` (rows of :attr:`_Prepared.table`): G01 the
-    conj(n_h), conj(n_r) (2, n); G23 n_hᵀp_h1, n_rᵀp_r1 (2, n); GA E_h, E_r, A_h, A_r (4n,);
-    n_c (n,)."""
+    """Per-robot sub-tube constants of one ``k`` (columns of :attr:`_Prepared.table`): G01
+    the conj(n_h), conj(n_r) (2, n); G23 n_hᵀp_h1, n_rᵀp_r1 (2, n); GA E_h, E_r, A_h, A_r
+    (4n,); n_c (n,). ``bufs``: arrays to gather into (a scratch's, see :meth:`_Scratch.gbufs`)
+    instead of new ones: fresh multi-megabyte arrays on every call make the allocator return
+    and re-map memory (page faults), which doubled the time of a 10,000-robot call."""
 
     __slots__ = ("k", "writeable", "G01", "G23", "GA", "n_c")
 
-    def __init__(self, prep: _Prepared, k: np.ndarray) -> None:
-        if k.size and k.min() < 0:  # (k ≥ K makes the gather raise)
-            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.min()}")
-        try:
-            G = prep.table.take(k, axis=1)  # (9, n)
-        except IndexError:
-            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {k.max()}"
-                             ) from None
+    def __init__(self, prep: _Prepared, k: np.ndarray, bufs: tuple | None = None) -> None:
         n = k.shape[0]
+        if n and (k.min() < 0 or k.max() >= prep.K):
+            bad = k.min() if k.min() < 0 else k.max()
+            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {bad}")
+        if bufs is None:
+            bufs = (np.empty((2, n), np.complex128), np.empty((2, n)),
+                    np.empty(4 * n, np.complex128), np.empty(n, np.complex128))
+        # one take per block (a take of all 9 rows at once is slower for large n); k is
+        # checked above, so mode="clip" (with "raise", take buffers its output)
+        take = np.take
+        self.G01 = take(prep.T01, k, axis=1, out=bufs[0], mode="clip")
+        self.G23 = take(prep.T23, k, axis=1, out=bufs[1], mode="clip")
+        self.GA = take(prep.TA, k, axis=1, out=bufs[2].reshape(4, n), mode="clip").reshape(4 * n)
+        self.n_c = take(prep.Tnc, k, out=bufs[3], mode="clip")
         self.k = k
         self.writeable = k.flags.writeable  # (then it may change in place: gather every time)
-        self.G01 = G[0:2]
-        self.G23 = np.ascontiguousarray(G[2:4].real)
-        self.GA = G[4:8].reshape(4 * n)
-        self.n_c = G[8]
 
 
 class _Scratch:
     """Work arrays for n evaluated robots and P pairs, with the views :func:`_core` uses.
 
-    X (4n + P): distances (the :class:`_Layout` element order); Y (4n + P, complex, imaginary
-    parts 0): the barrier values in the real parts, so that the products with the complex
-    weights are complex × complex (numpy casts a float operand of a complex product through a
-    buffer, which costs more than the product); W (5n + 2P, complex): the weights, its last n
-    elements n_c; NB (2n, complex, imaginary parts 0): the final scale factors.
+    X (4n + P): distances (the :class:`_Layout` element order); W (5n + 2P, complex): the
+    weights, its last n elements n_c; NB (2n, complex, imaginary parts 0): the final scale
+    factors (a complex × complex product costs less than complex × float, which numpy casts
+    through a buffer).
     """
 
-    __slots__ = ("n", "P", "X", "X4", "xp", "Y", "Yr", "Yl", "Yp", "Ypr", "W", "Wf", "Wl",
-                 "Wp", "Wnc", "NB", "NBr", "track", "pmin")
+    __slots__ = ("n", "P", "X", "X4", "xp", "W", "Wf", "Wl", "Wi", "Wj", "Wnc", "NB", "NBr",
+                 "track", "pmin", "_g")
 
     def __init__(self, n: int, P: int, track: bool = False) -> None:
         self.n, self.P = n, P
-        # track: keep min ‖p_i − p_j‖ over the pairs (before the barriers clamp it) in pmin
-        self.track, self.pmin = track, math.inf
         n4 = 4 * n
         self.X = np.empty(n4 + P)
         self.X4 = self.X[:n4].reshape(2, 2, n)
         self.xp = self.X[n4:]
-        self.Y = np.zeros(n4 + P, np.complex128)
-        self.Yr = self.Y.real
-        self.Yl, self.Yp, self.Ypr = self.Y[:n4], self.Y[n4:], self.Yr[n4:]
         self.W = np.empty(5 * n + 2 * P, np.complex128)
         self.Wf = self.W.view(np.float64)
         self.Wl = self.W[:n4]
-        self.Wp = self.W[n4: n4 + 2 * P].reshape(2, P)
+        self.Wi = self.W[n4: n4 + P]
+        self.Wj = self.W[n4 + P: n4 + 2 * P]
         self.Wnc = self.W[n4 + 2 * P:]
         self.NB = np.zeros(2 * n, np.complex128)
         self.NBr = self.NB.real
+        # track: keep min ‖p_i − p_j‖ over the pairs (before the barriers clamp it) in pmin
+        self.track, self.pmin = track, math.inf
+        self._g: tuple | None = None
+
+    def gbufs(self) -> tuple:
+        """Arrays for a :class:`_Gathered` of these n robots (allocated on first use)."""
+        if self._g is None:
+            n = self.n
+            self._g = (np.empty((2, n), np.complex128), np.empty((2, n)),
+                       np.empty(4 * n, np.complex128), np.empty(n, np.complex128))
+        return self._g
 
 
-def _core(z: np.ndarray, zr: np.ndarray, g: _Gathered, bank: BarrierBank, IJI: np.ndarray,
+def _core(z: np.ndarray, zr: np.ndarray, g: _Gathered, bank: BarrierBank, IJ: np.ndarray,
           slots: np.ndarray, w: _Scratch, M: int) -> np.ndarray:
     """The equations shared by every entry point: B (4M floats, viewed as 2M complex) =
     [q of the M robots | u2 + u3' + u4' of the M robots] (slots of robots not evaluated stay
-    0). ``zr``: the n evaluated robots; ``w``: scratch arrays whose n_c block (``w.Wnc``)
-    holds ``g.n_c``. 17 numpy calls for any M.
+    0). ``zr``: the n evaluated robots; ``IJ`` = [I, J]; ``w``: scratch arrays whose n_c
+    block (``w.Wnc``) holds ``g.n_c``. 18 numpy calls for any M.
     """
     P = w.P
+    n4 = w.Wl.shape[0]
     # --- distances: d_Th, d_Tr (dtl)/(dtr) of each robot in its own sub-tube, written to the
     # legs and σ blocks; ‖p_i − p_j‖ of the pairs ---------------------------------------
     np.subtract((g.G01 * zr).real, g.G23, out=w.X4)
-    zz = z.take(IJI)
-    D2 = zz[P:] - zz[: 2 * P]  # [p_j − p_i | p_i − p_j]
-    np.abs(D2[:P], out=w.xp)
+    zz = z.take(IJ)
+    dz = zz[P:]
+    dz -= zz[:P]  # p_j − p_i
+    np.abs(dz, out=w.xp)
     if w.track:
         w.pmin = float(_min(w.xp)) if P else math.inf
     # --- all barrier derivatives and σ's in one call (clamps X ≥ X_MIN if needed) -------
-    bank.evaluate(w.X, out=w.Yr)
+    y = bank.evaluate(w.X)
     # --- weights, summed per robot by one bincount -------------------------------------
-    np.multiply(w.Yl, g.GA, out=w.Wl)  # u3', u4'; σ·A
+    np.multiply(y[:n4], g.GA, out=w.Wl)  # u3', u4'; σ·A
     # u2: b_ij (p_i − p_j) = (∂V_m/∂‖p_ij‖/‖p_ij‖)(p_j − p_i) for i, the opposite for j
-    np.divide(w.Ypr, w.xp, out=w.Ypr)
-    np.multiply(D2.reshape(2, P), w.Yp, out=w.Wp)
+    yp = y[n4:]
+    yp /= w.xp
+    np.multiply(dz, yp, out=w.Wi)
+    np.negative(w.Wi, out=w.Wj)
     # + n_c (the last block of W) → q = n_c + σ_h A_h + σ_r A_r
     return np.bincount(slots, w.Wf, 4 * M).view(np.complex128)
 
@@ -453,10 +470,10 @@ def _evaluate(p, k, tubes: TubeArrays, params: ControllerParams, pairs, rows
     w = lay.scratch(n, P)
     if n == 0:
         return np.zeros(0, np.complex128), lay, w
-    g = _Gathered(prep, k)
-    IJI, slots = lay.pair_arrays(I, J, cache)
+    g = _Gathered(prep, k, w.gbufs())
+    IJ, slots = lay.pair_arrays(I, J, cache)
     w.Wnc[:] = g.n_c
-    B = _core(z, zr, g, lay.bank, IJI, slots, w, M)
+    B = _core(z, zr, g, lay.bank, IJ, slots, w, M)
     if rows is not None:
         B = B.reshape(2, M).take(rows, axis=1).reshape(2 * n)
     return B, lay, w
@@ -578,7 +595,7 @@ class CommandEvaluator:
         self.track_min_pair = bool(track_min_pair)
         self._prep = tubes._prepared(params)
         self._g: _Gathered | None = None
-        self._pairs: tuple | None = None  # (I, J, M, lay, IJI, slots, scratch, writeable)
+        self._pairs: tuple | None = None  # (I, J, M, lay, IJ, slots, scratch, writeable)
 
     def __call__(self, p: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                  out: np.ndarray | None = None) -> np.ndarray:
@@ -625,10 +642,10 @@ class CommandEvaluator:
         _check_pair_range(I, J, M)
         P = I.shape[0]
         lay = self._prep.layout(M, P)
-        IJI, slots = lay.pair_arrays(I, J, cache=False)
+        IJ, slots = lay.pair_arrays(I, J, cache=False)
         w = _Scratch(M, P, self.track_min_pair)
         w.Wnc[:] = g.n_c
-        return (I, J, M, lay, IJI, slots, w, I.flags.writeable or J.flags.writeable)
+        return (I, J, M, lay, IJ, slots, w, I.flags.writeable or J.flags.writeable)
 
 
 # ----------------------------------------------------------------------------------------------
