@@ -8,7 +8,8 @@ neighbour update (run by hand; numbers depend on the machine and its load).
    a. ``velocity_command`` on a fixed state (min over repeats);
    b. a closed loop of single-integrator steps from the starting block: per-step time of
       locate (partition, not this module), the Verlet update, velocity_command and the Euler
-      step, averaged over the steps;
+      step, averaged over the steps; then the same loop as the simulator runs it:
+      SubTubeTracker.update (max_move hint) and CommandEvaluator.step on complex positions;
    c. an agent's call: its own command from itself + its neighbours (``rows=[0]``).
 2. Linear growth: M = 120, 1,000 and 10,000 robots at the same density in a long straight tube
    (one tube; pairs from the Verlet list).
@@ -31,7 +32,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vtube_fleet.controller import ControllerParams, TubeArrays, velocity_command  # noqa: E402
+from vtube_fleet.controller import (  # noqa: E402
+    CommandEvaluator,
+    ControllerParams,
+    TubeArrays,
+    velocity_command,
+)
 from vtube_fleet.neighbours import VerletPairs, pairs_within  # noqa: E402
 from vtube_fleet.partition import partition  # noqa: E402
 from vtube_fleet.tube import Obstacle, Trapezoid  # noqa: E402
@@ -85,8 +91,13 @@ def bench_paper(quick: bool) -> None:
         pairs = VerletPairs(PARAMS.r_s + PARAMS.r_a, SKIN).candidates(s)
         t = per_call_us(lambda s=s, k=k, pairs=pairs: velocity_command(
             s, k, ta, PARAMS, pairs=pairs), 2000)
+        k.setflags(write=False)
+        ev = CommandEvaluator(ta, PARAMS)
+        z = s.view(np.complex128).ravel()
+        te = per_call_us(lambda z=z, k=k, pairs=pairs, ev=ev: ev.step(z, k, pairs), 2000)
         print(f"  a. velocity_command, state at t = {step / 1000:.1f} s "
-              f"({len(pairs[0])} candidate pairs): {t:.1f} µs/call")
+              f"({len(pairs[0])} candidate pairs): {t:.1f} µs/call; CommandEvaluator.step "
+              f"{te:.1f} µs/call")
 
     # b. closed loop
     n_steps = 1500 if quick else 6000
@@ -114,6 +125,30 @@ def bench_paper(quick: bool) -> None:
     both = dt[:, 1] + dt[:, 2]
     print(f"     controller + neighbours {np.median(both):.1f} / {both.mean():.1f} "
           f"(90th percentile {np.percentile(both, 90):.1f})")
+    # the simulator's way: tracker, evaluator on x + iy, Euler in place
+    z = p0.astype(float).view(np.complex128).ravel().copy()
+    tr, ev = part.tracker(), CommandEvaluator(ta, PARAMS)
+    vl = VerletPairs(PARAMS.r_s + PARAMS.r_a, SKIN)
+    max_move = 1e-3 * (PARAMS.v + PARAMS.v_max_prime) * (1 + 1e-6)
+    vz = np.empty_like(z)
+    for step in range(n_steps):
+        q = z.view(np.float64).reshape(-1, 2)
+        a = pc()
+        k = tr.update(q, max_move)
+        b = pc()
+        pairs = vl.candidates(q)
+        c = pc()
+        ev.step(z, k, pairs, out=vz)
+        d = pc()
+        vz *= 1e-3
+        z += vz
+        e = pc()
+        dt[step] = (b - a, c - b, d - c, e - d)
+    dt /= 1e3
+    names = ("tracker", "Verlet update", "CommandEvaluator.step", "Euler")
+    print(f"     as the simulator ({tr.locates} full locates, {tr.checks} row checks): "
+          + ", ".join(f"{nm} {np.median(dt[:, i]):.1f} / {dt[:, i].mean():.1f}"
+                      for i, nm in enumerate(names)))
 
     # c. an agent: itself + its neighbours within r_s + r_a + 1 m
     s = states[1500]
