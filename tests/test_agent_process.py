@@ -276,6 +276,7 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
         code, err = await finish(await start_coordinator(run, n))
         codes = [await p.wait() for p in run.agents]
     assert code == 0, err + run.log_text(0)[-3000:]
+    assert "cells 3.5 m" in err  # agents heard only the vehicles in the 3×3 cells around them
     assert codes == [0] * n, [run.log_text(i)[-1500:] for i, c in enumerate(codes) if c]
     s = summary(run)
     assert s["outcome"] == "completed" and s["exited"] == n and s["lost"] == []

@@ -98,7 +98,7 @@ def test_control_messages_round_trip():
     assert decode_status(encode_status(st_)) == st_
     cmd = Command("start", "demo", "run1", "abc", 1700000000123, 1700000000.1)
     assert decode_command(encode_command(cmd)) == cmd
-    cfg = MissionConfigMsg("demo", "run1", "abc", 8, 1.5, "mock_fleet.toml")
+    cfg = MissionConfigMsg("demo", "run1", "abc", 8, 1.5, "mock_fleet.toml", 0.15, 3.5)
     assert decode_config(encode_config(cfg)) == cfg
     assert len(encode_command(cmd)) < 150  # compact JSON
 

@@ -14,9 +14,10 @@ Procedure (``docs/mqtt.md``):
    when the run already started (a late agent never joins a fleet in flight);
 2. join the run, connect to the vehicle (``--endpoint``, default PX4 SITL instance I), wait
    until it is ready and publish READY; measure the link latency for a second and fix the safety
-   budget δ = v'_max·(T + L + τ_d + t63) with L = link latency + ``--max-age`` (the oldest
-   neighbour state used as a live position: the staleness budget); check the paper's
-   conditions with the READY positions of the whole run;
+   budget δ = v'_max·(T + L + τ_d + t63) with L = link latency + the run's neighbour max age
+   (the oldest neighbour state used as a live position: the staleness budget); check that the
+   run's spatial cells are large enough for it, and the paper's conditions with the READY
+   positions of the whole run;
 3. on ``start``: arm, climb, announce ``at_altitude`` and wait (up to ``takeoff_timeout_s``)
    until every teammate is at altitude (or gone), so the fleet enters the tube together; fly
    the tube; past the finishing line wait for the others, then ``on_complete`` (land / hold);
@@ -55,7 +56,15 @@ from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan, SafetyBudget
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.link.base import LinkError
-from vtube_fleet.missioncli import DEFAULT_BROKER, config_hash, default_mission_id
+from vtube_fleet.missioncli import (
+    ASSUMED_LINK_LATENCY_S,
+    DEFAULT_BROKER,
+    bus_safety_budget,
+    config_hash,
+    default_max_age_s,
+    default_mission_id,
+    needed_cell_m,
+)
 from vtube_fleet.partition import PartitionError
 
 __all__ = ["AgentProcess", "AgentRefused", "BusAwarePilot", "register"]
@@ -69,7 +78,9 @@ EXIT_INTERRUPTED = 130
 #: Seconds of sensing used to measure the link latency before the safety budget is fixed.
 MEASURE_S = 1.0
 #: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
-_UP_STAGES = ("at_altitude", "in_tube", "done")
+_UP_STAGES = ("at_altitude", "in_tube", "exited", "done")
+#: Teammate stages that count as "past the finishing line" for the exit barrier.
+_OUT_STAGES = ("exited", "done")
 
 
 class AgentRefused(UserError):
@@ -113,6 +124,12 @@ class BusAwarePilot(VehiclePilot):
         self._reconnected_wall: float | None = None
         mqtt.add_connection_listener(self._on_connection)
 
+    def set_phase(self, phase: Phase, why: str = "") -> bool:
+        changed = super().set_phase(phase, why)
+        if changed and phase == Phase.EXITED:
+            self.mqtt.announce("online", stage="exited")  # every teammate hears it
+        return changed
+
     def _on_connection(self, connected: bool) -> None:
         if connected:
             self._reconnected_wall = time.time()
@@ -148,11 +165,22 @@ class BusAwarePilot(VehiclePilot):
                 held = now_mono - (self.bus_hold_since or now_mono)
                 self.event(f"resuming after {held:.1f} s: broker back, neighbour states fresh")
                 self.bus_hold = self.bus_hold_since = None
+        self._forget_out_of_range()
         try:
             super().tick(now_mono, now_wall)
         except PartitionError as exc:
             self.cmd_xy = None
             self.begin_hold(f"no valid partition around the lost vehicles: {exc}")
+
+    def _forget_out_of_range(self) -> None:
+        """Drop from the agent's table the vehicles the bus no longer shows: they left our
+        spatial cells (farther than a neighbour can matter), so they are not silent; kept,
+        they would age into "lost" obstacles."""
+        latest = self.mqtt.latest()
+        table = self.agent.table
+        gone = [v for v in table if v not in latest]
+        for v in gone:
+            del table[v]
 
     def _hold_for_bus(self, now_mono: float, now_wall: float, problem: str) -> None:
         if self.bus_hold is None:
@@ -200,7 +228,6 @@ class AgentProcess:
         endpoint: str | None = None,
         backend: str = "mavlink",
         mission_id: str | None = None,
-        max_age_s: float | None = None,
         join_timeout_s: float = 600.0,
         broker_hold_limit_s: float = 30.0,
     ) -> None:
@@ -220,16 +247,7 @@ class AgentProcess:
         self.endpoint = endpoint or px4_sitl_endpoints(vehicle + 1)[vehicle]
         parse_endpoint(self.endpoint)
         self.backend = backend
-        self.max_age_s = (
-            max_age_s
-            if max_age_s is not None
-            else min(3 * self.cfg.period_s, self.cfg.neighbour_max_age_s)
-        )
-        if not 0 < self.max_age_s <= self.cfg.lost_after_s:
-            raise AgentRefused(
-                f"--max-age {self.max_age_s:g} s must be > 0 and <= lost_after_s = "
-                f"{self.cfg.lost_after_s:g} s of {self.path.name}"
-            )
+        self.max_age_s = default_max_age_s(self.mission)  # the run's value once joined
         self.join_timeout_s = join_timeout_s
         self.broker_hold_limit_s = broker_hold_limit_s
         self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash)
@@ -326,22 +344,17 @@ class AgentProcess:
         assert cfg is not None
         self.check_run(cfg)
         self.run_cfg = cfg
+        if cfg.max_age_s > 0:
+            self.max_age_s = cfg.max_age_s
+        if cfg.cell_m > 0:
+            self.bus.set_cell_size(cfg.cell_m)
         self.bus.run_id = cfg.run_id
         self.bus.announce("online", stage="joined")
         self.say(f"joined run {cfg.run_id} ({cfg.vehicles} vehicles); vehicle {self.endpoint}")
 
     # -- 2. vehicle ready, budget, preflight -----------------------------------------------
     def _make_budget(self, latency_s: float) -> SafetyBudget:
-        cfg = self.cfg
-        link_l = cfg.latency_s if cfg.latency_s is not None else latency_s
-        return SafetyBudget.compute(
-            self.mission.scenario.controller,
-            period_s=cfg.period_s,
-            latency_s=link_l + self.max_age_s,
-            dead_time_s=cfg.tracking_dead_time_s,
-            t63_s=cfg.tracking_t63_s,
-            override_m=cfg.safety_margin_m,
-        )
+        return bus_safety_budget(self.mission, latency_s, self.max_age_s)
 
     def _plan(self, budget: SafetyBudget) -> FlightPlan:
         sc = self.mission.scenario
@@ -370,6 +383,15 @@ class AgentProcess:
             f"safety budget {self.budget.describe(self.mission.scenario.controller)} (L = link "
             f"{measured * 1000:.1f} ms + neighbour max age {self.max_age_s * 1000:.0f} ms)"
         )
+        cell = self.run_cfg.cell_m if self.run_cfg is not None else 0.0
+        need = needed_cell_m(self.mission, self.max_age_s, self.budget.delta_m)
+        if cell > 0 and need > cell:
+            raise self.refuse(
+                f"the run's cells of {cell:g} m are smaller than this agent needs, {need:.2f} m "
+                f"(r_s + r_a + 2δ + v_max·(T + max age)); its link latency "
+                f"{1000 * measured:.0f} ms exceeds the {1000 * ASSUMED_LINK_LATENCY_S:.0f} ms "
+                f"the coordinator assumed (start the run with --no-cells)"
+            )
 
     def preflight(self, pilot: BusAwarePilot) -> None:
         """The paper's conditions with the READY positions of every vehicle of the run."""
@@ -422,19 +444,15 @@ class AgentProcess:
         self.bus.announce("online", stage="in_tube")
 
     async def _exit_barrier(self) -> None:
+        """Past the finishing line: wait until every teammate is too (its status stage says
+        so: statuses reach everyone, states only the vehicles in our cells) or gone."""
         mates = [v for v in self._teammates() if v != self.vehicle]
 
         def all_done() -> bool:
-            latest = self.bus.latest()
             for v in mates:
-                s = latest.get(v)
-                if not (
-                    self._gone(v)
-                    or (
-                        s is not None
-                        and s.phase in (Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.LANDED)
-                    )
-                ):
+                st = self.bus.statuses.get(v)
+                out = st is not None and st.run_id == self.bus.run_id and st.stage in _OUT_STAGES
+                if not (out or self._gone(v)):
                     return False
             return True
 
@@ -575,7 +593,6 @@ def _cmd_agent(args: argparse.Namespace) -> int:
         endpoint=args.endpoint,
         backend=args.link,
         mission_id=args.mission_id,
-        max_age_s=args.max_age,
         join_timeout_s=args.join_timeout,
         broker_hold_limit_s=args.broker_hold_limit,
     )
@@ -615,14 +632,6 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--mission-id", default=None, help="topic name of the mission (default: the file name)"
-    )
-    p.add_argument(
-        "--max-age",
-        type=float,
-        default=None,
-        metavar="S",
-        help="oldest neighbour state used as a live position, budgeted in δ "
-        "(default: 3 control periods, at most neighbour_max_age_s)",
     )
     p.add_argument(
         "--join-timeout",

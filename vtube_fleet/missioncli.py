@@ -96,6 +96,48 @@ def config_hash(path: str | Path) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
+#: Link latency the coordinator assumes when it sizes the cells (each agent checks its own).
+ASSUMED_LINK_LATENCY_S = 0.1
+
+
+def default_max_age_s(mission: Any) -> float:
+    """The run's staleness limit: 3 control periods, at most ``neighbour_max_age_s``."""
+    cfg = mission.config
+    return min(3.0 * cfg.period_s, cfg.neighbour_max_age_s)
+
+
+def bus_safety_budget(mission: Any, link_latency_s: float, max_age_s: float) -> Any:
+    """The agents' :class:`~vtube_fleet.fleet.agent.SafetyBudget`: the fleet's δ with
+    L = link latency + ``max_age_s`` (a neighbour's state is used up to that old)."""
+    from vtube_fleet.fleet.agent import SafetyBudget
+
+    cfg = mission.config
+    link = cfg.latency_s if cfg.latency_s is not None else link_latency_s
+    return SafetyBudget.compute(
+        mission.scenario.controller,
+        period_s=cfg.period_s,
+        latency_s=link + max_age_s,
+        dead_time_s=cfg.tracking_dead_time_s,
+        t63_s=cfg.tracking_t63_s,
+        override_m=cfg.safety_margin_m,
+    )
+
+
+def needed_cell_m(mission: Any, max_age_s: float, delta_m: float) -> float:
+    """Smallest cell size with which an agent hears every vehicle that matters to it: the
+    flown neighbour radius r_s' + r_a' (= r_s + r_a + 2δ) plus what a neighbour covers at
+    v_max in one control period and ``max_age_s`` (see ``docs/mqtt.md``)."""
+    p = mission.scenario.controller
+    return float(p.r_s + p.r_a + 2.0 * delta_m + p.v_max * (mission.config.period_s + max_age_s))
+
+
+def run_cell_m(mission: Any, max_age_s: float) -> float:
+    """The cell size a coordinator announces: :func:`needed_cell_m` with the δ of an
+    :data:`ASSUMED_LINK_LATENCY_S` link, rounded up to 0.5 m."""
+    delta = bus_safety_budget(mission, ASSUMED_LINK_LATENCY_S, max_age_s).delta_m
+    return math.ceil(2.0 * needed_cell_m(mission, max_age_s, delta)) / 2.0
+
+
 def default_mission_id(path: str | Path) -> str:
     """The mission id used in the topics: the file name without extension, with characters
     that are not letters, digits, ``_.-`` replaced by ``-``."""
@@ -257,6 +299,8 @@ class Coordinator:
         mission_id: str | None = None,
         vehicles: int | None = None,
         broker_timeout_s: float = 10.0,
+        max_age_s: float | None = None,
+        cells: bool = True,
     ) -> None:
         from vtube_fleet.fleet.mission import load_mission
 
@@ -272,10 +316,19 @@ class Coordinator:
                 f"{self.path.name}), got {n}"
             )
         self.vehicles = n
+        self.max_age_s = default_max_age_s(self.mission) if max_age_s is None else max_age_s
+        lost_after = self.mission.config.lost_after_s
+        if not 0 < self.max_age_s <= lost_after:
+            raise MissionRunError(
+                f"--max-age {self.max_age_s:g} s must be > 0 and <= lost_after_s = "
+                f"{lost_after:g} s of {self.path.name}"
+            )
+        self.cells = cells
         self.broker = broker
         self.broker_timeout_s = broker_timeout_s
         self.bus = MqttBus(broker, self.mission_id)
         self.run_id = ""
+        self.announced: MissionConfigMsg | None = None
         self.t_start_wall: float | None = None
 
     async def __aenter__(self) -> Coordinator:
@@ -304,8 +357,11 @@ class Coordinator:
             self.vehicles,
             time.time(),
             self.path.name,
+            max_age_s=self.max_age_s,
+            cell_m=run_cell_m(self.mission, self.max_age_s) if self.cells else 0.0,
         )
         self.bus.set_retained(self.bus.topics.config, encode_config(cfg))
+        self.announced = cfg
         return self.run_id
 
     def command(self, name: str) -> Command:
@@ -509,12 +565,15 @@ async def _start(args: argparse.Namespace) -> int:
         mission_id=args.mission_id,
         vehicles=args.vehicles,
         broker_timeout_s=args.broker_timeout,
+        max_age_s=args.max_age,
+        cells=not args.no_cells,
     ) as co:
         cfg = co.mission.config
         run = co.announce()
         print(
             f"mission {co.mission_id} run {run}: config {co.config_hash} announced on "
-            f"{args.broker}; waiting for {co.vehicles} agents",
+            f"{args.broker} (neighbour max age {1000 * co.max_age_s:.0f} ms, cells "
+            f"{co.announced.cell_m:g} m); waiting for {co.vehicles} agents",
             file=sys.stderr,
             flush=True,
         )
@@ -729,6 +788,19 @@ def register(subparsers: Any) -> None:
         type=int,
         default=None,
         help="fly slots 0..N-1 only (default: every slot of the mission)",
+    )
+    s.add_argument(
+        "--max-age",
+        type=float,
+        default=None,
+        metavar="S",
+        help="oldest neighbour state an agent uses as a live position, budgeted in the "
+        "safety margin (default: 3 control periods, at most neighbour_max_age_s)",
+    )
+    s.add_argument(
+        "--no-cells",
+        action="store_true",
+        help="every agent hears every other (default: spatial cells sized from the mission)",
     )
     s.add_argument(
         "--ready-timeout",

@@ -244,7 +244,9 @@ class MissionConfigMsg:
     """The retained mission announcement of one coordinator run.
 
     Agents compare ``config_hash`` with the hash of their own mission file and refuse to fly
-    on a difference; ``run_id`` is new for every ``mission start``.
+    on a difference; ``run_id`` is new for every ``mission start``. The run's bus parameters,
+    the same for every agent: ``max_age_s`` (oldest neighbour state used as a live position,
+    budgeted in the safety margin) and ``cell_m`` (spatial cell size; 0 = no cells).
     """
 
     mission_id: str
@@ -253,6 +255,8 @@ class MissionConfigMsg:
     vehicles: int
     stamp_s: float
     source: str = ""  # the coordinator's mission file name, for error messages
+    max_age_s: float = 0.0
+    cell_m: float = 0.0
 
 
 def encode_config(cfg: MissionConfigMsg) -> bytes:
@@ -265,6 +269,8 @@ def encode_config(cfg: MissionConfigMsg) -> bytes:
             "vehicles": cfg.vehicles,
             "t": cfg.stamp_s,
             "source": cfg.source,
+            "max_age_s": cfg.max_age_s,
+            "cell_m": cfg.cell_m,
         }
     )
 
@@ -278,4 +284,6 @@ def decode_config(payload: bytes) -> MissionConfigMsg:
         vehicles=_field(obj, "vehicles", int, "config"),
         stamp_s=float(_field(obj, "t", (int, float), "config")),
         source=str(obj.get("source", "")),
+        max_age_s=float(_field(obj, "max_age_s", (int, float), "config")),
+        cell_m=float(_field(obj, "cell_m", (int, float), "config")),
     )

@@ -102,6 +102,7 @@ class BusStats:
     received: int = 0  # others' states accepted into the table
     out_of_order: int = 0  # others' states not newer than the one already held (dups too)
     decode_errors: int = 0
+    left_window: int = 0  # states showing a vehicle outside our cells (it is forgotten)
     connects: int = 0
     disconnects: int = 0
     connect_failures: int = 0  # failed connection attempts (each followed by a back-off)
@@ -218,13 +219,23 @@ class MqttBus:
 
     def latest(self) -> dict[int, NeighbourState]:
         """Latest state of every other vehicle heard from within our cell window (all of them
-        for an observer or without cells); lost ones with phase ``LOST``, wherever they are."""
+        for an observer or without cells); lost ones with phase ``LOST``, wherever they are.
+
+        A vehicle that leaves the window is forgotten (its last message, sent to the cell it
+        left, says where it went), so a stale entry can never come back into the window."""
+        return self._states
+
+    def _in_window(self, state: NeighbourState) -> bool:
         window = self._window
-        if window is None or not math.isfinite(self.cell_m):
-            return self._states
-        cell = self.cell_of
-        lost = self._lost
-        return {v: s for v, s in self._states.items() if v in lost or cell(s.x_m, s.y_m) in window}
+        return (
+            window is None
+            or state.vehicle_id in self._lost
+            or self.cell_of(state.x_m, state.y_m) in window
+        )
+
+    def _prune_to_window(self) -> None:
+        for vid in [v for v, s in self._states.items() if not self._in_window(s)]:
+            del self._states[vid]
 
     # -- spatial cells ---------------------------------------------------------------------------
     def set_cell_size(self, cell_m: float) -> None:
@@ -614,6 +625,7 @@ class MqttBus:
                     await client.publish(self.topics.state(vid, self._pub_cell), payload, qos=0)
                 self._pub_cell = cell
                 self._window = self._window_around(cell)
+                self._prune_to_window()
                 await self._apply_window(client)
             now = time.monotonic()
             if state.phase != self._last_phase or now - self._last_sent_mono >= self.last_period_s:
@@ -679,6 +691,12 @@ class MqttBus:
         prev = self._states.get(vid)
         if prev is not None and state.seq <= prev.seq and state.stamp_s <= prev.stamp_s:
             self.stats.out_of_order += 1
+            return
+        if not self._in_window(state):
+            # it left our cells (its notice to the cell it left), or a late message of a cell
+            # we left: forget it
+            self._states.pop(vid, None)
+            self.stats.left_window += 1
             return
         if vid in self._lost:
             if from_last:
