@@ -101,8 +101,8 @@ def test_full_paper_run_new_and_old(paper) -> None:
 
 def test_full_paper_run_sub_tubes_equal_locate_at_every_step(paper, monkeypatch) -> None:
     """The simulator's sub-tube indices come from a SubTubeTracker: at every step of the full
-    paper run they equal Partition.locate of the same positions, while the full locate runs
-    at a small fraction of the steps."""
+    paper run they equal Partition.locate of the same positions, while locating (all robots
+    or the few whose rows failed) runs at a small fraction of the steps."""
     from vtube_fleet.partition import SubTubeTracker
 
     seen = {"steps": 0, "trackers": []}
@@ -120,7 +120,7 @@ def test_full_paper_run_sub_tubes_equal_locate_at_every_step(paper, monkeypatch)
     s = simulate(paper).summary
     assert s["exited"] == 120 and seen["steps"] == s["steps"]
     (tr,) = seen["trackers"]
-    assert tr.locates < 0.1 * s["steps"]
+    assert tr.locates + tr.partial < 0.1 * s["steps"]
 
 
 def test_robotarium_unicycles_all_exit() -> None:

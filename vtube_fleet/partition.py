@@ -441,14 +441,15 @@ class SubTubeTracker:
     of 1e-9 m + 1e-14 × (size of the scene) (about 90 ε: the rounding of these rows and of
     locate's own scores is below 10 ε × size), so "the rows computed in floats are > 0"
     implies "locate computed in floats gives k". Rows are tabulated per (slab, k, active legs
-    of the others), so a full locate costs about 20 numpy calls.
+    of the others), so locating (all points or a few) costs about 20 numpy calls.
 
     ``update(p, max_move=d)``: the caller promises that no point moved farther than ``d``
     since the previous call (the simulator: v_max·dt); the rows are then evaluated only when
     the moves summed since the last evaluation may have used up the smallest row value. A
     change in the number of points forces a full locate (rows follow positions, not robot
-    identities, so re-ordered or replaced points are handled by the rows themselves).
-    ``locates`` counts the full locates, ``checks`` the row evaluations.
+    identities, so re-ordered or replaced points are handled by the rows themselves); when
+    rows fail, only those points are located again (:meth:`_partial`). ``locates`` counts
+    the full locates, ``partial`` the partial ones, ``checks`` the row evaluations.
     """
 
     #: absolute part of the row tolerance (metres)
@@ -460,6 +461,7 @@ class SubTubeTracker:
         loc = partition._locator
         self._loc = loc
         self.locates = 0
+        self.partial = 0
         self.checks = 0
         self._k = np.zeros(0, np.intp)
         self._k.setflags(write=False)
@@ -536,40 +538,73 @@ class SubTubeTracker:
         return Ctab, Btab, others_tab, pw, cm1
 
     # --- the work ---------------------------------------------------------------------------
-    def _full(self, p: np.ndarray) -> None:
-        """Full locate (the same computation as :meth:`Partition.locate`) and new rows."""
+    def _locate_rows(self, p: np.ndarray, rowoff: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Locate the points p (the computation of :meth:`Partition.locate`) → (k, C, B):
+        their sub-tubes and rows. ``rowoff``: (len(p), 1) row offsets i·K."""
         loc = self._loc
         D = p @ loc.A
         D[1] += loc.delta
-        tab = self._tables
-        if tab is not None:
-            H = D[0] <= D[1]  # active leg of every tube: n_h (True) or n_r
+        H = D[0] <= D[1]  # active leg of every tube: n_h (True) or n_r
         k, slab = loc.finish(D, p)
-        self.locates += 1
-        M = p.shape[0]
-        if self._k.shape != k.shape or (self._k != k).any():
-            k.setflags(write=False)
-            self._k = k
-        if tab is None:  # pragma: no cover
-            self._M = M
-            return
-        Ctab, Btab, others_tab, pw, cm1 = tab
-        K = loc.A.shape[2]
-        if M != self._M:
-            self._rowoff = (np.arange(M) * K)[:, None]
-            self._v = np.empty((Ctab.shape[0], M), np.complex128)
-            self._vr = np.empty((Ctab.shape[0], M))
-            self._M = M
-        self._shape = (M, 2)
-        sk = slab * K
+        Ctab, Btab, others_tab, pw, cm1 = self._tables
+        sk = slab * loc.A.shape[2]
         sk += k
         code = sk << cm1
         if cm1:
             oth = others_tab.take(sk, axis=0)  # (M, cm1), −1 = none (any bit: same rows)
-            oth += self._rowoff
+            oth += rowoff
             code += H.reshape(-1).take(oth) @ pw
-        self._C = Ctab.take(code, axis=1)
-        self._B = Btab.take(code, axis=1)
+        return k, Ctab.take(code, axis=1), Btab.take(code, axis=1)
+
+    def _full(self, p: np.ndarray) -> None:
+        """Full locate (the same computation as :meth:`Partition.locate`) and new rows."""
+        self.locates += 1
+        M = p.shape[0]
+        if self._tables is None:  # pragma: no cover
+            k = self._loc(p)
+            self._M = M
+        else:
+            if M != self._M:
+                K = self._loc.A.shape[2]
+                self._rowoff = (np.arange(M) * K)[:, None]
+                R = self._tables[0].shape[0]
+                self._v = np.empty((R, M), np.complex128)
+                self._vr = np.empty((R, M))
+                self._M = M
+            k, self._C, self._B = self._locate_rows(p, self._rowoff)
+        self._shape = (M, 2)
+        if self._k.shape != k.shape or (self._k != k).any():
+            k.setflags(write=False)
+            self._k = k
+        self._slack = -math.inf
+
+    def _partial(self, p: np.ndarray, vr: np.ndarray) -> None:
+        """Locate again only the points with a failing row (the others keep k and rows).
+
+        Locate's arithmetic is per point, but a matrix product may round differently for a
+        subset than for all points: if a re-located point's fresh rows do not hold at the
+        point itself (it lies within the rows' tolerance of a boundary), the full locate
+        decides instead, so that the result always equals ``locate`` of all points.
+        """
+        bad = np.flatnonzero(~(np.minimum.reduce(vr, axis=0) > 0.0))  # (NaN rows too)
+        if 4 * bad.shape[0] > p.shape[0]:  # many: the full locate costs about the same
+            self._full(p)
+            return
+        ps = p.take(bad, axis=0)
+        k, C, B = self._locate_rows(ps, self._rowoff[: bad.shape[0]])
+        zs = ps.view(np.complex128).reshape(bad.shape[0])
+        if not np.minimum.reduce((C * zs).real + B, axis=None) > 0.0:
+            self._full(p)
+            return
+        self.partial += 1
+        self._C[:, bad] = C
+        self._B[:, bad] = B
+        if (self._k.take(bad) != k).any():
+            knew = self._k.copy()
+            knew[bad] = k
+            knew.setflags(write=False)
+            self._k = knew
         self._slack = -math.inf
 
     def update(self, p: np.ndarray, max_move: float | None = None) -> np.ndarray:
@@ -594,13 +629,14 @@ class SubTubeTracker:
         self.checks += 1
         if M:
             v = np.multiply(self._C, p.view(np.complex128).reshape(M), out=self._v)
-            vmin = float(np.minimum.reduce(np.add(v.real, self._B, out=self._vr), axis=None))
+            vr = np.add(v.real, self._B, out=self._vr)
+            vmin = float(np.minimum.reduce(vr, axis=None))
         else:
             vmin = math.inf
         if vmin > 0.0:
             self._slack = vmin
-        else:  # some row fails (or NaN): a point may have changed sub-tube
-            self._full(p)
+        else:  # some row fails (or NaN): those points may have changed sub-tube
+            self._partial(p, vr)
         return self._k
 
 
