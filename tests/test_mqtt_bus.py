@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import math
 import os
 import signal
 import subprocess
@@ -289,3 +290,32 @@ async def test_cells_limit_what_an_agent_hears(broker):
             await raw.publish(a.topics.status(1), encode_status(Status(1, "lost")), qos=1)
         await a.wait_for(lambda: 1 in a.latest(), 10)
         assert a.latest()[1].phase == Phase.LOST and a.latest()[1].x_m == 100.0
+
+
+async def test_a_hung_broker_shows_as_echo_silence_before_the_keepalive(broker):
+    """SIGSTOP the broker: the TCP connection stays up, but our own states stop coming back."""
+    async with MqttBus(broker.url, MISSION, 0, keepalive_s=30) as bus:
+        await bus.wait_connected(10)
+        stop = asyncio.Event()
+
+        async def tick() -> None:  # the agent's 20 Hz publishing
+            seq = 0
+            while not stop.is_set():
+                seq += 1
+                bus.publish(state(0, seq))
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), 0.05)
+
+        ticker = asyncio.create_task(tick())
+        try:
+            await bus.wait_for(lambda: bus._echo_mono > -math.inf, 10)
+            os.kill(broker.pid, signal.SIGSTOP)
+            try:
+                await bus.wait_for(lambda: bus.echo_silence_s > 0.5, 10)
+                assert bus.connected  # the 30 s keep-alive has not noticed anything yet
+            finally:
+                os.kill(broker.pid, signal.SIGCONT)
+            await bus.wait_for(lambda: bus.echo_silence_s < 0.2, 10)
+        finally:
+            stop.set()
+            await ticker

@@ -138,6 +138,12 @@ class BusAwarePilot(VehiclePilot):
         """Why neighbour information cannot be trusted now (None: it can)."""
         if not self.mqtt.connected:
             return f"MQTT broker {self.mqtt.host}:{self.mqtt.port} unreachable"
+        silence = self.mqtt.echo_silence_s
+        if silence > self.agent.max_age_s + 2.0 * self.cfg.period_s:
+            return (
+                f"MQTT broker {self.mqtt.host}:{self.mqtt.port} silent (our own state has not "
+                f"come back for {silence:.2f} s)"
+            )
         if self.bus_hold is None:
             return None
         since = self._reconnected_wall

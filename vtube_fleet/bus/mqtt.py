@@ -192,6 +192,8 @@ class MqttBus:
         self._errors_logged = 0
         self.set_cell_size(cell_m)
         self._disconnected_since: float | None = None
+        self._echo_mono = -math.inf
+        self._connected_mono = -math.inf
         #: Current back-off: initial after a lost connection, ×2 per failed attempt (≤ max).
         self.backoff_s = backoff_initial_s
 
@@ -292,6 +294,16 @@ class MqttBus:
         if self._connected or self._disconnected_since is None:
             return 0.0
         return time.monotonic() - self._disconnected_since
+
+    @property
+    def echo_silence_s(self) -> float:
+        """Seconds since our own state last came back from the broker (or since we connected),
+        while connected and publishing: a broker that accepts the connection but stopped
+        forwarding (hung, overloaded) shows here long before the keep-alive ends it."""
+        if not self._connected or self._own_last is None or self._pub_cell is None:
+            return 0.0
+        since = max(self._echo_mono, self._connected_mono)
+        return time.monotonic() - since
 
     def add_connection_listener(self, callback: Callable[[bool], None]) -> None:
         """``callback(connected)`` on every connect and disconnect (called in the loop)."""
@@ -459,6 +471,7 @@ class MqttBus:
         if value:
             self.stats.connects += 1
             self._disconnected_since = None
+            self._connected_mono = time.monotonic()
         else:
             self.stats.disconnects += 1
             self._disconnected_since = time.monotonic()
@@ -660,6 +673,8 @@ class MqttBus:
         try:
             if kind == "state" or kind == "last":
                 if vid == self.vehicle_id:
+                    if kind == "state":
+                        self._echo_mono = time.monotonic()  # our own state came back
                     return
                 self._on_state(decode_state(payload), from_last=kind == "last", topic_id=vid)
             elif kind == "status":
