@@ -93,6 +93,21 @@ def mqtt_handshake(host: str, port: int, timeout_s: float = 1.0) -> bool:
         return False
 
 
+def _user_name() -> str:
+    import pwd
+
+    return pwd.getpwuid(os.getuid()).pw_name
+
+
+def _die_with_parent() -> None:
+    """In the child before exec (Linux): SIGKILL it when the process that started it dies."""
+    with contextlib.suppress(OSError, AttributeError):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+
+
 class LocalBroker:
     """A broker subprocess on ``host:port`` (a free port unless given).
 
@@ -155,6 +170,8 @@ class LocalBroker:
                 f"listener {self.port} {self.host}\n"
                 "allow_anonymous true\n"
                 "persistence false\n"
+                # stay this user: dropping privileges would also drop the parent-death signal
+                f"user {_user_name()}\n"
                 # Small messages at 20 Hz: do not let Nagle hold them back.
                 "set_tcp_nodelay true\n"
                 "log_dest stderr\n"
@@ -180,6 +197,7 @@ class LocalBroker:
                 stdout=logf,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # Ctrl-C in a terminal goes to us; we stop it
+                preexec_fn=_die_with_parent,  # noqa: PLW1509 - no broker outlives a killed test
             )
 
     def start(self, *, wait: bool = True) -> LocalBroker:
@@ -314,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         asyncio.run(_run_amqtt(args.host, args.amqtt))
         return 0
+    # SIGTERM ends the loop below like Ctrl-C, so the broker process is stopped with us
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     with LocalBroker(host=args.host, port=args.port) as broker:
         print(
             f"{broker.kind} broker at {broker.url} (pid {broker.pid}); Ctrl-C stops it", flush=True

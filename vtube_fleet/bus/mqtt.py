@@ -271,11 +271,21 @@ class MqttBus:
         wanted = {t.all_states} if window is None else {t.cell_states(c) for c in window}
         new = wanted - self._state_filters
         old = self._state_filters - wanted
+        # no timeout: a loaded process may take long to read the SUBACK; a dead broker is
+        # noticed by the receiver (and a hung one by the echo), which ends this task
         if new:
-            await client.subscribe([(f, 0) for f in sorted(new)])
+            await client.subscribe([(f, 0) for f in sorted(new)], timeout=math.inf)
         self._state_filters = wanted
         if old:
-            await client.unsubscribe(sorted(old))
+            await client.unsubscribe(sorted(old), timeout=math.inf)
+
+    async def _windower(self, client: aiomqtt.Client) -> None:
+        """Follow our cell with the subscriptions, apart from the sender (which must never
+        wait for a SUBACK)."""
+        while True:
+            await self._window_changed.wait()
+            self._window_changed.clear()
+            await self._apply_window(client)
 
     # -- state --------------------------------------------------------------------------------
     @property
@@ -383,6 +393,7 @@ class MqttBus:
             return
         self._closing = False
         self._stop = asyncio.Event()
+        self._window_changed = asyncio.Event()
         self._out_event = asyncio.Event()
         self._task = asyncio.get_running_loop().create_task(
             self._run(), name=f"mqtt-bus-{self.client_id}"
@@ -581,6 +592,7 @@ class MqttBus:
         workers = [asyncio.ensure_future(self._receiver(client))]
         if self.vehicle_id is not None:
             workers.append(asyncio.ensure_future(self._sender(client)))
+            workers.append(asyncio.ensure_future(self._windower(client)))
         tasks = [*workers, asyncio.ensure_future(self._stop.wait())]
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
@@ -630,21 +642,23 @@ class MqttBus:
                 continue
             payload = encode_state(state)
             cell = self.cell_of(state.x_m, state.y_m)
-            await client.publish(self.topics.state(vid, cell), payload, qos=0)
+            await client.publish(self.topics.state(vid, cell), payload, qos=0, timeout=math.inf)
             self.stats.published += 1
             if cell != self._pub_cell:
                 if self._pub_cell is not None:
                     # tell the old cell's subscribers where we went (they may not hear us again)
-                    await client.publish(self.topics.state(vid, self._pub_cell), payload, qos=0)
+                    await client.publish(
+                        self.topics.state(vid, self._pub_cell), payload, qos=0, timeout=math.inf
+                    )
                 self._pub_cell = cell
                 self._window = self._window_around(cell)
                 self._prune_to_window()
-                await self._apply_window(client)
+                self._window_changed.set()
             now = time.monotonic()
             if state.phase != self._last_phase or now - self._last_sent_mono >= self.last_period_s:
                 self._last_phase = state.phase
                 self._last_sent_mono = now
-                await client.publish(last_topic, payload, qos=0, retain=True)
+                await client.publish(last_topic, payload, qos=0, retain=True, timeout=math.inf)
 
     async def _receiver(self, client: aiomqtt.Client) -> None:
         # Messages are dispatched as paho reads them (see _make_client); this only waits for
