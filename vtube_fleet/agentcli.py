@@ -104,10 +104,11 @@ class BusAwarePilot(VehiclePilot):
     """A :class:`VehiclePilot` that stops in the tube while its neighbour information is not
     trustworthy (module docstring, "Broker loss").
 
-    In the tube (IN_TUBE / EXITED) each tick checks the bus: disconnected, or reconnected less
-    than ``agent.lost_after_s`` ago with an airborne neighbour whose state is older than
-    ``agent.max_age_s`` → zero horizontal velocity with altitude hold (the pilot's own
-    vertical term), no controller, no exit behaviour; the neighbour table is not touched. A
+    In the tube (IN_TUBE / EXITED) each tick checks the bus: disconnected, silent (our own state
+    does not come back), or healthy again for less than ``agent.lost_after_s`` with an airborne
+    neighbour whose state is older than ``agent.max_age_s`` → zero horizontal velocity with
+    altitude hold (the pilot's own vertical term), no controller, no exit behaviour; the
+    neighbour table is not touched. A
     :class:`~vtube_fleet.partition.PartitionError` while re-partitioning around lost vehicles
     makes the vehicle hold (PX4 Hold), as the supervisor does.
     """
@@ -121,8 +122,7 @@ class BusAwarePilot(VehiclePilot):
         self.bus_hold: str | None = None  # why the vehicle stands still for the bus
         self.bus_hold_since: float | None = None  # monotonic
         self.bus_holds = 0
-        self._reconnected_wall: float | None = None
-        mqtt.add_connection_listener(self._on_connection)
+        self._healthy_since: float | None = None  # wall time the bus became healthy again
 
     def set_phase(self, phase: Phase, why: str = "") -> bool:
         changed = super().set_phase(phase, why)
@@ -130,25 +130,24 @@ class BusAwarePilot(VehiclePilot):
             self.mqtt.announce("online", stage="exited")  # every teammate hears it
         return changed
 
-    def _on_connection(self, connected: bool) -> None:
-        if connected:
-            self._reconnected_wall = time.time()
-
     def bus_problem(self, now_wall: float) -> str | None:
         """Why neighbour information cannot be trusted now (None: it can)."""
         if not self.mqtt.connected:
+            self._healthy_since = None
             return f"MQTT broker {self.mqtt.host}:{self.mqtt.port} unreachable"
         silence = self.mqtt.echo_silence_s
         if silence > self.agent.max_age_s + 2.0 * self.cfg.period_s:
+            self._healthy_since = None
             return (
                 f"MQTT broker {self.mqtt.host}:{self.mqtt.port} silent (our own state has not "
                 f"come back for {silence:.2f} s)"
             )
+        if self._healthy_since is None:
+            self._healthy_since = now_wall
         if self.bus_hold is None:
             return None
-        since = self._reconnected_wall
-        if since is not None and now_wall - since > self.agent.lost_after_s:
-            return None  # the silent ones are lost now (the agent's rule)
+        if now_wall - self._healthy_since > self.agent.lost_after_s:
+            return None  # the still silent ones are lost now (the agent's rule)
         lost = self.mqtt.lost
         stale = sorted(
             vid
