@@ -265,10 +265,15 @@ class MqttBus:
 
     async def _apply_window(self, client: aiomqtt.Client) -> None:
         """Subscribe to the state filters of the current window (new ones first, then drop
-        the old ones); every state while we have no position of our own."""
+        the old ones)."""
         t = self.topics
         window = self._window
-        wanted = {t.all_states} if window is None else {t.cell_states(c) for c in window}
+        if window is not None:
+            wanted = {t.cell_states(c) for c in window}
+        elif self.vehicle_id is None or not math.isfinite(self.cell_m):
+            wanted = {t.all_states}  # an observer, or no cells: everything
+        else:
+            wanted = set()  # cells, but no position of our own yet: nobody is near us
         new = wanted - self._state_filters
         old = self._state_filters - wanted
         # no timeout: a loaded process may take long to read the SUBACK; a dead broker is
