@@ -121,7 +121,6 @@ class BusAwarePilot(VehiclePilot):
         self.broker_hold_limit_s = broker_hold_limit_s
         self.bus_hold: str | None = None  # why the vehicle stands still for the bus
         self.bus_hold_since: float | None = None  # monotonic
-        self.bus_holds = 0
         self._healthy_since: float | None = None  # wall time the bus became healthy again
 
     def set_phase(self, phase: Phase, why: str = "") -> bool:
@@ -189,7 +188,6 @@ class BusAwarePilot(VehiclePilot):
 
     def _hold_for_bus(self, now_mono: float, now_wall: float, problem: str) -> None:
         if self.bus_hold is None:
-            self.bus_holds += 1
             self.bus_hold_since = now_mono
             self.event(
                 f"{problem}: standing still in the tube (zero horizontal velocity, altitude "

@@ -304,13 +304,6 @@ class MqttBus:
         return frozenset(self._lost)
 
     @property
-    def disconnected_for_s(self) -> float:
-        """Seconds since the connection was lost (0 while connected)."""
-        if self._connected or self._disconnected_since is None:
-            return 0.0
-        return time.monotonic() - self._disconnected_since
-
-    @property
     def echo_silence_s(self) -> float:
         """Seconds since our own state last came back from the broker (or since we connected),
         while connected and publishing: a broker that accepts the connection but stopped

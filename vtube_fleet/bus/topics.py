@@ -91,10 +91,6 @@ class MissionTopics:
     def all_statuses(self) -> str:
         return f"{self._status}+"
 
-    @property
-    def all_lasts(self) -> str:
-        return f"{self._last}+"
-
     # -- parsing --------------------------------------------------------------------------------
     def classify(self, topic: str) -> tuple[str, int | None]:
         """``(kind, vehicle_id)`` of a topic of this mission.
