@@ -131,6 +131,14 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
     assert s["lost"] == [] and len(s["vehicle_states"]) == 3
     assert all(v["phase"] == "landed" for v in s["vehicle_states"])
     assert s["config_hash"] == config_hash(MISSION)
+    # the fleet as the agents reported it is also a rerun recording that `review` reads back
+    code, out, err = await run_cli("review", str(tmp_path / "recording.rrd"), "--json")
+    assert code == 0, err
+    r = json.loads(out)
+    assert (r["robots"], r["exited"], r["violations"], r["steps"]) == (3, 3, 0, s["steps"])
+    assert r["min_obstacle_center_distance_m"] == pytest.approx(
+        s["min_obstacle_center_distance_m"]
+    )
 
 
 async def test_an_agent_with_another_mission_file_refuses_and_start_fails(broker, tmp_path):

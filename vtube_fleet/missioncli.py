@@ -169,7 +169,9 @@ class RunMonitor:
     their frozen position), as the supervisor's does; the coordinator knows no commanded
     velocities, so the commanded speed keys are ``None`` and the measured speeds are
     ``min_measured_speed_m_s``/``max_measured_speed_m_s``. Exit times are the stamps of each
-    vehicle's first state past the finishing line, from the first IN_TUBE state of the fleet.
+    vehicle's first state past the finishing line; times (``*_exit_s``, metric steps, the
+    recording's mission time) count from ``t0_s``, the start command, as the supervisor's count
+    from its own start; ``flight_time_s`` from the fleet's first IN_TUBE state.
     """
 
     mission: Any
@@ -183,6 +185,10 @@ class RunMonitor:
     measured_speed: list[float] = field(default_factory=lambda: [math.inf, -math.inf])
     events: list[dict[str, Any]] = field(default_factory=list)
     phases: dict[int, Phase] = field(default_factory=dict)
+    #: a :class:`vtube_fleet.recording.Recorder` (the fleet as its states reported it), or None
+    recorder: Any = None
+    t0_s: float = 0.0  # wall time the run started: the recording's mission time 0
+    ticks: int = 0
 
     def __post_init__(self) -> None:
         from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator
@@ -200,6 +206,13 @@ class RunMonitor:
         prev = self.phases.get(vid)
         if prev != state.phase:
             self.phases[vid] = state.phase
+            if self.recorder is not None:
+                self._record(
+                    "log_event",
+                    state.stamp_s - self.t0_s,
+                    f"{prev.value if prev else '-'} → {state.phase.value}",
+                    vehicle_id=vid,
+                )
             self.events.append(
                 {
                     "t_wall": round(state.stamp_s, 3),
@@ -216,8 +229,7 @@ class RunMonitor:
             and (state.phase == Phase.EXITED or self._past_finish(state))
         ):
             self.exit_stamp[vid] = state.stamp_s
-            t = state.stamp_s - (self.tube_start_s or state.stamp_s)
-            self.acc.add_exits(t, [vid])
+            self.acc.add_exits(state.stamp_s - self.t0_s, [vid])
 
     def _past_finish(self, st: NeighbourState) -> bool:
         tube = self.mission.scenario.tube
@@ -225,9 +237,17 @@ class RunMonitor:
         eps0 = float(self.mission.scenario.controller.eps_0)
         return bool(-((p - tube.p_r1) @ tube.n_c) <= eps0)
 
+    def _record(self, method: str, *args: Any, **kwargs: Any) -> None:
+        try:
+            getattr(self.recorder, method)(*args, **kwargs)
+        except Exception as exc:  # the recording must never stop the coordinator
+            log.warning("recorder: %s failed: %s", method, exc)
+
     def sample(self, states: dict[int, NeighbourState], now_s: float) -> None:
         """One snapshot of the latest states (the coordinator's tick)."""
         if self.tube_start_s is None:
+            if self.recorder is not None:
+                self._record_tick(states, now_s)
             return
         m = self.vehicles
         pos = np.full((m, 2), np.nan)
@@ -247,12 +267,38 @@ class RunMonitor:
                 sp = math.hypot(st.vx_m_s, st.vy_m_s)
                 self.measured_speed[0] = min(self.measured_speed[0], sp)
                 self.measured_speed[1] = max(self.measured_speed[1], sp)
-        self.acc.add(now_s - self.tube_start_s, self.monitor.evaluate(pos, None))
+        self.acc.add(now_s - self.t0_s, self.monitor.evaluate(pos, None))
+        if self.recorder is not None:
+            self._record_tick(states, now_s, safety={"": (pos, np.full_like(pos, np.nan))})
         q = air[np.isfinite(air[:, 0])]
         if q.shape[0] > 1:
             d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
             d[np.diag_indices_from(d)] = np.inf
             self.min_pair_airborne = min(self.min_pair_airborne, float(d.min()))
+
+    def _record_tick(
+        self, states: dict[int, NeighbourState], now_s: float, safety: Any = None
+    ) -> None:
+        m = self.vehicles
+        pos = np.full((m, 2), np.nan)
+        vel = np.full((m, 2), np.nan)
+        phases = [""] * m
+        for vid, st in states.items():
+            if 0 <= vid < m:
+                pos[vid] = (st.x_m, st.y_m)
+                vel[vid] = (st.vx_m_s, st.vy_m_s)
+                phases[vid] = st.phase.value
+        self._record(
+            "log_tick",
+            t_s=now_s - self.t0_s,
+            tick=self.ticks,
+            ids=np.arange(m),
+            pos=pos,
+            vel=vel,
+            phases=phases,
+            safety=safety,
+        )
+        self.ticks += 1
 
     def summary(self, **extra: Any) -> dict[str, Any]:
         sc = self.mission.scenario
@@ -603,29 +649,50 @@ async def _start(args: argparse.Namespace) -> int:
             + cfg.mission_timeout_s
             + cfg.land_timeout_s
         )
-        mon = RunMonitor(co.mission, co.vehicles)
-        follow = asyncio.ensure_future(co.follow(timeout, mon))
-        outcome: str
-        if await _race(follow, interrupted):
-            outcome = follow.result()
-        else:
-            await _cancel(follow)
-            co.command("abort")
-            await co.bus.sync()
-            print("interrupted: abort published; the agents hold, then land", file=sys.stderr)
-            outcome = "interrupted"
-        summary = mon.summary(
-            mission_id=co.mission_id,
-            run_id=run,
-            config_hash=co.config_hash,
-            broker=args.broker,
-            outcome=outcome,
-            lost=co.lost_vehicles(),
-            vehicle_states=co.vehicle_table(),
-            wall_s=round(time.time() - (co.t_start_wall or time.time()), 3),
-        )
         out = args.out if args.out is not None else Path("runs") / co.mission_id
-        path = _write_summary(out, summary)
+        recorder = _recorder(args, out)
+        mon = RunMonitor(
+            co.mission, co.vehicles, recorder=recorder, t0_s=co.t_start_wall or time.time()
+        )
+        if recorder is not None:
+            mon._record(
+                "log_scene",
+                co.mission.with_vehicles(co.vehicles),
+                None,
+                meta={
+                    "kind": "mqtt",
+                    "rate_hz": cfg.rate_hz,
+                    "run_id": run,
+                    "broker": args.broker,
+                    "vehicles": co.vehicles,
+                },
+            )
+        outcome = "failed"
+        try:
+            follow = asyncio.ensure_future(co.follow(timeout, mon))
+            if await _race(follow, interrupted):
+                outcome = follow.result()
+            else:
+                await _cancel(follow)
+                co.command("abort")
+                await co.bus.sync()
+                print("interrupted: abort published; the agents hold, then land", file=sys.stderr)
+                outcome = "interrupted"
+        finally:  # the summary (and the recording) on every exit path
+            summary = mon.summary(
+                mission_id=co.mission_id,
+                run_id=run,
+                config_hash=co.config_hash,
+                broker=args.broker,
+                outcome=outcome,
+                lost=co.lost_vehicles(),
+                vehicle_states=co.vehicle_table(),
+                wall_s=round(time.time() - (co.t_start_wall or time.time()), 3),
+            )
+            path = _write_summary(out, summary)
+            if recorder is not None:
+                mon._record("log_summary", summary)
+                mon._record("close")
         print(
             f"{outcome}: {summary.get('exited')}/{co.vehicles} exited; min pair distance "
             f"{_fmt(summary.get('min_pair_distance_m'))} (2 r_s = {summary['pair_limit_m']:.2f} m),"
@@ -638,6 +705,13 @@ async def _start(args: argparse.Namespace) -> int:
         if outcome == "interrupted":
             return EXIT_INTERRUPTED
         return EXIT_OK if outcome == "completed" else EXIT_INCOMPLETE
+
+
+def _recorder(args: argparse.Namespace, out: Path) -> Any:
+    """The fleet recording of ``start --wait`` (``--rerun-save``, default OUT/recording.rrd)."""
+    from vtube_fleet.recording import recorder_from_args
+
+    return recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet")
 
 
 def _fmt(v: float | None, unit: str = "m", scale: float = 1.0) -> str:
@@ -816,6 +890,9 @@ def register(subparsers: Any) -> None:
         help="follow the flight until every vehicle has landed (or failed) and "
         "write OUT/summary.json",
     )
+    from vtube_fleet.recording import add_recording_args
+
+    add_recording_args(s)
     s.add_argument(
         "--out",
         type=Path,
