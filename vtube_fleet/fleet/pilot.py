@@ -135,6 +135,7 @@ class VehiclePilot:
         self.lost_xy: np.ndarray | None = None
         self.reason: str | None = None
         self.exit_time_s: float | None = None
+        self._clock_start_s: float | None = None  # monotonic time of the first tick()
         self._offboard_seen = False
         self._still_since: float | None = None
         self._last_tick_s: float | None = None
@@ -563,6 +564,8 @@ class VehiclePilot:
     def tick(self, now_mono: float, now_wall: float) -> None:
         """All per-tick steps for this vehicle alone (the MQTT agent's control clock)."""
         last = self._last_tick_s
+        if self._clock_start_s is None:
+            self._clock_start_s = now_mono  # this pilot's mission time counts from its 1st tick
         if last is not None and now_mono - last > 2.0 * self.cfg.period_s + 0.1:
             self._listening_since = now_mono  # our loop stalled: do not blame the vehicle
         self._last_tick_s = now_mono
@@ -578,7 +581,7 @@ class VehiclePilot:
         cmd = None
         if self.phase == Phase.IN_TUBE and self.has_position():
             if agent.has_exited(self.xy):
-                self.mark_exit(now_wall)
+                self.mark_exit(now_mono - self._clock_start_s)
             else:
                 sp = agent.setpoint(self.xy, view)
                 cmd = np.array([sp.vx_m_s, sp.vy_m_s])
