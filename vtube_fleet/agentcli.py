@@ -54,7 +54,7 @@ from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan, SafetyBudget
-from vtube_fleet.fleet.pilot import VehiclePilot
+from vtube_fleet.fleet.pilot import VehiclePilot, measure_sample_age_s
 from vtube_fleet.link.base import LinkError
 from vtube_fleet.missioncli import (
     ASSUMED_LINK_LATENCY_S,
@@ -75,8 +75,6 @@ EXIT_OK = 0
 EXIT_INCOMPLETE = 3
 EXIT_INTERRUPTED = 130
 
-#: Seconds of sensing used to measure the link latency before the safety budget is fixed.
-MEASURE_S = 1.0
 #: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
 _UP_STAGES = ("at_altitude", "in_tube", "exited", "done")
 #: Teammate stages that count as "past the finishing line" for the exit barrier.
@@ -370,15 +368,7 @@ class AgentProcess:
             ) from None
 
     async def measure_budget(self, pilot: BusAwarePilot) -> None:
-        loop = asyncio.get_running_loop()
-        ages: list[float] = []
-        end = loop.time() + MEASURE_S
-        while loop.time() < end:
-            ages.append(pilot.sample_age_s(time.monotonic()))
-            await asyncio.sleep(self.cfg.period_s)  # sampling period of the measurement
-        a = np.asarray(ages, dtype=float)
-        a = a[np.isfinite(a)]
-        measured = float(np.percentile(a, 95)) if a.size else 0.0
+        measured = await measure_sample_age_s([pilot], self.cfg.period_s)
         self.budget = self._make_budget(measured)
         plan = self._plan(self.budget)
         pilot.agent.root_plan = pilot.agent.plan = plan

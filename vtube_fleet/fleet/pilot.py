@@ -53,10 +53,32 @@ __all__ = [
     "OFFBOARD_PHASES",
     "PilotError",
     "VehiclePilot",
+    "measure_sample_age_s",
     "sense_all",
 ]
 
 log = logging.getLogger(__name__)
+
+#: Seconds of sensing used to measure link latency + position-sample age before the safety
+#: budget δ is fixed (supervisor and standalone agent alike).
+MEASURE_S = 1.0
+
+
+async def measure_sample_age_s(pilots: Sequence[VehiclePilot], period_s: float,
+                               duration_s: float = MEASURE_S) -> float:
+    """p95 over ``duration_s`` of the pilots' position-sample ages, sampled every ``period_s``:
+    the link latency L of the safety budget (0.0 when no sample was finite)."""
+    loop = asyncio.get_running_loop()
+    ages: list[float] = []
+    end = loop.time() + duration_s
+    while loop.time() < end:
+        now = time.monotonic()
+        ages.extend(p.sample_age_s(now) for p in pilots)
+        await asyncio.sleep(period_s)  # the sampling period of the measurement
+    a = np.asarray(ages, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, 95)) if a.size else 0.0
+
 
 #: Phases in which we stream setpoints and expect PX4 to be in OFFBOARD.
 OFFBOARD_PHASES: frozenset[Phase] = frozenset(

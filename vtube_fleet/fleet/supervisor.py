@@ -67,7 +67,12 @@ from vtube_fleet.fleet.agent import (
     lost_obstacles,
 )
 from vtube_fleet.fleet.mission import Mission
-from vtube_fleet.fleet.pilot import FLYING_PHASES, VehiclePilot, sense_all
+from vtube_fleet.fleet.pilot import (
+    FLYING_PHASES,
+    VehiclePilot,
+    measure_sample_age_s,
+    sense_all,
+)
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
 from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator
@@ -91,8 +96,6 @@ EXIT_OK = 0
 EXIT_ABORTED = 3
 EXIT_INTERRUPTED = 130
 
-#: Seconds of sensing used to measure latency / sample age before the budget is fixed.
-MEASURE_S = 1.0
 #: Minimum height of the mission altitude above every vehicle before take-off.
 MIN_CLIMB_M = 1.0
 
@@ -624,18 +627,11 @@ class Supervisor:
                              + "; ".join(problems))
 
     async def _measure_budget(self) -> None:
-        """Measure latency + sample age for ``MEASURE_S``, fix δ, validate, rebuild the plan."""
+        """Measure latency + sample age (:func:`measure_sample_age_s`), fix δ, validate,
+        rebuild the plan."""
         self._set_stage("preflight")
         cfg = self.cfg
-        loop = asyncio.get_running_loop()
-        ages: list[float] = []
-        end = loop.time() + MEASURE_S
-        while loop.time() < end:
-            now = time.monotonic()
-            ages.extend(p.sample_age_s(now) for p in self.pilots)
-            await asyncio.sleep(cfg.period_s)
-        measured = _pct(ages, 95)
-        measured = 0.0 if not math.isfinite(measured) else measured
+        measured = await measure_sample_age_s(self.pilots, cfg.period_s)
         self.measured_latency_s = measured
         self.budget = self._make_budget(measured)
         flown = self.budget.inflate(self.params)
