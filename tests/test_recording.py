@@ -512,34 +512,44 @@ def test_bulk_metrics_and_explicit_exits(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("policy", ["block", "drop"])
 def test_backlog_policy(tmp_path: Path, policy: str) -> None:
-    """A stalled sender: "block" waits and loses nothing, "drop" drops ticks and says so."""
+    """A stalled sender: "block" waits and loses nothing, "drop" drops ticks and says so.
+
+    Deterministic: the sender is held inside tick 0's job (the queue holds exactly that one
+    job then), so ticks 1 and 2 fill the 3 slots and ticks 3..9 find the queue full."""
     import threading
 
     rec = open_recorder(tmp_path / "q.rrd", batch_ticks=1, max_queued_batches=3,
                         on_backlog=policy, status_period_s=1e9)
     assert isinstance(rec, RerunRecorder)
     rec.log_scene(scenario())
-    gate = threading.Event()
+    entered, gate = threading.Event(), threading.Event()
     real = rec._send_rows_now
 
     def stalled(rows: Any) -> None:
+        entered.set()
         gate.wait(timeout=60)
         real(rows)
 
     rec._send_rows_now = stalled  # type: ignore[method-assign]
 
-    def produce() -> None:
-        for k in range(10):
-            rec.log_tick(t_s=0.1 * k, tick=k, ids=np.arange(5), pos=motion(k)[0],
-                         vel=motion(k)[1])
+    def tick(k: int) -> None:
+        rec.log_tick(t_s=0.1 * k, tick=k, ids=np.arange(5), pos=motion(k)[0],
+                     vel=motion(k)[1])
 
-    producer = threading.Thread(target=produce)
+    tick(0)
+    assert entered.wait(timeout=30)  # the sender is stuck in tick 0; earlier jobs are done
+    with rec._qcond:
+        assert rec._queued == 1
+    producer = threading.Thread(target=lambda: [tick(k) for k in range(1, 10)])
     producer.start()
-    with rec._qcond:  # wait until the queue is full
-        assert rec._qcond.wait_for(lambda: rec._queued >= 3, timeout=30)
     if policy == "drop":
         producer.join(timeout=30)  # never waits for the sender
         assert not producer.is_alive()
+        assert rec.dropped_ticks == 7
+    else:
+        with rec._qcond:  # the producer fills the queue, then waits for the sender
+            assert rec._qcond.wait_for(lambda: rec._queued >= 3, timeout=30)
+        assert producer.is_alive() and rec.dropped_ticks == 0
     gate.set()
     producer.join(timeout=30)
     assert not producer.is_alive()
@@ -549,8 +559,8 @@ def test_backlog_policy(tmp_path: Path, policy: str) -> None:
         assert rec.dropped_ticks == 0
         np.testing.assert_array_equal(d.tick, np.arange(10))
     else:
-        assert rec.dropped_ticks > 0
-        assert len(d.tick) == 10 - rec.dropped_ticks
+        assert rec.dropped_ticks == 7
+        np.testing.assert_array_equal(d.tick, [0, 1, 2])
 
 
 def test_min_period_gate(tmp_path: Path) -> None:
