@@ -128,6 +128,8 @@ async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION):
                             broker.url,
                             "--join-timeout",
                             "120",
+                            "--out",
+                            str(tmp_path / f"agent-{i}"),
                             stdout=fh,
                             stderr=fh,
                             cwd=ROOT,
@@ -269,6 +271,10 @@ def summary(run: Run) -> dict:
     return json.loads((run.out / "summary.json").read_text())
 
 
+def agent_summary(run: Run, i: int) -> dict:
+    return json.loads((run.out.parent / f"agent-{i}" / "summary.json").read_text())
+
+
 # ----------------------------------------------------------------------------------------------
 async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
     n = 8
@@ -283,6 +289,23 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
     assert s["violations"] == 0
     assert all(v["phase"] == "landed" for v in s["vehicle_states"])
     worst = check_safety(run)
+    # every agent wrote its own summary; its recording reads back to the same figures
+    from vtube_fleet.reviewcli import review
+
+    lim = run.mission.scenario.robots
+    for i in range(n):
+        a = agent_summary(run, i)
+        assert a["kind"] == "agent" and a["vehicle"] == i and a["outcome"] == "completed"
+        assert a["phase"] == "landed" and a["exit_time_s"] > 0 and a["bus_holds"] == 0
+        assert lim.v_min - 1e-9 <= a["min_commanded_speed_m_s"] <= a["max_commanded_speed_m_s"]
+        assert a["max_commanded_speed_m_s"] <= lim.v_max + 1e-9
+        assert a["states_received"] > 0 and a["violations"] == 0
+    res = review(tmp_path / "agent-3" / "recording.rrd", plots=False)
+    assert res.differences == [], res.differences
+    assert res.data.summary["vehicle"] == 3 and res.data.meta["vehicle"] == 3
+    own = list(res.data.ids).index(3)
+    assert np.isfinite(res.data.pos[:, own]).all()  # its own track, every recorded tick
+    assert res.data.cmd is not None and np.isfinite(res.data.cmd[:, own]).any()  # its commands
     print(
         f"\n8 agents: pair {worst['pair']:.3f} m (2 r_s = {s['pair_limit_m']:.2f}), obstacle "
         f"clearance {worst['obstacle']:.3f} m, legs {worst['leg']:.3f} m, setpoints "
@@ -326,6 +349,8 @@ async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_
         log = run.log_text(i)
         assert "unreachable: standing still in the tube" in log, log[-2000:]
         assert "resuming after" in log, log[-2000:]
+        a = agent_summary(run, i)
+        assert a["bus_holds"] >= 1 and a["outcome"] == "completed", a
     # while the broker was down the vehicles stayed put (true positions, tube frame)
     frame = run.mission.frame
     a = np.array(frame.geodetic_to_tube(*np.array(held).T)[:2]).T

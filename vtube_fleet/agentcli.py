@@ -24,8 +24,9 @@ Procedure (``docs/mqtt.md``):
 4. ``abort`` (or Ctrl-C / SIGTERM): hold, then land; exit 3 (130 for a signal).
 
 **Broker loss** (:class:`BusAwarePilot`): while the broker is unreachable, or after it is back
-until every airborne neighbour's state is fresh again (at most ``lost_after_s``, after which a
-silent one is a lost obstacle per the agent's rule), a vehicle in the tube stops: it streams
+until every airborne neighbour's state is fresh again (at most :func:`rejoin_grace_s`: one
+reconnect back-off of the slowest agent plus ``lost_after_s``, after which a silent one is a
+lost obstacle per the agent's rule), a vehicle in the tube stops: it streams
 zero horizontal velocity with altitude hold instead of its last setpoint, and never computes
 with stale neighbours. After ``--broker-hold-limit`` seconds without the broker it lands.
 
@@ -49,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.bus.base import Phase
+from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.errors import UserError
@@ -66,6 +67,7 @@ from vtube_fleet.missioncli import (
     needed_cell_m,
 )
 from vtube_fleet.partition import PartitionError
+from vtube_fleet.recording import add_recording_args
 
 __all__ = ["AgentProcess", "AgentRefused", "BusAwarePilot", "register"]
 
@@ -98,12 +100,27 @@ class _Interrupted(Exception):
 # ----------------------------------------------------------------------------------------------
 # the pilot with the bus-health rule
 # ----------------------------------------------------------------------------------------------
+#: The reconnect back-off's jitter (:class:`~vtube_fleet.bus.mqtt.MqttBus`: ±20 %).
+BACKOFF_JITTER = 1.2
+
+
+def rejoin_grace_s(lost_after_s: float, backoff_max_s: float, period_s: float) -> float:
+    """How long after the broker is back an agent waits, standing still, for a silent airborne
+    neighbour before it counts as lost: the neighbour's agent may still be in one reconnect
+    back-off (≤ ``BACKOFF_JITTER`` × ``backoff_max_s``; a broker outage ends for every agent
+    at a different moment), then needs two control periods to publish, then the usual
+    ``lost_after_s``. Shorter, a fleet that lost its broker would count its slowest
+    reconnecting members as lost obstacles (measured: agents reconnected up to 2.1 s apart
+    after a 3 s outage with ``backoff_max_s`` = 2 s, ``lost_after_s`` = 1 s)."""
+    return lost_after_s + BACKOFF_JITTER * backoff_max_s + 2.0 * period_s
+
+
 class BusAwarePilot(VehiclePilot):
     """A :class:`VehiclePilot` that stops in the tube while its neighbour information is not
     trustworthy (module docstring, "Broker loss").
 
     In the tube (IN_TUBE / EXITED) each tick checks the bus: disconnected, silent (our own state
-    does not come back), or healthy again for less than ``agent.lost_after_s`` with an airborne
+    does not come back), or healthy again for less than :func:`rejoin_grace_s` with an airborne
     neighbour whose state is older than ``agent.max_age_s`` → zero horizontal velocity with
     altitude hold (the pilot's own vertical term), no controller, no exit behaviour; the
     neighbour table is not touched. A
@@ -119,6 +136,8 @@ class BusAwarePilot(VehiclePilot):
         self.broker_hold_limit_s = broker_hold_limit_s
         self.bus_hold: str | None = None  # why the vehicle stands still for the bus
         self.bus_hold_since: float | None = None  # monotonic
+        self.bus_holds = 0  # how many times it stood still for the bus
+        self.recording: AgentRecording | None = None  # fed after every tick once flying
         self._healthy_since: float | None = None  # wall time the bus became healthy again
 
     def set_phase(self, phase: Phase, why: str = "") -> bool:
@@ -143,7 +162,9 @@ class BusAwarePilot(VehiclePilot):
             self._healthy_since = now_wall
         if self.bus_hold is None:
             return None
-        if now_wall - self._healthy_since > self.agent.lost_after_s:
+        grace = rejoin_grace_s(self.agent.lost_after_s, self.mqtt.backoff_max_s,
+                               self.cfg.period_s)
+        if now_wall - self._healthy_since > grace:
             return None  # the still silent ones are lost now (the agent's rule)
         lost = self.mqtt.lost
         stale = sorted(
@@ -158,6 +179,13 @@ class BusAwarePilot(VehiclePilot):
         return None
 
     def tick(self, now_mono: float, now_wall: float) -> None:
+        try:
+            self._tick(now_mono, now_wall)
+        finally:
+            if self.recording is not None:
+                self.recording.sample(self, now_wall)
+
+    def _tick(self, now_mono: float, now_wall: float) -> None:
         if self.phase in (Phase.IN_TUBE, Phase.EXITED):
             problem = self.bus_problem(now_wall)
             if problem is not None:
@@ -187,6 +215,7 @@ class BusAwarePilot(VehiclePilot):
     def _hold_for_bus(self, now_mono: float, now_wall: float, problem: str) -> None:
         if self.bus_hold is None:
             self.bus_hold_since = now_mono
+            self.bus_holds += 1
             self.event(
                 f"{problem}: standing still in the tube (zero horizontal velocity, altitude "
                 f"hold) until the broker is back and neighbour states are fresh",
@@ -214,6 +243,87 @@ class BusAwarePilot(VehiclePilot):
 
 
 # ----------------------------------------------------------------------------------------------
+# the agent's recording
+# ----------------------------------------------------------------------------------------------
+class AgentRecording:
+    """What ``vtube-fleet agent`` records from the start command on: ``OUT/recording.rrd``
+    and ``OUT/summary.json``.
+
+    The fleet *as this agent heard it*, folded by the coordinator's
+    :class:`~vtube_fleet.missioncli.RunMonitor` (same layout, same summary keys, so
+    ``vtube-fleet review`` recomputes the summary the agent wrote): the neighbours' states as
+    they arrived through the broker (their ages are the summary's ``state_age_*``), and this
+    vehicle's own state and velocity command at every control tick, also while the broker is
+    away. Vehicles outside the agent's spatial cells are not heard, so fleet-wide counts
+    (``exited``) cover only the vehicles it heard; the agent's own figures are
+    ``exit_time_s``, ``min/max_commanded_speed_m_s`` (its tube controller's commands),
+    ``bus_holds`` and ``phase``.
+    """
+
+    def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
+                 t0_s: float) -> None:
+        from vtube_fleet.missioncli import RunMonitor
+
+        self.vehicle = vehicle
+        self.recorder = recorder
+        self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s)
+        self.cmd_speed = [math.inf, -math.inf]
+        self._own_seq: int | None = None
+        self._failed = False
+
+    def on_neighbour(self, state: NeighbourState, received_s: float) -> None:
+        """The bus's state listener: every live state of another vehicle."""
+        if state.vehicle_id != self.vehicle:
+            self.monitor.on_state(state, received_s)
+
+    def sample(self, pilot: BusAwarePilot, now_wall: float) -> None:
+        """After each control tick: this vehicle's state and command, the latest neighbours."""
+        try:
+            own = pilot.last_state
+            states = dict(pilot.mqtt.latest())
+            if own is not None:
+                states[self.vehicle] = own
+                if own.seq != self._own_seq:
+                    self._own_seq = own.seq
+                    self.monitor.on_state(own, now_wall, count_age=False)
+            cmd = None
+            if pilot.cmd_xy is not None:
+                cmd = {self.vehicle: pilot.cmd_xy}
+                if pilot.cmd_in_tube:
+                    sp = float(np.hypot(*pilot.cmd_xy))
+                    self.cmd_speed = [min(self.cmd_speed[0], sp), max(self.cmd_speed[1], sp)]
+            self.monitor.sample(states, now_wall, cmd)
+        except Exception as exc:  # noqa: BLE001 - the recording must never stop the vehicle
+            if not self._failed:
+                self._failed = True
+                log.warning("agent recording: %s: %s", type(exc).__name__, exc)
+
+    def finish(self, out: Path, pilot: BusAwarePilot | None, **extra: Any) -> Path:
+        """Write ``OUT/summary.json``, store it in the recording and close it (every exit
+        path); returns the summary's path."""
+        from vtube_fleet.missioncli import _num, write_summary
+
+        own: dict[str, Any] = {"kind": "agent", "vehicle": self.vehicle}
+        if pilot is not None:
+            own.update(
+                phase=pilot.phase.value,
+                reason=pilot.reason,
+                exit_time_s=pilot.exit_time_s,
+                bus_holds=pilot.bus_holds,
+            )
+        own.update(
+            min_commanded_speed_m_s=_num(self.cmd_speed[0]),
+            max_commanded_speed_m_s=_num(self.cmd_speed[1]),
+        )
+        summary = self.monitor.summary(**own, **extra)
+        try:
+            return write_summary(out, summary)
+        finally:
+            self.monitor._record("log_summary", summary)
+            self.monitor._record("close")
+
+
+# ----------------------------------------------------------------------------------------------
 # the agent process
 # ----------------------------------------------------------------------------------------------
 class AgentProcess:
@@ -231,7 +341,11 @@ class AgentProcess:
         mission_id: str | None = None,
         join_timeout_s: float = 600.0,
         broker_hold_limit_s: float = 30.0,
+        out: str | Path | None = None,
+        rerun_args: argparse.Namespace | None = None,
     ) -> None:
+        """``out``: folder for this agent's ``summary.json`` and (unless ``rerun_args`` say
+        ``--no-rerun``) ``recording.rrd`` (:class:`AgentRecording`); None: nothing written."""
         from vtube_fleet.fleet.mission import load_mission
         from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_endpoints
 
@@ -251,6 +365,17 @@ class AgentProcess:
         self.max_age_s = default_max_age_s(self.mission)  # the run's value once joined
         self.join_timeout_s = join_timeout_s
         self.broker_hold_limit_s = broker_hold_limit_s
+        self.out = None if out is None else Path(out)
+        self.recorder: Any = None
+        if self.out is not None:  # a bad --rerun-save / --rerun-connect fails here, not later
+            from vtube_fleet.recording import recorder_from_args
+
+            self.recorder = recorder_from_args(
+                rerun_args if rerun_args is not None else argparse.Namespace(), self.out,
+                kind="fleet", app_id="vtube_fleet_agent",
+            )
+        self.recording: AgentRecording | None = None
+        self.summary_path: Path | None = None
         self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash)
         self.run_cfg: MissionConfigMsg | None = None
         self.pilot: BusAwarePilot | None = None
@@ -517,6 +642,58 @@ class AgentProcess:
             stop_pre.set()
             await pre_clock
         self.say("start: arming")
+        self._open_recording(pilot)
+        outcome = "failed"
+        try:
+            code = await self._fly_started(pilot)
+            outcome = "completed" if code == EXIT_OK else "incomplete"
+            return code
+        except _Interrupted:
+            outcome = "interrupted"
+            raise
+        except AgentAborted:
+            outcome = "aborted"
+            raise
+        finally:  # the summary and the recording on every exit path
+            self._close_recording(pilot, outcome)
+
+    def _open_recording(self, pilot: BusAwarePilot) -> None:
+        """Start :class:`AgentRecording` (at the start command; nothing before it is written)."""
+        if self.out is None or self.run_cfg is None:
+            return
+        cfg = self.run_cfg
+        cmd = self.bus.command
+        t0 = cmd.stamp_s if cmd is not None else time.time()  # the coordinator's time base
+        mission = self.mission.with_vehicles(cfg.vehicles)
+        rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0)
+        rec.monitor._record(
+            "log_scene", mission, None,
+            meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
+                  "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles},
+        )
+        self.bus.add_state_listener(rec.on_neighbour)
+        self.recording = rec
+        pilot.recording = rec
+
+    def _close_recording(self, pilot: BusAwarePilot, outcome: str) -> None:
+        rec, self.recording = self.recording, None
+        if rec is None or self.out is None:
+            return
+        pilot.recording = None
+        cfg = self.run_cfg
+        try:
+            self.summary_path = rec.finish(
+                self.out, pilot, outcome=outcome, mission_id=self.mission_id,
+                run_id=cfg.run_id if cfg is not None else None, config_hash=self.hash,
+                broker=self.bus.url, wall_s=round(time.time() - rec.monitor.t0_s, 3),
+            )
+            self.say(f"summary {self.summary_path}")
+        except OSError as exc:
+            log.error("agent %d: cannot write the summary to %s: %s", self.vehicle, self.out,
+                      exc.strerror or exc)
+
+    async def _fly_started(self, pilot: BusAwarePilot) -> int:
+        """From the start command to the end: fly, or hold and land on abort / a signal."""
         fly_task = asyncio.ensure_future(
             pilot.fly(start=self._altitude_barrier, finish=self._exit_barrier)
         )
@@ -588,6 +765,10 @@ def _cmd_agent(args: argparse.Namespace) -> int:
         mission_id=args.mission_id,
         join_timeout_s=args.join_timeout,
         broker_hold_limit_s=args.broker_hold_limit,
+        out=(args.out if args.out is not None
+             else Path("runs") / (args.mission_id or default_mission_id(args.mission))
+             / f"agent-{args.vehicle}"),
+        rerun_args=args,
     )
     try:
         return asyncio.run(proc.run())
@@ -640,4 +821,13 @@ def register(subparsers: Any) -> None:
         metavar="S",
         help="land after standing still this long without the broker (default 30)",
     )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="this agent's summary.json and recording.rrd, from the start command on "
+        "(default runs/MISSION_ID/agent-I)",
+    )
+    add_recording_args(p)
     p.set_defaults(func=_cmd_agent)

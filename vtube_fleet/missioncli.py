@@ -197,12 +197,15 @@ class RunMonitor:
         self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, sc.controller)
         self.acc = SummaryAccumulator(self.vehicles)
 
-    def on_state(self, state: NeighbourState, received_s: float) -> None:
-        """Every live state heard (bus state listener): ages, phase changes, exits."""
+    def on_state(self, state: NeighbourState, received_s: float, *, count_age: bool = True
+                 ) -> None:
+        """Every live state heard (bus state listener): ages, phase changes, exits.
+        ``count_age=False``: a state that did not travel through the broker (an agent's own)."""
         vid = state.vehicle_id
         if not 0 <= vid < self.vehicles:
             return
-        self.ages.append(received_s - state.stamp_s)
+        if count_age:
+            self.ages.append(received_s - state.stamp_s)
         prev = self.phases.get(vid)
         if prev != state.phase:
             self.phases[vid] = state.phase
@@ -230,6 +233,9 @@ class RunMonitor:
         ):
             self.exit_stamp[vid] = state.stamp_s
             self.acc.add_exits(state.stamp_s - self.t0_s, [vid])
+            if self.recorder is not None:  # the same exact time, also when the recorded
+                # ticks never show this vehicle "exited" (a state between two ticks)
+                self._record("log_exits", state.stamp_s - self.t0_s, self.ticks, [vid])
 
     def _past_finish(self, st: NeighbourState) -> bool:
         tube = self.mission.scenario.tube
@@ -243,11 +249,13 @@ class RunMonitor:
         except Exception as exc:  # the recording must never stop the coordinator
             log.warning("recorder: %s failed: %s", method, exc)
 
-    def sample(self, states: dict[int, NeighbourState], now_s: float) -> None:
-        """One snapshot of the latest states (the coordinator's tick)."""
+    def sample(self, states: dict[int, NeighbourState], now_s: float,
+               cmd: dict[int, np.ndarray] | None = None) -> None:
+        """One snapshot of the latest states (the coordinator's tick). ``cmd``: commanded
+        tube-frame velocities known for some vehicles (an agent knows its own), recorded."""
         if self.tube_start_s is None:
             if self.recorder is not None:
-                self._record_tick(states, now_s)
+                self._record_tick(states, now_s, cmd=cmd)
             return
         m = self.vehicles
         pos = np.full((m, 2), np.nan)
@@ -269,7 +277,8 @@ class RunMonitor:
                 self.measured_speed[1] = max(self.measured_speed[1], sp)
         self.acc.add(now_s - self.t0_s, self.monitor.evaluate(pos, None))
         if self.recorder is not None:
-            self._record_tick(states, now_s, safety={"": (pos, np.full_like(pos, np.nan))})
+            self._record_tick(states, now_s, safety={"": (pos, np.full_like(pos, np.nan))},
+                              cmd=cmd)
         q = air[np.isfinite(air[:, 0])]
         if q.shape[0] > 1:
             d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
@@ -277,7 +286,8 @@ class RunMonitor:
             self.min_pair_airborne = min(self.min_pair_airborne, float(d.min()))
 
     def _record_tick(
-        self, states: dict[int, NeighbourState], now_s: float, safety: Any = None
+        self, states: dict[int, NeighbourState], now_s: float, safety: Any = None,
+        cmd: dict[int, np.ndarray] | None = None,
     ) -> None:
         m = self.vehicles
         pos = np.full((m, 2), np.nan)
@@ -288,6 +298,12 @@ class RunMonitor:
                 pos[vid] = (st.x_m, st.y_m)
                 vel[vid] = (st.vx_m_s, st.vy_m_s)
                 phases[vid] = st.phase.value
+        cmd_arr = None
+        if cmd:
+            cmd_arr = np.full((m, 2), np.nan)
+            for vid, c in cmd.items():
+                if 0 <= vid < m:
+                    cmd_arr[vid] = c
         self._record(
             "log_tick",
             t_s=now_s - self.t0_s,
@@ -296,6 +312,7 @@ class RunMonitor:
             pos=pos,
             vel=vel,
             phases=phases,
+            cmd=cmd_arr,
             safety=safety,
         )
         self.ticks += 1
@@ -590,7 +607,7 @@ def _ids(ids: Iterable[int]) -> str:
 # ----------------------------------------------------------------------------------------------
 # the commands
 # ----------------------------------------------------------------------------------------------
-def _write_summary(out: Path, summary: dict[str, Any]) -> Path:
+def write_summary(out: Path, summary: dict[str, Any]) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     path = out / "summary.json"
     tmp = path.with_suffix(".json.tmp")
@@ -689,7 +706,7 @@ async def _start(args: argparse.Namespace) -> int:
                 vehicle_states=co.vehicle_table(),
                 wall_s=round(time.time() - (co.t_start_wall or time.time()), 3),
             )
-            path = _write_summary(out, summary)
+            path = write_summary(out, summary)
             if recorder is not None:
                 mon._record("log_summary", summary)
                 mon._record("close")

@@ -147,6 +147,7 @@ class VehiclePilot:
         self._to_tube = (float(x[0]), float(x[1]), float(y[0]), float(y[1]))
         self._sample_seen: float | None = None
         self._seq = 0
+        self.last_state: NeighbourState | None = None  # the last one published
         # what we command
         self.cmd_xy: np.ndarray | None = None  # last horizontal tube-frame command (m/s)
         self.cmd_in_tube = False
@@ -262,8 +263,10 @@ class VehiclePilot:
                               self.phase, stamp, self._seq)
 
     def publish(self, now_mono: float, now_wall: float) -> None:
+        """Publish this tick's :meth:`state` (kept as :attr:`last_state`)."""
         st = self.state(now_mono, now_wall)
         if st is not None:
+            self.last_state = st
             self.bus.publish(st)
 
     # -- faults ---------------------------------------------------------------------------

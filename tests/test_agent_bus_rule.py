@@ -1,0 +1,108 @@
+"""The standalone agent's broker-loss rule (``BusAwarePilot.bus_problem``), without processes.
+
+The rule: while the broker is away, and after it is back until every airborne neighbour is
+fresh again, the vehicle stands still; a neighbour still silent after ``rejoin_grace_s`` is
+left to the agent's lost rule. The grace must cover the other agents' reconnect back-off,
+which ends at a different moment for each of them.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from vtube_fleet.agentcli import BACKOFF_JITTER, BusAwarePilot, rejoin_grace_s
+from vtube_fleet.bus.base import NeighbourState, Phase
+
+
+class FakeMqtt:
+    host, port = "127.0.0.1", 1883
+
+    def __init__(self, backoff_max_s: float = 2.0) -> None:
+        self.connected = True
+        self.echo_silence_s = 0.0
+        self.lost: set[int] = set()
+        self.states: dict[int, NeighbourState] = {}
+        self.backoff_max_s = backoff_max_s
+
+    def latest(self) -> dict[int, NeighbourState]:
+        return self.states
+
+
+def pilot(mqtt: FakeMqtt, lost_after_s: float = 1.0) -> SimpleNamespace:
+    """The attributes ``bus_problem`` reads, as a plain namespace."""
+    return SimpleNamespace(
+        mqtt=mqtt,
+        agent=SimpleNamespace(max_age_s=0.15, lost_after_s=lost_after_s),
+        cfg=SimpleNamespace(period_s=0.05),
+        bus_hold=None,
+        _healthy_since=None,
+    )
+
+
+def state(vid: int, stamp_s: float, phase: Phase = Phase.IN_TUBE) -> NeighbourState:
+    return NeighbourState(vid, 1.0, 0.0, 1.0, 0.0, phase, stamp_s, 1)
+
+
+def problem(p: SimpleNamespace, now: float) -> str | None:
+    return BusAwarePilot.bus_problem(p, now)  # type: ignore[arg-type]
+
+
+def test_grace_covers_one_back_off_of_the_slowest_agent() -> None:
+    assert rejoin_grace_s(1.0, 2.0, 0.05) == pytest.approx(1.0 + BACKOFF_JITTER * 2.0 + 0.1)
+    # longer than lost_after_s by at least the longest back-off with its jitter
+    assert rejoin_grace_s(1.0, 2.0, 0.05) - 1.0 >= 2.0 * 1.2
+
+
+def test_unreachable_broker_is_a_problem() -> None:
+    mq = FakeMqtt()
+    mq.connected = False
+    p = pilot(mq)
+    assert "unreachable" in (problem(p, 100.0) or "")
+    assert p._healthy_since is None
+
+
+def test_silent_broker_is_a_problem() -> None:
+    mq = FakeMqtt()
+    mq.echo_silence_s = 0.5  # > max age 0.15 + 2 periods
+    assert "silent" in (problem(pilot(mq), 100.0) or "")
+
+
+def test_after_the_outage_a_reconnecting_teammate_is_waited_for_then_given_up() -> None:
+    """The case seen in a test run: the broker came back, one agent reconnected 2.1 s before
+    two teammates did. It must still be standing still for them at 2.1 s (> lost_after_s)."""
+    mq = FakeMqtt()
+    p = pilot(mq)
+    p.bus_hold = "MQTT broker unreachable"  # standing still since the outage
+    t_back = 100.0
+    mq.states = {1: state(1, t_back - 3.0), 2: state(2, t_back + 0.0)}  # 1 is still away
+    assert problem(p, t_back) is not None  # healthy since now
+    assert p._healthy_since == t_back
+    waiting = problem(p, t_back + 2.1)
+    assert waiting is not None and "vehicle(s) 1" in waiting  # still waiting, not lost yet
+    mq.states[1] = state(1, t_back + 2.1)  # it is back; 2 kept publishing
+    mq.states[2] = state(2, t_back + 2.1)
+    assert problem(p, t_back + 2.15) is None
+    # a teammate that never comes back: after the grace the agent's lost rule takes over
+    p.bus_hold, p._healthy_since = "MQTT broker unreachable", None
+    mq.states[1] = state(1, t_back - 3.0)
+    assert problem(p, t_back) is not None
+    grace = rejoin_grace_s(1.0, 2.0, 0.05)
+    assert problem(p, t_back + grace - 0.01) is not None
+    assert problem(p, t_back + grace + 0.01) is None
+
+
+def test_ground_and_lost_neighbours_are_not_waited_for() -> None:
+    mq = FakeMqtt()
+    p = pilot(mq)
+    p.bus_hold = "MQTT broker unreachable"
+    mq.states = {1: state(1, 0.0, Phase.LANDED), 2: state(2, 0.0)}
+    mq.lost = {2}  # its last will arrived
+    assert problem(p, 100.0) is None
+
+
+def test_healthy_bus_without_a_hold_is_no_problem() -> None:
+    mq = FakeMqtt()
+    mq.states = {1: state(1, 0.0)}  # stale, but we are not holding: the lost rule decides
+    assert problem(pilot(mq), 100.0) is None
