@@ -439,3 +439,30 @@ async def test_killed_agent_its_vehicle_fails_safe_and_the_others_pass(tmp_path:
         f"position ({last[0]:.2f}, {last[1]:.2f}); closest approach to its true position "
         f"{worst['lost_truth_pair']:.3f} m; pair {worst['pair']:.3f} m"
     )
+
+
+async def test_interrupted_agent_lands_and_leaves_its_summary_and_recording(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT) in the tube: the agent holds, lands its vehicle, exits 130, and its
+    summary.json and recording.rrd are complete (the recording reads back and agrees)."""
+    n = 2
+    async with fleet_run(tmp_path, n) as run:
+        coord = await start_coordinator(run, n)
+        await until(lambda: all_in_tube_past(run, n, 3.0), 120, "both vehicles in the tube")
+        run.agents[1].send_signal(signal.SIGINT)
+        code1 = await asyncio.wait_for(run.agents[1].wait(), 120)
+        vehicle = run.fleet.vehicles[1]  # type: ignore[attr-defined]
+        landed = not vehicle.armed
+        code, err = await finish(coord)
+        await run.agents[0].wait()
+    assert code1 == 130, run.log_text(1)[-2000:]
+    assert "interrupted" in run.log_text(1)
+    assert landed, "the interrupted agent's vehicle is still armed"
+    assert code == 3, err  # the fleet is incomplete: vehicle 1 never exited
+    a = agent_summary(run, 1)
+    assert a["outcome"] == "interrupted" and a["phase"] == "landed" and a["exit_time_s"] is None
+    from vtube_fleet.reviewcli import review
+
+    res = review(tmp_path / "agent-1" / "recording.rrd", plots=False)
+    assert res.differences == [] and res.data.summary["outcome"] == "interrupted"
+    own = list(res.data.ids).index(1)
+    assert res.data.phases is not None and res.data.phases[-1, own] == "landed"
