@@ -296,7 +296,7 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
     for i in range(n):
         a = agent_summary(run, i)
         assert a["kind"] == "agent" and a["vehicle"] == i and a["outcome"] == "completed"
-        assert a["phase"] == "landed" and a["exit_time_s"] > 0 and a["bus_holds"] == 0
+        assert a["phase"] == "landed" and a["exit_time_s"] > 0
         assert lim.v_min - 1e-9 <= a["min_commanded_speed_m_s"] <= a["max_commanded_speed_m_s"]
         assert a["max_commanded_speed_m_s"] <= lim.v_max + 1e-9
         assert a["states_received"] > 0 and a["violations"] == 0

@@ -198,6 +198,28 @@ def test_fleet_ids_phases_commands_and_events(tmp_path: Path) -> None:
     assert d.entity_rows["metrics/link_latency_s"] == 12
 
 
+@pytest.mark.parametrize("detect", [True, False])
+def test_exit_detection_can_be_left_to_the_owner(tmp_path: Path, detect: bool) -> None:
+    """``detect_exits=False``: the recording's exits are exactly the explicit ones (the MQTT
+    coordinator and agents decide exits from every state heard, also between ticks)."""
+    rec = open_recorder(tmp_path / "x.rrd", kind="fleet", detect_exits=detect)
+    rec.log_scene(scenario(3))
+    for k in range(6):
+        phases = ["in_tube", "exited" if k >= 2 else "in_tube", "exited" if k >= 4 else "in_tube"]
+        if k == 3:
+            rec.log_exits(0.12, 3, [2])  # its own time for vehicle 2, before the tick shows it
+        pos, vel = motion(k, 3)
+        rec.log_tick(t_s=0.05 * k, tick=k, ids=np.arange(3), pos=pos, vel=vel, phases=phases)
+    rec.close()
+    d = load_recording(tmp_path / "x.rrd")
+    if detect:
+        assert d.exits == {1: pytest.approx(0.10), 2: pytest.approx(0.12)}
+    else:
+        assert d.exits == {2: pytest.approx(0.12)}
+    texts = [e[3] for e in d.events]
+    assert "vehicle 1: in_tube → exited" in texts  # the phase events stay either way
+
+
 def test_two_recorders_in_one_process_stay_apart(tmp_path: Path) -> None:
     a = open_recorder(tmp_path / "a.rrd", app_id="a")
     b = open_recorder(tmp_path / "b.rrd", app_id="b", kind="fleet")

@@ -372,7 +372,7 @@ class AgentProcess:
 
             self.recorder = recorder_from_args(
                 rerun_args if rerun_args is not None else argparse.Namespace(), self.out,
-                kind="fleet", app_id="vtube_fleet_agent",
+                kind="fleet", app_id="vtube_fleet_agent", detect_exits=False,
             )
         self.recording: AgentRecording | None = None
         self.summary_path: Path | None = None

@@ -233,8 +233,9 @@ class RunMonitor:
         ):
             self.exit_stamp[vid] = state.stamp_s
             self.acc.add_exits(state.stamp_s - self.t0_s, [vid])
-            if self.recorder is not None:  # the same exact time, also when the recorded
-                # ticks never show this vehicle "exited" (a state between two ticks)
+            if self.recorder is not None:  # the recording's exits are exactly these (its
+                # own detection is off: it would see other moments, or a vehicle first heard
+                # already exited, which is not an exit seen here)
                 self._record("log_exits", state.stamp_s - self.t0_s, self.ticks, [vid])
 
     def _past_finish(self, st: NeighbourState) -> bool:
@@ -728,7 +729,9 @@ def _recorder(args: argparse.Namespace, out: Path) -> Any:
     """The fleet recording of ``start --wait`` (``--rerun-save``, default OUT/recording.rrd)."""
     from vtube_fleet.recording import recorder_from_args
 
-    return recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet")
+    # exits only as RunMonitor decides them (from every state heard, also between two ticks)
+    return recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet",
+                              detect_exits=False)
 
 
 def _fmt(v: float | None, unit: str = "m", scale: float = 1.0) -> str:

@@ -490,6 +490,8 @@ class RerunRecorder:
     rather than stalling the loop (the default for ``kind="fleet"``).
     ``arrow_scale_s`` is the length of a velocity arrow per m/s; the ``status`` table is
     refreshed every ``status_period_s`` of mission time. ``kind`` is ``"sim"`` or ``"fleet"``.
+    ``detect_exits=False``: exits only from :meth:`log_exits` (an owner that decides exits
+    itself, e.g. from states arriving between ticks, so that review sees exactly its exits).
 
     The recording is closed — buffer sent, sender joined, stream flushed, file closed — by
     :meth:`close` (idempotent), by the context manager, and at interpreter exit if the owner
@@ -515,6 +517,7 @@ class RerunRecorder:
         recording_id: str | None = None,
         connect_timeout_s: float = 0.5,
         flush_timeout_s: float = 10.0,
+        detect_exits: bool = True,
     ) -> None:
         import pyarrow as pa
         import rerun as rr
@@ -549,6 +552,7 @@ class RerunRecorder:
         self.connect_url: str | None = None
         self.closed = False
         self.dropped_ticks = 0
+        self.detect_exits = bool(detect_exits)
 
         self._lock = threading.RLock()
         self._calls = 0  # log_tick calls
@@ -973,7 +977,7 @@ class RerunRecorder:
             if pids is None or not np.array_equal(ids, pids):
                 self._prev_ids = ids.copy()
             self._prev_present = present
-        gone = [i for i in gone if i not in self._exited]
+        gone = [i for i in gone if i not in self._exited] if self.detect_exits else []
         if gone:
             self._exited.update(gone)
             self._xbuf.append((t_s, tick, gone))
