@@ -303,6 +303,8 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
     res = review(tmp_path / "agent-3" / "recording.rrd", plots=False)
     assert res.differences == [], res.differences
     assert res.data.summary["vehicle"] == 3 and res.data.meta["vehicle"] == 3
+    # its own exit: the same moment in its summary and in its recording (start-command time)
+    assert res.data.exits[3] == pytest.approx(res.data.summary["exit_time_s"], abs=1e-6)
     own = list(res.data.ids).index(3)
     assert np.isfinite(res.data.pos[:, own]).all()  # its own track, every recorded tick
     assert res.data.cmd is not None and np.isfinite(res.data.cmd[:, own]).any()  # its commands

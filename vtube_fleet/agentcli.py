@@ -256,7 +256,8 @@ class AgentRecording:
     vehicle's own state and velocity command at every control tick, also while the broker is
     away. Vehicles outside the agent's spatial cells are not heard, so fleet-wide counts
     (``exited``) cover only the vehicles it heard; the agent's own figures are
-    ``exit_time_s``, ``min/max_commanded_speed_m_s`` (its tube controller's commands),
+    ``exit_time_s`` (seconds since the start command, like every time in the summary),
+    ``min/max_commanded_speed_m_s`` (its tube controller's commands),
     ``bus_holds`` and ``phase``.
     """
 
@@ -303,24 +304,26 @@ class AgentRecording:
         path); returns the summary's path."""
         from vtube_fleet.missioncli import _num, write_summary
 
-        own: dict[str, Any] = {"kind": "agent", "vehicle": self.vehicle}
+        mon = self.monitor
+        stamp = mon.exit_stamp.get(self.vehicle)
+        own: dict[str, Any] = {
+            "kind": "agent",
+            "vehicle": self.vehicle,
+            # the summary's time base (the start command), as the recording's exit event
+            "exit_time_s": None if stamp is None else stamp - mon.t0_s,
+        }
         if pilot is not None:
-            own.update(
-                phase=pilot.phase.value,
-                reason=pilot.reason,
-                exit_time_s=pilot.exit_time_s,
-                bus_holds=pilot.bus_holds,
-            )
+            own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds)
         own.update(
             min_commanded_speed_m_s=_num(self.cmd_speed[0]),
             max_commanded_speed_m_s=_num(self.cmd_speed[1]),
         )
-        summary = self.monitor.summary(**own, **extra)
+        summary = mon.summary(**own, **extra)
         try:
             return write_summary(out, summary)
         finally:
-            self.monitor._record("log_summary", summary)
-            self.monitor._record("close")
+            mon._record("log_summary", summary)
+            mon._record("close")
 
 
 # ----------------------------------------------------------------------------------------------
