@@ -60,6 +60,7 @@ from vtube_fleet.link.base import LinkError
 from vtube_fleet.missioncli import (
     ASSUMED_LINK_LATENCY_S,
     DEFAULT_BROKER,
+    add_bus_args,
     bus_safety_budget,
     config_hash,
     default_max_age_s,
@@ -798,17 +799,12 @@ def register(subparsers: Any) -> None:
         metavar="URL",
         help="the vehicle's endpoint (default: PX4 SITL instance I, udpin://127.0.0.1:14540+I)",
     )
-    p.add_argument(
-        "--broker", default=DEFAULT_BROKER, help=f"MQTT broker URL (default {DEFAULT_BROKER})"
-    )
+    add_bus_args(p)
     p.add_argument(
         "--link",
         choices=("mavlink", "mavsdk"),
         default="mavlink",
         help="vehicle link backend (default mavlink)",
-    )
-    p.add_argument(
-        "--mission-id", default=None, help="topic name of the mission (default: the file name)"
     )
     p.add_argument(
         "--join-timeout",

@@ -53,9 +53,11 @@ __all__ = [
     "Coordinator",
     "MissionRunError",
     "RunMonitor",
+    "add_bus_args",
     "config_hash",
     "default_mission_id",
     "register",
+    "write_summary",
 ]
 
 log = logging.getLogger(__name__)
@@ -734,6 +736,16 @@ def _recorder(args: argparse.Namespace, out: Path) -> Any:
                               detect_exits=False)
 
 
+def add_bus_args(parser: argparse.ArgumentParser) -> None:
+    """``--broker`` and ``--mission-id``, the same for ``vtube-fleet agent`` and ``mission``."""
+    parser.add_argument(
+        "--broker", default=DEFAULT_BROKER, help=f"MQTT broker URL (default {DEFAULT_BROKER})"
+    )
+    parser.add_argument(
+        "--mission-id", default=None, help="topic name of the mission (default: the file name)"
+    )
+
+
 def _fmt(v: float | None, unit: str = "m", scale: float = 1.0) -> str:
     return "—" if v is None else f"{v * scale:.2f} {unit}"
 
@@ -860,12 +872,7 @@ def register(subparsers: Any) -> None:
 
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
-        sp.add_argument(
-            "--broker", default=DEFAULT_BROKER, help=f"MQTT broker URL (default {DEFAULT_BROKER})"
-        )
-        sp.add_argument(
-            "--mission-id", default=None, help="topic name of the mission (default: the file name)"
-        )
+        add_bus_args(sp)
         sp.add_argument(
             "--broker-timeout",
             type=float,
