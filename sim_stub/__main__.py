@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import signal
 import sys
 from collections.abc import Sequence
 
 from .errors import SimStubError
+from .estimator import ESTIMATOR_PROFILES
 from .faults import Faults, parse_fault_spec
 from .fleet import MockFleet, load_homes
-from .ports import PortScheme
-from .vehicle import DEFAULT_HOME, validate_home
+from .ports import PX4, WIDE, PortScheme
+from .vehicle import DEFAULT_HOME, GCS_LINK_PROFILES, validate_home
 
 __all__ = ["main", "build_parser"]
 
@@ -66,6 +68,41 @@ def build_parser() -> argparse.ArgumentParser:
         help="telemetry stream set (default full = every stream PX4 sent)",
     )
     ap.add_argument(
+        "--estimator",
+        choices=tuple(ESTIMATOR_PROFILES),
+        default="px4-sih",
+        help="estimate-error profile: px4-sih (like real PX4 SITL: ~0.2 m / 0.3 m/s typical, "
+        "default), rtk (cm-level), ideal (the estimate is the truth)",
+    )
+    ap.add_argument(
+        "--estimator-shared",
+        action="store_true",
+        help="every vehicle gets the same estimate-error sequence (as SIH instances do)",
+    )
+    ap.add_argument(
+        "--gcs-link",
+        choices=GCS_LINK_PROFILES,
+        default="lite",
+        help="PX4's GCS link (udp 18570+i -> 14550, as PX4 SITL; ground truth on request): "
+        "default streams lite (default), full (as PX4 SITL) or off",
+    )
+    ap.add_argument(
+        "--gcs-link-base",
+        type=int,
+        default=None,
+        metavar="N",
+        help="GCS link: vehicle i binds N+i (default 18570 with --ports px4 as PX4 SITL, 28000 "
+        "with wide, no GCS link with VEHICLE_BASE:GCS_BASE unless given)",
+    )
+    ap.add_argument(
+        "--gcs-link-port",
+        type=int,
+        default=None,
+        metavar="N",
+        help="GCS link: the port every vehicle sends to (default 14550 as PX4 SITL; with "
+        "--ports px4, vehicles 10-19 send to 34650 and 20+ to 34750 like PX4)",
+    )
+    ap.add_argument(
         "--fault",
         action="append",
         default=[],
@@ -76,17 +113,27 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _scheme(text: str, host: str) -> PortScheme:
+def _scheme(text: str, host: str, gcs_link_base: int | None = None,
+            gcs_link_port: int | None = None) -> PortScheme:
     if text in ("px4", "wide"):
-        base = {"px4": (14580, 14540), "wide": (24000, 20000)}[text]
-        return PortScheme(text, base[0], base[1], host)
-    try:
-        v, g = (int(x) for x in text.split(":"))
-    except ValueError:
-        raise SimStubError(
-            f"--ports must be px4, wide or VEHICLE_BASE:GCS_BASE, got {text!r}"
-        ) from None
-    return PortScheme("custom", v, g, host)
+        scheme = dataclasses.replace({"px4": PX4, "wide": WIDE}[text], host=host)
+    else:
+        try:
+            v, g = (int(x) for x in text.split(":"))
+        except ValueError:
+            raise SimStubError(
+                f"--ports must be px4, wide or VEHICLE_BASE:GCS_BASE, got {text!r}"
+            ) from None
+        scheme = PortScheme("custom", v, g, host)
+    if gcs_link_base is not None:
+        if not 1 <= gcs_link_base <= 65535:
+            raise SimStubError(f"--gcs-link-base must be in 1..65535, got {gcs_link_base}")
+        scheme = dataclasses.replace(scheme, gcs_link_base=gcs_link_base)
+    if gcs_link_port is not None:
+        if not 1 <= gcs_link_port <= 65535:
+            raise SimStubError(f"--gcs-link-port must be in 1..65535, got {gcs_link_port}")
+        scheme = dataclasses.replace(scheme, gcs_link_remotes=((0, gcs_link_port),))
+    return scheme
 
 
 def _faults(specs: Sequence[str], count: int) -> list[Faults]:
@@ -110,7 +157,8 @@ async def _run(fleet: MockFleet) -> None:
     async with fleet:
         print(
             f"sim_stub: {fleet.count} vehicle(s), ports {fleet.ports.name}, "
-            f"profile {fleet.vehicles[0].profile}; Ctrl-C to stop",
+            f"profile {fleet.vehicles[0].profile}, estimator {fleet.vehicles[0].estimator.name}"
+            f"; Ctrl-C to stop",
             flush=True,
         )
         for line in fleet.describe():
@@ -136,10 +184,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             homes=homes,
             home=home,
             spacing_m=args.spacing,
-            port_scheme=_scheme(args.ports, args.host),
+            port_scheme=_scheme(args.ports, args.host, args.gcs_link_base, args.gcs_link_port),
             faults=_faults(args.fault, count),
             seed=args.seed,
             profile=args.profile,
+            estimator=args.estimator,
+            estimator_shared=args.estimator_shared,
+            gcs_link=args.gcs_link,
         )
         asyncio.run(_run(fleet))
     except SimStubError as exc:

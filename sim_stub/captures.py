@@ -39,7 +39,10 @@ __all__ = [
     "CAPTURE_NAMES",
 ]
 
-CAPTURE_DIR = Path(os.environ.get("PX4_SITL_CAPTURES", "/work/shared/px4_sitl"))
+#: The real PX4 SITL captures this mock is checked against (in the source tree's
+#: ``tests/data/px4_sitl``; ``PX4_SITL_CAPTURES`` points elsewhere).
+CAPTURE_DIR = Path(os.environ.get(
+    "PX4_SITL_CAPTURES", Path(__file__).resolve().parents[1] / "tests" / "data" / "px4_sitl"))
 CAPTURE_NAMES = (
     "offboard_flight_i0",
     "offboard_loss",

@@ -86,8 +86,9 @@ class MockFleet:
     ``spacing_m`` apart if given. ``port_scheme``: ``"px4"`` (default; at most 40 vehicles),
     ``"wide"`` or a :class:`~sim_stub.ports.PortScheme`. ``faults``: one
     :class:`~sim_stub.faults.Faults` for all, a sequence (one per vehicle) or a mapping
-    index → Faults. ``profile``: ``"full"`` or ``"lite"`` stream set. ``boot_time_scale``: see
-    :class:`~sim_stub.vehicle.MockVehicle`.
+    index → Faults. ``profile``: ``"full"`` or ``"lite"`` stream set. ``boot_time_scale``,
+    ``estimator`` (``"px4-sih"`` default, ``"rtk"``, ``"ideal"``), ``estimator_shared`` and
+    ``gcs_link`` (``"lite"``, ``"full"``, ``"off"``): see :class:`~sim_stub.vehicle.MockVehicle`.
 
     Vehicle i has sysid i+1 like PX4; MAVLink sysids are 8-bit, so from the 255th vehicle on they
     repeat (i % 254 + 1): each vehicle keeps its own UDP port pair, so a GCS that keeps one link
@@ -113,6 +114,9 @@ class MockFleet:
         boot_time_scale: float = 1.0,
         tick_hz: float = 100.0,
         clock: Callable[[], float] | None = None,
+        estimator: str = "px4-sih",
+        estimator_shared: bool = False,
+        gcs_link: str = "lite",
     ) -> None:
         if homes is not None:
             homes = [validate_home(h) for h in homes]
@@ -138,7 +142,7 @@ class MockFleet:
         self.count = count
         self.seed = seed
         self._faults = self._resolve_faults(faults, count)
-        self.scheduler = Scheduler(count, tick_hz=tick_hz, clock=clock)
+        self.scheduler = Scheduler(count, tick_hz=tick_hz, clock=clock, seed=seed)
         self.vehicles: list[MockVehicle] = [
             MockVehicle(
                 i,
@@ -152,6 +156,9 @@ class MockFleet:
                 boot_time_scale=boot_time_scale,
                 scheduler=self.scheduler,
                 sysid=i % 254 + 1,
+                estimator=estimator,
+                estimator_shared=estimator_shared,
+                gcs_link=gcs_link,
             )
             for i in range(count)
         ]
@@ -220,8 +227,12 @@ class MockFleet:
         lines = []
         for v in self.vehicles:
             lat, lon, alt = v.origin
+            gl = v.gcs_link
+            gcs = "" if gl is None else (f"; GCS link udp {gl.bind_address[1]} -> "
+                                         f"{gl.remote[1]}")
             lines.append(
                 f"vehicle {v.instance}: sysid {v.sysid} compid 1, binds udp {v.bind_address[0]}:"
                 f"{v.bind_address[1]} -> GCS {v.endpoint}, home {lat:.7f},{lon:.7f},{alt:.2f}"
+                f"{gcs}; estimator {v.estimator.name}"
             )
         return lines

@@ -4,8 +4,11 @@ Per tick (default 100 Hz, absolute schedule so it does not drift):
 
 1. the PX4 logic (:meth:`MockVehicle._control`) of half of the vehicles (each vehicle runs at
    50 Hz, alternating halves to spread the load),
-2. one vectorized dynamics step for all vehicles (:class:`~sim_stub.dynamics.QuadState`), then the
-   state is exported once as Python lists for the message builders,
+2. one vectorized step of the estimator errors (:class:`~sim_stub.estimator.EstimatorErrors`) and
+   of the dynamics for all vehicles (:class:`~sim_stub.dynamics.QuadState`): PX4's velocity loop
+   drives the *estimated* velocity to the command, so the true vehicle follows ``u − e_v``; then
+   the true state and the estimate (``p + e_p``, ``v + e_v``) are exported once as Python lists
+   for the message builders,
 3. every telemetry message that is due, from a timing wheel of (due time, vehicle, stream)
    entries: a stream at rate r is sent at ``t_start + k/r`` exactly (no drift), several times in
    one tick if the loop fell behind (bounded by ``max_lag_s``), never more often,
@@ -26,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .dynamics import GRAVITY, DynamicsParams, QuadState
+from .estimator import EstimatorErrors
 
 if TYPE_CHECKING:  # pragma: no cover
     from .vehicle import MockVehicle, StreamState
@@ -48,6 +52,7 @@ class Scheduler:
         clock: Callable[[], float] | None = None,
         dynamics: DynamicsParams | None = None,
         max_lag_s: float = 0.25,
+        seed: int = 0,
     ) -> None:
         if capacity < 1:
             raise ValueError(f"scheduler capacity must be >= 1, got {capacity}")
@@ -59,6 +64,7 @@ class Scheduler:
         self._clock = clock
         self.max_lag_s = max_lag_s
         self.dyn = QuadState(capacity, dynamics, nominal_dt=self.dt)
+        self.est = EstimatorErrors(capacity, seed)
         n = capacity
         self.u = np.zeros((n, 3))
         self.airborne = np.zeros(n, dtype=bool)
@@ -105,6 +111,7 @@ class Scheduler:
                 self.u[slot] = 0.0
                 self.airborne[slot] = False
                 self.frozen[slot] = False
+                self.est.release(slot)
 
     def set_noise(self, slot: int, sigma_m: float, seed: int) -> None:
         self.noise_sigma[slot] = sigma_m
@@ -148,9 +155,15 @@ class Scheduler:
     # --- the tick -------------------------------------------------------------------------
     def _export(self) -> None:
         d = self.dyn
-        self.p_rows = (d.p + self.noise).tolist()
+        e = self.est
+        # the estimate (what PX4 reports and its position loops use) and the truth
+        self.p_rows = (d.p + e.e_p + self.noise).tolist()
+        self.v_rows = (d.v + e.e_v).tolist()
         self.p_true_rows = d.p.tolist()
-        self.v_rows = d.v.tolist()
+        self.v_true_rows = d.v.tolist()
+        # the GNSS receiver (GPS_RAW_INT)
+        self.gnss_p_rows = (d.p + e.e_gnss + self.noise).tolist()
+        self.gnss_v_rows = (d.v + e.e_gnss_v).tolist()
         self.acc_rows = d.acc.tolist()
         self.att_rows = np.stack(
             (d.roll, d.pitch, d.yaw, d.roll_rate, d.pitch_rate, d.yaw_rate), axis=1
@@ -216,7 +229,10 @@ class Scheduler:
                     self._vehicle_error(v, "PX4 logic")
         # dynamics for everyone
         if dt > 0.0:
-            self.dyn.step(dt, self.u, self.airborne, self.frozen, self.yaw_sp, self.yaw_rate_sp)
+            est = self.est
+            est.step(dt, self.airborne, self.frozen)
+            u = self.u - est.e_v  # PX4 tracks the estimated velocity: the truth flies u − e_v
+            self.dyn.step(dt, u, self.airborne, self.frozen, self.yaw_sp, self.yaw_rate_sp)
             if self.noise_sigma.any():
                 self._step_noise(dt)
         self._export()
@@ -251,7 +267,7 @@ class Scheduler:
                 try:
                     payload = st.build(now)
                     if payload is not None:
-                        veh._send(st.spec, payload)
+                        veh._send_stream(st, payload)
                     due += interval
                     while due <= now:
                         if now - due > max_lag:
@@ -260,7 +276,7 @@ class Scheduler:
                             break
                         payload = st.build(now)
                         if payload is not None:
-                            veh._send(st.spec, payload)
+                            veh._send_stream(st, payload)
                         due += interval
                 except Exception:
                     self._vehicle_error(veh, st.name)

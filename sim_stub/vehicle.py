@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from . import px4
 from .codec import SPECS, DatagramParser, Encoder, MsgSpec, fast_decoder, mcrf4xx
 from .errors import SimStubError
+from .estimator import EstimatorProfile, estimator_profile
 from .faults import Faults
 from .geo import project, reproject
 from .ports import PortScheme, resolve_port_scheme
@@ -47,6 +48,8 @@ __all__ = [
     "DEFAULT_HOME",
     "STREAM_CATALOG",
     "PROFILES",
+    "GCS_LINK_STREAMS",
+    "GCS_LINK_PROFILES",
     "BOOT",
     "validate_home",
 ]
@@ -129,8 +132,33 @@ STREAM_CATALOG: tuple[StreamDef, ...] = (
     StreamDef("VIBRATION", 0.5, 0.0, 2.40),
     StreamDef("CURRENT_MODE", 0.5, 0.5, 2.40),
     StreamDef("CURRENT_EVENT_SEQUENCE", 1.0 / 3.0, 0.0, 0.44),
+    # SITL ground truth: sent only when asked for (SET_MESSAGE_INTERVAL / REQUEST_MESSAGE)
+    StreamDef("HIL_STATE_QUATERNION", 0.0, 0.0, 0.55),
 )
 PROFILES = ("full", "lite")
+
+#: Default stream rates (Hz) on PX4's GCS link (udp 18570+i → 14550), ``full``: as measured on
+#: real PX4 SITL's GCS link in the fleet-truth flights (the observer only added
+#: HIL_STATE_QUATERNION and ESTIMATOR_STATUS); ``lite`` (the mock's default): what a GCS or an
+#: outside observer needs at low cost; ``off``: no GCS link. Anything else on request.
+GCS_LINK_STREAMS: dict[str, dict[str, float]] = {
+    "full": {
+        "HEARTBEAT": 1.0, "SYS_STATUS": 1.0, "EXTENDED_SYS_STATE": 1.0, "ATTITUDE": 48.0,
+        "ATTITUDE_QUATERNION": 48.0, "LOCAL_POSITION_NED": 49.5, "GLOBAL_POSITION_INT": 46.5,
+        "GPS_RAW_INT": 5.0, "SERVO_OUTPUT_RAW": 49.5, "ATTITUDE_TARGET": 49.5,
+        "POSITION_TARGET_LOCAL_NED": 49.5, "VFR_HUD": 4.0, "ALTITUDE": 1.0,
+        "MISSION_CURRENT": 1.0, "OPEN_DRONE_ID_LOCATION": 1.0, "OPEN_DRONE_ID_SYSTEM": 1.0,
+        "SCALED_PRESSURE": 1.0, "BATTERY_STATUS": 0.5, "DISTANCE_SENSOR": 0.5,
+        "HOME_POSITION": 0.5, "VIBRATION": 0.1,
+    },
+    "lite": {
+        "HEARTBEAT": 1.0, "SYS_STATUS": 1.0, "EXTENDED_SYS_STATE": 1.0,
+        "GLOBAL_POSITION_INT": 5.0, "GPS_RAW_INT": 5.0, "HOME_POSITION": 0.5,
+        "BATTERY_STATUS": 0.5,
+    },
+    "off": {},
+}
+GCS_LINK_PROFILES = tuple(GCS_LINK_STREAMS)
 _STREAM_BY_NAME = {s.name: s for s in STREAM_CATALOG}
 _STREAM_BY_ID = {SPECS[s.name].msgid: s for s in STREAM_CATALOG}
 # messages REQUEST_MESSAGE can produce besides the streams
@@ -197,15 +225,35 @@ class VehicleCounters:
 class StreamState:
     """A configured stream of one vehicle (rate, current wheel entry, builder)."""
 
-    __slots__ = ("name", "spec", "build", "interval", "default_interval", "entry")
+    __slots__ = ("name", "spec", "build", "interval", "default_interval", "entry", "link")
 
-    def __init__(self, name: str, spec: MsgSpec, build: Callable[[float], bytes | None]) -> None:
+    def __init__(self, name: str, spec: MsgSpec, build: Callable[[float], bytes | None],
+                 link: GcsLink | None = None) -> None:
         self.name = name
         self.spec = spec
         self.build = build
         self.interval = 0.0
         self.default_interval = 0.0
         self.entry: list | None = None
+        self.link = link  # None: the API link
+
+
+class GcsLink:
+    """PX4's second MAVLink instance: the GCS link (SITL: udp 18570+i → 14550). Its own
+    socket, peer, sequence numbers and streams; no link faults (they model the API link)."""
+
+    def __init__(self, vehicle: MockVehicle, bind: tuple[str, int], remote: tuple[str, int],
+                 profile: str) -> None:
+        self.vehicle = vehicle
+        self.bind_address = bind
+        self.remote = remote
+        self.profile = profile
+        self.enc = Encoder(vehicle.sysid, vehicle.compid)
+        self.sock: socket.socket | None = None
+        self.transport: asyncio.DatagramTransport | None = None
+        self.streams: dict[str, StreamState] = {}
+        self.tx_packets = 0
+        self.rx_packets = 0
 
 
 @dataclass
@@ -229,6 +277,20 @@ class _Proto(asyncio.DatagramProtocol):
         self.v._tx_errors += 1
 
 
+class _GcsProto(asyncio.DatagramProtocol):
+    def __init__(self, link: GcsLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        v = self.link.vehicle
+        if v.dead == "freeze" or not v.started:
+            return
+        v._process_datagram(data, addr, v._now(), self.link)
+
+    def error_received(self, exc: Exception) -> None:  # nobody listens on 14550: normal
+        pass
+
+
 class MockVehicle:
     """PX4 SITL instance ``instance`` as seen on its MAVLink API link.
 
@@ -242,7 +304,11 @@ class MockVehicle:
     timeline (1.0 = PX4's; tests that are not about boot may shorten it). ``scheduler``: share
     a :class:`~sim_stub.scheduler.Scheduler` (a :class:`MockFleet` does); by default the vehicle
     runs its own. ``sysid``: MAVLink system id (default PX4's ``instance + 1``; must be given
-    from instance 254 on, since sysids are 8-bit).
+    from instance 254 on, since sysids are 8-bit). ``estimator``: the estimate-error profile
+    (``"px4-sih"`` like real PX4 SITL, ``"rtk"``, ``"ideal"`` = the estimate is the truth; see
+    :mod:`sim_stub.estimator`), ``estimator_shared``: the same error sequence as every other
+    shared vehicle of the scheduler (SIH-like). ``gcs_link``: default stream set of PX4's GCS
+    link (``"lite"``, ``"full"`` or ``"off"``; ports from the scheme, none if it has no GCS link).
 
     Use ``async with MockVehicle(0) as v:`` or ``await v.start()`` / ``await v.stop()``.
     """
@@ -261,6 +327,9 @@ class MockVehicle:
         boot_time_scale: float = 1.0,
         scheduler: Scheduler | None = None,
         sysid: int | None = None,
+        estimator: str = "px4-sih",
+        estimator_shared: bool = False,
+        gcs_link: str = "lite",
     ) -> None:
         if instance < 0:
             raise SimStubError(f"instance must be >= 0, got {instance}")
@@ -277,6 +346,14 @@ class MockVehicle:
             raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
         if not 0.0 < boot_time_scale <= 10.0:
             raise SimStubError(f"boot_time_scale must be in (0, 10], got {boot_time_scale}")
+        try:
+            self.estimator: EstimatorProfile = estimator_profile(estimator)
+        except ValueError as exc:
+            raise SimStubError(str(exc)) from None
+        if gcs_link not in GCS_LINK_STREAMS:
+            raise SimStubError(f"gcs_link must be one of {', '.join(GCS_LINK_PROFILES)}, got "
+                               f"{gcs_link!r}")
+        self.estimator_shared = bool(estimator_shared)
         self.instance = instance
         self.sysid = sysid
         self.compid = 1
@@ -293,10 +370,17 @@ class MockVehicle:
         self.boot_time_scale = boot_time_scale
         self._clock = clock
         self._own_scheduler = scheduler is None
-        self._sched = scheduler or Scheduler(1, clock=clock)
+        self._sched = scheduler or Scheduler(1, clock=clock, seed=seed * 1000 + instance)
         self.bind_address = (self.ports.host, self.ports.vehicle_port(instance))
         self.gcs_address = (self.ports.host, self.ports.gcs_port(instance))
         self._remote = self.gcs_address
+        gport = self.ports.gcs_link_port(instance)
+        self.gcs_link: GcsLink | None = None
+        if gport is not None and gcs_link != "off":
+            self.gcs_link = GcsLink(self, (self.ports.host, gport),
+                                    (self.ports.host, self.ports.gcs_link_remote(instance)),
+                                    gcs_link)
+        self._reply: GcsLink | None = None  # the link of the datagram being handled
         self._rng = random.Random(hash((seed, instance, "link")))
         self._enc = Encoder(self.sysid, self.compid)
         self._parser = DatagramParser(
@@ -393,10 +477,29 @@ class MockVehicle:
                 f"{self.bind_address[1]}: {exc.strerror or exc}"
             ) from None
         sock.setblocking(False)
+        gl = self.gcs_link
+        if gl is not None:
+            gsock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                gsock.bind(gl.bind_address)
+            except OSError as exc:
+                gsock.close()
+                sock.close()
+                if self._own_scheduler:
+                    self._sched.stop()
+                raise SimStubError(
+                    f"vehicle {self.instance}: cannot bind the GCS link UDP "
+                    f"{gl.bind_address[0]}:{gl.bind_address[1]}: {exc.strerror or exc}"
+                ) from None
+            gsock.setblocking(False)
+            gl.sock = gsock
+            gl.transport, _ = await loop.create_datagram_endpoint(lambda: _GcsProto(gl),
+                                                                  sock=gsock)
         self._sock = sock
         self._link_plain = not self.faults.affects_link
         self._transport, _ = await loop.create_datagram_endpoint(lambda: _Proto(self), sock=sock)
         self.slot = self._sched.attach(self)
+        self._sched.est.configure(self.slot, self.estimator, self.estimator_shared)
         self.t0 = self._sched.now()
         # time_boot 0 (clamped so that no message carries a negative time)
         self._tb0 = self.t0 + min(BOOT["time_boot_zero"] * self.boot_time_scale, 0.3)
@@ -432,6 +535,14 @@ class MockVehicle:
             self._transport.close()
             self._transport = None
         self._sock = None
+        gl = self.gcs_link
+        if gl is not None:
+            for st in gl.streams.values():
+                st.entry = None
+            if gl.transport is not None:
+                gl.transport.close()
+                gl.transport = None
+            gl.sock = None
         if self._own_scheduler:
             self._sched.stop()
 
@@ -470,6 +581,19 @@ class MockVehicle:
 
     @property
     def velocity_ned(self) -> tuple[float, float, float]:
+        """True velocity [m/s] NED."""
+        x, y, z = self._sched.v_true_rows[self.slot]
+        return (x, y, z)
+
+    @property
+    def estimated_position_ned(self) -> tuple[float, float, float]:
+        """PX4's estimate of :attr:`position_ned` (what LOCAL_POSITION_NED reports)."""
+        x, y, z = self._sched.p_rows[self.slot]
+        return (x, y, z)
+
+    @property
+    def estimated_velocity_ned(self) -> tuple[float, float, float]:
+        """PX4's estimate of :attr:`velocity_ned` (what its velocity controller tracks)."""
         x, y, z = self._sched.v_rows[self.slot]
         return (x, y, z)
 
@@ -538,29 +662,38 @@ class MockVehicle:
     # streams
     def _setup_streams(self) -> None:
         rng = random.Random(hash((self.seed, self.instance, "phase")))
+        gl = self.gcs_link
+        gcs_rates = GCS_LINK_STREAMS[gl.profile] if gl is not None else {}
         for sd in STREAM_CATALOG:
             build = getattr(self, "_b_" + sd.name.lower())
-            st = StreamState(sd.name, SPECS[sd.name], build)
-            hz = sd.full_hz if self.profile == "full" else sd.lite_hz
-            st.default_interval = 1.0 / hz if hz > 0 else 0.0
-            st.interval = st.default_interval
-            self._streams[sd.name] = st
-            if st.interval > 0:
-                phase = rng.uniform(0.0, min(st.interval, 0.1))
-                start = self.t0 + sd.start_s * self.boot_time_scale + phase
-                self._sched.schedule(self, st, start)
+            hz_api = sd.full_hz if self.profile == "full" else sd.lite_hz
+            for link, hz, table in ((None, hz_api, self._streams),
+                                    (gl, gcs_rates.get(sd.name, 0.0),
+                                     gl.streams if gl is not None else None)):
+                if table is None:
+                    continue
+                st = StreamState(sd.name, SPECS[sd.name], build, link)
+                st.default_interval = 1.0 / hz if hz > 0 else 0.0
+                st.interval = st.default_interval
+                table[sd.name] = st
+                if st.interval > 0:
+                    phase = rng.uniform(0.0, min(st.interval, 0.1))
+                    start = self.t0 + sd.start_s * self.boot_time_scale + phase
+                    self._sched.schedule(self, st, start)
 
-    def set_stream_rate(self, name: str, hz: float | None, first_due: float | None = None) -> None:
-        """Set a stream's rate in Hz (None = profile default, 0 = off), like SET_MESSAGE_INTERVAL.
+    def set_stream_rate(self, name: str, hz: float | None, first_due: float | None = None,
+                        link: GcsLink | None = None) -> None:
+        """Set a stream's rate in Hz (None = profile default, 0 = off), like SET_MESSAGE_INTERVAL,
+        on the API link (default) or on ``link`` (the GCS link).
 
         The next message goes out at ``first_due`` (default: at once, or at the stream's boot
         start time if that is later)."""
-        st = self._streams[name]
+        st = (self._streams if link is None else link.streams)[name]
         if hz is None:
             st.interval = st.default_interval
         else:
             st.interval = 1.0 / min(hz, MAX_STREAM_HZ) if hz > 0 else 0.0
-        if st.interval > 0 and self.dead != "silent":
+        if st.interval > 0 and (link is not None or self.dead != "silent"):
             now = self._now()
             sd = _STREAM_BY_NAME[name]
             start = max(now + 0.001, self.t0 + sd.start_s * self.boot_time_scale)
@@ -571,7 +704,37 @@ class MockVehicle:
     # ------------------------------------------------------------------------------------------
     # output
     def _send(self, spec: MsgSpec, payload: bytes) -> None:
-        """Frame ``payload`` (MAVLink 2, zero-truncated, CRC) and send it to the remote.
+        """Send a reply: on the link whose datagram is being handled (API link otherwise)."""
+        if self._reply is None:
+            self._send_api(spec, payload)
+        else:
+            self._send_gcs(self._reply, spec, payload)
+
+    def _send_stream(self, st: StreamState, payload: bytes) -> None:
+        """Send one message of stream ``st`` on its link (the scheduler's path)."""
+        if st.link is None:
+            self._send_api(st.spec, payload)
+        else:
+            self._send_gcs(st.link, st.spec, payload)
+
+    def _broadcast(self, spec: MsgSpec, payload: bytes) -> None:
+        """Send on every link (PX4 sends STATUSTEXT and EVENT on all its MAVLink instances)."""
+        self._send_api(spec, payload)
+        if self.gcs_link is not None:
+            self._send_gcs(self.gcs_link, spec, payload)
+
+    def _send_gcs(self, link: GcsLink, spec: MsgSpec, payload: bytes) -> None:
+        if link.sock is None:
+            return
+        data = link.enc.frame(spec, payload)
+        link.tx_packets += 1
+        try:
+            link.sock.sendto(data, link.remote)
+        except OSError:
+            pass
+
+    def _send_api(self, spec: MsgSpec, payload: bytes) -> None:
+        """Frame ``payload`` (MAVLink 2, zero-truncated, CRC) and send it to the API remote.
 
         Inlined equivalent of :meth:`Encoder.frame` (this is the hot path: ~390 calls per
         vehicle per second)."""
@@ -632,14 +795,15 @@ class MockVehicle:
         self._text_id = (self._text_id + 1) & 0xFFFF
         chunks = px4.statustext_chunks(text)
         pack = _S["STATUSTEXT"].pack
+        spec = SPECS["STATUSTEXT"]
         for seq, chunk in enumerate(chunks):
-            self._send_named("STATUSTEXT", pack(severity, chunk, msg_id, seq))
+            self._broadcast(spec, pack(severity, chunk, msg_id, seq))
 
     def _event(self, tpl: px4.EventTemplate, args: bytes | None = None) -> None:
         seq = self._event_seq
         self._event_seq = (seq + 1) & 0xFFFF
-        self._send_named(
-            "EVENT",
+        self._broadcast(
+            SPECS["EVENT"],
             _S["EVENT"].pack(
                 tpl.event_id,
                 self._tboot_ms(self._now()),
@@ -698,7 +862,8 @@ class MockVehicle:
         return self.ready and self._can_run(self.intended)
 
     def _pos(self) -> list[float]:
-        return self._sched.p_true_rows[self.slot]
+        """The estimated position: PX4's position loops close on it."""
+        return self._sched.p_rows[self.slot]
 
     def _yaw(self) -> float:
         return self._sched.att_rows[self.slot][2]
@@ -721,7 +886,8 @@ class MockVehicle:
             return
         self._process_datagram(data, addr, self._now())
 
-    def _process_datagram(self, data: bytes, addr: tuple[str, int], now: float) -> None:
+    def _process_datagram(self, data: bytes, addr: tuple[str, int], now: float,
+                          link: GcsLink | None = None) -> None:
         if self.stage < len(_STAGES) and self.dead is None:  # boot state is current for commands
             self._boot_stages(now, now - self.t0)
         packets, malformed, unknown = self._parser.parse(data)
@@ -730,7 +896,18 @@ class MockVehicle:
         self._rx_unknown += unknown
         if not packets:
             return
-        self._remote = addr  # answers whoever last sent to it
+        if link is None:
+            self._remote = addr  # answers whoever last sent to it
+        else:
+            link.remote = addr
+            link.rx_packets += len(packets)
+        self._reply = link
+        try:
+            self._handle_packets(packets, now)
+        finally:
+            self._reply = None
+
+    def _handle_packets(self, packets: list, now: float) -> None:
         for pk in packets:
             self._rx_packets += 1
             if pk.src_system == self.sysid:
@@ -921,6 +1098,7 @@ class MockVehicle:
             return MAV_RESULT_TEMPORARILY_REJECTED
         self.armed = True
         self.arm_time = now
+        self._sched.est.start(self.slot)  # the estimate starts to wander (reported 0,0,0 before)
         self.took_off = False
         self.phase = "spoolup"
         self.phase_t = now
@@ -1072,7 +1250,7 @@ class MockVehicle:
         if msgid == 242 and self.home is not None:  # capture: one HOME_POSITION before the ACK
             self._send_named("HOME_POSITION", self._b_home_position(now) or b"")
             first_due = now + (1e6 / interval_us if interval_us > 0 else 2.0)
-        self.set_stream_rate(sd.name, hz, first_due)
+        self.set_stream_rate(sd.name, hz, first_due, self._reply)
         return MAV_RESULT_ACCEPTED
 
     def _c_get_message_interval(
@@ -1085,7 +1263,7 @@ class MockVehicle:
         if sd is None:
             interval = 0
         else:
-            st = self._streams[sd.name]
+            st = (self._streams if self._reply is None else self._reply.streams)[sd.name]
             interval = min(int(st.interval * 1e6), 2**31 - 1) if st.interval > 0 else -1
         self._send_named("MESSAGE_INTERVAL", _S["MESSAGE_INTERVAL"].pack(interval, msgid))
         return MAV_RESULT_ACCEPTED
@@ -1466,16 +1644,37 @@ class MockVehicle:
         )  # fmt: skip
 
     def _b_gps_raw_int(self, now: float) -> bytes:
+        """The GNSS receiver (truth + its own error), with the profile's reported accuracy."""
         s = self._sched
-        p = s.p_rows[self.slot]
-        v = s.v_rows[self.slot]
+        p = s.gnss_p_rows[self.slot]
+        v = s.gnss_v_rows[self.slot]
+        e = self.estimator
         lat, lon = reproject(self.origin[0], self.origin[1], p[0], p[1])
         alt_mm = round((self.origin[2] - p[2]) * 1000.0)
         gs = math.hypot(v[0], v[1])
         cog = int(math.degrees(math.atan2(v[1], v[0])) * 100.0) % 36000 if gs > 0.05 else 0
         return _S["GPS_RAW_INT"].pack(
-            self._tboot_us(now), round(lat * 1e7), round(lon * 1e7), alt_mm, 70, 110,
-            min(int(gs * 100.0), 65534), cog, 3, 10, alt_mm, 900, 1780, 400, 0, 0,
+            self._tboot_us(now), round(lat * 1e7), round(lon * 1e7), alt_mm, e.eph_cm, e.epv_cm,
+            min(int(gs * 100.0), 65534), cog, e.fix_type, e.satellites, alt_mm, e.h_acc_mm,
+            e.v_acc_mm, e.vel_acc_mm_s, 0, 0,
+        )  # fmt: skip
+
+    def _b_hil_state_quaternion(self, now: float) -> bytes:
+        """SITL ground truth as PX4 SITL sends it: lat/lon 1e-7 deg, alt mm AMSL, vx/vy/vz cm/s
+        NED, accelerations in mG, ``time_usec`` always 0 (fleet-truth captures)."""
+        s = self._sched
+        x, y, z = s.p_true_rows[self.slot]
+        vx, vy, vz = s.v_true_rows[self.slot]
+        a = s.att_rows[self.slot]
+        q = s.q_rows[self.slot]
+        ax, ay, az = s.acc_rows[self.slot]
+        lat, lon = reproject(self.origin[0], self.origin[1], x, y)
+        gs = _u16(math.hypot(vx, vy) * 100.0)
+        mg = 1000.0 / 9.80665
+        return _S["HIL_STATE_QUATERNION"].pack(
+            0, q[0], q[1], q[2], q[3], a[3], a[4], a[5], round(lat * 1e7), round(lon * 1e7),
+            round((self.origin[2] - z) * 1000.0), _i16(vx * 100.0), _i16(vy * 100.0),
+            _i16(vz * 100.0), gs, gs, _i16(ax * mg), _i16(ay * mg), _i16((az - 9.80665) * mg),
         )  # fmt: skip
 
     def _b_timesync(self, now: float) -> bytes:
@@ -1617,8 +1816,10 @@ class MockVehicle:
             return _S["ESTIMATOR_STATUS"].pack(
                 self._tboot_us(now), _NAN, _NAN, 0.01, _NAN, 0.002, _NAN, 0.012, 0.19, 229
             )
+        e = self.estimator
         return _S["ESTIMATOR_STATUS"].pack(
-            self._tboot_us(now), 0.14, 0.03, 0.02, 0.10, 0.01, _NAN, 0.29, 0.32, 895
+            self._tboot_us(now), 0.14, 0.03, 0.02, 0.10, 0.01, _NAN, e.pos_horiz_accuracy_m,
+            e.pos_vert_accuracy_m, 895
         )
 
     def _b_open_drone_id_location(self, now: float) -> bytes:
@@ -1753,6 +1954,10 @@ def _param_name(raw: bytes | str) -> str:
     if isinstance(raw, bytes):
         raw = raw.split(b"\x00", 1)[0].decode("ascii", "replace")
     return raw.split("\x00", 1)[0]
+
+
+def _u16(x: float) -> int:
+    return min(max(int(x), 0), 0xFFFF)
 
 
 def _i16(x: float) -> int:

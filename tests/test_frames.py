@@ -18,7 +18,7 @@ from vtube_fleet.frames import (
     local_ned_to_geodetic,
 )
 
-CAPTURES = Path("/work/shared/px4_sitl")
+CAPTURES = Path(__file__).parent / "data" / "px4_sitl"  # real PX4 SITL captures
 LAT0, LON0, ALT0 = 47.3977459, 8.5455930, 489.056  # sysid 1's GPS_GLOBAL_ORIGIN (captures)
 
 
@@ -161,7 +161,6 @@ def _read_capture(name: str):
     return L, G, origin
 
 
-@pytest.mark.skipif(not CAPTURES.exists(), reason="PX4 SITL captures not available")
 @pytest.mark.parametrize("name", ["offboard_flight_i0", "three_vehicles_i2", "offboard_loss"])
 def test_local_and_global_paths_agree_on_px4_captures(name: str) -> None:
     """README: LOCAL_POSITION_NED = azimuthal projection of GLOBAL_POSITION_INT about
@@ -178,7 +177,6 @@ def test_local_and_global_paths_agree_on_px4_captures(name: str) -> None:
     assert np.abs(a - b).max() < 0.02
 
 
-@pytest.mark.skipif(not CAPTURES.exists(), reason="PX4 SITL captures not available")
 def test_wgs84_enu_is_not_px4s_local_frame() -> None:
     """Why local→geodetic goes through PX4's sphere: a WGS84 tangent plane about the origin
     misses the captured local east by more than the ±0.02 m the PX4 projection achieves."""

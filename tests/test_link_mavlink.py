@@ -25,8 +25,7 @@ from vtube_fleet.link import (
 )
 from vtube_fleet.link.mavlink import TYPE_MASK_VELOCITY, TYPE_MASK_VELOCITY_YAW
 
-CAPTURES = Path("/work/shared/px4_sitl")
-needs_captures = pytest.mark.skipif(not CAPTURES.exists(), reason="PX4 captures not available")
+CAPTURES = Path(__file__).parent / "data" / "px4_sitl"  # real PX4 SITL captures
 PX4_ADDR = ("127.0.0.1", 14580)
 
 
@@ -94,7 +93,6 @@ EXPECTED = {
 }
 
 
-@needs_captures
 @pytest.mark.parametrize("decode_all", [True, False], ids=["decode_all", "cheap_path"])
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_vehicle_captures_decode_into_state(name: str, decode_all: bool) -> None:
@@ -131,7 +129,6 @@ def test_vehicle_captures_decode_into_state(name: str, decode_all: bool) -> None
         assert "Arming denied: Resolve system health failures first" in texts
 
 
-@needs_captures
 def test_capture_health_and_home_details() -> None:
     link = MavlinkLink("udpin://127.0.0.1:14540")
     health: list[bool] = []
@@ -150,7 +147,6 @@ def test_capture_health_and_home_details() -> None:
     assert link.state.heading_deg == pytest.approx(link.state.heading_deg)  # finite
 
 
-@needs_captures
 @pytest.mark.parametrize(
     "path", sorted(CAPTURES.glob("*_gcs_to_vehicle.tlog")), ids=lambda p: p.stem
 )
@@ -182,7 +178,6 @@ def _attach(link: MavlinkLink, sysid: int = 1) -> RecordingTransport:
     return t
 
 
-@needs_captures
 def test_encoder_matches_capture_gcs_bytes() -> None:
     """Our HEARTBEAT, COMMAND_LONG and setpoint packets equal the capture GCS's byte for byte."""
     packets = [p for _, p in tlog_records(CAPTURES / "offboard_flight_i0_gcs_to_vehicle.tlog")]
@@ -208,7 +203,6 @@ def test_encoder_matches_capture_gcs_bytes() -> None:
     assert t.sent[-1] == cmd
 
 
-@needs_captures
 def test_garbage_datagrams_counted_not_fatal(caplog: pytest.LogCaptureFixture) -> None:
     garbage = json.loads((CAPTURES / "rejections_garbage_datagrams.json").read_text())
     datagrams = [bytes.fromhex(h) for h in garbage["datagrams_hex"]]

@@ -155,7 +155,10 @@ class Streamer:
 
 
 def vehicle(**kw) -> MockVehicle:
+    """Vehicle 0 for behaviour tests: the estimate is the truth (``estimator="ideal"``), so
+    positions can be checked exactly; the error profiles have their own tests."""
     kw.setdefault("boot_time_scale", SCALE)
+    kw.setdefault("estimator", "ideal")
     return MockVehicle(0, ports=free_port_scheme(1), **kw)
 
 
@@ -412,7 +415,8 @@ async def test_malformed_truncated_and_foreign_datagrams_never_stall() -> None:
 
 
 async def test_kill_silent_and_freeze() -> None:
-    async with MockFleet(2, port_scheme=free_port_scheme(2), boot_time_scale=SCALE) as f:
+    async with MockFleet(2, port_scheme=free_port_scheme(2), boot_time_scale=SCALE,
+                         estimator="ideal") as f:
         v0, v1 = f.vehicles
         async with Gcs(v0) as g0, Gcs(v1) as g1:
             await g0.wait_type("HEARTBEAT")
@@ -461,7 +465,7 @@ async def test_link_faults_loss_latency_and_gps_noise() -> None:
         Faults(gps_noise_m=1.0),
     ]
     async with MockFleet(3, port_scheme=free_port_scheme(3), faults=faults,
-                         boot_time_scale=SCALE, seed=3) as f:  # fmt: skip
+                         boot_time_scale=SCALE, seed=3, estimator="ideal") as f:  # fmt: skip
         lossy, slow, noisy = f.vehicles
         async with Gcs(lossy) as gl, Gcs(slow) as gs, Gcs(noisy) as gn:
             # loss: PX4's seq still advances, so the GCS sees the gaps

@@ -23,12 +23,8 @@ from sim_stub.captures import CAPTURE_DIR, CAPTURE_NAMES, Capture, load_capture,
 from sim_stub.geo import project
 from sim_stub.ports import free_port_scheme
 
-pytestmark = [
-    pytest.mark.skipif(
-        not (CAPTURE_DIR / "README.md").exists(), reason=f"captures not found in {CAPTURE_DIR}"
-    ),
-    pytest.mark.timeout(240),
-]
+pytestmark = [pytest.mark.timeout(240)]
+assert (CAPTURE_DIR / "README.md").is_file(), f"captures not found in {CAPTURE_DIR}"
 
 # event-driven messages: compared by count over the run, not by rate between first and last
 EVENT_DRIVEN = {"COMMAND_ACK", "STATUSTEXT", "PARAM_VALUE", "GPS_GLOBAL_ORIGIN", "UNKNOWN_410"}
@@ -337,9 +333,10 @@ def test_home_reset_at_arming_and_at_disarm_after_landing(runs: dict[str, Run]) 
     assert len(changes) >= 2
     final = s.of("HOME_POSITION")[-1][1]
     last_lpn = s.of("LOCAL_POSITION_NED")[-1][1]
-    # home is the landing point, ~12 m from the start (capture: local (9.56, 7.49))
+    # home is the landing point, ~12 m from the start (capture: local (9.56, 7.49)); on the
+    # ground the estimate keeps wandering a little after disarming (px4-sih, like PX4's)
     assert math.hypot(final.x, final.y) > 5.0
-    assert abs(final.x - last_lpn.x) < 0.05 and abs(final.y - last_lpn.y) < 0.05
+    assert abs(final.x - last_lpn.x) < 0.15 and abs(final.y - last_lpn.y) < 0.15
 
 
 def test_three_vehicles_have_their_own_origins(runs: dict[str, Run]) -> None:
