@@ -30,6 +30,10 @@ class Faults:
     own logic (so in offboard it fails safe and lands). ``die_how="freeze"``: the vehicle keeps
     streaming telemetry but stops reacting: it holds its current position (hovering if airborne),
     ignores commands and setpoints (no COMMAND_ACK) and its state no longer changes.
+    ``push_north_m_s``/``push_east_m_s`` from ``push_at_s`` for ``push_for_s`` seconds (after
+    the vehicle's start): the vehicle is carried along at that velocity whatever it is told (a
+    gust its controller cannot hold against); its estimate moves with it, so nothing on the link
+    says why. :meth:`MockVehicle.push` does the same on demand.
     """
 
     loss_pct: float = 0.0
@@ -37,6 +41,10 @@ class Faults:
     gps_noise_m: float = 0.0
     die_at_s: float | None = None
     die_how: str = "silent"
+    push_north_m_s: float = 0.0
+    push_east_m_s: float = 0.0
+    push_at_s: float | None = None
+    push_for_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.loss_pct <= 100.0:
@@ -49,6 +57,14 @@ class Faults:
             raise SimStubError(f"fault die_at_s must be >= 0 s, got {self.die_at_s}")
         if self.die_how not in DIE_HOWS:
             raise SimStubError(f"fault die_how must be one of {DIE_HOWS}, got {self.die_how!r}")
+        for name in ("push_north_m_s", "push_east_m_s"):
+            v = getattr(self, name)
+            if not -20.0 <= v <= 20.0:
+                raise SimStubError(f"fault {name} must be in [-20, 20] m/s, got {v}")
+        if self.push_at_s is not None and not self.push_at_s >= 0.0:
+            raise SimStubError(f"fault push_at_s must be >= 0 s, got {self.push_at_s}")
+        if not 0.0 < self.push_for_s <= 3600.0:
+            raise SimStubError(f"fault push_for_s must be in (0, 3600] s, got {self.push_for_s}")
 
     @property
     def affects_link(self) -> bool:
@@ -66,6 +82,10 @@ _KEYS = {
     "die_at": ("die_at_s", float),
     "die_at_s": ("die_at_s", float),
     "die_how": ("die_how", str),
+    "push_north": ("push_north_m_s", float),
+    "push_east": ("push_east_m_s", float),
+    "push_at": ("push_at_s", float),
+    "push_for": ("push_for_s", float),
 }
 
 
@@ -73,7 +93,8 @@ def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
     """Parse a CLI fault spec ``[I:]key=value,...`` into ``(vehicle index or None, Faults)``.
 
     Example: ``"2:loss=5,latency=0.05,die_at=30,die_how=freeze"``; without ``I:`` it applies to
-    every vehicle. Keys: loss (percent), latency (s), gps_noise (m), die_at (s), die_how.
+    every vehicle. Keys: loss (percent), latency (s), gps_noise (m), die_at (s), die_how,
+    push_north / push_east (m/s), push_at (s), push_for (s).
     """
     index: int | None = None
     body = spec.strip()

@@ -72,6 +72,7 @@ class Scheduler:
         self.yaw_sp = np.full(n, np.nan)
         self.yaw_rate_sp = np.zeros(n)
         self.noise = np.zeros((n, 3))
+        self.push = np.zeros((n, 3))  # fault: carried along at this NED velocity (m/s)
         self.noise_sigma = np.zeros(n)
         self._noise_rng = np.random.default_rng(0)
         self.vehicles: list[MockVehicle | None] = [None] * n
@@ -111,6 +112,7 @@ class Scheduler:
                 self.u[slot] = 0.0
                 self.airborne[slot] = False
                 self.frozen[slot] = False
+                self.push[slot] = 0.0
                 self.est.release(slot)
 
     def set_noise(self, slot: int, sigma_m: float, seed: int) -> None:
@@ -157,13 +159,14 @@ class Scheduler:
         d = self.dyn
         e = self.est
         # the estimate (what PX4 reports and its position loops use) and the truth
+        v = d.v + self.push if self.push.any() else d.v
         self.p_rows = (d.p + e.e_p + self.noise).tolist()
-        self.v_rows = (d.v + e.e_v).tolist()
+        self.v_rows = (v + e.e_v).tolist()
         self.p_true_rows = d.p.tolist()
-        self.v_true_rows = d.v.tolist()
+        self.v_true_rows = v.tolist()
         # the GNSS receiver (GPS_RAW_INT)
         self.gnss_p_rows = (d.p + e.e_gnss + self.noise).tolist()
-        self.gnss_v_rows = (d.v + e.e_gnss_v).tolist()
+        self.gnss_v_rows = (v + e.e_gnss_v).tolist()
         self.acc_rows = d.acc.tolist()
         self.att_rows = np.stack(
             (d.roll, d.pitch, d.yaw, d.roll_rate, d.pitch_rate, d.yaw_rate), axis=1
@@ -233,6 +236,9 @@ class Scheduler:
             est.step(dt, self.airborne, self.frozen)
             u = self.u - est.e_v  # PX4 tracks the estimated velocity: the truth flies u − e_v
             self.dyn.step(dt, u, self.airborne, self.frozen, self.yaw_sp, self.yaw_rate_sp)
+            pushed = self.push.any(axis=1) & self.airborne & ~self.frozen
+            if pushed.any():  # a gust the vehicle cannot hold against (Faults.push_*)
+                self.dyn.p[pushed] += self.push[pushed] * dt
             if self.noise_sigma.any():
                 self._step_noise(dt)
         self._export()

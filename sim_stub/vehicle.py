@@ -381,6 +381,7 @@ class MockVehicle:
                                     (self.ports.host, self.ports.gcs_link_remote(instance)),
                                     gcs_link)
         self._reply: GcsLink | None = None  # the link of the datagram being handled
+        self._push_until: float | None = None
         self._rng = random.Random(hash((seed, instance, "link")))
         self._enc = Encoder(self.sysid, self.compid)
         self._parser = DatagramParser(
@@ -563,6 +564,15 @@ class MockVehicle:
         else:
             self._sched.frozen[self.slot] = True
         self._log_mode(self._now(), f"DEAD({how})")
+
+    def push(self, north_m_s: float, east_m_s: float, duration_s: float) -> None:
+        """Carry the vehicle along at (north, east) m/s for ``duration_s`` whatever it is told
+        (a gust it cannot hold against; its estimate moves along): fault injection on demand,
+        like :class:`~sim_stub.faults.Faults` ``push_*``."""
+        if not (math.isfinite(north_m_s) and math.isfinite(east_m_s) and duration_s > 0):
+            raise SimStubError("push needs finite velocities and a duration > 0 s")
+        self._sched.push[self.slot] = (north_m_s, east_m_s, 0.0)
+        self._push_until = self._now() + duration_s
 
     # ------------------------------------------------------------------------------------------
     # introspection (true state)
@@ -1303,6 +1313,14 @@ class MockVehicle:
             self.kill(f.die_how)
         if self.dead == "freeze":
             return
+        if f.push_at_s is not None:
+            on = f.push_at_s <= up < f.push_at_s + f.push_for_s
+            self._sched.push[self.slot] = (f.push_north_m_s, f.push_east_m_s, 0.0) if on \
+                else (0.0, 0.0, 0.0)
+        elif self._push_until is not None:
+            if now >= self._push_until:
+                self._push_until = None
+                self._sched.push[self.slot] = 0.0
         if self.stage < len(_STAGES):
             self._boot_stages(now, up)
         # offboard signal (COM_OF_LOSS_T)

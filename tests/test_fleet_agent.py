@@ -13,11 +13,11 @@ from vtube_fleet.controller import velocity_command
 from vtube_fleet.fleet.agent import (
     Agent,
     FlightPlan,
-    SafetyBudget,
     classify,
     exit_velocity,
     fleet_setpoints,
 )
+from vtube_fleet.fleet.budget import SafetyBudget
 from vtube_fleet.fleet.mission import load_mission
 from vtube_fleet.partition import PartitionError
 
@@ -56,7 +56,14 @@ def test_budget_formula(mission, budget) -> None:
     assert (flown.v, flown.v_max_prime, flown.v_min, flown.v_max) == (
         p.v, p.v_max_prime, p.v_min, p.v_max)
     text = budget.describe(p)
-    assert "v'_max·(T + L + τ_d + t63)" in text and f"{budget.delta_m:.3f}" in text
+    assert "(v'_max + D)·(T + L + τ_d + t63) + k σ" in text and f"{budget.delta_m:.3f}" in text
+    # the estimate and the disturbance terms (docs/fleet.md): δ = (v'_max + D)·delay + k σ
+    full = SafetyBudget.compute(p, period_s=0.05, latency_s=0.02, dead_time_s=0.3, t63_s=1.0,
+                                accuracy_m=0.29, accuracy_factor=2.0, disturbance_m_s=0.15)
+    assert full.estimate_m == pytest.approx(0.58)
+    assert full.disturbance_m == pytest.approx(0.15 * full.delay_s)
+    assert full.delta_m == pytest.approx(full.lag_m + full.estimate_m + full.disturbance_m)
+    assert full.as_dict()["accuracy_m"] == 0.29
     fixed = SafetyBudget.compute(p, period_s=0.05, latency_s=0.0, dead_time_s=0.3, t63_s=1.0,
                                  override_m=0.2)
     assert fixed.delta_m == 0.2 and fixed.overridden

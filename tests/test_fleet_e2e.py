@@ -1,11 +1,13 @@
 """End-to-end: the supervisor flies sim_stub mock vehicles over real UDP.
 
-Safety is asserted from the telemetry the vehicles reported (the supervisor's per-tick trace of
-telemetry positions in the tube frame and of the commands it sent), recomputed here
-independently: every pair of airborne vehicles ≥ 2 r_s apart, obstacle centre distance
-≥ r_o + r_s, leg distances ≥ r_s and every commanded horizontal speed in [v_min, v_max] while
-in the tube. No sleeps as synchronisation and no timing asserts: the tests wait on conditions.
-The mock vehicles boot with ``boot_time_scale`` 0.3 (armable after ~1.2 s instead of ~4 s).
+The mock vehicles have PX4 SITL's estimate errors (estimator profile ``px4-sih``, a different
+seed per test), so what the controller sees is not the truth. Safety is asserted from the
+**mock's ground truth** (``truth.py``: every tick, each vehicle's true position in the tube
+frame): pairs > 2 r_s, legs > r_s, obstacle centres > r_o + r_s while airborne in the tube. The
+telemetry trace is checked too (commanded speeds in [v_min, v_max], the run's own view of the
+limits), and with ``truth=True`` the run's own ``truth_*`` summary must agree that it was safe.
+No sleeps as synchronisation and no timing asserts: the tests wait on conditions. The mock
+vehicles boot with ``boot_time_scale`` 0.3 (armable after ~1.2 s instead of ~4 s).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleet_ports import free_ports
+from truth import TruthLog, assert_true_clearance
+from udp_relay import UdpRelay
 
 from vtube_fleet.fleet.mission import Mission, load_mission
 from vtube_fleet.fleet.supervisor import Supervisor, TickTrace
@@ -23,8 +27,9 @@ from vtube_fleet.fleetcli import fly, mock_fleet
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def boot(count: int) -> dict:
-    return {"boot_time_scale": 0.3, "port_scheme": free_ports(count)}
+def boot(count: int, seed: int = 0, estimator: str = "px4-sih") -> dict:
+    return {"boot_time_scale": 0.3, "port_scheme": free_ports(count), "seed": seed,
+            "estimator": estimator}
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -66,17 +71,19 @@ def check_safety(mission: Mission, trace: list[TickTrace], *, lost: tuple[int, .
     return worst
 
 
-def report(name: str, result, worst: dict[str, float]) -> None:
+def report(name: str, result, worst: dict[str, float], truth: dict[str, float]) -> None:
     s = result.summary
-    print(f"\n{name}: {result.outcome}, exited {s['exited']}/{s['robots']}, pair "
-          f"{worst['pair']:.3f} m (2 r_s = {s['pair_limit_m']:.2f}), obstacle clearance "
-          f"{worst['obstacle']:.3f} m, legs {worst['leg']:.3f} m, commanded "
-          f"{worst['cmd_min']:.3f}..{worst['cmd_max']:.3f} m/s, measured "
-          f"{s['min_measured_speed_settled_m_s']}..{s['max_measured_speed_m_s']} m/s (settled "
-          f"min), δ {s['safety_budget']['delta_m']:.3f} m, rate {s['achieved_rate_hz']:.2f} Hz, "
-          f"tick p50/p99 {1000 * s['tick_duration_p50_s']:.2f}/"
-          f"{1000 * s['tick_duration_p99_s']:.2f} ms, latency p50 "
-          f"{1000 * (s['link_latency_p50_s'] or 0):.2f} ms, flight {s['flight_time_s']:.1f} s")
+    print(f"\n{name}: {result.outcome}, exited {s['exited']}/{s['robots']}; TRUE clearance: pair "
+          f"{truth['pair']:.3f} m (2 r_s = {s['pair_limit_m']:.2f}), legs "
+          f"{truth['left_leg']:.3f} / {truth['right_leg']:.3f} m, obstacle clearance "
+          f"{truth['obstacle']:.3f} m; telemetry: pair {worst['pair']:.3f} m, legs "
+          f"{worst['leg']:.3f} m, obstacle {worst['obstacle']:.3f} m; commanded "
+          f"{worst['cmd_min']:.3f}..{worst['cmd_max']:.3f} m/s; δ "
+          f"{s['safety_budget']['delta_m']:.3f} m (σ {s['safety_budget']['accuracy_m']:.2f} m, "
+          f"L {1000 * s['safety_budget']['latency_s']:.0f} ms); compensation residual p99 "
+          f"{(s.get('estimate_compensation') or {}).get('residual_p99_m_s')} m/s; rate "
+          f"{s['achieved_rate_hz']:.2f} Hz, tick p99 {1000 * s['tick_duration_p99_s']:.2f} ms, "
+          f"flight {s['flight_time_s']:.1f} s")
 
 
 def keep(holder: list[Supervisor]):
@@ -94,10 +101,10 @@ def mission_file(tmp_path: Path, text: str) -> Mission:
 
 STRAIGHT = """
 [tube]
-p_h0 = [0.0, 5.0]
-p_h1 = [{length}, 5.0]
-p_r0 = [0.0, -5.0]
-p_r1 = [{length}, -5.0]
+p_h0 = [0.0, 10.0]
+p_h1 = [{length}, 10.0]
+p_r0 = [0.0, -10.0]
+p_r1 = [{length}, -10.0]
 
 [robots]
 r_s = 0.3
@@ -122,77 +129,169 @@ mission_timeout_s = 120.0
 """
 
 
+def truth_and_keep(log: TruthLog, holder: list[Supervisor]):
+    def hook(tick: int, sup: Supervisor) -> None:
+        if not holder:
+            holder.append(sup)
+        log(tick, sup)
+    return hook
+
+
+async def fly_logged(mission: Mission, seed: int, *, backend: str = "mavlink",
+                     estimator: str = "px4-sih", tmp_path: Path, **kw):
+    """Fly ``mission`` on a mock fleet of its own; (result, supervisor, truth log)."""
+    n = mission.count
+    holder: list[Supervisor] = []
+    async with mock_fleet(mission, **boot(n, seed, estimator)) as fleet:
+        log = TruthLog(fleet, mission)
+        result = await fly(mission, backend=backend, endpoints=fleet.endpoints,
+                           sysids=[i + 1 for i in range(n)], out_dir=tmp_path, keep_trace=True,
+                           tick_hook=truth_and_keep(log, holder), **kw)
+    return result, holder[0], log
+
+
 # ----------------------------------------------------------------------------------------------
 async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml")
     assert mission.count == 12
-    holder: list[Supervisor] = []
-    result = await fly(mission, backend="mavlink", out_dir=tmp_path, mock_kwargs=boot(12),
-                       keep_trace=True, tick_hook=keep(holder))
-    sup = holder[0]
+    result, sup, log = await fly_logged(mission, 1, tmp_path=tmp_path, truth=True)
     assert result.exit_code == 0, result.reason
     assert result.outcome == "completed"
     assert result.summary["exited"] == 12
     assert all(p.exit_time_s is not None for p in sup.pilots)
     assert [v["phase"] for v in result.summary["vehicle_states"]] == ["landed"] * 12
     worst = check_safety(mission, sup.trace)
+    truth = assert_true_clearance(log)
+    # the run's own ground-truth figures (HIL_STATE_QUATERNION, --truth) say safe too
+    s = result.summary
+    assert s["truth"] and s["truth_violations"] == 0 and s["violations"] == 0
+    assert s["truth_min_pair_distance_m"] > 2 * mission.scenario.robots.r_s
+    assert s["estimate_compensation"]["max_correction_m_s"] > 0.1  # px4-sih needs it
     assert (tmp_path / "summary.json").is_file()
-    report("mavlink x12", result, worst)
+    report("mavlink x12", result, worst, truth)
 
 
 async def test_mavsdk_4_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
     text = (ROOT / "configs" / "mock_fleet.toml").read_text().replace(
         'on_complete = "land"', 'on_complete = "hold"')
     mission = mission_file(tmp_path, text).with_vehicles(4)
-    holder: list[Supervisor] = []
-    result = await fly(mission, backend="mavsdk", out_dir=tmp_path, mock_kwargs=boot(4),
-                       keep_trace=True, tick_hook=keep(holder))
-    sup = holder[0]
+    result, sup, log = await fly_logged(mission, 2, backend="mavsdk", tmp_path=tmp_path,
+                                        truth=True)
     assert result.exit_code == 0, result.reason
     assert result.summary["exited"] == 4
     assert [v["phase"] for v in result.summary["vehicle_states"]] == ["holding"] * 4
     # the vehicles themselves report Hold (telemetry), not just our phase
     assert all(p.link.state.flight_mode == "HOLD" for p in sup.pilots)
     worst = check_safety(mission, sup.trace)
-    report("mavsdk x4", result, worst)
+    truth = assert_true_clearance(log)
+    assert result.summary["truth_violations"] == 0  # truth through MAVSDK's mavlink_direct
+    assert result.summary["measured"]["accuracy_m"] == pytest.approx(0.29, abs=0.01)
+    report("mavsdk x4", result, worst, truth)
+
+
+async def test_the_px4_sitl_mission_flies_on_the_mock(tmp_path: Path) -> None:
+    """The shipped real-SITL mission, on mock vehicles with PX4 SITL's estimate errors."""
+    mission = load_mission(ROOT / "configs" / "px4_sitl_3.toml")
+    result, sup, log = await fly_logged(mission, 3, tmp_path=tmp_path)
+    assert result.exit_code == 0, result.reason
+    worst = check_safety(mission, sup.trace)
+    truth = assert_true_clearance(log)
+    report("px4_sitl_3 on the mock", result, worst, truth)
 
 
 async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None:
-    positions = [[4.0, 0.0], [1.5, 2.5], [1.5, 0.0], [1.5, -2.5]]
-    mission = mission_file(tmp_path, STRAIGHT.format(length=24.0, positions=positions,
+    positions = [[12.0, 0.0], [2.0, 4.5], [2.0, 0.0], [2.0, -4.5]]
+    mission = mission_file(tmp_path, STRAIGHT.format(length=45.0, positions=positions,
                                                      on_complete="hold"))
     holder: list[Supervisor] = []
     killed: list[np.ndarray] = []
-    async with mock_fleet(mission, **boot(4)) as fleet:
+    async with mock_fleet(mission, **boot(4, seed=4)) as fleet:
+        log = TruthLog(fleet, mission)
 
         def hook(tick: int, sup: Supervisor) -> None:
             if not holder:
                 holder.append(sup)
+            log(tick, sup)
             p = sup.pilots[0]
-            if not killed and p.phase.value == "in_tube" and p.xy[0] > 9.0:
+            if not killed and p.phase.value == "in_tube" and p.xy[0] > 18.0:
                 killed.append(p.xy.copy())
                 fleet.kill(0, "silent")
 
         result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3, 4],
                            out_dir=tmp_path, keep_trace=True, tick_hook=hook)
     sup = holder[0]
-    assert killed, "vehicle 0 never reached x = 9 m"
+    assert killed, "vehicle 0 never reached x = 18 m"
     assert result.outcome == "incomplete" and result.exit_code == 3
     assert result.summary["lost"] == [0]
     assert result.summary["exited"] == 3
     assert sup.pilots[0].reason and "no telemetry" in sup.pilots[0].reason
     assert result.summary["partitions"] >= 2  # re-partitioned around the lost vehicle
-    # the others flew past the dead vehicle's last reported position, clear of it
-    dead = sup.pilots[0].lost_xy
-    assert dead is not None
-    after = [tk for tk in sup.trace if tk.phases[0] == "lost"]
+    # the others flew past the dead vehicle (TRUE positions: it hovers where it died)
+    dead_true = log.xy[-1][0]
+    after = [k for k, ph in enumerate(log.phases) if ph[0] == "lost"]
     assert after
-    others = np.concatenate([tk.pos[1:][np.isin(np.array(tk.phases[1:]),
-                                                 ["in_tube", "exited"])] for tk in after])
-    clearance = float(np.hypot(*(others - dead).T).min())
-    assert clearance >= 2 * mission.scenario.robots.r_s
-    assert float(others[:, 0].max()) > dead[0] + 3.0  # they did pass it
+    others = np.concatenate([log.xy[k][1:][np.isin(np.array(log.phases[k][1:]),
+                                                    ["in_tube", "exited"])] for k in after])
+    clearance = float(np.hypot(*(others - dead_true).T).min())
+    assert clearance > 2 * mission.scenario.robots.r_s
+    assert float(others[:, 0].max()) > dead_true[0] + 3.0  # they did pass it
     worst = check_safety(mission, sup.trace, lost=(0,))
-    report("vehicle dies", result, worst)
-    print(f"killed at ({killed[0][0]:.2f}, {killed[0][1]:.2f}); closest approach to its last "
-          f"position {clearance:.3f} m")
+    truth = assert_true_clearance(log)
+    report("vehicle dies", result, worst, truth)
+    print(f"killed at ({killed[0][0]:.2f}, {killed[0][1]:.2f}); closest TRUE approach to it "
+          f"{clearance:.3f} m")
+
+
+async def test_a_run_that_breaks_a_limit_ends_unsafe(tmp_path: Path) -> None:
+    """The ideal estimator (telemetry = truth) and a gust the vehicle cannot hold against push
+    vehicle 0 out through the left leg: the run's own telemetry breaks the limit, so the run
+    ends ``unsafe``, exit code 4, with the first violation's time, vehicle and figure."""
+    positions = [[3.0, 4.5], [3.0, -4.5]]
+    mission = mission_file(tmp_path, STRAIGHT.format(length=40.0, positions=positions,
+                                                     on_complete="land"))
+    pushed: list[float] = []
+    holder: list[Supervisor] = []
+    async with mock_fleet(mission, **boot(2, seed=5, estimator="ideal")) as fleet:
+
+        def hook(tick: int, sup: Supervisor) -> None:
+            if not holder:
+                holder.append(sup)
+            if not pushed and sup.pilots[0].phase.value == "in_tube":
+                pushed.append(sup.t_s())
+                # 2 m/s towards the left leg (tube y, heading 20°: north-west), for 6 s
+                h = np.radians(20.0)
+                left = np.array([np.sin(h), -np.cos(h)])  # tube +y as (north, east)
+                fleet.vehicles[0].push(2.0 * left[0], 2.0 * left[1], 6.0)
+
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
+                           out_dir=tmp_path, tick_hook=hook)
+    assert pushed
+    s = result.summary
+    assert result.outcome == "unsafe" and result.exit_code == 4, result.reason
+    assert s["violations"] > 0 and s["violations_by_condition"]["left_leg"] > 0
+    first = s["first_violation"]
+    assert first["condition"] == "left_leg" and first["vehicles"] == [0]
+    assert first["value"] <= mission.scenario.robots.r_s and first["t_s"] > pushed[0]
+    assert first["source"] == "telemetry"
+    assert "UNSAFE" in result.reason and "left_leg" in result.reason
+    assert (tmp_path / "summary.json").is_file()
+    print(f"\nunsafe run: {result.reason}")
+
+
+async def test_a_150_ms_relay_is_refused_before_arming(tmp_path: Path) -> None:
+    """Every datagram 150 ms late both ways (a UDP relay): the measured L (position age +
+    setpoint delay) exceeds max_latency_s, so nothing arms, and the error says why."""
+    mission = load_mission(ROOT / "configs" / "mock_fleet.toml").with_vehicles(3)
+    relay_to = free_ports(3)
+    async with mock_fleet(mission, **boot(3, seed=6)) as fleet:
+        ports = fleet.ports
+        async with UdpRelay([ports.vehicle_port(i) for i in range(3)],
+                            [ports.gcs_port(i) for i in range(3)],
+                            [relay_to.gcs_port(i) for i in range(3)], delay_s=0.15) as relay:
+            result = await fly(mission, endpoints=relay.endpoints, sysids=[1, 2, 3],
+                               out_dir=tmp_path)
+        assert relay.forwarded > 0
+        assert not any(v.armed for v in fleet.vehicles)
+    assert result.exit_code == 2 and result.outcome == "failed", result.reason
+    assert "max_latency_s" in result.reason and "nothing armed" in result.reason
+    print(f"\n150 ms relay: {result.reason}")

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vtube_fleet.fleet.agent import SafetyBudget
+from vtube_fleet.fleet.budget import SafetyBudget
 from vtube_fleet.fleet.mission import load_mission
 from vtube_fleet.fleet.supervisor import PreflightError, Supervisor, preflight_report
 from vtube_fleet.link.mavlink import MavlinkLink

@@ -32,11 +32,13 @@ VEL_YAW = 0xDC7 & ~0x400  # velocity + yaw
 class Gcs(asyncio.DatagramProtocol):
     """Receives everything the vehicle sends (decoded), sends MAVLink as sysid 255 / compid 190."""
 
-    def __init__(self, vehicle: MockVehicle, bind: tuple[str, int] | None = None) -> None:
+    def __init__(self, vehicle: MockVehicle, bind: tuple[str, int] | None = None,
+                 to: tuple[str, int] | None = None, sysid: int = 255) -> None:
         self.v = vehicle
         self.bind = bind or vehicle.gcs_address
-        self.mav = mav.MAVLink(None, 255, 190)
-        self.rx = mav.MAVLink(None, 255, 190)
+        self.to = to or vehicle.bind_address
+        self.mav = mav.MAVLink(None, sysid, 190)
+        self.rx = mav.MAVLink(None, sysid, 190)
         self.rx.robust_parsing = True
         self.msgs: list[tuple[float, object]] = []
         self.datagrams = 0
@@ -104,7 +106,7 @@ class Gcs(asyncio.DatagramProtocol):
 
     def send(self, msg: object) -> None:
         assert self.transport is not None
-        self.transport.sendto(msg.pack(self.mav), self.v.bind_address)  # type: ignore[attr-defined]
+        self.transport.sendto(msg.pack(self.mav), self.to)  # type: ignore[attr-defined]
 
     async def command(self, cmd: int, *params: float, int_: bool = False, target: int | None = None,
                       comp: int = 1) -> object:  # fmt: skip
@@ -555,3 +557,65 @@ async def test_fuzzed_valid_messages_never_break_the_vehicle() -> None:
         await g.wait_type("HEARTBEAT", since=mark)  # (other streams may have been switched off)
         assert v.counters.rx_datagrams >= 3000
         assert v.counters.rx_errors == 0 and v._sched.errors == 0
+
+
+async def test_gcs_link_sends_ground_truth_on_request_beside_the_estimate() -> None:
+    """PX4 SITL's second MAVLink instance: the GCS link (here on free ports instead of
+    18570+i → 14550). An observer there asks for HIL_STATE_QUATERNION (SET_MESSAGE_INTERVAL,
+    REQUEST_MESSAGE) and gets the vehicle's TRUE state, in PX4's units; the API link meanwhile
+    reports the estimate, and the reported accuracy is the profile's."""
+    import dataclasses
+
+    base = free_port_scheme(3)  # 6 free ports: API pair + GCS link pair (+ spare)
+    ports = dataclasses.replace(base, gcs_link_base=base.vehicle_base + 2,
+                                gcs_link_remotes=((0, base.gcs_base + 2),))
+    v = MockVehicle(0, ports=ports, boot_time_scale=SCALE, estimator="px4-sih", seed=4)
+    assert v.gcs_link is not None
+    observer_at = ("127.0.0.1", base.gcs_base + 2)
+    async with v, Gcs(v) as api, Gcs(v, bind=observer_at, to=v.gcs_link.bind_address,
+                                     sysid=254) as obs:
+        hb = await obs.wait_type("HEARTBEAT")  # the GCS link streams by itself (to 14550)
+        assert hb.get_srcSystem() == v.sysid
+        assert await obs.wait_type("GLOBAL_POSITION_INT", timeout=10)
+        mark = obs.mark()
+        ack = await obs.command(512, 115)  # REQUEST_MESSAGE: one truth sample before the ACK
+        assert ack.result == ACCEPTED and ack.target_system == 254
+        before = [m for _, m in obs.msgs[mark:] if m.get_type() == "HIL_STATE_QUATERNION"]
+        assert len(before) == 1 and before[0].time_usec == 0
+        assert not [m for _, m in api.msgs if m.get_type() == "HIL_STATE_QUATERNION"]
+        ack = await obs.command(511, 115, 20000)  # 50 Hz, as the fleet-truth recorder asked
+        assert ack.result == ACCEPTED
+        # fly: the estimate (API link) wanders away from the truth (GCS link)
+        st = Streamer(api)
+        with st:
+            st.kw = {"vz": -1.5}
+            assert (await api.command(176, 1, 6)).result == ACCEPTED
+            await ready(api)
+            assert (await api.command(400, 1)).result == ACCEPTED
+            await api.until(lambda: v.position_ned[2] < -3.0, what="airborne, 3 m up")
+            st.kw = {"vx": 1.0}
+            await api.until(lambda: math.hypot(*(a - b for a, b in zip(
+                v.position_ned[:2], v.estimated_position_ned[:2], strict=True))) > 0.05,
+                what="estimate 5 cm off the truth")
+            mark_o, mark_a = obs.mark(), api.mark()
+            truth = await obs.wait_type("HIL_STATE_QUATERNION", since=mark_o)
+            x, y, z = v.position_ned  # the mock's truth, right now
+            lat, lon = truth.lat / 1e7, truth.lon / 1e7
+            n, e = project(v.origin[0], v.origin[1], lat, lon)
+            assert math.hypot(n - x, e - y) < 0.06  # 50 Hz: at most one sample behind
+            assert truth.alt / 1000.0 == pytest.approx(v.origin[2] - z, abs=0.06)
+            assert truth.vx / 100.0 == pytest.approx(v.velocity_ned[0], abs=0.1)
+            lpn = await api.wait_type("LOCAL_POSITION_NED", since=mark_a)
+            ex, ey, _ = v.estimated_position_ned
+            assert math.hypot(lpn.x - ex, lpn.y - ey) < 0.06  # API link: the estimate
+            # reported accuracy (px4-sih: as PX4 SIH reported it)
+            es = await api.wait_type("ESTIMATOR_STATUS", since=mark_a, timeout=5)
+            gps = await api.wait_type("GPS_RAW_INT", since=mark_a)
+            assert es.pos_horiz_accuracy == pytest.approx(0.29)
+            assert (gps.fix_type, gps.h_acc, gps.vel_acc, gps.eph) == (3, 900, 400, 70)
+            # a STATUSTEXT goes out on both links; a command's ACK only on the asking one
+            n_obs_acks = len([m for _, m in obs.msgs if m.get_type() == "COMMAND_ACK"])
+            assert (await api.command(21)).result == ACCEPTED  # LAND
+            await obs.wait_type("STATUSTEXT", lambda m: m.text.startswith("Landing at"),
+                                since=mark_o)
+            assert len([m for _, m in obs.msgs if m.get_type() == "COMMAND_ACK"]) == n_obs_acks

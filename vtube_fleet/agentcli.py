@@ -54,10 +54,12 @@ from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.errors import UserError
-from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan, SafetyBudget
-from vtube_fleet.fleet.pilot import VehiclePilot, measure_sample_age_s
+from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan
+from vtube_fleet.fleet.budget import SafetyBudget, budget_problems
+from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
 from vtube_fleet.missioncli import (
+    ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
     DEFAULT_BROKER,
     add_bus_args,
@@ -483,9 +485,6 @@ class AgentProcess:
         self.say(f"joined run {cfg.run_id} ({cfg.vehicles} vehicles); vehicle {self.endpoint}")
 
     # -- 2. vehicle ready, budget, preflight -----------------------------------------------
-    def _make_budget(self, latency_s: float) -> SafetyBudget:
-        return bus_safety_budget(self.mission, latency_s, self.max_age_s)
-
     def _plan(self, budget: SafetyBudget) -> FlightPlan:
         sc = self.mission.scenario
         try:
@@ -497,22 +496,52 @@ class AgentProcess:
             ) from None
 
     async def measure_budget(self, pilot: BusAwarePilot) -> None:
-        measured = await measure_sample_age_s([pilot], self.cfg.period_s)
-        self.budget = self._make_budget(measured)
+        """Measure this vehicle's link and estimate, compute what it needs; fly the run's
+        announced δ (every agent the same partition) and refuse if it needs more."""
+        cfg = self.cfg
+        if cfg.position_accuracy_m is None:
+            try:
+                await wait_accuracy([pilot], cfg.max_position_accuracy_m, cfg.ready_timeout_s)
+            except PilotError as exc:
+                raise self.refuse(str(exc)) from None
+        measured = await measure_links([pilot], cfg.period_s)
+        problems = budget_problems(self.mission, measured)
+        if problems:
+            raise self.refuse("; ".join(problems))
+        own = bus_safety_budget(self.mission, measured, self.max_age_s)
+        run_delta = self.run_cfg.delta_m if self.run_cfg is not None else 0.0
+        params = self.mission.scenario.controller
+        if run_delta > 0 and not own.overridden:
+            if own.delta_m > run_delta + 1e-9:
+                raise self.refuse(
+                    f"this vehicle needs the safety budget {own.describe(params)}, more than "
+                    f"the run's δ = {run_delta:.3f} m (the coordinator assumed L = "
+                    f"{1000 * ASSUMED_LINK_LATENCY_S:.0f} ms and σ = "
+                    f"{cfg.position_accuracy_m or ASSUMED_ACCURACY_M:.2f} m; measured here: "
+                    f"L = {1000 * measured.latency_s:.0f} ms, σ = {measured.accuracy_m:.2f} m)")
+            self.budget = SafetyBudget.compute(params, period_s=own.period_s,
+                                               latency_s=own.latency_s,
+                                               dead_time_s=own.dead_time_s, t63_s=own.t63_s,
+                                               accuracy_m=own.accuracy_m,
+                                               accuracy_factor=own.accuracy_factor,
+                                               disturbance_m_s=own.disturbance_m_s,
+                                               override_m=run_delta,
+                                               override_source="the run's announced δ")
+        else:
+            self.budget = own
         plan = self._plan(self.budget)
         pilot.agent.root_plan = pilot.agent.plan = plan
         self.say(
-            f"safety budget {self.budget.describe(self.mission.scenario.controller)} (L = link "
-            f"{measured * 1000:.1f} ms + neighbour max age {self.max_age_s * 1000:.0f} ms)"
+            f"safety budget: needs {own.describe(params)} (L = link {measured.latency_s * 1000:.1f}"
+            f" ms + headroom + neighbour max age {self.max_age_s * 1000:.0f} ms; σ "
+            f"{measured.accuracy_m:.2f} m); flies the run's δ = {self.budget.delta_m:.3f} m"
         )
         cell = self.run_cfg.cell_m if self.run_cfg is not None else 0.0
         need = needed_cell_m(self.mission, self.max_age_s, self.budget.delta_m)
         if cell > 0 and need > cell:
             raise self.refuse(
                 f"the run's cells of {cell:g} m are smaller than this agent needs, {need:.2f} m "
-                f"(r_s + r_a + 2δ + v_max·(T + max age)); its link latency "
-                f"{1000 * measured:.0f} ms exceeds the {1000 * ASSUMED_LINK_LATENCY_S:.0f} ms "
-                f"the coordinator assumed (start the run with --no-cells)"
+                f"(r_s + r_a + 2δ + v_max·(T + max age)); start the run with --no-cells"
             )
 
     def preflight(self, pilot: BusAwarePilot) -> None:

@@ -5,8 +5,11 @@
   (said on stderr), more is an error. Without ``--endpoints`` a sim_stub mock fleet is started
   in this process with its homes in the slots (PX4's port scheme up to 40 vehicles, the mock's
   wide scheme beyond). Writes ``DIR/summary.json`` (always) and ``DIR/recording.rrd``.
-  Exit codes: 0 all vehicles exited; 2 a user error (config, endpoints, preflight: nothing
-  armed); 3 mission aborted or incomplete; 130 interrupted (every vehicle held, then landed).
+  Exit codes: 0 all vehicles exited and landed, every limit kept; 2 a user error (config,
+  endpoints, preflight: nothing armed); 3 mission aborted or incomplete; 4 unsafe (a limit was
+  broken in the tube, by telemetry or, with ``--truth``, by ground truth); 130 interrupted
+  (every vehicle held, then landed). ``--truth`` asks every vehicle for its SITL ground truth
+  (HIL_STATE_QUATERNION: PX4 SITL and the mock) and reports the clearance truly flown.
 * ``mock-fleet MISSION.toml``: run the sim_stub vehicles placed in the mission's slots until
   interrupted, printing their endpoints (for driving them from other processes).
 * ``sitl-homes MISSION.toml``: one line per PX4 SITL instance,
@@ -161,19 +164,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path("runs") / Path(args.mission).stem
     recorder = _recorder(args, out)
     view = FleetView(enabled=not args.quiet)
-    mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale}
+    mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale,
+                   "estimator": args.mock_estimator}
     try:
         result = asyncio.run(fly(mission, backend=args.backend, endpoints=endpoints,
                                  out_dir=out, recorder=recorder, view=view,
-                                 mock_kwargs=mock_kwargs))
+                                 mock_kwargs=mock_kwargs, truth=args.truth))
     finally:
         recorder.close()
-    s = result.summary
     print(_closing_line(result, out), file=sys.stderr)
     if result.exit_code not in (0, 130) and result.reason:
-        print(f"error: mission {result.outcome}: {' '.join(result.reason.split())}",
-              file=sys.stderr)
-    del s
+        red = "\x1b[31m" if sys.stderr.isatty() else ""
+        print(f"{red}error: mission {result.outcome}: {' '.join(result.reason.split())}"
+              f"{chr(27) + '[0m' if red else ''}", file=sys.stderr)
     return int(result.exit_code)
 
 
@@ -193,7 +196,13 @@ def _closing_line(result: Any, out: Path) -> str:
             f"(after the first {s.get('settle_s', 0):.1f} s: "
             f"{f('min_measured_speed_settled_m_s', 'm/s')}..); "
             f"rate {f('achieved_rate_hz', 'Hz')}, tick p99 "
-            f"{f('tick_duration_p99_s', 'ms', 1000)}; summary {out / 'summary.json'}")
+            f"{f('tick_duration_p99_s', 'ms', 1000)}"
+            + (f"; TRUE clearance: pair {f('truth_min_pair_distance_m')} (airborne "
+               f"{f('truth_min_pair_distance_airborne_m')}), obstacle centre "
+               f"{f('truth_min_obstacle_center_distance_m')}, legs "
+               f"{f('truth_min_left_leg_distance_m')} / {f('truth_min_right_leg_distance_m')}"
+               if s.get("truth") else "")
+            + f"; summary {out / 'summary.json'}")
 
 
 def _recorder(args: argparse.Namespace, out: Path) -> Any:
@@ -269,6 +278,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--mock-boot-time-scale", type=float, default=1.0, metavar="S",
                    help="without --endpoints: scale the mock vehicles' boot timeline (PX4 is "
                         "armable ~4 s after boot; 0.3 makes that ~1.2 s)")
+    p.add_argument("--mock-estimator", choices=("px4-sih", "rtk", "ideal"), default="px4-sih",
+                   help="without --endpoints: the mock vehicles' estimate errors (px4-sih: "
+                        "like real PX4 SITL, the default; rtk: cm-level; ideal: none)")
+    p.add_argument("--truth", action="store_true",
+                   help="ask every vehicle for its SITL ground truth (HIL_STATE_QUATERNION; "
+                        "PX4 SITL and the mock send it) and judge the clearance truly flown "
+                        "too (truth_* summary keys)")
     try:
         from vtube_fleet.recording import add_recording_args
 

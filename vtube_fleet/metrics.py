@@ -37,9 +37,12 @@ from vtube_fleet.tube import Obstacle, Trapezoid
 __all__ = [
     "CONDITIONS",
     "METRIC_KEYS",
+    "SafetyLimits",
     "SafetyMonitor",
     "StepMetrics",
     "SummaryAccumulator",
+    "Verdict",
+    "verdict",
 ]
 
 #: Names of the safety conditions, as used in ``violations_by_condition``.
@@ -118,6 +121,53 @@ class StepMetrics:
         return out
 
 
+@dataclass(frozen=True)
+class SafetyLimits:
+    """The paper's safety limits, in one place: two robots > 2 r_s apart (pair), a robot more
+    than r_s from each main-tube leg (left_leg, right_leg), its centre more than r_o,k + r_s
+    from obstacle k's centre (obstacle: clearance ‖p − p_o‖ − r_o > r_s), speeds in
+    [v_min, v_max] (speed). Always the PHYSICAL r_s (not the flown r_s' of the safety budget).
+    """
+
+    r_s: float
+    v_min: float
+    v_max: float
+
+    @classmethod
+    def from_params(cls, params: Any) -> SafetyLimits:
+        return cls(float(params.r_s), float(params.v_min), float(params.v_max))
+
+    @property
+    def pair_m(self) -> float:
+        """2 r_s: the limit of the minimum pair distance."""
+        return 2.0 * self.r_s
+
+    @property
+    def leg_m(self) -> float:
+        """r_s: the limit of the distance to a leg."""
+        return self.r_s
+
+    def obstacle_center_m(self, r_o: float) -> float:
+        """r_o + r_s: the limit of the distance to an obstacle's centre."""
+        return float(r_o) + self.r_s
+
+    def limit(self, metric_key: str, obstacle_radii: Sequence[float] = ()) -> float | None:
+        """The limit of a :data:`METRIC_KEYS` entry (the tightest over the obstacles for the
+        centre distance), None for keys without one."""
+        if metric_key.startswith("min_pair_distance"):
+            return self.pair_m
+        if metric_key.startswith(("min_left_leg", "min_right_leg", "min_obstacle_clearance")):
+            return self.leg_m
+        if metric_key.startswith("min_obstacle_center"):
+            return (self.obstacle_center_m(min(obstacle_radii)) if len(obstacle_radii)
+                    else None)
+        if metric_key.startswith("min_speed"):
+            return self.v_min
+        if metric_key.startswith("max_speed"):
+            return self.v_max
+        return None
+
+
 @dataclass(frozen=True, eq=False)
 class SafetyMonitor:
     """The fixed data the metrics need: the MAIN tube, the obstacles and the limits.
@@ -154,6 +204,10 @@ class SafetyMonitor:
             "oc": (c[:, 0] + 1j * c[:, 1])[:, None],  # (P, 1)
         }
         object.__setattr__(self, "_geom", geom)
+
+    @property
+    def limits(self) -> SafetyLimits:
+        return SafetyLimits(self.r_s, self.v_min, self.v_max)
 
     @classmethod
     def from_params(
@@ -335,10 +389,50 @@ class SafetyMonitor:
         return self._result(min_pair, min_center, min_clear, left, right, vmin, vmax,
                             np.full(k, m, dtype=np.int64), speed_bad)
 
+    def explain(self, pos: np.ndarray, vel: np.ndarray | None = None) -> list[dict[str, Any]]:
+        """What breaks the limits in ONE step (``pos`` (M, 2), NaN rows absent): one entry per
+        broken condition, the worst offender: ``condition``, ``value`` (m or m/s), ``limit``
+        and ``robots`` (indices into ``pos``). For reports; O(M²) in the pairs."""
+        p = np.asarray(pos, dtype=float).reshape(-1, 2)
+        ok = np.flatnonzero(np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]))
+        lim = self.limits
+        out: list[dict[str, Any]] = []
+        if ok.size > 1:
+            q = p[ok]
+            d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
+            d[np.tril_indices(len(q))] = np.inf
+            i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+            if d[i, j] <= lim.pair_m:
+                out.append({"condition": "pair", "value": float(d[i, j]), "limit": lim.pair_m,
+                            "robots": [int(ok[i]), int(ok[j])]})
+        if ok.size:
+            q = p[ok]
+            t = self.tube
+            for cond, dist in (("left_leg", t.d_Th(q)), ("right_leg", t.d_Tr(q))):
+                k = int(np.argmin(dist))
+                if dist[k] <= lim.leg_m:
+                    out.append({"condition": cond, "value": float(dist[k]), "limit": lim.leg_m,
+                                "robots": [int(ok[k])]})
+            for c, r in zip(self.obstacle_centers, self.obstacle_radii, strict=True):
+                dc = np.hypot(*(q - c).T)
+                k = int(np.argmin(dc))
+                if dc[k] - r <= lim.leg_m:
+                    out.append({"condition": "obstacle", "value": float(dc[k]),
+                                "limit": lim.obstacle_center_m(r), "robots": [int(ok[k])],
+                                "obstacle_center": [float(c[0]), float(c[1])]})
+            if vel is not None:
+                sp = np.hypot(*np.asarray(vel, dtype=float).reshape(-1, 2)[ok].T)
+                for k in np.flatnonzero((sp < lim.v_min - self.speed_tol)
+                                        | (sp > lim.v_max + self.speed_tol))[:1]:
+                    out.append({"condition": "speed", "value": float(sp[k]),
+                                "limit": lim.v_min if sp[k] < lim.v_min else lim.v_max,
+                                "robots": [int(ok[k])]})
+        return out
+
     def _result(self, min_pair: np.ndarray, min_center: np.ndarray, min_clear: np.ndarray,
                 left: np.ndarray, right: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
                 robots: np.ndarray, speed_bad: np.ndarray) -> StepMetrics:
-        r_s = self.r_s
+        r_s = self.limits.leg_m
         return StepMetrics(
             min_pair_distance_m=min_pair,
             min_obstacle_center_distance_m=min_center,
@@ -348,7 +442,7 @@ class SafetyMonitor:
             min_speed_m_s=vmin,
             max_speed_m_s=vmax,
             robots=robots,
-            pair_violation=min_pair <= 2.0 * r_s,
+            pair_violation=min_pair <= self.limits.pair_m,
             obstacle_violation=min_clear <= r_s,
             left_leg_violation=left <= r_s,
             right_leg_violation=right <= r_s,
@@ -463,3 +557,42 @@ class SummaryAccumulator:
         out["steps"] = self.steps
         out.update(extra)
         return out
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether a run kept the limits (:func:`verdict`): ``safe``; ``violations`` (steps that
+    broke a limit) per judged stream; ``first`` the first violation as recorded (time,
+    condition, figure, limit, robots) or None; ``summary_line`` for people."""
+
+    safe: bool
+    violations: dict[str, int]
+    first: dict[str, Any] | None
+
+    @property
+    def summary_line(self) -> str:
+        if self.safe:
+            return "safe: every limit kept"
+        f = self.first or {}
+        where = ""
+        if f:
+            who = ", ".join(str(r) for r in f.get("vehicles", f.get("robots", [])))
+            nan = float("nan")
+            where = (f"; first at t = {f.get('t_s', nan):.2f} s: {f.get('condition')} "
+                     f"{f.get('value', nan):.3f} m (limit {f.get('limit', nan):.3f} m)"
+                     + (f", vehicle(s) {who}" if who else "")
+                     + (f" ({f['source']})" if f.get("source") else ""))
+        counts = ", ".join(f"{n} step(s) by {k or 'telemetry'}" for k, n in
+                           self.violations.items() if n)
+        return f"UNSAFE: limits broken in {counts}{where}"
+
+
+def verdict(summary: dict[str, Any], streams: Sequence[str] = ("",)) -> Verdict:
+    """THE decision whether a run was safe, from its summary: any step of a judged stream
+    (``""`` = the run's own telemetry in the tube, ``"_truth"`` = ground truth where the
+    simulator provides it) that broke a limit makes it unsafe. Used by the fleet, the MQTT
+    coordinator and agents, the simulator and ``review``."""
+    counts = {s: int(summary.get(f"violations{s}") or 0) for s in streams
+              if f"violations{s}" in summary}
+    first = summary.get("first_violation")
+    return Verdict(not any(counts.values()), counts, first if isinstance(first, dict) else None)

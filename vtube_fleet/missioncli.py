@@ -98,8 +98,12 @@ def config_hash(path: str | Path) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
-#: Link latency the coordinator assumes when it sizes the cells (each agent checks its own).
+#: Link latency L (position age + setpoint delay) the coordinator assumes for every vehicle
+#: when it fixes the run's safety budget and cells; an agent whose own link needs more refuses.
 ASSUMED_LINK_LATENCY_S = 0.1
+#: Position accuracy σ assumed when the mission does not say (``position_accuracy_m``): PX4
+#: SITL reports 0.29-0.32 m; an agent whose vehicle reports more refuses.
+ASSUMED_ACCURACY_M = 0.35
 
 
 def default_max_age_s(mission: Any) -> float:
@@ -108,21 +112,18 @@ def default_max_age_s(mission: Any) -> float:
     return min(3.0 * cfg.period_s, cfg.neighbour_max_age_s)
 
 
-def bus_safety_budget(mission: Any, link_latency_s: float, max_age_s: float) -> Any:
-    """The agents' :class:`~vtube_fleet.fleet.agent.SafetyBudget`: the fleet's δ with
-    L = link latency + ``max_age_s`` (a neighbour's state is used up to that old)."""
-    from vtube_fleet.fleet.agent import SafetyBudget
+def bus_safety_budget(mission: Any, measured: Any, max_age_s: float) -> Any:
+    """The MQTT agents' :class:`~vtube_fleet.fleet.budget.SafetyBudget`: the fleet's
+    :func:`~vtube_fleet.fleet.budget.mission_budget` with ``max_age_s`` added to L (a
+    neighbour's state is used up to that old). ``measured``: a
+    :class:`~vtube_fleet.fleet.budget.LinkMeasurement` (an agent's own), or None for the
+    coordinator's assumptions (:data:`ASSUMED_LINK_LATENCY_S`, :data:`ASSUMED_ACCURACY_M`)."""
+    from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
 
-    cfg = mission.config
-    link = cfg.latency_s if cfg.latency_s is not None else link_latency_s
-    return SafetyBudget.compute(
-        mission.scenario.controller,
-        period_s=cfg.period_s,
-        latency_s=link + max_age_s,
-        dead_time_s=cfg.tracking_dead_time_s,
-        t63_s=cfg.tracking_t63_s,
-        override_m=cfg.safety_margin_m,
-    )
+    if measured is None:
+        measured = LinkMeasurement(ASSUMED_LINK_LATENCY_S - mission.config.latency_headroom_s,
+                                   0.0, ASSUMED_ACCURACY_M)
+    return mission_budget(mission, measured, extra_latency_s=max_age_s)
 
 
 def needed_cell_m(mission: Any, max_age_s: float, delta_m: float) -> float:
@@ -134,9 +135,9 @@ def needed_cell_m(mission: Any, max_age_s: float, delta_m: float) -> float:
 
 
 def run_cell_m(mission: Any, max_age_s: float) -> float:
-    """The cell size a coordinator announces: :func:`needed_cell_m` with the δ of an
-    :data:`ASSUMED_LINK_LATENCY_S` link, rounded up to 0.5 m."""
-    delta = bus_safety_budget(mission, ASSUMED_LINK_LATENCY_S, max_age_s).delta_m
+    """The cell size a coordinator announces: :func:`needed_cell_m` with the run's δ
+    (:func:`bus_safety_budget` under the coordinator's assumptions), rounded up to 0.5 m."""
+    delta = bus_safety_budget(mission, None, max_age_s).delta_m
     return math.ceil(2.0 * needed_cell_m(mission, max_age_s, delta)) / 2.0
 
 
@@ -425,6 +426,7 @@ class Coordinator:
             self.path.name,
             max_age_s=self.max_age_s,
             cell_m=run_cell_m(self.mission, self.max_age_s) if self.cells else 0.0,
+            delta_m=bus_safety_budget(self.mission, None, self.max_age_s).delta_m,
         )
         self.bus.set_retained(self.bus.topics.config, encode_config(cfg))
         self.announced = cfg

@@ -38,6 +38,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.controller import ControllerParams, TubeArrays
 
 __all__ = [
+    "ApexZone",
     "DEFAULT_APEX_FACTOR",
     "LOCATE_TOL",
     "Partition",
@@ -46,6 +47,8 @@ __all__ = [
     "Triangle",
     "Violation",
     "alpha_max",
+    "apex_lookahead",
+    "apex_zones",
     "check_assumption3",
     "check_constraint2",
     "h_min",
@@ -679,6 +682,96 @@ def _dist_to_polygon(p: np.ndarray, poly: np.ndarray) -> float:
         t = min(1.0, max(0.0, float((p - a) @ e) / float(e @ e)))
         best = min(best, float(np.hypot(*(p - (a + t * e)))))
     return best
+
+
+@dataclass(frozen=True, eq=False)
+class ApexZone:
+    """Where the switching rule looks ahead of a triangle's apex (:func:`apex_lookahead`).
+
+    ``before`` is the index of the sub-tube that ends at the apex line, ``left``/``right`` the
+    side tubes that start there (one is None after Remark 5), ``apex`` p_oth, ``xi_apex`` its
+    ξ, ``depth_m`` how far upstream of the apex line the zone reaches.
+    """
+
+    triangle: int
+    before: int
+    left: int | None
+    right: int | None
+    apex: np.ndarray
+    xi_apex: float
+    depth_m: float
+
+
+def apex_zones(part: Partition, params: ControllerParams) -> tuple[ApexZone, ...]:
+    """The look-ahead zone of every triangle for a vehicle with response lag.
+
+    §5 switches a robot into a side tube only on the apex line: one heading straight at the
+    apex then enters the side tube at distance ≈ 0 from its triangle side, inside r_s (NOTES
+    item 7) — harmless for a single integrator integrated finely, not for a vehicle that needs
+    τ_d + t63 to react. Ahead of each apex, down to ``depth = (r_s + r_a) / sin θ`` (θ the
+    side's angle to n_c; so a robot on the apex's line enters at d = r_s + r_a, where the
+    side's barrier starts to act), clipped to the before-tube, a robot of the before-tube is
+    therefore controlled by the side tube on its side of the apex: the triangle side's line
+    extended upstream is a wall for it already. Found geometrically: the side tubes start on
+    the apex line with a leg through the apex; the before-tube ends on it and contains it.
+    """
+    tol = 1e-6
+    tube = part.tube
+    n_c = tube.n_c
+    xi0 = float(n_c @ tube.p_h0)
+    out = []
+    for tri in part.triangles:
+        apex = np.asarray(tri.p_oth, dtype=float)
+        xi_a = float(n_c @ apex) - xi0
+        left = right = before = None
+        for k, t in enumerate(part.sub_tubes):
+            xs, xe = float(part.xi_start[k]), float(part.xi_end[k])
+            if abs(xs - xi_a) < tol:
+                if float(np.hypot(*(t.p_r0 - apex))) < tol:
+                    left = k
+                elif float(np.hypot(*(t.p_h0 - apex))) < tol:
+                    right = k
+            if (abs(xe - xi_a) < tol and float(t.d_Th(apex)) >= -tol
+                    and float(t.d_Tr(apex)) >= -tol):
+                before = k
+        if before is None or (left is None and right is None):
+            continue
+        sides = [part.sub_tubes[k].t_r for k in (left,) if k is not None] + \
+                [part.sub_tubes[k].t_h for k in (right,) if k is not None]
+        sin_t = min(math.sqrt(max(0.0, 1.0 - float(t @ n_c) ** 2)) for t in sides)
+        xs_b = float(part.xi_start[before])
+        room = xi_a - (xs_b if math.isfinite(xs_b) else 0.0)
+        depth = (params.r_s + params.r_a) / sin_t if sin_t > 1e-9 else room
+        out.append(ApexZone(tri.obstacle, before, left, right, apex, xi_a,
+                            float(max(0.0, min(depth, room)))))
+    return tuple(out)
+
+
+def apex_lookahead(part: Partition, zones: Sequence[ApexZone], p: np.ndarray,
+                   k: np.ndarray) -> np.ndarray:
+    """The switching rule with look-ahead (:func:`apex_zones`): ``k`` = ``part.locate(p)``,
+    points of a zone's before-tube within its depth upstream of the apex line are moved to the
+    side tube on their side of the apex (left on a tie, as at the apex itself)."""
+    if not zones:
+        return k
+    p = np.asarray(p, dtype=float).reshape(-1, 2)
+    k = np.array(k, dtype=np.intp).reshape(-1)
+    tube = part.tube
+    n_c = tube.n_c
+    m = np.array([-n_c[1], n_c[0]]) * -1.0  # from the left leg towards the right leg
+    if float(m @ (tube.p_r0 - tube.p_h0)) < 0:
+        m = -m
+    xi = p @ n_c - float(n_c @ tube.p_h0)
+    for z in zones:
+        hit = (k == z.before) & (xi >= z.xi_apex - z.depth_m) & (xi < z.xi_apex)
+        if not hit.any():
+            continue
+        lat = (p[hit] - z.apex) @ m
+        if z.left is not None and z.right is not None:
+            k[hit] = np.where(lat <= 0.0, z.left, z.right)
+        else:
+            k[hit] = z.left if z.left is not None else z.right
+    return k
 
 
 def partition(

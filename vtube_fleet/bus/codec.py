@@ -246,7 +246,9 @@ class MissionConfigMsg:
     Agents compare ``config_hash`` with the hash of their own mission file and refuse to fly
     on a difference; ``run_id`` is new for every ``mission start``. The run's bus parameters,
     the same for every agent: ``max_age_s`` (oldest neighbour state used as a live position,
-    budgeted in the safety margin) and ``cell_m`` (spatial cell size; 0 = no cells).
+    budgeted in the safety margin), ``cell_m`` (spatial cell size; 0 = no cells) and
+    ``delta_m`` (the fleet's safety budget δ, the same partition for every agent; each agent
+    refuses if its own link and estimate need more; 0 = none announced).
     """
 
     mission_id: str
@@ -257,6 +259,7 @@ class MissionConfigMsg:
     source: str = ""  # the coordinator's mission file name, for error messages
     max_age_s: float = 0.0
     cell_m: float = 0.0
+    delta_m: float = 0.0
 
 
 def encode_config(cfg: MissionConfigMsg) -> bytes:
@@ -271,6 +274,7 @@ def encode_config(cfg: MissionConfigMsg) -> bytes:
             "source": cfg.source,
             "max_age_s": cfg.max_age_s,
             "cell_m": cfg.cell_m,
+            "delta_m": cfg.delta_m,
         }
     )
 
@@ -286,4 +290,11 @@ def decode_config(payload: bytes) -> MissionConfigMsg:
         source=str(obj.get("source", "")),
         max_age_s=float(_field(obj, "max_age_s", (int, float), "config")),
         cell_m=float(_field(obj, "cell_m", (int, float), "config")),
+        delta_m=_nonneg(obj.get("delta_m", 0.0), "delta_m"),
     )
+
+
+def _nonneg(v: Any, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+        raise CodecError(f"config: {name} must be a finite number >= 0, got {v!r}")
+    return float(v)

@@ -1,7 +1,9 @@
 """The fleet: per-vehicle agents, pilots and the asyncio supervisor (``vtube-fleet run``).
 
 * :mod:`~vtube_fleet.fleet.mission`: mission files (a scenario plus ``[mission]``);
-* :mod:`~vtube_fleet.fleet.agent`: the pure per-vehicle decision logic and the safety budget;
+* :mod:`~vtube_fleet.fleet.agent`: the pure per-vehicle decision logic;
+* :mod:`~vtube_fleet.fleet.budget`: the safety budget (how much r_s and r_a are inflated);
+* :mod:`~vtube_fleet.fleet.compensation`: the estimate-disturbance compensation;
 * :mod:`~vtube_fleet.fleet.pilot`: one vehicle's flight procedure over a link;
 * :mod:`~vtube_fleet.fleet.supervisor`: N pilots on one control clock, faults, summary;
 * :mod:`~vtube_fleet.fleet.view`: the live terminal view.
@@ -9,7 +11,8 @@
 See ``docs/fleet.md``.
 """
 
-from vtube_fleet.fleet.agent import Agent, FlightPlan, SafetyBudget, Setpoint
+from vtube_fleet.fleet.agent import Agent, FlightPlan, Setpoint
+from vtube_fleet.fleet.budget import SafetyBudget
 from vtube_fleet.fleet.mission import Mission, MissionConfig, load_mission
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.supervisor import FleetResult, MissionAborted, Supervisor

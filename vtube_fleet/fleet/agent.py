@@ -9,8 +9,10 @@ An :class:`Agent` is what one vehicle knows and decides:
   ``max_age_s`` and ``lost_after_s`` ago is kept as a *static point* at its last position (so the
   pair barrier still keeps clear of where it was), and one silent for longer than
   ``lost_after_s``, or that says it is ``LOST``, is *lost*: a static obstacle at its last
-  position. Entries of vehicles on the ground (connecting, ready, arming, landed, failed) are
-  ignored.
+  position. A vehicle that is airborne but stopped flying the controller (holding, landing)
+  is treated like a lost one: inside the tube it becomes an obstacle for everyone, at once, by
+  the same rule in every agent. Entries of vehicles on the ground (connecting, ready, arming,
+  landed, failed) are ignored.
 * its **phase** (:class:`~vtube_fleet.bus.Phase`), advanced by the pilot; the agent itself moves
   IN_TUBE → EXITED when (TraCondition) holds on the main tube: −n_cᵀ(p − p_r1) ≤ ε_0
   (Assumption 2).
@@ -22,30 +24,12 @@ An :class:`Agent` is what one vehicle knows and decides:
   ``velocity_command`` once with ``rows`` = all those agents; row for row this equals each
   agent's own :meth:`Agent.setpoint` (``tests/test_fleet_agent.py``).
 
-**The safety budget** (:class:`SafetyBudget`). The paper's guarantee (Theorems 1, 2) is for
-continuous time and a vehicle whose velocity *is* the command. A fleet samples positions that
-are already ``L`` old (link latency), holds each command for a control period ``T`` and flies
-multicopters that follow a velocity step only after a dead time τ_d and then with a first-order
-lag t63 (PX4 SITL captures: τ_d ≈ 0.3 s, t63 ≈ 1 s). After a command changes by Δv the position
-of such a vehicle lags the ideal single integrator (Single) by at most Δv·(T + L + τ_d + t63).
-Only the saturated part of (ModifiedVectorField), sat(u2 + u3' + u4', v'_max), reacts to
-neighbours, walls and sub-tube sides; u1'' is common to all robots of a sub-tube and its
-differences are themselves bounded by v'_max (Constraint2/Constraint3). So one robot's
-unmodelled excursion towards anything is at most v'_max·(T + L + τ_d + t63), and the runtime
-flies the controller with the radii inflated by
-
-    δ = v'_max · (T + L + τ_d + t63),     r_s' = r_s + δ,     r_a' = r_a + δ,
-
-so the continuous-time clearance 2 r_s' between two vehicles leaves 2 r_s after both lag, the
-leg clearance r_s' leaves r_s and the obstacle clearance r_o + r_s' leaves r_o + r_s. The
-inflated scenario must itself satisfy the paper's conditions (Assumption 1/3/3', (pothk)); the
-supervisor validates it before arming and reports when the budget makes the mission infeasible.
-The clearance actually flown is measured from telemetry and reported.
+The flown radii come from the safety budget (:mod:`vtube_fleet.fleet.budget`): the plan's
+``params`` are the configured ones inflated by δ.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -55,16 +39,23 @@ import numpy as np
 
 from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.controller import ControllerParams, velocity_command
-from vtube_fleet.partition import Partition, h_min, partition
+from vtube_fleet.partition import (
+    ApexZone,
+    Partition,
+    apex_lookahead,
+    apex_zones,
+    h_min,
+    partition,
+)
 from vtube_fleet.tube import Obstacle, Trapezoid
 
 __all__ = [
     "AIRBORNE_PHASES",
     "LOST_APEX_FACTOR",
+    "STOPPED_PHASES",
     "Agent",
     "FlightPlan",
     "NeighbourView",
-    "SafetyBudget",
     "Setpoint",
     "classify",
     "exit_velocity",
@@ -76,86 +67,13 @@ __all__ = [
 AIRBORNE_PHASES: frozenset[Phase] = frozenset(
     {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING}
 )
+#: Airborne but no longer flying the tube's controller: it stops (PX4 Hold) or comes down.
+#: The others cannot rely on the pair barrier alone to pass such a vehicle (their speed never
+#: drops below v_min, NOTES item 9): inside the tube it is an obstacle like a LOST one.
+STOPPED_PHASES: frozenset[Phase] = frozenset({Phase.HOLDING, Phase.LANDING})
 
 _EMPTY_POS = np.zeros((0, 2))
 _EMPTY_IDS = np.zeros(0, dtype=np.int64)
-
-
-# ------------------------------------------------------------------------------------------
-# the safety budget
-# ------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class SafetyBudget:
-    """δ = v'_max·(T + L + τ_d + t63) (module docstring), or a fixed override.
-
-    ``period_s`` T, ``latency_s`` L (one-way link latency plus the age of the position sample),
-    ``dead_time_s`` τ_d and ``t63_s`` of the vehicles' velocity tracking, ``v_max_prime`` of the
-    controller; ``delta_m`` the inflation used (``overridden`` when set by the mission file).
-    """
-
-    period_s: float
-    latency_s: float
-    dead_time_s: float
-    t63_s: float
-    v_max_prime: float
-    delta_m: float
-    overridden: bool = False
-
-    @property
-    def delay_s(self) -> float:
-        """The effective delay T + L + τ_d + t63."""
-        return self.period_s + self.latency_s + self.dead_time_s + self.t63_s
-
-    @classmethod
-    def compute(
-        cls,
-        params: ControllerParams,
-        *,
-        period_s: float,
-        latency_s: float,
-        dead_time_s: float,
-        t63_s: float,
-        override_m: float | None = None,
-    ) -> SafetyBudget:
-        for name, value in (("period_s", period_s), ("latency_s", latency_s),
-                            ("dead_time_s", dead_time_s), ("t63_s", t63_s)):
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"safety budget: {name} must be finite and >= 0, got {value}")
-        delay = period_s + latency_s + dead_time_s + t63_s
-        delta = float(params.v_max_prime) * delay if override_m is None else float(override_m)
-        return cls(period_s, latency_s, dead_time_s, t63_s, float(params.v_max_prime), delta,
-                   override_m is not None)
-
-    def inflate(self, params: ControllerParams) -> ControllerParams:
-        """The controller parameters actually flown: r_s' = r_s + δ, r_a' = r_a + δ."""
-        return dataclasses.replace(params, r_s=params.r_s + self.delta_m,
-                                   r_a=params.r_a + self.delta_m)
-
-    def describe(self, params: ControllerParams | None = None) -> str:
-        """One line with the formula and the numbers."""
-        if self.overridden:
-            text = f"δ = {self.delta_m:.3f} m (safety_margin_m from the mission file)"
-        else:
-            text = (
-                f"δ = v'_max·(T + L + τ_d + t63) = {self.v_max_prime:g}·({self.period_s:.3f} + "
-                f"{self.latency_s:.3f} + {self.dead_time_s:.3f} + {self.t63_s:.3f}) = "
-                f"{self.delta_m:.3f} m"
-            )
-        if params is not None:
-            text += (f" → r_s' = {params.r_s + self.delta_m:.3f} m, "
-                     f"r_a' = {params.r_a + self.delta_m:.3f} m")
-        return text
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "delta_m": self.delta_m,
-            "period_s": self.period_s,
-            "latency_s": self.latency_s,
-            "dead_time_s": self.dead_time_s,
-            "t63_s": self.t63_s,
-            "v_max_prime": self.v_max_prime,
-            "overridden": self.overridden,
-        }
 
 
 # ------------------------------------------------------------------------------------------
@@ -179,6 +97,10 @@ class FlightPlan:
     lost: tuple[Obstacle, ...] = ()
     kind: str = "new"
     _cache: dict[tuple, FlightPlan] = field(default_factory=dict, repr=False)
+    #: the apex look-ahead zones of the switching rule (:func:`~vtube_fleet.partition.
+    #: apex_zones`; empty: the paper's §5 rule exactly)
+    zones: tuple[ApexZone, ...] = ()
+    lookahead: bool = True
 
     @classmethod
     def build(
@@ -189,14 +111,42 @@ class FlightPlan:
         *,
         kind: str = "new",
         part: Partition | None = None,
+        lookahead: bool = True,
     ) -> FlightPlan:
-        """Partition (raises :class:`~vtube_fleet.partition.PartitionError`) and wrap."""
+        """Partition (raises :class:`~vtube_fleet.partition.PartitionError`) and wrap.
+        ``lookahead``: switch sub-tubes ahead of apexes (vehicles with response lag)."""
         obstacles = tuple(obstacles)
         if part is None:
             part = partition(tube, obstacles, params)
-        plan = cls(tube, obstacles, params, part, (), kind)
+        zones = apex_zones(part, params) if lookahead else ()
+        plan = cls(tube, obstacles, params, part, (), kind, zones=zones, lookahead=lookahead)
         plan._cache[()] = plan
         return plan
+
+    def locate(self, p: np.ndarray) -> np.ndarray:
+        """The sub-tube of points (..., 2): the switching rule (ObstacleController), with the
+        apex look-ahead of the flown plan."""
+        p = np.asarray(p, dtype=float)
+        k = np.asarray(self.partition.locate(p))
+        if not self.zones:
+            return k
+        return apex_lookahead(self.partition, self.zones, p, k).reshape(k.shape)
+
+    def lookahead_conflicts(self, p: np.ndarray) -> list[tuple[int, int, float]]:
+        """Points (M, 2) that the apex look-ahead puts into a side tube at most r_s (flown)
+        from its legs (they would start inside the barrier): (row, sub-tube, distance)."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        if not self.zones or not p.shape[0]:
+            return []
+        k0 = np.asarray(self.partition.locate(p)).reshape(-1)
+        k1 = self.locate(p).reshape(-1)
+        out = []
+        for i in np.flatnonzero(k0 != k1):
+            t = self.partition.sub_tubes[int(k1[i])]
+            d = min(float(t.d_Th(p[i])), float(t.d_Tr(p[i])))
+            if d <= self.params.r_s:
+                out.append((int(i), int(k1[i]), d))
+        return out
 
     @property
     def neighbour_radius_m(self) -> float:
@@ -215,8 +165,9 @@ class FlightPlan:
         hit = self._cache.get(key)
         if hit is None:
             part = partition(self.tube, self.obstacles + lost, self.params)
+            zones = apex_zones(part, self.params) if self.lookahead else ()
             hit = FlightPlan(self.tube, self.obstacles, self.params, part, lost, self.kind,
-                             self._cache)
+                             self._cache, zones, self.lookahead)
             self._cache[key] = hit
         return hit
 
@@ -232,7 +183,7 @@ class FlightPlan:
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         if rows.size == 0:
             return _EMPTY_POS.copy()
-        k = np.asarray(self.partition.locate(p), dtype=np.int64)
+        k = np.asarray(self.locate(p), dtype=np.int64)
         extra: dict[str, Any] = {}
         if self.kind == "apf":
             extra["obstacles"] = self.all_obstacles
@@ -251,8 +202,9 @@ class NeighbourView:
     """The neighbour table sorted at one time (all positions tube frame, (n, 2)).
 
     ``live``: airborne and fresh (``live_vel`` their measured velocities); ``static``:
-    airborne, stale but not yet lost (kept at the last position); ``lost``: said LOST or silent
-    for longer than ``lost_after_s``.
+    airborne, stale but not yet lost (kept at the last position); ``lost``: said LOST, silent
+    for longer than ``lost_after_s``, or stopped (:data:`STOPPED_PHASES`: holding or landing):
+    inside the tube these become obstacles.
     """
 
     live_ids: np.ndarray = field(default_factory=lambda: _EMPTY_IDS)
@@ -296,7 +248,7 @@ def classify(
             continue
         age = now_s - st.stamp_s
         silence = age if heard_since_s is None else min(age, now_s - heard_since_s)
-        if st.phase == Phase.LOST:
+        if st.phase == Phase.LOST or st.phase in STOPPED_PHASES:
             which = "lost"
         elif st.phase not in AIRBORNE_PHASES:
             continue
@@ -455,7 +407,7 @@ class Agent:
             pts = pts[d <= self.plan.neighbour_radius_m]
         p = np.concatenate([own[None], pts])
         cmd = self.plan.commands(p, [0])[0]
-        k = int(np.asarray(self.plan.partition.locate(own)).reshape(-1)[0])
+        k = int(np.asarray(self.plan.locate(own)).reshape(-1)[0])
         return Setpoint(float(cmd[0]), float(cmd[1]), k, int(pts.shape[0]))
 
 

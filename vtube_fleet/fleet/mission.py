@@ -30,7 +30,17 @@ strictly: an unknown key, a wrong type or an impossible value raises
     lost_obstacle_margin_m = 0.5      a LOST vehicle becomes an obstacle of radius r_s + this
     tracking_dead_time_s = 0.3        PX4 velocity-tracking dead time (captures: 0.27-0.35 s)
     tracking_t63_s = 1.0              PX4 horizontal velocity time constant (captures: 0.8-1.2 s)
-    latency_s                         link latency used in the safety budget (default: measured)
+    latency_s                         L of the safety budget: position age + setpoint delay
+                                      (default: measured round trip + latency_headroom_s)
+    latency_headroom_s = 0.05         added to the measured L (in-flight jitter)
+    max_latency_s = 0.25              refuse to fly above this L
+    position_accuracy_m               σ of the safety budget (default: the worst accuracy the
+                                      vehicles report before arming, ESTIMATOR_STATUS)
+    accuracy_factor = 2.0             k: the estimate error budgeted is k σ
+    max_position_accuracy_m = 1.0     wait (ready_timeout_s) until every vehicle reports at
+                                      most this σ
+    disturbance_residual_m_s = 0.2    D: estimate disturbance left after compensation
+    compensate_estimate = true        send v_c + d̂ (fleet/compensation.py) instead of v_c
     safety_margin_m                   override the safety budget δ (default: computed)
 """
 
@@ -46,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from vtube_fleet.errors import ConfigError
+from vtube_fleet.fleet.budget import DEFAULT_ACCURACY_FACTOR, DEFAULT_DISTURBANCE_M_S
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.scenario import Scenario, load_scenario
 
@@ -93,6 +104,13 @@ class MissionConfig:
     tracking_dead_time_s: float = 0.3
     tracking_t63_s: float = 1.0
     latency_s: float | None = None
+    latency_headroom_s: float = 0.05
+    max_latency_s: float = 0.25
+    position_accuracy_m: float | None = None
+    accuracy_factor: float = DEFAULT_ACCURACY_FACTOR
+    max_position_accuracy_m: float = 1.0
+    disturbance_residual_m_s: float = DEFAULT_DISTURBANCE_M_S
+    compensate_estimate: bool = True
     safety_margin_m: float | None = None
 
     @property
@@ -138,9 +156,16 @@ _NUMBERS: tuple[tuple[str, bool, str | None], ...] = (
     ("tracking_dead_time_s", False, "nonneg"),
     ("tracking_t63_s", False, "nonneg"),
     ("latency_s", False, "nonneg"),
+    ("latency_headroom_s", False, "nonneg"),
+    ("max_latency_s", False, "pos"),
+    ("position_accuracy_m", False, "nonneg"),
+    ("accuracy_factor", False, "nonneg"),
+    ("max_position_accuracy_m", False, "pos"),
+    ("disturbance_residual_m_s", False, "nonneg"),
     ("safety_margin_m", False, "nonneg"),
 )
 _CHOICES: dict[str, tuple[str, ...]] = {"after_exit": AFTER_EXIT, "on_complete": ON_COMPLETE}
+_FLAGS: tuple[str, ...] = ("compensate_estimate",)
 
 
 def _show(value: Any) -> str:
@@ -161,7 +186,7 @@ def parse_mission_config(table: Mapping[str, Any], source: str = "<mission>") ->
         where = f"[mission].{key}" if key else "[mission]"
         return ConfigError(f"{source}: {where}: {msg}")
 
-    allowed = [k for k, _, _ in _NUMBERS] + list(_CHOICES)
+    allowed = [k for k, _, _ in _NUMBERS] + list(_CHOICES) + list(_FLAGS)
     for key in table:
         if key not in allowed:
             raise err(key, f"unknown key (allowed: {', '.join(allowed)})")
@@ -188,6 +213,12 @@ def parse_mission_config(table: Mapping[str, Any], source: str = "<mission>") ->
             if not isinstance(v, str) or v not in choices:
                 raise err(key, f"expected one of {', '.join(map(json.dumps, choices))}, "
                                f"got {_show(v)}")
+            values[key] = v
+    for key in _FLAGS:
+        if key in table:
+            v = table[key]
+            if not isinstance(v, bool):
+                raise err(key, f"expected true or false, got {_show(v)}")
             values[key] = v
     if not -90.0 < values["origin_lat_deg"] < 90.0:
         raise err("origin_lat_deg", f"must be within (-90, 90), got {values['origin_lat_deg']:g}")

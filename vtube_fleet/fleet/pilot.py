@@ -36,6 +36,7 @@ import asyncio
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from typing import Any
 
@@ -44,6 +45,8 @@ import numpy as np
 from vtube_fleet.bus.base import NeighbourBus, NeighbourState, Phase
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
+from vtube_fleet.fleet.budget import LinkMeasurement
+from vtube_fleet.fleet.compensation import EstimateCompensator
 from vtube_fleet.fleet.mission import Mission
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink
@@ -53,8 +56,9 @@ __all__ = [
     "OFFBOARD_PHASES",
     "PilotError",
     "VehiclePilot",
-    "measure_sample_age_s",
+    "measure_links",
     "sense_all",
+    "wait_accuracy",
 ]
 
 log = logging.getLogger(__name__)
@@ -64,20 +68,59 @@ log = logging.getLogger(__name__)
 MEASURE_S = 1.0
 
 
-async def measure_sample_age_s(pilots: Sequence[VehiclePilot], period_s: float,
-                               duration_s: float = MEASURE_S) -> float:
-    """p95 over ``duration_s`` of the pilots' position-sample ages, sampled every ``period_s``:
-    the link latency L of the safety budget (0.0 when no sample was finite)."""
+async def measure_links(pilots: Sequence[VehiclePilot], period_s: float,
+                        duration_s: float = MEASURE_S) -> LinkMeasurement:
+    """Round trips (every link at once), then ``duration_s`` of position-sample ages and
+    accuracies sampled every ``period_s``."""
+    trips = await asyncio.gather(*(p.link.measure_round_trip_s() for p in pilots),
+                                 return_exceptions=True)
+    rtts = [float(r) for r in trips if isinstance(r, int | float) and math.isfinite(r)]
+    lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
+    one_way = max([r / 2.0 for r in rtts] + [float(x) for x in lat], default=0.0)
     loop = asyncio.get_running_loop()
     ages: list[float] = []
+    acc = [math.nan] * len(pilots)
     end = loop.time() + duration_s
     while loop.time() < end:
         now = time.monotonic()
         ages.extend(p.sample_age_s(now) for p in pilots)
+        for i, p in enumerate(pilots):
+            a = p.position_accuracy_m()
+            if math.isfinite(a):
+                acc[i] = a if not math.isfinite(acc[i]) else max(acc[i], a)
         await asyncio.sleep(period_s)  # the sampling period of the measurement
     a = np.asarray(ages, dtype=float)
     a = a[np.isfinite(a)]
-    return float(np.percentile(a, 95)) if a.size else 0.0
+    known = [x for x in acc if math.isfinite(x)]
+    return LinkMeasurement(float(np.percentile(a, 95)) if a.size else 0.0, one_way,
+                           max(known) if known else math.nan, tuple(acc))
+
+
+async def wait_accuracy(pilots: Sequence[VehiclePilot], max_m: float, timeout_s: float,
+                        on_wait: Callable[[str], None] | None = None) -> None:
+    """Wait until every vehicle reports a horizontal accuracy of at most ``max_m`` (PX4's
+    estimate settles for a few seconds after boot: 14 → 0.3 m); :class:`PilotError` naming
+    the vehicles after ``timeout_s``."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout_s
+    said = False
+    while True:
+        bad = [(p, p.position_accuracy_m()) for p in pilots]
+        bad = [(p, a) for p, a in bad if not (math.isfinite(a) and a <= max_m)]
+        if not bad:
+            return
+        if loop.time() >= end:
+            raise PilotError(
+                f"{len(bad)} vehicle(s) do not report a horizontal position accuracy of at most "
+                f"max_position_accuracy_m = {max_m:g} m within {timeout_s:g} s: " + "; ".join(
+                    f"{p.name} {'none reported' if not math.isfinite(a) else f'{a:.2f} m'}"
+                    for p, a in bad))
+        if not said and on_wait is not None:
+            said = True
+            on_wait("waiting for the position estimate to settle: " + ", ".join(
+                f"{p.name} {'none yet' if not math.isfinite(a) else f'{a:.2f} m'}"
+                for p, a in bad[:5]))
+        await asyncio.sleep(0.2)
 
 
 #: Phases in which we stream setpoints and expect PX4 to be in OFFBOARD.
@@ -89,9 +132,10 @@ FLYING_PHASES: frozenset[Phase] = frozenset(
     {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING}
 )
 
-#: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb.
+#: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
+#: estimate-disturbance compensation, which cancels most of the take-off drift).
 TAKEOFF_XY_GAIN_1_S = 0.5
-TAKEOFF_XY_MAX_M_S = 0.3
+TAKEOFF_XY_MAX_M_S = 0.5
 
 #: ``sink(text, vehicle_id, level)``: where a pilot reports events (phase changes, faults).
 EventSink = Callable[[str, int | None, str], None]
@@ -167,6 +211,12 @@ class VehiclePilot:
         self._transition: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self.setpoints_sent = 0
+        # the estimate-disturbance compensation (fleet/compensation.py): what is sent is the
+        # command plus d̂ while flying offboard; ``sent_xy`` is the horizontal setpoint sent
+        self.compensator = EstimateCompensator() if self.cfg.compensate_estimate else None
+        self.sent_xy: np.ndarray | None = None
+        self._dist_hist: deque[tuple[float, float, float]] = deque(maxlen=256)
+        self.disturbance_residual_m_s: list[float] = []  #: |d̂(t) − d̂(t − Δ)| per tick
 
     # -- naming / events ---------------------------------------------------------------------
     @property
@@ -236,10 +286,21 @@ class VehiclePilot:
         self.vel_xy = np.array([a * vn + b * ve, c * vn + d * ve])
         self.sample_s = self._sample_seen = s.last_position_s
         self._has_pos = math.isfinite(xyz[0]) and math.isfinite(xyz[1])
+        if self.compensator is not None and self._has_pos and s.last_position_s is not None:
+            self.compensator.add(s.last_position_s, xyz[0], xyz[1], float(self.vel_xy[0]),
+                                 float(self.vel_xy[1]))
         if (self.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
                 and abs(self.up_m - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
             self.at_altitude.set()
         return True
+
+    def position_accuracy_m(self) -> float:
+        """The vehicle's reported horizontal position accuracy (1 σ): the estimator's
+        (ESTIMATOR_STATUS) or, if it sends none, the GNSS receiver's (GPS_RAW_INT h_acc);
+        NaN if neither."""
+        s = self.link.state
+        a = s.pos_accuracy_m
+        return a if math.isfinite(a) else s.gnss_h_acc_m
 
     def sample_age_s(self, now_mono: float) -> float:
         """Age of the position in use: since it arrived plus the one-way link latency."""
@@ -363,7 +424,39 @@ class VehiclePilot:
         hi = cfg.climb_speed_m_s if climb else cfg.max_vertical_speed_m_s
         return -_clamp(up, -cfg.max_vertical_speed_m_s, hi)
 
-    def send_tube_velocity(self, vx: float, vy: float, down: float) -> None:
+    def airborne(self) -> bool:
+        """Off the ground: PX4 says IN_AIR, or more than 0.5 m up."""
+        return (self.link.state.landed_state == "IN_AIR"
+                or (math.isfinite(self.up_m) and self.up_m > 0.5))
+
+    def _track_residual(self, now_mono: float) -> None:
+        """The compensation's residual: how much d̂ changed over its own delay Δ = W/2 + T +
+        L (what PX4 cannot have been told yet), one value per tick in the tube."""
+        comp = self.compensator
+        if comp is None:
+            return
+        dx, dy = comp.correction
+        hist = self._dist_hist
+        hist.append((now_mono, dx, dy))
+        lag = 0.5 * comp.window_s + self.cfg.period_s + (self.link.latency_s or 0.0)
+        old = None
+        for t, ox, oy in hist:
+            if t <= now_mono - lag:
+                old = (ox, oy)
+            else:
+                break
+        if old is not None:
+            self.disturbance_residual_m_s.append(math.hypot(dx - old[0], dy - old[1]))
+
+    def send_tube_velocity(self, vx: float, vy: float, down: float,
+                           compensate: bool = False) -> None:
+        """Send a tube-frame horizontal velocity (+ NED down) as a LOCAL_NED setpoint;
+        ``compensate`` adds the estimate-disturbance correction d̂ (flying offboard)."""
+        comp = self.compensator
+        if compensate and comp is not None:
+            dx, dy = comp.correction
+            vx, vy = vx + dx, vy + dy
+        self.sent_xy = np.array([vx, vy])
         a, b, c, d = self._to_ned
         self.link.send_velocity_ned(a * vx + b * vy, c * vx + d * vy, float(down))
         self.setpoints_sent += 1
@@ -400,14 +493,16 @@ class VehiclePilot:
                         d *= TAKEOFF_XY_MAX_M_S / n
                     vx, vy = float(d[0]), float(d[1])
                 self.cmd_xy = np.array([vx, vy])
-                self.send_tube_velocity(vx, vy, self.vertical_down_m_s(climb=True))
+                self.send_tube_velocity(vx, vy, self.vertical_down_m_s(climb=True),
+                                        compensate=self.airborne())
             elif phase == Phase.IN_TUBE:
                 if cmd_xy is None:
                     cmd_xy = np.zeros(2)
                 self.cmd_xy = np.asarray(cmd_xy, dtype=float)
                 self.cmd_in_tube = True
                 self.send_tube_velocity(float(cmd_xy[0]), float(cmd_xy[1]),
-                                        self.vertical_down_m_s())
+                                        self.vertical_down_m_s(), compensate=True)
+                self._track_residual(now_mono)
             elif phase == Phase.EXITED:
                 self._actuate_exited(now_mono, view)
             else:
@@ -440,7 +535,8 @@ class VehiclePilot:
         if v is None:
             v = plan.params.v * plan.tube.n_c
         self.cmd_xy = np.asarray(v, dtype=float)
-        self.send_tube_velocity(float(v[0]), float(v[1]), self.vertical_down_m_s())
+        self.send_tube_velocity(float(v[0]), float(v[1]), self.vertical_down_m_s(),
+                                compensate=True)
 
     # -- mode changes (background) -----------------------------------------------------------
     def _run_transition(self, coro: Awaitable[None], what: str) -> None:

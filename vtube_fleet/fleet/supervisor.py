@@ -61,21 +61,28 @@ from vtube_fleet.fleet.agent import (
     Agent,
     FlightPlan,
     NeighbourView,
-    SafetyBudget,
     classify,
     fleet_setpoints,
     lost_obstacles,
 )
+from vtube_fleet.fleet.budget import (
+    LinkMeasurement,
+    SafetyBudget,
+    budget_problems,
+    mission_budget,
+)
 from vtube_fleet.fleet.mission import Mission
 from vtube_fleet.fleet.pilot import (
     FLYING_PHASES,
+    PilotError,
     VehiclePilot,
-    measure_sample_age_s,
+    measure_links,
     sense_all,
+    wait_accuracy,
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
-from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator
+from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator, verdict
 from vtube_fleet.neighbours import pairs_within
 from vtube_fleet.partition import PartitionError
 from vtube_fleet.validation import validate_scenario
@@ -94,7 +101,14 @@ log = logging.getLogger(__name__)
 
 EXIT_OK = 0
 EXIT_ABORTED = 3
+EXIT_UNSAFE = 4
 EXIT_INTERRUPTED = 130
+
+#: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
+TRUTH_RATE_HZ = 20.0
+#: The in-flight budget watch holds the fleet when the measured L or σ stay above what the
+#: budget was built for for this many consecutive seconds.
+BUDGET_WATCH_S = 2
 
 #: Minimum height of the mission altitude above every vehicle before take-off.
 MIN_CLIMB_M = 1.0
@@ -135,6 +149,7 @@ class TickTrace:
     cmd: np.ndarray  # (M, 2) horizontal commands sent this tick, NaN = none
     in_tube: np.ndarray  # (M,) bool: commanded by the tube controller this tick
     phases: tuple[str, ...]
+    truth: np.ndarray | None = None  # (M, 2) ground truth (truth=True), NaN = unknown
 
 
 def _pct(values: Sequence[float] | np.ndarray, q: float) -> float:
@@ -148,6 +163,18 @@ def _num(x: float | None) -> float | None:
         return None
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def _truth_keys(summary: dict[str, Any]) -> dict[str, Any]:
+    """The ground-truth stream's keys as ``truth_<key>`` (``min_pair_distance_m_truth`` →
+    ``truth_min_pair_distance_m``); the telemetry keys stay as they are."""
+    out: dict[str, Any] = {}
+    for k, v in summary.items():
+        if k.endswith("_truth"):
+            out["truth_" + k[: -len("_truth")]] = v
+        else:
+            out[k] = v
+    return out
 
 
 def preflight_report(
@@ -203,6 +230,7 @@ class Supervisor:
         keep_trace: bool = False,
         tick_hook: Callable[[int, Supervisor], None] | None = None,
         signals: bool = True,
+        truth: bool = False,
     ) -> None:
         if not links:
             raise FleetError("no vehicles to fly")
@@ -227,11 +255,13 @@ class Supervisor:
         self.trace: list[TickTrace] = []
         self.tick_hook = tick_hook
         self.signals = signals
+        self.truth = truth
 
         sc = mission.scenario
         self.params = sc.controller  # as configured (physical r_s, r_a)
-        # the plan before the budget is measured: latency 0 (replaced in _budget())
-        self.budget = self._make_budget(0.0)
+        # the plan before the budget is measured: latency 0 (replaced in _measure_budget())
+        self.measured: LinkMeasurement | None = None
+        self.budget = self._make_budget(None)
         flown = self.budget.inflate(self.params)
         try:
             self.plan = FlightPlan.build(sc.tube, sc.obstacles, flown)
@@ -277,19 +307,21 @@ class Supervisor:
         self._clock_task: asyncio.Task[None] | None = None
         self._clock_stop = asyncio.Event()
         self._main: asyncio.Task[None] | None = None
-        self._warned_latency = False
+        self._budget_over = 0  # consecutive seconds the in-flight budget watch saw too much
+        self._budget_checked_s = 0.0
+        self._recent_ages: list[tuple[float, float]] = []
+        self.first_violation: dict[str, Any] | None = None
+        self.not_landed: list[str] = []
+        self._violations_seen = {"": 0, "_truth": 0}
+        self.truth_xy: np.ndarray | None = None  # (M, 2) ground truth, tube frame (truth=True)
+        self.min_pair_airborne_truth = math.inf
         self.listening_since: float | None = None
         self.outcome = "failed"
         self.reason = ""
 
     # -- small helpers -------------------------------------------------------------------------
-    def _make_budget(self, latency_s: float) -> SafetyBudget:
-        cfg = self.cfg
-        return SafetyBudget.compute(
-            self.params, period_s=cfg.period_s,
-            latency_s=cfg.latency_s if cfg.latency_s is not None else latency_s,
-            dead_time_s=cfg.tracking_dead_time_s, t63_s=cfg.tracking_t63_s,
-            override_m=cfg.safety_margin_m)
+    def _make_budget(self, measured: LinkMeasurement | None) -> SafetyBudget:
+        return mission_budget(self.mission, measured)
 
     def t_s(self) -> float:
         return time.monotonic() - self.t0
@@ -462,6 +494,7 @@ class Supervisor:
         cmd = np.full((m, 2), np.nan)
         tube_rows = np.zeros(m, dtype=bool)
         airborne = np.zeros(m, dtype=bool)
+        tube = self.mission.scenario.tube
         for i, p in enumerate(pilots):
             if p.has_position():
                 pos[i] = p.position()
@@ -470,14 +503,14 @@ class Supervisor:
                 cmd[i] = p.cmd_xy
             tube_rows[i] = p.cmd_in_tube or (p.phase == Phase.LOST and p.lost_xy is not None
                                              and self.tube_start_s is not None
-                                             and bool(self.mission.scenario.tube.contains(
-                                                 p.lost_xy)))
+                                             and bool(tube.contains(p.lost_xy)))
             airborne[i] = p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.LOST) or (
                 p.phase in (Phase.HOLDING, Phase.LANDING) and p.exit_time_s is not None)
         lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
         latency = float(np.median(lat)) if lat else math.nan
         if lat:
             self.latencies.append(latency)
+        truth = self._truth_positions() if self.truth else None
         metrics: dict[str, float] = {}
         safety = None
         if self.tube_start_s is not None:
@@ -489,6 +522,7 @@ class Supervisor:
                     v_tube[i] = np.nan
             sm = self.monitor.evaluate(p_tube, v_tube)
             self.acc.add(t, sm)
+            self._note_violation(t, "", sm, p_tube, v_tube)
             safety = {"": (p_tube, v_tube)}
             for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
                         "min_left_leg_distance_m", "min_right_leg_distance_m",
@@ -496,6 +530,26 @@ class Supervisor:
                 val = float(getattr(sm, key)[0])
                 if math.isfinite(val):
                     metrics[key] = val
+            if truth is not None:
+                # the "_truth" stream: the same vehicles at their TRUE positions (no speeds:
+                # the speed bounds are the controller's, judged on the commands)
+                t_tube = np.where(tube_rows[:, None], truth, np.nan)
+                smt = self.monitor.evaluate(t_tube)
+                self.acc.add(t, smt, suffix="_truth")
+                self._note_violation(t, "_truth", smt, t_tube, None)
+                safety["_truth"] = (t_tube, np.full_like(t_tube, np.nan))
+                for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
+                            "min_left_leg_distance_m", "min_right_leg_distance_m"):
+                    val = float(getattr(smt, key)[0])
+                    if math.isfinite(val):
+                        metrics[f"truth_{key}"] = val
+                qt = truth[airborne & np.isfinite(truth[:, 0])]
+                if qt.shape[0] > 1:
+                    i_idx, j_idx = pairs_within(qt, 4.0 * self.plan.params.r_s + 1.0)
+                    if len(i_idx):
+                        self.min_pair_airborne_truth = min(
+                            self.min_pair_airborne_truth,
+                            float(np.hypot(*(qt[i_idx] - qt[j_idx]).T).min()))
             cs = np.hypot(*cmd[tube_rows & np.isfinite(cmd[:, 0])].T)
             if cs.size:
                 self.cmd_speed[0] = min(self.cmd_speed[0], float(cs.min()))
@@ -516,15 +570,10 @@ class Supervisor:
                 if len(i_idx):
                     d = float(np.hypot(*(q[i_idx] - q[j_idx]).T).min())
                     self.min_pair_airborne = min(self.min_pair_airborne, d)
-            # latency budget check
             if self._sample_ages_window:
                 self.sample_ages.extend(self._sample_ages_window)
-                worst = max(self._sample_ages_window)
-                if worst > self.budget.latency_s + self.cfg.period_s and not self._warned_latency:
-                    self._warned_latency = True
-                    self.event(f"position sample {worst * 1000:.0f} ms old > budgeted latency "
-                               f"{self.budget.latency_s * 1000:.0f} ms + one period; the "
-                               f"clearance flown may fall below 2 r_s", level="warning")
+                self._recent_ages.extend((t, a) for a in self._sample_ages_window)
+            self._watch_budget(t)
         self._sample_ages_window.clear()
         if self.tick_durations:
             metrics["tick_duration_s"] = self.tick_durations[-1]
@@ -539,9 +588,88 @@ class Supervisor:
             log.warning("recorder: log_tick failed: %s", exc)
         if self.keep_trace:
             self.trace.append(TickTrace(t, pos, vel, cmd, tube_rows & np.isfinite(cmd[:, 0]),
-                                        tuple(p.phase.value for p in pilots)))
+                                        tuple(p.phase.value for p in pilots), truth))
         if self.view is not None:
             self.view.update(self.status())
+
+    def _truth_positions(self) -> np.ndarray:
+        """(M, 2) ground truth in the tube frame (NaN where none arrived within lost_after_s);
+        one vectorized frame conversion."""
+        m = len(self.pilots)
+        out = np.full((m, 2), np.nan)
+        now = time.monotonic()
+        rows = [i for i, p in enumerate(self.pilots)
+                if p.link.state.last_truth_s is not None
+                and now - p.link.state.last_truth_s <= self.cfg.lost_after_s]
+        if rows:
+            st = [self.pilots[i].link.state for i in rows]
+            x, y, _ = self.frame.geodetic_to_tube(np.array([s.truth_lat_deg for s in st]),
+                                                  np.array([s.truth_lon_deg for s in st]),
+                                                  np.array([s.truth_alt_m for s in st]))
+            out[rows, 0] = np.atleast_1d(x)
+            out[rows, 1] = np.atleast_1d(y)
+        self.truth_xy = out
+        return out
+
+    def _note_violation(self, t: float, suffix: str, sm: Any, pos: np.ndarray,
+                        vel: np.ndarray | None) -> None:
+        """On the first tick that breaks a limit (telemetry or truth): record what, who and
+        by how much (summary ``first_violation``) and say it."""
+        if not bool(sm.violation[0]):
+            return
+        self._violations_seen[suffix] = self._violations_seen.get(suffix, 0) + 1
+        if self._violations_seen[suffix] > 1:
+            return
+        what = self.monitor.explain(pos, vel)
+        if not what:
+            return
+        w = what[0]
+        source = "ground truth" if suffix == "_truth" else "telemetry"
+        entry = {"t_s": round(t, 3), "source": source, "condition": w["condition"],
+                 "value": round(w["value"], 4), "limit": round(w["limit"], 4),
+                 "vehicles": [self.pilots[r].vehicle_id for r in w["robots"]]}
+        if self.first_violation is None:
+            self.first_violation = entry
+        who = " and ".join(self.names[r] for r in w["robots"])
+        self.event(f"LIMIT BROKEN ({source}): {w['condition']} {w['value']:.3f} m ≤ "
+                   f"{w['limit']:.3f} m, {who}", level="error")
+
+    def _watch_budget(self, t: float) -> None:
+        """Once a second in the tube: the budget's L and σ against what is measured now (L:
+        p95 of the last 3 s of position ages + the worst uplink delay; σ: the worst reported
+        accuracy). Above for BUDGET_WATCH_S seconds in a row → every vehicle holds."""
+        if t - self._budget_checked_s < 1.0:
+            return
+        self._budget_checked_s = t
+        cfg = self.cfg
+        b = self.budget
+        recent = [a for ts, a in self._recent_ages if ts >= t - 3.0]
+        self._recent_ages = [(ts, a) for ts, a in self._recent_ages if ts >= t - 3.0]
+        if b.overridden or not any(p.phase == Phase.IN_TUBE for p in self.pilots):
+            return
+        up = max((p.link.latency_s or 0.0 for p in self.pilots), default=0.0)
+        latency = (float(np.percentile(recent, 95)) + up) if recent else 0.0
+        acc = [p.position_accuracy_m() for p in self.pilots if p.phase == Phase.IN_TUBE]
+        acc = [a for a in acc if math.isfinite(a)]
+        sigma = max(acc, default=0.0)
+        over = []
+        if cfg.latency_s is None and latency > b.latency_s + cfg.period_s:
+            over.append(f"link latency L = {latency * 1000:.0f} ms (last 3 s) > budgeted "
+                        f"{b.latency_s * 1000:.0f} ms + one period")
+        if cfg.position_accuracy_m is None and sigma > 1.25 * b.accuracy_m + 0.02:
+            over.append(f"reported position accuracy σ = {sigma:.2f} m > budgeted "
+                        f"{b.accuracy_m:.2f} m (+25 %)")
+        if not over:
+            self._budget_over = 0
+            return
+        self._budget_over += 1
+        if self._budget_over == 1:
+            self.event("safety budget exceeded: " + "; ".join(over), level="warning")
+        if self._budget_over >= BUDGET_WATCH_S:
+            self.request_abort("safety budget exceeded in flight for "
+                               f"{BUDGET_WATCH_S} s (" + "; ".join(over) + "): the partition "
+                               "was built for the smaller δ, so every vehicle in the tube "
+                               "holds")
 
     def status(self) -> FleetStatus:
         st = FleetStatus(t_s=self.t_s(), stage=self.stage, vehicles=len(self.pilots))
@@ -569,6 +697,13 @@ class Supervisor:
                            summ.get("min_right_leg_distance_m") or math.inf)
         st.leg_limit_m = self.params.r_s
         st.delta_m = self.budget.delta_m
+        st.unsafe = self.first_violation is not None
+        if self.truth:
+            st.truth_pair_m = min(summ.get("min_pair_distance_m_truth") or math.inf,
+                                  self.min_pair_airborne_truth)
+            st.truth_obstacle_m = summ.get("min_obstacle_center_distance_m_truth") or math.inf
+            st.truth_leg_m = min(summ.get("min_left_leg_distance_m_truth") or math.inf,
+                                 summ.get("min_right_leg_distance_m_truth") or math.inf)
         d = self.tick_durations[-400:]
         st.tick_p50_ms = 1000 * _pct(d, 50)
         st.tick_p99_ms = 1000 * _pct(d, 99)
@@ -627,16 +762,32 @@ class Supervisor:
                              + "; ".join(problems))
 
     async def _measure_budget(self) -> None:
-        """Measure latency + sample age (:func:`measure_sample_age_s`), fix δ, validate,
-        rebuild the plan."""
+        """Wait for the estimates to settle, measure the links (:func:`measure_links`: round
+        trip, position age, reported accuracy), fix δ (:func:`mission_budget`), validate the
+        inflated scenario with the vehicles' positions, rebuild the plan."""
         self._set_stage("preflight")
         cfg = self.cfg
-        measured = await measure_sample_age_s(self.pilots, cfg.period_s)
-        self.measured_latency_s = measured
+        if cfg.position_accuracy_m is None:
+            try:
+                await wait_accuracy(self.pilots, cfg.max_position_accuracy_m,
+                                    cfg.ready_timeout_s, on_wait=self.event)
+            except PilotError as exc:
+                raise PreflightError(f"preflight failed, nothing armed: {exc}") from None
+        measured = await measure_links(self.pilots, cfg.period_s)
+        self.measured = measured
+        self.measured_latency_s = measured.latency_s
+        problems = budget_problems(self.mission, measured)
+        if problems:
+            raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
         self.budget = self._make_budget(measured)
         flown = self.budget.inflate(self.params)
-        self.event(f"safety budget: {self.budget.describe(self.params)} (measured link latency "
-                   f"+ position age p95 {measured * 1000:.1f} ms)")
+        acc = (f"worst reported position accuracy σ = {measured.accuracy_m:.2f} m"
+               if math.isfinite(measured.accuracy_m) else "no accuracy reported")
+        self.event(f"safety budget: {self.budget.describe(self.params)} (measured: position "
+                   f"age p95 {measured.position_age_s * 1000:.1f} ms + setpoint delay "
+                   f"{measured.setpoint_delay_s * 1000:.1f} ms; {acc})")
+        if self.truth:
+            await self._request_truth()
         positions = np.array([p.xy for p in self.pilots])
         part, problems = preflight_report(self.mission, flown, positions, self.names)
         for i, p in enumerate(self.pilots):
@@ -651,10 +802,13 @@ class Supervisor:
         if problems or part is None:
             raise PreflightError(
                 f"preflight failed, nothing armed ({len(problems)} problem"
-                f"{'s' if len(problems) != 1 else ''}; safety budget "
+                f"{'s' if len(problems) != 1 else ''}; {acc} → safety budget "
                 f"{self.budget.describe(self.params)}): " + "; ".join(problems))
         self.plan = FlightPlan.build(self.mission.scenario.tube, self.mission.scenario.obstacles,
                                      flown, part=part)
+        problems = self._lookahead_problems(positions, "on the ground")
+        if problems:
+            raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
         for p in self.pilots:
             p.agent.root_plan = p.agent.plan = self.plan
         try:
@@ -664,6 +818,27 @@ class Supervisor:
                 "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
         except Exception as exc:
             log.warning("recorder: log_scene failed: %s", exc)
+
+    def _lookahead_problems(self, positions: np.ndarray, where: str) -> list[str]:
+        """Vehicles that the apex look-ahead would start inside a triangle side's barrier."""
+        out = []
+        for i, k, d in self.plan.lookahead_conflicts(positions):
+            out.append(f"{self.names[i]} at ({positions[i, 0]:.2f}, {positions[i, 1]:.2f}) is "
+                       f"in the look-ahead zone of an apex: it would fly "
+                       f"{self.plan.partition.sub_tubes[k].name} with {d:.2f} m to its legs ≤ "
+                       f"r_s' = {self.plan.params.r_s:.2f} m ({where}; move the slot upstream "
+                       f"or the obstacle downstream)")
+        return out
+
+    async def _request_truth(self) -> None:
+        """Ask every vehicle for its SITL ground truth (``--truth``); refusals are errors."""
+        problems = await self._gather_named(
+            "ground truth", [p.link.request_truth(TRUTH_RATE_HZ) for p in self.pilots])
+        if problems:
+            raise PreflightError(f"--truth: {len(problems)} vehicle(s) do not send their "
+                                 f"ground truth (HIL_STATE_QUATERNION; PX4 SITL and the mock "
+                                 f"do, real vehicles do not): " + "; ".join(problems))
+        self.event(f"ground truth (HIL_STATE_QUATERNION) requested at {TRUTH_RATE_HZ:g} Hz")
 
     async def _takeoff(self) -> None:
         self._set_stage("takeoff")
@@ -675,6 +850,7 @@ class Supervisor:
         positions = np.array([p.xy for p in self.pilots])
         _, problems = preflight_report(self.mission, self.plan.params, positions, self.names,
                                        where=f"at {self.cfg.altitude_m:g} m")
+        problems += self._lookahead_problems(positions, f"at {self.cfg.altitude_m:g} m")
         if problems:
             raise MissionAborted("Assumption 1 broken at altitude: " + "; ".join(problems))
 
@@ -722,6 +898,7 @@ class Supervisor:
                 await asyncio.gather(*(p.landed.wait() for p in waiting))
         except TimeoutError:
             left = [p.name for p in waiting if p.phase == Phase.LANDING]
+            self.not_landed = left
             self.event(f"{len(left)} vehicle(s) not on the ground after land_timeout_s = "
                        f"{cfg.land_timeout_s:g} s: {', '.join(left)}", level="warning")
             return
@@ -787,6 +964,12 @@ class Supervisor:
                                        + (f" ({p.reason})" if p.reason else "")
                                        for p in self.pilots if p.exit_time_s is None))
                     exit_code = EXIT_ABORTED
+                elif self.not_landed:
+                    self.outcome = "incomplete"
+                    self.reason = (f"{len(self.not_landed)} vehicle(s) still airborne after "
+                                   f"land_timeout_s = {self.cfg.land_timeout_s:g} s: "
+                                   + ", ".join(self.not_landed))
+                    exit_code = EXIT_ABORTED
             except asyncio.CancelledError:
                 if self._interrupted is None:
                     raise
@@ -813,10 +996,24 @@ class Supervisor:
         finally:
             for sig in installed:
                 loop.remove_signal_handler(sig)
+            self._judge()
+            if self.outcome == "unsafe":
+                exit_code = EXIT_UNSAFE
             summary, path = await self._shutdown()
-        if error is not None:
+        if error is not None or self.outcome == "unsafe":
             self.event(f"{self.outcome}: {self.reason}", level="error")
         return FleetResult(exit_code, self.outcome, self.reason, summary, path)
+
+    def _judge(self) -> None:
+        """The verdict (:func:`vtube_fleet.metrics.verdict`, the one place that decides):
+        a run whose telemetry — or ground truth, with ``truth`` — broke a limit in the tube
+        is ``unsafe`` whatever else happened; the reason keeps what happened too."""
+        v = verdict(self._summary_core(), streams=("", "_truth") if self.truth else ("",))
+        if v.safe:
+            return
+        before = f"{self.outcome}" + (f": {self.reason}" if self.reason else "")
+        self.outcome = "unsafe"
+        self.reason = f"{v.summary_line} (the mission itself ended {before})"
 
     async def _after_abort(self, exc: BaseException) -> None:
         """After an abort: in-tube vehicles already hold; vehicles still climbing or hovering
@@ -928,8 +1125,37 @@ class Supervisor:
             "vehicle_states": vehicles,
             "events": self.events[-200:],
         }
+        extra["first_violation"] = self.first_violation
+        if self.truth:
+            extra["truth"] = True
+            extra["min_pair_distance_airborne_m_truth"] = _num(self.min_pair_airborne_truth)
+            # (→ truth_min_pair_distance_airborne_m, like every *_truth key)
+        if self.measured is not None:
+            extra["measured"] = {
+                "position_age_p95_s": self.measured.position_age_s,
+                "setpoint_delay_s": self.measured.setpoint_delay_s,
+                "accuracy_m": _num(self.measured.accuracy_m),
+                "accuracies_m": [_num(a) for a in self.measured.accuracies_m]}
+        comp = [p.compensator for p in self.pilots if p.compensator is not None]
+        if comp:
+            res = [r for p in self.pilots for r in p.disturbance_residual_m_s]
+            extra["estimate_compensation"] = {
+                "max_correction_m_s": max(c.max_m_s for c in comp),
+                "clipped": sum(c.clipped for c in comp),
+                "residual_p50_m_s": _num(_pct(res, 50)),
+                "residual_p99_m_s": _num(_pct(res, 99)),
+                "residual_max_m_s": _num(max(res) if res else math.nan),
+                "budgeted_m_s": self.budget.disturbance_m_s}
         try:
-            return self.acc.summary(**extra)
+            out = self.acc.summary(**extra)
         except Exception as exc:  # never lose the summary
             log.error("summary accumulator failed: %s", exc)
             return extra
+        return _truth_keys(out)
+
+    def _summary_core(self) -> dict[str, Any]:
+        """The accumulator's figures only (what the verdict reads)."""
+        try:
+            return self.acc.summary(first_violation=self.first_violation)
+        except Exception:  # pragma: no cover - never block the verdict
+            return {"violations": 0}

@@ -44,6 +44,10 @@ class FleetStatus:
     on_time: float = math.nan
     latency_ms: float = math.nan
     phases: dict[str, int] = field(default_factory=dict)
+    unsafe: bool = False  #: a limit was broken (telemetry or truth)
+    truth_pair_m: float = math.nan  #: ground-truth figures (``run --truth``), NaN without
+    truth_obstacle_m: float = math.nan
+    truth_leg_m: float = math.nan
 
 
 def _m(x: float) -> str:
@@ -77,11 +81,21 @@ class FleetView:
         head = (f"t={s.t_s:7.1f}s  {s.stage:<11} vehicles {s.vehicles}: connected {s.connected}"
                 f"  armed {s.armed}  in tube {s.in_tube}  exited {s.exited}"
                 f"  lost {s.lost}  landed {s.landed}")
-        ok = "" if not math.isfinite(s.min_pair_m) or not math.isfinite(s.pair_limit_m) else (
-            "  OK" if s.min_pair_m >= s.pair_limit_m else "  BELOW 2 r_s!")
-        clear = (f"clearance flown: pair {_m(s.min_pair_m)} m (≥ 2 r_s = {_m(s.pair_limit_m)})"
-                 f"  obstacle centre {_m(s.min_obstacle_m)} m (≥ {_m(s.obstacle_limit_m)})"
-                 f"  legs {_m(s.min_leg_m)} m (≥ {_m(s.leg_limit_m)})  δ {_m(s.delta_m)} m{ok}")
+        def mark(value: float, limit: float) -> str:
+            return "" if not (math.isfinite(value) and math.isfinite(limit)) else (
+                "" if value > limit else " BROKEN")
+
+        verdict = "  UNSAFE: a limit was broken" if s.unsafe else ""
+        clear = (f"clearance flown: pair {_m(s.min_pair_m)} m (> 2 r_s = {_m(s.pair_limit_m)})"
+                 f"{mark(s.min_pair_m, s.pair_limit_m)}  obstacle centre {_m(s.min_obstacle_m)}"
+                 f" m (> {_m(s.obstacle_limit_m)}){mark(s.min_obstacle_m, s.obstacle_limit_m)}"
+                 f"  legs {_m(s.min_leg_m)} m (> {_m(s.leg_limit_m)})"
+                 f"{mark(s.min_leg_m, s.leg_limit_m)}  δ {_m(s.delta_m)} m{verdict}")
+        if math.isfinite(s.truth_pair_m) or math.isfinite(s.truth_leg_m):
+            clear += (f" | truth: pair {_m(s.truth_pair_m)}{mark(s.truth_pair_m, s.pair_limit_m)}"
+                      f"  obstacle centre {_m(s.truth_obstacle_m)}"
+                      f"{mark(s.truth_obstacle_m, s.obstacle_limit_m)}  legs {_m(s.truth_leg_m)}"
+                      f"{mark(s.truth_leg_m, s.leg_limit_m)}")
         loop = (f"tick p50 {_m(s.tick_p50_ms)} ms  p99 {_m(s.tick_p99_ms)} ms"
                 f"  rate {_m(s.rate_hz)} Hz  on time "
                 f"{'—' if not math.isfinite(s.on_time) else f'{100 * s.on_time:.1f}%'}"

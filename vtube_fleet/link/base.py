@@ -123,6 +123,18 @@ class VehicleState:
     alt_m: float = _NAN
     relative_alt_m: float = _NAN
     heading_deg: float = _NAN  #: yaw, degrees clockwise from north (GLOBAL_POSITION_INT.hdg)
+    #: the estimator's horizontal position accuracy, 1 σ (ESTIMATOR_STATUS.pos_horiz_accuracy)
+    pos_accuracy_m: float = _NAN
+    gnss_h_acc_m: float = _NAN  #: GNSS receiver horizontal accuracy (GPS_RAW_INT.h_acc)
+    gnss_fix_type: int | None = None  #: GPS_RAW_INT.fix_type (3 = 3D, 6 = RTK fixed)
+    #: the SITL simulator's ground truth (HIL_STATE_QUATERNION), only when asked for: WGS84
+    #: position (alt AMSL) and NED velocity; NaN until received
+    truth_lat_deg: float = _NAN
+    truth_lon_deg: float = _NAN
+    truth_alt_m: float = _NAN
+    truth_vn_m_s: float = _NAN
+    truth_ve_m_s: float = _NAN
+    last_truth_s: float | None = None
     origin: GeoPoint | None = None
     home: GeoPoint | None = None
     armed: bool | None = None
@@ -419,6 +431,18 @@ class VehicleLink(abc.ABC):
     def latency_s(self) -> float | None:
         """One-way link latency estimate in seconds (half a smoothed round trip), None if no
         sample yet. Each backend documents its source."""
+
+    async def measure_round_trip_s(self, samples: int = 3, timeout_s: float = 1.0
+                                   ) -> float | None:
+        """Measure the link's round trip now (``samples`` request → answer exchanges, the
+        largest returned; None if none was answered). Also refreshes :attr:`latency_s`."""
+        return None
+
+    async def request_truth(self, rate_hz: float) -> None:
+        """Ask the vehicle for the SITL ground truth (HIL_STATE_QUATERNION) at ``rate_hz``
+        (PX4 SITL and sim_stub send it; real vehicles do not). Fills the ``truth_*`` fields of
+        :attr:`state`. :class:`LinkError` if refused."""
+        raise LinkError(f"{self.name}: this backend cannot ask for the ground truth")
 
     @abc.abstractmethod
     async def close(self) -> None:

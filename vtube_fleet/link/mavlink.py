@@ -72,9 +72,12 @@ MSG_HEARTBEAT = 0
 MSG_SYS_STATUS = 1
 MSG_LOCAL_POSITION_NED = 32
 MSG_GLOBAL_POSITION_INT = 33
+MSG_GPS_RAW_INT = 24
 MSG_GPS_GLOBAL_ORIGIN = 49
 MSG_COMMAND_ACK = 77
 MSG_TIMESYNC = 111
+MSG_HIL_STATE_QUATERNION = 115
+MSG_ESTIMATOR_STATUS = 230
 MSG_HOME_POSITION = 242
 MSG_EXTENDED_SYS_STATE = 245
 MSG_STATUSTEXT = 253
@@ -92,6 +95,7 @@ DEFAULT_MESSAGE_RATES_HZ: Mapping[int, float] = {
     MSG_GLOBAL_POSITION_INT: 10.0,
     MSG_EXTENDED_SYS_STATE: 5.0,
     MSG_HOME_POSITION: 1.0,
+    MSG_ESTIMATOR_STATUS: 2.0,  # the position accuracy of the safety budget
 }
 
 _RESULT_ACCEPTED = 0
@@ -192,6 +196,9 @@ class MavlinkLink(VehicleLink):
             MSG_HOME_POSITION: self._on_home,
             MSG_EXTENDED_SYS_STATE: self._on_extended_sys_state,
             MSG_STATUSTEXT: self._on_statustext,
+            MSG_ESTIMATOR_STATUS: self._on_estimator_status,
+            MSG_GPS_RAW_INT: self._on_gps_raw,
+            MSG_HIL_STATE_QUATERNION: self._on_truth,
         }
         self._t0 = time.monotonic()
         self._warned_at: dict[str, float] = {}
@@ -202,6 +209,7 @@ class MavlinkLink(VehicleLink):
         self._rtt_s: float | None = None
         self._rtt_source: str | None = None
         self._timesync_ts1: int | None = None
+        self._timesync_waiters: dict[int, asyncio.Future[float]] = {}
         self._stall_warned = False
         self._hb_lost_warned = False
         self.tx_packets = 0
@@ -382,6 +390,25 @@ class MavlinkLink(VehicleLink):
         st.last_global_s = now
         self._notify_state()
 
+    def _on_estimator_status(self, m: Any, now: float) -> None:
+        acc = float(m.pos_horiz_accuracy)
+        self.state.pos_accuracy_m = acc if math.isfinite(acc) and acc >= 0 else math.nan
+
+    def _on_gps_raw(self, m: Any, now: float) -> None:
+        st = self.state
+        st.gnss_fix_type = int(m.fix_type)
+        h_acc = getattr(m, "h_acc", 0)
+        st.gnss_h_acc_m = h_acc * 1e-3 if h_acc else math.nan
+
+    def _on_truth(self, m: Any, now: float) -> None:
+        st = self.state
+        st.truth_lat_deg = m.lat * 1e-7
+        st.truth_lon_deg = m.lon * 1e-7
+        st.truth_alt_m = m.alt * 1e-3
+        st.truth_vn_m_s = m.vx * 0.01
+        st.truth_ve_m_s = m.vy * 0.01
+        st.last_truth_s = now
+
     def _on_origin(self, m: Any, now: float) -> None:
         st = self.state
         origin = GeoPoint(m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
@@ -409,10 +436,18 @@ class MavlinkLink(VehicleLink):
             fut.set_result(m.result)
 
     def _on_timesync(self, m: Any, now: float) -> None:
-        if m.tc1 != 0 and self._timesync_ts1 is not None and m.ts1 == self._timesync_ts1:
+        if m.tc1 == 0:
+            return
+        rtt = time.monotonic_ns() * 1e-9 - m.ts1 * 1e-9
+        fut = self._timesync_waiters.pop(m.ts1, None)
+        if fut is not None and not fut.done():
+            fut.set_result(rtt)
+        if self._timesync_ts1 is not None and m.ts1 == self._timesync_ts1:
             self._timesync_ts1 = None
-            self._rtt_sample(time.monotonic_ns() * 1e-9 - m.ts1 * 1e-9, "TIMESYNC")
-            self._notify_state()
+        elif fut is None:
+            return
+        self._rtt_sample(rtt, "TIMESYNC")
+        self._notify_state()
 
     def _on_statustext(self, m: Any, now: float) -> None:
         text = m.text if isinstance(m.text, str) else bytes(m.text).decode("ascii", "replace")
@@ -630,6 +665,33 @@ class MavlinkLink(VehicleLink):
                     "offboard-loss failsafe (COM_OF_LOSS_T, default 1.0 s) takes over",
                     self.name, age,
                 )
+
+    async def measure_round_trip_s(self, samples: int = 3, timeout_s: float = 1.0
+                                   ) -> float | None:
+        """TIMESYNC round trips, one after another; the largest answered one (None if none)."""
+        loop = asyncio.get_running_loop()
+        worst: float | None = None
+        for _ in range(max(1, samples)):
+            if self._remote is None or self._closed:
+                break
+            ts1 = time.monotonic_ns()
+            fut: asyncio.Future[float] = loop.create_future()
+            self._timesync_waiters[ts1] = fut
+            try:
+                self._send(self._mav.timesync_encode(0, ts1))
+                async with asyncio.timeout(timeout_s):
+                    rtt = await fut
+            except TimeoutError:
+                continue
+            finally:
+                self._timesync_waiters.pop(ts1, None)
+            worst = rtt if worst is None else max(worst, rtt)
+        return worst
+
+    async def request_truth(self, rate_hz: float) -> None:
+        """SET_MESSAGE_INTERVAL for HIL_STATE_QUATERNION (PX4 SITL and sim_stub accept it)."""
+        await self.command_long(CMD_SET_MESSAGE_INTERVAL, float(MSG_HIL_STATE_QUATERNION),
+                                1e6 / rate_hz)
 
     async def close(self) -> None:
         if self._closed:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import json
 import logging
 import math
 import threading
@@ -301,6 +302,7 @@ class MavsdkLink(VehicleLink):
         self._telemetry: Any = None
         self._offboard: Any = None
         self._offboard_sync: Any = None
+        self._direct: Any = None
         self._velocity_cls: Any = None
         self._tasks: list[asyncio.Task[None]] = []
         self._connect_lock = asyncio.Lock()
@@ -340,6 +342,39 @@ class MavsdkLink(VehicleLink):
         """Half the smoothed first-try action round trip (an overestimate); None before any."""
         return None if self._rtt_s is None else self._rtt_s / 2.0
 
+    async def measure_round_trip_s(self, samples: int = 3, timeout_s: float = 1.0
+                                   ) -> float | None:
+        """MAVSDK has no ping: time a harmless command that PX4 acknowledges (re-setting the
+        position stream rate: SET_MESSAGE_INTERVAL → COMMAND_ACK, plus a thread hop)."""
+        self._require_connected("measure the round trip")
+        loop = asyncio.get_running_loop()
+        worst: float | None = None
+        for _ in range(max(1, samples)):
+            t0 = loop.time()
+            try:
+                async with asyncio.timeout(timeout_s):
+                    await self._telemetry.set_rate_position_velocity_ned(self.position_rate_hz)
+            except Exception:
+                continue
+            rtt = loop.time() - t0
+            self._rtt_s = rtt if self._rtt_s is None else self._rtt_s + _RTT_ALPHA * (
+                rtt - self._rtt_s)
+            worst = rtt if worst is None else max(worst, rtt)
+        return worst
+
+    async def request_truth(self, rate_hz: float) -> None:
+        """MAVSDK's ``set_rate_ground_truth`` (HIL_STATE_QUATERNION); read through
+        mavlink_direct (for the velocity)."""
+        self._require_connected("ask for the ground truth")
+        if self._direct is None:
+            raise LinkError(f"{self.name}: this MAVSDK has no mavlink_direct plugin to read "
+                            f"the ground truth")
+        try:
+            await self._telemetry.set_rate_ground_truth(rate_hz)
+        except Exception as exc:
+            raise LinkError(f"{self.name}: ground truth (HIL_STATE_QUATERNION) at "
+                            f"{rate_hz:g} Hz refused: {exc}") from None
+
     # -- connect -------------------------------------------------------------------------------
     async def connect(self, timeout_s: float = 10.0) -> None:
         """Add the endpoint to the hub's MAVSDK, wait for the system, start telemetry."""
@@ -362,6 +397,13 @@ class MavsdkLink(VehicleLink):
             self._action = ActionAsync(system)
             self._telemetry = TelemetryAsync(system)
             self._offboard = OffboardAsync(system)
+            try:  # raw MAVLink for what the telemetry plugin lacks (estimator accuracy, truth)
+                from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+
+                self._direct = MavlinkDirectAsync(system)
+            except Exception as exc:  # an older MAVSDK: the budget falls back to GNSS h_acc
+                log.info("%s: no MAVSDK mavlink_direct plugin (%s)", self.name, exc)
+                self._direct = None
             # The synchronous plugin behind the async wrapper: set_velocity_ned only stores the
             # setpoint and sends it (no waiting), so it is called directly from the loop, and
             # the watchdog thread calls its stop().
@@ -393,7 +435,15 @@ class MavsdkLink(VehicleLink):
             (t.subscribe_health, self._on_health),
             (t.subscribe_heading, self._on_heading),
             (t.subscribe_status_text, self._on_status_text),
+            (t.subscribe_raw_gps, self._on_raw_gps),
+            (t.subscribe_gps_info, self._on_gps_info),
         ]
+        d = self._direct
+        if d is not None:
+            subs += [
+                (lambda: d.subscribe_message("ESTIMATOR_STATUS"), self._on_estimator_status),
+                (lambda: d.subscribe_message("HIL_STATE_QUATERNION"), self._on_truth),
+            ]
         for subscribe, handler in subs:
             self._tasks.append(loop.create_task(self._consume(subscribe, handler)))
         self._tasks.append(loop.create_task(self._watch_connection()))
@@ -485,6 +535,31 @@ class MavsdkLink(VehicleLink):
 
     def _on_heading(self, heading: Any) -> None:
         self.state.heading_deg = heading.heading_deg
+
+    def _on_raw_gps(self, g: Any) -> None:
+        h = float(g.horizontal_uncertainty_m)
+        self.state.gnss_h_acc_m = h if math.isfinite(h) and h > 0 else math.nan
+
+    def _on_gps_info(self, g: Any) -> None:
+        self.state.gnss_fix_type = int(getattr(g.fix_type, "value", g.fix_type))
+
+    def _on_estimator_status(self, msg: Any) -> None:
+        if msg.system_id != self.state.sysid:
+            return
+        acc = float(json.loads(msg.fields_json).get("pos_horiz_accuracy", math.nan))
+        self.state.pos_accuracy_m = acc if math.isfinite(acc) and acc >= 0 else math.nan
+
+    def _on_truth(self, msg: Any) -> None:
+        if msg.system_id != self.state.sysid:
+            return
+        f = json.loads(msg.fields_json)
+        st = self.state
+        st.truth_lat_deg = f["lat"] * 1e-7
+        st.truth_lon_deg = f["lon"] * 1e-7
+        st.truth_alt_m = f["alt"] * 1e-3
+        st.truth_vn_m_s = f["vx"] * 0.01
+        st.truth_ve_m_s = f["vy"] * 0.01
+        st.last_truth_s = time.monotonic()
 
     def _on_status_text(self, text: Any) -> None:
         severity = _SEVERITY.get(getattr(text.type, "name", ""), -1)

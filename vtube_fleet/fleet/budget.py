@@ -1,0 +1,230 @@
+"""The safety budget: how much the runtime inflates r_s and r_a so that the *true* clearance
+keeps the paper's limits on real vehicles (``docs/fleet.md``, "The safety budget").
+
+The paper's guarantee (Theorems 1, 2) is for continuous time, exact positions and a vehicle
+whose velocity *is* the command. A PX4 fleet breaks all three; the budget covers each part with
+a term of its own:
+
+* **lag** — positions are L old when used and the setpoint takes another link delay to arrive
+  (L = position age + setpoint delay, measured as the round trip), each command is held for
+  a control period T, and PX4 follows a velocity step only after a dead time τ_d and with a
+  first-order lag t63. Only the saturated part of (ModifiedVectorField), sat(u2 + u3' + u4',
+  v'_max), reacts to neighbours, legs and triangle sides, so one vehicle's unmodelled excursion
+  towards anything is at most ``v'_max · (T + L + τ_d + t63)``;
+* **estimate** — the controller sees PX4's *estimated* position, which is off the truth by up
+  to ``k · σ``: σ the horizontal accuracy the vehicles report (ESTIMATOR_STATUS
+  ``pos_horiz_accuracy``, 1 σ), k the confidence factor (default 2: on real PX4 SITL the
+  reported σ was 0.29 m and the largest error 0.53 m = 1.83 σ);
+* **disturbance** — PX4 tracks its *estimated* velocity, so the vehicle moves where nobody
+  commanded; the pilot compensates what it can observe (:mod:`~vtube_fleet.fleet.
+  compensation`); the rest, at most D m/s, acts like the avoidance terms over the same delay:
+  ``D · (T + L + τ_d + t63)``.
+
+So the controller is flown with
+
+    δ = (v'_max + D)·(T + L + τ_d + t63) + k σ,    r_s' = r_s + δ,    r_a' = r_a + δ
+
+(2 r_s' between two vehicles leaves 2 r_s after both err; a leg clearance r_s' leaves r_s; an
+obstacle clearance r_o + r_s' leaves r_o + r_s). The inflated scenario must itself satisfy the
+paper's conditions; the runtime checks that before arming and refuses with the numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from vtube_fleet.controller import ControllerParams
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.fleet.mission import Mission
+
+__all__ = [
+    "DEFAULT_ACCURACY_FACTOR",
+    "DEFAULT_DISTURBANCE_M_S",
+    "LinkMeasurement",
+    "SafetyBudget",
+    "budget_problems",
+    "mission_budget",
+]
+
+#: k: the estimate error assumed is k × the reported 1-σ accuracy (captures: max 1.83 σ).
+DEFAULT_ACCURACY_FACTOR = 2.0
+#: D: the estimate disturbance left after compensation (m/s), see docs/fleet.md.
+DEFAULT_DISTURBANCE_M_S = 0.2
+
+
+@dataclass(frozen=True)
+class SafetyBudget:
+    """δ and its terms (module docstring), or a fixed override (``overridden``, from
+    ``override_source``).
+
+    ``period_s`` T, ``latency_s`` L (position age + setpoint delay), ``dead_time_s`` τ_d and
+    ``t63_s`` of PX4's velocity tracking, ``v_max_prime`` of the controller, ``accuracy_m`` σ
+    (the worst reported horizontal accuracy), ``accuracy_factor`` k, ``disturbance_m_s`` D;
+    ``delta_m`` the inflation used.
+    """
+
+    period_s: float
+    latency_s: float
+    dead_time_s: float
+    t63_s: float
+    v_max_prime: float
+    delta_m: float
+    accuracy_m: float = 0.0
+    accuracy_factor: float = DEFAULT_ACCURACY_FACTOR
+    disturbance_m_s: float = 0.0
+    overridden: bool = False
+    override_source: str = "safety_margin_m from the mission file"
+
+    @property
+    def delay_s(self) -> float:
+        """The effective delay T + L + τ_d + t63."""
+        return self.period_s + self.latency_s + self.dead_time_s + self.t63_s
+
+    @property
+    def lag_m(self) -> float:
+        return self.v_max_prime * self.delay_s
+
+    @property
+    def estimate_m(self) -> float:
+        return self.accuracy_factor * self.accuracy_m
+
+    @property
+    def disturbance_m(self) -> float:
+        return self.disturbance_m_s * self.delay_s
+
+    @classmethod
+    def compute(
+        cls,
+        params: ControllerParams,
+        *,
+        period_s: float,
+        latency_s: float,
+        dead_time_s: float,
+        t63_s: float,
+        accuracy_m: float = 0.0,
+        accuracy_factor: float = DEFAULT_ACCURACY_FACTOR,
+        disturbance_m_s: float = 0.0,
+        override_m: float | None = None,
+        override_source: str = "safety_margin_m from the mission file",
+    ) -> SafetyBudget:
+        for name, value in (("period_s", period_s), ("latency_s", latency_s),
+                            ("dead_time_s", dead_time_s), ("t63_s", t63_s),
+                            ("accuracy_m", accuracy_m), ("accuracy_factor", accuracy_factor),
+                            ("disturbance_m_s", disturbance_m_s)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"safety budget: {name} must be finite and >= 0, got {value}")
+        delay = period_s + latency_s + dead_time_s + t63_s
+        vmp = float(params.v_max_prime)
+        delta = ((vmp + disturbance_m_s) * delay + accuracy_factor * accuracy_m
+                 if override_m is None else float(override_m))
+        return cls(period_s, latency_s, dead_time_s, t63_s, vmp, delta, accuracy_m,
+                   accuracy_factor, disturbance_m_s, override_m is not None, override_source)
+
+    def inflate(self, params: ControllerParams) -> ControllerParams:
+        """The controller parameters actually flown: r_s' = r_s + δ, r_a' = r_a + δ."""
+        return dataclasses.replace(params, r_s=params.r_s + self.delta_m,
+                                   r_a=params.r_a + self.delta_m)
+
+    def describe(self, params: ControllerParams | None = None) -> str:
+        """One line with the formula and the numbers."""
+        if self.overridden:
+            text = f"δ = {self.delta_m:.3f} m ({self.override_source})"
+        else:
+            text = (
+                f"δ = (v'_max + D)·(T + L + τ_d + t63) + k σ = ({self.v_max_prime:g} + "
+                f"{self.disturbance_m_s:g})·({self.period_s:.3f} + {self.latency_s:.3f} + "
+                f"{self.dead_time_s:.3f} + {self.t63_s:.3f}) + {self.accuracy_factor:g}·"
+                f"{self.accuracy_m:.3f} = {self.delta_m:.3f} m"
+            )
+        if params is not None:
+            text += (f" → r_s' = {params.r_s + self.delta_m:.3f} m, "
+                     f"r_a' = {params.r_a + self.delta_m:.3f} m")
+        return text
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "delta_m": self.delta_m,
+            "lag_m": self.lag_m,
+            "estimate_m": self.estimate_m,
+            "disturbance_m": self.disturbance_m,
+            "period_s": self.period_s,
+            "latency_s": self.latency_s,
+            "dead_time_s": self.dead_time_s,
+            "t63_s": self.t63_s,
+            "v_max_prime": self.v_max_prime,
+            "accuracy_m": self.accuracy_m,
+            "accuracy_factor": self.accuracy_factor,
+            "disturbance_m_s": self.disturbance_m_s,
+            "overridden": self.overridden,
+        }
+
+
+@dataclass(frozen=True)
+class LinkMeasurement:
+    """What the safety budget needs from the links, measured before arming.
+
+    ``position_age_s``: p95 over the fleet of the position samples' age when used (downlink
+    latency + time since arrival); ``setpoint_delay_s``: the worst one-way uplink delay (half
+    the largest measured round trip); ``accuracy_m``: the worst reported horizontal position
+    accuracy (1 σ; NaN if no vehicle reports one), ``accuracies_m`` per pilot.
+    """
+
+    position_age_s: float
+    setpoint_delay_s: float
+    accuracy_m: float
+    accuracies_m: tuple[float, ...] = ()
+
+    @property
+    def latency_s(self) -> float:
+        """L: position age + setpoint delay (the measured round trip of a command)."""
+        return self.position_age_s + self.setpoint_delay_s
+
+
+def mission_budget(mission: Mission, measured: LinkMeasurement | None = None, *,
+                   extra_latency_s: float = 0.0) -> SafetyBudget:
+    """THE budget of a mission (supervisor and MQTT agents alike): L = the mission's
+    ``latency_s``, else the measured position age + setpoint delay + ``latency_headroom_s``;
+    σ = the mission's ``position_accuracy_m``, else the worst measured accuracy (0 before a
+    measurement); ``extra_latency_s`` adds what the caller's data path adds (the MQTT agents:
+    the neighbour states' allowed age)."""
+    cfg = mission.config
+    if cfg.latency_s is not None:
+        latency = cfg.latency_s
+    elif measured is not None:
+        latency = measured.latency_s + cfg.latency_headroom_s
+    else:
+        latency = 0.0
+    sigma = cfg.position_accuracy_m
+    if sigma is None:
+        sigma = (measured.accuracy_m if measured is not None
+                 and math.isfinite(measured.accuracy_m) else 0.0)
+    return SafetyBudget.compute(
+        mission.scenario.controller, period_s=cfg.period_s,
+        latency_s=latency + extra_latency_s, dead_time_s=cfg.tracking_dead_time_s,
+        t63_s=cfg.tracking_t63_s, accuracy_m=sigma, accuracy_factor=cfg.accuracy_factor,
+        disturbance_m_s=cfg.disturbance_residual_m_s, override_m=cfg.safety_margin_m)
+
+
+def budget_problems(mission: Mission, measured: LinkMeasurement) -> list[str]:
+    """Why the measured links cannot be flown at all, whatever the geometry: L above
+    ``max_latency_s``; no accuracy reported and none configured."""
+    cfg = mission.config
+    out = []
+    latency = (cfg.latency_s if cfg.latency_s is not None
+               else measured.latency_s + cfg.latency_headroom_s)
+    if latency > cfg.max_latency_s:
+        how = ("latency_s from the mission file" if cfg.latency_s is not None else
+               f"position age p95 {measured.position_age_s * 1000:.0f} ms + setpoint delay "
+               f"{measured.setpoint_delay_s * 1000:.0f} ms + headroom "
+               f"{cfg.latency_headroom_s * 1000:.0f} ms")
+        out.append(f"link latency L = {latency * 1000:.0f} ms ({how}) > max_latency_s = "
+                   f"{cfg.max_latency_s * 1000:.0f} ms: the safety budget does not cover this "
+                   f"link")
+    if cfg.position_accuracy_m is None and not math.isfinite(measured.accuracy_m):
+        out.append("no vehicle reports its position accuracy (ESTIMATOR_STATUS or GPS_RAW_INT "
+                   "h_acc); set [mission].position_accuracy_m")
+    return out
