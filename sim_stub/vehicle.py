@@ -1830,13 +1830,20 @@ class MockVehicle:
         return _S["MISSION_CURRENT"].pack(0, 65535, 1, 2)
 
     def _b_estimator_status(self, now: float) -> bytes:
-        if now - self.t0 < self._boot_at("global_position"):
+        """Accuracy as PX4 SIH reported it (fleet-truth captures): 14.1 m before a global
+        position, then 2.0 → 0.6 (1 s later) → 0.33 (3 s) → the profile's value (0.29 m)."""
+        t_gp = self._boot_at("global_position")
+        up = now - self.t0
+        if up < t_gp:
             return _S["ESTIMATOR_STATUS"].pack(
-                self._tboot_us(now), _NAN, _NAN, 0.01, _NAN, 0.002, _NAN, 0.012, 0.19, 229
+                self._tboot_us(now), _NAN, _NAN, 0.01, _NAN, 0.002, _NAN, 14.14, 0.19, 229
             )
         e = self.estimator
+        tau = 0.7 * self.boot_time_scale
+        acc = e.pos_horiz_accuracy_m + (2.0 - e.pos_horiz_accuracy_m) * math.exp(
+            -(up - t_gp) / tau)
         return _S["ESTIMATOR_STATUS"].pack(
-            self._tboot_us(now), 0.14, 0.03, 0.02, 0.10, 0.01, _NAN, e.pos_horiz_accuracy_m,
+            self._tboot_us(now), 0.14, 0.03, 0.02, 0.10, 0.01, _NAN, acc,
             e.pos_vert_accuracy_m, 895
         )
 

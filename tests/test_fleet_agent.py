@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from missions import compact_12
 
 from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.controller import velocity_command
@@ -18,7 +19,6 @@ from vtube_fleet.fleet.agent import (
     fleet_setpoints,
 )
 from vtube_fleet.fleet.budget import SafetyBudget
-from vtube_fleet.fleet.mission import load_mission
 from vtube_fleet.partition import PartitionError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,7 @@ NOW = 1_000_000.0
 
 @pytest.fixture(scope="module")
 def mission():
-    return load_mission(ROOT / "configs" / "mock_fleet.toml")
+    return compact_12()
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +114,7 @@ def test_setpoint_is_the_controller_output(plan) -> None:
     # neighbours within r_s' + r_a': 1 (live) and 3 (static); 2 is far away
     assert sp.neighbours == 2
     p = np.array([own, [5.2, 0.6], [4.5, -1.2]])
-    k = plan.partition.locate(p)
+    k = plan.locate(p)  # the flown switching rule: §5 with the apex look-ahead
     ref = velocity_command(p, k, plan.partition.arrays, plan.params, rows=[0])[0]
     np.testing.assert_allclose([sp.vx_m_s, sp.vy_m_s], ref, rtol=0, atol=1e-12)
     assert sp.sub_tube == int(k[0])

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleet_ports import free_ports
+from missions import STRAIGHT
 from truth import TruthLog, assert_true_clearance
 from udp_relay import UdpRelay
 
@@ -99,34 +100,6 @@ def mission_file(tmp_path: Path, text: str) -> Mission:
     return load_mission(p)
 
 
-STRAIGHT = """
-[tube]
-p_h0 = [0.0, 10.0]
-p_h1 = [{length}, 10.0]
-p_r0 = [0.0, -10.0]
-p_r1 = [{length}, -10.0]
-
-[robots]
-r_s = 0.3
-r_a = 1.0
-v_min = 0.3
-v_max = 1.6
-positions = {positions}
-
-[controller]
-v = 1.0
-v_max_prime = 0.5
-
-[mission]
-origin_lat_deg = 47.397742
-origin_lon_deg = 8.545594
-origin_alt_m = 488.0
-heading_deg = 20.0
-altitude_m = 3.0
-climb_speed_m_s = 1.5
-on_complete = "{on_complete}"
-mission_timeout_s = 120.0
-"""
 
 
 def truth_and_keep(log: TruthLog, holder: list[Supervisor]):

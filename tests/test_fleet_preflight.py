@@ -7,18 +7,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fleet_ports import free_ports
+from missions import COMPACT_12, compact_12, write_mission
 
 from vtube_fleet.fleet.budget import SafetyBudget
-from vtube_fleet.fleet.mission import load_mission
 from vtube_fleet.fleet.supervisor import PreflightError, Supervisor, preflight_report
+from vtube_fleet.fleetcli import fly, mock_fleet
 from vtube_fleet.link.mavlink import MavlinkLink
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def mission():
-    return load_mission(ROOT / "configs" / "mock_fleet.toml")
+    return compact_12()  # sized for the lag-only budget these unit tests compute
 
 
 def names(n: int) -> list[str]:
@@ -68,11 +68,8 @@ def test_budget_that_makes_the_mission_infeasible(mission) -> None:
 
 
 def test_infeasible_budget_refused_before_connecting(tmp_path: Path, mission) -> None:
-    text = (ROOT / "configs" / "mock_fleet.toml").read_text().replace(
-        "lost_after_s = 1.0", "lost_after_s = 1.0\nsafety_margin_m = 5.0")
-    p = tmp_path / "m.toml"
-    p.write_text(text)
-    m = load_mission(p)
+    text = COMPACT_12.replace("lost_after_s = 1.0", "lost_after_s = 1.0\nsafety_margin_m = 5.0")
+    m = write_mission(tmp_path, text)
     links = [MavlinkLink(f"udpin://127.0.0.1:{20000 + i}") for i in range(m.count)]
     with pytest.raises(PreflightError, match=r"δ = 5.000 m .* cannot be partitioned"):
         Supervisor(m, links)
@@ -86,3 +83,18 @@ def test_too_many_links(mission) -> None:
     sup = Supervisor(mission, links[:4])
     assert len(sup.pilots) == 4 and sup.mission.count == 4
     np.testing.assert_allclose(sup.mission.slots, mission.slots[:4])
+
+
+async def test_the_measured_accuracy_refuses_a_tight_mission_before_arming(tmp_path) -> None:
+    """Mock vehicles with PX4 SITL's estimate (they report σ = 0.29 m): the full budget
+    δ = (v'_max + D)·delay + 2σ makes the 2.5 m slots of COMPACT_12 overlap; nothing arms and
+    the error names the accuracy, r_s' and the slots with their distance and the need."""
+    m = write_mission(tmp_path, COMPACT_12).with_vehicles(3)
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(3), seed=7) as fleet:
+        result = await fly(m, endpoints=fleet.endpoints, sysids=[1, 2, 3], out_dir=tmp_path)
+        assert not any(v.armed for v in fleet.vehicles)
+    assert result.exit_code == 2 and result.outcome == "failed"
+    r = result.reason
+    assert "nothing armed" in r and "σ = 0.29 m" in r and "r_s' = " in r
+    assert "slot 0 (" in r and "and slot 1 (" in r and "overlap: distance 2.5 m" in r
+    print(f"\n{r}")

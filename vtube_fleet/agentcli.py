@@ -58,6 +58,7 @@ from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan
 from vtube_fleet.fleet.budget import SafetyBudget, budget_problems
 from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
+from vtube_fleet.metrics import verdict
 from vtube_fleet.missioncli import (
     ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
@@ -78,6 +79,7 @@ log = logging.getLogger(__name__)
 
 EXIT_OK = 0
 EXIT_INCOMPLETE = 3
+EXIT_UNSAFE = 4
 EXIT_INTERRUPTED = 130
 
 #: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
@@ -220,8 +222,9 @@ class BusAwarePilot(VehiclePilot):
             self.bus_hold_since = now_mono
             self.bus_holds += 1
             self.event(
-                f"{problem}: standing still in the tube (zero horizontal velocity, altitude "
-                f"hold) until the broker is back and neighbour states are fresh",
+                f"{problem}: standing still in the tube (zero horizontal velocity of the "
+                f"estimated position, altitude hold) until the broker is back and neighbour "
+                f"states are fresh",
                 "warning",
             )
         self.bus_hold = problem
@@ -239,8 +242,8 @@ class BusAwarePilot(VehiclePilot):
             return
         self.cmd_xy = np.zeros(2)
         self.cmd_in_tube = False
-        try:
-            self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s())
+        try:  # zero velocity for the ESTIMATED position: plus the estimate compensation d̂
+            self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s(), compensate=True)
         except LinkError as exc:
             self.event(f"setpoint not sent: {exc}", "warning")
 
@@ -272,6 +275,7 @@ class AgentRecording:
         self.recorder = recorder
         self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s)
         self.cmd_speed = [math.inf, -math.inf]
+        self.unsafe = False
         self._own_seq: int | None = None
         self._failed = False
 
@@ -322,6 +326,11 @@ class AgentRecording:
             max_commanded_speed_m_s=_num(self.cmd_speed[1]),
         )
         summary = mon.summary(**own, **extra)
+        v = verdict(summary)
+        if not v.safe:  # THE verdict, over what this agent heard
+            summary["outcome"] = "unsafe"
+            summary["reason"] = v.summary_line
+        self.unsafe = not v.safe
         try:
             return write_summary(out, summary)
         finally:
@@ -639,7 +648,7 @@ class AgentProcess:
         assert isinstance(link, VehicleLink)
         cfg = self.cfg
         sc = self.mission.scenario
-        budget = self._make_budget(0.0)
+        budget = bus_safety_budget(self.mission, None, self.max_age_s)  # until measured
         agent = Agent(
             self.vehicle,
             self._plan(budget),
@@ -677,10 +686,10 @@ class AgentProcess:
         self.say("start: arming")
         self._open_recording(pilot)
         outcome = "failed"
+        rec = self.recording
         try:
             code = await self._fly_started(pilot)
             outcome = "completed" if code == EXIT_OK else "incomplete"
-            return code
         except _Interrupted:
             outcome = "interrupted"
             raise
@@ -689,6 +698,10 @@ class AgentProcess:
             raise
         finally:  # the summary and the recording on every exit path
             self._close_recording(pilot, outcome)
+        if rec is not None and rec.unsafe:
+            self.say("UNSAFE: a limit was broken in what this agent heard (summary.json)")
+            return EXIT_UNSAFE
+        return code
 
     def _open_recording(self, pilot: BusAwarePilot) -> None:
         """Start :class:`AgentRecording` (at the start command; nothing before it is written)."""

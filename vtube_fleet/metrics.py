@@ -42,6 +42,8 @@ __all__ = [
     "StepMetrics",
     "SummaryAccumulator",
     "Verdict",
+    "ViolationLog",
+    "truth_keys",
     "verdict",
 ]
 
@@ -592,7 +594,50 @@ def verdict(summary: dict[str, Any], streams: Sequence[str] = ("",)) -> Verdict:
     (``""`` = the run's own telemetry in the tube, ``"_truth"`` = ground truth where the
     simulator provides it) that broke a limit makes it unsafe. Used by the fleet, the MQTT
     coordinator and agents, the simulator and ``review``."""
-    counts = {s: int(summary.get(f"violations{s}") or 0) for s in streams
-              if f"violations{s}" in summary}
+    def key(s: str) -> str:
+        k = f"violations{s}"
+        return "truth_violations" if s == "_truth" and k not in summary else k
+
+    counts = {s: int(summary.get(key(s)) or 0) for s in streams if key(s) in summary}
     first = summary.get("first_violation")
     return Verdict(not any(counts.values()), counts, first if isinstance(first, dict) else None)
+
+
+class ViolationLog:
+    """The first violation of each judged stream, explained (:meth:`SafetyMonitor.explain`):
+    ``first`` is the earliest over the streams (the summary's ``first_violation``: time,
+    source, condition, value, limit, vehicle ids). :meth:`note` returns the entry the first
+    time a stream breaks a limit (for the caller to announce), else None."""
+
+    SOURCES = {"": "telemetry", "_truth": "ground truth", "_center": "robot centres"}
+
+    def __init__(self, monitor: SafetyMonitor) -> None:
+        self.monitor = monitor
+        self.first: dict[str, Any] | None = None
+        self._seen: set[str] = set()
+
+    def note(self, t_s: float, suffix: str, metrics: StepMetrics, pos: np.ndarray,
+             vel: np.ndarray | None, ids: Sequence[int]) -> dict[str, Any] | None:
+        if suffix in self._seen or not bool(np.asarray(metrics.violation).any()):
+            return None
+        what = self.monitor.explain(pos, vel)
+        if not what:
+            return None
+        self._seen.add(suffix)
+        w = what[0]
+        entry = {"t_s": round(float(t_s), 3), "source": self.SOURCES.get(suffix, suffix),
+                 "condition": w["condition"], "value": round(w["value"], 4),
+                 "limit": round(w["limit"], 4), "vehicles": [int(ids[r]) for r in w["robots"]]}
+        if self.first is None:
+            self.first = entry
+        return entry
+
+
+def truth_keys(summary: dict[str, Any]) -> dict[str, Any]:
+    """A summary with the ground-truth stream's keys as ``truth_<key>``
+    (``min_pair_distance_m_truth`` → ``truth_min_pair_distance_m``): how the fleet's summary
+    names them, and ``review`` too."""
+    out: dict[str, Any] = {}
+    for k, v in summary.items():
+        out["truth_" + k[: -len("_truth")] if k.endswith("_truth") else k] = v
+    return out

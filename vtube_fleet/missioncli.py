@@ -47,6 +47,8 @@ from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, enc
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.topics import validate_mission_id
 from vtube_fleet.errors import ConfigError, UserError
+from vtube_fleet.fleet.agent import STOPPED_PHASES
+from vtube_fleet.metrics import verdict
 
 __all__ = [
     "DEFAULT_BROKER",
@@ -66,6 +68,7 @@ DEFAULT_BROKER = "mqtt://127.0.0.1:1883"
 EXIT_OK = 0
 EXIT_INCOMPLETE = 3
 EXIT_INTERRUPTED = 130
+EXIT_UNSAFE = 4
 
 #: Phases after which a vehicle is done with the tube (for the end of the run).
 TUBE_DONE = frozenset(
@@ -194,11 +197,12 @@ class RunMonitor:
     ticks: int = 0
 
     def __post_init__(self) -> None:
-        from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator
+        from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator, ViolationLog
 
         sc = self.mission.scenario
         self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, sc.controller)
         self.acc = SummaryAccumulator(self.vehicles)
+        self.violations = ViolationLog(self.monitor)
 
     def on_state(self, state: NeighbourState, received_s: float, *, count_age: bool = True
                  ) -> None:
@@ -271,15 +275,24 @@ class RunMonitor:
             p = (st.x_m, st.y_m)
             if st.phase in AIRBORNE:
                 air[vid] = p
+            # judged in the tube: flying it, or stopped inside it (lost, holding, landing)
             if st.phase == Phase.IN_TUBE or (
-                st.phase == Phase.LOST and bool(tube.contains(np.array(p)))
+                (st.phase == Phase.LOST or st.phase in STOPPED_PHASES)
+                and bool(tube.contains(np.array(p)))
             ):
                 pos[vid] = p
             if st.phase == Phase.IN_TUBE and now_s - st.stamp_s < 1.0:
                 sp = math.hypot(st.vx_m_s, st.vy_m_s)
                 self.measured_speed[0] = min(self.measured_speed[0], sp)
                 self.measured_speed[1] = max(self.measured_speed[1], sp)
-        self.acc.add(now_s - self.t0_s, self.monitor.evaluate(pos, None))
+        sm = self.monitor.evaluate(pos, None)
+        self.acc.add(now_s - self.t0_s, sm)
+        e = self.violations.note(now_s - self.t0_s, "", sm, pos, None, range(m))
+        if e is not None:
+            self.events.append({"t_s": e["t_s"], "vehicle": None, "level": "error",
+                                "text": f"LIMIT BROKEN ({e['source']}): {e['condition']} "
+                                        f"{e['value']:.3f} m, limit {e['limit']:.3f} m: "
+                                        f"vehicle(s) {e['vehicles']}"})
         if self.recorder is not None:
             self._record_tick(states, now_s, safety={"": (pos, np.full_like(pos, np.nan))},
                               cmd=cmd)
@@ -347,6 +360,7 @@ class RunMonitor:
                 else None
             ),
             "events": self.events[-400:],
+            "first_violation": self.violations.first,
         }
         out.update(extra)
         return self.acc.summary(**out)
@@ -711,6 +725,10 @@ async def _start(args: argparse.Namespace) -> int:
                 vehicle_states=co.vehicle_table(),
                 wall_s=round(time.time() - (co.t_start_wall or time.time()), 3),
             )
+            v = verdict(summary)
+            if not v.safe:  # THE verdict: a broken limit makes the run unsafe, whatever else
+                summary["outcome"] = outcome = "unsafe"
+                summary["reason"] = v.summary_line
             path = write_summary(out, summary)
             if recorder is not None:
                 mon._record("log_summary", summary)
@@ -724,6 +742,9 @@ async def _start(args: argparse.Namespace) -> int:
             f"{_fmt(summary.get('state_age_p99_s'), 'ms', 1000)}; summary {path}",
             file=sys.stderr,
         )
+        if outcome == "unsafe":
+            print(f"error: mission unsafe: {summary['reason']}", file=sys.stderr)
+            return EXIT_UNSAFE
         if outcome == "interrupted":
             return EXIT_INTERRUPTED
         return EXIT_OK if outcome == "completed" else EXIT_INCOMPLETE

@@ -56,6 +56,15 @@ class ReviewResult:
     differences: list[tuple[str, Any, Any]]
     plots: list[Path] = field(default_factory=list)
 
+    @property
+    def verdict(self) -> Any:
+        """:func:`vtube_fleet.metrics.verdict` of the recomputed summary (every recorded
+        stream but unicycle centres, which the simulator reports beside the control points)."""
+        from vtube_fleet.metrics import verdict
+
+        streams = ["", "_truth"] if "truth_violations" in self.summary else [""]
+        return verdict(self.summary, streams)
+
 
 def _monitor(data: RecordingData) -> Any:
     from vtube_fleet.metrics import SafetyMonitor
@@ -99,7 +108,7 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
     are copied over, in the stored summary's key order. ``metrics``: precomputed
     :func:`step_metrics` (t, metrics) of the ``""`` stream.
     """
-    from vtube_fleet.metrics import SummaryAccumulator
+    from vtube_fleet.metrics import SummaryAccumulator, truth_keys
 
     meta = data.meta
     ids = [int(i) for i in meta.get("ids", [])] or [int(i) for i in data.ids]
@@ -116,7 +125,7 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
             by_time.setdefault(t, []).append(index[vid])
     for t, rows in sorted(by_time.items()):
         acc.add_exits(t, rows)
-    fresh = acc.summary()
+    fresh = truth_keys(acc.summary())
     recomputed = tuple(fresh)
     stored = data.summary or {}
     if stored:
@@ -277,6 +286,7 @@ def _print_text(res: ReviewResult) -> None:
                  "above hold every step's extremes" if every > 1 else ""))
     elif stored:
         print("the recomputed summary matches the run's own summary")
+    print(f"verdict: {res.verdict.summary_line}")
     for p in res.plots:
         print(f"wrote {p}")
 

@@ -297,7 +297,8 @@ def lost_obstacles(
     out = []
     apex = LOST_APEX_FACTOR * h_min(float(radius_m), params)
     for p in view.lost_pos:
-        if bool(tube.contains(p)):
+        past = -float((np.asarray(p) - tube.p_r1) @ tube.n_c) <= float(params.eps_0)
+        if bool(tube.contains(p)) and not past:  # (past the finishing line: Assumption 2)
             out.append(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
                                 apex_distance=apex))
     return tuple(out)
@@ -422,18 +423,18 @@ def exit_velocity(
     """Velocity of a vehicle past the finishing line (Assumption 2: it no longer follows the
     tube's controller): straight on at v along the main tube's n_c, so vehicles that exited
     keep their spacing. Returns ``None`` (stop and hold) when a vehicle that is not flying on
-    (static, lost, or live but slower than ``slow_m_s``, default v/2) lies ahead within
-    ``stop_distance_m`` along n_c and within 2 r_s (flown) across, so a vehicle never runs
-    into one that stopped ahead of it.
+    (static, lost or stopped — by its phase, not by its reported speed: PX4's velocity
+    estimate can be 0.5 m/s off) lies ahead within ``stop_distance_m`` along n_c and within
+    2 r_s (flown) across, so a vehicle never runs into one that stopped ahead of it.
+    ``slow_m_s``: live vehicles slower than this count as stopped too (default: none).
     """
     own = np.asarray(own_xy, dtype=float).reshape(2)
     n_c = plan.tube.n_c
     v = float(plan.params.v)
-    slow = 0.5 * v if slow_m_s is None else float(slow_m_s)
     pts = [view.static_pos, view.lost_pos]
-    if view.live_pos.shape[0]:
+    if slow_m_s is not None and view.live_pos.shape[0]:
         sp = np.hypot(view.live_vel[:, 0], view.live_vel[:, 1])
-        pts.append(view.live_pos[sp < slow])
+        pts.append(view.live_pos[sp < float(slow_m_s)])
     pts_all = np.concatenate(pts)
     if pts_all.shape[0]:
         rel = pts_all - own

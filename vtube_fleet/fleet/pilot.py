@@ -87,7 +87,7 @@ async def measure_links(pilots: Sequence[VehiclePilot], period_s: float,
         for i, p in enumerate(pilots):
             a = p.position_accuracy_m()
             if math.isfinite(a):
-                acc[i] = a if not math.isfinite(acc[i]) else max(acc[i], a)
+                acc[i] = a  # the latest report (it only settles downwards after boot)
         await asyncio.sleep(period_s)  # the sampling period of the measurement
     a = np.asarray(ages, dtype=float)
     a = a[np.isfinite(a)]
@@ -96,19 +96,42 @@ async def measure_links(pilots: Sequence[VehiclePilot], period_s: float,
                            max(known) if known else math.nan, tuple(acc))
 
 
+#: Seconds :func:`wait_accuracy` waits for ESTIMATOR_STATUS before it accepts GNSS h_acc.
+ESTIMATOR_WAIT_S = 5.0
+#: The reported accuracy counts as settled when it changed by at most 10 % in this long.
+SETTLE_S = 1.0
+
+
 async def wait_accuracy(pilots: Sequence[VehiclePilot], max_m: float, timeout_s: float,
                         on_wait: Callable[[str], None] | None = None) -> None:
-    """Wait until every vehicle reports a horizontal accuracy of at most ``max_m`` (PX4's
-    estimate settles for a few seconds after boot: 14 → 0.3 m); :class:`PilotError` naming
-    the vehicles after ``timeout_s``."""
+    """Wait until every vehicle reports a horizontal accuracy of at most ``max_m`` and it has
+    settled (PX4's estimate settles for a few seconds after boot: 14 → 0.3 m);
+    :class:`PilotError` naming the vehicles above ``max_m`` after ``timeout_s``."""
     loop = asyncio.get_running_loop()
-    end = loop.time() + timeout_s
+    start = loop.time()
+    end = start + timeout_s
     said = False
+    history: list[tuple[float, list[float]]] = []
     while True:
-        bad = [(p, p.position_accuracy_m()) for p in pilots]
-        bad = [(p, a) for p, a in bad if not (math.isfinite(a) and a <= max_m)]
-        if not bad:
+        # the estimator's own accuracy first; a vehicle that sends none for ESTIMATOR_WAIT_S
+        # is judged by its GNSS receiver's (GPS_RAW_INT h_acc, larger)
+        now = loop.time()
+        gnss = now - start > ESTIMATOR_WAIT_S
+        now_acc = [p.position_accuracy_m(allow_gnss=gnss) for p in pilots]
+        bad = [(p, a) for p, a in zip(pilots, now_acc, strict=True)
+               if not (math.isfinite(a) and a <= max_m)]
+        # settled: within 10 % (or 2 cm) of what it was SETTLE_S ago (PX4 after boot:
+        # 14 → 2.0 → 0.6 → 0.33 → 0.30 m over ~6 s)
+        history.append((now, now_acc))
+        while len(history) > 1 and history[1][0] <= now - SETTLE_S:
+            history.pop(0)
+        old_t, old_acc = history[0]
+        settled = now - old_t >= SETTLE_S and all(
+            abs(a - b) <= max(0.02, 0.1 * b) for a, b in zip(now_acc, old_acc, strict=True))
+        if not bad and settled:
             return
+        if loop.time() >= end and not bad:
+            return  # within the bound, still settling: the budget takes the latest value
         if loop.time() >= end:
             raise PilotError(
                 f"{len(bad)} vehicle(s) do not report a horizontal position accuracy of at most "
@@ -294,13 +317,13 @@ class VehiclePilot:
             self.at_altitude.set()
         return True
 
-    def position_accuracy_m(self) -> float:
+    def position_accuracy_m(self, allow_gnss: bool = True) -> float:
         """The vehicle's reported horizontal position accuracy (1 σ): the estimator's
-        (ESTIMATOR_STATUS) or, if it sends none, the GNSS receiver's (GPS_RAW_INT h_acc);
-        NaN if neither."""
+        (ESTIMATOR_STATUS) or, if it sends none and ``allow_gnss``, the GNSS receiver's
+        (GPS_RAW_INT h_acc); NaN if neither."""
         s = self.link.state
         a = s.pos_accuracy_m
-        return a if math.isfinite(a) else s.gnss_h_acc_m
+        return a if math.isfinite(a) or not allow_gnss else s.gnss_h_acc_m
 
     def sample_age_s(self, now_mono: float) -> float:
         """Age of the position in use: since it arrived plus the one-way link latency."""

@@ -58,6 +58,7 @@ import numpy as np
 from vtube_fleet.bus.base import InProcessBus, Phase
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import (
+    STOPPED_PHASES,
     Agent,
     FlightPlan,
     NeighbourView,
@@ -82,7 +83,13 @@ from vtube_fleet.fleet.pilot import (
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
-from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator, verdict
+from vtube_fleet.metrics import (
+    SafetyMonitor,
+    SummaryAccumulator,
+    ViolationLog,
+    truth_keys,
+    verdict,
+)
 from vtube_fleet.neighbours import pairs_within
 from vtube_fleet.partition import PartitionError
 from vtube_fleet.validation import validate_scenario
@@ -163,18 +170,6 @@ def _num(x: float | None) -> float | None:
         return None
     x = float(x)
     return x if math.isfinite(x) else None
-
-
-def _truth_keys(summary: dict[str, Any]) -> dict[str, Any]:
-    """The ground-truth stream's keys as ``truth_<key>`` (``min_pair_distance_m_truth`` →
-    ``truth_min_pair_distance_m``); the telemetry keys stay as they are."""
-    out: dict[str, Any] = {}
-    for k, v in summary.items():
-        if k.endswith("_truth"):
-            out["truth_" + k[: -len("_truth")]] = v
-        else:
-            out[k] = v
-    return out
 
 
 def preflight_report(
@@ -310,9 +305,8 @@ class Supervisor:
         self._budget_over = 0  # consecutive seconds the in-flight budget watch saw too much
         self._budget_checked_s = 0.0
         self._recent_ages: list[tuple[float, float]] = []
-        self.first_violation: dict[str, Any] | None = None
+        self.violations = ViolationLog(self.monitor)
         self.not_landed: list[str] = []
-        self._violations_seen = {"": 0, "_truth": 0}
         self.truth_xy: np.ndarray | None = None  # (M, 2) ground truth, tube frame (truth=True)
         self.min_pair_airborne_truth = math.inf
         self.listening_since: float | None = None
@@ -501,9 +495,12 @@ class Supervisor:
                 vel[i] = p.vel_xy
             if p.cmd_xy is not None:
                 cmd[i] = p.cmd_xy
-            tube_rows[i] = p.cmd_in_tube or (p.phase == Phase.LOST and p.lost_xy is not None
-                                             and self.tube_start_s is not None
-                                             and bool(tube.contains(p.lost_xy)))
+            # judged in the tube: flying the controller, or stopped inside it (lost at its last
+            # position, holding, landing while still in the air)
+            tube_rows[i] = p.cmd_in_tube or (
+                self.tube_start_s is not None and p.has_position()
+                and (p.phase == Phase.LOST or (p.phase in STOPPED_PHASES and p.airborne()))
+                and bool(tube.contains(p.position())))
             airborne[i] = p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.LOST) or (
                 p.phase in (Phase.HOLDING, Phase.LANDING) and p.exit_time_s is not None)
         lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
@@ -516,10 +513,8 @@ class Supervisor:
         if self.tube_start_s is not None:
             # the "" stream: in the tube (telemetry position, commanded velocity)
             p_tube = np.where(tube_rows[:, None], pos, np.nan)
-            v_tube = np.where((tube_rows & np.isfinite(cmd[:, 0]))[:, None], cmd, np.nan)
-            for i, p in enumerate(pilots):
-                if tube_rows[i] and p.phase == Phase.LOST:
-                    v_tube[i] = np.nan
+            commanded = np.array([p.cmd_in_tube for p in pilots]) & np.isfinite(cmd[:, 0])
+            v_tube = np.where(commanded[:, None], cmd, np.nan)  # speeds: the controller's
             sm = self.monitor.evaluate(p_tube, v_tube)
             self.acc.add(t, sm)
             self._note_violation(t, "", sm, p_tube, v_tube)
@@ -613,26 +608,14 @@ class Supervisor:
 
     def _note_violation(self, t: float, suffix: str, sm: Any, pos: np.ndarray,
                         vel: np.ndarray | None) -> None:
-        """On the first tick that breaks a limit (telemetry or truth): record what, who and
-        by how much (summary ``first_violation``) and say it."""
-        if not bool(sm.violation[0]):
+        """On the first tick that breaks a limit (telemetry or truth): say what, who and by
+        how much (kept for the summary's ``first_violation``)."""
+        e = self.violations.note(t, suffix, sm, pos, vel, [p.vehicle_id for p in self.pilots])
+        if e is None:
             return
-        self._violations_seen[suffix] = self._violations_seen.get(suffix, 0) + 1
-        if self._violations_seen[suffix] > 1:
-            return
-        what = self.monitor.explain(pos, vel)
-        if not what:
-            return
-        w = what[0]
-        source = "ground truth" if suffix == "_truth" else "telemetry"
-        entry = {"t_s": round(t, 3), "source": source, "condition": w["condition"],
-                 "value": round(w["value"], 4), "limit": round(w["limit"], 4),
-                 "vehicles": [self.pilots[r].vehicle_id for r in w["robots"]]}
-        if self.first_violation is None:
-            self.first_violation = entry
-        who = " and ".join(self.names[r] for r in w["robots"])
-        self.event(f"LIMIT BROKEN ({source}): {w['condition']} {w['value']:.3f} m ≤ "
-                   f"{w['limit']:.3f} m, {who}", level="error")
+        who = " and ".join(self.names[v] for v in e["vehicles"])
+        self.event(f"LIMIT BROKEN ({e['source']}): {e['condition']} {e['value']:.3f} m, limit "
+                   f"{e['limit']:.3f} m: {who}", level="error")
 
     def _watch_budget(self, t: float) -> None:
         """Once a second in the tube: the budget's L and σ against what is measured now (L:
@@ -697,7 +680,7 @@ class Supervisor:
                            summ.get("min_right_leg_distance_m") or math.inf)
         st.leg_limit_m = self.params.r_s
         st.delta_m = self.budget.delta_m
-        st.unsafe = self.first_violation is not None
+        st.unsafe = self.violations.first is not None
         if self.truth:
             st.truth_pair_m = min(summ.get("min_pair_distance_m_truth") or math.inf,
                                   self.min_pair_airborne_truth)
@@ -1125,7 +1108,7 @@ class Supervisor:
             "vehicle_states": vehicles,
             "events": self.events[-200:],
         }
-        extra["first_violation"] = self.first_violation
+        extra["first_violation"] = self.violations.first
         if self.truth:
             extra["truth"] = True
             extra["min_pair_distance_airborne_m_truth"] = _num(self.min_pair_airborne_truth)
@@ -1151,11 +1134,11 @@ class Supervisor:
         except Exception as exc:  # never lose the summary
             log.error("summary accumulator failed: %s", exc)
             return extra
-        return _truth_keys(out)
+        return truth_keys(out)
 
     def _summary_core(self) -> dict[str, Any]:
         """The accumulator's figures only (what the verdict reads)."""
         try:
-            return self.acc.summary(first_violation=self.first_violation)
+            return self.acc.summary(first_violation=self.violations.first)
         except Exception:  # pragma: no cover - never block the verdict
             return {"violations": 0}
