@@ -39,17 +39,17 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 MISSION = """
 [tube]
-p_h0 = [0.0, 5.0]
-p_h1 = [30.0, 5.0]
-p_r0 = [0.0, -5.0]
-p_r1 = [30.0, -5.0]
+p_h0 = [0.0, 10.0]
+p_h1 = [30.0, 10.0]
+p_r0 = [0.0, -10.0]
+p_r1 = [30.0, -10.0]
 
 [robots]
 r_s = 0.3
 r_a = 1.0
 v_min = 0.3
 v_max = 1.6
-positions = [[1.5, 2.5], [1.5, -2.5]]
+positions = [[2.0, 4.5], [2.0, -4.5]]
 
 [controller]
 v = 1.0
@@ -210,8 +210,8 @@ async def test_frozen_loop_mavsdk_watchdog_holds(tmp_path: Path) -> None:
 
 def test_sigint_lands_everyone_and_leaves_a_complete_summary(tmp_path: Path) -> None:
     path = tmp_path / "m.toml"
-    path.write_text(MISSION.replace("[[1.5, 2.5], [1.5, -2.5]]",
-                                    "[[1.5, 2.5], [1.5, 0.0], [1.5, -2.5]]"))
+    path.write_text(MISSION.replace("[[2.0, 4.5], [2.0, -4.5]]",
+                                    "[[2.0, 4.5], [2.0, 0.0], [2.0, -4.5]]"))
     out = tmp_path / "run"
     with mock_process(path, 3) as endpoints:
         proc = subprocess.Popen(

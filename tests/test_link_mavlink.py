@@ -306,7 +306,7 @@ async def test_connect_requests_streams_and_becomes_ready(pair) -> None:
     assert state.sysid == 1 and state.health_ok and state.flight_mode == "HOLD"
     assert state.origin == pytest.approx(GeoPoint(47.3977459, 8.545593, 489.056), abs=2e-7)
     intervals = {int(m.param1): m.param2 for m in fake.commands(511)}
-    assert intervals == {32: 20000.0, 33: 100000.0, 245: 200000.0, 242: 1000000.0}
+    assert intervals == {32: 20000.0, 33: 100000.0, 245: 200000.0, 242: 1000000.0, 230: 500000.0}
     assert sorted(int(m.param1) for m in fake.commands(512)) == [49, 242]
     hb = await fake.wait_for(lambda m: m.get_type() == "HEARTBEAT")
     assert (hb.get_srcSystem(), hb.get_srcComponent(), hb.type, hb.autopilot) == (255, 190, 6, 8)
@@ -519,7 +519,7 @@ async def test_concurrent_connects_share_one_socket() -> None:
         await fake.start()
         try:
             await asyncio.gather(link.connect(5.0), link.connect(5.0), link.connect(5.0))
-            assert len(fake.commands(511)) == 4  # streams requested once
+            assert len(fake.commands(511)) == 5  # streams requested once
         finally:
             await link.close()
 

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from missions import COMPACT_12_PATH
 
 from vtube_fleet.agentcli import AgentProcess, AgentRefused
 from vtube_fleet.bus.base import NeighbourState, Phase
@@ -19,7 +20,7 @@ from vtube_fleet.fleet.mission import load_mission
 from vtube_fleet.missioncli import config_hash, default_mission_id
 
 ROOT = Path(__file__).resolve().parents[1]
-MISSION = ROOT / "configs" / "mock_fleet.toml"
+MISSION = COMPACT_12_PATH  # scripted states: no budget involved (tests/missions.py)
 
 
 @pytest.fixture
@@ -142,7 +143,7 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
 
 
 async def test_an_agent_with_another_mission_file_refuses_and_start_fails(broker, tmp_path):
-    other = tmp_path / "mock_fleet.toml"  # same name → same mission id, different content
+    other = tmp_path / "compact_12.toml"  # same name → same mission id, different content
     other.write_text(MISSION.read_text().replace("v = 1.0 ", "v = 1.1 "))
     assert config_hash(other) != config_hash(MISSION)
     proc = AgentProcess(other, 1, broker=broker.url, join_timeout_s=30)
@@ -214,7 +215,7 @@ async def test_late_agent_refuses_a_started_run(broker):
 
 async def test_abort_without_a_run_is_a_clear_error(broker):
     code, _, err = await run_cli("mission", "abort", str(MISSION), "--broker", broker.url)
-    assert code == 2 and "error: no run of mission mock_fleet announced" in err
+    assert code == 2 and "error: no run of mission compact_12 announced" in err
 
 
 async def test_unreachable_broker_is_a_clear_error():

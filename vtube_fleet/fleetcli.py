@@ -165,11 +165,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     recorder = _recorder(args, out)
     view = FleetView(enabled=not args.quiet)
     mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale,
-                   "estimator": args.mock_estimator}
+                   "estimator": args.mock_estimator, "seed": args.mock_seed}
+    # the built-in mock always has its ground truth: judge by it too
+    truth = args.truth or endpoints is None
     try:
         result = asyncio.run(fly(mission, backend=args.backend, endpoints=endpoints,
                                  out_dir=out, recorder=recorder, view=view,
-                                 mock_kwargs=mock_kwargs, truth=args.truth))
+                                 mock_kwargs=mock_kwargs, truth=truth))
     finally:
         recorder.close()
     print(_closing_line(result, out), file=sys.stderr)
@@ -230,7 +232,9 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
         kwargs: dict[str, Any] = {"boot_time_scale": args.boot_time_scale,
-                                  "profile": args.profile}
+                                  "profile": args.profile, "estimator": args.estimator,
+                                  "estimator_shared": args.estimator_shared,
+                                  "gcs_link": args.gcs_link, "seed": args.seed}
         if args.gcs_port is not None or args.vehicle_port is not None:
             from sim_stub import PortScheme
 
@@ -281,10 +285,12 @@ def register(subparsers: Any) -> None:
     p.add_argument("--mock-estimator", choices=("px4-sih", "rtk", "ideal"), default="px4-sih",
                    help="without --endpoints: the mock vehicles' estimate errors (px4-sih: "
                         "like real PX4 SITL, the default; rtk: cm-level; ideal: none)")
+    p.add_argument("--mock-seed", type=int, default=0, metavar="N",
+                   help="without --endpoints: seed of the mock vehicles' estimate errors")
     p.add_argument("--truth", action="store_true",
                    help="ask every vehicle for its SITL ground truth (HIL_STATE_QUATERNION; "
                         "PX4 SITL and the mock send it) and judge the clearance truly flown "
-                        "too (truth_* summary keys)")
+                        "too (truth_* summary keys); always on for the built-in mock")
     try:
         from vtube_fleet.recording import add_recording_args
 
@@ -305,6 +311,15 @@ def register(subparsers: Any) -> None:
     m.add_argument("--profile", choices=("full", "lite"), default="full",
                    help="sim_stub stream set: every stream PX4 sends (full) or what clients "
                         "rely on (lite)")
+    m.add_argument("--estimator", choices=("px4-sih", "rtk", "ideal"), default="px4-sih",
+                   help="the vehicles' estimate errors: px4-sih (like real PX4 SITL, default), "
+                        "rtk (cm-level), ideal (none)")
+    m.add_argument("--estimator-shared", action="store_true",
+                   help="every vehicle gets the same estimate-error sequence (as SIH does)")
+    m.add_argument("--gcs-link", choices=("lite", "full", "off"), default="lite",
+                   help="PX4's GCS link (udp 18570+i -> 14550; ground truth on request): its "
+                        "default stream set (default lite)")
+    m.add_argument("--seed", type=int, default=0, help="seed of the estimate errors")
     m.add_argument("--gcs-port", type=int, default=None, metavar="N",
                    help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
     m.add_argument("--vehicle-port", type=int, default=None, metavar="N",

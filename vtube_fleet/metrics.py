@@ -25,6 +25,7 @@ this module, so the numbers mean the same everywhere.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, fields
@@ -226,6 +227,18 @@ class SafetyMonitor:
             v_max=float(params.v_max),
             pair_radius=float(params.r_s + params.r_a),
         )
+
+    @classmethod
+    def for_run(cls, tube: Trapezoid, obstacles: Iterable[Obstacle], params: Any,
+                flown: Any = None) -> SafetyMonitor:
+        """The monitor of a run that flies inflated radii ``flown`` (r_s', r_a'): the limits
+        of the physical ``params``, pairs searched within r_s' + r_a' + 1 m so that the
+        minimum pair distance is reported even when nobody came within r_s + r_a. The fleet
+        and ``review`` of its recording use this."""
+        mon = cls.from_params(tube, obstacles, params)
+        if flown is None:
+            return mon
+        return dataclasses.replace(mon, pair_radius=float(flown.r_s + flown.r_a + 1.0))
 
     # ----- the metrics ------------------------------------------------------------------
     def evaluate(

@@ -72,7 +72,10 @@ def _monitor(data: RecordingData) -> Any:
     meta = data.meta
     params = SimpleNamespace(r_s=meta["r_s"], r_a=meta["r_a"], v_min=meta["v_min"],
                              v_max=meta["v_max"])
-    return SafetyMonitor.from_params(data.tube(), data.obstacles(), params)
+    flown = None
+    if meta.get("r_s_flown") is not None and meta.get("r_a_flown") is not None:
+        flown = SimpleNamespace(r_s=meta["r_s_flown"], r_a=meta["r_a_flown"])
+    return SafetyMonitor.for_run(data.tube(), data.obstacles(), params, flown)
 
 
 def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any]:

@@ -138,11 +138,12 @@ async def wait_accuracy(pilots: Sequence[VehiclePilot], max_m: float, timeout_s:
                 f"max_position_accuracy_m = {max_m:g} m within {timeout_s:g} s: " + "; ".join(
                     f"{p.name} {'none reported' if not math.isfinite(a) else f'{a:.2f} m'}"
                     for p, a in bad))
-        if not said and on_wait is not None:
+        if not said and on_wait is not None and now - start > 0.5:
             said = True
-            on_wait("waiting for the position estimate to settle: " + ", ".join(
+            shown = bad or list(zip(pilots, now_acc, strict=True))
+            on_wait("waiting for the reported position accuracy to settle: " + ", ".join(
                 f"{p.name} {'none yet' if not math.isfinite(a) else f'{a:.2f} m'}"
-                for p, a in bad[:5]))
+                for p, a in shown[:4]) + (" …" if len(shown) > 4 else ""))
         await asyncio.sleep(0.2)
 
 

@@ -39,7 +39,6 @@ tube; the measured speeds are ``min_measured_speed_m_s``/``max_measured_speed_m_
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import inspect
 import json
 import logging
@@ -273,11 +272,8 @@ class Supervisor:
             self.pilots.append(VehiclePilot(link, agent, self.bus, mission, frame=self.frame,
                                             on_event=self._on_pilot_event))
         self.names = [p.name for p in self.pilots]
-        # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' (+1 m) so that the
-        # minimum pair distance is reported even when nobody came within r_s + r_a
-        self.monitor = dataclasses.replace(
-            SafetyMonitor.from_params(sc.tube, sc.obstacles, self.params),
-            pair_radius=float(flown.r_s + flown.r_a + 1.0))
+        # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' + 1 m
+        self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, self.params, flown)
         self.acc = SummaryAccumulator(len(self.pilots))
         self.t0 = time.monotonic()
         self.tube_start_s: float | None = None
