@@ -78,7 +78,7 @@ def main() -> int:
                   f"{r['violations']} truth {r['truth_violations']}; compensation residual p99 "
                   f"{_f(r['residual_p99'])} m/s; {time.monotonic() - t0:.0f} s", flush=True)
 
-        def worst(key: str) -> float:
+        def worst(key: str, rows: list[dict] = rows) -> float:
             vals = [r[key] for r in rows if r[key] is not None]
             return min(vals) if vals else math.nan
 
