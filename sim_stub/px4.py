@@ -1,8 +1,8 @@
 """PX4 conventions as seen on the wire: modes, base_mode flags, parameters, STATUSTEXT, events.
 
-Everything here is either measured in the captures (``/work/shared/px4_sitl/README.md``, cited as
-"capture") or taken from PX4 source at the captured era (cited as "PX4 source") where the captures
-do not show it. Pure data and pure functions, no I/O.
+Everything here is either measured in the captures (``tests/data/px4_sitl/``, summarised in
+``docs/sim_stub.md``, cited as "capture") or taken from PX4 source at the captured era (cited as
+"PX4 source") where the captures do not show it. Pure data and pure functions, no I/O.
 """
 
 from __future__ import annotations

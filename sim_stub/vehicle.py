@@ -1,6 +1,6 @@
 """A mock PX4 SITL vehicle on the wire: MAVLink 2 over UDP, PX4's streams, commands and rules.
 
-Ground truth is the captures in ``/work/shared/px4_sitl/`` (README there, cited "capture"); where
+Ground truth is the captures in ``tests/data/px4_sitl/`` (README there, cited "capture"); where
 they are silent the behaviour follows PX4 source of the same era (cited "PX4 source") and is
 listed as such in ``docs/sim_stub.md``.
 

@@ -1,4 +1,4 @@
-"""σ, s, V_n, ∂V_n/∂x, the fused BarrierBank and sat/κ (Section III-A, NOTES.md item 3)."""
+"""σ, s, V_n, ∂V_n/∂x, the fused BarrierBank and sat/κ (Section III-A, paper note 3)."""
 
 import math
 
@@ -56,7 +56,7 @@ def test_s_is_c1_identity_below_and_one_above(eps_s):
     x1, x2 = s_knots(eps_s)
     assert x1 < 1 < x2
     assert x2 == pytest.approx(1 + eps_s / math.tan(math.radians(67.5)))
-    # identity branch, extended below 0 (NOTES.md item 3)
+    # identity branch, extended below 0 (paper note 3)
     xs = np.array([-5.0, -1e-3, 0.0, 0.3, np.nextafter(x1, 0.0)])
     np.testing.assert_array_equal(s(xs, eps_s), xs)
     np.testing.assert_array_equal(ds_dx(xs, eps_s), 1.0)
@@ -87,7 +87,7 @@ def test_V_n_values_and_properties_paper_parameters():
     for x in (0.01, 0.2, 0.45):
         assert V_n(1.0, x, d1, d2, **PAPER) == pytest.approx(1 / (1e-6 * x), rel=1e-9)
         assert dV_n_dx(1.0, x, d1, d2, **PAPER) == pytest.approx(-1 / (1e-6 * x * x), rel=1e-9)
-    # huge near d1 (|dV| ~ 1e12 just above d1, NOTES.md item 3)
+    # huge near d1 (|dV| ~ 1e12 just above d1, paper note 3)
     assert V_n(1.0, d1 * (1 + 1e-7), d1, d2, **PAPER) > 1e5
     assert dV_n_dx(1.0, d1 * (1 + 1e-6), d1, d2, **PAPER) < -1e11
     # property (2): zero beyond d2 (and at d2)

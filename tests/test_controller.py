@@ -39,7 +39,7 @@ def make_tube(phi=0.0, w0=6.0, length=20.0, a_h=0.0, a_r=0.0, origin=(0.0, 0.0),
 
 
 def reference(p, k, tubes, params, kind="new", obstacles=()):
-    """Straightforward per-robot evaluation of the paper's equations (with NOTES.md items 1,
+    """Straightforward per-robot evaluation of the paper's equations (with paper notes 1,
     3, 4, 6), using only the public barrier functions."""
     P = params
     p = np.asarray(p, dtype=float)
@@ -339,7 +339,7 @@ def test_neighbours_in_other_sub_tubes_count_and_each_robot_uses_its_own_tube():
     v = velocity_command(p, k, ta, P)
     v_alone = np.vstack([velocity_command(p[:1], k[:1], ta, P),
                          velocity_command(p[1:], k[1:], ta, P)])
-    assert not np.allclose(v, v_alone)  # u2 acts across sub-tubes (NOTES.md item 6)
+    assert not np.allclose(v, v_alone)  # u2 acts across sub-tubes (paper note 6)
     np.testing.assert_allclose(v, reference(p, k, [a, b], P), atol=1e-9)
     # the same point evaluated in another sub-tube gets that tube's geometry
     q = np.array([a.lh(9.0) + 0.3 * a.n_h])

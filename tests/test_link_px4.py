@@ -1,4 +1,4 @@
-"""PX4 custom_mode encoding and name tables (values from shared/px4_sitl/README.md)."""
+"""PX4 custom_mode encoding and name tables (values from the captures in tests/data/px4_sitl)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests of the Section IV partition (vtube_fleet.partition, PARTITION.md)."""
+"""Tests of the Section IV partition (vtube_fleet.partition, docs/paper.md)."""
 
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ NESTED = [Obstacle((20.0, 0.0), 3.0), Obstacle((21.5, 8.5), 0.2)]
 
 
 def reference_locate(part: Partition, p: np.ndarray) -> int:
-    """PARTITION.md §5 literally, one point at a time."""
+    """partition §5 literally, one point at a time."""
     xi = float(part.tube.xi(p))
     best, best_v = -1, math.inf
     for k, t in enumerate(part.sub_tubes):

@@ -26,7 +26,7 @@ def paper():
 
 @pytest.fixture(scope="module")
 def reduced(paper):
-    """The first 24 robots of the paper scenario at dt = 2 ms (safe per NOTES.md)."""
+    """The first 24 robots of the paper scenario at dt = 2 ms (safe per docs/paper.md)."""
     return simulate(paper, robots=24, dt=0.002, duration=30.0)
 
 
@@ -129,7 +129,7 @@ def test_robotarium_unicycles_all_exit() -> None:
     s = res.summary
     assert s["model"] == "unicycle" and s["exited"] == 7 and s["violations"] == 0
     r = sc.robots
-    # robot centres are reported too (NOTES.md item 10)
+    # robot centres are reported too (paper note 10)
     for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
                 "min_left_leg_distance_m", "min_right_leg_distance_m"):
         assert s[f"{key}_center"] is not None

@@ -55,7 +55,7 @@ from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan
-from vtube_fleet.fleet.budget import SafetyBudget, budget_problems
+from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget, budget_problems
 from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
 from vtube_fleet.metrics import verdict
@@ -144,6 +144,7 @@ class BusAwarePilot(VehiclePilot):
         self.bus_holds = 0  # how many times it stood still for the bus
         self.recording: AgentRecording | None = None  # fed after every tick once flying
         self._healthy_since: float | None = None  # wall time the bus became healthy again
+        self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
 
     def set_phase(self, phase: Phase, why: str = "") -> bool:
         changed = super().set_phase(phase, why)
@@ -206,6 +207,14 @@ class BusAwarePilot(VehiclePilot):
         except PartitionError as exc:
             self.cmd_xy = None
             self.begin_hold(f"no valid partition around the lost vehicles: {exc}")
+        if self.phase == Phase.IN_TUBE and self.watch is not None:
+            self.watch.add_ages(now_mono, [self.sample_age_s(now_mono)])
+            warning, hold = self.watch.check(now_mono, self.link.latency_s or 0.0,
+                                             [self.position_accuracy_m()])
+            if warning:
+                self.event(warning, "warning")
+            if hold:  # holding, this vehicle becomes an obstacle for every other agent
+                self.begin_hold(hold)
 
     def _forget_out_of_range(self) -> None:
         """Drop from the agent's table the vehicles the bus no longer shows: they left our
@@ -540,6 +549,7 @@ class AgentProcess:
             self.budget = own
         plan = self._plan(self.budget)
         pilot.agent.root_plan = pilot.agent.plan = plan
+        pilot.watch = BudgetWatch(self.mission, own)  # what THIS vehicle was measured to need
         self.say(
             f"safety budget: needs {own.describe(params)} (L = link {measured.latency_s * 1000:.1f}"
             f" ms + headroom + neighbour max age {self.max_age_s * 1000:.0f} ms; σ "

@@ -6,10 +6,10 @@ Symbols (paper → code):
   A x³ + B x² + C x + D on (d1, d2) is the smoothstep 1 − t²(3 − 2t), t = (x − d1)/(d2 − d1),
   so σ' vanishes at d1 and d2 and σ'(clip(x, d1, d2)) is 0 outside the band.
 * s(x, ε_s) (sat) → :func:`s`, ds/dx → :func:`ds_dx`. The paper defines s for x ≥ 0 only; its
-  identity branch is extended below 0 (NOTES.md item 3).
+  identity branch is extended below 0 (paper note 3).
 * V_n(k, x, d1, d2, ε, ε_s) (Vs) → :func:`V_n`, ∂V_n/∂x → :func:`dV_n_dx` (analytic). V_n
   divides by zero at x = 0, so the distance is clamped at :data:`X_MIN` = 1e-9: a violated
-  constraint (x ≤ 0) still pushes the right way, finitely (NOTES.md item 3).
+  constraint (x ≤ 0) still pushes the right way, finitely (paper note 3).
 * sat(x, a) = κ_a(x) x (vector saturation) → :func:`sat`, κ_a → :func:`kappa`, for (..., 2)
   arrays (or complex arrays holding 2-D vectors).
 
@@ -46,7 +46,7 @@ __all__ = [
     "sigma",
 ]
 
-#: Distances fed to V_n are clamped at this value (metres), NOTES.md item 3.
+#: Distances fed to V_n are clamped at this value (metres), paper note 3.
 X_MIN = 1e-9
 
 
@@ -127,7 +127,7 @@ class _Fillet:
 
 
 def s(x, eps_s: float):
-    """s(x, ε_s) (sat): x for x ≤ x1 (identity extended below 0, NOTES.md item 3), the arc
+    """s(x, ε_s) (sat): x for x ≤ x1 (identity extended below 0, paper note 3), the arc
     (1 − ε_s) + sqrt(ε_s² − (x − x2)²) on (x1, x2), 1 for x ≥ x2. C¹ at both knots."""
     f = _Fillet(eps_s)
     x = np.asarray(x, dtype=float)
@@ -173,7 +173,7 @@ def dV_n_dx(k, x, d1, d2, eps, eps_s: float):
     """∂V_n/∂x of (Vs), analytic: k (σ' g − σ g') / g² with g = (1 + ε)x − d1 s(x/d1, ε_s),
     g' = 1 + ε − s'(x/d1). Always ≤ 0, exactly 0 for x ≥ d2, ≈ −k/(ε x²) for x < d1.
 
-    ``x`` is clamped at :data:`X_MIN` (NOTES.md item 3): for x ≤ 0 the value at 1e-9 is
+    ``x`` is clamped at :data:`X_MIN` (paper note 3): for x ≤ 0 the value at 1e-9 is
     returned (about −k/(ε·1e-18)), finite and pointing the right way.
     """
     _check_barrier(d1, d2, eps)

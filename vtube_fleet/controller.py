@@ -5,22 +5,22 @@ fleet agents (``rows=``: one robot from itself and its neighbours). Three laws:
 
 * ``kind="new"`` — (ModifiedVectorField) with the switching logic (ObstacleController):
   v_c = u1'' + sat(u2 + u3' + u4', v'_max). With Constraint1, v_min ≤ ‖v_c‖ ≤ v_max always
-  (NOTES.md item 9).
+  (paper note 9).
 * ``kind="old"`` — (Oldcontroller): v_c = sat(u1'' + u2 + u3' + u4', v_max).
 * ``kind="apf"`` — Appendix C: v_c = u1'' + sat(u2 + u3' + u4' + u5, v'_max) with the potential
   obstacle term u5 = Σ_k −∂V_o,ik/∂p_i, V_o,ik = V_n(k4, ‖p_i − p_o,k‖, r_o,k + r_s,
   r_o,k + r_a, ε_o, ε_s); meant for the main tube without partition.
 
-Terms (robot i in its own sub-tube k_i, PARTITION.md §4):
+Terms (robot i in its own sub-tube k_i, partition §4):
 
-* u1'' — smooth line approaching term (NOTES.md item 4):
+* u1'' — smooth line approaching term (paper note 4):
   u1'' = v·normalize(n_c + σ_h [n_cᵀn_h < 0](t_h − n_c) + σ_r [n_cᵀn_r < 0](t_r − n_c)),
   σ_h = σ(d_Th(p_i), r_a, k_t r_a), σ_r likewise.
 * u2 = Σ_j b_ij (p_i − p_j), b_ij = −(∂V_m,ij/∂‖p_ij‖)/‖p_ij‖ with (Vmij)
   V_m,ij = V_n(k2, ‖p_i − p_j‖, 2r_s, r_s + r_a, ε_m, ε_s) over ALL neighbours, whatever their
-  sub-tube (NOTES.md item 6).
+  sub-tube (paper note 6).
 * u3' = −(∂V'_th/∂d_Th) P_t n_h, u4' = −(∂V'_tr/∂d_Tr) P_t n_r with (Vtli1)/(Vtri1)
-  V'_th = V_n(k3, d_Th(p_i), r_s, r_a, ε_t, ε_s) and P_t = I − n_c n_cᵀ (NOTES.md item 1: the
+  V'_th = V_n(k3, d_Th(p_i), r_s, r_a, ε_t, ε_s) and P_t = I − n_c n_cᵀ (paper note 1: the
   printed n_c n_cᵀ contradicts Remark 4).
 
 Implementation: 2-D vectors are complex numbers (``p.view(complex128)``), so vector algebra is
@@ -264,12 +264,12 @@ class _Prepared:
         t_h, t_r = _c(tubes.t_h), _c(tubes.t_r)
         c_h = np.einsum("ij,ij->i", tubes.n_h, tubes.p_h1)
         c_r = np.einsum("ij,ij->i", tubes.n_r, tubes.p_r1)
-        # P_t = I − n_c n_cᵀ (NOTES.md item 1); E = −P_t n: u3' = (∂V'_th/∂d_Th)·E_h
+        # P_t = I − n_c n_cᵀ (paper note 1); E = −P_t n: u3' = (∂V'_th/∂d_Th)·E_h
         pt = lambda n: n - n_c * (n_c.real * n.real + n_c.imag * n.imag)  # noqa: E731
         # rows, one column per sub-tube:
         #   0-1 conj(n_h), conj(n_r): Re(conj(n)·z) = nᵀp; 2-3 n_hᵀp_h1, n_rᵀp_r1 → (dtl)/(dtr)
         #   4-5 E_h, E_r; 6-7 A = [area exists](t − n_c), so that u1'' ∝ q = n_c + σ_h A_h
-        #   + σ_r A_r (NOTES.md item 4); 8 n_c
+        #   + σ_r A_r (paper note 4); 8 n_c
         self.table = np.ascontiguousarray(np.stack([
             np.conj(n_h), np.conj(n_r), c_h + 0j, c_r + 0j, -pt(n_h), -pt(n_r),
             np.where(tubes.has_L, t_h - n_c, 0), np.where(tubes.has_R, t_r - n_c, 0), n_c]))
@@ -653,7 +653,7 @@ class CommandEvaluator:
 # individual terms (for tests and plots); they share the implementation above
 # ----------------------------------------------------------------------------------------------
 def u1pp(p, k, tubes: TubeArrays, params: ControllerParams) -> np.ndarray:
-    """u1'' of every robot (NOTES.md item 4), (M, 2)."""
+    """u1'' of every robot (paper note 4), (M, 2)."""
     p = np.asarray(p, dtype=float)
     empty = np.zeros(0, np.intp)
     B, _, _ = _evaluate(p, k, tubes, params, (empty, empty), None)

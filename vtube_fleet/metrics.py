@@ -4,7 +4,7 @@ Per time step, from robot positions p (M, 2) and velocities (M, 2):
 
 * the minimum distance between two robots, safe iff > 2 r_s (S_i ∩ S_j = ∅);
 * the minimum robot–obstacle **centre** distance ‖p_i − p_o,k‖, safe iff > r_o,k + r_s
-  (S_i ∩ O_k = ∅; NOTES.md item 7: the triangle sides of the partition are virtual walls,
+  (S_i ∩ O_k = ∅; paper note 7: the triangle sides of the partition are virtual walls,
   this is the figure that matters);
 * the minimum distance to the MAIN tube's left and right legs, d_Th (dtl) and d_Tr (dtr),
   safe iff > r_s (S_i ∩ ∂T = ∅);
@@ -494,8 +494,8 @@ class SummaryAccumulator:
     """Folds per-step :class:`StepMetrics` and exit events into the ``summary.json`` dict.
 
     Several metric *streams* can be fed, distinguished by a key suffix: the simulator feeds the
-    unicycle's control points as ``""`` and its robot centres as ``"_center"`` (NOTES.md
-    item 10). Steps are counted on the ``""`` stream.
+    unicycle's control points as ``""`` and its robot centres as ``"_center"`` (paper note
+    10). Steps are counted on the ``""`` stream.
 
     Summary keys: ``robots``, ``exited``, ``last_exit_s``, ``median_exit_s``, the extrema of
     :data:`METRIC_KEYS` (``min_…`` are minima, ``max_speed_m_s`` a maximum, ``None`` when

@@ -344,7 +344,7 @@ class RunMonitor:
             "vehicles": self.vehicles,
             "r_s": params.r_s,
             "r_a": params.r_a,
-            "pair_limit_m": 2.0 * params.r_s,
+            "pair_limit_m": self.monitor.limits.pair_m,
             "min_pair_distance_airborne_m": _num(self.min_pair_airborne),
             "min_commanded_speed_m_s": None,
             "max_commanded_speed_m_s": None,

@@ -3,7 +3,7 @@ diffeomorphism (NID) of the Robotarium experiment (Section V-C).
 
 * (Single): ṗ_i = v_c,i, integrated with forward Euler: p ← p + dt v_c.
 * Unicycle: ẋ = v cos θ, ẏ = v sin θ, θ̇ = ω. The controller is evaluated at the control
-  point p + s [cos θ, sin θ] ahead of the robot (NOTES.md item 10), and (NID) maps the
+  point p + s [cos θ, sin θ] ahead of the robot (paper note 10), and (NID) maps the
   velocity command of the control point to the inputs
 
       [v; ω] = [[cos θ, sin θ], [−sin θ / s, cos θ / s]] v_c,

@@ -1,6 +1,6 @@
 """Partition of a trapezoid virtual tube containing obstacles (Section IV-A of the paper).
 
-The construction is the one pinned down in ``/work/shared/paper/PARTITION.md``:
+The construction is the one pinned down in ``docs/paper.md`` ("The partition"):
 
 * each obstacle O_k (obstacle) is grown to O'_k of radius R_k = r_o,k + r_s (ExtObstacle) and
   wrapped in an isosceles circumscribed triangle I_k whose incircle is O'_k, apex
@@ -17,7 +17,7 @@ The construction is the one pinned down in ``/work/shared/paper/PARTITION.md``:
   ``T_o1, T_o2, …`` (for P = 1: before, left, right, after, as the paper numbers them).
 
 :meth:`Partition.locate` implements the switching rule (ObstacleController) with the shared-edge
-conventions of PARTITION.md §5. Everything here is pure numpy.
+conventions of partition §5. Everything here is pure numpy.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ __all__ = [
     "partition",
 ]
 
-#: Default apex distance h_k = DEFAULT_APEX_FACTOR × h_min,k (PARTITION.md §2).
+#: Default apex distance h_k = DEFAULT_APEX_FACTOR × h_min,k (partition §2).
 DEFAULT_APEX_FACTOR = 1.3
 
 #: Tolerance (metres) of the point-location rule: a point within this distance upstream of a
@@ -361,7 +361,7 @@ class Partition:
     ``sub_tubes`` are named ``T_o1, T_o2, …`` in the order of (``xi_start``, lateral position of
     the start-base midpoint); ``xi_start``/``xi_end`` (K,) are the ξ of each sub-tube's start base
     and finishing line in the main tube's coordinate ξ(x) = n_cᵀ(x − p_h0), with −inf/+inf when
-    that base is one of the main tube's bases (PARTITION.md §3). ``triangles`` are in the order
+    that base is one of the main tube's bases (partition §3). ``triangles`` are in the order
     of the input obstacles (obstacles skipped in non-strict mode have none), ``warnings`` are
     :class:`Violation` s (Constraint3 / Assumption3' per sub-tube, skipped obstacles).
     """
@@ -398,7 +398,7 @@ class Partition:
 
     def locate(self, p: np.ndarray) -> np.ndarray:
         """Sub-tube index k(p) of points (..., 2) → (...) int, the switching rule
-        (ObstacleController) as in PARTITION.md §5.
+        (ObstacleController) as in partition §5.
 
         Candidates are the sub-tubes whose half-open slab ξ_start ≤ ξ(p) < ξ_end contains p; the
         chosen one minimises viol_k = max(−d_Th,k, −d_Tr,k) (≤ 0 iff p is inside), ties to the
@@ -780,7 +780,7 @@ def partition(
     params: ControllerParams,
     strict: bool = True,
 ) -> Partition:
-    """Partition ``tube`` into obstacle-free sub trapezoid tubes (Section IV-A, PARTITION.md).
+    """Partition ``tube`` into obstacle-free sub trapezoid tubes (Section IV-A, docs/paper.md).
 
     ``params`` supplies r_s, r_a, k_t, v and v'_max. Raises :class:`PartitionError` (naming the
     obstacle and the numbers) when a triangle does not fit in its parent sub-tube, when an
@@ -791,14 +791,14 @@ def partition(
     violations of sub-tubes are always recorded as warnings (the caller decides; see
     :mod:`vtube_fleet.validation`), and so is a sub-tube too narrow to contain one safety disc
     (Assumption 3' in words; not part of the construction's validity test, which follows the
-    letter of PARTITION.md). With no obstacles the result is the main tube alone.
+    letter of the construction, docs/paper.md). With no obstacles the result is the main tube alone.
     """
     _check_params(params)
     return _Builder(tube, obstacles, params, strict).run()
 
 
 class _Builder:
-    """The recursive split of PARTITION.md §3, one obstacle at a time."""
+    """The recursive split of partition §3, one obstacle at a time."""
 
     def __init__(self, tube: Trapezoid, obstacles: Sequence[Obstacle],
                  params: ControllerParams, strict: bool) -> None:
@@ -864,7 +864,7 @@ class _Builder:
                 raise PartitionError(i, "; ".join(v.message for v in a3),
                                      _obstacle_label(i, self.obstacles[i]))
             self.warnings += a3
-            # Not part of the construction's validity test (PARTITION.md), hence a warning
+            # Not part of the construction's validity test (docs/paper.md), hence a warning
             # even in strict mode: a passage narrower than one safety disc.
             self.warnings += [Violation("Assumption3'", f"Assumption3' violated in {label}: {r}")
                               for r in _width_reasons(t, self.params)]
@@ -903,7 +903,7 @@ class _Builder:
             self.warnings.append(Violation("Partition", f"Partition: {where} {msg}; ignored"))
             return
 
-        # Isosceles triangle with incircle O' (PARTITION.md §2).
+        # Isosceles triangle with incircle O' (partition §2).
         alpha = math.asin(R / h)
         x_o = self.xi(p_o)
         p_oth = p_o - h * n_c

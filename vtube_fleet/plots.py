@@ -7,6 +7,7 @@ the Agg canvas: no pyplot, no global backend switch, safe in threads and headles
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
@@ -17,6 +18,7 @@ from matplotlib.collections import EllipseCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon
 
+from vtube_fleet.metrics import SafetyLimits
 from vtube_fleet.tube import Obstacle, Trapezoid
 
 __all__ = ["pick_snapshot_frames", "plot_safety", "plot_snapshots"]
@@ -65,15 +67,19 @@ def plot_safety(
     limit_style = {"color": "tab:red", "ls": "--", "lw": 1.0}
     curve_style = {"lw": 0.8}
 
+    lim = SafetyLimits(r_s, 0.0, math.inf)
     panels = [
-        ("min_pair_distance_m", "(a) min distance\nbetween robots [m]", [(2 * r_s, "2 r_s")]),
+        ("min_pair_distance_m", "(a) min distance\nbetween robots [m]", [(lim.pair_m, "2 r_s")]),
         (
             "min_obstacle_center_distance_m",
             "(b) min distance robot–\nobstacle centre [m]",
-            [(r + r_s, f"r_o + r_s = {r + r_s:g}") for r in sorted(set(obstacle_radii))],
+            [(lim.obstacle_center_m(r), f"r_o + r_s = {lim.obstacle_center_m(r):g}")
+             for r in sorted(set(obstacle_radii))],
         ),
-        ("min_left_leg_distance_m", "(c) min distance to\nleft boundary [m]", [(r_s, "r_s")]),
-        ("min_right_leg_distance_m", "(d) min distance to\nright boundary [m]", [(r_s, "r_s")]),
+        ("min_left_leg_distance_m", "(c) min distance to\nleft boundary [m]",
+         [(lim.leg_m, "r_s")]),
+        ("min_right_leg_distance_m", "(d) min distance to\nright boundary [m]",
+         [(lim.leg_m, "r_s")]),
     ]
     for ax, (key, label, limits) in zip(axes[:4], panels, strict=True):
         y = get(metrics, key)

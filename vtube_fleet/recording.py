@@ -789,16 +789,19 @@ class RerunRecorder:
 
     def _set_limits(self, r_s: float, obstacles: Sequence[Obstacle], v_min: float,
                     v_max: float) -> None:
+        from vtube_fleet.metrics import SafetyLimits
+
+        lim = SafetyLimits(r_s, v_min, v_max)
         self._limits = {
-            "min_pair_distance_m": (2.0 * r_s,),
-            "min_left_leg_distance_m": (r_s,),
-            "min_right_leg_distance_m": (r_s,),
-            "min_speed_m_s": (v_min,),
-            "max_speed_m_s": (v_max,),
+            "min_pair_distance_m": (lim.pair_m,),
+            "min_left_leg_distance_m": (lim.leg_m,),
+            "min_right_leg_distance_m": (lim.leg_m,),
+            "min_speed_m_s": (lim.v_min,),
+            "max_speed_m_s": (lim.v_max,),
         }
         if obstacles:
             self._limits["min_obstacle_center_distance_m"] = tuple(
-                sorted({float(o.radius) + r_s for o in obstacles}))
+                sorted({lim.obstacle_center_m(o.radius) for o in obstacles}))
         for key, values in self._limits.items():
             names = [f"limit {v:g}" for v in values]
             self._rec.log(LIMITS_PREFIX + key, self._rr.SeriesLines(

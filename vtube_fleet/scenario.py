@@ -45,7 +45,7 @@ __all__ = [
 MODELS: tuple[str, ...] = ("single_integrator", "unicycle")
 
 #: Defaults of the optional [controller] keys: the paper's values (Section III-D, V-A),
-#: ε_0 = 0.01 m (NOTES.md item 5) and the Appendix C potential-term gains k4, ε_o.
+#: ε_0 = 0.01 m (paper note 5) and the Appendix C potential-term gains k4, ε_o.
 _CONTROLLER_DEFAULTS: dict[str, float] = {
     "k2": 1.0,
     "k3": 1.0,

@@ -15,7 +15,7 @@ Each step (all robots still in the tube at once):
    ("new" = (ModifiedVectorField), "old" = (Oldcontroller), "apf" = Appendix C);
 5. the robots move one Euler step of their model (:mod:`vtube_fleet.models`): the single
    integrator (Single), or the unicycle driven through (NID), whose controller is evaluated at
-   the control point p + s[cos θ, sin θ] (NOTES.md item 10).
+   the control point p + s[cos θ, sin θ] (paper note 10).
 
 Safety metrics (:mod:`vtube_fleet.metrics`) are taken at every step, in chunks: positions and
 commands are kept in a buffer and evaluated in one vectorized call per chunk (a chunk ends when

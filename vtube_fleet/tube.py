@@ -8,7 +8,7 @@ vectorized over the leading axes.
 Symbols (paper → code): n_c → ``n_c``, t_h/t_r → ``t_h``/``t_r``, n_h/n_r (inward) →
 ``n_h``/``n_r``, d_Th/d_Tr (dtl)/(dtr) → ``d_Th``/``d_Tr``, L_T/R_T exist → ``has_L``/``has_R``,
 the longitudinal coordinate ξ(x) = n_cᵀ(x − p_h0) → ``xi`` and the lateral unit vector m (left
-→ right) → ``m`` (PARTITION.md §0).
+→ right) → ``m`` (partition §0).
 """
 
 from __future__ import annotations

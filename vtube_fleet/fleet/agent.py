@@ -69,7 +69,7 @@ AIRBORNE_PHASES: frozenset[Phase] = frozenset(
 )
 #: Airborne but no longer flying the tube's controller: it stops (PX4 Hold) or comes down.
 #: The others cannot rely on the pair barrier alone to pass such a vehicle (their speed never
-#: drops below v_min, NOTES item 9): inside the tube it is an obstacle like a LOST one.
+#: drops below v_min, paper note 9): inside the tube it is an obstacle like a LOST one.
 STOPPED_PHASES: frozenset[Phase] = frozenset({Phase.HOLDING, Phase.LANDING})
 
 _EMPTY_POS = np.zeros((0, 2))

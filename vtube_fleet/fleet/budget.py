@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -42,6 +43,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.fleet.mission import Mission
 
 __all__ = [
+    "BudgetWatch",
     "DEFAULT_ACCURACY_FACTOR",
     "DEFAULT_DISTURBANCE_M_S",
     "LinkMeasurement",
@@ -228,3 +230,61 @@ def budget_problems(mission: Mission, measured: LinkMeasurement) -> list[str]:
         out.append("no vehicle reports its position accuracy (ESTIMATOR_STATUS or GPS_RAW_INT "
                    "h_acc); set [mission].position_accuracy_m")
     return out
+
+
+class BudgetWatch:
+    """The in-flight check of a budget's inputs (supervisor and MQTT agent alike; pure).
+
+    Feed it the position ages as they are used (:meth:`add_ages`); once a second
+    :meth:`check` compares L (p95 of the last ``window_s`` of ages + the worst uplink delay)
+    and σ (the worst reported accuracy) with what ``budget`` was built for: L more than one
+    control period over, σ more than 25 % (+2 cm) over. It returns ``(warning, hold)``: a
+    warning text the first second over, and a hold reason after ``persist_s`` seconds in a row.
+    Overridden budgets and the mission's own ``latency_s`` / ``position_accuracy_m`` are not
+    second-guessed.
+    """
+
+    def __init__(self, mission: Mission, budget: SafetyBudget, *, window_s: float = 3.0,
+                 persist_s: int = 2) -> None:
+        self.cfg = mission.config
+        self.budget = budget
+        self.window_s = window_s
+        self.persist_s = persist_s
+        self._ages: list[tuple[float, float]] = []
+        self._checked_s = -math.inf
+        self._over = 0
+
+    def add_ages(self, t_s: float, ages: Sequence[float]) -> None:
+        self._ages.extend((t_s, a) for a in ages if math.isfinite(a))
+
+    def check(self, t_s: float, uplink_s: float, accuracies_m: Sequence[float]
+              ) -> tuple[str | None, str | None]:
+        if t_s - self._checked_s < 1.0:
+            return None, None
+        self._checked_s = t_s
+        self._ages = [(ts, a) for ts, a in self._ages if ts >= t_s - self.window_s]
+        b, cfg = self.budget, self.cfg
+        if b.overridden:
+            return None, None
+        ages = [a for _, a in self._ages]
+        latency = (sorted(ages)[int(0.95 * (len(ages) - 1))] + uplink_s) if ages else 0.0
+        acc = [a for a in accuracies_m if math.isfinite(a)]
+        sigma = max(acc, default=0.0)
+        over = []
+        if cfg.latency_s is None and latency > b.latency_s + cfg.period_s:
+            over.append(f"link latency L = {latency * 1000:.0f} ms (last {self.window_s:g} s) "
+                        f"> budgeted {b.latency_s * 1000:.0f} ms + one period")
+        if cfg.position_accuracy_m is None and sigma > 1.25 * b.accuracy_m + 0.02:
+            over.append(f"reported position accuracy σ = {sigma:.2f} m > budgeted "
+                        f"{b.accuracy_m:.2f} m (+25 %)")
+        if not over:
+            self._over = 0
+            return None, None
+        self._over += 1
+        text = "; ".join(over)
+        warning = f"safety budget exceeded: {text}" if self._over == 1 else None
+        hold = None
+        if self._over >= self.persist_s:
+            hold = (f"safety budget exceeded in flight for {self.persist_s} s ({text}): the "
+                    f"partition was built for the smaller δ")
+        return warning, hold

@@ -401,7 +401,7 @@ class VehiclePilot:
         self.declare_lost(reason)
         return reason
 
-    #: A vehicle in the tube is always commanded at least v_min (> 0, NOTES.md item 9); one
+    #: A vehicle in the tube is always commanded at least v_min (> 0, paper note 9); one
     #: whose measured speed stays below this for ``unresponsive_s`` ignores its setpoints.
     STILL_M_S = 0.05
 

@@ -66,6 +66,7 @@ from vtube_fleet.fleet.agent import (
     lost_obstacles,
 )
 from vtube_fleet.fleet.budget import (
+    BudgetWatch,
     LinkMeasurement,
     SafetyBudget,
     budget_problems,
@@ -112,9 +113,6 @@ EXIT_INTERRUPTED = 130
 
 #: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
 TRUTH_RATE_HZ = 20.0
-#: The in-flight budget watch holds the fleet when the measured L or σ stay above what the
-#: budget was built for for this many consecutive seconds.
-BUDGET_WATCH_S = 2
 
 #: Minimum height of the mission altitude above every vehicle before take-off.
 MIN_CLIMB_M = 1.0
@@ -298,9 +296,8 @@ class Supervisor:
         self._clock_task: asyncio.Task[None] | None = None
         self._clock_stop = asyncio.Event()
         self._main: asyncio.Task[None] | None = None
-        self._budget_over = 0  # consecutive seconds the in-flight budget watch saw too much
-        self._budget_checked_s = 0.0
-        self._recent_ages: list[tuple[float, float]] = []
+        self.watch: BudgetWatch | None = None  # the in-flight budget check, once flying
+        self._recent_ages: list[float] = []
         self.violations = ViolationLog(self.monitor)
         self.not_landed: list[str] = []
         self.truth_xy: np.ndarray | None = None  # (M, 2) ground truth, tube frame (truth=True)
@@ -563,7 +560,7 @@ class Supervisor:
                     self.min_pair_airborne = min(self.min_pair_airborne, d)
             if self._sample_ages_window:
                 self.sample_ages.extend(self._sample_ages_window)
-                self._recent_ages.extend((t, a) for a in self._sample_ages_window)
+                self._recent_ages.extend(self._sample_ages_window)
             self._watch_budget(t)
         self._sample_ages_window.clear()
         if self.tick_durations:
@@ -614,41 +611,21 @@ class Supervisor:
                    f"{e['limit']:.3f} m: {who}", level="error")
 
     def _watch_budget(self, t: float) -> None:
-        """Once a second in the tube: the budget's L and σ against what is measured now (L:
-        p95 of the last 3 s of position ages + the worst uplink delay; σ: the worst reported
-        accuracy). Above for BUDGET_WATCH_S seconds in a row → every vehicle holds."""
-        if t - self._budget_checked_s < 1.0:
+        """Once a second in the tube (:class:`~vtube_fleet.fleet.budget.BudgetWatch`): L and σ
+        over what the budget was built for, for 2 s → every vehicle in the tube holds."""
+        if not any(p.phase == Phase.IN_TUBE for p in self.pilots):
             return
-        self._budget_checked_s = t
-        cfg = self.cfg
-        b = self.budget
-        recent = [a for ts, a in self._recent_ages if ts >= t - 3.0]
-        self._recent_ages = [(ts, a) for ts, a in self._recent_ages if ts >= t - 3.0]
-        if b.overridden or not any(p.phase == Phase.IN_TUBE for p in self.pilots):
-            return
+        if self.watch is None or self.watch.budget is not self.budget:
+            self.watch = BudgetWatch(self.mission, self.budget)
+        self.watch.add_ages(t, self._recent_ages)
+        self._recent_ages = []
         up = max((p.link.latency_s or 0.0 for p in self.pilots), default=0.0)
-        latency = (float(np.percentile(recent, 95)) + up) if recent else 0.0
         acc = [p.position_accuracy_m() for p in self.pilots if p.phase == Phase.IN_TUBE]
-        acc = [a for a in acc if math.isfinite(a)]
-        sigma = max(acc, default=0.0)
-        over = []
-        if cfg.latency_s is None and latency > b.latency_s + cfg.period_s:
-            over.append(f"link latency L = {latency * 1000:.0f} ms (last 3 s) > budgeted "
-                        f"{b.latency_s * 1000:.0f} ms + one period")
-        if cfg.position_accuracy_m is None and sigma > 1.25 * b.accuracy_m + 0.02:
-            over.append(f"reported position accuracy σ = {sigma:.2f} m > budgeted "
-                        f"{b.accuracy_m:.2f} m (+25 %)")
-        if not over:
-            self._budget_over = 0
-            return
-        self._budget_over += 1
-        if self._budget_over == 1:
-            self.event("safety budget exceeded: " + "; ".join(over), level="warning")
-        if self._budget_over >= BUDGET_WATCH_S:
-            self.request_abort("safety budget exceeded in flight for "
-                               f"{BUDGET_WATCH_S} s (" + "; ".join(over) + "): the partition "
-                               "was built for the smaller δ, so every vehicle in the tube "
-                               "holds")
+        warning, hold = self.watch.check(t, up, acc)
+        if warning:
+            self.event(warning, level="warning")
+        if hold:
+            self.request_abort(f"{hold}, so every vehicle in the tube holds")
 
     def status(self) -> FleetStatus:
         st = FleetStatus(t_s=self.t_s(), stage=self.stage, vehicles=len(self.pilots))
@@ -667,14 +644,15 @@ class Supervisor:
         st.landed = counts.get("landed", 0)
         summ = self.acc.summary()
         st.min_pair_m = min(summ.get("min_pair_distance_m") or math.inf, self.min_pair_airborne)
-        st.pair_limit_m = 2.0 * self.params.r_s
+        lim = self.monitor.limits
+        st.pair_limit_m = lim.pair_m
         st.min_obstacle_m = summ.get("min_obstacle_center_distance_m") or math.inf
         obs = self.mission.scenario.obstacles
-        st.obstacle_limit_m = (min(float(o.radius) for o in obs) + self.params.r_s
+        st.obstacle_limit_m = (lim.obstacle_center_m(min(float(o.radius) for o in obs))
                                if obs else math.nan)
         st.min_leg_m = min(summ.get("min_left_leg_distance_m") or math.inf,
                            summ.get("min_right_leg_distance_m") or math.inf)
-        st.leg_limit_m = self.params.r_s
+        st.leg_limit_m = lim.leg_m
         st.delta_m = self.budget.delta_m
         st.unsafe = self.violations.first is not None
         if self.truth:
@@ -1075,7 +1053,7 @@ class Supervisor:
             "r_a": self.params.r_a,
             "r_s_flown": flown.r_s,
             "r_a_flown": flown.r_a,
-            "pair_limit_m": 2.0 * self.params.r_s,
+            "pair_limit_m": self.monitor.limits.pair_m,
             "safety_budget": self.budget.as_dict(),
             "min_pair_distance_airborne_m": _num(self.min_pair_airborne),
             "min_commanded_speed_m_s": _num(self.cmd_speed[0]),

@@ -2,7 +2,7 @@
 SYS_STATUS health bits. Pure functions and tables, no I/O.
 
 PX4 packs its flight mode into HEARTBEAT.custom_mode as ``main << 16 | sub << 24`` (see
-``px4_custom_mode.h``); the captures in ``shared/px4_sitl`` show ``50593792`` = main 4 / sub 3 =
+``px4_custom_mode.h``); the captures in ``tests/data/px4_sitl`` show ``50593792`` = main 4 / sub 3 =
 AUTO.LOITER ("Hold", the boot mode), ``393216`` = main 6 = OFFBOARD and ``196608`` = main 3 =
 POSCTL (offboard-loss failsafe). A mode is selected with MAV_CMD_DO_SET_MODE(param1 = 1
 (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), param2 = main, param3 = sub).
