@@ -3,6 +3,7 @@ speed bounds, exits, lost vehicles → obstacles and re-partition, the safety bu
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -209,3 +210,30 @@ def test_exit_velocity_guard(plan) -> None:
                      st(2, 22.0, 4.0, phase=Phase.HOLDING, vx=0.0)], NOW, max_age_s=0.5,
                     lost_after_s=1.0)
     assert exit_velocity(plan, own, view, stop_distance_m=3.0) is not None
+
+
+def test_apex_look_ahead_switches_before_the_barrier(plan) -> None:
+    """Heading straight at a triangle's apex, §5 would switch only on the apex line (inside
+    r_s' of the triangle side); the flown rule switches within (r_s' + r_a') / sin α ahead of
+    it, where the distance to the side's extended line is still r_s' + r_a'."""
+    (z,) = plan.zones
+    part, prm = plan.partition, plan.params
+    tri = part.triangles[z.triangle]
+    n_c = plan.tube.n_c
+    assert z.left is not None and z.right is not None
+    depth = (prm.r_s + prm.r_a) / math.sin(tri.alpha)
+    assert z.depth_m == pytest.approx(min(depth, z.xi_apex))
+    for ahead in (0.05, 0.5 * z.depth_m, z.depth_m - 0.01):
+        p = tri.p_oth - ahead * n_c  # on the apex's line, upstream of it
+        k0 = int(part.locate(p))
+        k = int(plan.locate(p))
+        assert k0 == z.before and k == z.left  # (a tie on the apex line: left, as §5)
+        side = part.sub_tubes[k]
+        assert float(side.d_Tr(p)) == pytest.approx(ahead * math.sin(tri.alpha), rel=1e-6)
+    entry = tri.p_oth - (z.depth_m - 1e-6) * n_c
+    assert float(part.sub_tubes[z.left].d_Tr(entry)) >= prm.r_s + prm.r_a - 1e-5
+    before = tri.p_oth - (z.depth_m + 0.01) * n_c
+    assert int(plan.locate(before)) == z.before  # beyond the zone: §5 as printed
+    # the paper's rule exactly when asked (the simulator's)
+    exact = FlightPlan.build(plan.tube, plan.obstacles, prm, lookahead=False)
+    assert exact.zones == () and int(exact.locate(tri.p_oth - 0.5 * n_c)) == z.before

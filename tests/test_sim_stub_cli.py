@@ -97,3 +97,54 @@ def test_runs_prints_endpoints_streams_and_stops_cleanly(sig: int, tmp_path) -> 
         if p.poll() is None:
             p.kill()
         gcs.close()
+
+
+def test_the_gcs_link_serves_ground_truth_on_request(tmp_path) -> None:
+    """``python -m sim_stub`` runs PX4's second link (here --gcs-link-base/--gcs-link-port on
+    free ports instead of 18570+i → 14550): an observer there gets HEARTBEATs and, when it asks
+    (SET_MESSAGE_INTERVAL 115), HIL_STATE_QUATERNION: the vehicle's true position."""
+    ports = free_port_scheme(2)  # vehicle side + the GCS link's bind port
+    obs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    obs.bind((ports.host, ports.gcs_port(0)))  # where the GCS link sends (as 14550)
+    obs.settimeout(10.0)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.Popen(
+        [sys.executable, "-m", "sim_stub", "--count", "1", "--ports",
+         f"{ports.vehicle_base}:{ports.gcs_base + 1}", "--gcs-link-base",
+         str(ports.vehicle_base + 1), "--gcs-link-port", str(ports.gcs_port(0))],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+    )  # fmt: skip
+    m = mav.MAVLink(None, 254, 190)
+    try:
+        assert p.stdout is not None
+        p.stdout.readline()
+        line = p.stdout.readline()
+        assert f"GCS link udp {ports.vehicle_base + 1} -> {ports.gcs_port(0)}" in line
+        msgs: list = []
+
+        def until(pred, what: str):
+            for _ in range(2000):
+                data, addr = obs.recvfrom(4096)
+                for msg in m.parse_buffer(data) or []:
+                    msgs.append(msg)
+                    if pred(msg):
+                        return msg, addr
+            raise AssertionError(f"no {what}")
+
+        _, addr = until(lambda x: x.get_type() == "HEARTBEAT", "HEARTBEAT on the GCS link")
+        assert addr[1] == ports.vehicle_base + 1
+        obs.sendto(mav.MAVLink_command_long_message(1, 1, 511, 0, 115, 50000, 0, 0, 0, 0, 0)
+                   .pack(m), addr)
+        ack, _ = until(lambda x: x.get_type() == "COMMAND_ACK" and x.command == 511, "ACK")
+        assert ack.result == 0 and ack.target_system == 254
+        truth, _ = until(lambda x: x.get_type() == "HIL_STATE_QUATERNION", "ground truth")
+        assert truth.time_usec == 0
+        assert truth.lat == pytest.approx(473977420, abs=2) and truth.alt == pytest.approx(
+            489400, abs=5)  # on the ground at the default home, mm AMSL
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=10)
+        assert p.returncode == 0 and "Traceback" not in err
+    finally:
+        if p.poll() is None:
+            p.kill()
+        obs.close()
