@@ -163,10 +163,13 @@ async def test_mavsdk_4_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> N
 
 
 async def test_the_px4_sitl_mission_flies_on_the_mock(tmp_path: Path) -> None:
-    """The shipped real-SITL mission, on mock vehicles with PX4 SITL's estimate errors."""
+    """The shipped real-SITL mission, on mock vehicles with PX4 SITL's estimate errors, through
+    MAVSDK, to touch-down (the offboard watchdog must not turn LAND into Hold)."""
     mission = load_mission(ROOT / "configs" / "px4_sitl_3.toml")
-    result, sup, log = await fly_logged(mission, 3, tmp_path=tmp_path)
+    result, sup, log = await fly_logged(mission, 3, backend="mavsdk", tmp_path=tmp_path)
     assert result.exit_code == 0, result.reason
+    assert [v["phase"] for v in result.summary["vehicle_states"]] == ["landed"] * 3
+    assert all(p.link.watchdog_trips == 0 for p in sup.pilots)
     worst = check_safety(mission, sup.trace)
     truth = assert_true_clearance(log)
     report("px4_sitl_3 on the mock", result, worst, truth)

@@ -55,7 +55,7 @@ __all__ = [
 #: k: the estimate error assumed is k × the reported 1-σ accuracy (captures: max 1.83 σ).
 DEFAULT_ACCURACY_FACTOR = 2.0
 #: D: the estimate disturbance left after compensation (m/s), see docs/fleet.md.
-DEFAULT_DISTURBANCE_M_S = 0.2
+DEFAULT_DISTURBANCE_M_S = 0.25
 
 
 @dataclass(frozen=True)

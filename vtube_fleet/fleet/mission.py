@@ -39,7 +39,7 @@ strictly: an unknown key, a wrong type or an impossible value raises
     accuracy_factor = 2.0             k: the estimate error budgeted is k σ
     max_position_accuracy_m = 1.0     wait (ready_timeout_s) until every vehicle reports at
                                       most this σ
-    disturbance_residual_m_s = 0.2    D: estimate disturbance left after compensation
+    disturbance_residual_m_s = 0.25   D: estimate disturbance left after compensation
     compensate_estimate = true        send v_c + d̂ (fleet/compensation.py) instead of v_c
     safety_margin_m                   override the safety budget δ (default: computed)
 """

@@ -647,9 +647,13 @@ class MavsdkLink(VehicleLink):
         await self._call("takeoff", lambda: self._action.takeoff())
 
     async def land(self) -> None:
+        # leaving offboard by a mode change: the watchdog must not "stop offboard" (→ Hold)
+        # a second later, before the 1 Hz HEARTBEAT has shown LAND (it did, on real SITL)
+        self._offboard_active = False
         await self._call("land", lambda: self._action.land())
 
     async def hold(self) -> None:
+        self._offboard_active = False
         await self._call("hold", lambda: self._action.hold())
 
     def send_velocity_ned(
