@@ -738,6 +738,9 @@ class Supervisor:
             raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
         self.budget = self._make_budget(measured)
         flown = self.budget.inflate(self.params)
+        sc = self.mission.scenario
+        self.monitor = self.violations.monitor = SafetyMonitor.for_run(
+            sc.tube, sc.obstacles, self.params, flown)  # pairs searched within the flown radii
         acc = (f"worst reported position accuracy σ = {measured.accuracy_m:.2f} m"
                if math.isfinite(measured.accuracy_m) else "no accuracy reported")
         self.event(f"safety budget: {self.budget.describe(self.params)} (measured: position "
