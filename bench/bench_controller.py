@@ -32,15 +32,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vtube_fleet.controller import (  # noqa: E402
+from vtube_fleet.core.controller import (  # noqa: E402
     CommandEvaluator,
     ControllerParams,
     TubeArrays,
     velocity_command,
 )
-from vtube_fleet.neighbours import VerletPairs, pairs_within  # noqa: E402
-from vtube_fleet.partition import partition  # noqa: E402
-from vtube_fleet.tube import Obstacle, Trapezoid  # noqa: E402
+from vtube_fleet.core.neighbours import VerletPairs, pairs_within  # noqa: E402
+from vtube_fleet.core.partition import partition  # noqa: E402
+from vtube_fleet.core.tube import Obstacle, Trapezoid  # noqa: E402
 
 PARAMS = ControllerParams(r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5)
 SKIN = 0.3

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from vtube_fleet.controller import ControllerParams, velocity_command
-from vtube_fleet.metrics import SafetyMonitor
-from vtube_fleet.neighbours import VerletPairs
-from vtube_fleet.partition import partition
+from vtube_fleet.core.controller import ControllerParams, velocity_command
+from vtube_fleet.core.metrics import SafetyMonitor
+from vtube_fleet.core.neighbours import VerletPairs
+from vtube_fleet.core.partition import partition
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.recording import NullRecorder, RerunRecorder, open_recorder
-from vtube_fleet.tube import Obstacle, Trapezoid
 
 
 def scene(m: int) -> tuple[Trapezoid, tuple[Obstacle, ...], ControllerParams, np.ndarray]:

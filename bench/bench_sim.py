@@ -37,7 +37,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vtube_fleet.scenario import load_scenario, parse_scenario  # noqa: E402
+from vtube_fleet.config.scenario import load_scenario, parse_scenario  # noqa: E402
 from vtube_fleet.sim import simulate  # noqa: E402
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from vtube_fleet.fleet.mission import Mission, load_mission
+from vtube_fleet.config.mission import Mission, load_mission
 
 ROOT = Path(__file__).resolve().parents[1]
 MOCK_FLEET = ROOT / "configs" / "mock_fleet.toml"

@@ -31,7 +31,7 @@ from missions import STRAIGHT
 from vtube_fleet.bus.base import Phase
 from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
-from vtube_fleet.fleet.mission import Mission, load_mission
+from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleetcli import mock_fleet
 from vtube_fleet.missioncli import default_max_age_s, default_mission_id, run_cell_m
 

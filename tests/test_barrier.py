@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtube_fleet.barrier import (
+from vtube_fleet.core.barrier import (
     X_MIN,
     BarrierBank,
     V_n,

@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtube_fleet.barrier import X_MIN, dV_n_dx, sat, sigma
-from vtube_fleet.controller import (
+from vtube_fleet.core.barrier import X_MIN, dV_n_dx, sat, sigma
+from vtube_fleet.core.controller import (
     CommandEvaluator,
     ControllerParams,
     ParameterError,
@@ -20,9 +20,9 @@ from vtube_fleet.controller import (
     u5,
     velocity_command,
 )
+from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
-from vtube_fleet.neighbours import pairs_within
-from vtube_fleet.tube import Obstacle, Trapezoid
 
 PAPER = ControllerParams(r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5)
 
@@ -514,7 +514,7 @@ def test_command_evaluator_checks_its_arguments():
 def test_command_evaluator_tracks_the_minimum_pair_distance():
     """track_min_pair: the smallest candidate-pair distance of the last call, the number the
     safety metrics compute from the same list (inf without pairs)."""
-    from vtube_fleet.metrics import SafetyMonitor
+    from vtube_fleet.core.metrics import SafetyMonitor
 
     rng = np.random.default_rng(13)
     tube = make_tube(w0=8.0, length=12.0)

@@ -21,7 +21,7 @@ from missions import STRAIGHT
 from truth import TruthLog, assert_true_clearance
 from udp_relay import UdpRelay
 
-from vtube_fleet.fleet.mission import Mission, load_mission
+from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleet.supervisor import Supervisor, TickTrace
 from vtube_fleet.fleetcli import fly, mock_fleet
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import pytest
 from fleet_ports import free_ports
 
-from vtube_fleet.fleet.mission import load_mission
+from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.supervisor import Supervisor
 from vtube_fleet.fleetcli import fly
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vtube_fleet.config.mission import load_mission, parse_mission_config
 from vtube_fleet.errors import ConfigError
-from vtube_fleet.fleet.mission import load_mission, parse_mission_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("mock_fleet.toml", "px4_sitl_3.toml")

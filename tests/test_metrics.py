@@ -9,15 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from vtube_fleet.controller import ControllerParams
-from vtube_fleet.metrics import (
+from vtube_fleet.core.controller import ControllerParams
+from vtube_fleet.core.metrics import (
     CONDITIONS,
     METRIC_KEYS,
     SafetyMonitor,
     StepMetrics,
     SummaryAccumulator,
 )
-from vtube_fleet.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 TUBE = Trapezoid([0.0, 9.0], [30.0, 4.5], [0.0, -9.0], [30.0, -4.5])
 OBSTACLES = (Obstacle([12.0, 0.0], 0.9), Obstacle([20.0, 2.0], 0.5))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from vtube_fleet.models import (
+from vtube_fleet.core.models import (
     control_point_velocity,
     nid_control_point,
     nid_inputs,

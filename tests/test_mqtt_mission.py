@@ -16,7 +16,7 @@ from vtube_fleet.agentcli import AgentProcess, AgentRefused
 from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
-from vtube_fleet.fleet.mission import load_mission
+from vtube_fleet.config.mission import load_mission
 from vtube_fleet.missioncli import config_hash, default_mission_id
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from vtube_fleet.neighbours import VerletPairs, pairs_within
+from vtube_fleet.core.neighbours import VerletPairs, pairs_within
 
 
 def _brute(p: np.ndarray, radius: float) -> set[tuple[int, int]]:

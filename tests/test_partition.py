@@ -1,4 +1,4 @@
-"""Tests of the Section IV partition (vtube_fleet.partition, docs/paper.md)."""
+"""Tests of the Section IV partition (vtube_fleet.core.partition, docs/paper.md)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtube_fleet.controller import ControllerParams, TubeArrays
-from vtube_fleet.errors import UserError
-from vtube_fleet.partition import (
+from vtube_fleet.core.controller import ControllerParams, TubeArrays
+from vtube_fleet.core.partition import (
     DEFAULT_APEX_FACTOR,
     Partition,
     PartitionError,
@@ -19,7 +18,8 @@ from vtube_fleet.partition import (
     h_min,
     partition,
 )
-from vtube_fleet.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.errors import UserError
 
 PARAMS = ControllerParams(r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5)
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 from vtube_fleet.recording import (
     DEFAULT_CONNECT_URL,
@@ -34,7 +35,6 @@ from vtube_fleet.recording import (
     open_recorder,
     recorder_from_args,
 )
-from vtube_fleet.tube import Obstacle, Trapezoid
 
 REPO = Path(__file__).resolve().parents[1]
 

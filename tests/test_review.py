@@ -34,7 +34,7 @@ SCENARIO = {
 
 
 def _scenario(**sim: Any) -> Any:
-    from vtube_fleet.scenario import parse_scenario
+    from vtube_fleet.config.scenario import parse_scenario
 
     doc = json.loads(json.dumps(SCENARIO))
     doc["sim"].update(sim)
@@ -172,7 +172,7 @@ def test_mock_fleet_run_recording_reviews(tmp_path: Path) -> None:
 
     from fleet_ports import free_ports
 
-    from vtube_fleet.fleet.mission import load_mission
+    from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleetcli import fly
 
     text = (ROOT / "configs" / "mock_fleet.toml").read_text()

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vtube_fleet.config.scenario import grid_positions, load_scenario, parse_scenario
 from vtube_fleet.errors import ConfigError, UserError
-from vtube_fleet.scenario import grid_positions, load_scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper.toml"

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vtube_fleet.config.scenario import load_scenario, parse_scenario
+from vtube_fleet.core.metrics import METRIC_KEYS
+from vtube_fleet.core.validation import ScenarioError
 from vtube_fleet.errors import ConfigError
-from vtube_fleet.metrics import METRIC_KEYS
-from vtube_fleet.scenario import load_scenario, parse_scenario
 from vtube_fleet.sim import ProgressBar, SimError, default_record_every, simulate
-from vtube_fleet.validation import ScenarioError
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper.toml"
@@ -72,7 +72,7 @@ def test_trajectory_layout(reduced, paper) -> None:
 
 def test_metrics_series_match_recorded_frames(reduced, paper) -> None:
     """The per-step metrics at recorded steps equal a recomputation from the recorded frames."""
-    from vtube_fleet.metrics import SafetyMonitor
+    from vtube_fleet.core.metrics import SafetyMonitor
 
     res = reduced
     mon = SafetyMonitor.from_params(paper.tube, paper.obstacles, paper.controller)
@@ -103,7 +103,7 @@ def test_full_paper_run_sub_tubes_equal_locate_at_every_step(paper, monkeypatch)
     """The simulator's sub-tube indices come from a SubTubeTracker: at every step of the full
     paper run they equal Partition.locate of the same positions, while locating (all robots
     or the few whose rows failed) runs at a small fraction of the steps."""
-    from vtube_fleet.partition import SubTubeTracker
+    from vtube_fleet.core.partition import SubTubeTracker
 
     seen = {"steps": 0, "trackers": []}
     update = SubTubeTracker.update

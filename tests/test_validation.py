@@ -1,4 +1,4 @@
-"""Tests of the scenario checks run before anything moves (vtube_fleet.validation)."""
+"""Tests of the scenario checks run before anything moves (vtube_fleet.core.validation)."""
 
 from __future__ import annotations
 
@@ -8,18 +8,18 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from vtube_fleet.controller import ControllerParams
-from vtube_fleet.errors import UserError
-from vtube_fleet.partition import Partition
-from vtube_fleet.scenario import grid_positions
-from vtube_fleet.tube import Obstacle, Trapezoid
-from vtube_fleet.validation import (
+from vtube_fleet.config.scenario import grid_positions
+from vtube_fleet.core.controller import ControllerParams
+from vtube_fleet.core.partition import Partition
+from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.core.validation import (
     MAX_LISTED,
     ScenarioError,
     Violation,
     check_scenario,
     validate_scenario,
 )
+from vtube_fleet.errors import UserError
 
 PARAMS = ControllerParams(r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5)
 

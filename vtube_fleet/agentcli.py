@@ -53,12 +53,13 @@ import numpy as np
 from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
+from vtube_fleet.core.metrics import verdict
+from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan
 from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget, budget_problems
 from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
-from vtube_fleet.metrics import verdict
 from vtube_fleet.missioncli import (
     ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
@@ -70,7 +71,6 @@ from vtube_fleet.missioncli import (
     default_mission_id,
     needed_cell_m,
 )
-from vtube_fleet.partition import PartitionError
 from vtube_fleet.recording import add_recording_args
 
 __all__ = ["AgentProcess", "AgentRefused", "BusAwarePilot", "register"]
@@ -129,7 +129,7 @@ class BusAwarePilot(VehiclePilot):
     neighbour whose state is older than ``agent.max_age_s`` → zero horizontal velocity with
     altitude hold (the pilot's own vertical term), no controller, no exit behaviour; the
     neighbour table is not touched. A
-    :class:`~vtube_fleet.partition.PartitionError` while re-partitioning around lost vehicles
+    :class:`~vtube_fleet.core.partition.PartitionError` while re-partitioning around lost vehicles
     makes the vehicle hold (PX4 Hold), as the supervisor does.
     """
 
@@ -370,7 +370,7 @@ class AgentProcess:
     ) -> None:
         """``out``: folder for this agent's ``summary.json`` and (unless ``rerun_args`` say
         ``--no-rerun``) ``recording.rrd`` (:class:`AgentRecording`); None: nothing written."""
-        from vtube_fleet.fleet.mission import load_mission
+        from vtube_fleet.config.mission import load_mission
         from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_endpoints
 
         self.path = Path(mission_path)

@@ -27,8 +27,8 @@ from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.errors import UserError
-from vtube_fleet.fleet.mission import Mission, load_mission
 
 __all__ = ["fly", "mock_fleet", "parse_endpoint_list", "register", "sitl_home_lines"]
 

@@ -9,8 +9,8 @@ The coordinator computes nobody's setpoint. It only
   vehicle is READY, then publishes ``start`` (retained ``vtube/<m>/cmd``); ``abort`` likewise;
 * reads the states the agents publish: ``status`` prints them; ``start --wait --out DIR`` follows
   the flight until every vehicle has exited and landed (or failed / was lost) and writes
-  ``DIR/summary.json`` computed from those states with :mod:`vtube_fleet.metrics` (the same
-  :class:`~vtube_fleet.metrics.SummaryAccumulator` the simulator and the supervisor use).
+  ``DIR/summary.json`` computed from those states with :mod:`vtube_fleet.core.metrics` (the same
+  :class:`~vtube_fleet.core.metrics.SummaryAccumulator` the simulator and the supervisor use).
 
 Exit codes: 0 done (``start --wait``: every vehicle exited and landed), 2 user error (bad
 file, broker unreachable, an agent refused or did not join), 3 the run ended incomplete
@@ -46,9 +46,9 @@ from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, encode_config
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.topics import validate_mission_id
+from vtube_fleet.core.metrics import verdict
 from vtube_fleet.errors import ConfigError, UserError
 from vtube_fleet.fleet.agent import STOPPED_PHASES
-from vtube_fleet.metrics import verdict
 
 __all__ = [
     "DEFAULT_BROKER",
@@ -197,7 +197,7 @@ class RunMonitor:
     ticks: int = 0
 
     def __post_init__(self) -> None:
-        from vtube_fleet.metrics import SafetyMonitor, SummaryAccumulator, ViolationLog
+        from vtube_fleet.core.metrics import SafetyMonitor, SummaryAccumulator, ViolationLog
 
         sc = self.mission.scenario
         self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, sc.controller)
@@ -383,7 +383,7 @@ class Coordinator:
         max_age_s: float | None = None,
         cells: bool = True,
     ) -> None:
-        from vtube_fleet.fleet.mission import load_mission
+        from vtube_fleet.config.mission import load_mission
 
         self.path = Path(mission_path)
         self.mission = load_mission(self.path)

@@ -18,8 +18,8 @@ from matplotlib.collections import EllipseCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon
 
-from vtube_fleet.metrics import SafetyLimits
-from vtube_fleet.tube import Obstacle, Trapezoid
+from vtube_fleet.core.metrics import SafetyLimits
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = ["pick_snapshot_frames", "plot_safety", "plot_snapshots"]
 
@@ -53,7 +53,7 @@ def plot_safety(
     r_o + r_s line(s), (c)/(d) minimum distance to the main tube's left/right leg with the r_s
     line, (e) minimum and maximum speed with the v_min / v_max lines.
 
-    ``metrics`` is a :class:`~vtube_fleet.metrics.StepMetrics` or a mapping with its key names
+    ``metrics`` is a :class:`~vtube_fleet.core.metrics.StepMetrics` or a mapping with its key names
     (``min_pair_distance_m`` ...). ``center`` optionally adds the same curves for unicycle robot
     centres (dashed) next to the control points.
     """

@@ -89,7 +89,7 @@ import numpy as np
 from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.tube import Obstacle, Trapezoid
+    from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
     "DEFAULT_CONNECT_URL",
@@ -237,7 +237,7 @@ class Recorder(Protocol):
         """One control tick: ids (M,) int, pos/vel/cmd (M, 2) tube frame, NaN rows = absent.
 
         ``safety``: the (positions, velocities) (M, 2) each, rows as ``ids``, that the run fed
-        to :class:`vtube_fleet.metrics.SafetyMonitor`, per summary stream suffix (``""``, and
+        to :class:`vtube_fleet.core.metrics.SafetyMonitor`, per summary stream suffix (``""``, and
         ``"_center"`` for unicycle centres), when they differ from (pos, vel) — e.g. the fleet
         counts only vehicles in the tube, with their commanded velocity. ``review`` recomputes
         the summary from exactly these."""
@@ -789,7 +789,7 @@ class RerunRecorder:
 
     def _set_limits(self, r_s: float, obstacles: Sequence[Obstacle], v_min: float,
                     v_max: float) -> None:
-        from vtube_fleet.metrics import SafetyLimits
+        from vtube_fleet.core.metrics import SafetyLimits
 
         lim = SafetyLimits(r_s, v_min, v_max)
         self._limits = {
@@ -1527,14 +1527,14 @@ class RecordingData:
         return str(self.meta.get("kind", "?"))
 
     def tube(self) -> Trapezoid:
-        from vtube_fleet.tube import Trapezoid
+        from vtube_fleet.core.tube import Trapezoid
 
         t = self.meta["tube"]
         return Trapezoid(np.array(t["p_h0"]), np.array(t["p_h1"]), np.array(t["p_r0"]),
                          np.array(t["p_r1"]))
 
     def obstacles(self) -> tuple[Obstacle, ...]:
-        from vtube_fleet.tube import Obstacle
+        from vtube_fleet.core.tube import Obstacle
 
         return tuple(Obstacle(center=np.array(o["center"], dtype=float), radius=float(o["radius"]),
                               apex_distance=o.get("apex_distance"))

@@ -1,10 +1,11 @@
 """``vtube-fleet review RUN.rrd [--json]``: a recorded run's summary and figures.
 
-The recording (see :mod:`vtube_fleet.recording`) is read back with ``rerun.chunk.RrdReader``;
-the summary is recomputed from the recorded positions and velocities with the same
-:class:`~vtube_fleet.metrics.SafetyMonitor` / :class:`~vtube_fleet.metrics.SummaryAccumulator`
-the simulator and the fleet use, and the figures are drawn with the same
-:mod:`vtube_fleet.plots` functions (Fig. 11 safety curves, swarm snapshots).
+The recording (see :mod:`vtube_fleet.recording`) is read back with ``rerun.chunk.RrdReader``; the
+summary is recomputed from the recorded positions and velocities with the same
+:class:`~vtube_fleet.core.metrics.SafetyMonitor` /
+:class:`~vtube_fleet.core.metrics.SummaryAccumulator` the simulator and the fleet use, and the
+figures are drawn with the same :mod:`vtube_fleet.plots` functions (Fig. 11 safety curves, swarm
+snapshots).
 
 The summary has the keys of the run's ``summary.json``. Keys that cannot be recomputed from
 positions (wall-clock time, settings) are copied from the summary the run stored in the
@@ -58,16 +59,16 @@ class ReviewResult:
 
     @property
     def verdict(self) -> Any:
-        """:func:`vtube_fleet.metrics.verdict` of the recomputed summary (every recorded
+        """:func:`vtube_fleet.core.metrics.verdict` of the recomputed summary (every recorded
         stream but unicycle centres, which the simulator reports beside the control points)."""
-        from vtube_fleet.metrics import verdict
+        from vtube_fleet.core.metrics import verdict
 
         streams = ["", "_truth"] if "truth_violations" in self.summary else [""]
         return verdict(self.summary, streams)
 
 
 def _monitor(data: RecordingData) -> Any:
-    from vtube_fleet.metrics import SafetyMonitor
+    from vtube_fleet.core.metrics import SafetyMonitor
 
     meta = data.meta
     params = SimpleNamespace(r_s=meta["r_s"], r_a=meta["r_a"], v_min=meta["v_min"],
@@ -79,11 +80,11 @@ def _monitor(data: RecordingData) -> Any:
 
 
 def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any]:
-    """(t_s, :class:`~vtube_fleet.metrics.StepMetrics`) of one summary stream: the
+    """(t_s, :class:`~vtube_fleet.core.metrics.StepMetrics`) of one summary stream: the
     (positions, velocities) the run said its metrics used (``data.safety``, at the ticks where
     it gave them — e.g. the fleet only once in the tube), else the recorded vehicle positions
     and velocities at every recorded tick."""
-    from vtube_fleet.metrics import StepMetrics
+    from vtube_fleet.core.metrics import StepMetrics
 
     if suffix in data.safety:
         pos, vel = data.safety[suffix]
@@ -105,13 +106,13 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
                            ) -> tuple[dict[str, Any], tuple[str, ...]]:
     """The run summary recomputed from the recording → (summary, recomputed keys).
 
-    Uses :class:`~vtube_fleet.metrics.SummaryAccumulator` on every summary stream the run
+    Uses :class:`~vtube_fleet.core.metrics.SummaryAccumulator` on every summary stream the run
     recorded (``""``, ``"_center"`` …); exits come from the recorded exit events (exact times),
     indexed in the scenario's id order. Keys of the stored run summary that are not recomputed
     are copied over, in the stored summary's key order. ``metrics``: precomputed
     :func:`step_metrics` (t, metrics) of the ``""`` stream.
     """
-    from vtube_fleet.metrics import SummaryAccumulator, truth_keys
+    from vtube_fleet.core.metrics import SummaryAccumulator, truth_keys
 
     meta = data.meta
     ids = [int(i) for i in meta.get("ids", [])] or [int(i) for i in data.ids]
@@ -166,7 +167,7 @@ def compare_summaries(
 
 def _reconstruct_partition(data: RecordingData) -> tuple[list[Any], list[Any]]:
     """Sub-tubes (Trapezoid) and triangles (p_oth, p_otu, p_otd) of the first partition."""
-    from vtube_fleet.tube import Trapezoid
+    from vtube_fleet.core.tube import Trapezoid
 
     if not data.partitions:
         return [], []

@@ -5,19 +5,19 @@ Each step (all robots still in the tube at once):
 1. robots satisfying (TraCondition) for the MAIN tube, −n_cᵀ(p_i − p_r1) ≤ ε_0, exit
    (Assumption 2): they are removed, recorded as NaN from then on, and are nobody's neighbours;
 2. every robot's sub-tube k_i is located (switching rule (ObstacleController),
-   :meth:`Partition.locate`, through a :class:`~vtube_fleet.partition.SubTubeTracker`, which
+   :meth:`Partition.locate`, through a :class:`~vtube_fleet.core.partition.SubTubeTracker`, which
    gives the same result but re-runs the full locate only when a robot may have changed
    sub-tube); for ``controller="apf"`` there is no partition and every robot
    uses the main tube (Appendix C);
-3. neighbour candidates come from a Verlet list (:class:`~vtube_fleet.neighbours.VerletPairs`);
-4. the velocity commands v_c come from :func:`~vtube_fleet.controller.velocity_command`
-   (through its per-loop form :class:`~vtube_fleet.controller.CommandEvaluator`)
+3. neighbour candidates come from a Verlet list (:class:`~vtube_fleet.core.neighbours.VerletPairs`);
+4. the velocity commands v_c come from :func:`~vtube_fleet.core.controller.velocity_command`
+   (through its per-loop form :class:`~vtube_fleet.core.controller.CommandEvaluator`)
    ("new" = (ModifiedVectorField), "old" = (Oldcontroller), "apf" = Appendix C);
-5. the robots move one Euler step of their model (:mod:`vtube_fleet.models`): the single
+5. the robots move one Euler step of their model (:mod:`vtube_fleet.core.models`): the single
    integrator (Single), or the unicycle driven through (NID), whose controller is evaluated at
    the control point p + s[cos θ, sin θ] (paper note 10).
 
-Safety metrics (:mod:`vtube_fleet.metrics`) are taken at every step, in chunks: positions and
+Safety metrics (:mod:`vtube_fleet.core.metrics`) are taken at every step, in chunks: positions and
 commands are kept in a buffer and evaluated in one vectorized call per chunk (a chunk ends when
 the neighbour list is rebuilt, a robot exits, or the buffer is full). For the single integrator
 the buffer holds the state itself (the controller and the Euler step write their rows), so the
@@ -36,14 +36,14 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from vtube_fleet import models
-from vtube_fleet.controller import CommandEvaluator, TubeArrays
+from vtube_fleet.config.scenario import Scenario
+from vtube_fleet.core import models
+from vtube_fleet.core.controller import CommandEvaluator, TubeArrays
+from vtube_fleet.core.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
+from vtube_fleet.core.neighbours import VerletPairs
+from vtube_fleet.core.partition import Partition, SubTubeTracker
+from vtube_fleet.core.validation import check_scenario
 from vtube_fleet.errors import UserError
-from vtube_fleet.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
-from vtube_fleet.neighbours import VerletPairs
-from vtube_fleet.partition import Partition, SubTubeTracker
-from vtube_fleet.scenario import Scenario
-from vtube_fleet.validation import check_scenario
 
 __all__ = [
     "CONTROLLERS",
@@ -189,7 +189,7 @@ def simulate(
     ``dt``/``duration``/``record_every`` override the scenario's [sim] values, ``robots`` keeps
     the first N robots. ``progress(t, duration, in_tube, exited)`` is called about every 0.1 s
     of simulated time. The scenario is validated first (:func:`check_scenario`, raising
-    :class:`~vtube_fleet.validation.ScenarioError`) unless ``validate=False``. ``skin`` is the
+    :class:`~vtube_fleet.core.validation.ScenarioError`) unless ``validate=False``. ``skin`` is the
     Verlet-list margin in metres (default (r_s + r_a)/2). Ctrl-C stops the run early:
     the result (``interrupted=True``) holds everything up to that step. ``recorder`` (a
     :class:`vtube_fleet.recording.Recorder`) gets the scene, every recorded frame, every step's
@@ -228,7 +228,7 @@ def simulate(
         tracker = None
     else:
         if part is None:
-            from vtube_fleet.partition import partition as build_partition
+            from vtube_fleet.core.partition import partition as build_partition
 
             part = build_partition(scenario.tube, scenario.obstacles, params)
         arrays = part.arrays

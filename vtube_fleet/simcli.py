@@ -1,7 +1,7 @@
 """``vtube-fleet check`` and ``vtube-fleet sim``: validate a scenario, run the offline simulator.
 
 ``check CONFIG`` parses the scenario, validates it against the paper's conditions
-(:func:`vtube_fleet.validation.validate_scenario`) and prints the partition: the sub-tubes with
+(:func:`vtube_fleet.core.validation.validate_scenario`) and prints the partition: the sub-tubes with
 their ξ ranges, the circumscribed triangles and which obstacles needed Remark 5. Exit 0 when
 valid, 2 with the violations listed otherwise.
 
@@ -117,8 +117,8 @@ def describe_partition(scenario: Any, part: Any) -> list[str]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from vtube_fleet.scenario import load_scenario
-    from vtube_fleet.validation import validate_scenario
+    from vtube_fleet.config.scenario import load_scenario
+    from vtube_fleet.core.validation import validate_scenario
 
     sc = load_scenario(args.config)
     r = sc.robots
@@ -239,7 +239,7 @@ def print_summary(s: dict[str, Any], stream: Any = None) -> None:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from vtube_fleet.scenario import load_scenario
+    from vtube_fleet.config.scenario import load_scenario
     from vtube_fleet.sim import ProgressBar, simulate
 
     sc = load_scenario(args.config)

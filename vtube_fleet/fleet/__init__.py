@@ -1,6 +1,6 @@
 """The fleet: per-vehicle agents, pilots and the asyncio supervisor (``vtube-fleet run``).
 
-* :mod:`~vtube_fleet.fleet.mission`: mission files (a scenario plus ``[mission]``);
+* :mod:`~vtube_fleet.config.mission`: mission files (a scenario plus ``[mission]``);
 * :mod:`~vtube_fleet.fleet.agent`: the pure per-vehicle decision logic;
 * :mod:`~vtube_fleet.fleet.budget`: the safety budget (how much r_s and r_a are inflated);
 * :mod:`~vtube_fleet.fleet.compensation`: the estimate-disturbance compensation;
@@ -11,9 +11,9 @@
 See ``docs/fleet.md``.
 """
 
+from vtube_fleet.config.mission import Mission, MissionConfig, load_mission
 from vtube_fleet.fleet.agent import Agent, FlightPlan, Setpoint
 from vtube_fleet.fleet.budget import SafetyBudget
-from vtube_fleet.fleet.mission import Mission, MissionConfig, load_mission
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.supervisor import FleetResult, MissionAborted, Supervisor
 

@@ -17,12 +17,12 @@ An :class:`Agent` is what one vehicle knows and decides:
   IN_TUBE → EXITED when (TraCondition) holds on the main tube: −n_cᵀ(p − p_r1) ≤ ε_0
   (Assumption 2).
 * its **horizontal setpoint** in the tube frame: the core controller
-  :func:`vtube_fleet.controller.velocity_command` (ModifiedVectorField) evaluated for its own row
-  only (``rows=[0]``) with the sub-tube index from :meth:`Partition.locate` (the switching logic
-  (ObstacleController)) and its neighbours within r_s + r_a, the same code the simulator runs.
+  :func:`vtube_fleet.core.controller.velocity_command` (ModifiedVectorField) evaluated for its own
+  row only (``rows=[0]``) with the sub-tube index from :meth:`FlightPlan.locate` (the switching
+  logic (ObstacleController)) and its neighbours within r_s + r_a, the same code the simulator runs.
   The supervisor computes many agents at once with :func:`fleet_setpoints`, which calls
-  ``velocity_command`` once with ``rows`` = all those agents; row for row this equals each
-  agent's own :meth:`Agent.setpoint` (``tests/test_fleet_agent.py``).
+  ``velocity_command`` once with ``rows`` = all those agents; row for row this equals each agent's
+  own :meth:`Agent.setpoint` (``tests/test_fleet_agent.py``).
 
 The flown radii come from the safety budget (:mod:`vtube_fleet.fleet.budget`): the plan's
 ``params`` are the configured ones inflated by δ.
@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 
 from vtube_fleet.bus.base import NeighbourState, Phase
-from vtube_fleet.controller import ControllerParams, velocity_command
-from vtube_fleet.partition import (
+from vtube_fleet.core.controller import ControllerParams, velocity_command
+from vtube_fleet.core.partition import (
     ApexZone,
     Partition,
     apex_lookahead,
@@ -47,7 +47,7 @@ from vtube_fleet.partition import (
     h_min,
     partition,
 )
-from vtube_fleet.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
     "AIRBORNE_PHASES",
@@ -97,7 +97,7 @@ class FlightPlan:
     lost: tuple[Obstacle, ...] = ()
     kind: str = "new"
     _cache: dict[tuple, FlightPlan] = field(default_factory=dict, repr=False)
-    #: the apex look-ahead zones of the switching rule (:func:`~vtube_fleet.partition.
+    #: the apex look-ahead zones of the switching rule (:func:`~vtube_fleet.core.partition.
     #: apex_zones`; empty: the paper's §5 rule exactly)
     zones: tuple[ApexZone, ...] = ()
     lookahead: bool = True
@@ -113,7 +113,7 @@ class FlightPlan:
         part: Partition | None = None,
         lookahead: bool = True,
     ) -> FlightPlan:
-        """Partition (raises :class:`~vtube_fleet.partition.PartitionError`) and wrap.
+        """Partition (raises :class:`~vtube_fleet.core.partition.PartitionError`) and wrap.
         ``lookahead``: switch sub-tubes ahead of apexes (vehicles with response lag)."""
         obstacles = tuple(obstacles)
         if part is None:
@@ -380,7 +380,7 @@ class Agent:
     def update_plan(self, view: NeighbourView) -> bool:
         """Re-partition if the set of lost obstacles changed; True if the plan changed.
 
-        Raises :class:`~vtube_fleet.partition.PartitionError` when no valid partition exists
+        Raises :class:`~vtube_fleet.core.partition.PartitionError` when no valid partition exists
         (the caller holds and aborts).
         """
         lost = lost_obstacles(view, self.root_plan.tube, self.lost_radius_m, self.plan.params)

@@ -37,25 +37,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from vtube_fleet.controller import ControllerParams
+from vtube_fleet.config.mission import DEFAULT_ACCURACY_FACTOR
+from vtube_fleet.core.controller import ControllerParams
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.fleet.mission import Mission
+    from vtube_fleet.config.mission import Mission
 
 __all__ = [
     "BudgetWatch",
-    "DEFAULT_ACCURACY_FACTOR",
-    "DEFAULT_DISTURBANCE_M_S",
     "LinkMeasurement",
     "SafetyBudget",
     "budget_problems",
     "mission_budget",
 ]
 
-#: k: the estimate error assumed is k × the reported 1-σ accuracy (captures: max 1.83 σ).
-DEFAULT_ACCURACY_FACTOR = 2.0
-#: D: the estimate disturbance left after compensation (m/s), see docs/fleet.md.
-DEFAULT_DISTURBANCE_M_S = 0.25
 
 
 @dataclass(frozen=True)

@@ -43,11 +43,11 @@ from typing import Any
 import numpy as np
 
 from vtube_fleet.bus.base import NeighbourBus, NeighbourState, Phase
+from vtube_fleet.config.mission import Mission
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
 from vtube_fleet.fleet.budget import LinkMeasurement
 from vtube_fleet.fleet.compensation import EstimateCompensator
-from vtube_fleet.fleet.mission import Mission
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink
 

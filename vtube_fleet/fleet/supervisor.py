@@ -28,7 +28,7 @@ re-partitioned online; if no valid partition exists the others hold (OFFBOARD �
 mission aborts (:class:`MissionAborted`, exit code 3). SIGINT / SIGTERM: every vehicle holds,
 then lands; the summary and the recording are complete (exit code 130).
 
-The summary (``summary.json``) is built by :class:`vtube_fleet.metrics.SummaryAccumulator`, the
+The summary (``summary.json``) is built by :class:`vtube_fleet.core.metrics.SummaryAccumulator`, the
 simulator's own accumulator, fed every tick from **telemetry** positions: the ``""`` stream holds
 the vehicles in the tube (and lost vehicles at their frozen positions) with the *commanded*
 horizontal velocities, so ``min_speed_m_s``/``max_speed_m_s`` are the commanded speeds in the
@@ -55,6 +55,17 @@ from typing import Any
 import numpy as np
 
 from vtube_fleet.bus.base import InProcessBus, Phase
+from vtube_fleet.config.mission import Mission
+from vtube_fleet.core.metrics import (
+    SafetyMonitor,
+    SummaryAccumulator,
+    ViolationLog,
+    truth_keys,
+    verdict,
+)
+from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.partition import PartitionError
+from vtube_fleet.core.validation import validate_scenario
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import (
     STOPPED_PHASES,
@@ -72,7 +83,6 @@ from vtube_fleet.fleet.budget import (
     budget_problems,
     mission_budget,
 )
-from vtube_fleet.fleet.mission import Mission
 from vtube_fleet.fleet.pilot import (
     FLYING_PHASES,
     PilotError,
@@ -83,16 +93,6 @@ from vtube_fleet.fleet.pilot import (
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
-from vtube_fleet.metrics import (
-    SafetyMonitor,
-    SummaryAccumulator,
-    ViolationLog,
-    truth_keys,
-    verdict,
-)
-from vtube_fleet.neighbours import pairs_within
-from vtube_fleet.partition import PartitionError
-from vtube_fleet.validation import validate_scenario
 
 __all__ = [
     "FleetError",
@@ -180,7 +180,7 @@ def preflight_report(
     """Validate the (inflated) scenario with the vehicles' actual positions.
 
     Returns (partition or None, problems). Each problem is one line naming the vehicles
-    (``robot i`` of :func:`vtube_fleet.validation.validate_scenario` becomes ``vehicle i
+    (``robot i`` of :func:`vtube_fleet.core.validation.validate_scenario` becomes ``vehicle i
     (endpoint)``) with the numbers.
     """
     sc = mission.scenario
@@ -965,7 +965,7 @@ class Supervisor:
         return FleetResult(exit_code, self.outcome, self.reason, summary, path)
 
     def _judge(self) -> None:
-        """The verdict (:func:`vtube_fleet.metrics.verdict`, the one place that decides):
+        """The verdict (:func:`vtube_fleet.core.metrics.verdict`, the one place that decides):
         a run whose telemetry — or ground truth, with ``truth`` — broke a limit in the tube
         is ``unsafe`` whatever else happened; the reason keeps what happened too."""
         v = verdict(self._summary_core(), streams=("", "_truth") if self.truth else ("",))

@@ -14,7 +14,7 @@ Per time step, from robot positions p (M, 2) and velocities (M, 2):
 A step *violates* when any of these fails. Everything is vectorized over a leading time axis:
 ``pos`` may be (K, M, 2), with NaN rows for robots that are not (or no longer) in the tube, so a
 caller can evaluate a whole chunk of steps in one call. Pair distances are taken over candidate
-pairs (I, J) — the controller's neighbour list, or :func:`vtube_fleet.neighbours.pairs_within`
+pairs (I, J) — the controller's neighbour list, or :func:`vtube_fleet.core.neighbours.pairs_within`
 within ``pair_radius`` — never an O(M²) matrix: a minimum pair distance of ``inf`` means "no two
 robots closer than the search radius".
 
@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
     "CONDITIONS",
@@ -254,7 +254,7 @@ class SafetyMonitor:
 
         NaN rows in ``pos`` are absent robots. ``pairs`` = (I, J) candidate pairs valid for all
         K steps (e.g. a Verlet list); without it, pairs within :attr:`pair_radius` are searched
-        step by step with :func:`vtube_fleet.neighbours.pairs_within`.
+        step by step with :func:`vtube_fleet.core.neighbours.pairs_within`.
 
         ``all_present=True`` promises that ``pos`` has no NaN and enables an exact pruned
         evaluation for long chunks (the simulator's case): with D_i = max_k ‖p_i(k) − p_i(0)‖,
@@ -265,7 +265,7 @@ class SafetyMonitor:
 
         ``min_pair`` (K,): the minimum pair distances of the steps over ``pairs``, when the
         caller has them already (the simulator's controller computes every candidate pair's
-        distance each step, :class:`vtube_fleet.controller.CommandEvaluator`); they are used
+        distance each step, :class:`vtube_fleet.core.controller.CommandEvaluator`); they are used
         as given.
         """
         pos = np.asarray(pos, dtype=float)
@@ -465,7 +465,7 @@ class SafetyMonitor:
         )
 
     def _min_pair_search(self, p: np.ndarray, present: np.ndarray) -> float:
-        from vtube_fleet.neighbours import pairs_within
+        from vtube_fleet.core.neighbours import pairs_within
 
         q = p[present]
         if q.shape[0] < 2:

@@ -10,7 +10,7 @@ condition's name and the numbers; :func:`check_scenario` raises :class:`Scenario
 * ``Constraint2``: the main tube's narrowing legs, v‖n_c − t‖ ≤ v'_max (Constraint2);
 * ``Assumption3``: the main tube (L ∩ R = ∅, M ≠ ∅, length > 2 r_a, room for one robot);
 * ``pothk``: every obstacle with a configured apex distance satisfies (pothk);
-* ``Partition``: the partition of Section IV can be built (:mod:`vtube_fleet.partition`);
+* ``Partition``: the partition of Section IV can be built (:mod:`vtube_fleet.core.partition`);
 * ``Assumption3'`` and ``Constraint3``: every sub-tube of the partition;
 * ``Assumption1``: the initial positions — S_i ⊂ T (both leg distances ≥ r_s, centre between
   the bases), S_i ∩ S_j = ∅ (‖p_i − p_j‖ > 2 r_s, found with a k-d tree), S_i ∩ O_k = ∅
@@ -31,8 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vtube_fleet.errors import UserError
-from vtube_fleet.partition import (
+from vtube_fleet.core.partition import (
     Partition,
     PartitionError,
     Violation,
@@ -44,10 +43,11 @@ from vtube_fleet.partition import (
     h_min,
     partition,
 )
-from vtube_fleet.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.controller import ControllerParams
+    from vtube_fleet.core.controller import ControllerParams
 
 __all__ = [
     "MAX_LISTED",

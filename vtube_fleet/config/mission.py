@@ -2,9 +2,9 @@
 plus a ``[mission]`` table that anchors the paper's 2-D tube frame on the Earth and says how the
 fleet flies it.
 
-The scenario part is parsed by :func:`vtube_fleet.scenario.load_scenario` (the same parser the
-simulator uses, with ``extra_sections=("mission",)``); this module parses ``[mission]`` as
-strictly: an unknown key, a wrong type or an impossible value raises
+The scenario part is parsed by :func:`vtube_fleet.config.scenario.load_scenario` (the same
+parser the simulator uses, with ``extra_sections=("mission",)``); this module parses
+``[mission]`` as strictly: an unknown key, a wrong type or an impossible value raises
 :class:`~vtube_fleet.errors.ConfigError` naming the file and the key, e.g.
 ``mission.toml: [mission].rate_hz: must be > 0, got -5``.
 
@@ -55,10 +55,9 @@ from typing import Any
 
 import numpy as np
 
+from vtube_fleet.config.scenario import Scenario, load_scenario
 from vtube_fleet.errors import ConfigError
-from vtube_fleet.fleet.budget import DEFAULT_ACCURACY_FACTOR, DEFAULT_DISTURBANCE_M_S
 from vtube_fleet.frames import TubeFrame
-from vtube_fleet.scenario import Scenario, load_scenario
 
 __all__ = [
     "AFTER_EXIT",
@@ -68,6 +67,11 @@ __all__ = [
     "load_mission",
     "parse_mission_config",
 ]
+
+#: k: the estimate error budgeted is k × the reported 1-σ accuracy (real SITL: max 1.83 σ).
+DEFAULT_ACCURACY_FACTOR = 2.0
+#: D: the estimate disturbance left after compensation (m/s; docs/fleet.md).
+DEFAULT_DISTURBANCE_M_S = 0.25
 
 #: What a vehicle does once it has crossed the finishing line (Assumption 2).
 AFTER_EXIT: tuple[str, ...] = ("continue", "hold", "land")
@@ -238,7 +242,7 @@ def parse_mission_config(table: Mapping[str, Any], source: str = "<mission>") ->
 
 @dataclass(frozen=True, eq=False)
 class Mission:
-    """A mission: the :class:`~vtube_fleet.scenario.Scenario` (whose robots are the vehicles'
+    """A mission: the :class:`~vtube_fleet.config.scenario.Scenario` (whose robots are the vehicles'
     start slots, in endpoint order) and its :class:`MissionConfig`."""
 
     scenario: Scenario

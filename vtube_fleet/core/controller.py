@@ -25,7 +25,7 @@ Terms (robot i in its own sub-tube k_i, partition §4):
 
 Implementation: 2-D vectors are complex numbers (``p.view(complex128)``), so vector algebra is
 one numpy call; all robot–robot and robot–leg barrier derivatives of a step are evaluated in ONE
-fused :class:`~vtube_fleet.barrier.BarrierBank` call, together with the σ's of u1''; the sums
+fused :class:`~vtube_fleet.core.barrier.BarrierBank` call, together with the σ's of u1''; the sums
 over neighbours, legs and σ's are one ``np.bincount``. Per-sub-tube constants are precomputed
 once per (TubeArrays, ControllerParams) and gathered with one ``take`` per step.
 """
@@ -39,10 +39,10 @@ from typing import Literal
 
 import numpy as np
 
-from vtube_fleet.barrier import X_MIN, BarrierBank, dV_n_dx
+from vtube_fleet.core.barrier import X_MIN, BarrierBank, dV_n_dx
+from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
-from vtube_fleet.neighbours import pairs_within
-from vtube_fleet.tube import Obstacle, Trapezoid
 
 __all__ = [
     "CommandEvaluator",
@@ -539,8 +539,8 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
     each robot's own sub-tube in ``tubes`` (with ``rows``, k may also be (len(rows),));
     pairs: (I, J) int arrays of neighbour candidates (any superset of the pairs closer than
     r_s + r_a; farther pairs contribute exactly 0), excluding NaN rows. None → computed with
-    :func:`vtube_fleet.neighbours.pairs_within`. Read-only arrays (as
-    :class:`~vtube_fleet.neighbours.VerletPairs` returns) let derived index arrays be reused.
+    :func:`vtube_fleet.core.neighbours.pairs_within`. Read-only arrays (as
+    :class:`~vtube_fleet.core.neighbours.VerletPairs` returns) let derived index arrays be reused.
     kind: "new" (ModifiedVectorField), "old" (Oldcontroller), "apf" (Appendix C, with
     ``obstacles``; meant for the main tube without partition). rows: compute only these
     robots' commands (an agent: its own row).
@@ -569,9 +569,9 @@ class CommandEvaluator:
     ``velocity_command(p, k, tubes, params, pairs=pairs, kind=kind, obstacles=obstacles)``
     returns, through the same code (:func:`_core`, :func:`_finish`), but keeps between calls:
     the per-robot sub-tube constants while ``k`` is the same read-only array (as
-    :meth:`~vtube_fleet.partition.SubTubeTracker.update` returns), the pair index arrays and
+    :meth:`~vtube_fleet.core.partition.SubTubeTracker.update` returns), the pair index arrays and
     scratch buffers while ``pairs`` are the same read-only arrays (as
-    :class:`~vtube_fleet.neighbours.VerletPairs` returns); ``k`` and ``pairs`` are validated
+    :class:`~vtube_fleet.core.neighbours.VerletPairs` returns); ``k`` and ``pairs`` are validated
     when they change, not at every call (read-only arrays must not be made writeable and
     changed in between). ``p``: (M, 2) float64 C-contiguous; ``out``: an
     optional (M, 2) float64 C-contiguous array receiving the result (else a new array).
@@ -580,7 +580,7 @@ class CommandEvaluator:
 
     ``track_min_pair=True``: after each call, :attr:`min_pair_distance` is the smallest
     ‖p_i − p_j‖ over ``pairs`` (inf without pairs), computed exactly as the metrics do
-    (:mod:`vtube_fleet.metrics`), so the simulator need not compute it again.
+    (:mod:`vtube_fleet.core.metrics`), so the simulator need not compute it again.
     """
 
     min_pair_distance: float = math.inf

@@ -6,7 +6,7 @@ The construction is the one pinned down in ``docs/paper.md`` ("The partition"):
   wrapped in an isosceles circumscribed triangle I_k whose incircle is O'_k, apex
   p_oth,k = p_o,k − h_k n_c upstream, base on the line ξ = ξ(p_o,k) + R_k;
   h_k ≥ h_min,k (pothk), default 1.3 h_min,k, configurable per obstacle
-  (:attr:`~vtube_fleet.tube.Obstacle.apex_distance`);
+  (:attr:`~vtube_fleet.core.tube.Obstacle.apex_distance`);
 * obstacles are taken farthest from the finishing line first (ties: more-left first); each one
   splits the sub-tube that contains its centre into ``before``, ``left``, ``right`` and ``after``
   sub trapezoid tubes (FourSub1)/(FourSub2);
@@ -31,11 +31,11 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from vtube_fleet.core.tube import GeometryError, Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
-from vtube_fleet.tube import GeometryError, Obstacle, Trapezoid
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.controller import ControllerParams, TubeArrays
+    from vtube_fleet.core.controller import ControllerParams, TubeArrays
 
 __all__ = [
     "ApexZone",
@@ -392,7 +392,7 @@ class Partition:
     @cached_property
     def arrays(self) -> TubeArrays:
         """Stacked geometry of the sub-tubes for the controller (``TubeArrays``)."""
-        from vtube_fleet.controller import TubeArrays
+        from vtube_fleet.core.controller import TubeArrays
 
         return TubeArrays.from_tubes(self.sub_tubes)
 
@@ -789,7 +789,7 @@ def partition(
     entirely outside the tube. With ``strict=False`` the last case and Assumption 3' violations
     of the before/after tubes are recorded in :attr:`Partition.warnings` instead. Constraint3
     violations of sub-tubes are always recorded as warnings (the caller decides; see
-    :mod:`vtube_fleet.validation`), and so is a sub-tube too narrow to contain one safety disc
+    :mod:`vtube_fleet.core.validation`), and so is a sub-tube too narrow to contain one safety disc
     (Assumption 3' in words; not part of the construction's validity test, which follows the
     letter of the construction, docs/paper.md). With no obstacles the result is the main tube alone.
     """

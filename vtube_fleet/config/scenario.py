@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.controller import ControllerParams
+from vtube_fleet.core.controller import ControllerParams
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import ConfigError, UserError
-from vtube_fleet.tube import Obstacle, Trapezoid
 
 __all__ = [
     "MODELS",
