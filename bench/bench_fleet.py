@@ -35,11 +35,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vtube_fleet.bus.base import Phase  # noqa: E402
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
 from vtube_fleet.fleetcli import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.link import open_links  # noqa: E402
+from vtube_fleet.state import Phase  # noqa: E402
 
 
 def mission_text(count: int, rate_hz: float, seconds: float) -> str:

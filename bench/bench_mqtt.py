@@ -5,7 +5,7 @@
 
 Each agent is one :class:`~vtube_fleet.bus.mqtt.MqttBus` (its own MQTT connection, last will,
 subscriptions to every other vehicle's state, exactly what ``vtube-fleet agent`` uses),
-publishing its :class:`~vtube_fleet.bus.base.NeighbourState` at ``--rate`` Hz from its own
+publishing its :class:`~vtube_fleet.state.NeighbourState` at ``--rate`` Hz from its own
 asyncio task; the agents are spread over ``--procs`` worker processes (a vehicle's controller
 and link are not simulated: only the bus). Measured over ``--seconds`` after ``--warmup``:
 
@@ -36,8 +36,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vtube_fleet.bus.base import NeighbourState, Phase  # noqa: E402
 from vtube_fleet.bus.mqtt import MqttBus  # noqa: E402
+from vtube_fleet.state import NeighbourState, Phase  # noqa: E402
 
 MISSION_ID = "bench"
 

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import pytest
 
 from vtube_fleet.agentcli import BACKOFF_JITTER, BusAwarePilot, rejoin_grace_s
-from vtube_fleet.bus.base import NeighbourState, Phase
+from vtube_fleet.state import NeighbourState, Phase
 
 
 class FakeMqtt:

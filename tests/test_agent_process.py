@@ -28,12 +28,12 @@ import pytest
 from fleet_ports import free_ports
 from missions import STRAIGHT
 
-from vtube_fleet.bus.base import Phase
 from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleetcli import mock_fleet
 from vtube_fleet.missioncli import default_max_age_s, default_mission_id, run_cell_m
+from vtube_fleet.state import Phase
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "mock_fleet.toml"

@@ -9,7 +9,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import (
     PHASES,
     STATE_SIZE,
@@ -28,6 +27,7 @@ from vtube_fleet.bus.codec import (
 )
 from vtube_fleet.bus.topics import MissionTopics, TopicError
 from vtube_fleet.errors import UserError
+from vtube_fleet.state import NeighbourState, Phase
 
 f32 = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False, width=32)
 

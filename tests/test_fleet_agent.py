@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from missions import compact_12
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.core.controller import velocity_command
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.fleet.agent import (
@@ -21,6 +20,7 @@ from vtube_fleet.fleet.agent import (
     fleet_setpoints,
 )
 from vtube_fleet.fleet.budget import SafetyBudget
+from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]
 NOW = 1_000_000.0

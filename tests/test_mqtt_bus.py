@@ -16,10 +16,10 @@ import time
 import aiomqtt
 import pytest
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.broker import LocalBroker, find_mosquitto
 from vtube_fleet.bus.codec import MissionConfigMsg, decode_state, encode_config
 from vtube_fleet.bus.mqtt import BrokerUrlError, MqttBus, parse_broker_url
+from vtube_fleet.state import NeighbourState, Phase
 
 KINDS = ["mosquitto", "amqtt"] if find_mosquitto() else ["amqtt"]
 MISSION = "unit"
@@ -89,7 +89,7 @@ async def test_older_states_never_replace_newer(broker):
 AGENT_SCRIPT = textwrap.dedent(
     """
     import asyncio, sys, time
-    from vtube_fleet.bus.base import NeighbourState, Phase
+    from vtube_fleet.state import NeighbourState, Phase
     from vtube_fleet.bus.mqtt import MqttBus
 
     async def main(url, mission, vid):

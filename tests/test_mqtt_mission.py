@@ -13,11 +13,11 @@ import pytest
 from missions import COMPACT_12_PATH
 
 from vtube_fleet.agentcli import AgentProcess, AgentRefused
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.missioncli import config_hash, default_mission_id
+from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = COMPACT_12_PATH  # scripted states: no budget involved (tests/missions.py)

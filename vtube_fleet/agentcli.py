@@ -50,13 +50,12 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.core.metrics import verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
-from vtube_fleet.fleet.agent import AIRBORNE_PHASES, Agent, FlightPlan
+from vtube_fleet.fleet.agent import Agent, FlightPlan
 from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget, budget_problems
 from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
@@ -72,6 +71,7 @@ from vtube_fleet.missioncli import (
     needed_cell_m,
 )
 from vtube_fleet.recording import add_recording_args
+from vtube_fleet.state import AIRBORNE_PHASES, NeighbourState, Phase
 
 __all__ = ["AgentProcess", "AgentRefused", "BusAwarePilot", "register"]
 

@@ -42,13 +42,17 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, encode_config
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.topics import validate_mission_id
 from vtube_fleet.core.metrics import verdict
 from vtube_fleet.errors import ConfigError, UserError
-from vtube_fleet.fleet.agent import STOPPED_PHASES
+from vtube_fleet.state import (
+    COUNTED_AIRBORNE_PHASES,
+    STOPPED_PHASES,
+    NeighbourState,
+    Phase,
+)
 
 __all__ = [
     "DEFAULT_BROKER",
@@ -69,16 +73,6 @@ EXIT_OK = 0
 EXIT_INCOMPLETE = 3
 EXIT_INTERRUPTED = 130
 EXIT_UNSAFE = 4
-
-#: Phases after which a vehicle is done with the tube (for the end of the run).
-TUBE_DONE = frozenset(
-    {Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.LANDED, Phase.LOST, Phase.FAILED}
-)
-#: Phases of a vehicle the summary counts as flying (pair distances among airborne vehicles).
-AIRBORNE = frozenset(
-    {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.LOST}
-)
-
 
 class MissionRunError(UserError):
     """The run could not start: broker unreachable, an agent refused or did not join."""
@@ -273,7 +267,7 @@ class RunMonitor:
             if not 0 <= vid < m:
                 continue
             p = (st.x_m, st.y_m)
-            if st.phase in AIRBORNE:
+            if st.phase in COUNTED_AIRBORNE_PHASES:
                 air[vid] = p
             # judged in the tube: flying it, or stopped inside it (lost, holding, landing)
             if st.phase == Phase.IN_TUBE or (

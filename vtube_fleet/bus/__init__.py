@@ -1,5 +1,5 @@
 """Neighbour buses: in-process (supervisor) and MQTT (one agent process per vehicle)."""
 
-from vtube_fleet.bus.base import InProcessBus, NeighbourBus, NeighbourState, Phase
+from vtube_fleet.bus.base import InProcessBus, NeighbourBus
 
-__all__ = ["InProcessBus", "NeighbourBus", "NeighbourState", "Phase"]
+__all__ = ["InProcessBus", "NeighbourBus"]

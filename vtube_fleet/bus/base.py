@@ -13,50 +13,11 @@ were fresh (see ``vtube_fleet.fleet.agent``).
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
-from enum import Enum
 from typing import Protocol
 
-__all__ = ["Phase", "NeighbourState", "NeighbourBus", "InProcessBus"]
+from vtube_fleet.state import NeighbourState
 
-
-class Phase(str, Enum):  # noqa: UP042 (str() and format() kept as in 3.10 semantics callers use)
-    """Mission phase of one vehicle, as its agent sees it."""
-
-    CONNECTING = "connecting"
-    READY = "ready"  # connected, healthy, position known
-    ARMING = "arming"
-    TAKEOFF = "takeoff"
-    IN_TUBE = "in_tube"  # flying the tube in offboard under the controller
-    EXITED = "exited"  # crossed the finishing line (Assumption 2)
-    HOLDING = "holding"
-    LANDING = "landing"
-    LANDED = "landed"
-    LOST = "lost"  # stopped answering / left offboard: a static obstacle for the others
-    FAILED = "failed"
-
-
-@dataclass(frozen=True, slots=True)
-class NeighbourState:
-    """One vehicle's state as shared with the others, in the tube frame.
-
-    ``x_m``/``y_m`` are tube-frame coordinates (x along the tube heading, y to its left),
-    ``vx_m_s``/``vy_m_s`` the measured horizontal velocity in that frame, ``stamp_s`` the
-    wall-clock time the position was measured, ``seq`` a per-vehicle counter.
-    """
-
-    vehicle_id: int
-    x_m: float
-    y_m: float
-    vx_m_s: float
-    vy_m_s: float
-    phase: Phase
-    stamp_s: float
-    seq: int
-
-    def age_s(self, now_s: float | None = None) -> float:
-        return (time.time() if now_s is None else now_s) - self.stamp_s
+__all__ = ["NeighbourBus", "InProcessBus"]
 
 
 class NeighbourBus(Protocol):

@@ -29,7 +29,7 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
-from vtube_fleet.bus.base import NeighbourState, Phase
+from vtube_fleet.state import NeighbourState, Phase
 
 __all__ = [
     "STATE_VERSION",

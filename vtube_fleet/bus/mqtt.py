@@ -45,7 +45,6 @@ from dataclasses import dataclass
 
 import aiomqtt
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.bus.codec import (
     CodecError,
     Command,
@@ -60,6 +59,7 @@ from vtube_fleet.bus.codec import (
 )
 from vtube_fleet.bus.topics import MissionTopics
 from vtube_fleet.errors import UserError
+from vtube_fleet.state import NeighbourState, Phase
 
 __all__ = ["BrokerUrlError", "BusStats", "MqttBus", "parse_broker_url"]
 

@@ -2,7 +2,7 @@
 
 An :class:`Agent` is what one vehicle knows and decides:
 
-* a **neighbour table** of the other vehicles' latest :class:`~vtube_fleet.bus.NeighbourState`
+* a **neighbour table** of the other vehicles' latest :class:`~vtube_fleet.state.NeighbourState`
   (time-stamped, newest ``seq`` wins). :func:`classify` sorts it at a given time:
   *live* entries (flying, younger than ``max_age_s``) are neighbours at their reported
   positions; a stale entry is never used as a live position: a flying vehicle heard from between
@@ -13,7 +13,7 @@ An :class:`Agent` is what one vehicle knows and decides:
   is treated like a lost one: inside the tube it becomes an obstacle for everyone, at once, by
   the same rule in every agent. Entries of vehicles on the ground (connecting, ready, arming,
   landed, failed) are ignored.
-* its **phase** (:class:`~vtube_fleet.bus.Phase`), advanced by the pilot; the agent itself moves
+* its **phase** (:class:`~vtube_fleet.state.Phase`), advanced by the pilot; the agent itself moves
   IN_TUBE → EXITED when (TraCondition) holds on the main tube: −n_cᵀ(p − p_r1) ≤ ε_0
   (Assumption 2).
 * its **horizontal setpoint** in the tube frame: the core controller
@@ -37,7 +37,6 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.bus.base import NeighbourState, Phase
 from vtube_fleet.core.controller import ControllerParams, velocity_command
 from vtube_fleet.core.partition import (
     ApexZone,
@@ -48,11 +47,10 @@ from vtube_fleet.core.partition import (
     partition,
 )
 from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, NeighbourState, Phase
 
 __all__ = [
-    "AIRBORNE_PHASES",
     "LOST_APEX_FACTOR",
-    "STOPPED_PHASES",
     "Agent",
     "FlightPlan",
     "NeighbourView",
@@ -62,15 +60,6 @@ __all__ = [
     "fleet_setpoints",
     "lost_obstacles",
 ]
-
-#: Phases in which a vehicle is (or may be) in the air and so matters to the others.
-AIRBORNE_PHASES: frozenset[Phase] = frozenset(
-    {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING}
-)
-#: Airborne but no longer flying the tube's controller: it stops (PX4 Hold) or comes down.
-#: The others cannot rely on the pair barrier alone to pass such a vehicle (their speed never
-#: drops below v_min, paper note 9): inside the tube it is an obstacle like a LOST one.
-STOPPED_PHASES: frozenset[Phase] = frozenset({Phase.HOLDING, Phase.LANDING})
 
 _EMPTY_POS = np.zeros((0, 2))
 _EMPTY_IDS = np.zeros(0, dtype=np.int64)

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.bus.base import NeighbourBus, NeighbourState, Phase
+from vtube_fleet.bus.base import NeighbourBus
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
@@ -50,10 +50,10 @@ from vtube_fleet.fleet.budget import LinkMeasurement
 from vtube_fleet.fleet.compensation import EstimateCompensator
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink
+from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, Phase
 
 __all__ = [
     "EventSink",
-    "OFFBOARD_PHASES",
     "PilotError",
     "VehiclePilot",
     "measure_links",
@@ -146,15 +146,6 @@ async def wait_accuracy(pilots: Sequence[VehiclePilot], max_m: float, timeout_s:
                 for p, a in shown[:4]) + (" …" if len(shown) > 4 else ""))
         await asyncio.sleep(0.2)
 
-
-#: Phases in which we stream setpoints and expect PX4 to be in OFFBOARD.
-OFFBOARD_PHASES: frozenset[Phase] = frozenset(
-    {Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED}
-)
-#: Phases in which the vehicle is (or may be) in the air under our responsibility.
-FLYING_PHASES: frozenset[Phase] = frozenset(
-    {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING}
-)
 
 #: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
 #: estimate-disturbance compensation, which cancels most of the take-off drift).
@@ -372,7 +363,7 @@ class VehiclePilot:
             self.set_phase(Phase.LANDED, "on the ground, disarmed")
             self.landed.set()
             return None
-        if phase not in FLYING_PHASES and phase != Phase.ARMING:
+        if phase not in AIRBORNE_PHASES and phase != Phase.ARMING:
             return None
         if phase in OFFBOARD_PHASES and s.flight_mode == "OFFBOARD":
             self._offboard_seen = True
@@ -669,7 +660,7 @@ class VehiclePilot:
 
     async def land(self) -> None:
         """Land now; waits for the LAND command's acknowledgement (not for touch-down)."""
-        if self.phase in FLYING_PHASES and self.phase != Phase.LANDING:
+        if self.phase in AIRBORNE_PHASES and self.phase != Phase.LANDING:
             t = self._transition
             if t is not None:
                 await asyncio.shield(t)

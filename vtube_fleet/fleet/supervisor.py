@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.bus.base import InProcessBus, Phase
+from vtube_fleet.bus.base import InProcessBus
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.metrics import (
     SafetyMonitor,
@@ -68,7 +68,6 @@ from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.core.validation import validate_scenario
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import (
-    STOPPED_PHASES,
     Agent,
     FlightPlan,
     NeighbourView,
@@ -84,7 +83,6 @@ from vtube_fleet.fleet.budget import (
     mission_budget,
 )
 from vtube_fleet.fleet.pilot import (
-    FLYING_PHASES,
     PilotError,
     VehiclePilot,
     measure_links,
@@ -93,6 +91,7 @@ from vtube_fleet.fleet.pilot import (
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
+from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, Phase
 
 __all__ = [
     "FleetError",
@@ -388,7 +387,7 @@ class Supervisor:
         for p in pilots:
             p.check_faults(now, self.listening_since)
             p.publish(now, wall)
-            if p.sample_s is not None and p.phase in FLYING_PHASES:
+            if p.sample_s is not None and p.phase in AIRBORNE_PHASES:
                 age = p.sample_age_s(now)
                 if age <= cfg.neighbour_max_age_s:  # older: a stale vehicle, handled as a fault
                     self._sample_ages_window.append(age)
