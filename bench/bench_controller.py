@@ -34,11 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vtube_fleet.core.controller import (  # noqa: E402
     CommandEvaluator,
-    ControllerParams,
     TubeArrays,
     velocity_command,
 )
 from vtube_fleet.core.neighbours import VerletPairs, pairs_within  # noqa: E402
+from vtube_fleet.core.params import ControllerParams  # noqa: E402
 from vtube_fleet.core.partition import partition  # noqa: E402
 from vtube_fleet.core.tube import Obstacle, Trapezoid  # noqa: E402
 
@@ -73,7 +73,7 @@ def paper_scenario():
 
 def bench_paper(quick: bool) -> None:
     tube, part, p0 = paper_scenario()
-    ta = part.arrays
+    ta = TubeArrays.from_tubes(part.sub_tubes)
     print(f"paper-like scenario: M = {len(p0)}, K = {part.K} sub-tubes, "
           f"{len(part.triangles)} obstacles")
 

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vtube_fleet.core.controller import ControllerParams, velocity_command
+from vtube_fleet.core.controller import TubeArrays, velocity_command
 from vtube_fleet.core.metrics import SafetyMonitor
 from vtube_fleet.core.neighbours import VerletPairs
+from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import partition
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.recording import NullRecorder, RerunRecorder, open_recorder
@@ -74,7 +75,7 @@ def run(m: int, ticks: int, recorder_factory, dt: float = 0.05,
         t0 = time.perf_counter()
         sub = part.locate(p)
         pairs = verlet.candidates(p)
-        vc = velocity_command(p, sub, part.arrays, params, pairs=pairs)
+        vc = velocity_command(p, sub, TubeArrays.from_tubes(part.sub_tubes), params, pairs=pairs)
         p = p + dt * vc
         sm = mon.evaluate(p, vc, pairs=verlet.candidates(p))
         t1 = time.perf_counter()

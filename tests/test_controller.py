@@ -11,8 +11,6 @@ from hypothesis import strategies as st
 from vtube_fleet.core.barrier import X_MIN, dV_n_dx, sat, sigma
 from vtube_fleet.core.controller import (
     CommandEvaluator,
-    ControllerParams,
-    ParameterError,
     TubeArrays,
     u1pp,
     u2,
@@ -21,6 +19,7 @@ from vtube_fleet.core.controller import (
     velocity_command,
 )
 from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.params import ControllerParams, ParameterError
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 

@@ -116,7 +116,7 @@ def test_setpoint_is_the_controller_output(plan) -> None:
     assert sp.neighbours == 2
     p = np.array([own, [5.2, 0.6], [4.5, -1.2]])
     k = plan.locate(p)  # the flown switching rule: §5 with the apex look-ahead
-    ref = velocity_command(p, k, plan.partition.arrays, plan.params, rows=[0])[0]
+    ref = velocity_command(p, k, plan.arrays, plan.flown, rows=[0])[0]
     np.testing.assert_allclose([sp.vx_m_s, sp.vy_m_s], ref, rtol=0, atol=1e-12)
     assert sp.sub_tube == int(k[0])
     # the barrier acts: the command differs from the one without neighbours
@@ -146,7 +146,7 @@ def test_batched_equals_per_agent(plan) -> None:
 
 def test_speed_bounds(plan) -> None:
     rng = np.random.default_rng(3)
-    params = plan.params
+    params = plan.flown
     p = rng.uniform([0.0, -5.0], [19.0, 5.0], size=(300, 2))
     cmd = fleet_setpoints(plan, p, np.arange(len(p)))
     speed = np.hypot(*cmd.T)
@@ -158,7 +158,7 @@ def test_speed_bounds(plan) -> None:
 def test_exit_condition(plan) -> None:
     a = Agent(0, plan)
     L = plan.tube.length
-    eps = plan.params.eps_0
+    eps = plan.flown.eps_0
     x_finish = float(plan.tube.p_r1[0])
     assert a.has_exited([x_finish - eps / 2, 0.0])
     assert not a.has_exited([x_finish - 2 * eps, 0.0])
@@ -197,7 +197,7 @@ def test_no_valid_partition_raises(plan) -> None:
 
 def test_exit_velocity_guard(plan) -> None:
     own = np.array([20.0, 0.0])
-    v = plan.params.v
+    v = plan.flown.v
     free = exit_velocity(plan, own, classify([], NOW, max_age_s=0.5, lost_after_s=1.0),
                          stop_distance_m=3.0)
     np.testing.assert_allclose(free, v * plan.tube.n_c)
@@ -217,7 +217,7 @@ def test_apex_look_ahead_switches_before_the_barrier(plan) -> None:
     r_s' of the triangle side); the flown rule switches within (r_s' + r_a') / sin α ahead of
     it, where the distance to the side's extended line is still r_s' + r_a'."""
     (z,) = plan.zones
-    part, prm = plan.partition, plan.params
+    part, prm = plan.partition, plan.flown
     tri = part.triangles[z.triangle]
     n_c = plan.tube.n_c
     assert z.left is not None and z.right is not None

@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 
-from vtube_fleet.core.controller import ControllerParams
 from vtube_fleet.core.metrics import (
     CONDITIONS,
     METRIC_KEYS,
@@ -17,6 +16,7 @@ from vtube_fleet.core.metrics import (
     StepMetrics,
     SummaryAccumulator,
 )
+from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 TUBE = Trapezoid([0.0, 9.0], [30.0, 4.5], [0.0, -9.0], [30.0, -4.5])

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtube_fleet.core.controller import ControllerParams, TubeArrays
+from vtube_fleet.core.controller import TubeArrays
+from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import (
     DEFAULT_APEX_FACTOR,
     Partition,
@@ -90,7 +91,8 @@ def test_no_obstacles_gives_the_main_tube():
     assert part.triangles == () and part.warnings == ()
     pts = np.array([[-3.0, 0.0], [5.0, 1.0], [25.0, 0.0], [5.0, 30.0]])
     assert part.locate(pts).tolist() == [0, 0, 0, 0]
-    assert isinstance(part.arrays, TubeArrays) and len(part.arrays) == 1
+    arrays = TubeArrays.from_tubes(part.sub_tubes)
+    assert isinstance(arrays, TubeArrays) and len(arrays) == 1
 
 
 def test_single_obstacle_four_tubes_numbered_as_in_the_paper():
@@ -373,7 +375,7 @@ def test_locate_shapes():
 
 def test_arrays_follow_the_sub_tube_order():
     part = partition(PAPER_TUBE, PAPER_OBSTACLES, PARAMS)
-    arr = part.arrays
+    arr = TubeArrays.from_tubes(part.sub_tubes)
     assert isinstance(arr, TubeArrays) and len(arr) == part.K
     for k, t in enumerate(part.sub_tubes):
         assert np.allclose(arr.n_h[k], t.n_h) and np.allclose(arr.p_r1[k], t.p_r1)

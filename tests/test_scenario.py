@@ -162,7 +162,7 @@ ERRORS = [
     ("controller.v", _DELETE, "paper.toml: [controller].v: missing required key"),
     ("controller.v", False, "[controller].v: expected a number, got false"),
     ("controller.k_t", "1.5", '[controller].k_t: expected a number, got "1.5"'),
-    ("controller.eps_m", 2.0, "paper.toml: [controller]: eps_m must be in [1e-12, 1], got 2.0"),
+    ("controller.eps_m", 2.0, "paper.toml: [controller]: eps_m = 2.0 must be in [1e-12, 1]"),
     ("controller.eps_0", -1.0, "[controller].eps_0: must be > 0"),
     ("controller.gain", 1.0, "[controller].gain: unknown key"),
     ("sim.dt", 0.0, "paper.toml: [sim].dt: must be > 0, got 0.0"),

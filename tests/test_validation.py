@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vtube_fleet.config.scenario import grid_positions
-from vtube_fleet.core.controller import ControllerParams
+from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Partition
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.core.validation import (
@@ -176,7 +176,7 @@ def test_parameter_sanity():
     assert set(conditions(v)) == {"Parameters"}
     m = messages(v)
     for text in ("r_a = 0.2 must be > r_s = 0.25", "k_t = 0.5 must be ≥ 1",
-                 "eps_m = 0.0 must be > 0", "v_min = -1.0 must be ≥ 0"):
+                 "eps_m = 0.0 must be in [1e-12, 1]", "v_min = -1.0 must be ≥ 0"):
         assert f"Parameters invalid: {text}" in m
 
 

@@ -231,7 +231,7 @@ def simulate(
             from vtube_fleet.core.partition import partition as build_partition
 
             part = build_partition(scenario.tube, scenario.obstacles, params)
-        arrays = part.arrays
+        arrays = TubeArrays.from_tubes(part.sub_tubes)
         tracker = part.tracker()
 
     if recorder is not None:

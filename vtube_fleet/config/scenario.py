@@ -27,7 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.core.controller import ControllerParams
+from vtube_fleet.core.params import (
+    CONTROLLER_DEFAULTS,
+    CONTROLLER_REQUIRED,
+    ControllerParams,
+    parameter_problems,
+)
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import ConfigError, UserError
 
@@ -43,21 +48,6 @@ __all__ = [
 
 #: Robot models understood by the simulator: (Single) and the unicycle driven through (NID).
 MODELS: tuple[str, ...] = ("single_integrator", "unicycle")
-
-#: Defaults of the optional [controller] keys: the paper's values (Section III-D, V-A),
-#: ε_0 = 0.01 m (paper note 5) and the Appendix C potential-term gains k4, ε_o.
-_CONTROLLER_DEFAULTS: dict[str, float] = {
-    "k2": 1.0,
-    "k3": 1.0,
-    "k_t": 1.5,
-    "eps_m": 1e-6,
-    "eps_t": 1e-6,
-    "eps_s": 1e-6,
-    "eps_0": 0.01,
-    "k4": 1.0,
-    "eps_o": 1e-6,
-}
-_CONTROLLER_REQUIRED: tuple[str, ...] = ("v", "v_max_prime")
 
 #: Defaults of the optional [sim] table.
 DEFAULT_DT_S = 0.001
@@ -452,16 +442,18 @@ class _Parser:
 
     def parse_controller(self, c: Mapping[str, Any], robots: RobotsConfig) -> ControllerParams:
         sec = "[controller]"
-        self.check_keys(c, (*_CONTROLLER_REQUIRED, *_CONTROLLER_DEFAULTS), sec)
-        values = {k: self.number(c, k, sec, positive=True) for k in _CONTROLLER_REQUIRED}
-        for k, d in _CONTROLLER_DEFAULTS.items():
+        self.check_keys(c, (*CONTROLLER_REQUIRED, *CONTROLLER_DEFAULTS), sec)
+        values = {k: self.number(c, k, sec, positive=True) for k in CONTROLLER_REQUIRED}
+        for k, d in CONTROLLER_DEFAULTS.items():
             values[k] = self.number(c, k, sec, default=d, positive=True)
-        try:
-            return ControllerParams(
-                r_s=robots.r_s, r_a=robots.r_a, v_min=robots.v_min, v_max=robots.v_max, **values
-            )
-        except (ValueError, UserError) as exc:
-            raise self.error(sec, str(exc)) from None
+        problems = parameter_problems(
+            {"r_s": robots.r_s, "r_a": robots.r_a, "v_min": robots.v_min, "v_max": robots.v_max,
+             **values})
+        if problems:  # the one domain check (core/params.py), reported here with the file
+            raise self.error(sec, "; ".join(problems))
+        return ControllerParams(
+            r_s=robots.r_s, r_a=robots.r_a, v_min=robots.v_min, v_max=robots.v_max, **values
+        )
 
     def parse_sim(self, s: Mapping[str, Any]) -> SimConfig:
         sec = "[sim]"

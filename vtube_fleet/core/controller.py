@@ -41,13 +41,11 @@ import numpy as np
 
 from vtube_fleet.core.barrier import X_MIN, BarrierBank, dV_n_dx
 from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.tube import Obstacle, Trapezoid
-from vtube_fleet.errors import UserError
 
 __all__ = [
     "CommandEvaluator",
-    "ControllerParams",
-    "ParameterError",
     "TubeArrays",
     "u1pp",
     "u2",
@@ -59,65 +57,6 @@ __all__ = [
 Kind = Literal["new", "old", "apf"]
 
 _min = np.minimum.reduce  # ndarray.min without its Python wrapper
-
-
-class ParameterError(UserError):
-    """A controller parameter is out of its domain (names the parameter and the value)."""
-
-
-@dataclass(frozen=True)
-class ControllerParams:
-    """Parameters of (ModifiedVectorField) / (Oldcontroller) / Appendix C, paper's symbols.
-
-    r_s, r_a: safety and avoidance radii (m); v_min, v_max: speed bounds; v: forward speed of
-    u1''; v_max_prime: v'_max, the norm bound of the repulsive part; k2, k3, k4: barrier gains;
-    k_t ≥ 1: width factor of the L/R areas; eps_m, eps_t, eps_o, eps_s: barrier ε's;
-    eps_0: finishing tolerance (TraCondition). Constraint1 is NOT enforced here (see
-    ``validation``); only the domain of each value is.
-    """
-
-    r_s: float
-    r_a: float
-    v_min: float
-    v_max: float
-    v: float
-    v_max_prime: float
-    k2: float = 1.0
-    k3: float = 1.0
-    k_t: float = 1.5
-    eps_m: float = 1e-6
-    eps_t: float = 1e-6
-    eps_s: float = 1e-6
-    eps_0: float = 0.01
-    k4: float = 1.0
-    eps_o: float = 1e-6
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            val = getattr(self, f.name)
-            if isinstance(val, bool) or not isinstance(val, (int, float)):
-                raise ParameterError(f"controller parameter {f.name} must be a number, got {val!r}")
-            if not math.isfinite(val):
-                raise ParameterError(f"controller parameter {f.name} must be finite, got {val}")
-            object.__setattr__(self, f.name, float(val))
-        positive = ("r_s", "r_a", "v_max", "v", "v_max_prime", "k2", "k3", "k4", "eps_0")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ParameterError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("eps_m", "eps_t", "eps_o"):
-            val = getattr(self, name)
-            if not 1e-12 <= val <= 1.0:
-                raise ParameterError(f"{name} must be in [1e-12, 1], got {val}")
-        if not 1e-12 <= self.eps_s <= 0.1:
-            raise ParameterError(f"eps_s must be in [1e-12, 0.1], got {self.eps_s}")
-        if not self.v_min >= 0:
-            raise ParameterError(f"v_min must be >= 0, got {self.v_min}")
-        if not self.v_min <= self.v_max:
-            raise ParameterError(f"v_min = {self.v_min} must be <= v_max = {self.v_max}")
-        if not self.r_a > self.r_s:
-            raise ParameterError(f"r_a = {self.r_a} must be > r_s = {self.r_s}")
-        if not self.k_t >= 1:
-            raise ParameterError(f"k_t must be >= 1, got {self.k_t}")
 
 
 def _c(v: np.ndarray) -> np.ndarray:

@@ -26,7 +26,6 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -35,7 +34,7 @@ from vtube_fleet.core.tube import GeometryError, Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.core.controller import ControllerParams, TubeArrays
+    from vtube_fleet.core.params import ControllerParams
 
 __all__ = [
     "ApexZone",
@@ -389,13 +388,6 @@ class Partition:
         """Number of sub-tubes."""
         return len(self.sub_tubes)
 
-    @cached_property
-    def arrays(self) -> TubeArrays:
-        """Stacked geometry of the sub-tubes for the controller (``TubeArrays``)."""
-        from vtube_fleet.core.controller import TubeArrays
-
-        return TubeArrays.from_tubes(self.sub_tubes)
-
     def locate(self, p: np.ndarray) -> np.ndarray:
         """Sub-tube index k(p) of points (..., 2) → (...) int, the switching rule
         (ObstacleController) as in partition §5.
@@ -658,22 +650,6 @@ def _obstacle_label(i: int, ob: Obstacle) -> str:
     return f"obstacle #{i + 1} at {_pt(ob.center)} r_o={_num(float(ob.radius))}"
 
 
-def _check_params(params: ControllerParams) -> None:
-    bad = []
-    if not params.r_s > 0:
-        bad.append(f"r_s = {params.r_s} must be > 0")
-    if not params.r_a > 0:
-        bad.append(f"r_a = {params.r_a} must be > 0")
-    if not params.v > 0:
-        bad.append(f"v = {params.v} must be > 0")
-    if not params.v_max_prime > 0:
-        bad.append(f"v'_max = {params.v_max_prime} must be > 0")
-    if not params.k_t >= 1:
-        bad.append(f"k_t = {params.k_t} must be ≥ 1")
-    if bad:
-        raise PartitionError(None, "invalid parameters for the partition: " + "; ".join(bad))
-
-
 def _dist_to_polygon(p: np.ndarray, poly: np.ndarray) -> float:
     best = math.inf
     for i in range(len(poly)):
@@ -793,7 +769,6 @@ def partition(
     (Assumption 3' in words; not part of the construction's validity test, which follows the
     letter of the construction, docs/paper.md). With no obstacles the result is the main tube alone.
     """
-    _check_params(params)
     return _Builder(tube, obstacles, params, strict).run()
 
 

@@ -26,11 +26,12 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vtube_fleet.core.params import parameter_problems
 from vtube_fleet.core.partition import (
     Partition,
     PartitionError,
@@ -47,7 +48,7 @@ from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.core.controller import ControllerParams
+    from vtube_fleet.core.params import ControllerParams
 
 __all__ = [
     "MAX_LISTED",
@@ -84,40 +85,14 @@ class ScenarioError(UserError):
 # ----------------------------------------------------------------------------------------------
 # Individual checks
 # ----------------------------------------------------------------------------------------------
-def _check_parameters(params: ControllerParams) -> list[Violation]:
-    out: list[str] = []
-
-    def get(name: str) -> float | None:
-        val = getattr(params, name, None)
-        if val is None:
-            return None
-        val = float(val)
-        if not math.isfinite(val):
-            out.append(f"{name} = {val} is not finite")
-            return None
-        return val
-
-    r_s, r_a = get("r_s"), get("r_a")
-    v_min, v_max = get("v_min"), get("v_max")
-    if r_s is not None and not r_s > 0:
-        out.append(f"r_s = {_num(r_s)} must be > 0")
-    if r_s is not None and r_a is not None and not r_a > r_s:
-        out.append(f"r_a = {_num(r_a)} must be > r_s = {_num(r_s)}")
-    if v_min is not None and not v_min >= 0:
-        out.append(f"v_min = {_num(v_min)} must be ≥ 0")
-    if v_min is not None and v_max is not None and not v_max > v_min:
-        out.append(f"v_max = {_num(v_max)} must be > v_min = {_num(v_min)}")
-    for name in ("v", "v_max_prime", "k2", "k3", "eps_m", "eps_t", "eps_s", "eps_0", "eps_o"):
-        val = get(name)
-        if val is not None and not val > 0:
-            out.append(f"{name} = {_num(val)} must be > 0")
-    k4 = get("k4")
-    if k4 is not None and not k4 >= 0:
-        out.append(f"k4 = {_num(k4)} must be ≥ 0")
-    k_t = get("k_t")
-    if k_t is not None and not k_t >= 1:
-        out.append(f"k_t = {_num(k_t)} must be ≥ 1")
-    return [Violation("Parameters", f"Parameters invalid: {m}") for m in out]
+def _check_parameters(params: Any) -> list[Violation]:
+    """The parameters' domain (:func:`~vtube_fleet.core.params.parameter_problems`, the one
+    check), reported as the "Parameters" condition."""
+    names = ("r_s", "r_a", "v_min", "v_max", "v", "v_max_prime", "k2", "k3", "k4", "k_t",
+             "eps_m", "eps_t", "eps_s", "eps_0", "eps_o")
+    values = {n: getattr(params, n) for n in names if getattr(params, n, None) is not None}
+    return [Violation("Parameters", f"Parameters invalid: {m}")
+            for m in parameter_problems(values)]
 
 
 def _check_constraint1(params: ControllerParams) -> list[Violation]:

@@ -33,11 +33,13 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-from vtube_fleet.core.controller import ControllerParams, velocity_command
+from vtube_fleet.core.controller import TubeArrays, velocity_command
+from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import (
     ApexZone,
     Partition,
@@ -71,8 +73,8 @@ _EMPTY_IDS = np.zeros(0, dtype=np.int64)
 @dataclass(frozen=True, eq=False)
 class FlightPlan:
     """What all agents share: the main tube, the configured obstacles, the obstacles left by
-    LOST vehicles, the controller parameters flown (inflated by the safety budget) and the
-    partition of the tube around all obstacles (Section IV-A).
+    LOST vehicles, the controller parameters ``flown`` (r_s', r_a': the physical radii inflated
+    by the safety budget) and the partition of the tube around all obstacles (Section IV-A).
 
     :meth:`with_lost` recomputes the partition online; results are cached per set of lost
     obstacles and shared by every plan derived from the same root, so N agents reacting to the
@@ -81,7 +83,7 @@ class FlightPlan:
 
     tube: Trapezoid
     obstacles: tuple[Obstacle, ...]
-    params: ControllerParams
+    flown: ControllerParams
     partition: Partition
     lost: tuple[Obstacle, ...] = ()
     kind: str = "new"
@@ -112,6 +114,11 @@ class FlightPlan:
         plan._cache[()] = plan
         return plan
 
+    @cached_property
+    def arrays(self) -> TubeArrays:
+        """The partition's sub-tubes stacked for the controller (built once per plan)."""
+        return TubeArrays.from_tubes(self.partition.sub_tubes)
+
     def locate(self, p: np.ndarray) -> np.ndarray:
         """The sub-tube of points (..., 2): the switching rule (ObstacleController), with the
         apex look-ahead of the flown plan."""
@@ -133,14 +140,14 @@ class FlightPlan:
         for i in np.flatnonzero(k0 != k1):
             t = self.partition.sub_tubes[int(k1[i])]
             d = min(float(t.d_Th(p[i])), float(t.d_Tr(p[i])))
-            if d <= self.params.r_s:
+            if d <= self.flown.r_s:
                 out.append((int(i), int(k1[i]), d))
         return out
 
     @property
     def neighbour_radius_m(self) -> float:
         """r_s + r_a (flown): the range of the pair barrier u2 (Vmij)."""
-        return float(self.params.r_s + self.params.r_a)
+        return float(self.flown.r_s + self.flown.r_a)
 
     @property
     def all_obstacles(self) -> tuple[Obstacle, ...]:
@@ -153,9 +160,9 @@ class FlightPlan:
                      round(float(o.radius), 6)) for o in lost)
         hit = self._cache.get(key)
         if hit is None:
-            part = partition(self.tube, self.obstacles + lost, self.params)
-            zones = apex_zones(part, self.params) if self.lookahead else ()
-            hit = FlightPlan(self.tube, self.obstacles, self.params, part, lost, self.kind,
+            part = partition(self.tube, self.obstacles + lost, self.flown)
+            zones = apex_zones(part, self.flown) if self.lookahead else ()
+            hit = FlightPlan(self.tube, self.obstacles, self.flown, part, lost, self.kind,
                              self._cache, zones, self.lookahead)
             self._cache[key] = hit
         return hit
@@ -163,7 +170,7 @@ class FlightPlan:
     def exited(self, p: np.ndarray) -> np.ndarray:
         """(TraCondition) on the MAIN tube: −n_cᵀ(p − p_r1) ≤ ε_0 → (…,) bool."""
         p = np.asarray(p, dtype=float)
-        return -((p - self.tube.p_r1) @ self.tube.n_c) <= float(self.params.eps_0)
+        return -((p - self.tube.p_r1) @ self.tube.n_c) <= float(self.flown.eps_0)
 
     def commands(self, p: np.ndarray, rows: Sequence[int] | np.ndarray) -> np.ndarray:
         """The controller's commands (len(rows), 2) for robots ``rows`` of the swarm ``p``
@@ -177,7 +184,7 @@ class FlightPlan:
         if self.kind == "apf":
             extra["obstacles"] = self.all_obstacles
         return np.asarray(
-            velocity_command(p, k, self.partition.arrays, self.params, kind=self.kind,
+            velocity_command(p, k, self.arrays, self.flown, kind=self.kind,
                              rows=rows, **extra),
             dtype=float,
         ).reshape(-1, 2)
@@ -334,7 +341,7 @@ class Agent:
         self.plan = plan
         self.max_age_s = float(max_age_s)
         self.lost_after_s = float(lost_after_s)
-        self.lost_radius_m = float(plan.params.r_s if lost_radius_m is None else lost_radius_m)
+        self.lost_radius_m = float(plan.flown.r_s if lost_radius_m is None else lost_radius_m)
         self.phase = Phase.CONNECTING
         self.table: dict[int, NeighbourState] = {}
 
@@ -372,7 +379,7 @@ class Agent:
         Raises :class:`~vtube_fleet.core.partition.PartitionError` when no valid partition exists
         (the caller holds and aborts).
         """
-        lost = lost_obstacles(view, self.root_plan.tube, self.lost_radius_m, self.plan.params)
+        lost = lost_obstacles(view, self.root_plan.tube, self.lost_radius_m, self.plan.flown)
         new = self.root_plan.with_lost(lost)
         if new is self.plan:
             return False
@@ -419,7 +426,7 @@ def exit_velocity(
     """
     own = np.asarray(own_xy, dtype=float).reshape(2)
     n_c = plan.tube.n_c
-    v = float(plan.params.v)
+    v = float(plan.flown.v)
     pts = [view.static_pos, view.lost_pos]
     if slow_m_s is not None and view.live_pos.shape[0]:
         sp = np.hypot(view.live_vel[:, 0], view.live_vel[:, 1])
@@ -429,7 +436,7 @@ def exit_velocity(
         rel = pts_all - own
         ahead = rel @ n_c
         across = np.abs(rel @ np.array([-n_c[1], n_c[0]]))
-        blocked = (ahead > 0) & (ahead <= stop_distance_m) & (across < 2.0 * plan.params.r_s)
+        blocked = (ahead > 0) & (ahead <= stop_distance_m) & (across < 2.0 * plan.flown.r_s)
         if bool(blocked.any()):
             return None
     return v * n_c

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from vtube_fleet.config.mission import DEFAULT_ACCURACY_FACTOR
-from vtube_fleet.core.controller import ControllerParams
+from vtube_fleet.core.params import ControllerParams
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.config.mission import Mission

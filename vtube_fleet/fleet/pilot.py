@@ -539,7 +539,7 @@ class VehiclePilot:
             return
         v = None
         if view is not None and self.has_position():
-            stop = 2.0 * plan.params.r_s + plan.params.v * (
+            stop = 2.0 * plan.flown.r_s + plan.flown.v * (
                 cfg.tracking_dead_time_s + cfg.tracking_t63_s + cfg.period_s)
             v = exit_velocity(plan, self.xy, view, stop_distance_m=stop)
             if v is None:
@@ -548,7 +548,7 @@ class VehiclePilot:
                 self.begin_hold("a stopped vehicle ahead past the finishing line")
                 return
         if v is None:
-            v = plan.params.v * plan.tube.n_c
+            v = plan.flown.v * plan.tube.n_c
         self.cmd_xy = np.asarray(v, dtype=float)
         self.send_tube_velocity(float(v[0]), float(v[1]), self.vertical_down_m_s(),
                                 compensate=True)

@@ -249,28 +249,28 @@ class Supervisor:
         self.truth = truth
 
         sc = mission.scenario
-        self.params = sc.controller  # as configured (physical r_s, r_a)
+        self.physical = sc.controller  # as configured: the PHYSICAL r_s, r_a (flown: plan.flown)
         # the plan before the budget is measured: latency 0 (replaced in _measure_budget())
         self.measured: LinkMeasurement | None = None
         self.budget = self._make_budget(None)
-        flown = self.budget.inflate(self.params)
+        flown = self.budget.inflate(self.physical)
         try:
             self.plan = FlightPlan.build(sc.tube, sc.obstacles, flown)
         except PartitionError as exc:
             raise PreflightError(
-                f"{mission.source}: with the safety budget {self.budget.describe(self.params)}"
+                f"{mission.source}: with the safety budget {self.budget.describe(self.physical)}"
                 f" the tube cannot be partitioned: {exc}") from None
         self.bus = InProcessBus()
         self.pilots: list[VehiclePilot] = []
         for i, link in enumerate(self.links):
             agent = Agent(i, self.plan, max_age_s=self.cfg.neighbour_max_age_s,
                           lost_after_s=self.cfg.lost_after_s,
-                          lost_radius_m=self.params.r_s + self.cfg.lost_obstacle_margin_m)
+                          lost_radius_m=self.physical.r_s + self.cfg.lost_obstacle_margin_m)
             self.pilots.append(VehiclePilot(link, agent, self.bus, mission, frame=self.frame,
                                             on_event=self._on_pilot_event))
         self.names = [p.name for p in self.pilots]
         # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' + 1 m
-        self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, self.params, flown)
+        self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, self.physical, flown)
         self.acc = SummaryAccumulator(len(self.pilots))
         self.t0 = time.monotonic()
         self.tube_start_s: float | None = None
@@ -434,8 +434,8 @@ class Supervisor:
         if not any(p.phase in (Phase.IN_TUBE, Phase.TAKEOFF) for p in self.pilots):
             return  # nobody left to fly the tube
         root = self.pilots[0].agent.root_plan
-        lost = lost_obstacles(view, root.tube, self.params.r_s + self.cfg.lost_obstacle_margin_m,
-                              root.params)
+        lost = lost_obstacles(view, root.tube, self.physical.r_s + self.cfg.lost_obstacle_margin_m,
+                              root.flown)
         try:
             new = root.with_lost(lost)
         except PartitionError as exc:
@@ -532,7 +532,7 @@ class Supervisor:
                         metrics[f"truth_{key}"] = val
                 qt = truth[airborne & np.isfinite(truth[:, 0])]
                 if qt.shape[0] > 1:
-                    i_idx, j_idx = pairs_within(qt, 4.0 * self.plan.params.r_s + 1.0)
+                    i_idx, j_idx = pairs_within(qt, 4.0 * self.plan.flown.r_s + 1.0)
                     if len(i_idx):
                         self.min_pair_airborne_truth = min(
                             self.min_pair_airborne_truth,
@@ -553,7 +553,7 @@ class Supervisor:
                     self.settled_speed[1] = max(self.settled_speed[1], float(ms.max()))
             q = pos[airborne & np.isfinite(pos[:, 0])]
             if q.shape[0] > 1:
-                i_idx, j_idx = pairs_within(q, 4.0 * self.plan.params.r_s + 1.0)
+                i_idx, j_idx = pairs_within(q, 4.0 * self.plan.flown.r_s + 1.0)
                 if len(i_idx):
                     d = float(np.hypot(*(q[i_idx] - q[j_idx]).T).min())
                     self.min_pair_airborne = min(self.min_pair_airborne, d)
@@ -736,13 +736,13 @@ class Supervisor:
         if problems:
             raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
         self.budget = self._make_budget(measured)
-        flown = self.budget.inflate(self.params)
+        flown = self.budget.inflate(self.physical)
         sc = self.mission.scenario
         self.monitor = self.violations.monitor = SafetyMonitor.for_run(
-            sc.tube, sc.obstacles, self.params, flown)  # pairs searched within the flown radii
+            sc.tube, sc.obstacles, self.physical, flown)  # pairs searched within the flown radii
         acc = (f"worst reported position accuracy σ = {measured.accuracy_m:.2f} m"
                if math.isfinite(measured.accuracy_m) else "no accuracy reported")
-        self.event(f"safety budget: {self.budget.describe(self.params)} (measured: position "
+        self.event(f"safety budget: {self.budget.describe(self.physical)} (measured: position "
                    f"age p95 {measured.position_age_s * 1000:.1f} ms + setpoint delay "
                    f"{measured.setpoint_delay_s * 1000:.1f} ms; {acc})")
         if self.truth:
@@ -762,7 +762,7 @@ class Supervisor:
             raise PreflightError(
                 f"preflight failed, nothing armed ({len(problems)} problem"
                 f"{'s' if len(problems) != 1 else ''}; {acc} → safety budget "
-                f"{self.budget.describe(self.params)}): " + "; ".join(problems))
+                f"{self.budget.describe(self.physical)}): " + "; ".join(problems))
         self.plan = FlightPlan.build(self.mission.scenario.tube, self.mission.scenario.obstacles,
                                      flown, part=part)
         problems = self._lookahead_problems(positions, "on the ground")
@@ -785,7 +785,7 @@ class Supervisor:
             out.append(f"{self.names[i]} at ({positions[i, 0]:.2f}, {positions[i, 1]:.2f}) is "
                        f"in the look-ahead zone of an apex: it would fly "
                        f"{self.plan.partition.sub_tubes[k].name} with {d:.2f} m to its legs ≤ "
-                       f"r_s' = {self.plan.params.r_s:.2f} m ({where}; move the slot upstream "
+                       f"r_s' = {self.plan.flown.r_s:.2f} m ({where}; move the slot upstream "
                        f"or the obstacle downstream)")
         return out
 
@@ -807,7 +807,7 @@ class Supervisor:
             raise MissionAborted(f"take-off failed for {len(problems)} of {len(self.pilots)} "
                                  f"vehicles: " + "; ".join(problems))
         positions = np.array([p.xy for p in self.pilots])
-        _, problems = preflight_report(self.mission, self.plan.params, positions, self.names,
+        _, problems = preflight_report(self.mission, self.plan.flown, positions, self.names,
                                        where=f"at {self.cfg.altitude_m:g} m")
         problems += self._lookahead_problems(positions, f"at {self.cfg.altitude_m:g} m")
         if problems:
@@ -1032,7 +1032,7 @@ class Supervisor:
         dur = np.asarray(self.tick_durations)
         late = np.asarray(self.tick_lateness)
         on_time = float(np.mean(late <= cfg.period_s / 2)) if late.size else None
-        flown = self.plan.params
+        flown = self.plan.flown
         vehicles = []
         for p in self.pilots:
             vehicles.append({
@@ -1051,8 +1051,8 @@ class Supervisor:
             "reason": self.reason,
             "vehicles": len(self.pilots),
             "lost": [p.vehicle_id for p in self.pilots if p.phase == Phase.LOST],
-            "r_s": self.params.r_s,
-            "r_a": self.params.r_a,
+            "r_s": self.physical.r_s,
+            "r_a": self.physical.r_a,
             "r_s_flown": flown.r_s,
             "r_a_flown": flown.r_a,
             "pair_limit_m": self.monitor.limits.pair_m,
