@@ -36,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from vtube_fleet.config.mission import load_mission  # noqa: E402
+from vtube_fleet.fleet.launch import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
-from vtube_fleet.fleetcli import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.link import open_links  # noqa: E402
 from vtube_fleet.state import Phase  # noqa: E402
 

@@ -30,7 +30,8 @@ from vtube_fleet.core.neighbours import VerletPairs
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import partition
 from vtube_fleet.core.tube import Obstacle, Trapezoid
-from vtube_fleet.recording import NullRecorder, RerunRecorder, open_recorder
+from vtube_fleet.recording.api import NullRecorder
+from vtube_fleet.recording.writer import RerunRecorder, open_recorder
 
 
 def scene(m: int) -> tuple[Trapezoid, tuple[Obstacle, ...], ControllerParams, np.ndarray]:

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from vtube_fleet.config.mission import load_mission  # noqa: E402
-from vtube_fleet.fleetcli import fly  # noqa: E402
+from vtube_fleet.fleet.launch import fly  # noqa: E402
 
 KEYS = ("truth_min_pair_distance_m", "truth_min_pair_distance_airborne_m",
         "truth_min_left_leg_distance_m", "truth_min_right_leg_distance_m",

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from vtube_fleet.agentcli import BACKOFF_JITTER, BusAwarePilot, rejoin_grace_s
+from vtube_fleet.fleet.distributed.agent import BACKOFF_JITTER, BusAwarePilot, rejoin_grace_s
 from vtube_fleet.state import NeighbourState, Phase
 
 

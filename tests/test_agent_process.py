@@ -31,8 +31,12 @@ from missions import STRAIGHT
 from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import Mission, load_mission
-from vtube_fleet.fleetcli import mock_fleet
-from vtube_fleet.missioncli import default_max_age_s, default_mission_id, run_cell_m
+from vtube_fleet.fleet.distributed.coordinator import (
+    default_max_age_s,
+    default_mission_id,
+    run_cell_m,
+)
+from vtube_fleet.fleet.launch import mock_fleet
 from vtube_fleet.state import Phase
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -295,7 +299,7 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
     assert all(v["phase"] == "landed" for v in s["vehicle_states"])
     worst = check_safety(run)
     # every agent wrote its own summary; its recording reads back to the same figures
-    from vtube_fleet.reviewcli import review
+    from vtube_fleet.recording.review import review
 
     lim = run.mission.scenario.robots
     for i in range(n):
@@ -439,7 +443,7 @@ async def test_interrupted_agent_lands_and_leaves_its_summary_and_recording(tmp_
     assert code == 3, err  # the fleet is incomplete: vehicle 1 never exited
     a = agent_summary(run, 1)
     assert a["outcome"] == "interrupted" and a["phase"] == "landed" and a["exit_time_s"] is None
-    from vtube_fleet.reviewcli import review
+    from vtube_fleet.recording.review import review
 
     res = review(tmp_path / "agent-1" / "recording.rrd", plots=False)
     assert res.differences == [] and res.data.summary["outcome"] == "interrupted"

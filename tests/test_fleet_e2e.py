@@ -22,8 +22,8 @@ from truth import TruthLog, assert_true_clearance
 from udp_relay import UdpRelay
 
 from vtube_fleet.config.mission import Mission, load_mission
+from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.supervisor import Supervisor, TickTrace
-from vtube_fleet.fleetcli import fly, mock_fleet
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,8 +30,8 @@ import pytest
 from fleet_ports import free_ports
 
 from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet.launch import fly
 from vtube_fleet.fleet.supervisor import Supervisor
-from vtube_fleet.fleetcli import fly
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -241,7 +241,7 @@ def test_sigint_lands_everyone_and_leaves_a_complete_summary(tmp_path: Path) -> 
     assert "interrupted" in tail
     rec = out / "recording.rrd"
     assert rec.is_file() and rec.stat().st_size > 0
-    from vtube_fleet.recording import load_recording
+    from vtube_fleet.recording.reader import load_recording
 
     data = load_recording(rec)
     assert len(data.t_s) > 0

@@ -11,8 +11,8 @@ from fleet_ports import free_ports
 from missions import COMPACT_12, compact_12, write_mission
 
 from vtube_fleet.fleet.budget import SafetyBudget
+from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.supervisor import PreflightError, Supervisor, preflight_report
-from vtube_fleet.fleetcli import fly, mock_fleet
 from vtube_fleet.link.mavlink import MavlinkLink
 
 

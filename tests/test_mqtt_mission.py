@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 from missions import COMPACT_12_PATH
 
-from vtube_fleet.agentcli import AgentProcess, AgentRefused
 from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.missioncli import config_hash, default_mission_id
+from vtube_fleet.fleet.distributed.agent import AgentProcess, AgentRefused
+from vtube_fleet.fleet.distributed.coordinator import config_hash, default_mission_id
 from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,21 +19,17 @@ from typing import Any
 import numpy as np
 import pytest
 
+from vtube_fleet.cli._args import add_recording_args, recorder_from_args
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
-from vtube_fleet.recording import (
-    DEFAULT_CONNECT_URL,
-    E_VEHICLES,
-    NullRecorder,
-    Recorder,
-    RecordingError,
+from vtube_fleet.recording.api import NullRecorder, Recorder, RecordingError
+from vtube_fleet.recording.layout import DEFAULT_CONNECT_URL, E_VEHICLES
+from vtube_fleet.recording.reader import load_recording
+from vtube_fleet.recording.writer import (
     RerunRecorder,
-    add_recording_args,
     default_blueprint,
-    load_recording,
     normalize_connect_url,
     open_recorder,
-    recorder_from_args,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -275,7 +271,7 @@ def _child(tmp_path: Path, body: str) -> subprocess.Popen[str]:
         import numpy as np
         sys.path.insert(0, {tests!r})
         from test_recording import scenario, motion
-        from vtube_fleet.recording import open_recorder
+        from vtube_fleet.recording.writer import open_recorder
         path = sys.argv[1]
     """).format(tests=str(Path(__file__).parent)) + textwrap.dedent(body))
     return subprocess.Popen([sys.executable, str(script), str(tmp_path / "child.rrd")],

@@ -16,8 +16,10 @@ import numpy as np
 import pytest
 
 from vtube_fleet.cli import main
-from vtube_fleet.recording import E_VEHICLES, load_recording, open_recorder
-from vtube_fleet.reviewcli import compare_summaries, review
+from vtube_fleet.recording.layout import E_VEHICLES
+from vtube_fleet.recording.reader import load_recording
+from vtube_fleet.recording.review import compare_summaries, review
+from vtube_fleet.recording.writer import open_recorder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -173,7 +175,7 @@ def test_mock_fleet_run_recording_reviews(tmp_path: Path) -> None:
     from fleet_ports import free_ports
 
     from vtube_fleet.config.mission import load_mission
-    from vtube_fleet.fleetcli import fly
+    from vtube_fleet.fleet.launch import fly
 
     text = (ROOT / "configs" / "mock_fleet.toml").read_text()
     for old, new in (("altitude_m = 3.0", "altitude_m = 1.5"),

@@ -192,7 +192,7 @@ def simulate(
     :class:`~vtube_fleet.core.validation.ScenarioError`) unless ``validate=False``. ``skin`` is the
     Verlet-list margin in metres (default (r_s + r_a)/2). Ctrl-C stops the run early:
     the result (``interrupted=True``) holds everything up to that step. ``recorder`` (a
-    :class:`vtube_fleet.recording.Recorder`) gets the scene, every recorded frame, every step's
+    :class:`vtube_fleet.recording.api.Recorder`) gets the scene, every recorded frame, every step's
     metrics, the exits and the summary; the caller closes it.
     """
     if controller not in CONTROLLERS:

@@ -4,6 +4,8 @@
 * :mod:`~vtube_fleet.fleet.agent`: the pure per-vehicle decision logic;
 * :mod:`~vtube_fleet.fleet.budget`: the safety budget (how much r_s and r_a are inflated);
 * :mod:`~vtube_fleet.fleet.compensation`: the estimate-disturbance compensation;
+* :mod:`~vtube_fleet.fleet.launch`: the built-in mock fleet, endpoint lists, :func:`fly`;
+* :mod:`~vtube_fleet.fleet.distributed`: one agent process per vehicle, over MQTT;
 * :mod:`~vtube_fleet.fleet.pilot`: one vehicle's flight procedure over a link;
 * :mod:`~vtube_fleet.fleet.supervisor`: N pilots on one control clock, faults, summary;
 * :mod:`~vtube_fleet.fleet.view`: the live terminal view.

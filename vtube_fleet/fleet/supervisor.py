@@ -91,6 +91,7 @@ from vtube_fleet.fleet.pilot import (
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
+from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_INTERRUPTED, EXIT_OK, EXIT_UNSAFE
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, Phase
 
 __all__ = [
@@ -105,10 +106,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-EXIT_OK = 0
-EXIT_ABORTED = 3
-EXIT_UNSAFE = 4
-EXIT_INTERRUPTED = 130
 
 #: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
 TRUTH_RATE_HZ = 20.0
@@ -128,7 +125,7 @@ class PreflightError(FleetError):
 class MissionAborted(UserError):
     """The mission was aborted in flight (no valid partition, take-off failure, timeout)."""
 
-    exit_code = EXIT_ABORTED
+    exit_code = EXIT_INCOMPLETE
 
 
 @dataclass
@@ -201,7 +198,7 @@ def preflight_report(
 class Supervisor:
     """Fly ``mission`` with one pilot per link (link i flies slot i). See the module docstring.
 
-    ``recorder``: a :class:`vtube_fleet.recording.Recorder` (default: records nothing);
+    ``recorder``: a :class:`vtube_fleet.recording.api.Recorder` (default: records nothing);
     ``view``: the live terminal view (default: none); ``out_dir``: where ``summary.json`` goes;
     ``keep_trace``: keep every tick's telemetry in :attr:`trace` (tests);
     ``tick_hook(tick, supervisor)``: called at the end of every tick (fault injection in tests;
@@ -236,7 +233,7 @@ class Supervisor:
         self.links = list(links)
         self.backend = backend
         if recorder is None:
-            from vtube_fleet.recording import NullRecorder
+            from vtube_fleet.recording.api import NullRecorder
 
             recorder = NullRecorder()
         self.recorder = recorder
@@ -922,13 +919,13 @@ class Supervisor:
                                        f"{p.name} {p.phase.value}"
                                        + (f" ({p.reason})" if p.reason else "")
                                        for p in self.pilots if p.exit_time_s is None))
-                    exit_code = EXIT_ABORTED
+                    exit_code = EXIT_INCOMPLETE
                 elif self.not_landed:
                     self.outcome = "incomplete"
                     self.reason = (f"{len(self.not_landed)} vehicle(s) still airborne after "
                                    f"land_timeout_s = {self.cfg.land_timeout_s:g} s: "
                                    + ", ".join(self.not_landed))
-                    exit_code = EXIT_ABORTED
+                    exit_code = EXIT_INCOMPLETE
             except asyncio.CancelledError:
                 if self._interrupted is None:
                     raise
@@ -943,7 +940,7 @@ class Supervisor:
             except MissionAborted as exc:
                 self.outcome = "aborted"
                 self.reason = str(exc)
-                exit_code = EXIT_ABORTED
+                exit_code = EXIT_INCOMPLETE
                 error = exc
                 await self._after_abort(exc)
             except UserError as exc:

@@ -1,29 +1,12 @@
-"""``vtube-fleet review RUN.rrd [--json]``: a recorded run's summary and figures.
+"""Reviewing a recorded run.
 
-The recording (see :mod:`vtube_fleet.recording`) is read back with ``rerun.chunk.RrdReader``; the
-summary is recomputed from the recorded positions and velocities with the same
-:class:`~vtube_fleet.core.metrics.SafetyMonitor` /
-:class:`~vtube_fleet.core.metrics.SummaryAccumulator` the simulator and the fleet use, and the
-figures are drawn with the same :mod:`vtube_fleet.plots` functions (Fig. 11 safety curves, swarm
-snapshots).
-
-The summary has the keys of the run's ``summary.json``. Keys that cannot be recomputed from
-positions (wall-clock time, settings) are copied from the summary the run stored in the
-recording. The text output puts the recomputed value next to the run's own and marks every
-difference; ``--json`` prints exactly the summary JSON on stdout and nothing else.
-
-A decimated recording (``--rerun-decimate N``) holds every N-th step: extrema recomputed from
-positions are then over the recorded steps only, and ``steps`` counts recorded steps. The
-per-step metric series the run logged (``metrics/*``) keep the extremes of the skipped steps;
-the text output shows their extrema too.
+Read the recording back, recompute its summary with the same metrics the run used, compare
+with the run's own, draw the figures.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,13 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.recording import RecordingData, RecordingError, load_recording
+from vtube_fleet.recording.api import RecordingError
+from vtube_fleet.recording.reader import RecordingData, load_recording
 
 __all__ = [
     "ReviewResult",
     "compare_summaries",
-    "register",
     "review",
+    "step_metrics",
     "summary_from_recording",
     "write_review_plots",
 ]
@@ -231,99 +215,8 @@ def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True)
                         plots=written)
 
 
-def _fmt(v: Any, width: int = 14) -> str:
-    if isinstance(v, float):
-        text = f"{v:.6g}"
-    elif isinstance(v, Mapping):
-        text = ", ".join(f"{k}={_fmt(x)}" for k, x in v.items())
-    elif isinstance(v, list) and v and isinstance(v[0], Mapping):
-        text = f"[{len(v)} entries]"
-    else:
-        text = "-" if v is None else str(v)
-    return text if len(text) <= max(width, 14) else text[: max(width, 14) - 1] + "…"
-
-
-def _print_text(res: ReviewResult) -> None:
-    d = res.data
-    meta = d.meta
-    span = f"{d.t_s[0]:.3f}–{d.t_s[-1]:.3f} s" if len(d.t_s) else "no ticks"
-    every = _recorded_every(d)
-    print(f"recording  {d.path}")
-    print(f"run        {d.kind}, source {meta.get('source') or '-'}, "
-          f"{int(meta.get('robots', len(d.ids)))} robots, positions recorded every "
-          f"{every} {'tick' if d.kind == 'fleet' else 'step'}{'s' if every > 1 else ''}")
-    print(f"ticks      {len(d.t_s)} recorded ({span}), {len(d.exits)} exits, "
-          f"{len(d.events)} events")
-    stored = d.summary or {}
-    if not stored:
-        print("note       the run stored no summary in the recording; nothing to compare")
-    print()
-    width = max(len(k) for k in res.summary) if res.summary else 10
-    print(f"{'key':<{width}}  {'review':>14}  {'run':>14}")
-    diff_keys = {k for k, _, _ in res.differences}
-    copied = []
-    for k, v in res.summary.items():
-        if k not in res.recomputed_keys:
-            copied.append(k)
-            continue
-        run = _fmt(stored[k], 60) if k in stored else "-"
-        mark = "  ≠" if k in diff_keys else ""
-        print(f"{k:<{width}}  {_fmt(v, 60):>14}  {run:>14}{mark}")
-    if copied:
-        print()
-        print("not recomputable from the recording, as the run reported them:")
-        for k in copied:
-            print(f"{k:<{width}}  {_fmt(res.summary[k], 60)}")
-    recorded = {k: v[2] for k, v in d.metric_series.items() if np.any(np.isfinite(v[2]))}
-    if recorded:
-        print()
-        print("per-step metrics as the run logged them (their extrema cover every step, also "
-              "the ones between recorded frames):")
-        for k, v in recorded.items():
-            f = v[np.isfinite(v)]
-            print(f"  {k:<34} min {f.min():.6g}  max {f.max():.6g}")
-    print()
-    if res.differences:
-        print(f"{len(res.differences)} key(s) differ from the run's own summary: "
-              + ", ".join(k for k, _, _ in res.differences)
-              + (f": extremes over the recorded 1/{every} of the steps only; the per-step series "
-                 "above hold every step's extremes" if every > 1 else ""))
-    elif stored:
-        print("the recomputed summary matches the run's own summary")
-    print(f"verdict: {res.verdict.summary_line}")
-    for p in res.plots:
-        print(f"wrote {p}")
-
-
 def _recorded_every(d: RecordingData) -> int:
     """Steps (ticks) per recorded tick, typically (the median spacing of the recorded ticks)."""
     if len(d.tick) < 2:
         return 1
     return max(1, int(np.median(np.diff(d.tick))))
-
-
-def _cmd_review(args: argparse.Namespace) -> int:
-    res = review(args.recording, out_dir=args.out, plots=not args.no_plots)
-    if args.json:
-        json.dump(res.summary, sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        _print_text(res)
-    return 0
-
-
-def register(subparsers: Any) -> None:
-    p = subparsers.add_parser(
-        "review",
-        help="summary and plots of a recorded run (.rrd)",
-        description="Read a run's rerun recording back, recompute its summary with the "
-                    "simulator's metrics, compare it with the run's own summary, and write the "
-                    "Fig. 11 safety plot and swarm snapshots next to the recording.",
-    )
-    p.add_argument("recording", type=Path, metavar="RUN.rrd", help="the recording to review")
-    p.add_argument("--json", action="store_true",
-                   help="print only the summary JSON (the keys of summary.json) on stdout")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR",
-                   help="write the PNGs here (default: next to the recording)")
-    p.add_argument("--no-plots", action="store_true", help="do not write PNGs")
-    p.set_defaults(func=_cmd_review)

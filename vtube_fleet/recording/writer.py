@@ -1,69 +1,10 @@
-"""Recording a run to rerun (.rrd) and reading it back for ``vtube-fleet review``.
+"""The rerun writer: :class:`RerunRecorder` and :func:`open_recorder`.
 
-Both the simulator (``vtube-fleet sim``) and the fleet (``vtube-fleet run`` / ``agent``) record
-through the same small :class:`Recorder` interface:
-
-* :meth:`Recorder.log_scene` — once, static: the main tube, the obstacles O_k (obstacle) with
-  their extended areas O'_k (radius r_o + r_s), the sub-tubes T_o,k and circumscribed triangles
-  I_k of the partition (ObstacleController), and the scenario metadata ``review`` needs (tube
-  points, obstacles, r_s, r_a, v_min, v_max, ε_0, robot count and ids, dt, decimation, run kind)
-  as a JSON :class:`rerun.TextDocument` at ``meta/scenario``.
-* :meth:`Recorder.log_tick` — every control tick / simulation frame: positions, velocities,
-  optional phases and commands of ALL vehicles as arrays, the safety metrics of the tick, and
-  optionally the exact inputs of the run's safety metrics (``safety=``).
-* :meth:`Recorder.log_metrics` (per-step metric series in bulk, the simulator),
-  :meth:`Recorder.log_exits`, :meth:`Recorder.log_partition`, :meth:`Recorder.log_event`,
-  :meth:`Recorder.log_summary`.
-
-Cost on the control loop (see ``bench/bench_recording.py`` and ``docs/recording.md``): a call
-that is not recorded (decimation) only copies its arrays, updates the metric extrema and the
-exit detection; a recorded call appends the copies to a buffer. Every ``batch_ticks`` recorded
-ticks (or ``max_delay_s`` of wall time, whichever comes first) a sender thread sends the buffer
-as ONE :meth:`rerun.RecordingStream.send_columns` call per entity with explicit
-``mission_time`` / ``tick`` time columns — never one call per vehicle, and no reliance on
-rerun's per-thread ``set_time`` state (shared by every coroutine of an asyncio loop). Each
-recorder owns its own :class:`rerun.RecordingStream` (no global rerun state), so several
-recorders can live in one process. Nothing touches the file system before the first thing is
-recorded.
-
-Decimation keeps the extremes: a recorded tick carries the minimum of every ``min_*`` metric and
-the maximum of every ``max_*`` metric, of ``tick_duration_s`` and of ``link_latency_s`` over the
-ticks since the previous recorded one. The last call before :meth:`close` is always recorded.
-
-Exits (Assumption 2, (TraCondition)) are detected at every call, decimated or not: a vehicle
-whose phase becomes ``exited``, or — when no phases are given (the simulator) — a vehicle present
-at the previous call whose row is now NaN or missing. They are logged at ``events/exits`` with
-the exact time, so ``review`` recovers the exit times the run itself saw.
-
-Layout of a recording (entity paths):
-
-======================  =========================================================
-``meta/scenario``       static JSON (:data:`META_FORMAT`), read by :func:`load_recording`
-``meta/summary``        static JSON: the run's own ``summary.json`` (:meth:`log_summary`)
-``world/tube``          static: the main tube T (closed line strip)
-``world/obstacles``     static: O_k as discs; ``world/obstacles/extended``: O'_k outlines
-``world/sub_tubes``     sub-tubes T_o,k (at t = 0, again at each :meth:`log_partition`)
-``world/triangles``     circumscribed triangles I_k (same)
-``world/vehicles``      Points2D (radius r_s, label "id phase", colour by phase) plus the exact
-                        float64 state as ``vtube_fleet.VehicleState:*`` components
-``world/velocity``      Arrows2D of the measured velocity (length = ``arrow_scale_s`` × v)
-``world/commands``      Arrows2D of the velocity command, when given
-``safety/main|center``  the exact (position, velocity) inputs of the run's safety metrics per
-                        summary stream, when given (``log_tick(safety=...)``)
-``metrics/<key>``       Scalars, one entity per metric key; ``limits/<key>`` the safety limit
-``status``              TextDocument: a table of every vehicle (id, phase, position, speed)
-``events``              TextLog of run-wide events; ``events/vehicles``: per-vehicle events
-                        (phase changes, :meth:`log_event` with a vehicle id; the id also as
-                        ``vtube_fleet.Event:vehicle_id``); ``events/exits``: exit events
-======================  =========================================================
-
-Timelines: ``mission_time`` (duration, seconds since the mission/simulation start) and ``tick``
-(the control tick / simulation step counter).
+A sender thread, batched columns, decimation that keeps the extremes.
 """
 
 from __future__ import annotations
 
-import argparse
 import atexit
 import dataclasses
 import datetime as _dt
@@ -76,236 +17,63 @@ import socket
 import threading
 import time
 import uuid
-import warnings
 import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 import numpy as np
 
-from vtube_fleet.errors import UserError
+from vtube_fleet.recording.api import NullRecorder, Recorder, RecordingError
+from vtube_fleet.recording.layout import (
+    DEFAULT_COLOR,
+    DEFAULT_CONNECT_URL,
+    E_COMMANDS,
+    E_EVENTS,
+    E_EXITS,
+    E_META,
+    E_OBSTACLES,
+    E_OBSTACLES_EXT,
+    E_STATUS,
+    E_SUB_TUBES,
+    E_SUMMARY,
+    E_TRIANGLES,
+    E_TUBE,
+    E_VEHICLE_EVENTS,
+    E_VEHICLES,
+    E_VELOCITY,
+    EVENT_ARCHETYPE,
+    EXIT_ARCHETYPE,
+    LIMIT_PERIOD_S,
+    LIMITS_PREFIX,
+    LOG_LEVELS,
+    META_FORMAT,
+    META_VERSION,
+    METRIC_NAMES,
+    METRIC_VIEWS,
+    METRICS_PREFIX,
+    OTHER_COLOR,
+    PHASE_COLORS,
+    SAFETY_ARCHETYPE,
+    STATE_ARCHETYPE,
+    TIMELINE_TICK,
+    TIMELINE_TIME,
+    stream_entity,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.core.tube import Obstacle, Trapezoid
+    from vtube_fleet.core.tube import Obstacle
 
 __all__ = [
-    "DEFAULT_CONNECT_URL",
-    "DEFAULT_RECORDING_NAME",
-    "META_FORMAT",
-    "SIM_MIN_PERIOD_S",
-    "TIMELINE_TICK",
-    "TIMELINE_TIME",
-    "NullRecorder",
-    "Recorder",
-    "RecordingData",
-    "RecordingError",
     "RerunRecorder",
-    "add_recording_args",
     "default_blueprint",
-    "load_recording",
     "normalize_connect_url",
     "open_recorder",
-    "recorder_from_args",
 ]
 
 log = logging.getLogger(__name__)
-
-#: ``--rerun-connect`` without an address: the viewer's default gRPC proxy.
-DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
-#: File name of the recording inside a run's output folder.
-DEFAULT_RECORDING_NAME = "recording.rrd"
-#: ``vtube-fleet sim`` records a frame at most this often (simulated seconds) by default.
-SIM_MIN_PERIOD_S = 0.04
-#: ``format`` tag of the ``meta/scenario`` JSON document.
-META_FORMAT = "vtube_fleet.recording"
-META_VERSION = 1
-
-TIMELINE_TIME = "mission_time"
-TIMELINE_TICK = "tick"
-
-E_META = "meta/scenario"
-E_SUMMARY = "meta/summary"
-E_TUBE = "world/tube"
-E_OBSTACLES = "world/obstacles"
-E_OBSTACLES_EXT = "world/obstacles/extended"
-E_SUB_TUBES = "world/sub_tubes"
-E_TRIANGLES = "world/triangles"
-E_VEHICLES = "world/vehicles"
-E_VELOCITY = "world/velocity"
-E_COMMANDS = "world/commands"
-E_STATUS = "status"
-E_EVENTS = "events"
-E_EXITS = "events/exits"
-E_VEHICLE_EVENTS = "events/vehicles"
-METRICS_PREFIX = "metrics/"
-SAFETY_PREFIX = "safety/"
-#: The limit lines (``limits/*``) get a point every this many seconds of mission time.
-LIMIT_PERIOD_S = 5.0
-LIMITS_PREFIX = "limits/"
-
-_STATE = "vtube_fleet.VehicleState"
-_EXIT = "vtube_fleet.Exit"
-_EVENT = "vtube_fleet.Event"
-_SAFETY = "vtube_fleet.SafetyInput"
-
-#: Metric keys shown in the default blueprint, by view: (view name, metric keys, unit label).
-METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("min pair distance [m]", ("min_pair_distance_m",)),
-    ("min obstacle-centre distance [m]", ("min_obstacle_center_distance_m",)),
-    ("min leg distances [m]", ("min_left_leg_distance_m", "min_right_leg_distance_m")),
-    ("speed min / max [m/s]", ("min_speed_m_s", "max_speed_m_s")),
-    ("tick duration [s]", ("tick_duration_s",)),
-    ("link latency [s]", ("link_latency_s",)),
-)
-
-#: Legend names of the known metric series.
-METRIC_NAMES: dict[str, str] = {
-    "min_pair_distance_m": "min pair distance",
-    "min_obstacle_center_distance_m": "min robot–obstacle centre distance",
-    "min_left_leg_distance_m": "min left leg distance",
-    "min_right_leg_distance_m": "min right leg distance",
-    "min_speed_m_s": "min speed",
-    "max_speed_m_s": "max speed",
-    "tick_duration_s": "tick duration",
-    "link_latency_s": "link latency",
-}
-
-#: Colour (RGBA) of a vehicle point by phase (``bus.base.Phase`` values); others grey.
-PHASE_COLORS: dict[str, int] = {
-    "connecting": 0x9E9E9EFF,
-    "ready": 0x78909CFF,
-    "arming": 0xFFB300FF,
-    "takeoff": 0xFFB300FF,
-    "in_tube": 0x1E88E5FF,
-    "exited": 0x43A047FF,
-    "holding": 0xFB8C00FF,
-    "landing": 0x8E24AAFF,
-    "landed": 0x6D4C41FF,
-    "lost": 0xE53935FF,
-    "failed": 0xB71C1CFF,
-}
-_DEFAULT_COLOR = 0x1E88E5FF
-_OTHER_COLOR = 0x9E9E9EFF
-
-_LEVELS = {
-    "trace": "TRACE",
-    "debug": "DEBUG",
-    "info": "INFO",
-    "warn": "WARN",
-    "warning": "WARN",
-    "error": "ERROR",
-    "critical": "CRITICAL",
-}
-
-
-class RecordingError(UserError):
-    """A recording cannot be written or read (bad path, not an .rrd, not ours, ...)."""
-
-
-# ----------------------------------------------------------------------------------------------
-# the interface
-# ----------------------------------------------------------------------------------------------
-@runtime_checkable
-class Recorder(Protocol):
-    """What the simulator and the fleet call. See the module docstring for the layout."""
-
-    def log_scene(
-        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
-    ) -> None:
-        """Static scene + scenario metadata. ``scenario`` is a ``Scenario`` (or a ``Mission``,
-        whose ``.scenario`` is used); ``meta`` adds JSON-able keys (``dt_s``, ``rate_hz`` ...)."""
-
-    def log_partition(self, partition: Any, t_s: float) -> None:
-        """The sub-tubes and triangles of a (re)partition, valid from ``t_s`` on."""
-
-    def log_tick(
-        self,
-        *,
-        t_s: float,
-        tick: int,
-        ids: np.ndarray,
-        pos: np.ndarray,
-        vel: np.ndarray,
-        phases: Sequence[str] | None = None,
-        cmd: np.ndarray | None = None,
-        metrics: Mapping[str, float] | None = None,
-        safety: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
-    ) -> None:
-        """One control tick: ids (M,) int, pos/vel/cmd (M, 2) tube frame, NaN rows = absent.
-
-        ``safety``: the (positions, velocities) (M, 2) each, rows as ``ids``, that the run fed
-        to :class:`vtube_fleet.core.metrics.SafetyMonitor`, per summary stream suffix (``""``, and
-        ``"_center"`` for unicycle centres), when they differ from (pos, vel) — e.g. the fleet
-        counts only vehicles in the tube, with their commanded velocity. ``review`` recomputes
-        the summary from exactly these."""
-
-    def log_metrics(self, t_s: np.ndarray, ticks: np.ndarray,
-                    metrics: Mapping[str, np.ndarray], *, every: int = 1) -> None:
-        """Per-step metric series in bulk (K,) each — for a caller that evaluates metrics in
-        chunks (the simulator); blocks of ``every`` ticks are reduced to their extrema."""
-
-    def log_exits(self, t_s: float, tick: int, ids: Sequence[int] | np.ndarray) -> None:
-        """Vehicles ``ids`` crossed the finishing line at ``t_s`` (TraCondition)."""
-
-    def log_event(
-        self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
-    ) -> None:
-        """A text event (``events`` or ``events/vehicle_<id>``)."""
-
-    def log_summary(self, summary: Mapping[str, Any]) -> None:
-        """The run's own summary (the ``summary.json`` dict), stored for ``review``."""
-
-    def close(self) -> None:
-        """Send what is buffered, flush, close the file. Idempotent."""
-
-    def __enter__(self) -> Recorder: ...
-
-    def __exit__(self, *exc: object) -> None: ...
-
-
-class NullRecorder:
-    """A :class:`Recorder` that records nothing (recording disabled)."""
-
-    path: Path | None = None
-    closed: bool = False
-
-    def log_scene(
-        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
-    ) -> None:
-        pass
-
-    def log_partition(self, partition: Any, t_s: float) -> None:
-        pass
-
-    def log_tick(self, **kwargs: Any) -> None:
-        pass
-
-    def log_metrics(self, t_s: np.ndarray, ticks: np.ndarray,
-                    metrics: Mapping[str, np.ndarray], *, every: int = 1) -> None:
-        pass
-
-    def log_exits(self, t_s: float, tick: int, ids: Sequence[int] | np.ndarray) -> None:
-        pass
-
-    def log_event(
-        self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
-    ) -> None:
-        pass
-
-    def log_summary(self, summary: Mapping[str, Any]) -> None:
-        pass
-
-    def close(self) -> None:
-        self.closed = True
-
-    def __enter__(self) -> NullRecorder:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -362,12 +130,6 @@ def _present_rows(ids: np.ndarray, pos: Any, vel: Any
     vel = np.asarray(vel, dtype=float)
     present = ~np.isnan(pos[:, 0])
     return ids[present], pos[present], vel[present]
-
-
-def _stream_entity(suffix: str) -> str:
-    """Summary stream suffix → entity path: ``""`` → ``safety/main``, ``"_center"`` →
-    ``safety/center``."""
-    return SAFETY_PREFIX + (suffix.lstrip("_") or "main")
 
 
 def _merge(key: str, old: float, new: float) -> float:
@@ -891,12 +653,12 @@ class RerunRecorder:
             if phases is None:
                 labels = [str(i) for i in ids.tolist()]
                 looks = _Looks(pa.array(labels, type=pa.string()), None, None,
-                               np.full(len(labels), _DEFAULT_COLOR, dtype=np.uint32))
+                               np.full(len(labels), DEFAULT_COLOR, dtype=np.uint32))
             else:
                 ph = [_phase_str(p) for p in phases]
                 labels = [f"{i} {p}" for i, p in zip(ids.tolist(), ph, strict=True)]
                 looks = _Looks(pa.array(labels, type=pa.string()), pa.array(ph, type=pa.string()),
-                               ph, np.array([PHASE_COLORS.get(p, _OTHER_COLOR) for p in ph],
+                               ph, np.array([PHASE_COLORS.get(p, OTHER_COLOR) for p in ph],
                                             dtype=np.uint32))
             self._looks_key, self._looks = key, looks
         return self._looks
@@ -1012,7 +774,7 @@ class RerunRecorder:
         self._rec.send_columns(
             E_EXITS, self._index([e[0] for e in exits], [e[1] for e in exits]), [
                 *rr.TextLog.columns(text=texts, level=["INFO"] * len(exits)),
-                self._custom(_EXIT, "vehicle_id", ids,
+                self._custom(EXIT_ARCHETYPE, "vehicle_id", ids,
                              _offsets(np.array([len(g) for _, _, g in exits], np.int32)))])
 
     def _send_vehicle_events(self, t_s: float, tick: int, vids: list[int], texts: list[str],
@@ -1021,7 +783,7 @@ class RerunRecorder:
         rr = self._rr
         self._rec.send_columns(E_VEHICLE_EVENTS, self._index([t_s] * n, [tick] * n), [
             *rr.TextLog.columns(text=texts, level=levels),
-            self._custom(_EVENT, "vehicle_id", np.asarray(vids, np.int64),
+            self._custom(EVENT_ARCHETYPE, "vehicle_id", np.asarray(vids, np.int64),
                          _offsets(np.ones(n, np.int32)))])
 
     def _send_rows_now(self, rows: list[_Row]) -> None:
@@ -1049,14 +811,14 @@ class RerunRecorder:
             col(rr.Points2D.descriptor_positions(), comps.Position2DBatch(pos32)),
             col(lab_desc, AnyBatchValue(lab_desc, labels)),
             col(rr.Points2D.descriptor_colors(), comps.ColorBatch(colors)),
-            self._custom(_STATE, "vehicle_id", ids, offsets),
-            self._custom(_STATE, "x_m", pos[:, 0], offsets),
-            self._custom(_STATE, "y_m", pos[:, 1], offsets),
-            self._custom(_STATE, "vx_m_s", vel[:, 0], offsets),
-            self._custom(_STATE, "vy_m_s", vel[:, 1], offsets),
+            self._custom(STATE_ARCHETYPE, "vehicle_id", ids, offsets),
+            self._custom(STATE_ARCHETYPE, "x_m", pos[:, 0], offsets),
+            self._custom(STATE_ARCHETYPE, "y_m", pos[:, 1], offsets),
+            self._custom(STATE_ARCHETYPE, "vx_m_s", vel[:, 0], offsets),
+            self._custom(STATE_ARCHETYPE, "vy_m_s", vel[:, 1], offsets),
         ]
         if all(r.looks.phases is not None for r in rows):
-            cols.append(self._custom(_STATE, "phase", pa.concat_arrays(
+            cols.append(self._custom(STATE_ARCHETYPE, "phase", pa.concat_arrays(
                 [r.looks.phases for r in rows]), offsets))
         self._rec.send_columns(E_VEHICLES, idx, cols)
         self._rec.send_columns(E_VELOCITY, idx, [
@@ -1074,16 +836,16 @@ class RerunRecorder:
             s_pos = np.concatenate([q[1] for q in parts]).reshape(-1, 2)
             s_vel = np.concatenate([q[2] for q in parts]).reshape(-1, 2)
             self._rec.send_columns(
-                _stream_entity(sfx),
+                stream_entity(sfx),
                 idx if len(sel) == len(rows) else self._index(t[sel], ticks[sel]), [
-                    self._custom(_SAFETY, "suffix", [sfx] * len(sel), _offsets(
+                    self._custom(SAFETY_ARCHETYPE, "suffix", [sfx] * len(sel), _offsets(
                         np.ones(len(sel), np.int32))),
-                    self._custom(_SAFETY, "vehicle_id", np.concatenate(
+                    self._custom(SAFETY_ARCHETYPE, "vehicle_id", np.concatenate(
                         [q[0] for q in parts]).astype(np.int64), s_offs),
-                    self._custom(_SAFETY, "x_m", s_pos[:, 0], s_offs),
-                    self._custom(_SAFETY, "y_m", s_pos[:, 1], s_offs),
-                    self._custom(_SAFETY, "vx_m_s", s_vel[:, 0], s_offs),
-                    self._custom(_SAFETY, "vy_m_s", s_vel[:, 1], s_offs),
+                    self._custom(SAFETY_ARCHETYPE, "x_m", s_pos[:, 0], s_offs),
+                    self._custom(SAFETY_ARCHETYPE, "y_m", s_pos[:, 1], s_offs),
+                    self._custom(SAFETY_ARCHETYPE, "vx_m_s", s_vel[:, 0], s_offs),
+                    self._custom(SAFETY_ARCHETYPE, "vy_m_s", s_vel[:, 1], s_offs),
                 ])
         with_cmd = [k for k, r in enumerate(rows) if r.cmd is not None]
         if with_cmd:
@@ -1096,10 +858,10 @@ class RerunRecorder:
                     cpos.astype(np.float32)), cl),
                 col(rr.Arrows2D.descriptor_vectors(), comps.Vector2DBatch(
                     (cmd * self.arrow_scale_s).astype(np.float32)), cl),
-                self._custom(_STATE, "vehicle_id", np.concatenate(
+                self._custom(STATE_ARCHETYPE, "vehicle_id", np.concatenate(
                     [r.ids for r in sub]).astype(np.int64), cl),
-                self._custom(_STATE, "cmd_x_m_s", cmd[:, 0], cl),
-                self._custom(_STATE, "cmd_y_m_s", cmd[:, 1], cl),
+                self._custom(STATE_ARCHETYPE, "cmd_x_m_s", cmd[:, 0], cl),
+                self._custom(STATE_ARCHETYPE, "cmd_y_m_s", cmd[:, 1], cl),
             ])
         keys: dict[str, None] = {}
         for r in rows:
@@ -1253,7 +1015,7 @@ class RerunRecorder:
         with self._lock:
             if self.closed:
                 return
-            lvl = _LEVELS.get(level.lower(), level.upper())
+            lvl = LOG_LEVELS.get(level.lower(), level.upper())
             t_s, tick, text = float(t_s), self._last_tick, str(text)
             if vehicle_id is None:
                 rr = self._rr
@@ -1420,378 +1182,3 @@ def open_recorder(
         return NullRecorder()
     return RerunRecorder(save_path, connect=connect, app_id=app_id, decimate=decimate,
                          kind=kind, **options)
-
-
-def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int | None = None
-                       ) -> None:
-    """Add ``--rerun-save``, ``--rerun-connect``, ``--rerun-decimate`` and ``--no-rerun``."""
-    g = parser.add_argument_group("recording (rerun)")
-    g.add_argument("--rerun-save", metavar="PATH", type=Path, default=None,
-                   help=f"write the rerun recording here (default: OUT/{DEFAULT_RECORDING_NAME})")
-    g.add_argument("--rerun-connect", metavar="ADDR", nargs="?", const=DEFAULT_CONNECT_URL,
-                   default=None,
-                   help="also stream to a live rerun viewer (default address "
-                        f"{DEFAULT_CONNECT_URL}; HOST:PORT or a port also work)")
-    g.add_argument("--rerun-decimate", metavar="N", type=int, default=default_decimate,
-                   help="record every N-th control tick / simulation step "
-                        "(default: each command's own choice)")
-    g.add_argument("--no-rerun", action="store_true",
-                   help="do not write a recording (and ignore --rerun-save)")
-
-
-def recorder_from_args(
-    args: argparse.Namespace,
-    out_dir: str | os.PathLike[str] | None,
-    *,
-    kind: str = "sim",
-    app_id: str = "vtube_fleet",
-    decimate: int = 1,
-    **options: Any,
-) -> Recorder:
-    """The recorder the command line asks for (see :func:`add_recording_args`).
-
-    ``decimate`` is used unless ``--rerun-decimate`` was given. For ``kind="sim"`` without
-    ``--rerun-decimate``, frames are recorded at most every :data:`SIM_MIN_PERIOD_S` of
-    simulated time (25 per simulated second: smooth in the viewer, a fraction of the cost of
-    the simulator's 100 frames/s); ``--rerun-decimate N`` counts the simulator's own frames
-    instead. Without ``--rerun-save`` the file is ``out_dir/recording.rrd`` (no file when
-    ``out_dir`` is ``None``).
-    """
-    if getattr(args, "no_rerun", False):
-        save = None
-    else:
-        save = getattr(args, "rerun_save", None)
-        if save is None and out_dir is not None:
-            save = Path(out_dir) / DEFAULT_RECORDING_NAME
-    connect = getattr(args, "rerun_connect", None)
-    dec = getattr(args, "rerun_decimate", None)
-    if dec is None:
-        dec = decimate
-        if kind == "sim":
-            options.setdefault("min_period_s", SIM_MIN_PERIOD_S)
-    if not (isinstance(dec, int) and dec >= 1):
-        raise RecordingError(f"--rerun-decimate must be an integer >= 1, got {dec}")
-    if kind == "sim":
-        # The simulator is one CPU-bound thread: a sender thread would only fight it for the
-        # GIL (measured: up to +0.5 s on the 1.2 s paper loop); sending in-line costs little.
-        options.setdefault("background", False)
-    return open_recorder(save, connect=connect, app_id=app_id, decimate=dec, kind=kind,
-                         **options)
-
-
-# ----------------------------------------------------------------------------------------------
-# reading back
-# ----------------------------------------------------------------------------------------------
-@dataclass
-class RecordingData:
-    """A recording read back by :func:`load_recording`.
-
-    ``t_s`` / ``tick`` (T,) are the recorded ticks in order; ``ids`` (M,) every vehicle id seen
-    (the scenario's ids first, in their order); ``pos`` / ``vel`` (T, M, 2) with NaN where a
-    vehicle was absent; ``cmd`` likewise or ``None``; ``phases`` (T, M) object array or ``None``;
-    ``safety`` summary stream suffix → (pos, vel) (T, M, 2) the run's metrics were computed from
-    when it said so (see :meth:`Recorder.log_tick`; otherwise review uses ``pos``/``vel``),
-    ``safety_ticks`` suffix → (T,) bool: the ticks where the run gave that stream;
-    ``metrics`` key → (T,) array at the recorded ticks (NaN where not logged) and
-    ``metric_series`` key → (t_s, tick, value) as logged (the simulator logs every step's
-    metrics, reduced per recorded frame); ``exits`` vehicle id → exit time;
-    ``events`` (t_s, entity path, level, text); ``entity_rows`` entity path → temporal row count
-    (static rows counted under ``static_rows``); ``meta`` / ``summary`` the two JSON documents.
-    """
-
-    path: Path
-    meta: dict[str, Any]
-    summary: dict[str, Any] | None
-    t_s: np.ndarray
-    tick: np.ndarray
-    ids: np.ndarray
-    pos: np.ndarray
-    vel: np.ndarray
-    cmd: np.ndarray | None
-    phases: np.ndarray | None
-    safety: dict[str, tuple[np.ndarray, np.ndarray]]
-    safety_ticks: dict[str, np.ndarray]
-    metrics: dict[str, np.ndarray]
-    metric_series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
-    exits: dict[int, float]
-    events: list[tuple[float, str, str, str]]
-    entity_rows: dict[str, int]
-    static_rows: dict[str, int]
-    application_id: str = ""
-    recording_id: str = ""
-    partitions: list[tuple[float, list[np.ndarray], list[np.ndarray]]] = field(
-        default_factory=list)
-
-    @property
-    def kind(self) -> str:
-        return str(self.meta.get("kind", "?"))
-
-    def tube(self) -> Trapezoid:
-        from vtube_fleet.core.tube import Trapezoid
-
-        t = self.meta["tube"]
-        return Trapezoid(np.array(t["p_h0"]), np.array(t["p_h1"]), np.array(t["p_r0"]),
-                         np.array(t["p_r1"]))
-
-    def obstacles(self) -> tuple[Obstacle, ...]:
-        from vtube_fleet.core.tube import Obstacle
-
-        return tuple(Obstacle(center=np.array(o["center"], dtype=float), radius=float(o["radius"]),
-                              apex_distance=o.get("apex_distance"))
-                     for o in self.meta.get("obstacles", []))
-
-
-def _list_column(rb: Any, name: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """A list<…> column → (flat values, per-row lengths) or None if absent."""
-    import pyarrow as pa
-
-    if name not in rb.schema.names:
-        return None
-    arr = rb.column(name)
-    if isinstance(arr, pa.ChunkedArray):
-        arr = arr.combine_chunks()
-    lengths = arr.value_lengths().fill_null(0).to_numpy(zero_copy_only=False)
-    flat = arr.flatten()
-    if pa.types.is_fixed_size_list(flat.type):
-        size = flat.type.list_size
-        values = flat.flatten().to_numpy(zero_copy_only=False).reshape(-1, size)
-    elif pa.types.is_string(flat.type) or pa.types.is_large_string(flat.type):
-        values = np.array(flat.to_pylist(), dtype=object)
-    else:
-        values = flat.to_numpy(zero_copy_only=False)
-    return values, lengths.astype(np.int64)
-
-
-def _index_columns(rb: Any) -> tuple[np.ndarray, np.ndarray]:
-    names = rb.schema.names
-    n = rb.num_rows
-    if TIMELINE_TIME in names:
-        t = rb.column(TIMELINE_TIME).cast("int64").to_numpy(zero_copy_only=False) / 1e9
-    else:
-        t = np.full(n, np.nan)
-    if TIMELINE_TICK in names:
-        k = rb.column(TIMELINE_TICK).to_numpy(zero_copy_only=False).astype(np.int64)
-    else:
-        k = np.full(n, -1, dtype=np.int64)
-    return t, k
-
-
-def load_recording(path: str | os.PathLike[str]) -> RecordingData:
-    """Read a recording written by :class:`RerunRecorder` (with ``rerun.chunk.RrdReader``).
-
-    Raises :class:`RecordingError` when the file is missing, is not an .rrd, or carries no
-    ``meta/scenario`` document of ours.
-    """
-    from rerun.chunk import RrdReader
-
-    p = Path(path)
-    if not p.exists():
-        raise RecordingError(f"{p}: no such file")
-    if p.is_dir():
-        raise RecordingError(f"{p}: is a directory, expected an .rrd file")
-    try:
-        with warnings.catch_warnings():
-            # a file still being written, or cut short, has no footer: readable all the same
-            warnings.filterwarnings("ignore", message=".*no footer.*")
-            reader = RrdReader(p)
-        stores = reader.recordings()
-        if not stores:
-            raise RecordingError(f"{p}: contains no recording")
-        chunks = reader.stream(store=stores[0]).to_chunks()
-    except RecordingError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - rerun raises several types for bad files
-        raise RecordingError(f"{p}: not a readable rerun recording ({exc})") from None
-
-    meta_text: str | None = None
-    summary_text: str | None = None
-    entity_rows: dict[str, int] = {}
-    static_rows: dict[str, int] = {}
-    veh: list[tuple[np.ndarray, np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
-    cmd_parts: list[tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]] = []
-    safety_parts: dict[str, list[tuple[np.ndarray, dict[str, Any]]]] = {}
-    metric_parts: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
-    exits: dict[int, float] = {}
-    events: list[tuple[float, str, str, str]] = []
-    parts_sub: dict[int, tuple[float, list[np.ndarray]]] = {}
-    parts_tri: dict[int, tuple[float, list[np.ndarray]]] = {}
-
-    def text_of(rb: Any, name: str) -> list[str]:
-        col = _list_column(rb, name)
-        if col is None:
-            return []
-        vals, lens = col
-        offs = np.concatenate([[0], np.cumsum(lens)])
-        return [str(vals[offs[i]]) if lens[i] else "" for i in range(len(lens))]
-
-    def strips_of(rb: Any) -> list[list[np.ndarray]]:
-        import pyarrow as pa
-
-        name = "LineStrips2D:strips"
-        if name not in rb.schema.names:
-            return []
-        out = []
-        arr = rb.column(name)
-        if isinstance(arr, pa.ChunkedArray):
-            arr = arr.combine_chunks()
-        for row in arr.to_pylist():
-            out.append([np.array(s, dtype=float).reshape(-1, 2) for s in (row or [])])
-        return out
-
-    for ch in chunks:
-        ent = str(ch.entity_path).lstrip("/")
-        if ent.startswith("__"):
-            continue
-        rb = ch.to_record_batch()
-        if ch.is_static:
-            static_rows[ent] = static_rows.get(ent, 0) + ch.num_rows
-            if ent == E_META:
-                texts = text_of(rb, "TextDocument:text")
-                meta_text = texts[-1] if texts else meta_text
-            elif ent == E_SUMMARY:
-                texts = text_of(rb, "TextDocument:text")
-                summary_text = texts[-1] if texts else summary_text
-            continue
-        entity_rows[ent] = entity_rows.get(ent, 0) + ch.num_rows
-        t, k = _index_columns(rb)
-        if ent == E_VEHICLES:
-            comps = {n.split(":", 1)[1]: c for n in rb.schema.names
-                     if n.startswith(_STATE + ":") and (c := _list_column(rb, n)) is not None}
-            veh.append((t, k, comps))
-        elif ent == E_COMMANDS:
-            comps = {n.split(":", 1)[1]: c for n in rb.schema.names
-                     if n.startswith(_STATE + ":") and (c := _list_column(rb, n)) is not None}
-            cmd_parts.append((k, comps))
-        elif ent.startswith(SAFETY_PREFIX):
-            comps = {n.split(":", 1)[1]: c for n in rb.schema.names
-                     if n.startswith(_SAFETY + ":") and (c := _list_column(rb, n)) is not None}
-            if "suffix" in comps:
-                sfx = str(comps["suffix"][0][0]) if len(comps["suffix"][0]) else ""
-                safety_parts.setdefault(sfx, []).append((k, comps))
-        elif ent.startswith(METRICS_PREFIX):
-            col = _list_column(rb, "Scalars:scalars")
-            if col is not None:
-                vals, lens = col
-                offs = np.concatenate([[0], np.cumsum(lens)])
-                v = np.array([vals[offs[i]] if lens[i] else np.nan for i in range(len(lens))],
-                             dtype=float)
-                metric_parts.setdefault(ent[len(METRICS_PREFIX):], []).append((t, k, v))
-        elif ent == E_EXITS:
-            col = _list_column(rb, f"{_EXIT}:vehicle_id")
-            if col is not None:
-                vals, lens = col
-                offs = np.concatenate([[0], np.cumsum(lens)])
-                for i in range(len(lens)):
-                    for vid in vals[offs[i]:offs[i + 1]]:
-                        exits.setdefault(int(vid), float(t[i]))
-            for i, txt in enumerate(text_of(rb, "TextLog:text")):
-                events.append((float(t[i]), ent, "INFO", txt))
-        elif ent.startswith(E_EVENTS):
-            texts = text_of(rb, "TextLog:text")
-            levels = text_of(rb, "TextLog:level") or ["INFO"] * len(texts)
-            for i, txt in enumerate(texts):
-                events.append((float(t[i]), ent, levels[i] or "INFO", txt))
-        elif ent in (E_SUB_TUBES, E_TRIANGLES):
-            target = parts_sub if ent == E_SUB_TUBES else parts_tri
-            for i, strips in enumerate(strips_of(rb)):
-                target[int(k[i])] = (float(t[i]), strips)
-
-    if meta_text is None:
-        raise RecordingError(f"{p}: not a vtube_fleet recording (no {E_META} document)")
-    try:
-        meta = json.loads(meta_text)
-    except json.JSONDecodeError as exc:
-        raise RecordingError(f"{p}: {E_META} is not valid JSON ({exc})") from None
-    if meta.get("format") != META_FORMAT:
-        raise RecordingError(f"{p}: {E_META} has format {meta.get('format')!r}, "
-                             f"expected {META_FORMAT!r}")
-    summary = json.loads(summary_text) if summary_text else None
-
-    # ---- vehicles: one row per tick ----
-    all_k = np.concatenate([k for _, k, _ in veh]) if veh else np.zeros(0, np.int64)
-    all_t = np.concatenate([t for t, _, _ in veh]) if veh else np.zeros(0)
-    ticks, first = np.unique(all_k, return_index=True)
-    t_s = all_t[first]
-    seen_ids: list[int] = [int(i) for i in meta.get("ids", [])]
-    known = set(seen_ids)
-    for _, _, comps in veh + [(None, None, c) for parts in safety_parts.values()
-                              for _, c in parts]:
-        if "vehicle_id" in comps:
-            for i in np.unique(comps["vehicle_id"][0]).tolist():
-                if int(i) not in known:
-                    known.add(int(i))
-                    seen_ids.append(int(i))
-    ids = np.array(seen_ids, dtype=np.int64)
-    col_of = {int(i): c for c, i in enumerate(seen_ids)}
-    T, M = len(ticks), len(ids)
-
-    def scatter(parts: list[tuple[np.ndarray, dict[str, Any]]], names: tuple[str, ...],
-                fill: Any = np.nan, dtype: Any = float) -> list[np.ndarray]:
-        """Per-row flat components → (T, M) arrays, one per name."""
-        out = [np.full((T, M), fill, dtype=dtype) for _ in names]
-        for k, comps in parts:
-            if "vehicle_id" not in comps or not all(n in comps for n in names):
-                continue
-            vids, lens = comps["vehicle_id"]
-            r = np.searchsorted(ticks, k)
-            ok = (r < T) & (ticks[np.minimum(r, max(T - 1, 0))] == k) if T else r < 0
-            row = np.repeat(np.where(ok, r, -1), lens)
-            colidx = np.array([col_of[int(i)] for i in vids.tolist()], dtype=np.int64)
-            keep = row >= 0
-            for arr, n in zip(out, names, strict=True):
-                arr[row[keep], colidx[keep]] = comps[n][0][keep]
-        return out
-
-    def xy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.stack([a, b], axis=-1)
-
-    vparts = [(k, comps) for _, k, comps in veh]
-    x, y, vx, vy = scatter(vparts, ("x_m", "y_m", "vx_m_s", "vy_m_s"))
-    pos, vel = xy(x, y), xy(vx, vy)
-    phases = None
-    if veh and all("phase" in comps for _, _, comps in veh):
-        (phases,) = scatter(vparts, ("phase",), fill=None, dtype=object)
-    cmd = None
-    if cmd_parts:
-        cx, cy = scatter(cmd_parts, ("cmd_x_m_s", "cmd_y_m_s"))
-        cmd = xy(cx, cy)
-    safety: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    safety_ticks: dict[str, np.ndarray] = {}
-    for sfx, parts in safety_parts.items():
-        sx, sy, svx, svy = scatter(parts, ("x_m", "y_m", "vx_m_s", "vy_m_s"))
-        safety[sfx] = (xy(sx, sy), xy(svx, svy))
-        logged = np.zeros(T, dtype=bool)
-        if T:
-            kk = np.concatenate([k for k, _ in parts])
-            r = np.searchsorted(ticks, kk)
-            ok = (r < T) & (ticks[np.minimum(r, T - 1)] == kk)
-            logged[r[ok]] = True
-        safety_ticks[sfx] = logged
-    metrics: dict[str, np.ndarray] = {}
-    metric_series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    for key, parts in metric_parts.items():
-        st = np.concatenate([q[0] for q in parts])
-        sk = np.concatenate([q[1] for q in parts])
-        sv = np.concatenate([q[2] for q in parts])
-        order = np.argsort(sk, kind="stable")
-        metric_series[key] = (st[order], sk[order], sv[order])
-        arr = np.full(T, np.nan)
-        for _, k, v in parts:
-            r = np.searchsorted(ticks, k)
-            ok = (r < T) & (ticks[np.minimum(r, T - 1)] == k) if T else np.zeros(len(k), bool)
-            arr[r[ok]] = v[ok]
-        metrics[key] = arr
-    events.sort(key=lambda e: e[0])
-    partitions = []
-    for kk in sorted(set(parts_sub) | set(parts_tri)):
-        ts = parts_sub.get(kk, parts_tri.get(kk))[0]  # type: ignore[index]
-        partitions.append((ts, parts_sub.get(kk, (ts, []))[1], parts_tri.get(kk, (ts, []))[1]))
-    return RecordingData(
-        path=p, meta=meta, summary=summary, t_s=t_s, tick=ticks, ids=ids, pos=pos, vel=vel,
-        cmd=cmd, phases=phases, safety=safety, safety_ticks=safety_ticks, metrics=metrics,
-        metric_series=metric_series,
-        exits=exits, events=events,
-        entity_rows=entity_rows, static_rows=static_rows,
-        application_id=str(stores[0].application_id), recording_id=str(stores[0].recording_id),
-        partitions=partitions,
-    )

@@ -1,37 +1,7 @@
-"""``vtube-fleet agent MISSION.toml --vehicle I``: one vehicle's agent as its own process.
+"""One vehicle flown by its own process (``vtube-fleet agent``).
 
-The agent flies slot ``I`` (0-based; endpoint ``I`` of ``vtube-fleet run``) with ONE
-:class:`~vtube_fleet.fleet.pilot.VehiclePilot` (the fleet's flight procedure and the same
-controller call as the supervisor) and learns its neighbours through an MQTT broker
-(:class:`~vtube_fleet.bus.mqtt.MqttBus`): it publishes its own state at the control rate and
-computes its own setpoint from the neighbours within r_s + r_a. Nobody else computes it.
-
-Procedure (``docs/mqtt.md``):
-
-1. connect to the broker (with back-off) and wait for a run announced by ``vtube-fleet mission
-   start`` (retained config). **Refuse** (status ``refused``, one-line error, exit 2) when the
-   announced config hash differs from this mission file's, when slot I is not in the run, or
-   when the run already started (a late agent never joins a fleet in flight);
-2. join the run, connect to the vehicle (``--endpoint``, default PX4 SITL instance I), wait
-   until it is ready and publish READY; measure the link latency for a second and fix the safety
-   budget δ = v'_max·(T + L + τ_d + t63) with L = link latency + the run's neighbour max age
-   (the oldest neighbour state used as a live position: the staleness budget); check that the
-   run's spatial cells are large enough for it, and the paper's conditions with the READY
-   positions of the whole run;
-3. on ``start``: arm, climb, announce ``at_altitude`` and wait (up to ``takeoff_timeout_s``)
-   until every teammate is at altitude (or gone), so the fleet enters the tube together; fly
-   the tube; past the finishing line wait for the others, then ``on_complete`` (land / hold);
-4. ``abort`` (or Ctrl-C / SIGTERM): hold, then land; exit 3 (130 for a signal).
-
-**Broker loss** (:class:`BusAwarePilot`): while the broker is unreachable, or after it is back
-until every airborne neighbour's state is fresh again (at most :func:`rejoin_grace_s`: one
-reconnect back-off of the slowest agent plus ``lost_after_s``, after which a silent one is a
-lost obstacle per the agent's rule), a vehicle in the tube stops: it streams
-zero horizontal velocity with altitude hold instead of its last setpoint, and never computes
-with stale neighbours. After ``--broker-hold-limit`` seconds without the broker it lands.
-
-Exit codes: 0 flew through the tube and landed (or holds, ``on_complete = "hold"``); 2 a user
-error or a refusal (nothing armed); 3 aborted, lost or failed; 130 interrupted.
+Its pilot reads the neighbours' states from an MQTT broker, stands still when that information
+cannot be trusted, and records its own view of the flight.
 """
 
 from __future__ import annotations
@@ -57,33 +27,46 @@ from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, FlightPlan
 from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget, budget_problems
-from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
-from vtube_fleet.link.base import LinkError
-from vtube_fleet.missioncli import (
+from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
     DEFAULT_BROKER,
-    add_bus_args,
     bus_safety_budget,
     config_hash,
     default_max_age_s,
     default_mission_id,
     needed_cell_m,
 )
-from vtube_fleet.recording import add_recording_args
+from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
+from vtube_fleet.link.base import LinkError
+from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
 from vtube_fleet.state import AIRBORNE_PHASES, NeighbourState, Phase
 
-__all__ = ["AgentProcess", "AgentRefused", "BusAwarePilot", "register"]
+__all__ = [
+    "AgentAborted",
+    "AgentProcess",
+    "AgentRecording",
+    "AgentRefused",
+    "BACKOFF_JITTER",
+    "BusAwarePilot",
+    "rejoin_grace_s",
+]
 
 log = logging.getLogger(__name__)
 
-EXIT_OK = 0
-EXIT_INCOMPLETE = 3
-EXIT_UNSAFE = 4
-EXIT_INTERRUPTED = 130
+
+
+
+
+
+
+
+
 
 #: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
 _UP_STAGES = ("at_altitude", "in_tube", "exited", "done")
+
+
 #: Teammate stages that count as "past the finishing line" for the exit barrier.
 _OUT_STAGES = ("exited", "done")
 
@@ -98,7 +81,7 @@ class AgentAborted(UserError):
     exit_code = EXIT_INCOMPLETE
 
 
-class _Interrupted(Exception):
+class AgentInterrupted(Exception):
     """SIGINT / SIGTERM arrived (the vehicle has been held and landed when this propagates)."""
 
 
@@ -265,7 +248,7 @@ class AgentRecording:
     and ``OUT/summary.json``.
 
     The fleet *as this agent heard it*, folded by the coordinator's
-    :class:`~vtube_fleet.missioncli.RunMonitor` (same layout, same summary keys, so
+    :class:`~vtube_fleet.fleet.distributed.monitor.RunMonitor` (same layout, same summary keys, so
     ``vtube-fleet review`` recomputes the summary the agent wrote): the neighbours' states as
     they arrived through the broker (their ages are the summary's ``state_age_*``), and this
     vehicle's own state and velocity command at every control tick, also while the broker is
@@ -278,7 +261,7 @@ class AgentRecording:
 
     def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
                  t0_s: float) -> None:
-        from vtube_fleet.missioncli import RunMonitor
+        from vtube_fleet.fleet.distributed.monitor import RunMonitor
 
         self.vehicle = vehicle
         self.recorder = recorder
@@ -318,7 +301,8 @@ class AgentRecording:
     def finish(self, out: Path, pilot: BusAwarePilot | None, **extra: Any) -> Path:
         """Write ``OUT/summary.json``, store it in the recording and close it (every exit
         path); returns the summary's path."""
-        from vtube_fleet.missioncli import _num, write_summary
+        from vtube_fleet.artifacts import write_summary
+        from vtube_fleet.fleet.distributed.monitor import _num
 
         mon = self.monitor
         stamp = mon.exit_stamp.get(self.vehicle)
@@ -392,7 +376,7 @@ class AgentProcess:
         self.out = None if out is None else Path(out)
         self.recorder: Any = None
         if self.out is not None:  # a bad --rerun-save / --rerun-connect fails here, not later
-            from vtube_fleet.recording import recorder_from_args
+            from vtube_fleet.cli._args import recorder_from_args
 
             self.recorder = recorder_from_args(
                 rerun_args if rerun_args is not None else argparse.Namespace(), self.out,
@@ -448,7 +432,7 @@ class AgentProcess:
         with contextlib.suppress(TimeoutError):
             await self.bus.wait_for(check, timeout_s)
         if self._interrupt.is_set():
-            raise _Interrupted
+            raise AgentInterrupted
         if self._abort.is_set():
             raise AgentAborted(f"vehicle {self.vehicle}: run aborted by the coordinator")
         return predicate()
@@ -700,7 +684,7 @@ class AgentProcess:
         try:
             code = await self._fly_started(pilot)
             outcome = "completed" if code == EXIT_OK else "incomplete"
-        except _Interrupted:
+        except AgentInterrupted:
             outcome = "interrupted"
             raise
         except AgentAborted:
@@ -775,7 +759,7 @@ class AgentProcess:
         await self._land_now(pilot, why)
         self.bus.announce("online", stage="done")
         if self._interrupt.is_set():
-            raise _Interrupted
+            raise AgentInterrupted
         raise AgentAborted(f"vehicle {self.vehicle}: {why}; final phase {pilot.phase.value}")
 
     async def run(self) -> int:
@@ -809,76 +793,3 @@ async def _first(*aws: Any) -> None:
     finally:
         for t in tasks:
             t.cancel()
-
-
-def _cmd_agent(args: argparse.Namespace) -> int:
-    proc = AgentProcess(
-        args.mission,
-        args.vehicle,
-        broker=args.broker,
-        endpoint=args.endpoint,
-        backend=args.link,
-        mission_id=args.mission_id,
-        join_timeout_s=args.join_timeout,
-        broker_hold_limit_s=args.broker_hold_limit,
-        out=(args.out if args.out is not None
-             else Path("runs") / (args.mission_id or default_mission_id(args.mission))
-             / f"agent-{args.vehicle}"),
-        rerun_args=args,
-    )
-    try:
-        return asyncio.run(proc.run())
-    except _Interrupted:
-        print(f"agent {args.vehicle}: interrupted (vehicle held, then landed)", file=sys.stderr)
-        return EXIT_INTERRUPTED
-
-
-def register(subparsers: Any) -> None:
-    p = subparsers.add_parser(
-        "agent",
-        help="fly ONE vehicle of a mission as its own process; neighbours over MQTT",
-        description="Fly slot I of MISSION.toml (endpoint I of `vtube-fleet run`) with this "
-        "process's own controller; neighbours' states through an MQTT broker. Start one per "
-        "vehicle, then `vtube-fleet mission start`. See docs/mqtt.md.",
-    )
-    p.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
-    p.add_argument(
-        "--vehicle", type=int, required=True, metavar="I", help="the slot to fly (0-based)"
-    )
-    p.add_argument(
-        "--endpoint",
-        default=None,
-        metavar="URL",
-        help="the vehicle's endpoint (default: PX4 SITL instance I, udpin://127.0.0.1:14540+I)",
-    )
-    add_bus_args(p)
-    p.add_argument(
-        "--link",
-        choices=("mavlink", "mavsdk"),
-        default="mavlink",
-        help="vehicle link backend (default mavlink)",
-    )
-    p.add_argument(
-        "--join-timeout",
-        type=float,
-        default=600.0,
-        metavar="S",
-        help="seconds to wait for `mission start` (default 600)",
-    )
-    p.add_argument(
-        "--broker-hold-limit",
-        type=float,
-        default=30.0,
-        metavar="S",
-        help="land after standing still this long without the broker (default 30)",
-    )
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="this agent's summary.json and recording.rrd, from the start command on "
-        "(default runs/MISSION_ID/agent-I)",
-    )
-    add_recording_args(p)
-    p.set_defaults(func=_cmd_agent)

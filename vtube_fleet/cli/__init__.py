@@ -20,11 +20,14 @@ __all__ = ["main", "build_parser"]
 
 #: Modules that register sub-commands, in the order they appear in ``--help``.
 COMMAND_MODULES: tuple[str, ...] = (
-    "vtube_fleet.simcli",
-    "vtube_fleet.fleetcli",
-    "vtube_fleet.reviewcli",
-    "vtube_fleet.agentcli",
-    "vtube_fleet.missioncli",
+    "vtube_fleet.cli.check",
+    "vtube_fleet.cli.sim",
+    "vtube_fleet.cli.run",
+    "vtube_fleet.cli.mock_fleet",
+    "vtube_fleet.cli.sitl_homes",
+    "vtube_fleet.cli.review",
+    "vtube_fleet.cli.agent",
+    "vtube_fleet.cli.mission",
 )
 
 

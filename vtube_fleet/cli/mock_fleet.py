@@ -1,0 +1,77 @@
+"""``vtube-fleet mock-fleet``: mock PX4 vehicles in a mission's slots until interrupted."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import sys
+from pathlib import Path
+from typing import Any
+
+from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet.launch import mock_fleet
+
+__all__ = ["register"]
+
+
+def _cmd_mock_fleet(args: argparse.Namespace) -> int:
+    mission = load_mission(args.mission)
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        import signal
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, stop.set)
+        kwargs: dict[str, Any] = {"boot_time_scale": args.boot_time_scale,
+                                  "profile": args.profile, "estimator": args.estimator,
+                                  "estimator_shared": args.estimator_shared,
+                                  "gcs_link": args.gcs_link, "seed": args.seed}
+        if args.gcs_port is not None or args.vehicle_port is not None:
+            from sim_stub import PortScheme
+
+            gcs = 14540 if args.gcs_port is None else args.gcs_port
+            veh = gcs + 40 if args.vehicle_port is None else args.vehicle_port
+            kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
+        async with mock_fleet(mission, args.count, **kwargs) as fleet:
+            eps = list(fleet.endpoints)
+            print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
+                  flush=True)
+            print(",".join(eps), flush=True)
+            await stop.wait()
+        print("mock fleet stopped", file=sys.stderr)
+
+    asyncio.run(main())
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    m = subparsers.add_parser(
+        "mock-fleet", help="run mock PX4 vehicles in a mission's slots until interrupted",
+        description="Start sim_stub vehicles placed in the mission's slots (PX4 SITL port "
+                    "scheme: vehicle i on udpin://127.0.0.1:14540+i) and run until Ctrl-C.")
+    m.add_argument("mission", type=Path)
+    m.add_argument("--count", type=int, default=None, help="number of vehicles (default: all "
+                                                           "slots)")
+    m.add_argument("--boot-time-scale", type=float, default=1.0, metavar="S",
+                   help="scale the vehicles' boot timeline (default 1 = as PX4 SITL)")
+    m.add_argument("--profile", choices=("full", "lite"), default="full",
+                   help="sim_stub stream set: every stream PX4 sends (full) or what clients "
+                        "rely on (lite)")
+    m.add_argument("--estimator", choices=("px4-sih", "rtk", "ideal"), default="px4-sih",
+                   help="the vehicles' estimate errors: px4-sih (like real PX4 SITL, default), "
+                        "rtk (cm-level), ideal (none)")
+    m.add_argument("--estimator-shared", action="store_true",
+                   help="every vehicle gets the same estimate-error sequence (as SIH does)")
+    m.add_argument("--gcs-link", choices=("lite", "full", "off"), default="lite",
+                   help="PX4's GCS link (udp 18570+i -> 14550; ground truth on request): its "
+                        "default stream set (default lite)")
+    m.add_argument("--seed", type=int, default=0, help="seed of the estimate errors")
+    m.add_argument("--gcs-port", type=int, default=None, metavar="N",
+                   help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
+    m.add_argument("--vehicle-port", type=int, default=None, metavar="N",
+                   help="port vehicle 0 sends from (vehicle i: N+i; default GCS port + 40)")
+    m.set_defaults(func=_cmd_mock_fleet)

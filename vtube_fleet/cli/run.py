@@ -1,0 +1,108 @@
+"""``vtube-fleet run``: fly a mission with PX4 vehicles or the built-in mock fleet."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+from typing import Any
+
+from vtube_fleet.cli._args import add_recording_args, recorder_from_args
+from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet.launch import BACKENDS, fly, parse_endpoint_list
+
+__all__ = ["register"]
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from vtube_fleet.fleet.view import FleetView
+
+    mission = load_mission(args.mission)
+    endpoints = None
+    if args.endpoints:
+        endpoints = parse_endpoint_list(args.endpoints, mission.count)
+        if len(endpoints) < mission.count:
+            print(f"note: {len(endpoints)} endpoints for {mission.count} slots: flying slots "
+                  f"0..{len(endpoints) - 1} only", file=sys.stderr)
+            mission = mission.with_vehicles(len(endpoints))
+    out = args.out if args.out is not None else Path("runs") / Path(args.mission).stem
+    recorder = _recorder(args, out)
+    view = FleetView(enabled=not args.quiet)
+    mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale,
+                   "estimator": args.mock_estimator, "seed": args.mock_seed}
+    # the built-in mock always has its ground truth: judge by it too
+    truth = args.truth or endpoints is None
+    try:
+        result = asyncio.run(fly(mission, backend=args.backend, endpoints=endpoints,
+                                 out_dir=out, recorder=recorder, view=view,
+                                 mock_kwargs=mock_kwargs, truth=truth))
+    finally:
+        recorder.close()
+    print(_closing_line(result, out), file=sys.stderr)
+    if result.exit_code not in (0, 130) and result.reason:
+        red = "\x1b[31m" if sys.stderr.isatty() else ""
+        print(f"{red}error: mission {result.outcome}: {' '.join(result.reason.split())}"
+              f"{chr(27) + '[0m' if red else ''}", file=sys.stderr)
+    return int(result.exit_code)
+
+
+def _closing_line(result: Any, out: Path) -> str:
+    s = result.summary
+
+    def f(key: str, unit: str = "m", scale: float = 1.0) -> str:
+        v = s.get(key)
+        return "—" if v is None else f"{v * scale:.2f} {unit}"
+
+    return (f"{result.outcome}: {s.get('exited')}/{s.get('robots')} exited; clearance flown: "
+            f"pair {f('min_pair_distance_m')} (airborne {f('min_pair_distance_airborne_m')}, "
+            f"2 r_s = {s.get('pair_limit_m', 0):.2f} m), obstacle centre "
+            f"{f('min_obstacle_center_distance_m')}; commanded speed "
+            f"{f('min_speed_m_s', 'm/s')}..{f('max_speed_m_s', 'm/s')}, measured "
+            f"{f('min_measured_speed_m_s', 'm/s')}..{f('max_measured_speed_m_s', 'm/s')} "
+            f"(after the first {s.get('settle_s', 0):.1f} s: "
+            f"{f('min_measured_speed_settled_m_s', 'm/s')}..); "
+            f"rate {f('achieved_rate_hz', 'Hz')}, tick p99 "
+            f"{f('tick_duration_p99_s', 'ms', 1000)}"
+            + (f"; TRUE clearance: pair {f('truth_min_pair_distance_m')} (airborne "
+               f"{f('truth_min_pair_distance_airborne_m')}), obstacle centre "
+               f"{f('truth_min_obstacle_center_distance_m')}, legs "
+               f"{f('truth_min_left_leg_distance_m')} / {f('truth_min_right_leg_distance_m')}"
+               if s.get("truth") else "")
+            + f"; summary {out / 'summary.json'}")
+
+
+def _recorder(args: argparse.Namespace, out: Path) -> Any:
+    return recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet")
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "run", help="fly a mission with PX4 vehicles (or the built-in mock fleet)",
+        description="Fly MISSION.toml: connect, preflight, arm, take off, fly the tube in "
+                    "offboard, land. Endpoint i flies slot i. Without --endpoints a sim_stub "
+                    "mock fleet is started in-process in the mission's slots.")
+    p.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
+    p.add_argument("--backend", choices=BACKENDS, default="mavlink",
+                   help="vehicle link backend (default: mavlink)")
+    p.add_argument("--endpoints", metavar="URL,URL,...",
+                   help="vehicle endpoints in MAVSDK syntax, e.g. udpin://127.0.0.1:14540; "
+                        "fewer than the slots fly the first slots")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output folder for summary.json and recording.rrd "
+                        "(default: runs/<mission name>)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no live status view")
+    p.add_argument("--mock-boot-time-scale", type=float, default=1.0, metavar="S",
+                   help="without --endpoints: scale the mock vehicles' boot timeline (PX4 is "
+                        "armable ~4 s after boot; 0.3 makes that ~1.2 s)")
+    p.add_argument("--mock-estimator", choices=("px4-sih", "rtk", "ideal"), default="px4-sih",
+                   help="without --endpoints: the mock vehicles' estimate errors (px4-sih: "
+                        "like real PX4 SITL, the default; rtk: cm-level; ideal: none)")
+    p.add_argument("--mock-seed", type=int, default=0, metavar="N",
+                   help="without --endpoints: seed of the mock vehicles' estimate errors")
+    p.add_argument("--truth", action="store_true",
+                   help="ask every vehicle for its SITL ground truth (HIL_STATE_QUATERNION; "
+                        "PX4 SITL and the mock send it) and judge the clearance truly flown "
+                        "too (truth_* summary keys); always on for the built-in mock")
+    add_recording_args(p)
+    p.set_defaults(func=_cmd_run)

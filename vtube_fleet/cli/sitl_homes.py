@@ -1,0 +1,32 @@
+"""``vtube-fleet sitl-homes``: ``PX4_HOME_*`` for each PX4 SITL instance of a mission."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet.launch import FleetCliError, sitl_home_lines
+
+__all__ = ["register"]
+
+
+def _cmd_sitl_homes(args: argparse.Namespace) -> int:
+    mission = load_mission(args.mission)
+    n = mission.count if args.count is None else args.count
+    if not 1 <= n <= mission.count:
+        raise FleetCliError(f"--count must be between 1 and {mission.count}, got {n}")
+    for line in sitl_home_lines(mission, n):
+        print(line)
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    h = subparsers.add_parser(
+        "sitl-homes", help="print PX4_HOME_* for each PX4 SITL instance of a mission",
+        description="One line per instance: 'I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…' "
+                    "so that PX4 SITL instance I starts in slot I.")
+    h.add_argument("mission", type=Path)
+    h.add_argument("--count", type=int, default=None)
+    h.set_defaults(func=_cmd_sitl_homes)

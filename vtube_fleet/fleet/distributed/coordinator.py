@@ -1,0 +1,380 @@
+"""The thin coordinator of the distributed agents.
+
+It announces a run with the fleet's parameters (staleness limit, cells, safety budget δ), then
+starts, aborts and follows it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import json
+import logging
+import math
+import re
+import sys
+import time
+import tomllib
+import uuid
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, encode_config
+from vtube_fleet.bus.mqtt import MqttBus
+from vtube_fleet.bus.topics import validate_mission_id
+from vtube_fleet.errors import ConfigError, UserError
+from vtube_fleet.fleet.distributed.monitor import RunMonitor
+from vtube_fleet.state import (
+    Phase,
+)
+
+__all__ = [
+    "ASSUMED_ACCURACY_M",
+    "ASSUMED_LINK_LATENCY_S",
+    "Coordinator",
+    "DEFAULT_BROKER",
+    "MissionRunError",
+    "bus_safety_budget",
+    "config_hash",
+    "default_max_age_s",
+    "default_mission_id",
+    "needed_cell_m",
+    "run_cell_m",
+]
+
+log = logging.getLogger(__name__)
+
+
+DEFAULT_BROKER = "mqtt://127.0.0.1:1883"
+
+
+class MissionRunError(UserError):
+    """The run could not start: broker unreachable, an agent refused or did not join."""
+
+
+# ----------------------------------------------------------------------------------------------
+# mission identity (shared with the agent)
+# ----------------------------------------------------------------------------------------------
+def config_hash(path: str | Path) -> str:
+    """Hash of the mission file's *content* (parsed TOML, canonical JSON; comments and
+    formatting do not count): 16 hex digits of SHA-256."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+
+#: Link latency L (position age + setpoint delay) the coordinator assumes for every vehicle
+#: when it fixes the run's safety budget and cells; an agent whose own link needs more refuses.
+ASSUMED_LINK_LATENCY_S = 0.1
+
+
+#: Position accuracy σ assumed when the mission does not say (``position_accuracy_m``): PX4
+#: SITL reports 0.29-0.32 m; an agent whose vehicle reports more refuses.
+ASSUMED_ACCURACY_M = 0.35
+
+
+def default_max_age_s(mission: Any) -> float:
+    """The run's staleness limit: 3 control periods, at most ``neighbour_max_age_s``."""
+    cfg = mission.config
+    return min(3.0 * cfg.period_s, cfg.neighbour_max_age_s)
+
+
+def bus_safety_budget(mission: Any, measured: Any, max_age_s: float) -> Any:
+    """The MQTT agents' :class:`~vtube_fleet.fleet.budget.SafetyBudget`: the fleet's
+    :func:`~vtube_fleet.fleet.budget.mission_budget` with ``max_age_s`` added to L (a
+    neighbour's state is used up to that old). ``measured``: a
+    :class:`~vtube_fleet.fleet.budget.LinkMeasurement` (an agent's own), or None for the
+    coordinator's assumptions (:data:`ASSUMED_LINK_LATENCY_S`, :data:`ASSUMED_ACCURACY_M`)."""
+    from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
+
+    if measured is None:
+        measured = LinkMeasurement(ASSUMED_LINK_LATENCY_S - mission.config.latency_headroom_s,
+                                   0.0, ASSUMED_ACCURACY_M)
+    return mission_budget(mission, measured, extra_latency_s=max_age_s)
+
+
+def needed_cell_m(mission: Any, max_age_s: float, delta_m: float) -> float:
+    """Smallest cell size with which an agent hears every vehicle that matters to it: the
+    flown neighbour radius r_s' + r_a' (= r_s + r_a + 2δ) plus what a neighbour covers at
+    v_max in one control period and ``max_age_s`` (see ``docs/mqtt.md``)."""
+    p = mission.scenario.controller
+    return float(p.r_s + p.r_a + 2.0 * delta_m + p.v_max * (mission.config.period_s + max_age_s))
+
+
+def run_cell_m(mission: Any, max_age_s: float) -> float:
+    """The cell size a coordinator announces: :func:`needed_cell_m` with the run's δ
+    (:func:`bus_safety_budget` under the coordinator's assumptions), rounded up to 0.5 m."""
+    delta = bus_safety_budget(mission, None, max_age_s).delta_m
+    return math.ceil(2.0 * needed_cell_m(mission, max_age_s, delta)) / 2.0
+
+
+def default_mission_id(path: str | Path) -> str:
+    """The mission id used in the topics: the file name without extension, with characters
+    that are not letters, digits, ``_.-`` replaced by ``-``."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "-", Path(path).stem)[:64] or "mission"
+    return validate_mission_id(stem)
+
+
+# ----------------------------------------------------------------------------------------------
+# the coordinator
+# ----------------------------------------------------------------------------------------------
+class Coordinator:
+    """Announce a run, start / abort it and follow it (module docstring)."""
+
+    def __init__(
+        self,
+        mission_path: str | Path,
+        broker: str,
+        *,
+        mission_id: str | None = None,
+        vehicles: int | None = None,
+        broker_timeout_s: float = 10.0,
+        max_age_s: float | None = None,
+        cells: bool = True,
+    ) -> None:
+        from vtube_fleet.config.mission import load_mission
+
+        self.path = Path(mission_path)
+        self.mission = load_mission(self.path)
+        self.mission_id = mission_id or default_mission_id(self.path)
+        validate_mission_id(self.mission_id)
+        self.config_hash = config_hash(self.path)
+        n = self.mission.count if vehicles is None else int(vehicles)
+        if not 1 <= n <= self.mission.count:
+            raise MissionRunError(
+                f"--vehicles must be between 1 and {self.mission.count} (the slots of "
+                f"{self.path.name}), got {n}"
+            )
+        self.vehicles = n
+        self.max_age_s = default_max_age_s(self.mission) if max_age_s is None else max_age_s
+        lost_after = self.mission.config.lost_after_s
+        if not 0 < self.max_age_s <= lost_after:
+            raise MissionRunError(
+                f"--max-age {self.max_age_s:g} s must be > 0 and <= lost_after_s = "
+                f"{lost_after:g} s of {self.path.name}"
+            )
+        self.cells = cells
+        self.broker = broker
+        self.broker_timeout_s = broker_timeout_s
+        self.bus = MqttBus(broker, self.mission_id)
+        self.run_id = ""
+        self.announced: MissionConfigMsg | None = None
+        self.t_start_wall: float | None = None
+
+    async def __aenter__(self) -> Coordinator:
+        self.bus.start()
+        try:
+            await self.bus.wait_connected(self.broker_timeout_s)
+        except TimeoutError:
+            await self.bus.close()
+            raise MissionRunError(
+                f"cannot reach the MQTT broker {self.broker} within {self.broker_timeout_s:g} s "
+                f"(is it running? --broker mqtt://HOST:PORT)"
+            ) from None
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.bus.close()
+
+    # -- publishing --------------------------------------------------------------------------
+    def announce(self) -> str:
+        """Publish a new run of this mission (retained config); returns the run id."""
+        self.run_id = uuid.uuid4().hex[:12]
+        cfg = MissionConfigMsg(
+            self.mission_id,
+            self.run_id,
+            self.config_hash,
+            self.vehicles,
+            time.time(),
+            self.path.name,
+            max_age_s=self.max_age_s,
+            cell_m=run_cell_m(self.mission, self.max_age_s) if self.cells else 0.0,
+            delta_m=bus_safety_budget(self.mission, None, self.max_age_s).delta_m,
+        )
+        self.bus.set_retained(self.bus.topics.config, encode_config(cfg))
+        self.announced = cfg
+        return self.run_id
+
+    def command(self, name: str) -> Command:
+        cmd = Command(
+            name,
+            self.mission_id,
+            self.run_id,
+            self.config_hash,
+            time.time_ns() // 1_000_000,
+            time.time(),
+        )
+        self.bus.set_retained(self.bus.topics.cmd, encode_command(cmd))
+        return cmd
+
+    # -- reading -----------------------------------------------------------------------------
+    def joined(self, vid: int) -> bool:
+        st = self.bus.statuses.get(vid)
+        return (
+            st is not None
+            and st.status == "online"
+            and st.run_id == self.run_id
+            and st.config_hash == self.config_hash
+        )
+
+    def ready(self, vid: int) -> bool:
+        s = self.bus.latest().get(vid)
+        return self.joined(vid) and s is not None and s.phase == Phase.READY and s.age_s() < 2.0
+
+    def refusals(self) -> list[str]:
+        out = []
+        for vid in range(self.vehicles):
+            st = self.bus.statuses.get(vid)
+            if st is not None and st.status == "refused" and st.run_id in (self.run_id, ""):
+                out.append(f"vehicle {vid}: {st.detail}")
+        return out
+
+    def finished(self, vid: int) -> bool:
+        """The vehicle is done: landed / failed, or its agent left or was lost."""
+        st = self.bus.statuses.get(vid)
+        s = self.bus.latest().get(vid)
+        if s is not None and s.phase in (Phase.LANDED, Phase.FAILED):
+            return True
+        # (a last will carries the run id the agent had when it connected: often none yet)
+        return (
+            st is not None
+            and st.run_id in (self.run_id, "")
+            and st.status in ("offline", "lost", "refused")
+        )
+
+    async def wait_ready(self, timeout_s: float, progress: bool = True) -> None:
+        """Until every vehicle's agent joined this run and its vehicle is READY."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        last_print = -math.inf
+        while True:
+            refused = self.refusals()
+            if refused:
+                raise MissionRunError(
+                    f"{len(refused)} agent(s) refused run {self.run_id} of "
+                    f"{self.mission_id}: " + "; ".join(refused)
+                )
+            joined = [v for v in range(self.vehicles) if self.joined(v)]
+            ready = [v for v in range(self.vehicles) if self.ready(v)]
+            if len(ready) == self.vehicles:
+                return
+            now = loop.time()
+            if now > deadline:
+                missing = [v for v in range(self.vehicles) if v not in joined]
+                unready = [v for v in joined if v not in ready]
+                parts = []
+                if missing:
+                    parts.append(
+                        f"no agent joined for vehicle(s) {_ids(missing)} (is `vtube-fleet "
+                        f"agent {self.path.name} --vehicle I --broker {self.broker}` running "
+                        f"for each?)"
+                    )
+                if unready:
+                    phases = ", ".join(f"{v}: {self._phase(v)}" for v in unready)
+                    parts.append(f"vehicle(s) not READY ({phases})")
+                raise MissionRunError(
+                    f"run {self.run_id}: after {timeout_s:g} s " + "; ".join(parts)
+                )
+            if progress and now - last_print >= 2.0:
+                last_print = now
+                print(
+                    f"waiting for agents: {len(joined)}/{self.vehicles} joined, "
+                    f"{len(ready)}/{self.vehicles} ready",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            with contextlib.suppress(TimeoutError):
+                await self.bus.wait_for(lambda: False, 0.2)
+
+    def _phase(self, vid: int) -> str:
+        s = self.bus.latest().get(vid)
+        return "no state" if s is None else s.phase.value
+
+    async def follow(self, timeout_s: float, mon: RunMonitor, progress: bool = True) -> str:
+        """Feed ``mon`` (states as they arrive, snapshots at the control rate) until every
+        vehicle is finished; the outcome: ``completed``, ``incomplete`` or ``timeout``."""
+        self.bus.add_state_listener(mon.on_state)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        period = self.mission.config.period_s
+        last_print = -math.inf
+        next_t = loop.time()
+        aborted_for: str | None = None
+        while True:
+            mon.sample(self.bus.latest(), time.time())
+            if all(self.finished(v) for v in range(self.vehicles)):
+                break
+            refused = self.refusals()
+            if refused and aborted_for is None:
+                aborted_for = "; ".join(refused)
+                print(f"aborting: agent refused after start: {aborted_for}", file=sys.stderr)
+                self.command("abort")
+            now = loop.time()
+            if now > deadline:
+                return "timeout"
+            if progress and now - last_print >= 5.0:
+                last_print = now
+                counts: dict[str, int] = {}
+                for v in range(self.vehicles):
+                    ph = self._phase(v)
+                    counts[ph] = counts.get(ph, 0) + 1
+                print(
+                    "fleet: "
+                    + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
+                    + f"; exited {len(mon.exit_stamp)}/{self.vehicles}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            next_t += period
+            await asyncio.sleep(max(0.0, next_t - loop.time()))  # the coordinator's clock
+        done = len(mon.exit_stamp) == self.vehicles and all(
+            (s := self.bus.latest().get(v)) is not None and s.phase == Phase.LANDED
+            for v in range(self.vehicles)
+        )
+        return "completed" if done and aborted_for is None else "incomplete"
+
+    def lost_vehicles(self) -> list[int]:
+        """Vehicles whose agent was lost (last will) or that reported LOST."""
+        out = []
+        for v in range(self.vehicles):
+            st = self.bus.statuses.get(v)
+            s = self.bus.latest().get(v)
+            if (st is not None and st.status == "lost") or (
+                s is not None and s.phase == Phase.LOST
+            ):
+                out.append(v)
+        return out
+
+    def vehicle_table(self) -> list[dict[str, Any]]:
+        rows = []
+        now = time.time()
+        for vid in sorted(set(range(self.vehicles)) | set(self.bus.latest())):
+            s = self.bus.latest().get(vid)
+            st = self.bus.statuses.get(vid)
+            rows.append(
+                {
+                    "id": vid,
+                    "status": st.status if st else None,
+                    "stage": st.stage if st else None,
+                    "run": st.run_id if st else None,
+                    "hash_ok": (st.config_hash == self.config_hash) if st else None,
+                    "detail": st.detail if st else None,
+                    "phase": s.phase.value if s else None,
+                    "x_m": round(s.x_m, 3) if s else None,
+                    "y_m": round(s.y_m, 3) if s else None,
+                    "age_s": round(now - s.stamp_s, 3) if s else None,
+                }
+            )
+        return rows
+
+
+def _ids(ids: Iterable[int]) -> str:
+    return ", ".join(str(i) for i in ids)

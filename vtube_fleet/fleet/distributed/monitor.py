@@ -1,0 +1,242 @@
+"""The fleet as its states reported it.
+
+:class:`RunMonitor` folds the vehicles' published states into the run summary (and the
+recording), for the coordinator and for each agent.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.state import (
+    COUNTED_AIRBORNE_PHASES,
+    STOPPED_PHASES,
+    NeighbourState,
+    Phase,
+)
+
+__all__ = [
+    "RunMonitor",
+]
+
+log = logging.getLogger(__name__)
+
+# ----------------------------------------------------------------------------------------------
+# following a run: the summary from the agents' states
+# ----------------------------------------------------------------------------------------------
+def _pct(values: Iterable[float], q: float) -> float | None:
+    a = np.asarray(list(values), dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, q)) if a.size else None
+
+
+def _num(x: float | None) -> float | None:
+    if x is None:
+        return None
+    return float(x) if math.isfinite(float(x)) else None
+
+
+@dataclass
+class RunMonitor:
+    """Folds snapshots of the agents' states into the fleet summary (``summary.json``).
+
+    Each :meth:`sample` (at the mission's control rate) takes the latest state of every vehicle:
+    the ``""`` metric stream holds the vehicles IN_TUBE (and LOST ones inside the tube, at
+    their frozen position), as the supervisor's does; the coordinator knows no commanded
+    velocities, so the commanded speed keys are ``None`` and the measured speeds are
+    ``min_measured_speed_m_s``/``max_measured_speed_m_s``. Exit times are the stamps of each
+    vehicle's first state past the finishing line; times (``*_exit_s``, metric steps, the
+    recording's mission time) count from ``t0_s``, the start command, as the supervisor's count
+    from its own start; ``flight_time_s`` from the fleet's first IN_TUBE state.
+    """
+
+    mission: Any
+    vehicles: int
+    monitor: Any = None
+    acc: Any = None
+    tube_start_s: float | None = None
+    exit_stamp: dict[int, float] = field(default_factory=dict)
+    ages: list[float] = field(default_factory=list)
+    min_pair_airborne: float = math.inf
+    measured_speed: list[float] = field(default_factory=lambda: [math.inf, -math.inf])
+    events: list[dict[str, Any]] = field(default_factory=list)
+    phases: dict[int, Phase] = field(default_factory=dict)
+    #: a :class:`vtube_fleet.recording.api.Recorder` (the fleet as its states reported it), or None
+    recorder: Any = None
+    t0_s: float = 0.0  # wall time the run started: the recording's mission time 0
+    ticks: int = 0
+
+    def __post_init__(self) -> None:
+        from vtube_fleet.core.metrics import SafetyMonitor, SummaryAccumulator, ViolationLog
+
+        sc = self.mission.scenario
+        self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, sc.controller)
+        self.acc = SummaryAccumulator(self.vehicles)
+        self.violations = ViolationLog(self.monitor)
+
+    def on_state(self, state: NeighbourState, received_s: float, *, count_age: bool = True
+                 ) -> None:
+        """Every live state heard (bus state listener): ages, phase changes, exits.
+        ``count_age=False``: a state that did not travel through the broker (an agent's own)."""
+        vid = state.vehicle_id
+        if not 0 <= vid < self.vehicles:
+            return
+        if count_age:
+            self.ages.append(received_s - state.stamp_s)
+        prev = self.phases.get(vid)
+        if prev != state.phase:
+            self.phases[vid] = state.phase
+            if self.recorder is not None:
+                self._record(
+                    "log_event",
+                    state.stamp_s - self.t0_s,
+                    f"{prev.value if prev else '-'} → {state.phase.value}",
+                    vehicle_id=vid,
+                )
+            self.events.append(
+                {
+                    "t_wall": round(state.stamp_s, 3),
+                    "vehicle": vid,
+                    "text": f"{prev.value if prev else '-'} → {state.phase.value}",
+                }
+            )
+        if state.phase == Phase.IN_TUBE and self.tube_start_s is None:
+            self.tube_start_s = state.stamp_s
+        if (
+            state.phase in (Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.LANDED)
+            and prev in (Phase.IN_TUBE, Phase.EXITED)
+            and vid not in self.exit_stamp
+            and (state.phase == Phase.EXITED or self._past_finish(state))
+        ):
+            self.exit_stamp[vid] = state.stamp_s
+            self.acc.add_exits(state.stamp_s - self.t0_s, [vid])
+            if self.recorder is not None:  # the recording's exits are exactly these (its
+                # own detection is off: it would see other moments, or a vehicle first heard
+                # already exited, which is not an exit seen here)
+                self._record("log_exits", state.stamp_s - self.t0_s, self.ticks, [vid])
+
+    def _past_finish(self, st: NeighbourState) -> bool:
+        tube = self.mission.scenario.tube
+        p = np.array([st.x_m, st.y_m])
+        eps0 = float(self.mission.scenario.controller.eps_0)
+        return bool(-((p - tube.p_r1) @ tube.n_c) <= eps0)
+
+    def _record(self, method: str, *args: Any, **kwargs: Any) -> None:
+        try:
+            getattr(self.recorder, method)(*args, **kwargs)
+        except Exception as exc:  # the recording must never stop the coordinator
+            log.warning("recorder: %s failed: %s", method, exc)
+
+    def sample(self, states: dict[int, NeighbourState], now_s: float,
+               cmd: dict[int, np.ndarray] | None = None) -> None:
+        """One snapshot of the latest states (the coordinator's tick). ``cmd``: commanded
+        tube-frame velocities known for some vehicles (an agent knows its own), recorded."""
+        if self.tube_start_s is None:
+            if self.recorder is not None:
+                self._record_tick(states, now_s, cmd=cmd)
+            return
+        m = self.vehicles
+        pos = np.full((m, 2), np.nan)
+        air = np.full((m, 2), np.nan)
+        tube = self.mission.scenario.tube
+        for vid, st in states.items():
+            if not 0 <= vid < m:
+                continue
+            p = (st.x_m, st.y_m)
+            if st.phase in COUNTED_AIRBORNE_PHASES:
+                air[vid] = p
+            # judged in the tube: flying it, or stopped inside it (lost, holding, landing)
+            if st.phase == Phase.IN_TUBE or (
+                (st.phase == Phase.LOST or st.phase in STOPPED_PHASES)
+                and bool(tube.contains(np.array(p)))
+            ):
+                pos[vid] = p
+            if st.phase == Phase.IN_TUBE and now_s - st.stamp_s < 1.0:
+                sp = math.hypot(st.vx_m_s, st.vy_m_s)
+                self.measured_speed[0] = min(self.measured_speed[0], sp)
+                self.measured_speed[1] = max(self.measured_speed[1], sp)
+        sm = self.monitor.evaluate(pos, None)
+        self.acc.add(now_s - self.t0_s, sm)
+        e = self.violations.note(now_s - self.t0_s, "", sm, pos, None, range(m))
+        if e is not None:
+            self.events.append({"t_s": e["t_s"], "vehicle": None, "level": "error",
+                                "text": f"LIMIT BROKEN ({e['source']}): {e['condition']} "
+                                        f"{e['value']:.3f} m, limit {e['limit']:.3f} m: "
+                                        f"vehicle(s) {e['vehicles']}"})
+        if self.recorder is not None:
+            self._record_tick(states, now_s, safety={"": (pos, np.full_like(pos, np.nan))},
+                              cmd=cmd)
+        q = air[np.isfinite(air[:, 0])]
+        if q.shape[0] > 1:
+            d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
+            d[np.diag_indices_from(d)] = np.inf
+            self.min_pair_airborne = min(self.min_pair_airborne, float(d.min()))
+
+    def _record_tick(
+        self, states: dict[int, NeighbourState], now_s: float, safety: Any = None,
+        cmd: dict[int, np.ndarray] | None = None,
+    ) -> None:
+        m = self.vehicles
+        pos = np.full((m, 2), np.nan)
+        vel = np.full((m, 2), np.nan)
+        phases = [""] * m
+        for vid, st in states.items():
+            if 0 <= vid < m:
+                pos[vid] = (st.x_m, st.y_m)
+                vel[vid] = (st.vx_m_s, st.vy_m_s)
+                phases[vid] = st.phase.value
+        cmd_arr = None
+        if cmd:
+            cmd_arr = np.full((m, 2), np.nan)
+            for vid, c in cmd.items():
+                if 0 <= vid < m:
+                    cmd_arr[vid] = c
+        self._record(
+            "log_tick",
+            t_s=now_s - self.t0_s,
+            tick=self.ticks,
+            ids=np.arange(m),
+            pos=pos,
+            vel=vel,
+            phases=phases,
+            cmd=cmd_arr,
+            safety=safety,
+        )
+        self.ticks += 1
+
+    def summary(self, **extra: Any) -> dict[str, Any]:
+        sc = self.mission.scenario
+        params = sc.controller
+        last_exit = max(self.exit_stamp.values()) if self.exit_stamp else None
+        out: dict[str, Any] = {
+            "kind": "mqtt",
+            "source": self.mission.source,
+            "vehicles": self.vehicles,
+            "r_s": params.r_s,
+            "r_a": params.r_a,
+            "pair_limit_m": self.monitor.limits.pair_m,
+            "min_pair_distance_airborne_m": _num(self.min_pair_airborne),
+            "min_commanded_speed_m_s": None,
+            "max_commanded_speed_m_s": None,
+            "min_measured_speed_m_s": _num(self.measured_speed[0]),
+            "max_measured_speed_m_s": _num(self.measured_speed[1]),
+            "rate_hz": self.mission.config.rate_hz,
+            "state_age_p50_s": _num(_pct(self.ages, 50)),
+            "state_age_p99_s": _num(_pct(self.ages, 99)),
+            "states_received": len(self.ages),
+            "flight_time_s": (
+                _num(last_exit - self.tube_start_s)
+                if last_exit is not None and self.tube_start_s is not None
+                else None
+            ),
+            "events": self.events[-400:],
+            "first_violation": self.violations.first,
+        }
+        out.update(extra)
+        return self.acc.summary(**out)

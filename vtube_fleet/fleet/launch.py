@@ -1,0 +1,146 @@
+"""Launching a fleet mission.
+
+The built-in mock fleet in a mission's slots, endpoint lists, PX4 SITL homes, and :func:`fly`
+(links + :class:`~vtube_fleet.fleet.supervisor.Supervisor`). Used by ``vtube-fleet run`` /
+``mock-fleet`` / ``sitl-homes``, the tests and the benchmarks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from vtube_fleet.config.mission import Mission
+from vtube_fleet.errors import UserError
+
+__all__ = [
+    "BACKENDS",
+    "FleetCliError",
+    "UNUSED_STREAMS_OFF",
+    "fly",
+    "mock_fleet",
+    "parse_endpoint_list",
+    "sitl_home_lines",
+]
+
+log = logging.getLogger(__name__)
+
+
+BACKENDS = ("mavlink", "mavsdk")
+
+
+#: mavlink backend: streams the fleet does not use, switched off on connect (SET_MESSAGE_INTERVAL
+#: −1 via rate 0) to save link bandwidth and CPU on both ends: ATTITUDE (100 Hz in the
+#: captures), ATTITUDE_QUATERNION, HIGHRES_IMU, ODOMETRY.
+UNUSED_STREAMS_OFF: dict[int, float] = {30: 0.0, 31: 0.0, 105: 0.0, 331: 0.0}
+
+
+class FleetCliError(UserError):
+    """A command-line mistake (endpoint count, backend)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers shared by the commands, the tests and the benchmark
+# ----------------------------------------------------------------------------------------------
+def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
+    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1."""
+    geo = mission.slot_geodetic()
+    n = mission.count if count is None else count
+    return [f"{i} PX4_HOME_LAT={geo[i, 0]:.7f} PX4_HOME_LON={geo[i, 1]:.7f} "
+            f"PX4_HOME_ALT={geo[i, 2]:.2f}" for i in range(n)]
+
+
+def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:
+    geo = mission.slot_geodetic()
+    return [(float(g[0]), float(g[1]), float(g[2])) for g in geo[:count]]
+
+
+@contextlib.asynccontextmanager
+async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
+                     ) -> AsyncIterator[Any]:
+    """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager); PX4's port
+    scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond."""
+    try:
+        from sim_stub import MockFleet, SimStubError
+    except ImportError as exc:  # pragma: no cover - sim_stub ships with the package
+        raise FleetCliError(f"the built-in mock fleet (sim_stub) is not available: {exc}"
+                            ) from None
+    n = mission.count if count is None else count
+    if not 1 <= n <= mission.count:
+        raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
+                            f"slots), got {n}")
+    kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
+    try:
+        fleet = MockFleet(n, homes=_homes(mission, n), **kwargs)
+        await fleet.start()
+    except SimStubError as exc:
+        raise FleetCliError(f"mock fleet: {exc}") from None
+    try:
+        yield fleet
+    finally:
+        await fleet.stop()
+
+
+def parse_endpoint_list(text: str, slots: int) -> list[str]:
+    from vtube_fleet.link.endpoints import parse_endpoint
+
+    urls = [u.strip() for u in text.split(",") if u.strip()]
+    if not urls:
+        raise FleetCliError("--endpoints: no endpoint given")
+    if len(urls) > slots:
+        raise FleetCliError(f"--endpoints: {len(urls)} endpoints but the mission has only "
+                            f"{slots} slots (endpoint i flies slot i)")
+    for u in urls:
+        parse_endpoint(u)
+    if len(set(urls)) != len(urls):
+        raise FleetCliError("--endpoints: an endpoint is listed twice")
+    return urls
+
+
+# ----------------------------------------------------------------------------------------------
+# run
+# ----------------------------------------------------------------------------------------------
+async def fly(
+    mission: Mission,
+    *,
+    backend: str = "mavlink",
+    endpoints: Sequence[str] | None = None,
+    sysids: Sequence[int | None] | None = None,
+    out_dir: Path | None = None,
+    recorder: Any = None,
+    view: Any = None,
+    mock_kwargs: dict[str, Any] | None = None,
+    link_options: dict[str, Any] | None = None,
+    **supervisor_kwargs: Any,
+) -> Any:
+    """Fly ``mission`` (an in-process mock fleet when ``endpoints`` is None); returns the
+    :class:`~vtube_fleet.fleet.supervisor.FleetResult`."""
+    from vtube_fleet.fleet.supervisor import Supervisor
+    from vtube_fleet.link import open_links
+
+    async with contextlib.AsyncExitStack() as stack:
+        if endpoints is None:
+            fleet = await stack.enter_async_context(
+                mock_fleet(mission, **(mock_kwargs or {})))
+            endpoints = list(fleet.endpoints)
+            if sysids is None:
+                sysids = [i + 1 for i in range(len(endpoints))]
+        if backend not in BACKENDS:
+            raise FleetCliError(f"unknown backend {backend!r} (choose from "
+                                f"{', '.join(BACKENDS)})")
+        if sysids is None and backend == "mavsdk":
+            from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
+
+            sysids = [px4_sitl_sysid(parse_endpoint(u).port) or i + 1
+                      for i, u in enumerate(endpoints)]
+        options = dict(link_options or {})
+        if backend == "mavlink":
+            options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
+        links = await stack.enter_async_context(
+            open_links(list(endpoints), backend, sysids=sysids, **options))
+        sup = Supervisor(mission, links, backend=backend, recorder=recorder, view=view,
+                         out_dir=out_dir, **supervisor_kwargs)
+        return await sup.run()
