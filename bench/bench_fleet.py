@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import math
 import os
 import resource
 import signal
@@ -34,62 +33,15 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from missions import grid_mission  # noqa: E402
 
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.launch import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
 from vtube_fleet.link import open_links  # noqa: E402
 from vtube_fleet.state import Phase  # noqa: E402
-
-
-def mission_text(count: int, rate_hz: float, seconds: float) -> str:
-    cols = 10 if count >= 20 else max(1, min(count, 4))
-    rows = math.ceil(count / cols)
-    spacing = 2.5
-    width = (cols - 1) * spacing + 2 * 2.5
-    length = rows * spacing + 2.0 + 15.0 + seconds * 1.2
-    positions = []
-    for k in range(count):
-        i, j = divmod(k, cols)
-        positions.append([1.5 + i * spacing, -width / 2 + 2.5 + j * spacing])
-    half = width / 2
-    ob_x = rows * spacing + 12.0
-    return f"""
-[tube]
-p_h0 = [0.0, {half}]
-p_h1 = [{length}, {half + 0.5}]
-p_r0 = [0.0, {-half}]
-p_r1 = [{length}, {-half - 0.5}]
-
-[[obstacles]]
-center = [{ob_x}, 0.0]
-radius = 0.5
-
-[robots]
-r_s = 0.3
-r_a = 1.0
-v_min = 0.3
-v_max = 1.6
-positions = {json.dumps(positions)}
-
-[controller]
-v = 1.0
-v_max_prime = 0.5
-
-[mission]
-origin_lat_deg = 47.397742
-origin_lon_deg = 8.545594
-origin_alt_m = 488.0
-heading_deg = 0.0
-altitude_m = 3.0
-rate_hz = {rate_hz}
-climb_speed_m_s = 1.5
-connect_timeout_s = 60.0
-ready_timeout_s = 90.0
-arm_timeout_s = 60.0
-takeoff_timeout_s = 90.0
-mission_timeout_s = {seconds + 60.0}
-"""
 
 
 def start_mock(mission_path: Path, count: int, profile: str
@@ -129,7 +81,7 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
     sysids = [i + 1 for i in range(len(endpoints))]
     options = {"message_rates_hz": dict(UNUSED_STREAMS_OFF)} if args.backend == "mavlink" else {}
     async with open_links(endpoints, args.backend, sysids=sysids, **options) as links:
-        sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook, signals=True)
+        sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook)
         result = await sup.run()
     if "t1" not in window:
         raise SystemExit(f"the tube flight did not last {args.seconds} s: {result.outcome}: "
@@ -175,7 +127,7 @@ def main() -> None:
     os.environ.setdefault("MAVLINK20", "1")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"bench_{args.count}.toml"
-        path.write_text(mission_text(args.count, args.rate, args.seconds))
+        path.write_text(grid_mission(args.count, args.rate, args.seconds))
         proc, endpoints = start_mock(path, args.count, args.profile)
         try:
             out = asyncio.run(run(args, path, endpoints))

@@ -152,7 +152,8 @@ def run(args: argparse.Namespace) -> dict:
 
     import psutil
 
-    from vtube_fleet.bus.broker import LocalBroker
+    sys.path.insert(0, str(ROOT / "tests"))
+    from broker import LocalBroker
 
     n, procs = args.agents, max(1, min(args.procs, args.agents))
     tmp = Path(tempfile.mkdtemp(prefix="bench-mqtt-"))

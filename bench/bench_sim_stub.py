@@ -34,7 +34,7 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 from sim_stub import MockFleet, PortScheme  # noqa: E402
 from sim_stub.codec import SPECS, Encoder, MsgSpec  # noqa: E402
 from sim_stub.ports import free_port_scheme  # noqa: E402
-from sim_stub.vehicle import STREAM_CATALOG  # noqa: E402
+from sim_stub.telemetry import STREAM_CATALOG  # noqa: E402
 
 WARMUP_S = 8.0  # boot (~5.6 s) plus the interval requests
 REQUESTS = {32: 50.0, 33: 10.0, 245: 5.0, 242: 1.0}  # msgid -> Hz (capture GCS)

@@ -42,7 +42,7 @@ async def one(path: Path, backend: str, seed: int, vehicles: int | None) -> dict
     with tempfile.TemporaryDirectory() as out:
         result = await fly(mission, backend=backend, out_dir=Path(out), truth=True,
                            mock_kwargs={"boot_time_scale": 0.3, "seed": seed,
-                                        "estimator": "px4-sih"}, signals=False)
+                                        "estimator": "px4-sih"})
     s = result.summary
     return {"outcome": result.outcome, "exit": result.exit_code, **{k: s.get(k) for k in KEYS},
             "violations": s.get("violations"), "truth_violations": s.get("truth_violations"),

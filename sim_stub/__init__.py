@@ -14,7 +14,8 @@ from .faults import Faults, parse_fault_spec
 from .fleet import MockFleet, grid_homes, load_homes
 from .ports import PX4, WIDE, PortScheme, resolve_port_scheme
 from .scheduler import Scheduler
-from .vehicle import DEFAULT_HOME, PROFILES, STREAM_CATALOG, MockVehicle, VehicleCounters
+from .telemetry import PROFILES, STREAM_CATALOG
+from .vehicle import DEFAULT_HOME, MockVehicle, VehicleCounters
 
 __all__ = [
     "MockVehicle",

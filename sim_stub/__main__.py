@@ -14,7 +14,8 @@ from .estimator import ESTIMATOR_PROFILES
 from .faults import Faults, parse_fault_spec
 from .fleet import MockFleet, load_homes
 from .ports import PX4, WIDE, PortScheme
-from .vehicle import DEFAULT_HOME, GCS_LINK_PROFILES, validate_home
+from .telemetry import GCS_LINK_PROFILES
+from .vehicle import DEFAULT_HOME, validate_home
 
 __all__ = ["main", "build_parser"]
 

@@ -12,7 +12,8 @@ from .faults import Faults
 from .geo import reproject
 from .ports import PortScheme, resolve_port_scheme
 from .scheduler import Scheduler
-from .vehicle import DEFAULT_HOME, PROFILES, MockVehicle, validate_home
+from .telemetry import PROFILES
+from .vehicle import DEFAULT_HOME, MockVehicle, validate_home
 
 __all__ = ["MockFleet", "grid_homes", "load_homes"]
 

@@ -339,3 +339,35 @@ SENSORS_BOOT = (0, 0, 52545599)  # first ~2.4 s
 SENSORS_NO_GPS = (50348047, 50413583, 52463679)  # ~2.4 s .. ready
 SENSORS_READY = (50348079, 50413615, 52480063)  # from ready on (GPS present)
 SENSOR_PREARM = 0x10000000
+
+
+# Boot timeline, seconds after start (capture: first packet 0.37-0.44 s, HEARTBEAT 1.3-1.45 s,
+# GLOBAL_POSITION_INT 2.9-3.2 s, system_status STANDBY between the 3.4 s and 4.4 s heartbeats,
+# health reports at ~4.3 s, unsolicited CAL_BARO0_* at ~5.5 s).
+BOOT = {
+    "time_boot_zero": 0.22,  # time_boot_ms 0 (capture: first GPS_RAW_INT at 0.39 s has 164 ms)
+    "event_boot": 0.44,
+    "origin": 1.38,  # GPS_GLOBAL_ORIGIN (sent once) and home become valid
+    "health_report": 2.25,
+    "sensors": 2.40,
+    "logger": 2.70,
+    "global_position": 2.95,
+    "ready": 4.30,
+    "cal_baro": 5.55,
+}
+
+# Takeoff/landing timing (capture, see dynamics fit): spool-up COM_SPOOLUP_TIME (1 s), then the
+# takeoff ramp: "Takeoff detected"/IN_AIR 0.9 s and lift-off 2.0 s after the ramp starts (capture:
+# "Takeoff detected" 1.7-2.0 s and lift-off ~3.0 s after ARM with a climb command waiting);
+# "Landing detected" 1.5 s after touchdown (capture: 1.0-2.0 s).
+TAKEOFF_DETECT_S = 0.9
+LIFTOFF_S = 2.0
+LAND_DETECT_S = 1.5
+TAKEOFF_ACCEPT_M = 0.8  # NAV_MC_ALT_RAD: takeoff counts as done within this of the target
+MAX_STREAM_HZ = 500.0  # SET_MESSAGE_INTERVAL requests above this rate are capped (mock)
+# hard speed caps whatever the parameters say (PX4 parameter metadata maxima of MPC_XY_VEL_MAX,
+# MPC_Z_VEL_MAX_UP, MPC_Z_VEL_MAX_DN)
+XY_SPEED_CAP, UP_SPEED_CAP, DOWN_SPEED_CAP = 20.0, 8.0, 4.0
+
+#: Boot stages in order (keys of :data:`BOOT`) the heartbeat builder walks through.
+BOOT_STAGES = ("event_boot", "origin", "health_report", "logger", "ready", "cal_baro")

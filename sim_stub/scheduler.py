@@ -2,7 +2,7 @@
 
 Per tick (default 100 Hz, absolute schedule so it does not drift):
 
-1. the PX4 logic (:meth:`MockVehicle._control`) of half of the vehicles (each vehicle runs at
+1. the PX4 logic (:meth:`MockVehicle.control`) of half of the vehicles (each vehicle runs at
    50 Hz, alternating halves to spread the load),
 2. one vectorized step of the estimator errors (:class:`~sim_stub.estimator.EstimatorErrors`) and
    of the dynamics for all vehicles (:class:`~sim_stub.dynamics.QuadState`): PX4's velocity loop
@@ -15,7 +15,8 @@ Per tick (default 100 Hz, absolute schedule so it does not drift):
 4. datagrams held back by a latency fault.
 
 There is no task per vehicle or per stream; a process serving 200 vehicles runs one callback per
-tick.
+tick. The scheduler drives a vehicle only through its public interface: ``control(now)``,
+``send_stream(stream, payload)`` and ``flush_delayed(now)``.
 """
 
 from __future__ import annotations
@@ -227,7 +228,7 @@ class Scheduler:
             v = vehicles[slot]
             if v is not None:
                 try:
-                    v._control(now)
+                    v.control(now)
                 except Exception:
                     self._vehicle_error(v, "PX4 logic")
         # dynamics for everyone
@@ -273,7 +274,7 @@ class Scheduler:
                 try:
                     payload = st.build(now)
                     if payload is not None:
-                        veh._send_stream(st, payload)
+                        veh.send_stream(st, payload)
                     due += interval
                     while due <= now:
                         if now - due > max_lag:
@@ -282,7 +283,7 @@ class Scheduler:
                             break
                         payload = st.build(now)
                         if payload is not None:
-                            veh._send_stream(st, payload)
+                            veh.send_stream(st, payload)
                         due += interval
                 except Exception:
                     self._vehicle_error(veh, st.name)
@@ -297,7 +298,7 @@ class Scheduler:
         if self.delayed:
             for veh in list(self.delayed):
                 try:
-                    veh._flush_delayed(now)
+                    veh.flush_delayed(now)
                 except Exception:
                     self.delayed.discard(veh)
                     self._vehicle_error(veh, "delayed datagrams")

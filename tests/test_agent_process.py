@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from broker import LocalBroker
 from fleet_ports import free_ports
-from missions import STRAIGHT
+from missions import straight_mission
 
-from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleet.distributed.coordinator import (
@@ -376,8 +376,8 @@ async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_
 #: A straight tube without obstacles (a lost vehicle in the mock-fleet mission's tube leaves
 #: no valid partition next to its pole: the others would hold and land, as the fleet does).
 #: Vehicle 0 leads; it is the one whose agent dies.
-STRAIGHT_4 = STRAIGHT.format(length=45.0, positions=[[12.0, 0.0], [2.0, 4.5], [2.0, 0.0],
-                                                     [2.0, -4.5]], on_complete="land")
+STRAIGHT_4 = straight_mission(45.0, [[12.0, 0.0], [2.0, 4.5], [2.0, 0.0], [2.0, -4.5]],
+                              on_complete="land")
 
 
 async def test_killed_agent_its_vehicle_fails_safe_and_the_others_pass(tmp_path: Path) -> None:

@@ -1,12 +1,11 @@
-"""The local broker launcher (vtube_fleet.bus.broker): mosquitto and the amqtt fallback."""
+"""The local broker launcher (tests/broker.py): mosquitto and the amqtt fallback."""
 
 from __future__ import annotations
 
 import socket
 
 import pytest
-
-from vtube_fleet.bus.broker import (
+from broker import (
     BrokerError,
     LocalBroker,
     find_mosquitto,

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 from fleet_ports import free_ports
+from missions import straight_mission
 
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import fly
@@ -37,34 +38,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
-MISSION = """
-[tube]
-p_h0 = [0.0, 10.0]
-p_h1 = [30.0, 10.0]
-p_r0 = [0.0, -10.0]
-p_r1 = [30.0, -10.0]
-
-[robots]
-r_s = 0.3
-r_a = 1.0
-v_min = 0.3
-v_max = 1.6
-positions = [[2.0, 4.5], [2.0, -4.5]]
-
-[controller]
-v = 1.0
-v_max_prime = 0.5
-
-[mission]
-origin_lat_deg = 47.397742
-origin_lon_deg = 8.545594
-origin_alt_m = 488.0
-heading_deg = 90.0
-altitude_m = 3.0
-climb_speed_m_s = 1.5
-mission_timeout_s = 120.0
-land_timeout_s = 40.0
-"""
+MISSION = straight_mission(30.0, [[2.0, 4.5], [2.0, -4.5]], heading_deg=90.0,
+                           extra="land_timeout_s = 40.0\n")
 
 
 def _env() -> dict[str, str]:

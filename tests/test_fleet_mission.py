@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from missions import MISSION_TABLE, NARROWING
 
 from vtube_fleet.config.mission import load_mission, parse_mission_config
 from vtube_fleet.errors import ConfigError
@@ -13,32 +14,8 @@ from vtube_fleet.errors import ConfigError
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("mock_fleet.toml", "px4_sitl_3.toml")
 
-BASE = """
-[tube]
-p_h0 = [0.0, 5.0]
-p_h1 = [19.0, 5.5]
-p_r0 = [0.0, -5.0]
-p_r1 = [19.0, -5.5]
-
-[robots]
-r_s = 0.3
-r_a = 1.0
-v_min = 0.3
-v_max = 1.6
-positions = [[2.0, 0.0], [2.0, 2.5]]
-
-[controller]
-v = 1.0
-v_max_prime = 0.5
-"""
-MISSION = """
-[mission]
-origin_lat_deg = 47.397742
-origin_lon_deg = 8.545594
-origin_alt_m = 488.0
-heading_deg = 30.0
-altitude_m = 3.0
-"""
+BASE = NARROWING
+MISSION = MISSION_TABLE
 
 
 def write(tmp_path: Path, text: str) -> Path:

@@ -15,8 +15,8 @@ import time
 
 import aiomqtt
 import pytest
+from broker import LocalBroker, find_mosquitto
 
-from vtube_fleet.bus.broker import LocalBroker, find_mosquitto
 from vtube_fleet.bus.codec import MissionConfigMsg, decode_state, encode_config
 from vtube_fleet.bus.mqtt import BrokerUrlError, MqttBus, parse_broker_url
 from vtube_fleet.state import NeighbourState, Phase

@@ -10,13 +10,13 @@ import time
 from pathlib import Path
 
 import pytest
+from broker import LocalBroker
 from missions import COMPACT_12_PATH
 
-from vtube_fleet.bus.broker import LocalBroker
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.distributed.agent import AgentProcess, AgentRefused
-from vtube_fleet.fleet.distributed.coordinator import config_hash, default_mission_id
+from vtube_fleet.fleet.distributed.coordinator import default_mission_id
 from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,7 +43,8 @@ class ScriptedAgent:
         speed: float = 6.0,
         hash_: str | None = None,
     ) -> None:
-        self.bus = MqttBus(url, mission_id, vid, config_hash=hash_ or config_hash(MISSION))
+        self.bus = MqttBus(url, mission_id, vid,
+                           config_hash=hash_ or load_mission(MISSION).config_hash)
         self.vid = vid
         self.x, self.y = float(slot[0]), float(slot[1])
         self.speed = speed
@@ -131,7 +132,7 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
     assert s["state_age_p99_s"] is not None and s["state_age_p99_s"] >= 0
     assert s["lost"] == [] and len(s["vehicle_states"]) == 3
     assert all(v["phase"] == "landed" for v in s["vehicle_states"])
-    assert s["config_hash"] == config_hash(MISSION)
+    assert s["config_hash"] == load_mission(MISSION).config_hash
     # the fleet as the agents reported it is also a rerun recording that `review` reads back
     code, out, err = await run_cli("review", str(tmp_path / "recording.rrd"), "--json")
     assert code == 0, err
@@ -145,7 +146,7 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
 async def test_an_agent_with_another_mission_file_refuses_and_start_fails(broker, tmp_path):
     other = tmp_path / "compact_12.toml"  # same name → same mission id, different content
     other.write_text(MISSION.read_text().replace("v = 1.0 ", "v = 1.1 "))
-    assert config_hash(other) != config_hash(MISSION)
+    assert load_mission(other).config_hash != load_mission(MISSION).config_hash
     proc = AgentProcess(other, 1, broker=broker.url, join_timeout_s=30)
     coordinator = asyncio.create_task(
         run_cli(
@@ -219,7 +220,7 @@ async def test_abort_without_a_run_is_a_clear_error(broker):
 
 
 async def test_unreachable_broker_is_a_clear_error():
-    from vtube_fleet.bus.broker import free_port
+    from broker import free_port
 
     code, _, err = await run_cli(
         "mission",

@@ -15,7 +15,7 @@ from pymavlink.dialects.v20 import common as mav
 
 from sim_stub.captures import CAPTURE_DIR, load_capture
 from sim_stub.dynamics import QuadState
-from sim_stub.vehicle import LIFTOFF_S
+from sim_stub.px4 import LIFTOFF_S
 
 needs_captures = pytest.mark.skipif(
     not (CAPTURE_DIR / "README.md").exists(), reason=f"captures not found in {CAPTURE_DIR}"

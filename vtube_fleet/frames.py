@@ -153,17 +153,18 @@ class TubeFrame:
         self, north_m_s: ArrayLike, east_m_s: ArrayLike
     ) -> tuple[np.ndarray, np.ndarray]:
         """(north, east) → (x, y) components; same formula for positions and velocities."""
-        n, e = _arr(north_m_s), _arr(east_m_s)
-        c, s = self._cos, self._sin  # type: ignore[attr-defined]
-        return n * c + e * s, n * s - e * c
+        return self._flip(_arr(north_m_s), _arr(east_m_s))
 
     def tube_velocity_to_ned(
         self, vx_m_s: ArrayLike, vy_m_s: ArrayLike
     ) -> tuple[np.ndarray, np.ndarray]:
         """Tube-frame (vx, vy) → (north_m_s, east_m_s) for SET_POSITION_TARGET_LOCAL_NED."""
-        x, y = _arr(vx_m_s), _arr(vy_m_s)
+        return self._flip(_arr(vx_m_s), _arr(vy_m_s))
+
+    def _flip(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The NED ↔ tube map: a reflection (its own inverse), (a c + b s, a s − b c)."""
         c, s = self._cos, self._sin  # type: ignore[attr-defined]
-        return x * c + y * s, x * s - y * c
+        return a * c + b * s, a * s - b * c
 
     # -- positions -------------------------------------------------------------------------
     def geodetic_to_tube(

@@ -16,6 +16,8 @@ outcome         code  meaning
 ==============  ====  ==========================================================================
 
 A :class:`~vtube_fleet.errors.UserError` carries its own code (2 by default) for ``failed``.
+The offline simulator (``vtube-fleet sim``) has no vehicles to land and keeps its own code for
+a run that ended with robots left in the tube or with a violation: :data:`EXIT_SIM_UNFINISHED`.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ __all__ = [
     "EXIT_INCOMPLETE",
     "EXIT_INTERRUPTED",
     "EXIT_OK",
+    "EXIT_SIM_UNFINISHED",
     "EXIT_UNSAFE",
     "OUTCOMES",
     "exit_code",
@@ -38,6 +41,8 @@ EXIT_ERROR = 2
 EXIT_INCOMPLETE = 3
 #: A safety limit was broken.
 EXIT_UNSAFE = 4
+#: ``vtube-fleet sim``: robots remained in the tube or a safety condition was violated.
+EXIT_SIM_UNFINISHED = 1
 #: Interrupted by SIGINT / SIGTERM (128 + 2, as a shell reports it).
 EXIT_INTERRUPTED = 130
 

@@ -297,7 +297,7 @@ class _Run:
         p = self.params
         tube = sc.tube
         n_c = np.array(tube.n_c)
-        thresh = float(n_c @ tube.p_r1) - p.eps_0  # (TraCondition): n_cᵀp ≥ n_cᵀp_r1 − ε_0
+        thresh = tube.finish_threshold(p.eps_0)  # (TraCondition): n_cᵀp ≥ this
         # An upper bound of how far any evaluation point moves per second: ‖v_c‖ ≤ v_max under
         # Constraint1 (all three laws saturate), and a unicycle's control point moves by at most
         # √2‖v_c‖dt per Euler step (v_lin and s·ω are the two components of v_c in the body

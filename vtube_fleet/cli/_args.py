@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from vtube_fleet.fleet.distributed.coordinator import DEFAULT_BROKER
 from vtube_fleet.recording.api import Recorder, RecordingError
@@ -15,9 +15,6 @@ from vtube_fleet.recording.layout import (
     SIM_MIN_PERIOD_S,
 )
 from vtube_fleet.recording.writer import open_recorder
-
-if TYPE_CHECKING:  # pragma: no cover
-    pass
 
 __all__ = [
     "add_bus_args",

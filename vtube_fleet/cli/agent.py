@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.cli._args import add_bus_args, add_recording_args
+from vtube_fleet.cli._args import add_bus_args, add_recording_args, recorder_from_args
+from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.fleet.distributed.agent import AgentInterrupted, AgentProcess
 from vtube_fleet.fleet.distributed.coordinator import (
     default_mission_id,
@@ -19,25 +20,31 @@ __all__ = [
     "register",
 ]
 
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
 def _cmd_agent(args: argparse.Namespace) -> int:
+    mission_id = args.mission_id or default_mission_id(args.mission)
+    out = (args.out if args.out is not None
+           else Path("runs") / mission_id / f"agent-{args.vehicle}")
+    # a bad --rerun-save / --rerun-connect fails here, before anything connects
+    recorder = recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet_agent",
+                                  detect_exits=False)
     proc = AgentProcess(
-        args.mission,
-        args.vehicle,
-        broker=args.broker,
-        endpoint=args.endpoint,
-        backend=args.link,
-        mission_id=args.mission_id,
-        join_timeout_s=args.join_timeout,
-        broker_hold_limit_s=args.broker_hold_limit,
-        out=(args.out if args.out is not None
-             else Path("runs") / (args.mission_id or default_mission_id(args.mission))
-             / f"agent-{args.vehicle}"),
-        rerun_args=args,
+        args.mission, args.vehicle, broker=args.broker, endpoint=args.endpoint,
+        backend=args.link, mission_id=args.mission_id, join_timeout_s=args.join_timeout,
+        broker_hold_limit_s=args.broker_hold_limit, out=out, recorder=recorder, say=_say,
     )
+
+    async def main() -> int:
+        with interrupt_on_signals(proc.interrupt):
+            return await proc.run()
+
     try:
-        return asyncio.run(proc.run())
+        return asyncio.run(main())
     except AgentInterrupted:
-        print(f"agent {args.vehicle}: interrupted (vehicle held, then landed)", file=sys.stderr)
+        _say(f"agent {args.vehicle}: interrupted (vehicle held, then landed)")
         return EXIT_INTERRUPTED
 
 

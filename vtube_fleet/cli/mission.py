@@ -4,262 +4,92 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
-import signal
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.artifacts import write_summary
-from vtube_fleet.cli._args import add_bus_args
-from vtube_fleet.core.metrics import verdict
-from vtube_fleet.fleet.distributed.coordinator import Coordinator, MissionRunError
-from vtube_fleet.fleet.distributed.monitor import RunMonitor
-from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_INTERRUPTED, EXIT_OK, EXIT_UNSAFE
+from vtube_fleet.cli._args import add_bus_args, add_recording_args, recorder_from_args
+from vtube_fleet.cli._signals import interrupt_on_signals
+from vtube_fleet.fleet.distributed.coordinator import Coordinator
+from vtube_fleet.outcome import EXIT_INTERRUPTED, EXIT_OK, exit_code
 
-__all__ = [
-    "register",
-]
+__all__ = ["register"]
 
 
-
-
-
-
-
-
-
-async def _start(args: argparse.Namespace) -> int:
-    loop = asyncio.get_running_loop()
-    interrupted = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError):
-            loop.add_signal_handler(sig, interrupted.set)
-    async with Coordinator(
-        args.mission,
-        args.broker,
-        mission_id=args.mission_id,
-        vehicles=args.vehicles,
-        broker_timeout_s=args.broker_timeout,
-        max_age_s=args.max_age,
-        cells=not args.no_cells,
-    ) as co:
-        cfg = co.mission.config
-        run = co.announce()
-        print(
-            f"mission {co.mission_id} run {run}: config {co.config_hash} announced on "
-            f"{args.broker} (neighbour max age {1000 * co.max_age_s:.0f} ms, cells "
-            f"{co.announced.cell_m:g} m); waiting for {co.vehicles} agents",
-            file=sys.stderr,
-            flush=True,
-        )
-        ready_timeout = (
-            args.ready_timeout
-            if args.ready_timeout is not None
-            else cfg.connect_timeout_s + cfg.ready_timeout_s
-        )
-        waiting = asyncio.ensure_future(co.wait_ready(ready_timeout))
-        if not await _race(waiting, interrupted):
-            await _cancel(waiting)
-            co.command("abort")
-            await co.bus.sync()
-            print("interrupted before start: abort published", file=sys.stderr)
-            return EXIT_INTERRUPTED
-        co.command("start")
-        co.t_start_wall = time.time()
-        await co.bus.sync()
-        print(f"run {run}: start published ({co.vehicles} vehicles ready)", file=sys.stderr)
-        if not args.wait:
-            return EXIT_OK
-        timeout = (
-            args.timeout
-            if args.timeout is not None
-            else cfg.arm_timeout_s
-            + cfg.takeoff_timeout_s
-            + cfg.mission_timeout_s
-            + cfg.land_timeout_s
-        )
-        out = args.out if args.out is not None else Path("runs") / co.mission_id
-        recorder = _recorder(args, out)
-        mon = RunMonitor(
-            co.mission, co.vehicles, recorder=recorder, t0_s=co.t_start_wall or time.time()
-        )
-        if recorder is not None:
-            mon._record(
-                "log_scene",
-                co.mission.with_vehicles(co.vehicles),
-                None,
-                meta={
-                    "kind": "mqtt",
-                    "rate_hz": cfg.rate_hz,
-                    "run_id": run,
-                    "broker": args.broker,
-                    "vehicles": co.vehicles,
-                },
-            )
-        outcome = "failed"
-        try:
-            follow = asyncio.ensure_future(co.follow(timeout, mon))
-            if await _race(follow, interrupted):
-                outcome = follow.result()
-            else:
-                await _cancel(follow)
-                co.command("abort")
-                await co.bus.sync()
-                print("interrupted: abort published; the agents hold, then land", file=sys.stderr)
-                outcome = "interrupted"
-        finally:  # the summary (and the recording) on every exit path
-            summary = mon.summary(
-                mission_id=co.mission_id,
-                run_id=run,
-                config_hash=co.config_hash,
-                broker=args.broker,
-                outcome=outcome,
-                lost=co.lost_vehicles(),
-                vehicle_states=co.vehicle_table(),
-                wall_s=round(time.time() - (co.t_start_wall or time.time()), 3),
-            )
-            v = verdict(summary)
-            if not v.safe:  # THE verdict: a broken limit makes the run unsafe, whatever else
-                summary["outcome"] = outcome = "unsafe"
-                summary["reason"] = v.summary_line
-            path = write_summary(out, summary)
-            if recorder is not None:
-                mon._record("log_summary", summary)
-                mon._record("close")
-        print(
-            f"{outcome}: {summary.get('exited')}/{co.vehicles} exited; min pair distance "
-            f"{_fmt(summary.get('min_pair_distance_m'))} (2 r_s = {summary['pair_limit_m']:.2f} m),"
-            f" obstacle centre {_fmt(summary.get('min_obstacle_center_distance_m'))}, "
-            f"violations {summary.get('violations')}; state age p50/p99 "
-            f"{_fmt(summary.get('state_age_p50_s'), 'ms', 1000)}/"
-            f"{_fmt(summary.get('state_age_p99_s'), 'ms', 1000)}; summary {path}",
-            file=sys.stderr,
-        )
-        if outcome == "unsafe":
-            print(f"error: mission unsafe: {summary['reason']}", file=sys.stderr)
-            return EXIT_UNSAFE
-        if outcome == "interrupted":
-            return EXIT_INTERRUPTED
-        return EXIT_OK if outcome == "completed" else EXIT_INCOMPLETE
-
-
-def _recorder(args: argparse.Namespace, out: Path) -> Any:
-    """The fleet recording of ``start --wait`` (``--rerun-save``, default OUT/recording.rrd)."""
-    from vtube_fleet.cli._args import recorder_from_args
-
-    # exits only as RunMonitor decides them (from every state heard, also between two ticks)
-    return recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet",
-                              detect_exits=False)
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
 
 
 def _fmt(v: float | None, unit: str = "m", scale: float = 1.0) -> str:
     return "—" if v is None else f"{v * scale:.2f} {unit}"
 
 
-async def _race(task: asyncio.Future[Any], event: asyncio.Event) -> bool:
-    """Wait for ``task`` or ``event``, whichever comes first; True if ``task`` finished
-    (its exception, if any, is raised). The task is left running otherwise."""
-    waiter = asyncio.ensure_future(event.wait())
-    try:
-        done, _ = await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        waiter.cancel()
-    if task in done:
-        task.result()
-        return True
-    return False
-
-
-async def _cancel(task: asyncio.Future[Any]) -> None:
-    task.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await task
+async def _start(args: argparse.Namespace) -> int:
+    stop = asyncio.Event()
+    with interrupt_on_signals(lambda _name: stop.set()):
+        async with Coordinator(
+            args.mission, args.broker, mission_id=args.mission_id, vehicles=args.vehicles,
+            broker_timeout_s=args.broker_timeout, max_age_s=args.max_age,
+            cells=not args.no_cells, say=_say,
+        ) as co:
+            if not await co.start_run(stop, args.ready_timeout):
+                return EXIT_INTERRUPTED
+            if not args.wait:
+                return EXIT_OK
+            out = args.out if args.out is not None else Path("runs") / co.mission_id
+            # exits only as RunMonitor decides them (from every state heard, also between ticks)
+            recorder = recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet",
+                                          detect_exits=False)
+            res = await co.follow_run(stop, out, recorder, args.timeout)
+    s = res.summary
+    _say(f"{res.outcome}: {s.get('exited')}/{co.vehicles} exited; min pair distance "
+         f"{_fmt(s.get('min_pair_distance_m'))} (2 r_s = {s['pair_limit_m']:.2f} m), obstacle "
+         f"centre {_fmt(s.get('min_obstacle_center_distance_m'))}, violations "
+         f"{s.get('violations')}; state age p50/p99 {_fmt(s.get('state_age_p50_s'), 'ms', 1000)}/"
+         f"{_fmt(s.get('state_age_p99_s'), 'ms', 1000)}; summary {res.summary_path}")
+    if res.outcome == "unsafe":
+        _say(f"error: mission unsafe: {res.reason}")
+    return exit_code(res.outcome)
 
 
 async def _abort(args: argparse.Namespace) -> int:
-    async with Coordinator(
-        args.mission, args.broker, mission_id=args.mission_id, broker_timeout_s=args.broker_timeout
-    ) as co:
-        await co.bus.sync()
-        cfg = co.bus.config
-        if cfg is None:
-            raise MissionRunError(
-                f"no run of mission {co.mission_id} announced on {args.broker} (nothing to abort)"
-            )
-        co.run_id = cfg.run_id
-        co.command("abort")
-        await co.bus.sync()
-        print(f"mission {co.mission_id} run {cfg.run_id}: abort published", file=sys.stderr)
+    async with Coordinator(args.mission, args.broker, mission_id=args.mission_id,
+                           broker_timeout_s=args.broker_timeout) as co:
+        run_id = await co.abort_announced()
+    _say(f"mission {co.mission_id} run {run_id}: abort published")
     return EXIT_OK
 
 
 async def _status(args: argparse.Namespace) -> int:
-    async with Coordinator(
-        args.mission, args.broker, mission_id=args.mission_id, broker_timeout_s=args.broker_timeout
-    ) as co:
-        await co.bus.sync()
-        cfg = co.bus.config
-        if cfg is not None:
-            co.run_id = cfg.run_id
-            co.vehicles = max(co.vehicles, cfg.vehicles) if cfg.vehicles else co.vehicles
-        with contextlib.suppress(TimeoutError):  # listen a moment for live states
-            await co.bus.wait_for(lambda: False, args.listen)
-        rows = co.vehicle_table()
-        cmd = co.bus.command
-        info = {
-            "mission_id": co.mission_id,
-            "broker": args.broker,
-            "config_hash": co.config_hash,
-            "run": None
-            if cfg is None
-            else {
-                "run_id": cfg.run_id,
-                "config_hash": cfg.config_hash,
-                "hash_matches": cfg.config_hash == co.config_hash,
-                "vehicles": cfg.vehicles,
-                "announced_s_ago": round(time.time() - cfg.stamp_s, 1),
-                "source": cfg.source,
-            },
-            "command": None
-            if cmd is None
-            else {
-                "command": cmd.command,
-                "run_id": cmd.run_id,
-                "s_ago": round(time.time() - cmd.stamp_s, 1),
-            },
-            "vehicles": rows,
-        }
+    async with Coordinator(args.mission, args.broker, mission_id=args.mission_id,
+                           broker_timeout_s=args.broker_timeout) as co:
+        info = await co.status(args.listen)
     if args.json:
         print(json.dumps(info, indent=2))
         return EXIT_OK
-    print(f"mission {co.mission_id} on {args.broker} (this file's config hash {co.config_hash})")
-    if cfg is None:
+    print(f"mission {info['mission_id']} on {info['broker']} (this file's config hash "
+          f"{info['config_hash']})")
+    r = info["run"]
+    if r is None:
         print("  no run announced")
     else:
-        r = info["run"]
-        print(
-            f"  run {cfg.run_id}: {cfg.vehicles} vehicles, hash {cfg.config_hash}"
-            f"{'' if r['hash_matches'] else ' (DIFFERS from this file)'}, announced "
-            f"{r['announced_s_ago']} s ago from {cfg.source}"
-        )
+        print(f"  run {r['run_id']}: {r['vehicles']} vehicles, hash {r['config_hash']}"
+              f"{'' if r['hash_matches'] else ' (DIFFERS from this file)'}, announced "
+              f"{r['announced_s_ago']} s ago from {r['source']}")
+    cmd = info["command"]
     if cmd is not None:
-        print(f"  last command: {cmd.command} (run {cmd.run_id}, {info['command']['s_ago']} s ago)")
-    print(
-        f"  {'id':>3} {'status':<8} {'stage':<12} {'phase':<11} {'x_m':>8} {'y_m':>8} {'age_s':>7}"
-    )
-    for r in rows:
+        print(f"  last command: {cmd['command']} (run {cmd['run_id']}, {cmd['s_ago']} s ago)")
+    print(f"  {'id':>3} {'status':<8} {'stage':<12} {'phase':<11} {'x_m':>8} {'y_m':>8} "
+          f"{'age_s':>7}")
 
-        def f(v: Any, fmt: str) -> str:
-            return "-" if v is None else format(v, fmt)
+    def f(v: Any, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
 
-        print(
-            f"  {r['id']:>3} {f(r['status'], '<8')} {f(r['stage'] or '', '<12')} "
-            f"{f(r['phase'], '<11')} {f(r['x_m'], '8.2f')} {f(r['y_m'], '8.2f')} "
-            f"{f(r['age_s'], '7.1f')}"
-        )
+    for row in info["vehicles"]:
+        print(f"  {row['id']:>3} {f(row['status'], '<8')} {f(row['stage'] or '', '<12')} "
+              f"{f(row['phase'], '<11')} {f(row['x_m'], '8.2f')} {f(row['y_m'], '8.2f')} "
+              f"{f(row['age_s'], '7.1f')}")
     return EXIT_OK
 
 
@@ -326,8 +156,6 @@ def register(subparsers: Any) -> None:
         help="follow the flight until every vehicle has landed (or failed) and "
         "write OUT/summary.json",
     )
-    from vtube_fleet.cli._args import add_recording_args
-
     add_recording_args(s)
     s.add_argument(
         "--out",

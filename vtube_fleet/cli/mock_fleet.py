@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import sys
 from pathlib import Path
 from typing import Any
 
+from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import mock_fleet
 
@@ -20,28 +20,18 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
 
     async def main() -> None:
         stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        import signal
-
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                loop.add_signal_handler(sig, stop.set)
-        kwargs: dict[str, Any] = {"boot_time_scale": args.boot_time_scale,
-                                  "profile": args.profile, "estimator": args.estimator,
-                                  "estimator_shared": args.estimator_shared,
-                                  "gcs_link": args.gcs_link, "seed": args.seed}
-        if args.gcs_port is not None or args.vehicle_port is not None:
-            from sim_stub import PortScheme
-
-            gcs = 14540 if args.gcs_port is None else args.gcs_port
-            veh = gcs + 40 if args.vehicle_port is None else args.vehicle_port
-            kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
-        async with mock_fleet(mission, args.count, **kwargs) as fleet:
-            eps = list(fleet.endpoints)
-            print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
-                  flush=True)
-            print(",".join(eps), flush=True)
-            await stop.wait()
+        with interrupt_on_signals(lambda _name: stop.set()):
+            async with mock_fleet(
+                mission, args.count, gcs_port=args.gcs_port, vehicle_port=args.vehicle_port,
+                boot_time_scale=args.boot_time_scale, profile=args.profile,
+                estimator=args.estimator, estimator_shared=args.estimator_shared,
+                gcs_link=args.gcs_link, seed=args.seed,
+            ) as fleet:
+                eps = list(fleet.endpoints)
+                print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
+                      flush=True)
+                print(",".join(eps), flush=True)
+                await stop.wait()
         print("mock fleet stopped", file=sys.stderr)
 
     asyncio.run(main())

@@ -9,8 +9,10 @@ from pathlib import Path
 from typing import Any
 
 from vtube_fleet.cli._args import add_recording_args, recorder_from_args
+from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import BACKENDS, fly, parse_endpoint_list
+from vtube_fleet.fleet.launch import BACKENDS, fleet_supervisor, parse_endpoint_list
+from vtube_fleet.fleet.supervisor import FleetResult
 
 __all__ = ["register"]
 
@@ -33,10 +35,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
                    "estimator": args.mock_estimator, "seed": args.mock_seed}
     # the built-in mock always has its ground truth: judge by it too
     truth = args.truth or endpoints is None
+
+    async def main() -> FleetResult:
+        async with fleet_supervisor(mission, backend=args.backend, endpoints=endpoints,
+                                    out_dir=out, recorder=recorder, view=view,
+                                    mock_kwargs=mock_kwargs, truth=truth) as sup:
+            with interrupt_on_signals(sup.interrupt):
+                return await sup.run()
+
     try:
-        result = asyncio.run(fly(mission, backend=args.backend, endpoints=endpoints,
-                                 out_dir=out, recorder=recorder, view=view,
-                                 mock_kwargs=mock_kwargs, truth=truth))
+        result = asyncio.run(main())
     finally:
         recorder.close()
     print(_closing_line(result, out), file=sys.stderr)

@@ -3,22 +3,20 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from vtube_fleet.artifacts import write_sim_outputs
 from vtube_fleet.cli._args import add_recording_args
 from vtube_fleet.errors import UserError
+from vtube_fleet.outcome import EXIT_INTERRUPTED, EXIT_OK, EXIT_SIM_UNFINISHED
 
 __all__ = [
     "cmd_sim",
     "print_summary",
     "register",
-    "write_outputs",
 ]
 
 def register(subparsers: Any) -> None:
@@ -52,53 +50,6 @@ def register(subparsers: Any) -> None:
 
 def _default_out(config: str, controller: str) -> Path:
     return Path("sim_out") / f"{Path(config).stem}_{controller}"
-
-
-def write_outputs(result: Any, out: Path, *, plots: bool = True) -> list[Path]:
-    """Write summary.json, trajectory.npz, metrics.npz and the PNG plots; returns the paths."""
-    from vtube_fleet.plots import pick_snapshot_frames, plot_safety, plot_snapshots
-
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    summary_path = out / "summary.json"
-    summary_path.write_text(json.dumps(result.summary, indent=2) + "\n")
-    written.append(summary_path)
-
-    traj = out / "trajectory.npz"
-    np.savez_compressed(traj, **result.trajectory_arrays())
-    written.append(traj)
-
-    met = out / "metrics.npz"
-    arrays = {"t": result.step_t, **result.metrics.as_dict()}
-    if result.metrics_center is not None:
-        arrays.update({f"{k}_center": v for k, v in result.metrics_center.as_dict().items()})
-    np.savez_compressed(met, **arrays)
-    written.append(met)
-
-    if plots:
-        sc = result.scenario
-        r = sc.robots
-        title = (f"{Path(sc.source).name}: {r.count} robots, controller {result.controller}, "
-                 f"dt = {result.dt:g} s")
-        safety = out / "safety.png"
-        plot_safety(safety, result.step_t, result.metrics, r_s=r.r_s, v_min=r.v_min,
-                    v_max=r.v_max, obstacle_radii=[o.radius for o in sc.obstacles],
-                    title=title, center=result.metrics_center)
-        written.append(safety)
-        if result.t.size:
-            frames = pick_snapshot_frames(result.t, result.pos, 4)
-            part = result.partition if result.controller != "apf" else None
-            snaps = out / "snapshots.png"
-            plot_snapshots(
-                snaps, sc.tube, [(float(result.t[i]), result.pos[i]) for i in frames],
-                r_s=r.r_s, obstacles=sc.obstacles,
-                sub_tubes=part.sub_tubes if part is not None and part.K > 1 else (),
-                triangles=part.triangles if part is not None else (),
-                headings=None if result.heading is None else [result.heading[i] for i in frames],
-                title=title,
-            )
-            written.append(snaps)
-    return written
 
 
 def _fmt(x: Any, unit: str = "", nd: int = 3) -> str:
@@ -162,11 +113,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
                 note = ("interrupted" if result.interrupted else
                         "all robots exited" if s["all_exited"] else "duration reached")
             bar.close(note)
-    written = write_outputs(result, out, plots=not args.no_plots)
+    written = write_sim_outputs(result, out, plots=not args.no_plots)
     print_summary(result.summary)
     print(f"wrote {', '.join(os.fspath(p) for p in written)}")
     if result.interrupted:
         print("interrupted: results up to the interruption were written", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     s = result.summary
-    return 0 if s["exited"] == s["robots"] and s["violations"] == 0 else 1
+    return EXIT_OK if s["exited"] == s["robots"] and s["violations"] == 0 else EXIT_SIM_UNFINISHED

@@ -253,6 +253,12 @@ class Mission:
         return self.scenario.source
 
     @property
+    def config_hash(self) -> str:
+        """The mission file's content hash (:func:`~vtube_fleet.config.scenario.content_hash`):
+        the coordinator and every agent must fly the same one."""
+        return self.scenario.content_hash
+
+    @property
     def slots(self) -> np.ndarray:
         """(M, 2) start slots in the tube frame; vehicle/endpoint ``i`` flies slot ``i``."""
         return self.scenario.robots.positions

@@ -17,6 +17,7 @@ files add ``[mission]``): pass ``extra_sections=("mission",)`` and read the raw 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -41,6 +42,7 @@ __all__ = [
     "RobotsConfig",
     "Scenario",
     "SimConfig",
+    "content_hash",
     "grid_positions",
     "load_scenario",
     "parse_scenario",
@@ -106,6 +108,8 @@ class Scenario:
     sim: SimConfig
     source: str = "<config>"
     extra: Mapping[str, Any] = field(default_factory=dict)
+    #: :func:`content_hash` of the parsed document (comments and formatting do not count)
+    content_hash: str = ""
 
     def with_robots(self, n: int) -> Scenario:
         """The same scenario keeping only the first ``n`` robots (config order)."""
@@ -183,7 +187,15 @@ def parse_scenario(
         sim=sim,
         source=source,
         extra=extra,
+        content_hash=content_hash(data),
     )
+
+
+def content_hash(data: Mapping[str, Any]) -> str:
+    """Hash of a parsed TOML document (canonical JSON; comments and formatting do not count):
+    16 hex digits of SHA-256. Two files with the same hash configure the same run."""
+    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
 def grid_positions(

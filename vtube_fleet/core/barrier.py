@@ -24,13 +24,8 @@ import math
 
 import numpy as np
 
-#: ndarray.min without its Python wrapper (numpy._core._methods._amin): same result, NaN too
+#: ndarray.min as the public ufunc reduction (no Python wrapper): same result, NaN too
 _min = np.minimum.reduce
-
-try:  # the ufunc behind np.clip, without np.clip's Python wrappers (~1 µs saved per call)
-    from numpy._core.umath import clip as _clip
-except ImportError:  # pragma: no cover - other numpy layouts: np.maximum + np.minimum
-    _clip = None
 
 __all__ = [
     "X_MIN",
@@ -314,11 +309,8 @@ class BarrierBank:
         d2, B, _, _, Q0, R1, R2 = sl
         a = d2 - x
         a *= B
-        if _clip is not None:
-            _clip(a, self._zero, self._one, out=a)
-        else:  # pragma: no cover
-            np.maximum(a, self._zero, out=a)
-            np.minimum(a, self._one, out=a)
+        np.maximum(a, self._zero, out=a)  # clip to [0, 1] in place, public ufuncs only
+        np.minimum(a, self._one, out=a)
         num = a * R2
         num += R1
         num *= a

@@ -44,6 +44,8 @@ __all__ = [
     "SummaryAccumulator",
     "Verdict",
     "ViolationLog",
+    "finite_or_none",
+    "percentile_or_none",
     "truth_keys",
     "verdict",
 ]
@@ -484,10 +486,19 @@ def _as_complex(a: np.ndarray) -> np.ndarray:
     return a.view(np.complex128)[..., 0]
 
 
-def _json_number(x: float) -> float | None:
-    """JSON has no inf/NaN: report them as null."""
+def finite_or_none(x: float | None) -> float | None:
+    """A summary number: ``x`` as a float, ``None`` (JSON null) when missing, NaN or inf."""
+    if x is None:
+        return None
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def percentile_or_none(values: Iterable[float] | np.ndarray, q: float) -> float | None:
+    """A summary percentile: the ``q``-th percentile of the finite ``values``, or ``None``."""
+    a = np.asarray(values if isinstance(values, np.ndarray) else list(values), dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, q)) if a.size else None
 
 
 class SummaryAccumulator:
@@ -559,13 +570,13 @@ class SummaryAccumulator:
         out: dict[str, Any] = {
             "robots": self.robots,
             "exited": int(done.size),
-            "last_exit_s": _json_number(done.max()) if done.size else None,
-            "median_exit_s": _json_number(np.median(done)) if done.size else None,
+            "last_exit_s": finite_or_none(done.max()) if done.size else None,
+            "median_exit_s": finite_or_none(np.median(done)) if done.size else None,
         }
         for suffix in sorted(self._streams or {"": None}, key=lambda s: (s != "", s)):
             st = self._stream(suffix)
             for key in METRIC_KEYS:
-                out[f"{key}{suffix}"] = _json_number(st[key])
+                out[f"{key}{suffix}"] = finite_or_none(st[key])
             out[f"violations{suffix}"] = int(st["violations"])
             out[f"violations_by_condition{suffix}"] = dict(st["by_condition"])
             out[f"first_violation_s{suffix}"] = st["first_violation_s"]

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from vtube_fleet.core.text import compact_number as _num
 from vtube_fleet.errors import UserError
 
 __all__ = [
@@ -43,13 +44,6 @@ CONTROLLER_REQUIRED: tuple[str, ...] = ("v", "v_max_prime")
 
 class ParameterError(UserError):
     """A controller parameter is out of its domain (names the parameter and the value)."""
-
-
-def _num(x: float, nd: int = 3) -> str:
-    """Compact number: at most ``nd`` decimals, at least one (4.0, 0.9, 1.654)."""
-    s = f"{x:.{nd}f}".rstrip("0")
-    s = s + "0" if s.endswith(".") else s
-    return "0.0" if s == "-0.0" else s
 
 
 def parameter_problems(values: Mapping[str, Any]) -> list[str]:

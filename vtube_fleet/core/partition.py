@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from vtube_fleet.core.text import compact_number as _num
+from vtube_fleet.core.text import obstacle_label
 from vtube_fleet.core.tube import GeometryError, Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 
@@ -159,19 +161,6 @@ def h_min(r_o: float, params: ControllerParams) -> float:
     R = float(r_o) + params.r_s
     a = alpha_max(params)
     return R if a >= math.pi / 2 else R / math.sin(a)
-
-
-def _num(x: float, nd: int = 3) -> str:
-    """Compact number: at most ``nd`` decimals, at least one (4.0, 0.9, 1.654)."""
-    if not math.isfinite(x):
-        return str(x)
-    s = f"{x:.{nd}f}".rstrip("0")
-    s = s + "0" if s.endswith(".") else s
-    return "0.0" if s == "-0.0" else s
-
-
-def _pt(p: np.ndarray) -> str:
-    return f"({_num(float(p[0]))}, {_num(float(p[1]))})"
 
 
 def check_constraint2(
@@ -646,10 +635,6 @@ class _Node:
     obstacle: int | None  # 0-based index of the obstacle that created it
 
 
-def _obstacle_label(i: int, ob: Obstacle) -> str:
-    return f"obstacle #{i + 1} at {_pt(ob.center)} r_o={_num(float(ob.radius))}"
-
-
 def _dist_to_polygon(p: np.ndarray, poly: np.ndarray) -> float:
     best = math.inf
     for i in range(len(poly)):
@@ -837,7 +822,7 @@ class _Builder:
                 i = nd.obstacle
                 assert i is not None
                 raise PartitionError(i, "; ".join(v.message for v in a3),
-                                     _obstacle_label(i, self.obstacles[i]))
+                                     obstacle_label(i, self.obstacles[i]))
             self.warnings += a3
             # Not part of the construction's validity test (docs/paper.md), hence a warning
             # even in strict mode: a passage narrower than one safety disc.
@@ -854,7 +839,7 @@ class _Builder:
         """Insert the triangle of obstacle ``i`` into the sub-tube that contains its centre."""
         ob = self.obstacles[i]
         params, n_c, m = self.params, self.n_c, self.m
-        where = _obstacle_label(i, ob)
+        where = obstacle_label(i, ob)
 
         def fail(reason: str) -> PartitionError:
             return PartitionError(i, reason, where)

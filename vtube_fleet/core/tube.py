@@ -135,6 +135,18 @@ class Trapezoid:
         """L = n_cᵀ(p_r1 − p_h0): distance from the start base to the finishing line."""
         return float(self.n_c @ (self.p_r1 - self.p_h0))
 
+    def finish_threshold(self, eps_0: float) -> float:
+        """The finishing line as a threshold on n_cᵀx: (TraCondition) −n_cᵀ(x − p_r1) ≤ ε_0
+        holds iff n_cᵀx ≥ n_cᵀp_r1 − ε_0 (this value)."""
+        return float(self.n_c @ self.p_r1) - float(eps_0)
+
+    def finished(self, x: np.ndarray, eps_0: float) -> np.ndarray:
+        """(TraCondition) on this tube: x has reached the finishing line → (…,) bool.
+
+        The one finishing-line test of the project: the simulator, the fleet's plan, the
+        lost-vehicle obstacles and the run monitor all use it."""
+        return np.asarray(x, dtype=float) @ self.n_c >= self.finish_threshold(eps_0)
+
     def xi(self, x: np.ndarray) -> np.ndarray:
         """Longitudinal coordinate ξ(x) = n_cᵀ(x − p_h0); 0 on the start base."""
         return (np.asarray(x, dtype=float) - self.p_h0) @ self.n_c

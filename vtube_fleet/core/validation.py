@@ -31,19 +31,20 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.core.params import parameter_problems
 from vtube_fleet.core.partition import (
     Partition,
     PartitionError,
     Violation,
-    _num,
-    _obstacle_label,
-    _pt,
     check_assumption3,
     check_constraint2,
     h_min,
     partition,
 )
+from vtube_fleet.core.text import compact_number as _num
+from vtube_fleet.core.text import obstacle_label
+from vtube_fleet.core.text import point_text as _pt
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 
@@ -66,7 +67,7 @@ _TOL = 1e-9
 
 
 def _ob(i: int, ob: Obstacle) -> str:
-    return _obstacle_label(i, ob)
+    return obstacle_label(i, ob)
 
 
 class ScenarioError(UserError):
@@ -141,7 +142,8 @@ def _check_assumption1(
     p: np.ndarray,
     part: Partition | None,
 ) -> list[Violation]:
-    r_s = params.r_s
+    lim = SafetyLimits.from_params(params)
+    r_s = lim.leg_m
     out: list[Violation] = []
     finite = np.all(np.isfinite(p), axis=1)
     bad = np.flatnonzero(~finite)
@@ -175,7 +177,7 @@ def _check_assumption1(
 
     # S_i ∩ S_j = ∅: ‖p_i − p_j‖ > 2 r_s (k-d tree, no O(M²) memory).
     if len(q) > 1:
-        pairs = cKDTree(q).query_pairs(2.0 * r_s, output_type="ndarray")
+        pairs = cKDTree(q).query_pairs(lim.pair_m, output_type="ndarray")
         if len(pairs):
             pairs = np.sort(idx[pairs], axis=1)
             pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
@@ -184,7 +186,7 @@ def _check_assumption1(
                 i, j = pairs[n]
                 d = float(np.hypot(*(p[i] - p[j])))
                 return (f"robots {i} and {j} overlap: distance {_num(d, 2)} m ≤ 2 r_s = "
-                        f"{_num(2 * r_s, 2)} m")
+                        f"{_num(lim.pair_m, 2)} m")
 
             out += _capped(len(pairs), overlap, "overlapping pairs")
 
@@ -193,7 +195,7 @@ def _check_assumption1(
     n_hits = 0
     for k_ob, ob in enumerate(obstacles):
         d = np.hypot(*(q - ob.center).T)
-        rows = np.flatnonzero(d <= float(ob.radius) + r_s)
+        rows = np.flatnonzero(d <= lim.obstacle_center_m(ob.radius))
         n_hits += len(rows)
         hits += [(int(k), k_ob, float(d[k])) for k in rows[:MAX_LISTED]]
 
@@ -201,7 +203,7 @@ def _check_assumption1(
         k, k_ob, d = hits[n]
         ob = obstacles[k_ob]
         return (f"robot {idx[k]} at {_pt(q[k])} overlaps {_ob(k_ob, ob)}: centre distance "
-                f"{_num(d, 2)} m ≤ r_o + r_s = {_num(float(ob.radius) + r_s, 2)} m")
+                f"{_num(d, 2)} m ≤ r_o + r_s = {_num(lim.obstacle_center_m(ob.radius), 2)} m")
 
     out += _capped(n_hits, on_obstacle, "robot–obstacle overlaps")
 

@@ -169,8 +169,7 @@ class FlightPlan:
 
     def exited(self, p: np.ndarray) -> np.ndarray:
         """(TraCondition) on the MAIN tube: −n_cᵀ(p − p_r1) ≤ ε_0 → (…,) bool."""
-        p = np.asarray(p, dtype=float)
-        return -((p - self.tube.p_r1) @ self.tube.n_c) <= float(self.flown.eps_0)
+        return self.tube.finished(p, self.flown.eps_0)
 
     def commands(self, p: np.ndarray, rows: Sequence[int] | np.ndarray) -> np.ndarray:
         """The controller's commands (len(rows), 2) for robots ``rows`` of the swarm ``p``
@@ -293,8 +292,8 @@ def lost_obstacles(
     out = []
     apex = LOST_APEX_FACTOR * h_min(float(radius_m), params)
     for p in view.lost_pos:
-        past = -float((np.asarray(p) - tube.p_r1) @ tube.n_c) <= float(params.eps_0)
-        if bool(tube.contains(p)) and not past:  # (past the finishing line: Assumption 2)
+        # past the finishing line: Assumption 2, the vehicle no longer counts
+        if bool(tube.contains(p)) and not bool(tube.finished(p, params.eps_0)):
             out.append(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
                                 apex_distance=apex))
     return tuple(out)

@@ -11,15 +11,19 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.errors import UserError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.fleet.supervisor import FleetResult, Supervisor
 
 __all__ = [
     "BACKENDS",
     "FleetCliError",
     "UNUSED_STREAMS_OFF",
+    "fleet_supervisor",
     "fly",
     "mock_fleet",
     "parse_endpoint_list",
@@ -59,12 +63,16 @@ def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:
 
 
 @contextlib.asynccontextmanager
-async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
-                     ) -> AsyncIterator[Any]:
+async def mock_fleet(mission: Mission, count: int | None = None, *,
+                     gcs_port: int | None = None, vehicle_port: int | None = None,
+                     **kwargs: Any) -> AsyncIterator[Any]:
     """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager); PX4's port
-    scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond."""
+    scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond.
+    ``gcs_port`` / ``vehicle_port``: a custom scheme instead (vehicle i: GCS port
+    ``gcs_port`` + i, sending from ``vehicle_port`` + i; defaults 14540 and GCS port + 40);
+    other keyword arguments go to ``MockFleet``."""
     try:
-        from sim_stub import MockFleet, SimStubError
+        from sim_stub import MockFleet, PortScheme, SimStubError
     except ImportError as exc:  # pragma: no cover - sim_stub ships with the package
         raise FleetCliError(f"the built-in mock fleet (sim_stub) is not available: {exc}"
                             ) from None
@@ -72,6 +80,10 @@ async def mock_fleet(mission: Mission, count: int | None = None, **kwargs: Any
     if not 1 <= n <= mission.count:
         raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
                             f"slots), got {n}")
+    if gcs_port is not None or vehicle_port is not None:
+        gcs = 14540 if gcs_port is None else gcs_port
+        veh = gcs + 40 if vehicle_port is None else vehicle_port
+        kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
     kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
     try:
         fleet = MockFleet(n, homes=_homes(mission, n), **kwargs)
@@ -103,7 +115,8 @@ def parse_endpoint_list(text: str, slots: int) -> list[str]:
 # ----------------------------------------------------------------------------------------------
 # run
 # ----------------------------------------------------------------------------------------------
-async def fly(
+@contextlib.asynccontextmanager
+async def fleet_supervisor(
     mission: Mission,
     *,
     backend: str = "mavlink",
@@ -115,9 +128,9 @@ async def fly(
     mock_kwargs: dict[str, Any] | None = None,
     link_options: dict[str, Any] | None = None,
     **supervisor_kwargs: Any,
-) -> Any:
-    """Fly ``mission`` (an in-process mock fleet when ``endpoints`` is None); returns the
-    :class:`~vtube_fleet.fleet.supervisor.FleetResult`."""
+) -> AsyncIterator[Supervisor]:
+    """The :class:`~vtube_fleet.fleet.supervisor.Supervisor` of ``mission`` over open links
+    (an in-process mock fleet when ``endpoints`` is None); links and mock closed on exit."""
     from vtube_fleet.fleet.supervisor import Supervisor
     from vtube_fleet.link import open_links
 
@@ -141,6 +154,12 @@ async def fly(
             options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
         links = await stack.enter_async_context(
             open_links(list(endpoints), backend, sysids=sysids, **options))
-        sup = Supervisor(mission, links, backend=backend, recorder=recorder, view=view,
+        yield Supervisor(mission, links, backend=backend, recorder=recorder, view=view,
                          out_dir=out_dir, **supervisor_kwargs)
+
+
+async def fly(mission: Mission, **kwargs: Any) -> FleetResult:
+    """Fly ``mission`` (arguments as :func:`fleet_supervisor`); returns the
+    :class:`~vtube_fleet.fleet.supervisor.FleetResult`."""
+    async with fleet_supervisor(mission, **kwargs) as sup:
         return await sup.run()

@@ -40,12 +40,10 @@ from __future__ import annotations
 
 import asyncio
 import inspect
-import json
 import logging
 import math
 import os
 import re
-import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -54,12 +52,15 @@ from typing import Any
 
 import numpy as np
 
+from vtube_fleet.artifacts import write_summary
 from vtube_fleet.bus.base import InProcessBus
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.metrics import (
     SafetyMonitor,
     SummaryAccumulator,
     ViolationLog,
+    finite_or_none,
+    percentile_or_none,
     truth_keys,
     verdict,
 )
@@ -91,7 +92,7 @@ from vtube_fleet.fleet.pilot import (
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
-from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_INTERRUPTED, EXIT_OK, EXIT_UNSAFE
+from vtube_fleet.outcome import EXIT_INCOMPLETE, exit_code
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, Phase
 
 __all__ = [
@@ -130,13 +131,17 @@ class MissionAborted(UserError):
 
 @dataclass
 class FleetResult:
-    """What :meth:`Supervisor.run` returns: exit code, outcome, the summary dict."""
+    """What :meth:`Supervisor.run` returns: the outcome, why, the summary dict and its path."""
 
-    exit_code: int
     outcome: str
     reason: str
     summary: dict[str, Any]
     summary_path: Path | None
+
+    @property
+    def exit_code(self) -> int:
+        """The process exit code of :attr:`outcome` (:func:`vtube_fleet.outcome.exit_code`)."""
+        return exit_code(self.outcome)
 
 
 @dataclass
@@ -150,19 +155,6 @@ class TickTrace:
     in_tube: np.ndarray  # (M,) bool: commanded by the tube controller this tick
     phases: tuple[str, ...]
     truth: np.ndarray | None = None  # (M, 2) ground truth (truth=True), NaN = unknown
-
-
-def _pct(values: Sequence[float] | np.ndarray, q: float) -> float:
-    a = np.asarray(values, dtype=float)
-    a = a[np.isfinite(a)]
-    return float(np.percentile(a, q)) if a.size else math.nan
-
-
-def _num(x: float | None) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def preflight_report(
@@ -202,8 +194,8 @@ class Supervisor:
     ``view``: the live terminal view (default: none); ``out_dir``: where ``summary.json`` goes;
     ``keep_trace``: keep every tick's telemetry in :attr:`trace` (tests);
     ``tick_hook(tick, supervisor)``: called at the end of every tick (fault injection in tests;
-    if it returns an awaitable, the control clock awaits it: a stalled control loop);
-    ``signals``: install SIGINT/SIGTERM handlers (hold, then land, exit 130).
+    if it returns an awaitable, the control clock awaits it: a stalled control loop).
+    :meth:`interrupt` stops the mission as a signal would (the command installs the handlers).
     """
 
     def __init__(
@@ -217,7 +209,6 @@ class Supervisor:
         out_dir: str | os.PathLike[str] | None = None,
         keep_trace: bool = False,
         tick_hook: Callable[[int, Supervisor], None] | None = None,
-        signals: bool = True,
         truth: bool = False,
     ) -> None:
         if not links:
@@ -242,7 +233,6 @@ class Supervisor:
         self.keep_trace = keep_trace
         self.trace: list[TickTrace] = []
         self.tick_hook = tick_hook
-        self.signals = signals
         self.truth = truth
 
         sc = mission.scenario
@@ -313,10 +303,7 @@ class Supervisor:
         t = self.t_s()
         self.events.append({"t_s": round(t, 3), "vehicle": vehicle_id, "level": level,
                             "text": text})
-        try:
-            self.recorder.log_event(t, text, vehicle_id=vehicle_id, level=level)
-        except Exception as exc:  # the recorder must never stop the fleet
-            log.warning("recorder: log_event failed: %s", exc)
+        self.recorder.log_event(t, text, vehicle_id=vehicle_id, level=level)
         line = text if vehicle_id is None else f"{self.names[vehicle_id]}: {text}"
         if level in ("warning", "error") and self.view is None:
             log.warning("%s", line)
@@ -407,10 +394,7 @@ class Supervisor:
                     if gone:
                         p.mark_exit(t)
                         self.acc.add_exits(t, [p.vehicle_id])
-                        try:
-                            self.recorder.log_exits(t, self.tick, [p.vehicle_id])
-                        except Exception as exc:
-                            log.warning("recorder: log_exits failed: %s", exc)
+                        self.recorder.log_exits(t, self.tick, [p.vehicle_id])
                         continue
                     k = index.get(p.vehicle_id)
                     if k is not None:
@@ -451,10 +435,7 @@ class Supervisor:
             self.event(f"re-partitioned around lost vehicle(s): {len(new.partition.sub_tubes)} "
                        f"sub-tubes; lost obstacles {where or 'none inside the tube'}",
                        level="warning")
-            try:
-                self.recorder.log_partition(new.partition, t)
-            except Exception as exc:
-                log.warning("recorder: log_partition failed: %s", exc)
+            self.recorder.log_partition(new.partition, t)
 
     def request_abort(self, reason: str) -> None:
         """Abort the mission: vehicles in the tube hold now; the main procedure ends."""
@@ -563,13 +544,10 @@ class Supervisor:
             metrics["tick_duration_s"] = self.tick_durations[-1]
         if math.isfinite(latency):
             metrics["link_latency_s"] = latency
-        try:
-            self.recorder.log_tick(
-                t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
-                phases=[p.phase.value for p in pilots], cmd=cmd, metrics=metrics,
-                safety=safety)
-        except Exception as exc:
-            log.warning("recorder: log_tick failed: %s", exc)
+        self.recorder.log_tick(
+            t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
+            phases=[p.phase.value for p in pilots], cmd=cmd, metrics=metrics,
+            safety=safety)
         if self.keep_trace:
             self.trace.append(TickTrace(t, pos, vel, cmd, tube_rows & np.isfinite(cmd[:, 0]),
                                         tuple(p.phase.value for p in pilots), truth))
@@ -658,8 +636,9 @@ class Supervisor:
             st.truth_leg_m = min(summ.get("min_left_leg_distance_m_truth") or math.inf,
                                  summ.get("min_right_leg_distance_m_truth") or math.inf)
         d = self.tick_durations[-400:]
-        st.tick_p50_ms = 1000 * _pct(d, 50)
-        st.tick_p99_ms = 1000 * _pct(d, 99)
+        p50, p99 = percentile_or_none(d, 50), percentile_or_none(d, 99)
+        st.tick_p50_ms = math.nan if p50 is None else 1000 * p50
+        st.tick_p99_ms = math.nan if p99 is None else 1000 * p99
         st.rate_hz = self._achieved_rate(window=40)
         late = self.tick_lateness[-400:]
         if late:
@@ -767,13 +746,11 @@ class Supervisor:
             raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
         for p in self.pilots:
             p.agent.root_plan = p.agent.plan = self.plan
-        try:
-            self.recorder.log_scene(self.mission, self.plan.partition, meta={
-                "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
-                "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
-                "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
-        except Exception as exc:
-            log.warning("recorder: log_scene failed: %s", exc)
+        self.recorder.log_scene(self.mission.scenario, self.plan.partition,
+                                mission=self.mission.config, meta={
+            "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
+            "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
+            "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
 
     def _lookahead_problems(self, positions: np.ndarray, where: str) -> list[str]:
         """Vehicles that the apex look-ahead would start inside a triangle side's barrier."""
@@ -881,7 +858,9 @@ class Supervisor:
         await self._finish(self.cfg.on_complete)
 
     # -- run -------------------------------------------------------------------------------------
-    def _on_signal(self, name: str) -> None:
+    def interrupt(self, name: str) -> None:
+        """Stop the mission (``name``: what asked, e.g. ``SIGINT``): vehicles hold, then land;
+        the outcome is ``interrupted``. A second call stops waiting for touch-down."""
         if self._interrupted is None:
             self._interrupted = name
             self.event(f"{name} received", level="warning")
@@ -896,15 +875,6 @@ class Supervisor:
     async def run(self) -> FleetResult:
         """Fly the mission; always writes ``summary.json`` (when ``out_dir`` is set)."""
         loop = asyncio.get_running_loop()
-        installed: list[int] = []
-        if self.signals:
-            for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
-                try:
-                    loop.add_signal_handler(sig, self._on_signal, name)
-                    installed.append(sig)
-                except (NotImplementedError, RuntimeError, ValueError):
-                    pass
-        exit_code = EXIT_OK
         error: BaseException | None = None
         try:
             self._main = loop.create_task(self._mission())
@@ -919,19 +889,16 @@ class Supervisor:
                                        f"{p.name} {p.phase.value}"
                                        + (f" ({p.reason})" if p.reason else "")
                                        for p in self.pilots if p.exit_time_s is None))
-                    exit_code = EXIT_INCOMPLETE
                 elif self.not_landed:
                     self.outcome = "incomplete"
                     self.reason = (f"{len(self.not_landed)} vehicle(s) still airborne after "
                                    f"land_timeout_s = {self.cfg.land_timeout_s:g} s: "
                                    + ", ".join(self.not_landed))
-                    exit_code = EXIT_INCOMPLETE
             except asyncio.CancelledError:
                 if self._interrupted is None:
                     raise
                 self.outcome = "interrupted"
                 self.reason = f"{self._interrupted}: held, then landed"
-                exit_code = EXIT_INTERRUPTED
                 self._main = loop.create_task(self._emergency(self._interrupted))
                 try:
                     await self._main
@@ -940,25 +907,19 @@ class Supervisor:
             except MissionAborted as exc:
                 self.outcome = "aborted"
                 self.reason = str(exc)
-                exit_code = EXIT_INCOMPLETE
                 error = exc
                 await self._after_abort(exc)
             except UserError as exc:
                 self.outcome = "failed"
                 self.reason = str(exc)
-                exit_code = exc.exit_code
                 error = exc
                 await self._after_abort(exc)
         finally:
-            for sig in installed:
-                loop.remove_signal_handler(sig)
             self._judge()
-            if self.outcome == "unsafe":
-                exit_code = EXIT_UNSAFE
             summary, path = await self._shutdown()
         if error is not None or self.outcome == "unsafe":
             self.event(f"{self.outcome}: {self.reason}", level="error")
-        return FleetResult(exit_code, self.outcome, self.reason, summary, path)
+        return FleetResult(self.outcome, self.reason, summary, path)
 
     def _judge(self) -> None:
         """The verdict (:func:`vtube_fleet.core.metrics.verdict`, the one place that decides):
@@ -1000,24 +961,14 @@ class Supervisor:
                 t.cancel()
         summary = self.summary()
         path = None
-        try:
-            self.recorder.log_summary(summary)
-        except Exception as exc:
-            log.warning("recorder: log_summary failed: %s", exc)
+        self.recorder.log_summary(summary)
         if self.out_dir is not None:
             try:
-                self.out_dir.mkdir(parents=True, exist_ok=True)
-                path = self.out_dir / "summary.json"
-                tmp = path.with_suffix(".json.tmp")
-                tmp.write_text(json.dumps(summary, indent=2) + "\n")
-                tmp.replace(path)
-            except OSError as exc:
+                path = write_summary(self.out_dir, summary)
+            except (OSError, ValueError) as exc:
                 log.error("cannot write summary.json in %s: %s", self.out_dir, exc)
                 path = None
-        try:
-            self.recorder.close()
-        except Exception as exc:
-            log.warning("recorder: close failed: %s", exc)
+        self.recorder.close()
         await asyncio.gather(*(p.link.close() for p in self.pilots), return_exceptions=True)
         if self.view is not None:
             self.view.close()
@@ -1034,7 +985,7 @@ class Supervisor:
         for p in self.pilots:
             vehicles.append({
                 "id": p.vehicle_id, "endpoint": p.link.endpoint.url, "phase": p.phase.value,
-                "exit_s": _num(p.exit_time_s), "reason": p.reason,
+                "exit_s": finite_or_none(p.exit_time_s), "reason": p.reason,
                 "last_position": None if not p.has_position() else [
                     round(float(p.xy[0]), 3), round(float(p.xy[1]), 3)],
                 "setpoints_sent": p.setpoints_sent,
@@ -1054,27 +1005,27 @@ class Supervisor:
             "r_a_flown": flown.r_a,
             "pair_limit_m": self.monitor.limits.pair_m,
             "safety_budget": self.budget.as_dict(),
-            "min_pair_distance_airborne_m": _num(self.min_pair_airborne),
-            "min_commanded_speed_m_s": _num(self.cmd_speed[0]),
-            "max_commanded_speed_m_s": _num(self.cmd_speed[1]),
-            "min_measured_speed_m_s": _num(self.measured_speed[0]),
-            "max_measured_speed_m_s": _num(self.measured_speed[1]),
+            "min_pair_distance_airborne_m": finite_or_none(self.min_pair_airborne),
+            "min_commanded_speed_m_s": finite_or_none(self.cmd_speed[0]),
+            "max_commanded_speed_m_s": finite_or_none(self.cmd_speed[1]),
+            "min_measured_speed_m_s": finite_or_none(self.measured_speed[0]),
+            "max_measured_speed_m_s": finite_or_none(self.measured_speed[1]),
             "settle_s": self.settle_s,
-            "min_measured_speed_settled_m_s": _num(self.settled_speed[0]),
-            "max_measured_speed_settled_m_s": _num(self.settled_speed[1]),
+            "min_measured_speed_settled_m_s": finite_or_none(self.settled_speed[0]),
+            "max_measured_speed_settled_m_s": finite_or_none(self.settled_speed[1]),
             "rate_hz": cfg.rate_hz,
-            "achieved_rate_hz": _num(self._achieved_rate()),
+            "achieved_rate_hz": finite_or_none(self._achieved_rate()),
             "ticks": int(dur.size),
             "ticks_on_time_share": on_time,
-            "tick_duration_p50_s": _num(_pct(dur, 50)),
-            "tick_duration_p99_s": _num(_pct(dur, 99)),
-            "tick_duration_max_s": _num(float(dur.max()) if dur.size else math.nan),
-            "link_latency_p50_s": _num(_pct(self.latencies, 50)),
-            "link_latency_p99_s": _num(_pct(self.latencies, 99)),
-            "position_age_p50_s": _num(_pct(self.sample_ages, 50)),
-            "position_age_p99_s": _num(_pct(self.sample_ages, 99)),
-            "tube_start_s": _num(self.tube_start_s),
-            "flight_time_s": (_num(max(last_exit) - self.tube_start_s)
+            "tick_duration_p50_s": finite_or_none(percentile_or_none(dur, 50)),
+            "tick_duration_p99_s": finite_or_none(percentile_or_none(dur, 99)),
+            "tick_duration_max_s": finite_or_none(float(dur.max()) if dur.size else math.nan),
+            "link_latency_p50_s": finite_or_none(percentile_or_none(self.latencies, 50)),
+            "link_latency_p99_s": finite_or_none(percentile_or_none(self.latencies, 99)),
+            "position_age_p50_s": finite_or_none(percentile_or_none(self.sample_ages, 50)),
+            "position_age_p99_s": finite_or_none(percentile_or_none(self.sample_ages, 99)),
+            "tube_start_s": finite_or_none(self.tube_start_s),
+            "flight_time_s": (finite_or_none(max(last_exit) - self.tube_start_s)
                               if last_exit and self.tube_start_s is not None else None),
             "partitions": self.partitions,
             "wall_s": round(self.t_s(), 3),
@@ -1084,23 +1035,24 @@ class Supervisor:
         extra["first_violation"] = self.violations.first
         if self.truth:
             extra["truth"] = True
-            extra["min_pair_distance_airborne_m_truth"] = _num(self.min_pair_airborne_truth)
+            extra["min_pair_distance_airborne_m_truth"] = finite_or_none(
+                self.min_pair_airborne_truth)
             # (→ truth_min_pair_distance_airborne_m, like every *_truth key)
         if self.measured is not None:
             extra["measured"] = {
                 "position_age_p95_s": self.measured.position_age_s,
                 "setpoint_delay_s": self.measured.setpoint_delay_s,
-                "accuracy_m": _num(self.measured.accuracy_m),
-                "accuracies_m": [_num(a) for a in self.measured.accuracies_m]}
+                "accuracy_m": finite_or_none(self.measured.accuracy_m),
+                "accuracies_m": [finite_or_none(a) for a in self.measured.accuracies_m]}
         comp = [p.compensator for p in self.pilots if p.compensator is not None]
         if comp:
             res = [r for p in self.pilots for r in p.disturbance_residual_m_s]
             extra["estimate_compensation"] = {
                 "max_correction_m_s": max(c.max_m_s for c in comp),
                 "clipped": sum(c.clipped for c in comp),
-                "residual_p50_m_s": _num(_pct(res, 50)),
-                "residual_p99_m_s": _num(_pct(res, 99)),
-                "residual_max_m_s": _num(max(res) if res else math.nan),
+                "residual_p50_m_s": finite_or_none(percentile_or_none(res, 50)),
+                "residual_p99_m_s": finite_or_none(percentile_or_none(res, 99)),
+                "residual_max_m_s": finite_or_none(max(res) if res else math.nan),
                 "budgeted_m_s": self.budget.disturbance_m_s}
         try:
             out = self.acc.summary(**extra)

@@ -15,7 +15,9 @@ import numpy as np
 from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
-    pass
+    from vtube_fleet.config.mission import MissionConfig
+    from vtube_fleet.config.scenario import Scenario
+    from vtube_fleet.core.partition import Partition
 
 __all__ = [
     "NullRecorder",
@@ -32,13 +34,18 @@ class RecordingError(UserError):
 # ----------------------------------------------------------------------------------------------
 @runtime_checkable
 class Recorder(Protocol):
-    """What the simulator and the fleet call. See the module docstring for the layout."""
+    """What the simulator and the fleet call. See the module docstring for the layout.
+
+    Implementations never raise from ``log_*`` or :meth:`close`: a recording problem is logged
+    by the recorder and the run goes on, so callers do not guard their calls. Problems with the
+    destination (a bad path, a bad viewer address) are found when the recorder is opened."""
 
     def log_scene(
-        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
+        self, scenario: Scenario, partition: Partition | None = None, *,
+        mission: MissionConfig | None = None, meta: Mapping[str, Any] | None = None,
     ) -> None:
-        """Static scene + scenario metadata. ``scenario`` is a ``Scenario`` (or a ``Mission``,
-        whose ``.scenario`` is used); ``meta`` adds JSON-able keys (``dt_s``, ``rate_hz`` ...)."""
+        """Static scene + scenario metadata; ``mission``: the fleet's ``[mission]`` settings,
+        stored too; ``meta`` adds JSON-able keys (``dt_s``, ``rate_hz`` ...)."""
 
     def log_partition(self, partition: Any, t_s: float) -> None:
         """The sub-tubes and triangles of a (re)partition, valid from ``t_s`` on."""
@@ -95,7 +102,8 @@ class NullRecorder:
     closed: bool = False
 
     def log_scene(
-        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
+        self, scenario: Scenario, partition: Partition | None = None, *,
+        mission: MissionConfig | None = None, meta: Mapping[str, Any] | None = None,
     ) -> None:
         pass
 

@@ -6,8 +6,8 @@ A sender thread, batched columns, decimation that keeps the extremes.
 from __future__ import annotations
 
 import atexit
-import dataclasses
 import datetime as _dt
+import functools
 import json
 import logging
 import math
@@ -18,14 +18,15 @@ import threading
 import time
 import uuid
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 from urllib.parse import urlparse
 
 import numpy as np
 
+from vtube_fleet.artifacts import json_safe
 from vtube_fleet.recording.api import NullRecorder, Recorder, RecordingError
 from vtube_fleet.recording.layout import (
     DEFAULT_COLOR,
@@ -64,7 +65,12 @@ from vtube_fleet.recording.layout import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.config.mission import MissionConfig
+    from vtube_fleet.config.scenario import Scenario
+    from vtube_fleet.core.partition import Partition
     from vtube_fleet.core.tube import Obstacle
+
+_M = TypeVar("_M", bound=Callable[..., Any])
 
 __all__ = [
     "RerunRecorder",
@@ -82,31 +88,6 @@ log = logging.getLogger(__name__)
 def _phase_str(p: Any) -> str:
     """``Phase.IN_TUBE`` → ``"in_tube"``; plain strings unchanged."""
     return str(getattr(p, "value", p))
-
-
-def _jsonable(obj: Any) -> Any:
-    """Dataclasses, numpy arrays/scalars, enums, paths → JSON types (inf/NaN → None)."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)
-                if not f.name.startswith("_")}
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, bool | None | str):
-        return obj
-    if hasattr(obj, "value") and isinstance(obj.value, str | int):
-        return obj.value
-    if isinstance(obj, np.integer | int):
-        return int(obj)
-    if isinstance(obj, np.floating | float):
-        x = float(obj)
-        return x if math.isfinite(x) else None
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    return str(obj)
 
 
 def _pt(p: np.ndarray) -> list[float]:
@@ -208,6 +189,21 @@ def _viewer_reachable(url: str, timeout_s: float) -> bool:
             return True
     except OSError:
         return False
+
+
+def _never_raises(method: _M) -> _M:
+    """A public :class:`Recorder` method: a recording problem is logged, never raised into the
+    caller's loop (the one place recording errors are swallowed; callers do not guard)."""
+
+    @functools.wraps(method)
+    def wrapper(self: RerunRecorder, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return method(self, *args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - recording must not kill the control loop
+            self._report(exc)
+            return None
+
+    return wrapper  # type: ignore[return-value]
 
 
 @dataclass(frozen=True, eq=False)
@@ -442,14 +438,18 @@ class RerunRecorder:
         self._queue.put(job)
         return True
 
+    def _report(self, exc: Exception) -> None:
+        """A recording problem: counted, the first three logged; never raised (Recorder)."""
+        self._send_errors += 1
+        if self._send_errors <= 3:
+            log.warning("rerun recording: %s: %s", type(exc).__name__, exc)
+
     def _guard(self, fn: Any) -> None:
-        """Run a rerun call; recording problems are logged, never raised into the loop."""
+        """Run a rerun call (on the sender thread); a problem goes to :meth:`_report`."""
         try:
             fn()
         except Exception as exc:  # noqa: BLE001 - recording must not kill the control loop
-            self._send_errors += 1
-            if self._send_errors <= 3:
-                log.warning("rerun recording: %s: %s", type(exc).__name__, exc)
+            self._report(exc)
 
     # ----- scene ------------------------------------------------------------------------
     def _send_static_defaults(self) -> None:
@@ -459,19 +459,18 @@ class RerunRecorder:
         self._rec.log(E_VELOCITY, rr.Arrows2D.from_fields(colors=[0x66BB6AFF]), static=True)
         self._rec.log(E_COMMANDS, rr.Arrows2D.from_fields(colors=[0xBDBDBD90]), static=True)
 
+    @_never_raises
     def log_scene(
-        self, scenario: Any, partition: Any | None = None, *, meta: Mapping[str, Any] | None = None
+        self, scenario: Scenario, partition: Partition | None = None, *,
+        mission: MissionConfig | None = None, meta: Mapping[str, Any] | None = None,
     ) -> None:
         rr = self._rr
-        mission_cfg = getattr(scenario, "config", None)
-        if hasattr(scenario, "scenario"):
-            scenario = scenario.scenario
         tube = scenario.tube
         obstacles = tuple(scenario.obstacles)
         robots = scenario.robots
         params = scenario.controller
         r_s = float(params.r_s)
-        doc = self._scene_meta(scenario, mission_cfg, meta)
+        doc = self._scene_meta(scenario, mission, meta)
         with self._lock:
             if self.closed or not self._open():
                 return
@@ -507,12 +506,12 @@ class RerunRecorder:
             if partition is not None:
                 self._log_partition_now(partition, t_s=0.0, tick=0)
 
-    def _scene_meta(self, scenario: Any, mission_cfg: Any, meta: Mapping[str, Any] | None
-                    ) -> dict[str, Any]:
+    def _scene_meta(self, scenario: Scenario, mission_cfg: MissionConfig | None,
+                    meta: Mapping[str, Any] | None) -> dict[str, Any]:
         tube = scenario.tube
         robots = scenario.robots
         params = scenario.controller
-        sim = getattr(scenario, "sim", None)
+        sim = scenario.sim
         doc: dict[str, Any] = {
             "format": META_FORMAT,
             "version": META_VERSION,
@@ -520,7 +519,7 @@ class RerunRecorder:
             "app_id": self.app_id,
             "recording_id": self.recording_id,
             "created_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            "source": str(getattr(scenario, "source", "")),
+            "source": str(scenario.source),
             "decimate": self.decimate,
             "min_period_s": self.min_period_s,
             "arrow_scale_s": self.arrow_scale_s,
@@ -534,19 +533,19 @@ class RerunRecorder:
             "r_a": float(params.r_a),
             "v_min": float(params.v_min),
             "v_max": float(params.v_max),
-            "eps_0": float(getattr(params, "eps_0", 0.01)),
+            "eps_0": float(params.eps_0),
             "robots": int(robots.count),
             "ids": list(range(int(robots.count))),
-            "model": str(getattr(robots, "model", "single_integrator")),
-            "nid_distance": getattr(robots, "nid_distance", None),
-            "controller": _jsonable(params),
-            "sim": _jsonable(sim) if sim is not None else None,
-            "dt_s": float(sim.dt) if sim is not None and hasattr(sim, "dt") else None,
+            "model": str(robots.model),
+            "nid_distance": robots.nid_distance,
+            "controller": json_safe(params),
+            "sim": json_safe(sim) if sim is not None else None,
+            "dt_s": float(sim.dt) if sim is not None else None,
         }
         if mission_cfg is not None:
-            doc["mission"] = _jsonable(mission_cfg)
+            doc["mission"] = json_safe(mission_cfg)
         if meta:
-            doc.update(_jsonable(dict(meta)))
+            doc.update(json_safe(dict(meta)))
         return doc
 
     def _set_limits(self, r_s: float, obstacles: Sequence[Obstacle], v_min: float,
@@ -570,6 +569,7 @@ class RerunRecorder:
                 colors=[0xE53935FF] * len(values), names=names, widths=[1.0] * len(values)),
                 static=True)
 
+    @_never_raises
     def log_partition(self, partition: Any, t_s: float) -> None:
         with self._lock:
             if not self.closed and self._enabled:
@@ -592,6 +592,7 @@ class RerunRecorder:
                 [len(tris)]))
 
     # ----- ticks ------------------------------------------------------------------------
+    @_never_raises
     def log_tick(
         self,
         *,
@@ -912,6 +913,7 @@ class RerunRecorder:
             rr.TextDocument.columns(text=["\n".join(lines)], media_type=["text/markdown"]))
 
     # ----- events, summary, close -------------------------------------------------------
+    @_never_raises
     def log_metrics(self, t_s: np.ndarray, ticks: np.ndarray,
                     metrics: Mapping[str, np.ndarray], *, every: int = 1) -> None:
         """Per-step metric series (K,) in bulk, e.g. a simulator's chunk of steps.
@@ -995,6 +997,7 @@ class RerunRecorder:
         self._metric_keys_seen.update(series)
         self._send_limits(t, k, new_keys, due=t[-1] >= self._next_limit_t)
 
+    @_never_raises
     def log_exits(self, t_s: float, tick: int, ids: Sequence[int] | np.ndarray) -> None:
         """Explicit exits (the simulator knows the exact step); vehicles already reported
         exited are ignored, and the automatic detection will not report them again."""
@@ -1009,6 +1012,7 @@ class RerunRecorder:
                 self._xbuf.append((t_s, tick, gone))
                 self._maybe_send()
 
+    @_never_raises
     def log_event(
         self, t_s: float, text: str, *, vehicle_id: int | None = None, level: str = "info"
     ) -> None:
@@ -1027,12 +1031,13 @@ class RerunRecorder:
                 self._submit(lambda: self._send_vehicle_events(
                     t_s, tick, [vid], [f"vehicle {vid}: {text}"], [lvl]))
 
+    @_never_raises
     def log_summary(self, summary: Mapping[str, Any]) -> None:
         rr = self._rr
         with self._lock:
             if self.closed:
                 return
-            text = json.dumps(_jsonable(dict(summary)), indent=1)
+            text = json.dumps(json_safe(dict(summary)), indent=1)
             self._submit(lambda: self._rec.log(
                 E_SUMMARY, rr.TextDocument(text, media_type=rr.MediaType.TEXT), static=True))
 
@@ -1046,6 +1051,7 @@ class RerunRecorder:
         """:meth:`log_tick` calls so far."""
         return self._calls
 
+    @_never_raises
     def close(self) -> None:
         with self._lock:
             if self.closed:

@@ -6,13 +6,10 @@ cannot be trusted, and records its own view of the flight.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import logging
 import math
-import signal
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,7 +29,6 @@ from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_LINK_LATENCY_S,
     DEFAULT_BROKER,
     bus_safety_budget,
-    config_hash,
     default_max_age_s,
     default_mission_id,
     needed_cell_m,
@@ -40,6 +36,7 @@ from vtube_fleet.fleet.distributed.coordinator import (
 from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
 from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
+from vtube_fleet.recording.api import NullRecorder, Recorder
 from vtube_fleet.state import AIRBORNE_PHASES, NeighbourState, Phase
 
 __all__ = [
@@ -327,8 +324,8 @@ class AgentRecording:
         try:
             return write_summary(out, summary)
         finally:
-            mon._record("log_summary", summary)
-            mon._record("close")
+            mon.recorder.log_summary(summary)
+            mon.recorder.close()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -350,10 +347,12 @@ class AgentProcess:
         join_timeout_s: float = 600.0,
         broker_hold_limit_s: float = 30.0,
         out: str | Path | None = None,
-        rerun_args: argparse.Namespace | None = None,
+        recorder: Recorder | None = None,
+        say: Callable[[str], None] | None = None,
     ) -> None:
-        """``out``: folder for this agent's ``summary.json`` and (unless ``rerun_args`` say
-        ``--no-rerun``) ``recording.rrd`` (:class:`AgentRecording`); None: nothing written."""
+        """``out``: folder for this agent's ``summary.json`` (None: nothing written);
+        ``recorder``: records this agent's view (:class:`AgentRecording`; default: nothing);
+        ``say``: where progress lines go (the command prints them; default: the log)."""
         from vtube_fleet.config.mission import load_mission
         from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_endpoints
 
@@ -365,7 +364,7 @@ class AgentProcess:
             )
         self.vehicle = vehicle
         self.cfg = self.mission.config
-        self.hash = config_hash(self.path)
+        self.hash = self.mission.config_hash
         self.mission_id = mission_id or default_mission_id(self.path)
         self.endpoint = endpoint or px4_sitl_endpoints(vehicle + 1)[vehicle]
         parse_endpoint(self.endpoint)
@@ -374,14 +373,8 @@ class AgentProcess:
         self.join_timeout_s = join_timeout_s
         self.broker_hold_limit_s = broker_hold_limit_s
         self.out = None if out is None else Path(out)
-        self.recorder: Any = None
-        if self.out is not None:  # a bad --rerun-save / --rerun-connect fails here, not later
-            from vtube_fleet.cli._args import recorder_from_args
-
-            self.recorder = recorder_from_args(
-                rerun_args if rerun_args is not None else argparse.Namespace(), self.out,
-                kind="fleet", app_id="vtube_fleet_agent", detect_exits=False,
-            )
+        self.recorder: Recorder = recorder if recorder is not None else NullRecorder()
+        self._say: Callable[[str], None] = say if say is not None else log.info
         self.recording: AgentRecording | None = None
         self.summary_path: Path | None = None
         self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash)
@@ -393,7 +386,13 @@ class AgentProcess:
 
     # -- helpers ----------------------------------------------------------------------------
     def say(self, text: str) -> None:
-        print(f"agent {self.vehicle}: {text}", file=sys.stderr, flush=True)
+        """A progress line of this agent (``agent I: text``)."""
+        self._say(f"agent {self.vehicle}: {text}")
+
+    def interrupt(self, reason: str = "interrupted") -> None:
+        """Stop as on a signal: hold, then land; :meth:`run` raises :class:`AgentInterrupted`."""
+        log.warning("agent %d: %s", self.vehicle, reason)
+        self._interrupt.set()
 
     def refuse(self, reason: str) -> AgentRefused:
         self.bus.announce("refused", reason)
@@ -706,8 +705,7 @@ class AgentProcess:
         t0 = cmd.stamp_s if cmd is not None else time.time()  # the coordinator's time base
         mission = self.mission.with_vehicles(cfg.vehicles)
         rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0)
-        rec.monitor._record(
-            "log_scene", mission, None,
+        self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
                   "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles},
         )
@@ -766,10 +764,6 @@ class AgentProcess:
         from vtube_fleet.link import open_links
         from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
 
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                loop.add_signal_handler(sig, self._interrupt.set)
         self.bus.add_command_listener(self._on_command)
         sysid = None
         if self.backend == "mavsdk":

@@ -8,24 +8,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
-import json
 import logging
 import math
 import re
-import sys
 import time
-import tomllib
 import uuid
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from vtube_fleet.artifacts import write_summary
 from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, encode_config
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.topics import validate_mission_id
-from vtube_fleet.errors import ConfigError, UserError
+from vtube_fleet.core.metrics import verdict
+from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.distributed.monitor import RunMonitor
+from vtube_fleet.recording.api import NullRecorder, Recorder
 from vtube_fleet.state import (
     Phase,
 )
@@ -36,8 +36,8 @@ __all__ = [
     "Coordinator",
     "DEFAULT_BROKER",
     "MissionRunError",
+    "RunResult",
     "bus_safety_budget",
-    "config_hash",
     "default_max_age_s",
     "default_mission_id",
     "needed_cell_m",
@@ -57,20 +57,6 @@ class MissionRunError(UserError):
 # ----------------------------------------------------------------------------------------------
 # mission identity (shared with the agent)
 # ----------------------------------------------------------------------------------------------
-def config_hash(path: str | Path) -> str:
-    """Hash of the mission file's *content* (parsed TOML, canonical JSON; comments and
-    formatting do not count): 16 hex digits of SHA-256."""
-    p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: cannot read: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
-
-
 #: Link latency L (position age + setpoint delay) the coordinator assumes for every vehicle
 #: when it fixes the run's safety budget and cells; an agent whose own link needs more refuses.
 ASSUMED_LINK_LATENCY_S = 0.1
@@ -139,14 +125,16 @@ class Coordinator:
         broker_timeout_s: float = 10.0,
         max_age_s: float | None = None,
         cells: bool = True,
+        say: Callable[[str], None] | None = None,
     ) -> None:
+        """``say``: where progress lines go (the command prints them; default: the log)."""
         from vtube_fleet.config.mission import load_mission
 
         self.path = Path(mission_path)
         self.mission = load_mission(self.path)
         self.mission_id = mission_id or default_mission_id(self.path)
         validate_mission_id(self.mission_id)
-        self.config_hash = config_hash(self.path)
+        self.config_hash = self.mission.config_hash
         n = self.mission.count if vehicles is None else int(vehicles)
         if not 1 <= n <= self.mission.count:
             raise MissionRunError(
@@ -162,6 +150,7 @@ class Coordinator:
                 f"{lost_after:g} s of {self.path.name}"
             )
         self.cells = cells
+        self.say: Callable[[str], None] = say if say is not None else log.info
         self.broker = broker
         self.broker_timeout_s = broker_timeout_s
         self.bus = MqttBus(broker, self.mission_id)
@@ -285,12 +274,8 @@ class Coordinator:
                 )
             if progress and now - last_print >= 2.0:
                 last_print = now
-                print(
-                    f"waiting for agents: {len(joined)}/{self.vehicles} joined, "
-                    f"{len(ready)}/{self.vehicles} ready",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                self.say(f"waiting for agents: {len(joined)}/{self.vehicles} joined, "
+                         f"{len(ready)}/{self.vehicles} ready")
             with contextlib.suppress(TimeoutError):
                 await self.bus.wait_for(lambda: False, 0.2)
 
@@ -315,7 +300,7 @@ class Coordinator:
             refused = self.refusals()
             if refused and aborted_for is None:
                 aborted_for = "; ".join(refused)
-                print(f"aborting: agent refused after start: {aborted_for}", file=sys.stderr)
+                self.say(f"aborting: agent refused after start: {aborted_for}")
                 self.command("abort")
             now = loop.time()
             if now > deadline:
@@ -326,13 +311,8 @@ class Coordinator:
                 for v in range(self.vehicles):
                     ph = self._phase(v)
                     counts[ph] = counts.get(ph, 0) + 1
-                print(
-                    "fleet: "
-                    + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
-                    + f"; exited {len(mon.exit_stamp)}/{self.vehicles}",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                self.say("fleet: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
+                         + f"; exited {len(mon.exit_stamp)}/{self.vehicles}")
             next_t += period
             await asyncio.sleep(max(0.0, next_t - loop.time()))  # the coordinator's clock
         done = len(mon.exit_stamp) == self.vehicles and all(
@@ -340,6 +320,118 @@ class Coordinator:
             for v in range(self.vehicles)
         )
         return "completed" if done and aborted_for is None else "incomplete"
+
+    # -- a whole run -------------------------------------------------------------------------
+    async def start_run(self, stop: asyncio.Event, ready_timeout_s: float | None = None) -> bool:
+        """Announce a run, wait until every agent is READY, publish start; True once started.
+
+        ``stop`` set before the start (a signal): abort is published and False returned.
+        ``ready_timeout_s`` defaults to the mission's connect + ready timeouts."""
+        cfg = self.mission.config
+        run = self.announce()
+        self.say(f"mission {self.mission_id} run {run}: config {self.config_hash} announced on "
+                 f"{self.broker} (neighbour max age {1000 * self.max_age_s:.0f} ms, cells "
+                 f"{self.announced.cell_m:g} m); waiting for {self.vehicles} agents")
+        timeout = (cfg.connect_timeout_s + cfg.ready_timeout_s if ready_timeout_s is None
+                   else ready_timeout_s)
+        waiting = asyncio.ensure_future(self.wait_ready(timeout))
+        if not await _race(waiting, stop):
+            await _cancel(waiting)
+            self.command("abort")
+            await self.bus.sync()
+            self.say("interrupted before start: abort published")
+            return False
+        self.command("start")
+        self.t_start_wall = time.time()
+        await self.bus.sync()
+        self.say(f"run {run}: start published ({self.vehicles} vehicles ready)")
+        return True
+
+    async def follow_run(self, stop: asyncio.Event, out: Path, recorder: Recorder | None = None,
+                         timeout_s: float | None = None) -> RunResult:
+        """Follow the started run until every vehicle is finished, ``timeout_s`` passed
+        (default: arm + take-off + mission + land timeouts) or ``stop`` is set (abort
+        published). Writes ``out/summary.json`` and the recording on every exit path; the
+        verdict (:func:`~vtube_fleet.core.metrics.verdict`) makes a run that broke a limit
+        ``unsafe``, whatever else happened."""
+        cfg = self.mission.config
+        timeout = (cfg.arm_timeout_s + cfg.takeoff_timeout_s + cfg.mission_timeout_s
+                   + cfg.land_timeout_s) if timeout_s is None else timeout_s
+        recorder = recorder if recorder is not None else NullRecorder()
+        mon = RunMonitor(self.mission, self.vehicles, recorder=recorder,
+                         t0_s=self.t_start_wall or time.time())
+        flown = self.mission.with_vehicles(self.vehicles)
+        recorder.log_scene(flown.scenario, None, mission=flown.config, meta={
+            "kind": "mqtt", "rate_hz": cfg.rate_hz, "run_id": self.run_id,
+            "broker": self.broker, "vehicles": self.vehicles})
+        outcome, reason = "failed", ""
+        try:
+            follow = asyncio.ensure_future(self.follow(timeout, mon))
+            if await _race(follow, stop):
+                outcome = follow.result()
+            else:
+                await _cancel(follow)
+                self.command("abort")
+                await self.bus.sync()
+                self.say("interrupted: abort published; the agents hold, then land")
+                outcome = "interrupted"
+        finally:  # the summary (and the recording) on every exit path
+            summary = mon.summary(
+                mission_id=self.mission_id, run_id=self.run_id, config_hash=self.config_hash,
+                broker=self.broker, outcome=outcome, lost=self.lost_vehicles(),
+                vehicle_states=self.vehicle_table(),
+                wall_s=round(time.time() - (self.t_start_wall or time.time()), 3),
+            )
+            v = verdict(summary)
+            if not v.safe:  # THE verdict: a broken limit makes the run unsafe, whatever else
+                summary["outcome"] = outcome = "unsafe"
+                summary["reason"] = reason = v.summary_line
+            path = write_summary(out, summary)
+            recorder.log_summary(summary)
+            recorder.close()
+        return RunResult(outcome, reason, summary, path)
+
+    async def abort_announced(self) -> str:
+        """Publish abort for the run announced on the broker; returns its run id."""
+        await self.bus.sync()
+        cfg = self.bus.config
+        if cfg is None:
+            raise MissionRunError(
+                f"no run of mission {self.mission_id} announced on {self.broker} "
+                f"(nothing to abort)")
+        self.run_id = cfg.run_id
+        self.command("abort")
+        await self.bus.sync()
+        return cfg.run_id
+
+    async def status(self, listen_s: float) -> dict[str, Any]:
+        """The announced run, the last command and every vehicle's state (listening
+        ``listen_s`` for live states), as a JSON-able dict."""
+        await self.bus.sync()
+        cfg = self.bus.config
+        if cfg is not None:
+            self.run_id = cfg.run_id
+            self.vehicles = max(self.vehicles, cfg.vehicles) if cfg.vehicles else self.vehicles
+        with contextlib.suppress(TimeoutError):  # listen a moment for live states
+            await self.bus.wait_for(lambda: False, listen_s)
+        cmd = self.bus.command
+        now = time.time()
+        return {
+            "mission_id": self.mission_id,
+            "broker": self.broker,
+            "config_hash": self.config_hash,
+            "run": None if cfg is None else {
+                "run_id": cfg.run_id, "config_hash": cfg.config_hash,
+                "hash_matches": cfg.config_hash == self.config_hash,
+                "vehicles": cfg.vehicles, "announced_s_ago": round(now - cfg.stamp_s, 1),
+                "source": cfg.source,
+            },
+            "command": None if cmd is None else {
+                "command": cmd.command, "run_id": cmd.run_id,
+                "s_ago": round(now - cmd.stamp_s, 1),
+            },
+            "vehicles": self.vehicle_table(),
+        }
 
     def lost_vehicles(self) -> list[int]:
         """Vehicles whose agent was lost (last will) or that reported LOST."""
@@ -374,6 +466,37 @@ class Coordinator:
                 }
             )
         return rows
+
+
+@dataclass
+class RunResult:
+    """How a followed run ended: its outcome (:mod:`vtube_fleet.outcome`), the reason when it
+    is unsafe, the summary and where it was written."""
+
+    outcome: str
+    reason: str
+    summary: dict[str, Any]
+    summary_path: Path
+
+
+async def _race(task: asyncio.Future[Any], event: asyncio.Event) -> bool:
+    """Wait for ``task`` or ``event``, whichever comes first; True if ``task`` finished
+    (its exception, if any, is raised). The task is left running otherwise."""
+    waiter = asyncio.ensure_future(event.wait())
+    try:
+        done, _ = await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        waiter.cancel()
+    if task in done:
+        task.result()
+        return True
+    return False
+
+
+async def _cancel(task: asyncio.Future[Any]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
 
 
 def _ids(ids: Iterable[int]) -> str:

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from vtube_fleet.core.metrics import finite_or_none, percentile_or_none
 from vtube_fleet.state import (
     COUNTED_AIRBORNE_PHASES,
     STOPPED_PHASES,
@@ -26,21 +26,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-# ----------------------------------------------------------------------------------------------
-# following a run: the summary from the agents' states
-# ----------------------------------------------------------------------------------------------
-def _pct(values: Iterable[float], q: float) -> float | None:
-    a = np.asarray(list(values), dtype=float)
-    a = a[np.isfinite(a)]
-    return float(np.percentile(a, q)) if a.size else None
-
-
-def _num(x: float | None) -> float | None:
-    if x is None:
-        return None
-    return float(x) if math.isfinite(float(x)) else None
-
 
 @dataclass
 class RunMonitor:
@@ -93,9 +78,7 @@ class RunMonitor:
         if prev != state.phase:
             self.phases[vid] = state.phase
             if self.recorder is not None:
-                self._record(
-                    "log_event",
-                    state.stamp_s - self.t0_s,
+                self.recorder.log_event(state.stamp_s - self.t0_s,
                     f"{prev.value if prev else '-'} → {state.phase.value}",
                     vehicle_id=vid,
                 )
@@ -119,19 +102,11 @@ class RunMonitor:
             if self.recorder is not None:  # the recording's exits are exactly these (its
                 # own detection is off: it would see other moments, or a vehicle first heard
                 # already exited, which is not an exit seen here)
-                self._record("log_exits", state.stamp_s - self.t0_s, self.ticks, [vid])
+                self.recorder.log_exits(state.stamp_s - self.t0_s, self.ticks, [vid])
 
     def _past_finish(self, st: NeighbourState) -> bool:
-        tube = self.mission.scenario.tube
-        p = np.array([st.x_m, st.y_m])
-        eps0 = float(self.mission.scenario.controller.eps_0)
-        return bool(-((p - tube.p_r1) @ tube.n_c) <= eps0)
-
-    def _record(self, method: str, *args: Any, **kwargs: Any) -> None:
-        try:
-            getattr(self.recorder, method)(*args, **kwargs)
-        except Exception as exc:  # the recording must never stop the coordinator
-            log.warning("recorder: %s failed: %s", method, exc)
+        sc = self.mission.scenario
+        return bool(sc.tube.finished(np.array([st.x_m, st.y_m]), sc.controller.eps_0))
 
     def sample(self, states: dict[int, NeighbourState], now_s: float,
                cmd: dict[int, np.ndarray] | None = None) -> None:
@@ -197,9 +172,7 @@ class RunMonitor:
             for vid, c in cmd.items():
                 if 0 <= vid < m:
                     cmd_arr[vid] = c
-        self._record(
-            "log_tick",
-            t_s=now_s - self.t0_s,
+        self.recorder.log_tick(t_s=now_s - self.t0_s,
             tick=self.ticks,
             ids=np.arange(m),
             pos=pos,
@@ -221,17 +194,17 @@ class RunMonitor:
             "r_s": params.r_s,
             "r_a": params.r_a,
             "pair_limit_m": self.monitor.limits.pair_m,
-            "min_pair_distance_airborne_m": _num(self.min_pair_airborne),
+            "min_pair_distance_airborne_m": finite_or_none(self.min_pair_airborne),
             "min_commanded_speed_m_s": None,
             "max_commanded_speed_m_s": None,
-            "min_measured_speed_m_s": _num(self.measured_speed[0]),
-            "max_measured_speed_m_s": _num(self.measured_speed[1]),
+            "min_measured_speed_m_s": finite_or_none(self.measured_speed[0]),
+            "max_measured_speed_m_s": finite_or_none(self.measured_speed[1]),
             "rate_hz": self.mission.config.rate_hz,
-            "state_age_p50_s": _num(_pct(self.ages, 50)),
-            "state_age_p99_s": _num(_pct(self.ages, 99)),
+            "state_age_p50_s": finite_or_none(percentile_or_none(self.ages, 50)),
+            "state_age_p99_s": finite_or_none(percentile_or_none(self.ages, 99)),
             "states_received": len(self.ages),
             "flight_time_s": (
-                _num(last_exit - self.tube_start_s)
+                finite_or_none(last_exit - self.tube_start_s)
                 if last_exit is not None and self.tube_start_s is not None
                 else None
             ),

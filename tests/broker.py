@@ -2,8 +2,8 @@
 
 :class:`LocalBroker` runs **mosquitto** when it is installed (on ``PATH`` or in ``/usr/sbin``,
 where Debian puts it) and otherwise falls back to **amqtt**'s broker in a Python subprocess
-(``python -m vtube_fleet.bus.broker --amqtt PORT``), so the test suite also passes on a machine
-without the Debian package. Readiness is checked by an MQTT CONNECT/CONNACK handshake, never by
+(``python tests/broker.py --amqtt PORT``), so the test suite also passes on a machine without
+the Debian package. Readiness is checked by an MQTT CONNECT/CONNACK handshake, never by
 sleeping. ``kill()`` (SIGKILL: no clean shutdown, clients see their TCP connection drop) and
 ``restart()`` on the same port serve the broker-loss fault tests::
 
@@ -11,8 +11,8 @@ sleeping. ``kill()`` (SIGKILL: no clean shutdown, clients see their TCP connecti
         bus = MqttBus(broker.url, ...)
         broker.kill(); broker.restart()
 
-Production fleets use their own broker (``--broker mqtt://HOST:PORT``); this module only
-launches one for local use.
+Test and benchmark infrastructure (not part of the package): production fleets use their own
+broker (``--broker mqtt://HOST:PORT``).
 """
 
 from __future__ import annotations
@@ -181,8 +181,7 @@ class LocalBroker:
             return [self._mosquitto, "-c", str(conf)]
         return [
             sys.executable,
-            "-m",
-            "vtube_fleet.bus.broker",
+            str(Path(__file__).resolve()),
             "--amqtt",
             str(self.port),
             "--host",
@@ -316,7 +315,7 @@ async def _run_amqtt(host: str, port: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m vtube_fleet.bus.broker",
+        prog="python tests/broker.py",
         description="Run a local MQTT broker on loopback (mosquitto if installed, else amqtt).",
     )
     parser.add_argument("--amqtt", type=int, metavar="PORT", help="run amqtt's broker on PORT")

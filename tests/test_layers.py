@@ -1,0 +1,131 @@
+"""The layers of the package, enforced on the source (docs/architecture.md).
+
+* ``vtube_fleet.core`` is the paper's math: pure numpy, no I/O, no concurrency, no transports;
+* nothing outside ``vtube_fleet.cli`` imports from ``vtube_fleet.cli``;
+* ``sim_stub`` (the mock PX4) does not import ``vtube_fleet``, and ``vtube_fleet`` imports
+  ``sim_stub`` only where it starts the built-in mock fleet (``fleet/launch.py``).
+
+Every import statement counts, also those inside functions and ``TYPE_CHECKING`` blocks.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "vtube_fleet"
+SIM_STUB = ROOT / "sim_stub"
+
+#: Modules the core must never import (top-level package names).
+CORE_FORBIDDEN = {
+    "asyncio", "socket", "threading", "subprocess", "pathlib", "os", "rerun", "pymavlink",
+    "mavsdk", "paho", "aiomqtt", "matplotlib", "sim_stub", "signal", "multiprocessing",
+}
+
+#: Where vtube_fleet may import sim_stub: the launcher of the built-in mock fleet.
+SIM_STUB_IMPORTERS = {"vtube_fleet/fleet/launch.py"}
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def _imports(path: Path, module: str | None = None) -> list[tuple[int, str]]:
+    """(line, absolute dotted module) of every import statement in ``path`` (whose dotted
+    name is ``module``, by default from its place in the repository)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = module or _module_name(path)
+    if path.name != "__init__.py":
+        package = package.rpartition(".")[0]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.append((node.lineno, mod))
+            # `from vtube_fleet import cli` imports the cli package too
+            out += [(node.lineno, f"{mod}.{a.name}") for a in node.names if mod]
+    return out
+
+
+def _files(top: Path) -> list[Path]:
+    return sorted(p for p in top.rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _rel(p: Path) -> str:
+    return p.relative_to(ROOT).as_posix()
+
+
+def test_the_layout_shows_the_layers() -> None:
+    for sub in ("core", "config", "link", "bus", "fleet", "fleet/distributed", "recording", "cli"):
+        assert (PACKAGE / sub / "__init__.py").is_file(), sub
+    assert (PACKAGE / "state.py").is_file() and (PACKAGE / "artifacts.py").is_file()
+
+
+@pytest.mark.parametrize("path", _files(PACKAGE / "core"), ids=_rel)
+def test_core_is_pure(path: Path) -> None:
+    bad = [f"{_rel(path)}:{line} imports {mod}" for line, mod in _imports(path)
+           if mod.split(".")[0] in CORE_FORBIDDEN
+           or (mod.startswith("vtube_fleet.") and not mod.startswith(
+               ("vtube_fleet.core", "vtube_fleet.errors")))]
+    assert not bad, "\n".join(bad)
+
+
+def test_only_cli_imports_cli() -> None:
+    bad = []
+    for path in _files(PACKAGE):
+        if _rel(path).startswith("vtube_fleet/cli/") or path == PACKAGE / "__main__.py":
+            continue
+        bad += [f"{_rel(path)}:{line} imports {mod}" for line, mod in _imports(path)
+                if mod == "vtube_fleet.cli" or mod.startswith("vtube_fleet.cli.")]
+    assert not bad, "\n".join(bad)
+
+
+def test_commands_do_not_import_each_other() -> None:
+    bad = []
+    for path in _files(PACKAGE / "cli"):
+        me = _module_name(path)
+        for line, mod in _imports(path):
+            if (mod.startswith("vtube_fleet.cli.") and mod != me
+                    and not mod.split(".")[2].startswith("_")
+                    and path.name != "__init__.py"):
+                bad.append(f"{_rel(path)}:{line} imports {mod}")
+    assert not bad, "\n".join(bad)
+
+
+def test_sim_stub_stands_alone() -> None:
+    bad = []
+    for path in _files(SIM_STUB):
+        bad += [f"{_rel(path)}:{line} imports {mod}" for line, mod in _imports(path)
+                if mod.split(".")[0] == "vtube_fleet"]
+    assert not bad, "\n".join(bad)
+
+
+def test_only_the_launcher_starts_the_mock() -> None:
+    bad = []
+    for path in _files(PACKAGE):
+        if _rel(path) in SIM_STUB_IMPORTERS:
+            continue
+        bad += [f"{_rel(path)}:{line} imports {mod}" for line, mod in _imports(path)
+                if mod.split(".")[0] == "sim_stub"]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
+    """The import walker finds relative, nested and TYPE_CHECKING imports (it can fail)."""
+    f = tmp_path / "probe.py"
+    f.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import asyncio\n"
+                 "def g():\n    from ..cli import main\n    from . import tube\n")
+    mods = {m for _, m in _imports(f, "vtube_fleet.core.probe")}
+    assert {"asyncio", "vtube_fleet.cli", "vtube_fleet.cli.main", "vtube_fleet.core.tube"} <= mods
