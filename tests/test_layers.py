@@ -129,3 +129,45 @@ def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
                  "def g():\n    from ..cli import main\n    from . import tube\n")
     mods = {m for _, m in _imports(f, "vtube_fleet.core.probe")}
     assert {"asyncio", "vtube_fleet.cli", "vtube_fleet.cli.main", "vtube_fleet.core.tube"} <= mods
+
+
+def _project_imports(path: Path) -> list[tuple[int, str, str]]:
+    """(line, module, name) of every ``from <project module> import name`` in ``path``."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    return [(node.lineno, node.module, a.name) for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom) and not node.level and node.module
+            and node.module.split(".")[0] in {"vtube_fleet", "sim_stub"} for a in node.names]
+
+
+def _unresolved(path: Path) -> list[str]:
+    import importlib
+
+    where = _rel(path) if path.is_relative_to(ROOT) else str(path)
+    bad = []
+    for line, mod, name in _project_imports(path):
+        try:
+            m = importlib.import_module(mod)
+        except ImportError as exc:
+            bad.append(f"{where}:{line} {mod}: {exc}")
+            continue
+        if not hasattr(m, name):
+            try:
+                importlib.import_module(f"{mod}.{name}")
+            except ImportError:
+                bad.append(f"{where}:{line} {mod} has no {name}")
+    return bad
+
+
+@pytest.mark.parametrize("top", ["vtube_fleet", "sim_stub", "tests", "bench"])
+def test_every_project_import_resolves(top: str) -> None:
+    """Imports inside functions run only on their path (a late import of a renamed helper
+    once broke the agent's summary on exit); all of them must name something that exists."""
+    bad = [b for path in _files(ROOT / top) for b in _unresolved(path)]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_import_check_sees_a_missing_name(tmp_path: Path) -> None:
+    f = tmp_path / "probe.py"
+    f.write_text("def g():\n    from vtube_fleet.core.metrics import no_such_helper\n")
+    bad = _unresolved(f)
+    assert len(bad) == 1 and "no_such_helper" in bad[0]

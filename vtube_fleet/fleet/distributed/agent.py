@@ -19,7 +19,7 @@ import numpy as np
 
 from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
-from vtube_fleet.core.metrics import verdict
+from vtube_fleet.core.metrics import finite_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, FlightPlan
@@ -299,7 +299,6 @@ class AgentRecording:
         """Write ``OUT/summary.json``, store it in the recording and close it (every exit
         path); returns the summary's path."""
         from vtube_fleet.artifacts import write_summary
-        from vtube_fleet.fleet.distributed.monitor import _num
 
         mon = self.monitor
         stamp = mon.exit_stamp.get(self.vehicle)
@@ -312,8 +311,8 @@ class AgentRecording:
         if pilot is not None:
             own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds)
         own.update(
-            min_commanded_speed_m_s=_num(self.cmd_speed[0]),
-            max_commanded_speed_m_s=_num(self.cmd_speed[1]),
+            min_commanded_speed_m_s=finite_or_none(self.cmd_speed[0]),
+            max_commanded_speed_m_s=finite_or_none(self.cmd_speed[1]),
         )
         summary = mon.summary(**own, **extra)
         v = verdict(summary)
