@@ -40,7 +40,7 @@ from missions import grid_mission  # noqa: E402
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.launch import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
-from vtube_fleet.link import open_links  # noqa: E402
+from vtube_fleet.link import fleet_sysid, open_links  # noqa: E402
 from vtube_fleet.state import Phase  # noqa: E402
 
 
@@ -78,7 +78,7 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
                           k1=len(sup.tick_durations))
             sup.request_abort(f"benchmark: {args.seconds:g} s of tube flight measured")
 
-    sysids = [i + 1 for i in range(len(endpoints))]
+    sysids = [fleet_sysid(i) for i in range(len(endpoints))]
     options = {"message_rates_hz": dict(UNUSED_STREAMS_OFF)} if args.backend == "mavlink" else {}
     async with open_links(endpoints, args.backend, sysids=sysids, **options) as links:
         sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook)

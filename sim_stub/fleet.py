@@ -93,7 +93,8 @@ class MockFleet:
 
     Vehicle i has sysid i+1 like PX4; MAVLink sysids are 8-bit, so from the 255th vehicle on they
     repeat (i % 254 + 1): each vehicle keeps its own UDP port pair, so a GCS that keeps one link
-    per endpoint still tells them apart (one MAVSDK instance for all would not).
+    per endpoint still tells them apart (one MAVSDK instance for all would not). ``sysids``
+    sets them explicitly (one per vehicle, 1..254; repeats allowed, as on separate networks).
 
     ``async with MockFleet(count=3) as fleet:`` starts all vehicles on one scheduler;
     ``fleet.endpoints[i]`` is the MAVSDK URL the GCS binds for vehicle i, ``fleet.vehicles[i]``
@@ -118,6 +119,7 @@ class MockFleet:
         estimator: str = "px4-sih",
         estimator_shared: bool = False,
         gcs_link: str = "lite",
+        sysids: Sequence[int] | None = None,
     ) -> None:
         if homes is not None:
             homes = [validate_home(h) for h in homes]
@@ -131,6 +133,11 @@ class MockFleet:
             raise SimStubError(f"vehicle count must be >= 1, got {count}")
         if profile not in PROFILES:
             raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
+        if sysids is None:
+            sysids = [i % 254 + 1 for i in range(count)]
+        sysids = list(sysids)
+        if len(sysids) != count or not all(1 <= int(s) <= 254 for s in sysids):
+            raise SimStubError(f"sysids: {count} ids in 1..254 expected, got {sysids!r}")
         self.ports = resolve_port_scheme(port_scheme)
         self.ports.check(count)
         if homes is None:
@@ -156,7 +163,7 @@ class MockFleet:
                 profile=profile,
                 boot_time_scale=boot_time_scale,
                 scheduler=self.scheduler,
-                sysid=i % 254 + 1,
+                sysid=sysids[i],
                 estimator=estimator,
                 estimator_shared=estimator_shared,
                 gcs_link=gcs_link,

@@ -331,11 +331,9 @@ class SafetyMonitor:
             empty = robots == 0
             vmin[empty] = np.nan
             vmax[empty] = np.nan
-            speed_bad = (vmin < self.v_min - self.speed_tol) | (vmax > self.v_max + self.speed_tol)
+            speed_bad = self._speed_bad(vmin, vmax)
         else:
-            vmin = np.full(k, np.nan)
-            vmax = np.full(k, np.nan)
-            speed_bad = np.zeros(k, dtype=bool)
+            vmin, vmax, speed_bad = self._no_speeds(k)
 
         return self._result(min_pair, min_center, min_clear, left, right, vmin, vmax,
                             robots.astype(np.int64), speed_bad)
@@ -398,11 +396,9 @@ class SafetyMonitor:
             sp2 = (zv * zv.conj()).real
             vmin = np.sqrt(minimum(sp2, axis=0))
             vmax = np.sqrt(np.maximum.reduce(sp2, axis=0))
-            speed_bad = (vmin < self.v_min - self.speed_tol) | (vmax > self.v_max + self.speed_tol)
+            speed_bad = self._speed_bad(vmin, vmax)
         else:
-            vmin = np.full(k, np.nan)
-            vmax = np.full(k, np.nan)
-            speed_bad = np.zeros(k, dtype=bool)
+            vmin, vmax, speed_bad = self._no_speeds(k)
         return self._result(min_pair, min_center, min_clear, left, right, vmin, vmax,
                             np.full(k, m, dtype=np.int64), speed_bad)
 
@@ -445,6 +441,15 @@ class SafetyMonitor:
                                 "limit": lim.v_min if sp[k] < lim.v_min else lim.v_max,
                                 "robots": [int(ok[k])]})
         return out
+
+    def _speed_bad(self, vmin: np.ndarray, vmax: np.ndarray) -> np.ndarray:
+        """Steps whose slowest or fastest robot leaves [v_min, v_max] (within the tolerance)."""
+        return (vmin < self.v_min - self.speed_tol) | (vmax > self.v_max + self.speed_tol)
+
+    @staticmethod
+    def _no_speeds(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vmin, vmax, speed_bad) of ``k`` steps without velocities: unknown, never bad."""
+        return np.full(k, np.nan), np.full(k, np.nan), np.zeros(k, dtype=bool)
 
     def _result(self, min_pair: np.ndarray, min_center: np.ndarray, min_clear: np.ndarray,
                 left: np.ndarray, right: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,

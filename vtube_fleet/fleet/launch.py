@@ -132,7 +132,7 @@ async def fleet_supervisor(
     """The :class:`~vtube_fleet.fleet.supervisor.Supervisor` of ``mission`` over open links
     (an in-process mock fleet when ``endpoints`` is None); links and mock closed on exit."""
     from vtube_fleet.fleet.supervisor import Supervisor
-    from vtube_fleet.link import open_links
+    from vtube_fleet.link import fleet_sysid, open_links
 
     async with contextlib.AsyncExitStack() as stack:
         if endpoints is None:
@@ -140,14 +140,14 @@ async def fleet_supervisor(
                 mock_fleet(mission, **(mock_kwargs or {})))
             endpoints = list(fleet.endpoints)
             if sysids is None:
-                sysids = [i + 1 for i in range(len(endpoints))]
+                sysids = [fleet_sysid(i) for i in range(len(endpoints))]
         if backend not in BACKENDS:
             raise FleetCliError(f"unknown backend {backend!r} (choose from "
                                 f"{', '.join(BACKENDS)})")
         if sysids is None and backend == "mavsdk":
             from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
 
-            sysids = [px4_sitl_sysid(parse_endpoint(u).port) or i + 1
+            sysids = [px4_sitl_sysid(parse_endpoint(u).port) or fleet_sysid(i)
                       for i, u in enumerate(endpoints)]
         options = dict(link_options or {})
         if backend == "mavlink":

@@ -27,8 +27,10 @@ from vtube_fleet.link.base import (
     VehicleState,
 )
 from vtube_fleet.link.endpoints import (
+    MAX_VEHICLE_SYSIDS,
     Endpoint,
     EndpointError,
+    fleet_sysid,
     parse_endpoint,
     px4_sitl_endpoints,
     px4_sitl_sysid,
@@ -51,6 +53,7 @@ __all__ = [
     "parse_endpoint",
     "px4_sitl_endpoints",
     "px4_sitl_sysid",
+    "fleet_sysid",
 ]
 
 #: Backend names accepted by the fleet (``--link``).
@@ -84,6 +87,23 @@ async def open_links(
     ids = list(sysids) if sysids is not None else [None] * len(eps)
     if len(ids) != len(eps):
         raise LinkError(f"{len(ids)} system ids for {len(eps)} endpoints")
+    bad = [(e.url, s) for e, s in zip(eps, ids, strict=True)
+           if s is not None and (isinstance(s, bool) or not 1 <= int(s) <= 255)]
+    if bad:
+        raise LinkError(f"{bad[0][0]}: system id must be 1..255, got {bad[0][1]}"
+                        + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
+    if backend == "mavsdk":
+        # one MAVSDK server holds every link and tells systems apart by id only
+        seen: dict[int, str] = {}
+        for e, s in zip(eps, ids, strict=True):
+            if s is not None and s in seen:
+                raise LinkError(
+                    f"system id {s} is used by {seen[s]} and {e.url}: the mavsdk backend "
+                    f"serves all links from one MAVSDK server, which needs unique ids "
+                    f"(at most {MAX_VEHICLE_SYSIDS} vehicles); use --link mavlink, whose "
+                    f"links are separate")
+            if s is not None:
+                seen[s] = e.url
     links: list[VehicleLink] = []
     hub = None
     try:

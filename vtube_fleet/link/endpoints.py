@@ -29,6 +29,8 @@ __all__ = [
     "parse_endpoint",
     "px4_sitl_endpoints",
     "px4_sitl_sysid",
+    "fleet_sysid",
+    "MAX_VEHICLE_SYSIDS",
     "PX4_SITL_API_PORT",
     "PX4_SITL_MAX_INSTANCES",
 ]
@@ -37,6 +39,8 @@ __all__ = [
 PX4_SITL_API_PORT = 14540
 #: PX4 sends from 14580 + i, so 14540 + i collides with instance 0 from i = 40 on.
 PX4_SITL_MAX_INSTANCES = 40
+#: Vehicle system ids 1..254: MAVLink's are 8-bit, 0 is broadcast and 255 our GCS's own.
+MAX_VEHICLE_SYSIDS = 254
 
 _SCHEMES = ("udpin", "udpout", "udp")
 
@@ -147,6 +151,17 @@ def px4_sitl_endpoints(n: int, host: str = "127.0.0.1", first_instance: int = 0)
         )
     parse_endpoint(f"udpin://{host}:{PX4_SITL_API_PORT}")  # validates host
     return [f"udpin://{host}:{PX4_SITL_API_PORT + i}" for i in range(first_instance, last + 1)]
+
+
+def fleet_sysid(index: int) -> int:
+    """The system id of the fleet's vehicle ``index`` (0-based): ``index % 254 + 1``.
+
+    A system id belongs to a link, not to the fleet: every vehicle has its own UDP endpoint,
+    so ids only need to be unique among vehicles that share one (one MAVSDK server for all
+    links is such a sharing; see :func:`~vtube_fleet.link.open_links`). From the 255th vehicle
+    on the ids repeat, as the built-in mock numbers its vehicles.
+    """
+    return index % MAX_VEHICLE_SYSIDS + 1
 
 
 def px4_sitl_sysid(port: int) -> int | None:
