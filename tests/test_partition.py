@@ -16,9 +16,11 @@ from vtube_fleet.core.partition import (
     Partition,
     PartitionError,
     alpha_max,
+    check_assumption3,
     h_min,
     partition,
 )
+from vtube_fleet.core.plan import plan_apex, plan_partition, tube_margins
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 
@@ -230,7 +232,7 @@ def test_error_two_obstacles_side_by_side_do_not_fit():
 
 
 def test_error_obstacle_blocks_the_tube_inverted():
-    narrow = Trapezoid((0.0, 2.0), (20.0, 2.0), (0.0, -2.0), (20.0, -2.0))
+    narrow = Trapezoid((0.0, 1.6), (20.0, 1.6), (0.0, -1.6), (20.0, -1.6))
     with pytest.raises(PartitionError) as ei:
         partition(narrow, [Obstacle((2.0, 0.0), 0.5), Obstacle((12.0, 0.0), 0.9)], PARAMS)
     e = ei.value
@@ -550,3 +552,204 @@ def test_tracker_rows_are_sufficient_across_every_boundary(case):
             assert np.array_equal(tr.update(p, max_move=float(np.hypot(*step))), k)
             p = p + step
         assert not _rows_hold(frozen, p)[k != k0].any()
+
+
+# ----------------------------------------------------------------------------------------------
+# apex_distance = "auto": the planner (vtube_fleet.core.plan)
+# ----------------------------------------------------------------------------------------------
+
+# Two obstacles too close along n_c for the default h = 1.3 h_min (the tube between the first
+# base and the second apex is 0.7 m < 2 r_a); a shorter second triangle fits.
+DENSE_TUBE = Trapezoid((0.0, 6.0), (22.0, 5.0), (0.0, -6.0), (22.0, -5.0))
+DENSE = [Obstacle((8.0, 0.5), 0.9), Obstacle((12.0, -0.5), 0.9)]
+DENSE_ROBOTS = np.array([(1.0 + i, -3.0 + j) for i in range(3) for j in range(7)], float)
+
+
+def _auto(obs):
+    return [Obstacle(o.center, o.radius, "auto") for o in obs]
+
+
+def test_auto_feasible_where_default_refuses():
+    with pytest.raises(PartitionError, match="length 0.7 m ≤ 2 r_a"):
+        partition(DENSE_TUBE, DENSE, PARAMS)
+    part = partition(DENSE_TUBE, _auto(DENSE), PARAMS, keep_out=DENSE_ROBOTS)
+    assert part.apex is not None and part.apex.feasible
+    hs = [t.h for t in part.triangles]
+    for ob, h in zip(DENSE, hs, strict=True):
+        assert h >= h_min(ob.radius, PARAMS)  # (pothk)
+    # the default of obstacle #2 is the one that did not fit: the planner shortened it
+    assert hs[1] < DEFAULT_APEX_FACTOR * h_min(0.9, PARAMS)
+    # every sub-tube satisfies Assumption 3' and Constraint3, nobody starts in a triangle
+    assert not part.warnings
+    for t in part.sub_tubes:
+        assert not check_assumption3(t, PARAMS, "Assumption3'")
+    for tri in part.triangles:
+        assert not tri.contains(DENSE_ROBOTS).any()
+
+
+def test_auto_is_deterministic_and_reported():
+    a = plan_apex(DENSE_TUBE, _auto(DENSE), PARAMS, DENSE_ROBOTS)
+    b = plan_apex(DENSE_TUBE, _auto(DENSE), PARAMS, DENSE_ROBOTS)
+    assert a.h == b.h and a.margin_m == b.margin_m  # bit for bit
+    p1 = plan_partition(DENSE_TUBE, _auto(DENSE), PARAMS, keep_out=DENSE_ROBOTS)
+    p2 = partition(DENSE_TUBE, _auto(DENSE), PARAMS, keep_out=DENSE_ROBOTS)
+    for s, t in zip(p1.sub_tubes, p2.sub_tubes, strict=True):
+        assert np.array_equal(s.polygon(), t.polygon())
+    assert a.h == tuple(t.h for t in p1.triangles)
+    assert "apex distances chosen (auto): #1 h = " in a.describe()
+    assert a.margin_m > 0 and a.binding is not None
+
+
+def test_auto_keeps_fixed_apex_distances_and_mixes():
+    """A numeric apex distance stays as given; only the "auto" one is chosen."""
+    obs = [Obstacle((8.0, 0.5), 0.9, 2.0), Obstacle((12.0, -0.5), 0.9, "auto")]
+    part = partition(DENSE_TUBE, obs, PARAMS, keep_out=DENSE_ROBOTS)
+    assert part.triangles[0].h == 2.0
+    assert part.apex.auto == (False, True)
+
+
+def test_auto_keeps_start_positions_out_of_triangles():
+    """Robots right in front of an obstacle: the margin objective would like a long triangle
+    (wider side tubes), but no start position may be inside one, and they keep r_s clear."""
+    ob = [Obstacle((9.0, 0.0), 0.9, "auto")]
+    robots = np.array([(5.5, y) for y in (-0.6, 0.0, 0.6)])
+    part = partition(DENSE_TUBE, ob, PARAMS, keep_out=robots)
+    tri = part.triangles[0]
+    assert not tri.contains(robots).any()
+    assert part.apex.margin_m > 0
+    free = partition(DENSE_TUBE, ob, PARAMS)
+    assert free.triangles[0].h > tri.h  # without the robots it would reach further upstream
+
+
+def test_auto_infeasible_is_reported():
+    """Whatever h is, the side passages are too narrow: the plan says so and why; an obstacle
+    wider than the tube makes the construction itself fail, naming it."""
+    narrow = Trapezoid((0.0, 1.6), (20.0, 1.6), (0.0, -1.6), (20.0, -1.6))
+    plan = plan_apex(narrow, [Obstacle((10.0, 0.0), 0.9, "auto")], PARAMS)
+    assert not plan.feasible and plan.margin_m < 0
+    assert plan.binding.condition == "room for one robot"
+    assert "violated by" in plan.binding.describe()
+    blocked = Trapezoid((0.0, 1.0), (20.0, 1.0), (0.0, -1.0), (20.0, -1.0))
+    with pytest.raises(PartitionError, match="obstacle #1"):
+        partition(blocked, [Obstacle((10.0, 0.0), 0.9, "auto")], PARAMS)
+    plan = plan_apex(blocked, [Obstacle((10.0, 0.0), 0.9, "auto")], PARAMS)
+    assert not plan.feasible and plan.error and plan.failed_obstacle == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(4.0, 9.0), st.floats(3.0, 9.0), st.floats(1.0, 3.0), st.floats(1.0, 3.0),
+       st.floats(-3.0, 3.0))
+def test_margins_agree_with_assumption3(w0, w1, k_t, r_a, skew):
+    """The planner's margins are ≥ 0 exactly where check_assumption3 passes (up to its area
+    tolerance): the objective measures the conditions the construction tests."""
+    tube = Trapezoid((0.0, w0 / 2 + skew), (6.0, w1 / 2), (0.0, -w0 / 2 + skew), (6.0, -w1 / 2))
+    p = ControllerParams(r_s=0.2, r_a=r_a, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5,
+                         k_t=k_t)
+    ms = dict(tube_margins(tube, k_t, r_a, 0.2))
+    reasons = " ".join(v.message for v in check_assumption3(tube, p, "Assumption3'"))
+    tol = 1e-4
+    if "L ∩ R = ∅" in ms and abs(ms["L ∩ R = ∅"]) > tol:
+        assert (ms["L ∩ R = ∅"] < 0) == ("L ∩ R is not empty" in reasons)
+    if "M ≠ ∅" in ms and abs(ms["M ≠ ∅"]) > tol:
+        assert (ms["M ≠ ∅"] < 0) == ("M is empty" in reasons)
+    assert (ms["length > 2 r_a"] <= 0) == ("≤ 2 r_a" in reasons)
+    if abs(ms["room for one robot"]) > tol:
+        assert (ms["room for one robot"] < 0) == ("too narrow" in reasons)
+
+
+def test_auto_scenario_flies_with_zero_violations(tmp_path):
+    """Done-means of issue 11 item 1: refused with the default apex distances, planned with
+    "auto", then flown (vtube_fleet.sim) with every robot through and no violation; the h_k
+    chosen are in the summary and the recording."""
+    from vtube_fleet.config.scenario import parse_scenario
+    from vtube_fleet.recording.reader import load_recording
+    from vtube_fleet.recording.writer import open_recorder
+    from vtube_fleet.sim import simulate
+
+    doc = {
+        "tube": {"p_h0": [0.0, 6.0], "p_h1": [22.0, 5.0], "p_r0": [0.0, -6.0],
+                 "p_r1": [22.0, -5.0]},
+        "partition": {"apex_distance": "auto"},
+        "obstacles": [{"center": list(o.center), "radius": o.radius} for o in DENSE],
+        "robots": {"r_s": 0.25, "r_a": 0.5, "v_min": 0.5, "v_max": 3.5,
+                   "positions": DENSE_ROBOTS.tolist()},
+        "controller": {"v": 2.0, "v_max_prime": 1.5},
+        "sim": {"dt": 0.002, "duration": 25.0},
+    }
+    sc = parse_scenario(doc, "dense.toml")
+    assert all(o.apex_distance == "auto" for o in sc.obstacles)
+    with open_recorder(tmp_path / "dense.rrd", kind="sim") as rec:
+        res = simulate(sc, recorder=rec)
+    s = res.summary
+    assert s["exited"] == len(DENSE_ROBOTS), s
+    assert s["violations"] == 0, s
+    assert s["apex_distances_m"] == [t.h for t in res.partition.triangles]
+    assert s["apex_distances_m"][1] < DEFAULT_APEX_FACTOR * h_min(0.9, PARAMS)
+    meta = load_recording(tmp_path / "dense.rrd").meta
+    assert meta["apex_distances_m"] == s["apex_distances_m"]
+    assert [o["apex_distance"] for o in meta["obstacles"]] == ["auto", "auto"]
+
+
+def test_lost_vehicle_repartition_uses_the_planner():
+    """FlightPlan.with_lost: a lost vehicle whose fixed apex distance (1.05 h_min) gives no
+    partition gets one chosen by the planner; configured "auto" obstacles keep the h_k they
+    were flown with (not re-planned under flying vehicles)."""
+    import dataclasses
+
+    from tests.missions import MOCK_FLEET
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.fleet.agent import LOST_APEX_FACTOR, FlightPlan
+    from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
+
+    mission = load_mission(MOCK_FLEET)
+    sc = mission.scenario
+    flown = mission_budget(mission, LinkMeasurement(0.0, 0.0, 0.0)).inflate(sc.controller)
+    configured = tuple(dataclasses.replace(o, apex_distance="auto") for o in sc.obstacles)
+    root = FlightPlan.build(sc.tube, configured, flown, keep_out=mission.slots)
+    h_root = root.partition.triangles[0].h
+    r = sc.controller.r_s + mission.config.lost_obstacle_margin_m
+    fixed = LOST_APEX_FACTOR * h_min(r, flown)
+    lost = (Obstacle(np.array([8.76, -1.94]), r, fixed),)
+    with pytest.raises(PartitionError):
+        partition(sc.tube, [dataclasses.replace(configured[0], apex_distance=h_root), *lost],
+                  flown)
+    new = root.with_lost(lost)
+    assert new.partition.apex is not None and new.partition.apex.feasible
+    tri = {t.obstacle: t for t in new.partition.triangles}
+    assert tri[0].h == h_root  # frozen
+    assert h_min(r, flown) <= tri[1].h != fixed
+    assert root.with_lost(lost) is new  # cached: every agent gets the same plan
+
+
+def test_auto_paper_tube_three_obstacles_flies_safely():
+    """Another scenario the default refuses (found by perturbing obstacle positions in the
+    shipped paper tube): with "auto" all 120 robots get through with no violation."""
+    import dataclasses
+
+    from tests.missions import ROOT
+    from vtube_fleet.config.scenario import load_scenario
+    from vtube_fleet.core.validation import validate_scenario
+    from vtube_fleet.sim import simulate
+
+    sc = load_scenario(ROOT / "configs" / "paper.toml")
+    centres = [(11.83, 0.7), (16.42, -2.54), (20.55, -1.97)]
+    fixed = tuple(Obstacle(c, 0.9) for c in centres)
+    assert validate_scenario(sc.tube, fixed, sc.controller, sc.robots.positions)[1]
+    auto = dataclasses.replace(sc, obstacles=tuple(Obstacle(c, 0.9, "auto") for c in centres))
+    res = simulate(auto, duration=30.0)
+    assert res.summary["exited"] == 120 and res.summary["violations"] == 0, res.summary
+
+
+def test_auto_with_an_obstacle_outside_the_tube():
+    """Non-strict (validation): an obstacle whose O' misses the tube is skipped with a warning,
+    the planner still plans the others; strict: it is an error, as with numbers."""
+    obs = [Obstacle((12.0, -0.5), 0.9, "auto"), Obstacle((8.0, 30.0), 0.9, "auto"),
+           Obstacle((8.0, 0.5), 0.9, "auto")]
+    part = partition(DENSE_TUBE, obs, PARAMS, strict=False, keep_out=DENSE_ROBOTS)
+    assert [t.obstacle for t in part.triangles] == [0, 2]
+    assert part.K == 7 and len({id(t) for t in part.sub_tubes}) == 7
+    assert sum("lies outside the tube" in w.message for w in part.warnings) == 1
+    ref = partition(DENSE_TUBE, [obs[0], obs[2]], PARAMS, keep_out=DENSE_ROBOTS)
+    assert [t.h for t in part.triangles] == [t.h for t in ref.triangles]
+    with pytest.raises(PartitionError, match="lies outside the tube"):
+        partition(DENSE_TUBE, obs, PARAMS, keep_out=DENSE_ROBOTS)

@@ -16,7 +16,9 @@ from vtube_fleet.core.validation import (
     MAX_LISTED,
     ScenarioError,
     Violation,
+    binding_constraints,
     check_scenario,
+    nearest_fixes,
     validate_scenario,
 )
 from vtube_fleet.errors import UserError
@@ -211,3 +213,220 @@ def test_assumption1_obstacle_overlaps_are_capped_and_nan_reported():
     assert len(m) == MAX_LISTED + 1
     assert "Assumption1 violated: robot 12 position (nan, 1.0) is not a finite point" in \
         messages(v)
+
+
+# ----------------------------------------------------------------------------------------------
+# Infeasible: what binds and the nearest fixes; `check` of scenario and mission files
+# ----------------------------------------------------------------------------------------------
+
+# Two obstacles too close along n_c for the default apex distance 1.3 h_min: the tube between
+# obstacle #1's base and obstacle #2's apex is 0.7 m < 2 r_a = 1 m.
+DENSE_TUBE = Trapezoid((0.0, 6.0), (22.0, 5.0), (0.0, -6.0), (22.0, -5.0))
+DENSE = (Obstacle((8.0, 0.5), 0.9), Obstacle((12.0, -0.5), 0.9))
+DENSE_ROBOTS = np.array([(1.0 + i, -3.0 + j) for i in range(3) for j in range(7)], float)
+
+DENSE_TOML = """
+[tube]
+p_h0 = [0.0, 6.0]
+p_h1 = [22.0, 5.0]
+p_r0 = [0.0, -6.0]
+p_r1 = [22.0, -5.0]
+{partition}
+[[obstacles]]
+center = [8.0, 0.5]
+radius = 0.9
+
+[[obstacles]]
+center = [12.0, -0.5]
+radius = 0.9
+
+[robots]
+r_s = 0.25
+r_a = 0.5
+v_min = 0.5
+v_max = 3.5
+grid = {{ origin = [1.0, -3.0], rows = 3, cols = 7, spacing = 1.0 }}
+
+[controller]
+v = 2.0
+v_max_prime = 1.5
+"""
+
+# The authors' published first simulation (issue 11): triangles about O in their code, about O'
+# here, so obstacle #3's Remark-5 apex cannot be placed.
+AUTHORS_TUBE = Trapezoid((-5.0, 10.0), (35.0, 4.0), (-5.0, -10.0), (35.0, -4.0))
+AUTHORS = tuple(Obstacle(c, 0.9, f * 0.9) for c, f in
+                zip([(6.0, -4.0), (13.5, 3.0), (20.0, -2.0), (27.0, 2.0), (33.0, 0.0)],
+                    [3, 5, 4, 5, 3], strict=True))
+AUTHORS_ROBOTS = grid_positions((-4.0, -7.0), 8, 15, 1.0)
+AUTHORS_PARAMS = dataclasses.replace(PARAMS, k_t=2.5)
+
+
+def test_binding_constraints_name_tube_condition_and_amount():
+    lines = binding_constraints(DENSE_TUBE, DENSE, PARAMS, DENSE_ROBOTS)
+    assert lines == ["the tube before obstacle #2: Assumption 3' length > 2 r_a, violated by "
+                     "0.3 m"]
+    lines = binding_constraints(AUTHORS_TUBE, AUTHORS, AUTHORS_PARAMS, AUTHORS_ROBOTS)
+    assert len(lines) == 1 and lines[0].startswith("obstacle #3 at (20.0, -2.0)")
+    assert "Assumption 3' fails: L ∩ R is not empty (area 0.012 m²" in lines[0]
+
+
+def test_nearest_fixes_are_feasible_and_nearest():
+    _, v = validate_scenario(DENSE_TUBE, DENSE, PARAMS, DENSE_ROBOTS)
+    assert conditions(v) == ["Assumption3'"]
+    fixes = {f.parameter: f for f in nearest_fixes(DENSE_TUBE, DENSE, PARAMS, DENSE_ROBOTS)}
+    assert set(fixes) >= {"apex_distance", "r_a", "obstacle #2 along n_c"}
+    # each fix alone makes it feasible ...
+    r_a = fixes["r_a"].value
+    assert fixes["r_a"].text == f"r_a ≤ {r_a:.2f} m (now 0.5 m)"
+    assert not validate_scenario(DENSE_TUBE, DENSE, dataclasses.replace(PARAMS, r_a=r_a),
+                                 DENSE_ROBOTS)[1]
+    move = fixes["obstacle #2 along n_c"].value
+    assert 0.3 <= move <= 0.32  # the 0.3 m missing, rounded up to centimetres
+    assert "obstacles #1 and #2 need 0.31 m more between them" in fixes[
+        "obstacle #2 along n_c"].text
+
+    def moved(d: float) -> tuple[Obstacle, ...]:
+        return (DENSE[0], Obstacle(DENSE[1].center + [d, 0.0], 0.9))
+
+    assert not validate_scenario(DENSE_TUBE, moved(move), PARAMS, DENSE_ROBOTS)[1]
+    # ... and a little less does not: they are the nearest
+    assert validate_scenario(DENSE_TUBE, moved(move - 0.02), PARAMS, DENSE_ROBOTS)[1]
+    assert validate_scenario(DENSE_TUBE, DENSE, dataclasses.replace(PARAMS, r_a=r_a + 0.02),
+                             DENSE_ROBOTS)[1]
+    # a feasible scenario needs no fix
+    assert nearest_fixes(PAPER_TUBE, PAPER_OBSTACLES, PARAMS, PAPER_ROBOTS) == []
+
+
+def test_authors_geometry_fix_is_computed():
+    fixes = nearest_fixes(AUTHORS_TUBE, AUTHORS, AUTHORS_PARAMS, AUTHORS_ROBOTS)
+    by = {f.parameter: f for f in fixes}
+    assert "r_a" in by and "apex_distance" not in by  # no joint h helps (issue 11)
+    assert not validate_scenario(AUTHORS_TUBE, AUTHORS,
+                                 dataclasses.replace(AUTHORS_PARAMS, r_a=by["r_a"].value),
+                                 AUTHORS_ROBOTS)[1]
+
+
+def test_nothing_to_fix_outside_the_partition():
+    """Constraint1 is not fixed by moving obstacles: no fixes are proposed."""
+    bad = dataclasses.replace(PARAMS, v=2.5)
+    assert nearest_fixes(DENSE_TUBE, DENSE, bad, DENSE_ROBOTS) == []
+
+
+def test_check_scenario_file_prints_binding_and_fixes(tmp_path, capsys):
+    from vtube_fleet.cli import main
+
+    cfg = tmp_path / "dense.toml"
+    cfg.write_text(DENSE_TOML.format(partition=""))
+    assert main(["check", str(cfg)]) == 2
+    out = capsys.readouterr().out
+    assert "INVALID: 1 violation:" in out
+    assert "binding:\n  the tube before obstacle #2: Assumption 3' length > 2 r_a, violated " \
+           "by 0.3 m" in out
+    assert "nearest fixes (each alone, the rest unchanged):" in out
+    assert 'apex_distance = "auto"' in out and "m downstream" in out
+
+    cfg.write_text(DENSE_TOML.format(partition='[partition]\napex_distance = "auto"\n'))
+    assert main(["check", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "h = 1.6" in out and "(auto)" in out
+    assert "apex distances chosen (auto): #1 h = " in out
+    assert out.rstrip().endswith("valid")
+
+
+def test_scenario_apex_distance_keys(tmp_path):
+    from vtube_fleet.config.scenario import load_scenario
+    from vtube_fleet.errors import ConfigError
+
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(DENSE_TOML.format(partition='[partition]\napex_distance = "auto"\n'))
+    assert [o.apex_distance for o in load_scenario(cfg).obstacles] == ["auto", "auto"]
+    text = DENSE_TOML.format(partition="").replace(
+        "center = [12.0, -0.5]\n", 'center = [12.0, -0.5]\napex_distance = "auto"\n')
+    cfg.write_text(text)
+    assert [o.apex_distance for o in load_scenario(cfg).obstacles] == [None, "auto"]
+    cfg.write_text(DENSE_TOML.format(partition='[partition]\napex_distance = "best"\n'))
+    with pytest.raises(ConfigError, match=r'\[partition\].apex_distance: expected "auto" or '
+                                          r'"default", got "best"'):
+        load_scenario(cfg)
+
+
+def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
+    """`check MISSION` (issue 11 item 3): the budget's r_s', r_a', the fleet's partition."""
+    from tests.missions import MOCK_FLEET
+    from vtube_fleet.check import check_file
+    from vtube_fleet.cli import main
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.fleet.agent import FlightPlan
+    from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
+
+    rep = check_file(MOCK_FLEET, latency_s=0.03, accuracy_m=0.1)
+    mission = load_mission(MOCK_FLEET)
+    budget = mission_budget(mission, LinkMeasurement(0.03, 0.0, 0.1))
+    assert rep.kind == "mission" and rep.ok
+    assert rep.budget.delta_m == budget.delta_m > 0
+    assert rep.params.r_s == mission.scenario.controller.r_s + budget.delta_m
+    assert rep.params.r_a == mission.scenario.controller.r_a + budget.delta_m
+    fleet = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles,
+                             budget.inflate(mission.scenario.controller), keep_out=mission.slots)
+    assert [t.polygon().tolist() for t in rep.partition.sub_tubes] == \
+        [t.polygon().tolist() for t in fleet.partition.sub_tubes]
+
+    assert main(["check", str(MOCK_FLEET)]) == 0
+    out = capsys.readouterr().out
+    assert "mission: 12 vehicles at 20 Hz; safety budget δ = " in out
+    assert "flown: r_s' = " in out and out.rstrip().endswith("valid")
+    # a link the budget refuses (L > max_latency_s)
+    assert main(["check", str(MOCK_FLEET), "--latency-s", "0.5"]) == 2
+    out = capsys.readouterr().out
+    assert "[Budget] Budget refused: link latency L = 550 ms" in out
+    # the options are for missions only
+    assert main(["check", str(MOCK_FLEET.parent / "paper.toml"), "--latency-s", "0.1"]) == 2
+    assert "apply to mission files" in capsys.readouterr().err
+
+
+def test_check_mission_with_auto_apex_flies_the_fleet_partition(tmp_path):
+    """A mission with "auto" apex distances: check prints the partition the fleet builds
+    (the same planner input in every process: the start slots)."""
+    from tests.missions import MISSION_TABLE, NARROWING, write_mission
+    from vtube_fleet.check import check_file
+    from vtube_fleet.fleet.agent import FlightPlan
+    from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
+
+    text = NARROWING.replace("[robots]", "[partition]\napex_distance = \"auto\"\n\n"
+                             "[[obstacles]]\ncenter = [13.0, 0.5]\nradius = 0.3\n\n[robots]")
+    text = text.replace("positions = [[2.0, 0.0], [2.0, 2.5]]",
+                        "positions = [[2.0, -2.5], [2.0, 2.5]]")
+    mission = write_mission(tmp_path, text + MISSION_TABLE)
+    rep = check_file(tmp_path / "mission.toml")
+    assert rep.partition is not None and rep.partition.apex is not None, rep.violations
+    flown = mission_budget(mission, LinkMeasurement(0.0, 0.0, 0.0)).inflate(
+        mission.scenario.controller)
+    fleet = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles, flown,
+                             keep_out=mission.slots)
+    assert rep.partition.apex.h == fleet.partition.apex.h
+    assert any("(auto)" in line for line in rep.lines)
+
+
+def test_k_t_and_lateral_fixes():
+    """An obstacle blocking a narrowing tube (neither side passage valid at k_t = 2.5): the
+    largest k_t that works, and the lateral moves either way."""
+    tube = Trapezoid((0.0, 5.0), (22.0, 3.0), (0.0, -5.0), (22.0, -3.0))
+    params = dataclasses.replace(PARAMS, k_t=2.5)
+    obs = (Obstacle((12.0, 0.5), 0.9),)
+    _, v = validate_scenario(tube, obs, params, DENSE_ROBOTS)
+    assert conditions(v) == ["Partition"] and "blocks the tube" in v[0].message
+    by = {f.parameter: f for f in nearest_fixes(tube, obs, params, DENSE_ROBOTS)}
+    k = by["k_t"].value
+    assert by["k_t"].text == f"k_t ≤ {k:.2f} (now 2.5)" and 1.0 < k < 2.5
+    assert not validate_scenario(tube, obs, dataclasses.replace(params, k_t=k),
+                                 DENSE_ROBOTS)[1]
+    assert validate_scenario(tube, obs, dataclasses.replace(params, k_t=k + 0.02),
+                             DENSE_ROBOTS)[1]
+    lateral = [f for f in nearest_fixes(tube, obs, params, DENSE_ROBOTS)
+               if f.parameter == "obstacle #1 lateral"]
+    assert {f.text.split(" m ")[1] for f in lateral} == {"towards the left leg",
+                                                          "towards the right leg"}
+    for f in lateral:  # value: the signed move along m (+: towards the right leg)
+        moved = (Obstacle(obs[0].center + tube.m * f.value, 0.9),)
+        assert not validate_scenario(tube, moved, params, DENSE_ROBOTS)[1]

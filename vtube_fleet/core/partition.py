@@ -6,7 +6,8 @@ The construction is the one pinned down in ``docs/paper.md`` ("The partition"):
   wrapped in an isosceles circumscribed triangle I_k whose incircle is O'_k, apex
   p_oth,k = p_o,k − h_k n_c upstream, base on the line ξ = ξ(p_o,k) + R_k;
   h_k ≥ h_min,k (pothk), default 1.3 h_min,k, configurable per obstacle
-  (:attr:`~vtube_fleet.core.tube.Obstacle.apex_distance`);
+  (:attr:`~vtube_fleet.core.tube.Obstacle.apex_distance`), or ``"auto"``: chosen jointly by
+  the planner (:mod:`vtube_fleet.core.plan`, Remark 6);
 * obstacles are taken farthest from the finishing line first (ties: more-left first); each one
   splits the sub-tube that contains its centre into ``before``, ``left``, ``right`` and ``after``
   sub trapezoid tubes (FourSub1)/(FourSub2);
@@ -37,6 +38,7 @@ from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.params import ControllerParams
+    from vtube_fleet.core.plan import ApexPlan
 
 __all__ = [
     "ApexZone",
@@ -360,6 +362,9 @@ class Partition:
     xi_end: np.ndarray
     triangles: tuple[Triangle, ...] = ()
     warnings: tuple[Violation, ...] = ()
+    #: how the ``"auto"`` apex distances were chosen (:class:`vtube_fleet.core.plan.ApexPlan`;
+    #: ``None``: every h_k was given or the default)
+    apex: ApexPlan | None = None
     _locator: _Locator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -740,8 +745,15 @@ def partition(
     obstacles: Sequence[Obstacle],
     params: ControllerParams,
     strict: bool = True,
+    keep_out: np.ndarray | None = None,
+    triangles_about: Literal["O'", "O"] = "O'",
 ) -> Partition:
     """Partition ``tube`` into obstacle-free sub trapezoid tubes (Section IV-A, docs/paper.md).
+
+    Obstacles whose ``apex_distance`` is ``"auto"`` get their h_k from the planner
+    (:func:`vtube_fleet.core.plan.plan_partition`: chosen jointly, deterministic), which keeps
+    the points ``keep_out`` (M, 2; the robots' start positions) out of every triangle;
+    ``keep_out`` is not used otherwise.
 
     ``params`` supplies r_s, r_a, k_t, v and v'_max. Raises :class:`PartitionError` (naming the
     obstacle and the numbers) when a triangle does not fit in its parent sub-tube, when an
@@ -753,16 +765,29 @@ def partition(
     :mod:`vtube_fleet.core.validation`), and so is a sub-tube too narrow to contain one safety disc
     (Assumption 3' in words; not part of the construction's validity test, which follows the
     letter of the construction, docs/paper.md). With no obstacles the result is the main tube alone.
+
+    ``triangles_about="O"`` circumscribes the triangles about the obstacle O itself (radius r_o)
+    instead of O' (r_o + r_s), as the authors' published simulation does, and, like it, keeps
+    side tubes that break Assumption 3' (recorded as warnings with ``strict=False``); the
+    triangle no longer keeps the safety disc off the obstacle (an uncertified simulation only,
+    never flown: docs/config.md). Not combined with ``"auto"`` apex distances.
     """
-    return _Builder(tube, obstacles, params, strict).run()
+    if any(isinstance(ob.apex_distance, str) for ob in obstacles):
+        from vtube_fleet.core.plan import plan_partition
+
+        return plan_partition(tube, obstacles, params, strict=strict, keep_out=keep_out)
+    if triangles_about not in ("O'", "O"):
+        raise ValueError(f"triangles_about must be \"O'\" or \"O\", got {triangles_about!r}")
+    return _Builder(tube, obstacles, params, strict, about=triangles_about).run()
 
 
 class _Builder:
     """The recursive split of partition §3, one obstacle at a time."""
 
     def __init__(self, tube: Trapezoid, obstacles: Sequence[Obstacle],
-                 params: ControllerParams, strict: bool) -> None:
+                 params: ControllerParams, strict: bool, about: str = "O'") -> None:
         self.tube = tube
+        self.about_obstacle = about == "O"  # triangles about O, not O' (uncertified sims)
         self.obstacles = obstacles
         self.params = params
         self.strict = strict
@@ -794,19 +819,28 @@ class _Builder:
         except GeometryError as e:  # pragma: no cover - excluded by the gap test
             return None, f"degenerate ({e})"
         reasons = _assumption3_reasons(t, self.params)
-        if reasons:
+        if reasons and not self.about_obstacle:  # (the authors' code never checks it: the
+            # uncertified construction keeps the tube; finish() records the violation)
             return None, "Assumption 3' fails: " + "; ".join(reasons)
         return t, ""
 
-    # --- the construction ---------------------------------------------------------------
-    def run(self) -> Partition:
+    def order(self) -> list[int]:
+        """Obstacle indices in the order of the construction: farthest from the finishing
+        line first (smallest ξ), ties: more-left first."""
         m = self.m
-        # Farthest from the finishing line first (smallest ξ), ties: more-left first.
         keyed = [(round(self.xi(ob.center), 9), round(float(m @ ob.center), 9), i)
                  for i, ob in enumerate(self.obstacles)]
-        for _, _, i in sorted(keyed):
-            self.split(i)
+        return [i for _, _, i in sorted(keyed)]
 
+    # --- the construction ---------------------------------------------------------------
+    def run(self) -> Partition:
+        for i in self.order():
+            self.split(i)
+        return self.finish()
+
+    def finish(self) -> Partition:
+        """The partition of the obstacles split so far (final checks, names, order)."""
+        m = self.m
         if not self.triangles:
             return Partition(self.tube, (self.tube,), np.array([-math.inf]),
                              np.array([math.inf]), (), tuple(self.warnings))
@@ -835,8 +869,17 @@ class _Builder:
             tuple(self.triangles[k] for k in sorted(self.triangles)), tuple(self.warnings),
         )
 
-    def split(self, i: int) -> None:
-        """Insert the triangle of obstacle ``i`` into the sub-tube that contains its centre."""
+    def parent_index(self, i: int) -> int:
+        """Index in :attr:`nodes` of the current sub-tube that contains obstacle ``i``'s centre
+        (the §5 rule)."""
+        nodes = self.nodes
+        loc = _Locator([nd.tube for nd in nodes], np.array([nd.xs for nd in nodes]),
+                       np.array([nd.xe for nd in nodes]), self.n_c, self.xi0)
+        return int(loc(self.obstacles[i].center))
+
+    def split(self, i: int, k_par: int | None = None) -> None:
+        """Insert the triangle of obstacle ``i`` into the sub-tube that contains its centre
+        (``k_par``: its index in :attr:`nodes`, if the caller knows it)."""
         ob = self.obstacles[i]
         params, n_c, m = self.params, self.n_c, self.m
         where = obstacle_label(i, ob)
@@ -845,8 +888,10 @@ class _Builder:
             return PartitionError(i, reason, where)
 
         p_o = ob.center
-        R = float(ob.radius) + params.r_s
+        R = float(ob.radius) + (0.0 if self.about_obstacle else params.r_s)
         h_lo = h_min(float(ob.radius), params)
+        if isinstance(ob.apex_distance, str):  # "auto" is resolved by core/plan.py first
+            raise ValueError(f"{where}: apex_distance {ob.apex_distance!r} was not resolved")
         h = float(ob.apex_distance) if ob.apex_distance is not None else DEFAULT_APEX_FACTOR * h_lo
         if not h > R:
             raise fail(f"apex distance h = {_num(h)} m must exceed r_o + r_s = {_num(R)} m "
@@ -874,9 +919,8 @@ class _Builder:
 
         # Parent: the current sub-tube that contains p_o (§5 rule).
         nodes = self.nodes
-        loc = _Locator([nd.tube for nd in nodes], np.array([nd.xs for nd in nodes]),
-                       np.array([nd.xe for nd in nodes]), n_c, self.xi0)
-        k_par = int(loc(p_o))
+        if k_par is None:
+            k_par = self.parent_index(i)
         par = nodes[k_par]
         Q = par.tube
         xs_a = 0.0 if par.xs == -math.inf else par.xs

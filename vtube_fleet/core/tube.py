@@ -20,7 +20,10 @@ import numpy as np
 
 from vtube_fleet.errors import UserError
 
-__all__ = ["GeometryError", "Obstacle", "Trapezoid", "perp"]
+__all__ = ["APEX_AUTO", "GeometryError", "Obstacle", "Trapezoid", "perp"]
+
+#: ``Obstacle.apex_distance`` value asking the planner to choose h_k (core/plan.py).
+APEX_AUTO = "auto"
 
 _EPS = 1e-12
 
@@ -209,12 +212,13 @@ class Obstacle:
     """A circular obstacle O_k (obstacle): centre p_o,k, radius r_o,k.
 
     ``apex_distance`` is h_k = ‖p_oth,k − p_o,k‖ of its circumscribed triangle; ``None`` means
-    the default 1.3 × the minimum allowed by (pothk).
+    the default 1.3 × the minimum allowed by (pothk), :data:`APEX_AUTO` (``"auto"``) that the
+    planner chooses it jointly with the other obstacles' (:mod:`vtube_fleet.core.plan`).
     """
 
     center: np.ndarray
     radius: float
-    apex_distance: float | None = None
+    apex_distance: float | str | None = None
 
     def __post_init__(self) -> None:
         c = np.asarray(self.center, dtype=float).reshape(-1)
@@ -224,5 +228,9 @@ class Obstacle:
         object.__setattr__(self, "center", c)
         if not (np.isfinite(self.radius) and self.radius > 0):
             raise GeometryError(f"obstacle radius must be > 0, got {self.radius}")
-        if self.apex_distance is not None and not (self.apex_distance > 0):
+        if isinstance(self.apex_distance, str):
+            if self.apex_distance != APEX_AUTO:
+                raise GeometryError(f"obstacle apex_distance must be a number or "
+                                    f"{APEX_AUTO!r}, got {self.apex_distance!r}")
+        elif self.apex_distance is not None and not (self.apex_distance > 0):
             raise GeometryError(f"obstacle apex_distance must be > 0, got {self.apex_distance}")

@@ -23,9 +23,11 @@ first obstacle of the config). Pure numpy/scipy, no I/O.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -42,20 +44,25 @@ from vtube_fleet.core.partition import (
     h_min,
     partition,
 )
+from vtube_fleet.core.plan import plan_apex
 from vtube_fleet.core.text import compact_number as _num
 from vtube_fleet.core.text import obstacle_label
 from vtube_fleet.core.text import point_text as _pt
-from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.params import ControllerParams
 
 __all__ = [
+    "FIX_ITERATIONS",
     "MAX_LISTED",
+    "Fix",
     "ScenarioError",
     "Violation",
+    "binding_constraints",
     "check_scenario",
+    "nearest_fixes",
     "validate_scenario",
 ]
 
@@ -113,8 +120,8 @@ def _check_constraint1(params: ControllerParams) -> list[Violation]:
 def _check_pothk(obstacles: Sequence[Obstacle], params: ControllerParams) -> list[Violation]:
     out = []
     for i, ob in enumerate(obstacles):
-        if ob.apex_distance is None:
-            continue
+        if ob.apex_distance is None or isinstance(ob.apex_distance, str):
+            continue  # the default and "auto" (core/plan.py) satisfy (pothk) by construction
         hm = h_min(float(ob.radius), params)
         h = float(ob.apex_distance)
         if h < hm * (1.0 - _TOL):
@@ -232,11 +239,14 @@ def validate_scenario(
     obstacles: Sequence[Obstacle],
     params: ControllerParams,
     positions: np.ndarray | None = None,
+    keep_out: np.ndarray | None = None,
 ) -> tuple[Partition | None, list[Violation]]:
     """Check a scenario against the paper's conditions (module docstring) before anything
     moves. Returns (the partition, or ``None`` if it could not be built or the parameters are
     unusable; every violation found). ``positions`` (M, 2) are the robots' initial positions
-    (``None``: Assumption 1 is not checked)."""
+    (``None``: Assumption 1 is not checked). ``keep_out``: the points the planner of
+    ``"auto"`` apex distances keeps out of the triangles (default: ``positions``; the fleet
+    passes its start slots so that every process plans the same partition)."""
     violations = _check_parameters(params)
     sane = not violations
     if all(math.isfinite(float(x)) for x in (params.v, params.v_max_prime, params.v_min,
@@ -248,7 +258,8 @@ def validate_scenario(
         violations += check_assumption3(tube, params, "Assumption3")
         violations += _check_pothk(obstacles, params)
         try:
-            part = partition(tube, obstacles, params, strict=False)
+            part = partition(tube, obstacles, params, strict=False,
+                             keep_out=positions if keep_out is None else keep_out)
         except PartitionError as e:
             violations.append(Violation("Partition", f"Partition failed: {e}"))
         else:
@@ -275,3 +286,220 @@ def check_scenario(
         raise ScenarioError(violations)
     assert part is not None
     return part
+
+
+# ----------------------------------------------------------------------------------------------
+# Infeasible: what binds, and the nearest single changes that fix it
+# ----------------------------------------------------------------------------------------------
+#: bisection steps per parameter in :func:`nearest_fixes` (the bracket shrinks 2^-N)
+FIX_ITERATIONS = 12
+
+#: conditions a change of k_t, r_a, an obstacle's position or the apex distances can fix
+_FIXABLE = ("Partition", "Assumption3'", "Constraint3")
+
+
+@dataclass(frozen=True)
+class Fix:
+    """One computed change that makes the scenario feasible, the rest unchanged:
+    ``parameter`` (``"k_t"``, ``"r_a"``, ``"apex_distance"``, ``"obstacle #4 lateral"``,
+    ``"obstacle #4 along n_c"``), ``value`` (the new value, or the move in metres) and
+    ``text``, e.g. ``k_t ≤ 2.31``."""
+
+    parameter: str
+    value: float
+    text: str
+
+
+def _fixable(violations: Sequence[Violation]) -> bool:
+    return bool(violations) and all(
+        v.condition in _FIXABLE or (v.condition == "Assumption1" and "triangle" in v.message)
+        for v in violations)
+
+
+def binding_constraints(tube: Trapezoid, obstacles: Sequence[Obstacle],
+                        params: ControllerParams, positions: np.ndarray | None = None
+                        ) -> list[str]:
+    """What binds the partition, one line each: the obstacle whose construction fails and
+    why, or the sub-tube and part of Assumption 3' with the smallest margin (and by how much
+    it is violated), and the start positions inside triangles (:func:`vtube_fleet.core.plan.
+    plan_apex` at the scenario's apex distances, or the planner's best for ``"auto"``)."""
+    try:
+        plan = plan_apex(tube, obstacles, params, positions, strict=False)
+    except (PartitionError, ValueError) as e:  # pragma: no cover - the planner reports
+        return [str(e)]
+    out = []
+    if plan.error:
+        out.append(plan.error)
+    elif plan.binding is not None:
+        out.append(plan.binding.describe())
+    if plan.inside:
+        out.append(f"{plan.inside} start position(s) inside circumscribed triangles")
+    return out
+
+
+def nearest_fixes(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerParams,
+                  positions: np.ndarray | None = None, *, r_offset_m: float = 0.0,
+                  iterations: int = FIX_ITERATIONS) -> list[Fix]:
+    """The nearest single changes that make an infeasible partition feasible, each computed
+    on that one parameter with the rest fixed (every value returned was checked with
+    :func:`validate_scenario`):
+
+    * ``apex_distance = "auto"`` for every obstacle (when some are fixed);
+    * the largest k_t (≥ 1) and the largest r_a (> r_s) that work;
+    * the obstacle that binds (:func:`binding_constraints`): the smallest lateral move either
+      way (towards the centreline, or towards a leg, where Remark 5 may apply), and the
+      smallest move downstream or upstream along n_c (more room between it and its
+      neighbour).
+
+    Feasibility need not be monotone along a parameter (an obstacle moved too far hits the
+    next one): each search scans from the current value with doubling steps to the first
+    feasible value, then bisects between it and the last infeasible one.
+
+    Empty when the scenario is feasible or fails for a reason none of these fix (the main
+    tube, Constraint1, robots overlapping one another). ``r_offset_m`` is subtracted from the
+    r_a shown (a mission's safety budget δ: ``params`` carry r_a' = r_a + δ)."""
+    pos = None if positions is None else np.asarray(positions, dtype=float)
+    obstacles = tuple(obstacles)
+
+    def feasible(obs: Sequence[Obstacle], prm: ControllerParams) -> bool:
+        try:
+            _, v = validate_scenario(tube, obs, prm, pos)
+        except UserError:
+            return False
+        return not v
+
+    _, base = validate_scenario(tube, obstacles, params, pos)
+    if not _fixable(base):
+        return []
+
+    def bisect(ok_at: float, bad_at: float, works: Callable[[float], bool]) -> float | None:
+        """The feasible value between bad_at and ok_at closest to bad_at: the first feasible
+        one of a scan from bad_at towards ok_at (steps doubling from 1/256 of the range),
+        then bisection back towards the last infeasible one (None: nothing feasible)."""
+        span = ok_at - bad_at
+        bad, good, step = bad_at, None, span / 256.0
+        while True:
+            x = bad + step if abs(step) < abs(ok_at - bad) else ok_at
+            if works(x):
+                good = x
+                break
+            if x == ok_at:
+                return None
+            bad, step = x, 2.0 * step
+        for _ in range(iterations):
+            mid = 0.5 * (good + bad)
+            if works(mid):
+                good = mid
+            else:
+                bad = mid
+        return good
+
+    out: list[Fix] = []
+    if any(not isinstance(ob.apex_distance, str) for ob in obstacles):
+        auto = tuple(dataclasses.replace(ob, apex_distance=APEX_AUTO) for ob in obstacles)
+        if feasible(auto, params):
+            out.append(Fix("apex_distance", math.nan,
+                           'apex_distance = "auto" (every obstacle; [partition] apex_distance '
+                           '= "auto")'))
+
+    def with_params(**kw: float) -> ControllerParams:
+        return dataclasses.replace(params, **kw)
+
+    if params.k_t > 1.0:
+        k = bisect(1.0, params.k_t, lambda x: feasible(obstacles, with_params(k_t=x)))
+        if k is not None:
+            k2 = math.floor(k * 100.0) / 100.0
+            k = k2 if k2 >= 1.0 and feasible(obstacles, with_params(k_t=k2)) else k
+            out.append(Fix("k_t", k, f"k_t ≤ {_num(k, 2)} (now {_num(params.k_t, 2)})"))
+    lo_ra = params.r_s * (1.0 + 1e-6) + 1e-9
+    if params.r_a > lo_ra:
+        r = bisect(lo_ra, params.r_a, lambda x: feasible(obstacles, with_params(r_a=x)))
+        if r is not None:
+            r2 = math.floor(r * 100.0) / 100.0
+            r = r2 if r2 > lo_ra and feasible(obstacles, with_params(r_a=r2)) else r
+            out.append(Fix("r_a", r - r_offset_m,
+                           f"r_a ≤ {_num(r - r_offset_m, 2)} m (now "
+                           f"{_num(params.r_a - r_offset_m, 2)} m)"))
+
+    j = _binding_obstacle(tube, obstacles, params, pos)
+    if j is not None:
+        out += _obstacle_fixes(tube, obstacles, j, params, feasible, bisect)
+    return out
+
+
+def _binding_obstacle(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerParams,
+                      pos: np.ndarray | None) -> int | None:
+    try:
+        plan = plan_apex(tube, obstacles, params, pos, strict=False)
+    except (PartitionError, ValueError):  # pragma: no cover
+        return None
+    if plan.failed_obstacle is not None:
+        return int(plan.failed_obstacle)
+    if plan.binding is not None and plan.binding.obstacle is not None:
+        return int(plan.binding.obstacle)
+    return None
+
+
+def _obstacle_fixes(tube: Trapezoid, obstacles: tuple[Obstacle, ...], j: int,
+                    params: ControllerParams, feasible: Callable[..., bool],
+                    bisect: Callable[..., float | None]) -> list[Fix]:
+    """Moves of obstacle ``j`` (lateral ±m; along ±n_c)."""
+    ob = obstacles[j]
+    n_c, m = tube.n_c, tube.m
+    xi = float(tube.xi(ob.center))
+    centre = 0.5 * (tube.lh(xi) + tube.lr(xi))
+    lat = float(m @ (centre - ob.center))  # > 0: the centreline is towards +m
+    label = f"obstacle #{j + 1}"
+
+    def moved(d: np.ndarray) -> tuple[Obstacle, ...]:
+        return tuple(dataclasses.replace(o, center=o.center + d) if i == j else o
+                     for i, o in enumerate(obstacles))
+
+    out: list[Fix] = []
+    for sign in (1.0, -1.0):  # +m: towards the right leg
+        u = m * sign
+        leg = tube.lr(xi) if sign > 0 else tube.lh(xi)
+        room = float(u @ (leg - ob.center))
+        if room <= 1e-6:
+            continue
+        d = bisect(room, 0.0, lambda x, u=u: feasible(moved(u * x), params))
+        if d is None:
+            continue
+        d = _round_up(d, lambda x, u=u: feasible(moved(u * x), params))
+        toward = sign * lat > 0 and d <= abs(lat) + 1e-9
+        where = "the centreline" if toward else ("the right leg" if sign > 0 else "the left leg")
+        out.append(Fix(f"{label} lateral", sign * d,
+                       f"move {label} {_num(d, 2)} m towards {where}"))
+    R = float(ob.radius) + params.r_s
+    prev = _previous_obstacle(tube, obstacles, j)
+    for sign, word in ((1.0, "downstream"), (-1.0, "upstream")):
+        room = (tube.length - R - xi) if sign > 0 else (xi - R)
+        if room <= 1e-6:
+            continue
+        d = bisect(room, 0.0, lambda x, s=sign: feasible(moved(n_c * (s * x)), params))
+        if d is None:
+            continue
+        d = _round_up(d, lambda x, s=sign: feasible(moved(n_c * (s * x)), params))
+        text = f"move {label} {_num(d, 2)} m {word}"
+        if sign > 0 and prev is not None:
+            text += (f" (obstacles #{prev + 1} and #{j + 1} need {_num(d, 2)} m more between "
+                     f"them)")
+        out.append(Fix(f"{label} along n_c", sign * d, text))
+    return out
+
+
+def _round_up(x: float, works: Callable[[float], bool]) -> float:
+    """``x`` rounded up to centimetres if that still works (else ``x``)."""
+    r = math.ceil(x * 100.0 - 1e-9) / 100.0
+    return r if r != x and works(r) else x
+
+
+def _previous_obstacle(tube: Trapezoid, obstacles: Sequence[Obstacle], j: int) -> int | None:
+    """The obstacle just upstream of ``j`` (largest ξ below j's), if any."""
+    xj = float(tube.xi(obstacles[j].center))
+    best, bx = None, -math.inf
+    for i, o in enumerate(obstacles):
+        x = float(tube.xi(o.center))
+        if i != j and bx < x <= xj:
+            best, bx = i, x
+    return best

@@ -30,6 +30,7 @@ The flown radii come from the safety budget (:mod:`vtube_fleet.fleet.budget`): t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -43,12 +44,13 @@ from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import (
     ApexZone,
     Partition,
+    PartitionError,
     apex_lookahead,
     apex_zones,
     h_min,
     partition,
 )
-from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, NeighbourState, Phase
 
 __all__ = [
@@ -103,12 +105,15 @@ class FlightPlan:
         kind: str = "new",
         part: Partition | None = None,
         lookahead: bool = True,
+        keep_out: np.ndarray | None = None,
     ) -> FlightPlan:
         """Partition (raises :class:`~vtube_fleet.core.partition.PartitionError`) and wrap.
-        ``lookahead``: switch sub-tubes ahead of apexes (vehicles with response lag)."""
+        ``lookahead``: switch sub-tubes ahead of apexes (vehicles with response lag);
+        ``keep_out``: the points ``"auto"`` apex distances keep out of the triangles (the
+        mission's start slots, the same in every process)."""
         obstacles = tuple(obstacles)
         if part is None:
-            part = partition(tube, obstacles, params)
+            part = partition(tube, obstacles, params, keep_out=keep_out)
         zones = apex_zones(part, params) if lookahead else ()
         plan = cls(tube, obstacles, params, part, (), kind, zones=zones, lookahead=lookahead)
         plan._cache[()] = plan
@@ -154,13 +159,28 @@ class FlightPlan:
         return self.obstacles + self.lost
 
     def with_lost(self, lost: Sequence[Obstacle]) -> FlightPlan:
-        """The plan with these lost-vehicle obstacles (replacing any previous ones)."""
+        """The plan with these lost-vehicle obstacles (replacing any previous ones).
+
+        The configured obstacles keep the apex distances of this plan (``"auto"`` ones are not
+        re-planned under flying vehicles); a lost-vehicle obstacle gets
+        ``LOST_APEX_FACTOR`` × h_min, and only if that partition fails, h_k chosen by the
+        planner (core/plan.py: deterministic, so every agent gets the same partition)."""
         lost = tuple(lost)
         key = tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
                      round(float(o.radius), 6)) for o in lost)
         hit = self._cache.get(key)
         if hit is None:
-            part = partition(self.tube, self.obstacles + lost, self.flown)
+            tri_h = {t.obstacle: t.h for t in self.partition.triangles}
+            fixed = tuple(dataclasses.replace(ob, apex_distance=tri_h[i])
+                          if isinstance(ob.apex_distance, str) and i in tri_h else ob
+                          for i, ob in enumerate(self.obstacles))
+            try:
+                part = partition(self.tube, fixed + lost, self.flown)
+            except PartitionError:
+                if not lost:
+                    raise
+                auto = tuple(dataclasses.replace(o, apex_distance=APEX_AUTO) for o in lost)
+                part = partition(self.tube, fixed + auto, self.flown)
             zones = apex_zones(part, self.flown) if self.lookahead else ()
             hit = FlightPlan(self.tube, self.obstacles, self.flown, part, lost, self.kind,
                              self._cache, zones, self.lookahead)
@@ -279,7 +299,8 @@ def classify(
 
 #: Apex distance of a lost vehicle's triangle: this × h_min (pothk). Smaller than the default
 #: 1.3 for configured obstacles so that the triangle fits more often between a vehicle lost
-#: mid-tube and the others.
+#: mid-tube and the others (and swallows fewer of them); when even that partition fails,
+#: :meth:`FlightPlan.with_lost` lets the planner choose (``"auto"``).
 LOST_APEX_FACTOR = 1.05
 
 

@@ -1,0 +1,222 @@
+"""``vtube-fleet check``'s library function: validate a scenario or a mission file and describe
+the partition it would fly, or why there is none and what would fix it.
+
+* A **scenario** is validated as configured (:func:`vtube_fleet.core.validation.
+  validate_scenario`, the unicycles' control points as positions).
+* A **mission** (a scenario plus ``[mission]``, ``docs/fleet.md``) is validated as the fleet
+  validates it before arming, with the *flown* radii r_s' = r_s + δ, r_a' = r_a + δ of its
+  safety budget (:func:`vtube_fleet.fleet.budget.mission_budget`, the one home of δ) and the
+  start slots as positions. The budget needs the link latency and the position accuracy the
+  vehicles will report; before any vehicle is connected they are the mission's ``latency_s`` /
+  ``position_accuracy_m`` if set, else ``latency_s`` / ``accuracy_m`` given here (defaults: a
+  measured latency of 0 s, to which the mission's ``latency_headroom_s`` is added as in
+  flight, and σ = 0). The partition printed is the one the fleet builds from those radii (the
+  same planner input: the slots); the fleet re-checks with what it measures before arming.
+* When the partition is infeasible, the report names what binds (:func:`~vtube_fleet.core.
+  validation.binding_constraints`) and the nearest single changes that fix it
+  (:func:`~vtube_fleet.core.validation.nearest_fixes`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.config.scenario import Scenario, load_scenario
+from vtube_fleet.core.params import ControllerParams
+from vtube_fleet.core.partition import Partition, Violation
+from vtube_fleet.core.validation import (
+    Fix,
+    binding_constraints,
+    nearest_fixes,
+    validate_scenario,
+)
+
+__all__ = ["CheckReport", "check_file", "describe_partition"]
+
+
+@dataclass(frozen=True, eq=False)
+class CheckReport:
+    """What :func:`check_file` found. ``kind`` is ``"scenario"`` or ``"mission"``; ``params``
+    the parameters validated (a mission's flown ones); ``budget`` a mission's
+    :class:`~vtube_fleet.fleet.budget.SafetyBudget`; ``lines`` the description to print
+    (without the verdict); ``violations``; ``binding`` and ``fixes`` when the partition is
+    infeasible."""
+
+    source: str
+    kind: str
+    scenario: Scenario
+    params: ControllerParams
+    partition: Partition | None
+    violations: tuple[Violation, ...]
+    lines: tuple[str, ...]
+    budget: Any = None
+    binding: tuple[str, ...] = ()
+    fixes: tuple[Fix, ...] = field(default=())
+    fixes_searched: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return not self.violations
+
+    def verdict_lines(self) -> list[str]:
+        """The verdict: ``valid``, or ``INVALID: …`` with every violation, what binds and the
+        fixes."""
+        if self.ok:
+            return ["valid"]
+        n = len(self.violations)
+        out = [f"INVALID: {n} violation{'s' if n != 1 else ''}:"]
+        out += [f"  [{v.condition}] {v.message}" for v in self.violations]
+        new = [b for b in self.binding  # a failed construction already names it above
+               if not any(b in v.message for v in self.violations)]
+        if new:
+            out.append("binding:")
+            out += [f"  {b}" for b in new]
+        if self.fixes:
+            out.append("nearest fixes (each alone, the rest unchanged):")
+            out += [f"  {f.text}" for f in self.fixes]
+        elif self.fixes_searched:
+            out.append("nearest fixes: none found by changing k_t, r_a, the apex distances or "
+                       "the binding obstacle's position alone")
+        return out
+
+
+def _pt(p: np.ndarray) -> str:
+    return f"({p[0]:.3f}, {p[1]:.3f})"
+
+
+def _xi(x: float) -> str:
+    return f"{x:8.3f}" if math.isfinite(x) else ("    -inf" if x < 0 else "     inf")
+
+
+def describe_partition(scenario: Scenario, part: Partition) -> list[str]:
+    """Human-readable lines describing the partition (sub-tubes, triangles, Remark 5, the
+    apex distances the planner chose)."""
+    lines = []
+    tube = scenario.tube
+    lines.append(f"sub-tubes: {part.K}")
+    for name_tube, xs, xe in zip(part.sub_tubes, part.xi_start, part.xi_end, strict=True):
+        a, b = max(float(xs), 0.0), min(float(xe), tube.length)
+        lines.append(
+            f"  {name_tube.name:6s} xi [{_xi(float(xs))}, {_xi(float(xe))})  "
+            f"start base {_pt(name_tube.p_h0)}–{_pt(name_tube.p_r0)}  "
+            f"L:{'yes' if name_tube.has_L else 'no '} R:{'yes' if name_tube.has_R else 'no '}"
+            f"  ({b - a:.2f} m long)"
+        )
+    r5 = [tri for tri in part.triangles if tri.remark5 is not None]
+    lines.append(f"triangles: {len(part.triangles)}")
+    for tri in part.triangles:
+        ob = scenario.obstacles[tri.obstacle]
+        note = "isosceles"
+        if tri.remark5:
+            beta = math.degrees(tri.beta)
+            note = f"Remark 5: {tri.remark5} side tube dropped, beta = {beta:.2f} deg"
+        how = " (auto)" if isinstance(ob.apex_distance, str) else ""
+        lines.append(
+            f"  obstacle #{tri.obstacle + 1} at {_pt(ob.center)} r_o = {ob.radius:g}: "
+            f"h = {tri.h:.3f} m{how}, alpha = {math.degrees(tri.alpha):.2f} deg, apex "
+            f"{_pt(tri.p_oth)}, base {_pt(tri.p_otu)}–{_pt(tri.p_otd)}; {note}"
+        )
+    if r5:
+        lines.append("Remark 5 used by obstacle(s): "
+                     + ", ".join(f"#{tri.obstacle + 1} ({tri.remark5})" for tri in r5))
+    else:
+        lines.append("Remark 5 used by obstacle(s): none")
+    if part.apex is not None:
+        lines.append(part.apex.describe())
+    return lines
+
+
+def _header(sc: Scenario, params: ControllerParams) -> list[str]:
+    r, tube, c = sc.robots, sc.tube, params
+    return [
+        f"tube: p_h0 {_pt(tube.p_h0)} p_h1 {_pt(tube.p_h1)} p_r0 {_pt(tube.p_r0)} "
+        f"p_r1 {_pt(tube.p_r1)}; length {tube.length:.3f} m, width "
+        f"{tube.width(0.0):.3f} -> {tube.width(tube.length):.3f} m",
+        f"robots: {r.count} {r.model}, r_s = {r.r_s:g}, r_a = {r.r_a:g}, "
+        f"speed in [{r.v_min:g}, {r.v_max:g}] m/s"
+        + (f", NID s = {r.nid_distance:g} m" if r.model == "unicycle" else ""),
+        f"controller: v = {c.v:g}, v'_max = {c.v_max_prime:g}, k_t = {c.k_t:g}, "
+        f"eps_0 = {c.eps_0:g}; sim dt = {sc.sim.dt:g} s, duration = {sc.sim.duration:g} s",
+        f"obstacles: {len(sc.obstacles)}",
+    ]
+
+
+def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
+               accuracy_m: float | None = None, fixes: bool = True) -> CheckReport:
+    """Validate the scenario or mission file ``path`` (module docstring). ``latency_s``,
+    ``accuracy_m``: a mission's assumed measured link latency and reported accuracy σ;
+    ``fixes``: compute the nearest fixes when infeasible. Raises
+    :class:`~vtube_fleet.errors.ConfigError` for a file that does not parse."""
+    sc = load_scenario(path, extra_sections=("mission",))
+    if "mission" not in sc.extra:
+        if latency_s is not None or accuracy_m is not None:
+            from vtube_fleet.errors import ConfigError
+
+            raise ConfigError(f"{sc.source}: --latency-s and --accuracy-m apply to mission "
+                              f"files (with a [mission] table) only")
+        return _check(sc, "scenario", sc.controller, sc.robots.control_points(), None, [],
+                      fixes, 0.0)
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.fleet.budget import LinkMeasurement, budget_problems, mission_budget
+
+    mission = load_mission(path)
+    sc = mission.scenario
+    measured = LinkMeasurement(
+        position_age_s=0.0 if latency_s is None else float(latency_s), setpoint_delay_s=0.0,
+        accuracy_m=0.0 if accuracy_m is None else float(accuracy_m))
+    budget = mission_budget(mission, measured)
+    flown = budget.inflate(sc.controller)
+    cfg = mission.config
+    assumed = []
+    if cfg.latency_s is None:
+        assumed.append(f"measured latency {measured.latency_s:g} s"
+                       + (" (--latency-s)" if latency_s is not None else " (default; "
+                          "--latency-s)") + f" + latency_headroom_s {cfg.latency_headroom_s:g} s")
+    if cfg.position_accuracy_m is None:
+        assumed.append(f"σ = {0.0 if accuracy_m is None else accuracy_m:g} m"
+                       + (" (--accuracy-m)" if accuracy_m is not None else
+                          " (default; the vehicles report it before arming; --accuracy-m)"))
+    pre = [f"mission: {mission.count} vehicles at {cfg.rate_hz:g} Hz; safety budget "
+           f"{budget.describe(sc.controller)}"
+           + (f"; assumed {', '.join(assumed)}" if assumed else ""),
+           f"flown: r_s' = {flown.r_s:.3f} m, r_a' = {flown.r_a:.3f} m (the partition below "
+           f"is built with these, as the fleet builds it)"]
+    extra = [Violation("Budget", f"Budget refused: {p}")
+             for p in budget_problems(mission, measured)]
+    return _check(sc, "mission", flown, mission.slots, budget, pre, fixes, budget.delta_m,
+                  extra)
+
+
+def _check(sc: Scenario, kind: str, params: ControllerParams, positions: np.ndarray,
+           budget: Any, pre: list[str], want_fixes: bool, delta_m: float,
+           extra: list[Violation] | None = None) -> CheckReport:
+    part, violations = validate_scenario(sc.tube, sc.obstacles, params, positions)
+    violations = list(extra or []) + violations
+    if kind == "mission" and part is not None:
+        from vtube_fleet.fleet.agent import FlightPlan
+
+        plan = FlightPlan.build(sc.tube, sc.obstacles, params, part=part)
+        for i, k, d in plan.lookahead_conflicts(positions):
+            violations.append(Violation("Assumption1", (
+                f"Assumption1 violated: slot {i} at {_pt(positions[i])} is in the look-ahead "
+                f"zone of an apex: it would fly {part.sub_tubes[k].name} with {d:.2f} m to its "
+                f"legs ≤ r_s' = {params.r_s:.2f} m (move the slot upstream or the obstacle "
+                f"downstream)")))
+    lines = [f"{sc.source}:"] + [f"  {x}" for x in _header(sc, sc.controller) + pre]
+    if part is not None:
+        lines += [f"  {x}" for x in describe_partition(sc, part)]
+    binding: list[str] = []
+    fixes: list[Fix] = []
+    partition_bad = any(v.condition in ("Partition", "Assumption3'", "Constraint3")
+                        for v in violations)
+    if partition_bad:
+        binding = binding_constraints(sc.tube, sc.obstacles, params, positions)
+        if want_fixes:
+            fixes = nearest_fixes(sc.tube, sc.obstacles, params, positions, r_offset_m=delta_m)
+    return CheckReport(sc.source, kind, sc, params, part, tuple(violations), tuple(lines),
+                       budget, tuple(binding), tuple(fixes), partition_bad and want_fixes)
