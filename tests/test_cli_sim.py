@@ -121,7 +121,8 @@ def test_sim_writes_all_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[st
     with np.load(out / "trajectory.npz") as z:
         t, pos, vel = z["t"], z["pos"], z["vel"]
         assert pos.shape == (t.size, 12, 2) and vel.shape == pos.shape
-        np.testing.assert_allclose(np.diff(t), 0.01)
+        np.testing.assert_allclose(np.diff(t)[:-1], 0.01)  # + the last step
+        assert t[-1] == pytest.approx(s["t_end_s"] - 0.002) and 0 < t[-1] - t[-2] <= 0.01
         assert np.isnan(pos[-1]).sum() > 0  # exited robots are NaN
         grid = np.array([[0.5, -4.4 + 0.8 * j] for j in range(12)])
         np.testing.assert_allclose(pos[0], grid)
@@ -167,3 +168,69 @@ def test_console_script_robotarium(tmp_path: Path) -> None:
     assert s["model"] == "unicycle" and s["violations"] == 0 and s["violations_center"] == 0
     with np.load(out / "trajectory.npz") as z:
         assert {"control_pos", "control_vel", "heading"} <= set(z.files)
+
+
+# ----------------------------------------------------------------------------------------------
+# the authors' geometry (issue 11, item 4) and the integrator option
+# ----------------------------------------------------------------------------------------------
+AUTHORS = ROOT / "configs" / "paper_authors.toml"
+
+
+def test_authors_geometry_is_refused_by_check(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", str(AUTHORS)]) == 2
+    out = capsys.readouterr().out
+    assert "INVALID" in out and "Assumption 3'" in out and "obstacle #3" in out
+
+
+def test_authors_geometry_sim_needs_uncertified(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o"
+    assert main(["sim", str(AUTHORS), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Assumption 3'" in err and "obstacle #3" in err
+    assert not out.exists()
+
+
+def test_authors_geometry_uncertified_sim(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A shortened run (the full 15 s, 120 robots with RK4 is docs/config.md's measurement)."""
+    from vtube_fleet.recording.reader import load_recording
+
+    out = tmp_path / "authors"
+    rc = main(["sim", str(AUTHORS), "--uncertified", "--duration", "1.5", "--robots", "40",
+               "--out", str(out), "--no-plots", "--quiet"])
+    assert rc == 1  # robots are still in the tube after 1.5 s
+    printed = capsys.readouterr().out
+    assert "certified: false (triangles about O)" in printed and "Assumption 3'" in printed
+    assert "(rk4)" in printed
+    s = json.loads((out / "summary.json").read_text())
+    assert s["certified"] is False and s["triangles_about"] == "O"
+    assert s["integrator"] == "rk4" and s["sub_tubes"] == 16 and s["remark5"] == []
+    failed = s["failed_conditions"]
+    assert failed and any("Assumption 3'" in f["message"] and "obstacle #3" in f["message"]
+                          for f in failed)
+    # and what the flown partition itself breaks: a side tube of #4, O' for every triangle
+    assert any(f["condition"] == "Assumption3'" and "left of obstacle #4" in f["message"]
+               for f in failed)
+    assert sum(f["condition"] == "ExtObstacle" for f in failed) == 5
+    assert s["violations"] == 0 and s["steps"] == 1500
+    meta = load_recording(out / "recording.rrd").meta
+    assert meta["certified"] is False and meta["failed_conditions"] == failed
+    assert meta["integrator"] == "rk4"
+
+
+def test_certified_scenario_says_so(tmp_path: Path) -> None:
+    out = tmp_path / "p"
+    assert main(["sim", str(PAPER), "--uncertified", "--robots", "3", "--duration", "0.05",
+                 "--integrator", "euler", "--out", str(out), "--no-plots", "--no-rerun",
+                 "--quiet"]) == 1
+    s = json.loads((out / "summary.json").read_text())
+    assert s["certified"] is True and s["failed_conditions"] == [] and s["integrator"] == "euler"
+    assert s["triangles_about"] == "O'"
+
+
+def test_run_never_accepts_uncertified(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(ROOT / "configs" / "mock_fleet.toml"), "--uncertified"])
+    assert exc.value.code == 2
+    assert "unrecognized arguments: --uncertified" in capsys.readouterr().err

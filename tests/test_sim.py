@@ -52,7 +52,11 @@ def test_trajectory_layout(reduced, paper) -> None:
     assert pos.shape == (t.size, m, 2) and vel.shape == pos.shape
     np.testing.assert_array_equal(pos[0], paper.robots.positions[:m])  # config order
     assert t[0] == 0.0
-    np.testing.assert_allclose(np.diff(t), res.record_every * res.dt)
+    # every record_every-th step, and the last step (just before the last exit)
+    np.testing.assert_allclose(np.diff(t)[:-1], res.record_every * res.dt)
+    assert 0 < t[-1] - t[-2] <= res.record_every * res.dt + 1e-12
+    t_end = res.summary["t_end_s"]
+    assert t[-1] == pytest.approx(t_end - res.dt) and res.summary["last_exit_s"] == t_end
     tube = paper.tube
     line = float(tube.n_c @ tube.p_r1) - paper.controller.eps_0
     for i in range(m):
@@ -77,6 +81,7 @@ def test_metrics_series_match_recorded_frames(reduced, paper) -> None:
     res = reduced
     mon = SafetyMonitor.from_params(paper.tube, paper.obstacles, paper.controller)
     idx = np.searchsorted(res.step_t, res.t)
+    np.testing.assert_allclose(res.step_t[idx], res.t)  # every frame is a step
     again = mon.evaluate(res.pos, res.vel)
     for key in METRIC_KEYS:
         a = getattr(res.metrics, key)[idx]
@@ -151,7 +156,9 @@ def test_apf_uses_the_main_tube_only(paper) -> None:
 
 def test_overrides_and_errors(paper) -> None:
     res = simulate(paper, robots=3, dt=0.004, duration=0.4, record_every=5)
-    assert res.summary["steps"] == 100 and res.pos.shape == (20, 3, 2)  # steps 0, 5, ..., 95
+    # steps 0, 5, ..., 95 and the last step, 99
+    assert res.summary["steps"] == 100 and res.pos.shape == (21, 3, 2)
+    np.testing.assert_allclose(res.t[-2:], [0.38, 0.396])
     assert res.summary["exited"] == 0 and not res.summary["all_exited"]
     with pytest.raises(SimError, match="unknown controller"):
         simulate(paper, controller="fast")
@@ -216,3 +223,178 @@ def test_progress_bar_output() -> None:
     out = buf.getvalue()
     assert out.count("\n") == 1 and "t =   2.00/4.00 s" in out and "exited 2/4" in out
     assert out.rstrip().endswith("done")
+
+
+# ----------------------------------------------------------------------------------------------
+# the final step of a decimated trajectory (issue 11, item 6)
+# ----------------------------------------------------------------------------------------------
+def test_decimated_trajectory_ends_with_the_last_step(paper) -> None:
+    """A decimated trajectory's last frame is the run's last step, bitwise the same as the
+    last frame of the undecimated run."""
+    kw = dict(robots=24, dt=0.002, duration=1.0)
+    coarse = simulate(paper, record_every=7, **kw)
+    fine = simulate(paper, record_every=1, **kw)
+    assert coarse.summary["steps"] == fine.summary["steps"] == 500
+    assert coarse.t[-1] == fine.t[-1] == pytest.approx(499 * 0.002)
+    assert coarse.t[-2] == pytest.approx(497 * 0.002)  # 499 is no multiple of 7
+    np.testing.assert_array_equal(coarse.pos[-1], fine.pos[-1])
+    np.testing.assert_array_equal(coarse.vel[-1], fine.vel[-1])
+    assert not np.isnan(coarse.pos[-1]).any()
+    assert fine.t.size == 500 and coarse.summary["frames"] == coarse.t.size == 73
+
+
+def test_last_frame_holds_the_last_exit(reduced, paper) -> None:
+    """The run ends when the last robot exits: the last frame is the step before, with that
+    robot less than one step before the line (issue 11: it was missing when decimated)."""
+    res = reduced
+    assert res.record_every > 1
+    t_end = res.summary["t_end_s"]
+    last = int(np.nanargmax(res.exit_time_s))
+    assert res.exit_time_s[last] == t_end and res.t[-1] == pytest.approx(t_end - res.dt)
+    line = paper.tube.finish_threshold(paper.controller.eps_0)
+    gap = line - res.pos[-1, last] @ paper.tube.n_c
+    assert 0 < gap <= np.linalg.norm(res.vel[-1, last]) * res.dt + 1e-12
+
+
+def test_unicycle_final_frame() -> None:
+    sc = load_scenario(ROBOTARIUM)
+    res = simulate(sc, duration=0.55, record_every=7)  # 55 steps of 10 ms
+    assert res.t[-1] == pytest.approx(0.54) and res.t[-2] == pytest.approx(0.49)
+    for arr in (res.pos, res.vel, res.control_pos, res.control_vel):
+        assert not np.isnan(arr[-1]).any()
+    assert not np.isnan(res.heading[-1]).any()
+    np.testing.assert_allclose(
+        res.control_pos[-1],
+        res.pos[-1] + sc.robots.nid_distance * np.stack(
+            [np.cos(res.heading[-1]), np.sin(res.heading[-1])], axis=-1))
+
+
+# ----------------------------------------------------------------------------------------------
+# integrators (issue 11, item 5)
+# ----------------------------------------------------------------------------------------------
+#: A certified perturbation of configs/paper.toml (obstacle centres moved at random, seed 3,
+#: trial 25 of bench-like search; docs/config.md "Integrators") where forward Euler at the paper's
+#: dt = 1 ms brings a pair to 0.491 m < 2 r_s = 0.5.
+EULER_BREAKS = [[10.551, -0.028], [17.228, 4.628], [21.574, -0.888], [26.062, 0.176],
+                [30.677, -0.585]]
+
+
+def _paper_with_obstacles(centers: list[list[float]]):
+    import tomllib
+
+    data = tomllib.loads(PAPER.read_text())
+    for ob, c in zip(data["obstacles"], centers, strict=True):
+        ob["center"] = c
+    return parse_scenario(data, "perturbed_paper")
+
+
+def test_default_integrator_keeps_pair_safety_where_euler_breaks_it() -> None:
+    from vtube_fleet.core.validation import validate_scenario
+
+    sc = _paper_with_obstacles(EULER_BREAKS)
+    _, violations = validate_scenario(sc.tube, sc.obstacles, sc.controller,
+                                      sc.robots.control_points())
+    assert violations == []  # certified: every condition of the paper holds
+    euler = simulate(sc, integrator="euler", record_every=100_000).summary
+    assert euler["integrator"] == "euler" and euler["min_pair_distance_m"] < 0.5
+    assert euler["violations_by_condition"]["pair"] > 0
+    res = simulate(sc, record_every=100_000)  # the default
+    s = res.summary
+    assert s["integrator"] == "adaptive" and s["exited"] == 120
+    assert s["violations"] == 0 and s["min_pair_distance_m"] > 0.5
+    st = s["integrator_stats"]
+    assert st["split_steps"] > 0 and st["substeps"] > st["split_steps"]
+    assert st["floor_steps"] == 0 and st["min_substep_s"] < 0.001
+    assert s["steps"] == len(res.metrics)  # metrics stay per (full) step
+
+
+def test_adaptive_keeps_the_guarantee_at_a_coarse_dt(paper) -> None:
+    """At dt = 50 ms Euler breaks pairs (and a leg); the default, at the same dt, does not."""
+    euler = simulate(paper, dt=0.05, integrator="euler", record_every=100_000).summary
+    assert euler["violations_by_condition"]["pair"] > 0
+    s = simulate(paper, dt=0.05, record_every=100_000).summary
+    assert s["exited"] == 120 and s["violations"] == 0 and s["min_pair_distance_m"] > 0.5
+    assert s["dt_s"] == 0.05 and s["integrator_stats"]["split_steps"] > 0
+
+
+def test_adaptive_is_euler_far_from_the_margins(paper) -> None:
+    """Where no margin is near, the adaptive integrator takes exactly the Euler steps."""
+    kw = dict(robots=24, dt=0.002, duration=0.6, record_every=1)
+    a = simulate(paper, integrator="adaptive", **kw)
+    e = simulate(paper, integrator="euler", **kw)
+    assert a.summary["integrator_stats"]["guarded_steps"] == 0
+    np.testing.assert_array_equal(a.pos, e.pos)
+
+
+def test_rk4_and_integrator_choice(paper) -> None:
+    kw = dict(dt=0.05, duration=3.0, record_every=1)
+    r = simulate(paper, integrator="rk4", **kw)
+    e = simulate(paper, integrator="euler", **kw)
+    assert r.summary["integrator"] == "rk4" and r.summary["steps"] == 60
+    np.testing.assert_array_equal(r.pos[0], e.pos[0])
+    # the same start; once robots interact the commands vary within a step and RK4 differs
+    assert np.abs(r.pos[-1] - e.pos[-1]).max() > 1e-3
+    with pytest.raises(SimError, match="unknown integrator"):
+        simulate(paper, integrator="leapfrog")
+    with pytest.raises(SimError, match="single integrator only"):
+        simulate(load_scenario(ROBOTARIUM), integrator="rk4", duration=0.1)
+
+
+def test_integrator_scenario_key() -> None:
+    import tomllib
+
+    data = tomllib.loads(PAPER.read_text())
+    assert parse_scenario(data).sim.integrator == "adaptive"
+    data["sim"]["integrator"] = "euler"
+    sc = parse_scenario(data)
+    assert sc.sim.integrator == "euler"
+    assert simulate(sc, robots=3, duration=0.01).summary["integrator"] == "euler"
+    data["sim"]["integrator"] = "ode45"
+    with pytest.raises(ConfigError, match=r"\[sim\].integrator: expected one of"):
+        parse_scenario(data, "x.toml")
+
+
+def test_rk4_step_is_fourth_order() -> None:
+    from vtube_fleet.core.integrate import rk4_step
+
+    z = np.array([1.0 + 0.5j, -2.0 + 0j])
+    for h in (0.1, 0.05):
+        z1 = rk4_step(z, -z, h, lambda y, move: -y)
+        err = np.abs(z1 - z * math.exp(-h)).max()
+        assert err < 0.01 * h**4 and err > 1e-4 * h**5
+
+
+def test_margin_guard_sees_crossings_between_end_points() -> None:
+    from vtube_fleet.core.integrate import MarginGuard
+    from vtube_fleet.core.tube import Obstacle, Trapezoid
+
+    tube = Trapezoid([0, 5], [20, 5], [0, -5], [20, -5])
+    guard = MarginGuard(tube, (Obstacle(center=np.array([10.0, 0.0]), radius=0.5),), 0.25)
+    pairs = (np.array([0]), np.array([1]))
+    # two robots 1 m apart swap places: both end points are safe, the segment is not
+    z0 = np.array([2.0 + 0j, 3.0 + 0j])
+    assert not guard.accepts(z0, z0[::-1].copy(), pairs)
+    assert guard.accepts(z0, z0 + 0.1j, pairs)  # a parallel move
+    # pair margin 0.5 → 0.3 loses 40 % (accepted), → 0.2 loses 60 % (refused)
+    assert guard.accepts(z0, np.array([2.1 + 0j, 2.9 + 0j]), pairs)
+    assert not guard.accepts(z0, np.array([2.15 + 0j, 2.85 + 0j]), pairs)
+    none = (np.zeros(0, np.intp), np.zeros(0, np.intp))
+    # a robot passing through the obstacle, end points 2 m from its centre
+    assert not guard.accepts(np.array([8.0 + 0j]), np.array([12.0 + 0j]), none)
+    # towards the left leg (y = 5): margin 4.75 - 2 = 2.75 → 0.75 loses 73 %
+    assert not guard.accepts(np.array([2.0 + 2j]), np.array([2.0 + 4j]), none)
+    assert guard.accepts(np.array([2.0 + 2j]), np.array([2.0 + 3j]), none)
+    # a margin already violated does not constrain the step
+    assert guard.accepts(np.array([2.0 + 4.9j]), np.array([2.0 + 4.95j]), none)
+    assert guard.single_margin(np.array([2.0 + 2j])) == pytest.approx(2.75)
+
+
+def test_adaptive_unicycles_guard_their_control_points() -> None:
+    """Robotarium at dt = 0.5 s: Euler breaks the control points' pair and leg limits; the
+    adaptive step (sub-stepping the unicycles, margins of the (NID) control points) does not."""
+    sc = load_scenario(ROBOTARIUM)
+    euler = simulate(sc, dt=0.5, integrator="euler").summary
+    assert euler["violations_by_condition"]["pair"] > 0
+    s = simulate(sc, dt=0.5).summary
+    assert s["exited"] == 7 and s["violations"] == 0
+    assert s["integrator_stats"]["split_steps"] > 0

@@ -1,4 +1,4 @@
-"""Offline simulator: the paper's numerical simulation (Section V-A) with forward Euler.
+"""Offline simulator: the paper's numerical simulation (Section V-A).
 
 Each step (all robots still in the tube at once):
 
@@ -13,9 +13,20 @@ Each step (all robots still in the tube at once):
 4. the velocity commands v_c come from :func:`~vtube_fleet.core.controller.velocity_command`
    (through its per-loop form :class:`~vtube_fleet.core.controller.CommandEvaluator`)
    ("new" = (ModifiedVectorField), "old" = (Oldcontroller), "apf" = Appendix C);
-5. the robots move one Euler step of their model (:mod:`vtube_fleet.core.models`): the single
+5. the robots move one step of their model (:mod:`vtube_fleet.core.models`): the single
    integrator (Single), or the unicycle driven through (NID), whose controller is evaluated at
-   the control point p + s[cos θ, sin θ] (paper note 10).
+   the control point p + s[cos θ, sin θ] (paper note 10). The integrator
+   (:mod:`vtube_fleet.core.integrate`) is ``"adaptive"`` by default: forward Euler while every
+   barrier margin exceeds what one step can consume, else Euler sub-steps halved until no
+   margin loses more than half of what is left; ``"rk4"`` (single integrator only) and
+   ``"euler"`` on request.
+
+The scenario must be certified (:func:`~vtube_fleet.core.validation.validate_scenario`: every
+condition of the paper holds). ``uncertified=True`` flies a scenario that is not, with the
+triangles circumscribed about O instead of O' as the authors' published code does; the summary
+then says ``certified: false`` and lists the failed conditions.
+
+The trajectory holds every ``record_every``-th step and always the last step (at t_end − dt).
 
 Safety metrics (:mod:`vtube_fleet.core.metrics`) are taken at every step, in chunks: positions and
 commands are kept in a buffer and evaluated in one vectorized call per chunk (a chunk ends when
@@ -39,10 +50,18 @@ import numpy as np
 from vtube_fleet.config.scenario import Scenario
 from vtube_fleet.core import models
 from vtube_fleet.core.controller import CommandEvaluator, TubeArrays
+from vtube_fleet.core.integrate import (
+    INTEGRATORS,
+    AdaptiveStats,
+    MarginGuard,
+    adaptive_state_step,
+    adaptive_step,
+    rk4_step,
+)
 from vtube_fleet.core.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
 from vtube_fleet.core.neighbours import VerletPairs
-from vtube_fleet.core.partition import Partition, SubTubeTracker
-from vtube_fleet.core.validation import check_scenario
+from vtube_fleet.core.partition import Partition, PartitionError, SubTubeTracker
+from vtube_fleet.core.validation import ScenarioError, validate_scenario
 from vtube_fleet.errors import UserError
 
 __all__ = [
@@ -183,8 +202,10 @@ def simulate(
     skin: float | None = None,
     validate: bool = True,
     recorder: Any = None,
+    integrator: str | None = None,
+    uncertified: bool = False,
 ) -> SimResult:
-    """Run the scenario with forward Euler (see the module docstring).
+    """Run the scenario (see the module docstring).
 
     ``dt``/``duration``/``record_every`` override the scenario's [sim] values, ``robots`` keeps
     the first N robots. ``progress(t, duration, in_tube, exited)`` is called about every 0.1 s
@@ -193,7 +214,10 @@ def simulate(
     Verlet-list margin in metres (default (r_s + r_a)/2). Ctrl-C stops the run early:
     the result (``interrupted=True``) holds everything up to that step. ``recorder`` (a
     :class:`vtube_fleet.recording.api.Recorder`) gets the scene, every recorded frame, every step's
-    metrics, the exits and the summary; the caller closes it.
+    metrics, the exits and the summary; the caller closes it. ``integrator`` overrides
+    [sim].integrator. ``uncertified=True``: a scenario that fails validation is flown anyway,
+    its triangles about O (module docstring); ``certified`` and ``failed_conditions`` in the
+    summary and the recording's meta say so.
     """
     if controller not in CONTROLLERS:
         raise SimError(f"unknown controller {controller!r} (choose from {', '.join(CONTROLLERS)})")
@@ -201,6 +225,12 @@ def simulate(
         raise SimError("controller 'apf' needs obstacles (its term u5 repels from them)")
     if robots is not None:
         scenario = scenario.with_robots(robots)
+    integrator = scenario.sim.integrator if integrator is None else integrator
+    if integrator not in INTEGRATORS:
+        raise SimError(f"unknown integrator {integrator!r} (choose from {', '.join(INTEGRATORS)})")
+    if integrator == "rk4" and scenario.robots.model == "unicycle":
+        raise SimError("integrator 'rk4' is implemented for the single integrator only "
+                       "(use adaptive or euler for unicycles)")
     dt = scenario.sim.dt if dt is None else float(dt)
     duration = scenario.sim.duration if duration is None else float(duration)
     if not (math.isfinite(dt) and dt > 0):
@@ -221,8 +251,18 @@ def simulate(
 
     control0 = rcfg.control_points()
     part: Partition | None = None
+    certified: bool | None = None  # None: not validated
+    failed: list[dict[str, str]] = []
+    about = "O'"
     if validate:
-        part = check_scenario(scenario.tube, scenario.obstacles, params, control0)
+        part, violations = validate_scenario(scenario.tube, scenario.obstacles, params, control0)
+        certified = not violations
+        if violations and not uncertified:
+            raise ScenarioError(violations)
+        if violations:
+            failed = [{"condition": v.condition, "message": v.message} for v in violations]
+            part, about = _uncertified_partition(scenario, params), "O"
+            failed += _uncertified_conditions(scenario, part)
     if controller == "apf":
         arrays = TubeArrays.from_tubes([scenario.tube])
         tracker = None
@@ -234,16 +274,59 @@ def simulate(
         arrays = TubeArrays.from_tubes(part.sub_tubes)
         tracker = part.tracker()
 
+    info = {"integrator": integrator, "certified": certified, "failed_conditions": failed,
+            "triangles_about": about}
     if recorder is not None:
         recorder.log_scene(scenario, part if controller != "apf" else None, meta={
-            "dt_s": dt, "controller": controller, "record_every": record_every})
+            "dt_s": dt, "controller": controller, "record_every": record_every, **info})
     run = _Run(scenario, controller, dt, n_steps, record_every, arrays, tracker, progress, skin,
-               recorder)
+               recorder, integrator)
     run.execute()
-    result = run.result(part)
+    result = run.result(part, info)
     if recorder is not None:
         recorder.log_summary(result.summary)
     return result
+
+
+def _uncertified_conditions(scenario: Scenario, part: Partition) -> list[dict[str, str]]:
+    """What the uncertified partition itself breaks: its warnings (e.g. Assumption 3' in a kept
+    side tube) and, for every triangle, that it is circumscribed about O, not O'."""
+    out = [{"condition": w.condition, "message": f"flown partition (triangles about O): {w}"}
+           for w in part.warnings]
+    r_s = scenario.controller.r_s
+    for tri in part.triangles:
+        ob = scenario.obstacles[tri.obstacle]
+        out.append({"condition": "ExtObstacle", "message": (
+            f"obstacle #{tri.obstacle + 1}: triangle circumscribed about O (r_o = {ob.radius:g}"
+            f" m), not O' (r_o + r_s = {ob.radius + r_s:g} m): O' pokes {r_s:g} m out of it, so "
+            f"a robot centre outside the triangle (e.g. just past its base) may come within r_o "
+            f"of the obstacle centre (S_i ∩ O = ∅ is no longer guaranteed)")})
+    return out
+
+
+def _uncertified_partition(scenario: Scenario, params: Any) -> Partition:
+    """The partition of a scenario that failed validation, built as the authors' published
+    code does: triangles circumscribed about O (radius r_o), not O' (docs/config.md), with the
+    non-strict checks (failures become warnings). Raises :class:`SimError` when even that
+    cannot be built."""
+    from vtube_fleet.core.partition import partition as build_partition
+
+    auto = [i + 1 for i, ob in enumerate(scenario.obstacles) if isinstance(ob.apex_distance, str)]
+    if auto:
+        raise SimError("--uncertified builds the triangles with the given apex distances; "
+                       f"obstacle(s) {', '.join(f'#{i}' for i in auto)} have "
+                       "apex_distance = \"auto\"")
+    try:
+        return build_partition(scenario.tube, scenario.obstacles, params, strict=False,
+                               triangles_about="O")
+    except PartitionError as e:
+        raise SimError(f"--uncertified: no partition even with the triangles about O: {e}"
+                       ) from None
+
+
+def _cz(q: np.ndarray) -> np.ndarray:
+    """(n, 2) float → (n,) complex view (a copy if ``q`` is not C-contiguous)."""
+    return np.ascontiguousarray(q).view(np.complex128)[:, 0]
 
 
 class _Run:
@@ -251,8 +334,11 @@ class _Run:
 
     def __init__(self, scenario: Scenario, controller: str, dt: float, n_steps: int,
                  record_every: int, arrays: TubeArrays, tracker: SubTubeTracker | None,
-                 progress: ProgressFn | None, skin: float | None, recorder: Any = None) -> None:
+                 progress: ProgressFn | None, skin: float | None, recorder: Any = None,
+                 integrator: str = "euler") -> None:
         self.scenario = scenario
+        self.integrator = integrator
+        self.istats = AdaptiveStats()
         self.recorder = recorder
         self.controller = controller
         self.dt = dt
@@ -280,7 +366,7 @@ class _Run:
 
     # ----- recording ------------------------------------------------------------------------
     def _alloc_records(self) -> None:
-        frames = self.n_steps // self.record_every + 1
+        frames = self.n_steps // self.record_every + 2  # + the last step
         m = self.m
         self.rec_t = np.full(frames, np.nan)
         self.rec_pos = np.full((frames, m, 2), np.nan)
@@ -304,13 +390,29 @@ class _Run:
         # frame). The exit test and the Verlet-list check are skipped while no point can have
         # reached the finishing line / moved skin/2 since the list was built.
         v_bound = (1.5 if self.unicycle else 1.0 + 1e-6) * max(p.v_max, p.v + p.v_max_prime)
-        half_skin = 0.5 * self.skin
+        integ = self.integrator
+        # RK4's intermediate points and the adaptive sub-steps lie within one step's move of
+        # the step's start: keep the neighbour list valid for them too
+        half_skin = 0.5 * self.skin - (0.0 if integ == "euler" else v_bound * dt)
+        if half_skin <= 0:
+            half_skin = 0.5 * self.skin
         verlet_safe = max(1, int(half_skin / (v_bound * dt)))
         kind = self.controller
         obstacles = sc.obstacles if kind == "apf" else ()
         arrays, params = self.arrays, p
         tracker = self.tracker
         max_move = v_bound * dt
+        # the tracker's bound between calls: RK4's last evaluation (at z + h k3) is up to two
+        # steps' move away from the next step's start
+        track_move = 2.0 * max_move if integ == "rk4" else max_move
+        adaptive = integ == "adaptive"
+        rk4 = integ == "rk4"
+        guard = MarginGuard(tube, sc.obstacles, p.r_s)
+        thr_single = guard.single_threshold(max_move)
+        thr_pair = guard.pair_threshold(max_move) + 2.0 * p.r_s  # on the pair distance
+        next_single = 0
+        near_single = False
+        istats = self.istats
         verlet = VerletPairs(p.r_s + p.r_a, self.skin)
         monitor, acc = self.monitor, self.acc
         unicycle = self.unicycle
@@ -366,20 +468,35 @@ class _Run:
                     series.update({f"{key}_center": getattr(metc, key) for key in METRIC_KEYS})
                 rec_metrics.append((tt, step - nc + np.arange(nc), series))
                 if sum(len(b[0]) for b in rec_metrics) >= REC_METRIC_BLOCK:
-                    send_metrics()
+                    send_metrics(final=False)
             nc = 0
 
         rec_metrics: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]] = []
 
-        def send_metrics() -> None:
+        def send_metrics(final: bool) -> None:
+            """Hand the buffered metric series to the recorder, grouped by frame. The last
+            step may become an extra frame (the run ends there): it is kept back until the
+            end and then, if it is a frame off the record_every grid, logged as its own group
+            so that every recorded frame has its metrics row."""
             if not rec_metrics:
                 return
             blocks = rec_metrics[:]
             rec_metrics.clear()
-            rec.log_metrics(np.concatenate([b[0] for b in blocks]),
-                            np.concatenate([b[1] for b in blocks]),
-                            {key: np.concatenate([b[2][key] for b in blocks])
-                             for key in blocks[0][2]}, every=rec_every)
+            tt = np.concatenate([b[0] for b in blocks])
+            kk = np.concatenate([b[1] for b in blocks])
+            ser = {key: np.concatenate([b[2][key] for b in blocks]) for key in blocks[0][2]}
+            last = kk.size - 1
+            if not final:  # keep the last step back
+                rec_metrics.append((tt[last:], kk[last:], {k: v[last:] for k, v in ser.items()}))
+            elif not (rec_every > 1 and int(kk[last]) == last_rec
+                      and last_rec % rec_every != 0):
+                last = kk.size
+            if last:
+                rec.log_metrics(tt[:last], kk[:last], {k: v[:last] for k, v in ser.items()},
+                                every=rec_every)
+            if final and last < kk.size:  # the extra last frame: its own group
+                rec.log_metrics(tt[last:], kk[last:], {k: v[last:] for k, v in ser.items()},
+                                every=1)
 
         self._alloc_records()
         rec = self.recorder
@@ -403,6 +520,55 @@ class _Run:
         if not unicycle:
             P2[0] = pos
             pos = P2[0]  # the state: row nc of the buffer
+        last_step = n_steps - 1
+        last_rec = -1
+        theta_prev = theta
+
+        def record_frame(st: int, ids_: np.ndarray, pos_: np.ndarray, vel_: np.ndarray,
+                         q_: np.ndarray | None = None, vc_: np.ndarray | None = None,
+                         th_: np.ndarray | None = None) -> None:
+            """Frame of step ``st``: centres and their velocities (the commands for the single
+            integrator; for unicycles also control points, their commands and headings)."""
+            nonlocal last_rec
+            t = st * dt
+            f = self.frames
+            self.rec_t[f] = t
+            self.rec_pos[f, ids_] = pos_
+            self.rec_vel[f, ids_] = vel_
+            if unicycle:
+                self.rec_cpos[f, ids_] = q_
+                self.rec_cvel[f, ids_] = vc_
+                self.rec_head[f, ids_] = th_
+            self.frames = f + 1
+            last_rec = st
+            if rec is not None and unicycle:
+                rec.log_tick(t_s=t, tick=st, ids=ids_, pos=pos_, vel=vel_,
+                             safety={"": (q_, vc_), "_center": (pos_, vel_)})
+            elif rec is not None:
+                rec.log_tick(t_s=t, tick=st, ids=ids_, pos=pos_, vel=vel_)
+
+        def rhs_of(k0: np.ndarray, prs: tuple) -> Callable[[np.ndarray, float], np.ndarray]:
+            """The command at sub-step points z (complex) of the single integrator."""
+            def rhs(z: np.ndarray, move: float) -> np.ndarray:
+                kk = k0 if tracker is None else tracker.update(
+                    z.view(np.float64).reshape(-1, 2), move)
+                return command.step(z, kk, prs)
+            return rhs
+
+        def uni_move(state: tuple, vcmd: np.ndarray, hs: float) -> tuple[tuple, np.ndarray]:
+            """One Euler sub-step of the unicycles under the control-point command (NID)."""
+            pp, th = state
+            vl, om = models.nid_inputs(th, vcmd, s_nid)
+            p1, th1 = models.unicycle_step(pp, th, vl, om, hs)
+            return (p1, th1), _cz(models.nid_control_point(p1, th1, s_nid))
+
+        def uni_rhs(k0: np.ndarray, prs: tuple) -> Callable:
+            def rhs(state: tuple, z: np.ndarray, move: float) -> np.ndarray:
+                qq = np.ascontiguousarray(z.view(np.float64).reshape(-1, 2))
+                kk = k0 if tracker is None else tracker.update(qq, move)
+                return command(qq, kk, prs)
+            return rhs
+
         start = time.perf_counter()
         step = 0
         try:
@@ -413,9 +579,18 @@ class _Run:
                     xi = q @ n_c
                     xmax = xi.max()
                     if xmax >= thresh:
+                        gone = xi >= thresh
+                        if step and last_rec != step - 1 and gone.all():
+                            # the run ends here: the last step (step − 1, in the buffer's row
+                            # nc − 1) is always a frame
+                            r = nc - 1
+                            if unicycle:
+                                record_frame(step - 1, ids, ccen[r, :n], ccvel[r, :n],
+                                             cpos[r, :n], cvel[r, :n], theta_prev)
+                            else:
+                                record_frame(step - 1, ids, cpos[r, :n], cvel[r, :n])
                         flush(n, step)
                         t = step * dt
-                        gone = xi >= thresh
                         acc.add_exits(t, ids[gone])
                         if rec is not None:
                             rec.log_exits(t, step, ids[gone])
@@ -437,7 +612,7 @@ class _Run:
                     next_exit_check = step + max(1, int((thresh - xmax) / (v_bound * dt)))
                 # 2-4. sub-tube, neighbours, command
                 if tracker is not None:
-                    k = tracker.update(q, max_move)
+                    k = tracker.update(q, track_move)
                 else:
                     if kzero.shape[0] != n:
                         kzero = np.zeros(n, dtype=np.intp)
@@ -472,31 +647,40 @@ class _Run:
                     ccen[nc, :n] = pos
                     ccvel[nc, :n] = vcen
                 cpm[nc] = command.min_pair_distance
-                # recording (decimated)
-                if step == next_rec:
-                    t = step * dt
-                    vc = cvel[nc, :n]
-                    f = self.frames
-                    self.rec_t[f] = t
+                # recording (decimated; the last step always)
+                if step == next_rec or step == last_step:
                     if unicycle:
-                        self.rec_pos[f, ids] = pos
-                        self.rec_vel[f, ids] = vcen
-                        self.rec_cpos[f, ids] = q
-                        self.rec_cvel[f, ids] = vc
-                        self.rec_head[f, ids] = theta
+                        vc = cvel[nc, :n]
+                        record_frame(step, ids, pos, vcen, q, vc, theta)
                     else:
-                        self.rec_pos[f, ids] = pos
-                        self.rec_vel[f, ids] = vc
-                    self.frames = f + 1
-                    next_rec += rec_every
-                    if rec is not None and unicycle:
-                        rec.log_tick(t_s=t, tick=step, ids=ids, pos=pos, vel=vcen,
-                                     safety={"": (q, vc), "_center": (pos, vcen)})
-                    elif rec is not None:
-                        rec.log_tick(t_s=t, tick=step, ids=ids, pos=pos, vel=vc)
-                # 5. Euler step of the model
+                        record_frame(step, ids, pos, cvel[nc, :n])
+                    if step == next_rec:
+                        next_rec += rec_every
+                # 5. one step of the model (core/integrate.py); "adaptive" is Euler unless a
+                # margin is within what one step can consume (then the guarded sub-steps)
+                guarded = False
+                if adaptive:
+                    if step >= next_single:
+                        ms = guard.single_margin(_cz(q) if unicycle else Z2[nc])
+                        near_single = ms < thr_single
+                        next_single = step + (1 if near_single else
+                                              max(1, int((ms - thr_single) / max_move)))
+                    guarded = near_single or cpm[nc] < thr_pair
                 if unicycle:
-                    pos, theta = models.unicycle_step(pos, theta, v_lin, omega, dt)
+                    theta_prev = theta
+                    if guarded:
+                        (pos, theta), _ = adaptive_state_step(
+                            (pos, theta), _cz(q), vc, dt, uni_move, uni_rhs(k, pairs), guard,
+                            pairs, istats)
+                    else:
+                        pos, theta = models.unicycle_step(pos, theta, v_lin, omega, dt)
+                elif guarded:
+                    adaptive_step(Z2[nc], vz, dt, rhs_of(k, pairs), guard, pairs, istats,
+                                  out=Z2[nc + 1])
+                    pos = P2[nc + 1]
+                elif rk4:
+                    rk4_step(Z2[nc], vz, dt, rhs_of(k, pairs), out=Z2[nc + 1])
+                    pos = P2[nc + 1]
                 else:  # p + dt v_c, on x + iy
                     euler(Z2[nc], vz, dt, out=Z2[nc + 1])
                     pos = P2[nc + 1]
@@ -509,7 +693,7 @@ class _Run:
         self.wall_s = time.perf_counter() - start
         flush(n, step)
         if rec is not None:
-            send_metrics()
+            send_metrics(final=True)
         self.steps_done = step
         self.t_end = step * dt
         if progress is not None and not self.interrupted:
@@ -519,7 +703,7 @@ class _Run:
                 self.interrupted = True
 
     # ----- result ---------------------------------------------------------------------------
-    def result(self, part: Partition | None) -> SimResult:
+    def result(self, part: Partition | None, info: dict[str, Any] | None = None) -> SimResult:
         f = self.frames
         metrics = StepMetrics.concatenate(self.parts)
         metrics_center = StepMetrics.concatenate(self.parts_center) if self.unicycle else None
@@ -543,6 +727,11 @@ class _Run:
             remark5=[] if part is None else [
                 tri.obstacle for tri in part.triangles if tri.remark5 is not None
             ],
+            apex_distances_m=[] if part is None else [  # h_k flown ("auto": core/plan.py)
+                next((t.h for t in part.triangles if t.obstacle == i), None)
+                for i in range(len(sc.obstacles))],
+            **(info or {"integrator": self.integrator}),
+            integrator_stats=self.istats.as_dict(),
         )
         return SimResult(
             scenario=sc,

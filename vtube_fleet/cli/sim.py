@@ -10,6 +10,7 @@ from typing import Any
 
 from vtube_fleet.artifacts import write_sim_outputs
 from vtube_fleet.cli._args import add_recording_args
+from vtube_fleet.core.integrate import INTEGRATORS
 from vtube_fleet.errors import UserError
 from vtube_fleet.outcome import EXIT_INTERRUPTED, EXIT_OK, EXIT_SIM_UNFINISHED
 
@@ -24,14 +25,24 @@ def register(subparsers: Any) -> None:
     s = subparsers.add_parser(
         "sim",
         help="run the offline simulator",
-        description="Simulate the swarm with forward Euler and write summary.json, "
-        "trajectory.npz, metrics.npz and PNG plots.",
+        description="Simulate the swarm and write summary.json, trajectory.npz, metrics.npz "
+        "and PNG plots.",
     )
     s.add_argument("config", help="scenario TOML file (see docs/config.md)")
     s.add_argument("--out", metavar="DIR", default=None,
                    help="output directory (default: sim_out/<config name>_<controller>)")
     s.add_argument("--dt", type=float, metavar="S", default=None,
-                   help="Euler step in seconds (default: [sim].dt of the config)")
+                   help="time step in seconds (default: [sim].dt of the config)")
+    s.add_argument("--integrator", choices=INTEGRATORS, default=None,
+                   help="adaptive = Euler, with steps cut in halves while a barrier margin "
+                   "(pair, leg, obstacle) would lose more than half of what is left; rk4 = "
+                   "classical Runge-Kutta (single integrator); euler = plain forward Euler "
+                   "(default: [sim].integrator of the config, else adaptive)")
+    s.add_argument("--uncertified", action="store_true",
+                   help="simulate a scenario that fails validation anyway, with the triangles "
+                   "circumscribed about O instead of O' as the authors' published code does; "
+                   "the summary says certified: false and lists the failed conditions "
+                   "(simulation only: `run` never flies an uncertified scenario)")
     s.add_argument("--duration", type=float, metavar="S", default=None,
                    help="simulated time in seconds (default: [sim].duration of the config)")
     s.add_argument("--controller", choices=("new", "old", "apf"), default="new",
@@ -83,8 +94,20 @@ def print_summary(s: dict[str, Any], stream: Any = None) -> None:
           f"[{_fmt(s.get('min_speed_m_s_center'), '', 4)}, "
           f"{_fmt(s.get('max_speed_m_s_center'), '', 4)}] m/s, "
           f"violations {s['violations_center']}\n")
-    w(f"{s['steps']} steps of {s['dt_s']:g} s in {s['wall_s']:.2f} s wall "
-      f"({s['us_per_step']:.1f} us/step)\n")
+    st = s.get("integrator_stats") or {}
+    split = (f", {st['split_steps']} steps split into {st['substeps']} sub-steps"
+             if st.get("split_steps") else "")
+    w(f"{s['steps']} steps of {s['dt_s']:g} s ({s.get('integrator', 'euler')}{split}) in "
+      f"{s['wall_s']:.2f} s wall ({s['us_per_step']:.1f} us/step)\n")
+    if st.get("floor_steps"):
+        w(f"warning: {st['floor_steps']} sub-steps reached the finest step with a margin "
+          "still shrinking fast\n")
+    if s.get("certified") is False:
+        failed = s.get("failed_conditions") or []
+        w(f"certified: false (triangles about {s.get('triangles_about', 'O')}); "
+          f"{len(failed)} failed condition{'s' if len(failed) != 1 else ''}:\n")
+        for item in failed:
+            w(f"  [{item['condition']}] {item['message']}\n")
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -103,7 +126,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     try:
         result = simulate(sc, controller=args.controller, dt=args.dt, duration=args.duration,
                           robots=args.robots, record_every=args.record_every, progress=bar,
-                          recorder=recorder)
+                          recorder=recorder, integrator=args.integrator,
+                          uncertified=args.uncertified)
     finally:
         recorder.close()
         if bar is not None:
