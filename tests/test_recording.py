@@ -112,7 +112,7 @@ def test_round_trip_is_exact_with_absent_rows(tmp_path: Path) -> None:
     vel_exp = np.stack([v for _, v in sent])
     vel_exp[30:, 2] = np.nan
     np.testing.assert_array_equal(d.vel, vel_exp)
-    for ent in ("world/vehicles", "world/velocity", "metrics/min_pair_distance_m"):
+    for ent in ("world/vehicles", "metrics/min_pair_distance_m"):
         assert d.entity_rows[ent] == 40, ent
     for ent in ("meta/scenario", "world/tube", "world/obstacles", "world/obstacles/extended"):
         assert d.static_rows[ent] >= 1, ent

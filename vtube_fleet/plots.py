@@ -21,7 +21,15 @@ from matplotlib.patches import Circle, Polygon
 from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
-__all__ = ["pick_snapshot_frames", "plot_safety", "plot_snapshots"]
+__all__ = [
+    "fit_y",
+    "pick_snapshot_frames",
+    "plot_safety",
+    "plot_snapshots",
+    "plot_trajectories",
+    "safety_figure",
+    "trajectory_figure",
+]
 
 
 def _finite(x: Any) -> np.ndarray:
@@ -34,8 +42,31 @@ def _save(fig: Figure, path: str | os.PathLike[str], dpi: int) -> None:
     fig.savefig(os.fspath(path), dpi=dpi)
 
 
-def plot_safety(
-    path: str | os.PathLike[str],
+def fit_y(ax: Any, curves: Iterable[Any], limits: Iterable[float] = (), pad: float = 0.06
+          ) -> tuple[float, float]:
+    """Set the y-limits of ``ax`` to contain every finite value of ``curves`` and every limit,
+    with a margin of ``pad`` of the span: a curve is never clipped (matplotlib's autoscaling
+    is not relied on). Returns the limits set."""
+    vals = [np.asarray(c, dtype=float).ravel() for c in curves]
+    vals.append(np.asarray(list(limits), dtype=float))
+    allv = np.concatenate(vals) if vals else np.zeros(0)
+    allv = allv[np.isfinite(allv)]
+    if allv.size == 0:
+        return ax.get_ylim()
+    lo, hi = float(allv.min()), float(allv.max())
+    span = hi - lo if hi > lo else max(abs(hi), 1.0)
+    lo, hi = lo - pad * span, hi + pad * span
+    ax.set_ylim(lo, hi)
+    return lo, hi
+
+
+def plot_safety(path: str | os.PathLike[str], t: np.ndarray,
+                metrics: Mapping[str, np.ndarray] | Any, *, dpi: int = 110, **kw: Any) -> None:
+    """:func:`safety_figure` saved as a PNG."""
+    _save(safety_figure(t, metrics, **kw), path, dpi)
+
+
+def safety_figure(
     t: np.ndarray,
     metrics: Mapping[str, np.ndarray] | Any,
     *,
@@ -45,9 +76,9 @@ def plot_safety(
     obstacle_radii: Sequence[float] = (),
     title: str | None = None,
     center: Mapping[str, np.ndarray] | Any | None = None,
-    dpi: int = 110,
-) -> None:
-    """Fig. 11 of the paper as one PNG with five panels against time ``t`` (K,):
+    pair_search_m: float | None = None,
+) -> Figure:
+    """Fig. 11 of the paper as one figure with five panels against time ``t`` (K,):
 
     (a) minimum pair distance with the 2 r_s line, (b) minimum obstacle-centre distance with the
     r_o + r_s line(s), (c)/(d) minimum distance to the main tube's left/right leg with the r_s
@@ -55,21 +86,25 @@ def plot_safety(
 
     ``metrics`` is a :class:`~vtube_fleet.core.metrics.StepMetrics` or a mapping with its key names
     (``min_pair_distance_m`` ...). ``center`` optionally adds the same curves for unicycle robot
-    centres (dashed) next to the control points.
+    centres (dashed) next to the control points. Every panel's y-range holds all of its
+    curves and limits (:func:`fit_y`); the limits are dashed red lines, the legends placed
+    where they cover the least. ``pair_search_m``: the radius within which the summary
+    searched pairs, drawn dotted in (a) when the curve goes above it.
     """
 
     def get(src: Any, key: str) -> np.ndarray:
         return _finite(src[key] if isinstance(src, Mapping) else getattr(src, key))
 
     t = np.asarray(t, dtype=float)
-    fig = Figure(figsize=(8.0, 11.0), layout="constrained")
+    fig = Figure(figsize=(10.0, 11.0), layout="constrained")
     axes = fig.subplots(5, 1, sharex=True)
     limit_style = {"color": "tab:red", "ls": "--", "lw": 1.0}
     curve_style = {"lw": 0.8}
 
     lim = SafetyLimits(r_s, 0.0, math.inf)
     panels = [
-        ("min_pair_distance_m", "(a) min distance\nbetween robots [m]", [(lim.pair_m, "2 r_s")]),
+        ("min_pair_distance_m", "(a) min distance\nbetween robots [m]",
+         [(lim.pair_m, f"2 r_s = {lim.pair_m:g}")]),
         (
             "min_obstacle_center_distance_m",
             "(b) min distance robot–\nobstacle centre [m]",
@@ -77,39 +112,48 @@ def plot_safety(
              for r in sorted(set(obstacle_radii))],
         ),
         ("min_left_leg_distance_m", "(c) min distance to\nleft boundary [m]",
-         [(lim.leg_m, "r_s")]),
+         [(lim.leg_m, f"r_s = {lim.leg_m:g}")]),
         ("min_right_leg_distance_m", "(d) min distance to\nright boundary [m]",
-         [(lim.leg_m, "r_s")]),
+         [(lim.leg_m, f"r_s = {lim.leg_m:g}")]),
     ]
     for ax, (key, label, limits) in zip(axes[:4], panels, strict=True):
         y = get(metrics, key)
+        curves = [y]
         ax.plot(t, y, color="tab:blue", label="control point" if center is not None else None,
                 **curve_style)
         if center is not None:
-            ax.plot(t, get(center, key), color="tab:green", ls=":", label="robot centre",
-                    **curve_style)
+            yc = get(center, key)
+            curves.append(yc)
+            ax.plot(t, yc, color="tab:green", ls=":", label="robot centre", **curve_style)
         for value, name in limits:
             ax.axhline(value, label=name, **limit_style)
+        if (key == "min_pair_distance_m" and pair_search_m is not None
+                and np.nanmax(np.r_[y, -np.inf]) > pair_search_m):
+            ax.axhline(pair_search_m, color="0.5", ls=":", lw=0.8,
+                       label=f"summary's pair search radius {pair_search_m:.3g}")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
+        fit_y(ax, curves, [v for v, _ in limits])
         if np.all(np.isnan(y)):
             ax.text(0.5, 0.5, "nothing within range", transform=ax.transAxes,
                     ha="center", va="center", color="0.4")
-        ax.legend(loc="upper right", fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # beside the panel: it never covers a curve
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
 
     ax = axes[4]
-    ax.plot(t, get(metrics, "min_speed_m_s"), color="tab:blue", label="min speed", **curve_style)
-    ax.plot(t, get(metrics, "max_speed_m_s"), color="tab:orange", label="max speed",
-            **curve_style)
+    vlo, vhi = get(metrics, "min_speed_m_s"), get(metrics, "max_speed_m_s")
+    ax.plot(t, vlo, color="tab:blue", label="min speed", **curve_style)
+    ax.plot(t, vhi, color="tab:orange", label="max speed", **curve_style)
     ax.axhline(v_min, label=f"v_min = {v_min:g}", **limit_style)
-    ax.axhline(v_max, label=f"v_max = {v_max:g}", color="tab:purple", ls="--", lw=1.0)
+    ax.axhline(v_max, label=f"v_max = {v_max:g}", **limit_style)
     ax.set_ylabel("(e) speed [m/s]")
     ax.set_xlabel("time [s]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8, ncols=2)
+    fit_y(ax, [vlo, vhi], [v_min, v_max] if math.isfinite(v_max) else [v_min])
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     if title:
         fig.suptitle(title)
-    _save(fig, path, dpi)
+    return fig
 
 
 def pick_snapshot_frames(t: np.ndarray, pos: np.ndarray, count: int = 4) -> list[int]:
@@ -199,3 +243,91 @@ def plot_snapshots(
         fig.suptitle(title)
     _save(fig, path, dpi)
 
+
+def trajectory_figure(
+    tube: Trapezoid,
+    t: np.ndarray,
+    pos: np.ndarray,
+    *,
+    ids: Sequence[int] | None = None,
+    r_s: float,
+    obstacles: Sequence[Obstacle] = (),
+    sub_tubes: Sequence[Trapezoid] = (),
+    triangles: Sequence[Any] = (),
+    title: str | None = None,
+) -> Figure:
+    """The whole flight in one panel: every vehicle's path (``pos`` (T, M, 2), NaN = absent;
+    one colour per vehicle, a dot where it was first seen, a cross where it was last seen)
+    over the main tube, the partition (sub-tube outlines, triangles I_k) and the obstacles O_k
+    with O'_k. The axes hold the tube and every recorded position: nothing leaves the frame
+    (a vehicle flying on past the finishing line, landing elsewhere)."""
+    pos = np.asarray(pos, dtype=float).reshape(len(t), -1, 2)
+    poly = tube.polygon()
+    pts = np.vstack([poly, pos.reshape(-1, 2)])
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    span = hi - lo
+    pad = 0.04 * float(span.max()) + r_s
+    aspect = float((span[1] + 2 * pad) / max(span[0] + 2 * pad, 1e-9))
+    width = 10.0
+    fig = Figure(figsize=(width, max(3.0, min(14.0, width * aspect + 1.2))), layout="constrained")
+    ax = fig.subplots()
+    ax.add_patch(Polygon(poly, closed=True, fill=False, ec="black", lw=1.4, label="tube T"))
+    for k, sub in enumerate(sub_tubes):
+        ax.add_patch(Polygon(sub.polygon(), closed=True, fill=False, ec="tab:blue", lw=0.6,
+                             ls="--", alpha=0.7, label="sub-tubes T_o,k" if k == 0 else None))
+    for k, tri in enumerate(triangles):
+        ax.add_patch(Polygon(np.stack([tri.p_oth, tri.p_otu, tri.p_otd]), closed=True,
+                             fc="tab:orange", ec="tab:orange", alpha=0.18, lw=0.8,
+                             label="triangles I_k" if k == 0 else None))
+    for k, o in enumerate(obstacles):
+        ax.add_patch(Circle(o.center, o.radius, fc="0.35", ec="black", lw=0.6,
+                            label="obstacles O_k" if k == 0 else None))
+        ax.add_patch(Circle(o.center, o.radius + r_s, fill=False, ec="0.35", ls=":", lw=0.7))
+    m = pos.shape[1]
+    cmap = _vehicle_colors(m)
+    names = list(ids) if ids is not None else list(range(m))
+    drawn = 0
+    for j in range(m):
+        p = pos[:, j]
+        ok = np.isfinite(p).all(axis=1)
+        if not ok.any():
+            continue
+        drawn += 1
+        c = cmap[j % len(cmap)]
+        ax.plot(p[:, 0], p[:, 1], color=c, lw=0.9, alpha=0.9, gid=f"path {names[j]}")
+        first, last = np.flatnonzero(ok)[[0, -1]]
+        ax.plot(*p[first], "o", color=c, ms=3)
+        ax.plot(*p[last], "x", color=c, ms=4)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m] (along the tube)")
+    ax.set_ylabel("y [m] (left of the heading)")
+    t = np.asarray(t, dtype=float)
+    when = f", t = {t[0]:.1f}–{t[-1]:.1f} s" if t.size else ""
+    ax.set_title(f"{drawn} paths (o first seen, x last seen){when}", fontsize=9)
+    ax.grid(alpha=0.2)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8, framealpha=0.8)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_trajectories(path: str | os.PathLike[str], tube: Trapezoid, t: np.ndarray,
+                      pos: np.ndarray, *, dpi: int = 110, **kw: Any) -> None:
+    """:func:`trajectory_figure` saved as a PNG."""
+    _save(trajectory_figure(tube, t, pos, **kw), path, dpi)
+
+
+def _vehicle_colors(m: int) -> list[Any]:
+    """Distinct colours for ``m`` paths (tab10 up to 10, tab20 up to 20, then a cycle through
+    a perceptually even colormap)."""
+    from matplotlib import colormaps
+
+    if m <= 10:
+        return list(colormaps["tab10"].colors)
+    if m <= 20:
+        return list(colormaps["tab20"].colors)
+    return [colormaps["turbo"](x) for x in np.linspace(0.05, 0.95, m)]

@@ -28,13 +28,14 @@ from typing import Any
 
 import numpy as np
 
+from vtube_fleet.core.integrate import DEFAULT_INTEGRATOR, INTEGRATORS
 from vtube_fleet.core.params import (
     CONTROLLER_DEFAULTS,
     CONTROLLER_REQUIRED,
     ControllerParams,
     parameter_problems,
 )
-from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
 from vtube_fleet.errors import ConfigError, UserError
 
 __all__ = [
@@ -90,11 +91,13 @@ class RobotsConfig:
 
 @dataclass(frozen=True)
 class SimConfig:
-    """[sim]: forward-Euler step ``dt`` (s), simulated ``duration`` (s), optional decimation."""
+    """[sim]: step ``dt`` (s), simulated ``duration`` (s), optional decimation, and the
+    ``integrator`` (:data:`vtube_fleet.core.integrate.INTEGRATORS`)."""
 
     dt: float = DEFAULT_DT_S
     duration: float = DEFAULT_DURATION_S
     record_every: int | None = None
+    integrator: str = DEFAULT_INTEGRATOR
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,10 +171,11 @@ def parse_scenario(
     """
     p = _Parser(source)
     extra_names = tuple(extra_sections)
-    known = ("tube", "obstacles", "robots", "controller", "sim", *extra_names)
+    known = ("tube", "obstacles", "robots", "controller", "sim", "partition", *extra_names)
     p.check_keys(data, known, "")
     tube = p.parse_tube(p.table(data, "tube", ""))
-    obstacles = p.parse_obstacles(data.get("obstacles", []))
+    apex_default = p.parse_partition(p.table(data, "partition", "", required=False))
+    obstacles = p.parse_obstacles(data.get("obstacles", []), apex_default)
     robots = p.parse_robots(p.table(data, "robots", ""), tube)
     controller = p.parse_controller(p.table(data, "controller", ""), robots)
     sim = p.parse_sim(p.table(data, "sim", "", required=False))
@@ -343,7 +347,19 @@ class _Parser:
         except UserError as exc:
             raise self.error(sec, str(exc)) from None
 
-    def parse_obstacles(self, value: Any) -> tuple[Obstacle, ...]:
+    def parse_partition(self, t: Mapping[str, Any]) -> str | None:
+        """[partition]: ``apex_distance = "auto" | "default"``, the apex distance of every
+        obstacle without its own (``"default"``: 1.3 h_min; ``"auto"``: core/plan.py)."""
+        sec = "[partition]"
+        self.check_keys(t, ("apex_distance",), sec)
+        v = t.get("apex_distance", "default")
+        if v not in (APEX_AUTO, "default"):
+            raise self.error(self.name(sec, "apex_distance"),
+                             f'expected "auto" or "default", got {_show(v)}')
+        return APEX_AUTO if v == APEX_AUTO else None
+
+    def parse_obstacles(self, value: Any, apex_default: str | None = None
+                        ) -> tuple[Obstacle, ...]:
         if not isinstance(value, list) or not all(isinstance(o, dict) for o in value):
             raise self.error(
                 "[[obstacles]]", f"expected an array of tables, got {_show(value)}"
@@ -354,8 +370,12 @@ class _Parser:
             self.check_keys(o, ("center", "radius", "apex_distance"), sec)
             center = self.point(o, "center", sec)
             radius = self.number(o, "radius", sec, positive=True)
-            apex = self.number(o, "apex_distance", sec, required=False, positive=True)
-            if apex is not None and apex <= radius:
+            apex: float | str | None = apex_default
+            if o.get("apex_distance") == APEX_AUTO:
+                apex = APEX_AUTO
+            elif "apex_distance" in o:
+                apex = self.number(o, "apex_distance", sec, positive=True)
+            if isinstance(apex, float) and apex <= radius:
                 raise self.error(
                     self.name(sec, "apex_distance"),
                     f"must exceed the radius {radius:g}, got {apex:g}",
@@ -469,10 +489,17 @@ class _Parser:
 
     def parse_sim(self, s: Mapping[str, Any]) -> SimConfig:
         sec = "[sim]"
-        self.check_keys(s, ("dt", "duration", "record_every"), sec)
+        self.check_keys(s, ("dt", "duration", "record_every", "integrator"), sec)
         dt = self.number(s, "dt", sec, default=DEFAULT_DT_S, positive=True)
         duration = self.number(s, "duration", sec, default=DEFAULT_DURATION_S, positive=True)
         record_every = None
         if "record_every" in s:
             record_every = self.integer(s, "record_every", sec)
-        return SimConfig(dt=dt, duration=duration, record_every=record_every)
+        integrator = s.get("integrator", DEFAULT_INTEGRATOR)
+        if not isinstance(integrator, str) or integrator not in INTEGRATORS:
+            raise self.error(
+                self.name(sec, "integrator"),
+                f"expected one of {', '.join(json.dumps(n) for n in INTEGRATORS)}, "
+                f"got {_show(integrator)}")
+        return SimConfig(dt=dt, duration=duration, record_every=record_every,
+                         integrator=integrator)

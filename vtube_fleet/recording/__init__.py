@@ -40,21 +40,27 @@ Layout of a recording (entity paths):
 ======================  =========================================================
 ``meta/scenario``       static JSON (:data:`META_FORMAT`), read by :func:`load_recording`
 ``meta/summary``        static JSON: the run's own ``summary.json`` (:meth:`log_summary`)
+``world``               the tube frame, no transform (the 2-D view draws y downwards); static
+                        AnnotationContext: one class per phase (``layout.PHASE_CLASSES``)
+``world/axes``          static: the +x / +y axis key; ``world/legend``: the phase colour key
 ``world/tube``          static: the main tube T (closed line strip)
 ``world/obstacles``     static: O_k as discs; ``world/obstacles/extended``: O'_k outlines
 ``world/sub_tubes``     sub-tubes T_o,k (at t = 0, again at each :meth:`log_partition`)
 ``world/triangles``     circumscribed triangles I_k (same)
-``world/vehicles``      Points2D (radius r_s, label "id phase", colour by phase) plus the exact
-                        float64 state as ``vtube_fleet.VehicleState:*`` components
-``world/velocity``      Arrows2D of the measured velocity (length = ``arrow_scale_s`` × v)
+``world/vehicles``      the exact float64 state of the fleet per tick as
+                        ``vtube_fleet.VehicleState:*`` components (what ``review`` reads)
+``world/vehicles/ID``  one entity per vehicle, drawn: a point (radius r_s, phase class), its
+                        velocity arrow (``arrow_scale_s`` × v) and its trail (the last few
+                        seconds of its path); cleared when the vehicle leaves the rows
 ``world/commands``      Arrows2D of the velocity command, when given
 ``safety/main|center``  the exact (position, velocity) inputs of the run's safety metrics per
                         summary stream, when given (``log_tick(safety=...)``)
 ``metrics/<key>``       Scalars, one entity per metric key; ``limits/<key>`` the safety limit
 ``status``              TextDocument: a table of every vehicle (id, phase, position, speed)
 ``events``              TextLog of run-wide events; ``events/vehicles``: per-vehicle events
-                        (phase changes, :meth:`log_event` with a vehicle id; the id also as
-                        ``vtube_fleet.Event:vehicle_id``); ``events/exits``: exit events
+                        (phase changes — once, also when the owner tells them —, :meth:`log_event`
+                        with a vehicle id; the id also as ``vtube_fleet.Event:vehicle_id``);
+                        ``events/exits``: exit times (text only when no phase change told it)
 ======================  =========================================================
 
 Timelines: ``mission_time`` (duration, seconds since the mission/simulation start) and ``tick``

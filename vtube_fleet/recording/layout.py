@@ -6,6 +6,7 @@ Entity paths, timelines, component names, the metadata format, colours and metri
 from __future__ import annotations
 
 __all__ = [
+    "COMMAND_COLOR",
     "DEFAULT_COLOR",
     "DEFAULT_CONNECT_URL",
     "DEFAULT_RECORDING_NAME",
@@ -13,7 +14,9 @@ __all__ = [
     "EXIT_ARCHETYPE",
     "E_COMMANDS",
     "E_EVENTS",
+    "E_AXES",
     "E_EXITS",
+    "E_LEGEND",
     "E_META",
     "E_OBSTACLES",
     "E_OBSTACLES_EXT",
@@ -25,23 +28,39 @@ __all__ = [
     "E_VEHICLES",
     "E_VEHICLE_EVENTS",
     "E_VELOCITY",
+    "E_WORLD",
+    "LABELS_MAX_VEHICLES",
     "LIMITS_PREFIX",
+    "LIMIT_COLOR",
     "LOG_LEVELS",
     "LIMIT_PERIOD_S",
     "META_FORMAT",
     "META_VERSION",
     "METRICS_PREFIX",
+    "METRIC_COLORS",
     "METRIC_NAMES",
+    "METRIC_VARIANTS",
     "METRIC_VIEWS",
+    "OBSTACLE_COLOR",
     "OTHER_COLOR",
+    "PHASE_CLASSES",
     "PHASE_COLORS",
     "SAFETY_ARCHETYPE",
     "SAFETY_PREFIX",
     "SIM_MIN_PERIOD_S",
     "STATE_ARCHETYPE",
+    "SUB_TUBE_COLOR",
     "TIMELINE_TICK",
     "TIMELINE_TIME",
+    "TRAIL_S",
+    "TRAIL_STEP_S",
+    "TRIANGLE_COLOR",
+    "TUBE_COLOR",
+    "VELOCITY_COLOR",
+    "class_of",
+    "metric_name",
     "stream_entity",
+    "vehicle_entity",
 ]
 
 #: ``--rerun-connect`` without an address: the viewer's default gRPC proxy.
@@ -75,6 +94,19 @@ E_META = "meta/scenario"
 E_SUMMARY = "meta/summary"
 
 
+#: The tube frame (x along the tube, y to the left of the heading). No transform: the 2-D view
+#: shows these coordinates as they are, y drawn downwards (rerun's 2-D convention); the axis key
+#: ``world/axes`` says so in the view, and hover / selection read the true (x, y).
+E_WORLD = "world"
+
+
+E_AXES = "world/axes"
+
+
+#: The phase colour key: one labelled point per annotation class, under the framed region.
+E_LEGEND = "world/legend"
+
+
 E_TUBE = "world/tube"
 
 
@@ -90,9 +122,13 @@ E_SUB_TUBES = "world/sub_tubes"
 E_TRIANGLES = "world/triangles"
 
 
+#: The exact float64 state of every vehicle per tick (``vtube_fleet.VehicleState:*``, one row per
+#: tick for the whole fleet: ``review`` reads it); the display is per vehicle, see
+#: :func:`vehicle_entity`.
 E_VEHICLES = "world/vehicles"
 
 
+#: Not written any more (the velocity arrow is on each vehicle's entity); kept for old readers.
 E_VELOCITY = "world/velocity"
 
 
@@ -140,10 +176,11 @@ EVENT_ARCHETYPE = "vtube_fleet.Event"
 SAFETY_ARCHETYPE = "vtube_fleet.SafetyInput"
 
 
-#: Metric keys shown in the default blueprint, by view: (view name, metric keys, unit label).
+#: Metric keys shown in the default blueprint, by view: (view name, metric keys).
 METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("min pair distance [m]", ("min_pair_distance_m",)),
     ("min obstacle-centre distance [m]", ("min_obstacle_center_distance_m",)),
+    ("min obstacle clearance [m]", ("min_obstacle_clearance_m",)),
     ("min leg distances [m]", ("min_left_leg_distance_m", "min_right_leg_distance_m")),
     ("speed min / max [m/s]", ("min_speed_m_s", "max_speed_m_s")),
     ("tick duration [s]", ("tick_duration_s",)),
@@ -151,10 +188,20 @@ METRIC_VIEWS: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 
 
+#: Variants of a metric key drawn in the same view as the key (same limit): (key → variant key,
+#: legend suffix). The unicycle's robot centres (simulator) and the ground truth (``run
+#: --truth``).
+METRIC_VARIANTS: tuple[tuple[str, str], ...] = (
+    ("{}_center", " (robot centre)"),
+    ("truth_{}", " (truth)"),
+)
+
+
 #: Legend names of the known metric series.
 METRIC_NAMES: dict[str, str] = {
     "min_pair_distance_m": "min pair distance",
     "min_obstacle_center_distance_m": "min robot–obstacle centre distance",
+    "min_obstacle_clearance_m": "min robot–obstacle clearance (to the disc)",
     "min_left_leg_distance_m": "min left leg distance",
     "min_right_leg_distance_m": "min right leg distance",
     "min_speed_m_s": "min speed",
@@ -164,28 +211,104 @@ METRIC_NAMES: dict[str, str] = {
 }
 
 
-#: Colour (RGBA) of a vehicle point by phase (``bus.base.Phase`` values); others grey.
-PHASE_COLORS: dict[str, int] = {
-    "connecting": 0x9E9E9EFF,
-    "ready": 0x78909CFF,
-    "arming": 0xFFB300FF,
-    "takeoff": 0xFFB300FF,
-    "in_tube": 0x1E88E5FF,
-    "exited": 0x43A047FF,
-    "holding": 0xFB8C00FF,
-    "landing": 0x8E24AAFF,
-    "landed": 0x6D4C41FF,
-    "lost": 0xE53935FF,
-    "failed": 0xB71C1CFF,
+#: Curve colour (RGBA) of the known metric series: the two curves of one view differ clearly
+#: (blue / amber), none is red (the limits are red), variants are drawn lighter.
+METRIC_COLORS: dict[str, int] = {
+    "min_pair_distance_m": 0x1E88E5FF,
+    "min_obstacle_center_distance_m": 0x1E88E5FF,
+    "min_obstacle_clearance_m": 0x1E88E5FF,
+    "min_left_leg_distance_m": 0x1E88E5FF,
+    "min_right_leg_distance_m": 0xFFA000FF,
+    "min_speed_m_s": 0x1E88E5FF,
+    "max_speed_m_s": 0xFFA000FF,
+    "tick_duration_s": 0x26A69AFF,
+    "link_latency_s": 0x8D6E63FF,
 }
 
 
+def metric_name(key: str) -> str:
+    """Legend name of a metric key (variants named after their base key; unknown keys as is)."""
+    if key in METRIC_NAMES:
+        return METRIC_NAMES[key]
+    for pattern, suffix in METRIC_VARIANTS:
+        head, _, tail = pattern.partition("{}")
+        if key.startswith(head) and key.endswith(tail):
+            base = key[len(head):len(key) - len(tail)] if tail else key[len(head):]
+            if base in METRIC_NAMES:
+                return METRIC_NAMES[base] + suffix
+    return key
+
+
+#: Colour of the safety-limit lines in the plots.
+LIMIT_COLOR = 0xE53935FF
+
+
+#: Colours of the scene. Every phase colour below differs clearly from these and from each other
+#: (``tests/test_recording.py`` checks the distances).
+TUBE_COLOR = 0xE0E0E0FF
+SUB_TUBE_COLOR = 0x7986CB80
+TRIANGLE_COLOR = 0xFB8C00FF
+OBSTACLE_COLOR = 0x616161FF
+VELOCITY_COLOR = 0x66BB6AFF
+COMMAND_COLOR = 0xBDBDBD90
+
+
+#: Annotation classes of the vehicle points and trails (``AnnotationContext`` at ``world``):
+#: (class id, phase value or ``""`` for a robot without phases (the simulator), legend label,
+#: RGBA colour). Class ids are stable (recordings keep their meaning).
+PHASE_CLASSES: tuple[tuple[int, str, str, int], ...] = (
+    (0, "", "robot", 0x1E88E5FF),
+    (1, "connecting", "connecting", 0xBDBDBDFF),
+    (2, "ready", "ready", 0x80DEEAFF),
+    (3, "arming", "arming", 0xF48FB1FF),
+    (4, "takeoff", "take-off", 0xFFEE58FF),
+    (5, "in_tube", "in tube", 0x1E88E5FF),
+    (6, "exited", "exited", 0x00E676FF),
+    (7, "holding", "holding", 0xD500F9FF),
+    (8, "landing", "landing", 0x7C4DFFFF),
+    (9, "landed", "landed", 0xA1887FFF),
+    (10, "lost", "LOST", 0xFF1744FF),
+    (11, "failed", "FAILED", 0x880E4FFF),
+    (12, "?", "other", 0xFF6E40FF),
+)
+
+
+_CLASS_OF = {phase: cid for cid, phase, _, _ in PHASE_CLASSES}
+
+
+def class_of(phase: str | None) -> int:
+    """Annotation class id of a phase value (``None``: a robot without phases)."""
+    if phase is None:
+        return 0
+    return _CLASS_OF.get(phase, _CLASS_OF["?"])
+
+
+#: Colour (RGBA) of a vehicle by phase (``state.Phase`` values), from :data:`PHASE_CLASSES`.
+PHASE_COLORS: dict[str, int] = {phase: color for _, phase, _, color in PHASE_CLASSES
+                                if phase not in ("", "?")}
+
+
 #: Colour of a vehicle without a phase (the simulator).
-DEFAULT_COLOR = 0x1E88E5FF
+DEFAULT_COLOR = PHASE_CLASSES[0][3]
 
 
 #: Colour of a phase not in :data:`PHASE_COLORS`.
-OTHER_COLOR = 0x9E9E9EFF
+OTHER_COLOR = PHASE_CLASSES[-1][3]
+
+
+#: Trails: each vehicle's recent path, the last TRAIL_S seconds sampled every TRAIL_STEP_S.
+TRAIL_S = 3.0
+TRAIL_STEP_S = 0.2
+
+
+#: Vehicle labels (ids) are shown in the view up to this many vehicles (beyond: hover / click).
+LABELS_MAX_VEHICLES = 30
+
+
+def vehicle_entity(vehicle_id: int) -> str:
+    """Display entity of one vehicle: its point (radius r_s, phase class), velocity arrow and
+    trail — a click selects one drone."""
+    return f"{E_VEHICLES}/{int(vehicle_id)}"
 
 
 #: Event level → rerun TextLog level.

@@ -254,7 +254,8 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
                     for vid in vals[offs[i]:offs[i + 1]]:
                         exits.setdefault(int(vid), float(t[i]))
             for i, txt in enumerate(text_of(rb, "TextLog:text")):
-                events.append((float(t[i]), ent, "INFO", txt))
+                if txt:  # a fleet's exit is told by its phase change: no text of its own
+                    events.append((float(t[i]), ent, "INFO", txt))
         elif ent.startswith(E_EVENTS):
             texts = text_of(rb, "TextLog:text")
             levels = text_of(rb, "TextLog:level") or ["INFO"] * len(texts)

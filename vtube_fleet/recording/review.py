@@ -7,6 +7,7 @@ with the run's own, draw the figures.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ from vtube_fleet.recording.reader import RecordingData, load_recording
 __all__ = [
     "ReviewResult",
     "compare_summaries",
+    "full_pair_curve",
     "review",
     "step_metrics",
     "summary_from_recording",
@@ -66,20 +68,26 @@ def _monitor(data: RecordingData) -> Any:
 def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any]:
     """(t_s, :class:`~vtube_fleet.core.metrics.StepMetrics`) of one summary stream: the
     (positions, velocities) the run said its metrics used (``data.safety``, at the ticks where
-    it gave them — e.g. the fleet only once in the tube), else the recorded vehicle positions
-    and velocities at every recorded tick."""
+    it gave them — e.g. the fleet only once in the tube; a fleet recording without them judged
+    no tick, so none is recomputed), else the recorded vehicle positions and velocities at every
+    recorded tick."""
     from vtube_fleet.core.metrics import StepMetrics
 
     if suffix in data.safety:
         pos, vel = data.safety[suffix]
         rows = np.flatnonzero(data.safety_ticks[suffix])
         pos, vel, t = pos[rows], vel[rows], data.t_s[rows]
+    elif suffix == "" and data.kind in ("fleet", "mqtt", "agent"):
+        # the fleet (run, coordinator, agents) gives its metrics' inputs at every tick it
+        # judged (in the tube); none given = no tick judged (e.g. interrupted in the take-off),
+        # so none is recomputed either: review judges the same phases the run judged
+        pos, vel, t = data.pos[:0], data.vel[:0], data.t_s[:0]
     elif suffix == "":
         pos, vel, t = data.pos, data.vel, data.t_s
     else:
         raise KeyError(suffix)
     mon = _monitor(data)
-    parts = []
+    parts = [mon.evaluate(pos, vel)] if not len(t) else []
     for s in range(0, len(t), _CHUNK_STEPS):
         sl = slice(s, s + _CHUNK_STEPS)
         parts.append(mon.evaluate(pos[sl], vel[sl]))
@@ -169,17 +177,27 @@ def _reconstruct_partition(data: RecordingData) -> tuple[list[Any], list[Any]]:
 
 def write_review_plots(data: RecordingData, out_dir: Path, metrics: Any | None = None,
                        *, stem: str | None = None) -> list[Path]:
-    """The Fig. 11 safety curves and the swarm snapshots as PNGs in ``out_dir``."""
-    from vtube_fleet.plots import pick_snapshot_frames, plot_safety, plot_snapshots
+    """The Fig. 11 safety curves, the swarm snapshots and the whole flight's paths as PNGs in
+    ``out_dir``. The pair-distance curve is drawn for every step (:func:`full_pair_curve`),
+    not only where two vehicles came within the summary's pair search radius."""
+    from vtube_fleet.plots import (
+        pick_snapshot_frames,
+        plot_safety,
+        plot_snapshots,
+        plot_trajectories,
+    )
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    _require_dir(out_dir)
     stem = stem or data.path.stem
     meta = data.meta
     t, sm = step_metrics(data) if metrics is None else metrics
     title = f"{data.path.name} ({data.kind}, {int(meta.get('robots', len(data.ids)))} robots)"
     safety = out_dir / f"{stem}-safety.png"
-    plot_safety(safety, t, sm, r_s=meta["r_s"], v_min=meta["v_min"], v_max=meta["v_max"],
-                obstacle_radii=[o["radius"] for o in meta.get("obstacles", [])], title=title)
+    curves = dict(sm.as_dict())
+    curves["min_pair_distance_m"] = full_pair_curve(data)
+    plot_safety(safety, t, curves, r_s=meta["r_s"], v_min=meta["v_min"], v_max=meta["v_max"],
+                obstacle_radii=[o["radius"] for o in meta.get("obstacles", [])], title=title,
+                pair_search_m=float(_monitor(data).pair_radius))
     written = [safety]
     # snapshots of what the safety metrics counted (the fleet: vehicles in the tube)
     if "" in data.safety:
@@ -195,11 +213,57 @@ def write_review_plots(data: RecordingData, out_dir: Path, metrics: Any | None =
                        r_s=meta["r_s"], obstacles=data.obstacles(), sub_tubes=sub_tubes,
                        triangles=triangles, title=title)
         written.append(snaps)
+    if len(data.t_s):  # every recorded position, also before and after the tube
+        sub_tubes, triangles = _reconstruct_partition(data)
+        paths = out_dir / f"{stem}-trajectories.png"
+        plot_trajectories(paths, data.tube(), data.t_s, data.pos, ids=[int(i) for i in data.ids],
+                          r_s=meta["r_s"], obstacles=data.obstacles(), sub_tubes=sub_tubes,
+                          triangles=triangles, title=title)
+        written.append(paths)
     return written
 
 
+def full_pair_curve(data: RecordingData, suffix: str = "") -> np.ndarray:
+    """The minimum pair distance of every step of :func:`step_metrics` ``(data, suffix)`` over
+    ALL pairs (the same :class:`~vtube_fleet.core.metrics.SafetyMonitor`, its pair search
+    radius widened to the whole flown extent): for the plot only. The summary searches pairs
+    within r_s + r_a (every pair that can break 2 r_s is within it), so its per-step series is
+    empty (NaN) wherever nobody came that close — a curve clipped at that radius."""
+    import dataclasses
+
+    if suffix in data.safety:
+        pos = data.safety[suffix][0][np.flatnonzero(data.safety_ticks[suffix])]
+    else:
+        pos = data.pos
+    finite = pos[np.isfinite(pos).all(axis=-1)]
+    if finite.shape[0] < 2:
+        return np.full(pos.shape[0], np.nan)
+    reach = float(np.hypot(*np.ptp(finite, axis=0))) + 1.0
+    mon = dataclasses.replace(_monitor(data), pair_radius=reach)
+    out = [mon.evaluate(pos[s:s + _CHUNK_STEPS]).min_pair_distance_m
+           for s in range(0, pos.shape[0], _CHUNK_STEPS)]
+    v = np.concatenate(out) if out else np.zeros(0)
+    return np.where(np.isfinite(v), v, np.nan)
+
+
+def _require_dir(out_dir: Path) -> None:
+    """``out_dir`` exists as a writable folder (made if missing), else :class:`RecordingError`."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise RecordingError(f"--out {out_dir}: not a folder (the plots are written into it)")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(f"--out {out_dir}: cannot make the folder: "
+                             f"{exc.strerror or exc}") from None
+    if not os.access(out_dir, os.W_OK | os.X_OK):
+        raise RecordingError(f"--out {out_dir}: the folder is not writable")
+
+
 def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True) -> ReviewResult:
-    """Load a recording, recompute its summary, compare with the run's own, draw the plots."""
+    """Load a recording, recompute its summary, compare with the run's own, draw the plots.
+    A bad ``out_dir`` is refused before the recording is read."""
+    if plots and out_dir is not None:
+        _require_dir(Path(out_dir))
     data = load_recording(path)
     for key in ("tube", "r_s", "r_a", "v_min", "v_max"):
         if key not in data.meta:

@@ -29,11 +29,13 @@ import numpy as np
 from vtube_fleet.artifacts import json_safe
 from vtube_fleet.recording.api import NullRecorder, Recorder, RecordingError
 from vtube_fleet.recording.layout import (
-    DEFAULT_COLOR,
+    COMMAND_COLOR,
     DEFAULT_CONNECT_URL,
+    E_AXES,
     E_COMMANDS,
     E_EVENTS,
     E_EXITS,
+    E_LEGEND,
     E_META,
     E_OBSTACLES,
     E_OBSTACLES_EXT,
@@ -44,24 +46,36 @@ from vtube_fleet.recording.layout import (
     E_TUBE,
     E_VEHICLE_EVENTS,
     E_VEHICLES,
-    E_VELOCITY,
+    E_WORLD,
     EVENT_ARCHETYPE,
     EXIT_ARCHETYPE,
+    LABELS_MAX_VEHICLES,
+    LIMIT_COLOR,
     LIMIT_PERIOD_S,
     LIMITS_PREFIX,
     LOG_LEVELS,
     META_FORMAT,
     META_VERSION,
-    METRIC_NAMES,
+    METRIC_COLORS,
+    METRIC_VARIANTS,
     METRIC_VIEWS,
     METRICS_PREFIX,
-    OTHER_COLOR,
-    PHASE_COLORS,
+    OBSTACLE_COLOR,
+    PHASE_CLASSES,
     SAFETY_ARCHETYPE,
     STATE_ARCHETYPE,
+    SUB_TUBE_COLOR,
     TIMELINE_TICK,
     TIMELINE_TIME,
+    TRAIL_S,
+    TRAIL_STEP_S,
+    TRIANGLE_COLOR,
+    TUBE_COLOR,
+    VELOCITY_COLOR,
+    class_of,
+    metric_name,
     stream_entity,
+    vehicle_entity,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -210,10 +224,9 @@ def _never_raises(method: _M) -> _M:
 class _Looks:
     """Display data of one (ids, phases) combination, converted to arrow once and reused."""
 
-    labels: Any  # pyarrow StringArray "id phase"
     phases: Any | None  # pyarrow StringArray of phase names, or None
     phase_strs: list[str] | None
-    colors: np.ndarray  # (M,) uint32 RGBA
+    classes: np.ndarray  # (M,) uint16 annotation class ids (layout.PHASE_CLASSES)
 
 
 @dataclass
@@ -227,6 +240,37 @@ class _Row:
     looks: _Looks
     metrics: dict[str, float]
     safety: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+
+#: Phases whose change is a warning (a vehicle lost or failed); every other change is INFO.
+_ALARM_PHASES = frozenset({"lost", "failed"})
+
+
+_PHASE_NAMES = frozenset(p for _, p, _, _ in PHASE_CLASSES if p not in ("", "?"))
+
+
+def _announced_phase(text: str) -> str | None:
+    """The new phase when ``text`` tells a phase change ("in_tube → exited (why)"), else
+    None."""
+    old, sep, rest = text.partition(" → ")
+    if not sep:
+        return None
+    new = rest.split(" ", 1)[0]
+    return new if new in _PHASE_NAMES and (old in _PHASE_NAMES or old == "-") else None
+
+
+def _metric_color(key: str) -> int | None:
+    """Curve colour of a metric series: its base key's colour, lighter for a variant (robot
+    centre, truth); ``None`` (the viewer picks) for unknown keys."""
+    if key in METRIC_COLORS:
+        return METRIC_COLORS[key]
+    for pattern, _ in METRIC_VARIANTS:
+        head, _, tail = pattern.partition("{}")
+        if key.startswith(head) and key.endswith(tail):
+            base = key[len(head):len(key) - len(tail)] if tail else key[len(head):]
+            if base in METRIC_COLORS:
+                return (METRIC_COLORS[base] & 0xFFFFFF00) | 0x90
+    return None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -250,6 +294,9 @@ class RerunRecorder:
     refreshed every ``status_period_s`` of mission time. ``kind`` is ``"sim"`` or ``"fleet"``.
     ``detect_exits=False``: exits only from :meth:`log_exits` (an owner that decides exits
     itself, e.g. from states arriving between ticks, so that review sees exactly its exits).
+    The per-vehicle display entities (``world/vehicles/<id>``) are sent every
+    ``display_period_s`` of wall time or ``display_max_ticks`` recorded ticks (what a live
+    viewer lags behind at most; each send costs a chunk per vehicle in the file).
 
     The recording is closed — buffer sent, sender joined, stream flushed, file closed — by
     :meth:`close` (idempotent), by the context manager, and at interpreter exit if the owner
@@ -276,6 +323,8 @@ class RerunRecorder:
         connect_timeout_s: float = 0.5,
         flush_timeout_s: float = 10.0,
         detect_exits: bool = True,
+        display_period_s: float = 1.0,
+        display_max_ticks: int = 256,
     ) -> None:
         import pyarrow as pa
         import rerun as rr
@@ -338,7 +387,29 @@ class RerunRecorder:
         self._open_block: tuple[int, float, int, dict[str, float]] | None = None
         self._mbuf: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]] = []
         self._mbuf_n = 0
-        self._xbuf: list[tuple[float, int, list[int]]] = []
+        self._xbuf: list[tuple[float, int, list[int], bool]] = []
+        # display state (sender thread): vehicles drawn, their trails, per-vehicle statics
+        self._has_phases = False
+        self._announced: dict[int, str] = {}  # vehicle → phase its owner announced in a text
+        self._told_exited: set[int] = set()  # vehicles whose exit a phase-change event told
+        self._visible: set[int] = set()
+        self._trails: dict[int, list[tuple[float, float, float]]] = {}
+        self._trail_next: dict[int, float] = {}
+        self._vehicle_static: set[int] = set()
+        self._r_s = math.nan
+        self._robots = 0
+        self._tube_box: tuple[float, float, float, float] | None = None
+        self._flown_lo = np.full(2, np.inf)
+        self._flown_hi = np.full(2, -np.inf)
+        self._extremes: dict[str, tuple[float, float]] = {}  # metric key → (min, max) seen
+        self._styled: set[str] = set()  # metric keys whose legend name / colour were sent
+        self._blueprint_state: tuple[Any, ...] | None = None
+        self._cmd_styled = False
+        self.display_period_s = float(display_period_s)
+        self.display_max_ticks = int(display_max_ticks)
+        self._disp: list[tuple[np.ndarray, ...]] = []
+        self._disp_n = 0
+        self._disp_last = time.monotonic()
 
         if self.path is not None:
             _check_writable(self.path)
@@ -392,10 +463,90 @@ class RerunRecorder:
             self._worker.start()
         return True
 
-    def _send_blueprint(self, bounds: tuple[float, float, float, float] | None) -> None:
-        self._rec.send_blueprint(default_blueprint(bounds, self.kind), make_active=True,
-                                 make_default=True)
+    def _send_blueprint(self, bounds: tuple[float, float, float, float] | None, *,
+                        make_active: bool = True, final: bool = False) -> None:
+        """The default blueprint; ``final`` (at close, the sender thread done): with the metric
+        keys and extremes the run produced (the sender thread owns them until then)."""
+        keys = tuple(sorted(self._metric_keys_seen)) if final else ()
+        extremes = dict(self._extremes) if final else {}
+        state = (bounds, keys)
+        if self._blueprint_sent and state == self._blueprint_state:
+            return
+        self._rec.send_blueprint(
+            default_blueprint(bounds, self.kind, limits=self._limits, metric_keys=keys or None,
+                              extremes=extremes),
+            make_active=make_active, make_default=True)
         self._blueprint_sent = True
+        self._blueprint_state = state
+
+    def _send_final_view(self) -> None:
+        """At close: frame the view on the tube ∪ the flown extent, and give the metrics that
+        appeared their views. Sent only when that differs from the blueprint sent at the start;
+        a live viewer keeps the layout it shows (the new one becomes its default)."""
+        frame = self._frame()
+        if frame is None:
+            return
+        if frame != self._tube_box:
+            self._send_frame_keys(frame)
+        self._send_blueprint(self._view_bounds(frame), make_active=self.connect_url is None,
+                             final=True)
+
+    def _frame(self) -> tuple[float, float, float, float] | None:
+        """The region a user should see: the tube ∪ everything flown so far."""
+        box = self._tube_box
+        if box is None:
+            return None
+        lo = np.fmin(np.array(box[:2]), self._flown_lo)
+        hi = np.fmax(np.array(box[2:]), self._flown_hi)
+        if np.isfinite(self._r_s):
+            flown = np.isfinite(self._flown_lo).all()
+            lo, hi = lo - (self._r_s if flown else 0.0), hi + (self._r_s if flown else 0.0)
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    def _legend_rows(self) -> int:
+        n = sum(1 for cid, *_ in PHASE_CLASSES if self._legend_class(cid))
+        return 0 if n == 0 else 1 + (n - 1) // 6
+
+    def _legend_class(self, cid: int) -> bool:
+        """Which annotation classes the legend lists: the phases (fleet), none for the
+        simulator (one colour, no phases)."""
+        return self.kind != "sim" and 0 < cid < PHASE_CLASSES[-1][0]
+
+    def _view_bounds(self, frame: tuple[float, float, float, float]
+                     ) -> tuple[float, float, float, float]:
+        """``frame`` with a margin, the axis key above it and the legend below it."""
+        x0, y0, x1, y1 = frame
+        span = max(x1 - x0, y1 - y0, 1e-6)
+        pad = 0.05 * span
+        rows = self._legend_rows()
+        return (x0 - pad, y0 - 2.5 * pad, x1 + pad, y1 + pad + rows * 1.2 * pad + (pad if rows
+                                                                                     else 0.0))
+
+    def _send_frame_keys(self, frame: tuple[float, float, float, float]) -> None:
+        """The axis key (``world/axes``: +x and +y arrows from the frame's top-left corner, so
+        the y-down drawing is explicit) and the phase colour legend (``world/legend``: one
+        labelled point per phase class, below the frame). Static; re-sent when the frame
+        grows."""
+        rr = self._rr
+        x0, y0, x1, y1 = frame
+        span = max(x1 - x0, y1 - y0, 1e-6)
+        pad = 0.05 * span
+        length = 0.08 * span
+        self._rec.log(E_AXES, rr.Arrows2D(
+            origins=[[x0, y0 - 1.5 * pad], [x0, y0 - 1.5 * pad]],
+            vectors=[[length, 0.0], [0.0, length]], colors=[0xFFFFFFC0, 0xFFFFFFC0],
+            labels=["+x (along the tube)", "+y (left of heading, drawn downwards)"],
+            radii=rr.Radius.ui_points(1.0), show_labels=True, draw_order=40.0), static=True)
+        classes = [(cid, label) for cid, _, label, _ in PHASE_CLASSES if self._legend_class(cid)]
+        if not classes:
+            return
+        per_row = 6
+        step = (x1 - x0) / per_row
+        pts = [[x0 + (k % per_row) * step + 0.5 * pad, y1 + 2.0 * pad + (k // per_row) * 1.2 * pad]
+               for k in range(len(classes))]
+        self._rec.log(E_LEGEND, rr.Points2D(
+            pts, class_ids=[c for c, _ in classes], labels=[f"{lab}" for _, lab in classes],
+            radii=[0.3 * pad], show_labels=True, draw_order=40.0), static=True)
 
     # ----- sender thread ----------------------------------------------------------------
     def _work(self) -> None:
@@ -454,10 +605,31 @@ class RerunRecorder:
     # ----- scene ------------------------------------------------------------------------
     def _send_static_defaults(self) -> None:
         rr = self._rr
-        for key, name in METRIC_NAMES.items():
-            self._rec.log(METRICS_PREFIX + key, rr.SeriesLines(names=[name]), static=True)
-        self._rec.log(E_VELOCITY, rr.Arrows2D.from_fields(colors=[0x66BB6AFF]), static=True)
-        self._rec.log(E_COMMANDS, rr.Arrows2D.from_fields(colors=[0xBDBDBD90]), static=True)
+        # one annotation class per phase: the colour of a vehicle's point and trail, and the
+        # name the viewer shows for it (hover, selection)
+        self._rec.log(E_WORLD, rr.AnnotationContext([
+            rr.AnnotationInfo(id=cid, label=label, color=color)
+            for cid, _, label, color in PHASE_CLASSES]), static=True)
+
+    def _style_metrics(self, keys: Any) -> None:
+        """Legend name and colour of each metric series, sent when the key first appears (no
+        empty series for metrics a run never has)."""
+        rr = self._rr
+        for key in keys:
+            if key in self._styled:
+                continue
+            self._styled.add(key)
+            kw: dict[str, Any] = {"names": [metric_name(key)]}
+            color = _metric_color(key)
+            if color is not None:
+                kw["colors"] = [color]
+            self._rec.log(METRICS_PREFIX + key, rr.SeriesLines(**kw), static=True)
+
+    def _note_extremes(self, key: str, lo: float, hi: float) -> None:
+        old = self._extremes.get(key)
+        if old is not None:
+            lo, hi = min(lo, old[0]), max(hi, old[1])
+        self._extremes[key] = (lo, hi)
 
     @_never_raises
     def log_scene(
@@ -471,20 +643,28 @@ class RerunRecorder:
         params = scenario.controller
         r_s = float(params.r_s)
         doc = self._scene_meta(scenario, mission, meta)
+        if partition is not None:  # the h_k flown (also the ones "auto" chose, core/plan.py)
+            tri_h = {int(t.obstacle): float(t.h) for t in getattr(partition, "triangles", ())}
+            doc["apex_distances_m"] = [tri_h.get(i) for i in range(len(obstacles))]
         with self._lock:
             if self.closed or not self._open():
                 return
             self._meta = doc
+            self._r_s = r_s
+            self._robots = int(robots.count)
             poly = tube.polygon()
-            pad = 0.05 * float(np.ptp(poly, axis=0).max())
-            lo, hi = poly.min(axis=0) - pad, poly.max(axis=0) + pad
-            self._send_blueprint((float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
-            # the tube frame has y to the left of the heading: show it y-up
-            self._rec.log("world", rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True)
+            lo, hi = poly.min(axis=0), poly.max(axis=0)
+            self._tube_box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+            self._set_limits(r_s, obstacles, float(robots.v_min), float(robots.v_max))
+            # no transform: the view shows the tube frame as it is (hover and selection read the
+            # true x, y); rerun draws 2-D y downwards, which the axis key says in the view
+            self._send_frame_keys(self._tube_box)
+            self._send_blueprint(self._view_bounds(self._tube_box))
             self._rec.log(E_META, rr.TextDocument(json.dumps(doc, indent=1),
                                                   media_type=rr.MediaType.TEXT), static=True)
-            self._rec.log(E_TUBE, rr.LineStrips2D([_closed(tube.polygon())], colors=[0xE0E0E0FF],
-                                                  radii=rr.Radius.ui_points(2.0), draw_order=25.0),
+            self._rec.log(E_TUBE, rr.LineStrips2D([_closed(tube.polygon())], colors=[TUBE_COLOR],
+                                                  radii=rr.Radius.ui_points(2.0), draw_order=25.0,
+                                                  labels=["tube T"]),
                           static=True)
             # display defaults of the partition outlines (their strips are temporal)
             self._rec.log(E_SUB_TUBES, rr.LineStrips2D.from_fields(
@@ -494,15 +674,14 @@ class RerunRecorder:
             if obstacles:
                 centers = np.array([o.center for o in obstacles], dtype=float)
                 radii = np.array([o.radius for o in obstacles], dtype=float)
-                self._rec.log(E_OBSTACLES, rr.Points2D(centers, radii=radii, colors=[0x616161FF],
+                self._rec.log(E_OBSTACLES, rr.Points2D(centers, radii=radii,
+                                                       colors=[OBSTACLE_COLOR],
                                                        labels=[f"O{i + 1}" for i in
                                                                range(len(obstacles))]),
                               static=True)
                 self._rec.log(E_OBSTACLES_EXT, rr.LineStrips2D(
                     [_circle(c, r + r_s) for c, r in zip(centers, radii, strict=True)],
-                    colors=[0x616161FF], radii=rr.Radius.ui_points(0.7)), static=True)
-            self._rec.log(E_VEHICLES, rr.Points2D.from_fields(radii=[r_s]), static=True)
-            self._set_limits(r_s, obstacles, float(robots.v_min), float(robots.v_max))
+                    colors=[OBSTACLE_COLOR], radii=rr.Radius.ui_points(0.7)), static=True)
             if partition is not None:
                 self._log_partition_now(partition, t_s=0.0, tick=0)
 
@@ -526,7 +705,9 @@ class RerunRecorder:
             "tube": {k: _pt(getattr(tube, k)) for k in ("p_h0", "p_h1", "p_r0", "p_r1")},
             "obstacles": [
                 {"center": _pt(o.center), "radius": float(o.radius),
-                 "apex_distance": None if o.apex_distance is None else float(o.apex_distance)}
+                 "apex_distance": (o.apex_distance if o.apex_distance is None
+                                   or isinstance(o.apex_distance, str)
+                                   else float(o.apex_distance))}
                 for o in scenario.obstacles
             ],
             "r_s": float(params.r_s),
@@ -563,10 +744,16 @@ class RerunRecorder:
         if obstacles:
             self._limits["min_obstacle_center_distance_m"] = tuple(
                 sorted({lim.obstacle_center_m(o.radius) for o in obstacles}))
+            self._limits["min_obstacle_clearance_m"] = (lim.leg_m,)  # ‖p − p_o‖ − r_o > r_s
+        what = {"min_pair_distance_m": "2 r_s", "min_left_leg_distance_m": "r_s",
+                "min_right_leg_distance_m": "r_s", "min_speed_m_s": "v_min",
+                "max_speed_m_s": "v_max", "min_obstacle_center_distance_m": "r_o + r_s",
+                "min_obstacle_clearance_m": "r_s"}
         for key, values in self._limits.items():
-            names = [f"limit {v:g}" for v in values]
+            unit = "m/s" if key.endswith("_m_s") else "m"
+            names = [f"limit {what[key]} = {v:g} {unit}" for v in values]
             self._rec.log(LIMITS_PREFIX + key, self._rr.SeriesLines(
-                colors=[0xE53935FF] * len(values), names=names, widths=[1.0] * len(values)),
+                colors=[LIMIT_COLOR] * len(values), names=names, widths=[1.0] * len(values)),
                 static=True)
 
     @_never_raises
@@ -585,11 +772,11 @@ class RerunRecorder:
         strips = [_closed(s.polygon()) for s in subs]
         self._rec.send_columns(E_SUB_TUBES, idx, rr.LineStrips2D.columns(
             strips=strips, labels=[getattr(s, "name", f"T_o{i + 1}") for i, s in enumerate(subs)],
-            colors=np.full(len(subs), 0x42A5F580, dtype=np.uint32)).partition([len(subs)]))
+            colors=np.full(len(subs), SUB_TUBE_COLOR, dtype=np.uint32)).partition([len(subs)]))
         tri_strips = [_closed(np.stack([t.p_oth, t.p_otu, t.p_otd])) for t in tris]
         self._rec.send_columns(E_TRIANGLES, idx, rr.LineStrips2D.columns(
-            strips=tri_strips, colors=np.full(len(tris), 0xFB8C00FF, dtype=np.uint32)).partition(
-                [len(tris)]))
+            strips=tri_strips, labels=[f"I_{k + 1}" for k in range(len(tris))],
+            colors=np.full(len(tris), TRIANGLE_COLOR, dtype=np.uint32)).partition([len(tris)]))
 
     # ----- ticks ------------------------------------------------------------------------
     @_never_raises
@@ -652,15 +839,12 @@ class RerunRecorder:
         if key != self._looks_key or self._looks is None:
             pa = self._pa
             if phases is None:
-                labels = [str(i) for i in ids.tolist()]
-                looks = _Looks(pa.array(labels, type=pa.string()), None, None,
-                               np.full(len(labels), DEFAULT_COLOR, dtype=np.uint32))
+                looks = _Looks(None, None, np.full(len(ids), class_of(None), dtype=np.uint16))
             else:
                 ph = [_phase_str(p) for p in phases]
-                labels = [f"{i} {p}" for i, p in zip(ids.tolist(), ph, strict=True)]
-                looks = _Looks(pa.array(labels, type=pa.string()), pa.array(ph, type=pa.string()),
-                               ph, np.array([PHASE_COLORS.get(p, OTHER_COLOR) for p in ph],
-                                            dtype=np.uint32))
+                looks = _Looks(pa.array(ph, type=pa.string()), ph,
+                               np.array([class_of(p) for p in ph], dtype=np.uint16))
+                self._has_phases = True
             self._looks_key, self._looks = key, looks
         return self._looks
 
@@ -672,6 +856,9 @@ class RerunRecorder:
 
     def _push(self, row: _Row) -> None:
         row.metrics, self._agg = self._agg, {}
+        if len(row.pos):
+            self._flown_lo = np.fmin(self._flown_lo, row.pos.min(axis=0))
+            self._flown_hi = np.fmax(self._flown_hi, row.pos.max(axis=0))
         self._rows.append(row)
         self._recorded += 1
         if row.t_s >= self._next_status_t:
@@ -714,19 +901,25 @@ class RerunRecorder:
                 prev = {}
                 if self._prev_phases is not None and self._prev_ids is not None:
                     prev = dict(zip(self._prev_ids.tolist(), self._prev_phases, strict=True))
-                changed_ids, texts = [], []
+                changed_ids, texts, levels = [], [], []
                 for i, p in zip(ids.tolist(), ph, strict=True):
                     q = prev.get(i)
                     if q != p:
                         ps = _phase_str(p)
+                        if ps == "exited":
+                            gone.append(i)
+                        if self._announced.get(i) == ps:  # the owner told it already
+                            del self._announced[i]
+                            continue
+                        if ps == "exited":
+                            self._told_exited.add(i)
                         changed_ids.append(i)
                         texts.append(f"vehicle {i}: {_phase_str(q)} → {ps}" if q is not None
                                      else f"vehicle {i}: {ps}")
-                        if ps == "exited":
-                            gone.append(i)
+                        levels.append("WARN" if ps in _ALARM_PHASES else "INFO")
                 if texts:
                     self._submit(lambda: self._send_vehicle_events(t_s, tick, changed_ids, texts,
-                                                                   ["INFO"] * len(texts)))
+                                                                   levels))
                 self._prev_phases = ph
                 self._prev_ids = ids.copy()
         else:
@@ -746,7 +939,7 @@ class RerunRecorder:
         gone = [i for i in gone if i not in self._exited] if self.detect_exits else []
         if gone:
             self._exited.update(gone)
-            self._xbuf.append((t_s, tick, gone))
+            self._xbuf.append((t_s, tick, gone, not set(gone) <= self._told_exited))
 
     # ----- sending (sender thread) ------------------------------------------------------
     def _index(self, t_s: Sequence[float] | np.ndarray, ticks: Sequence[int] | np.ndarray
@@ -767,16 +960,19 @@ class RerunRecorder:
         arr = values if isinstance(values, self._pa.Array) else self._pa.array(values)
         return self._rr.ComponentColumn(desc, AnyBatchValue(desc, arr), offsets=offsets)
 
-    def _send_exits(self, exits: list[tuple[float, int, list[int]]]) -> None:
+    def _send_exits(self, exits: list[tuple[float, int, list[int], bool]]) -> None:
+        """Exit times (the data ``review`` reads) and, unless a phase-change event already
+        said so (the fleet: "in_tube → exited"), the text "vehicle(s) … exited"."""
         rr = self._rr
-        texts = [("vehicle " if len(g) == 1 else "vehicles ") + ", ".join(map(str, g)) + " exited"
-                 for _, _, g in exits]
-        ids = np.array([i for _, _, g in exits for i in g], dtype=np.int64)
+        ids = np.array([i for _, _, g, _ in exits for i in g], dtype=np.int64)
+        cols = [self._custom(EXIT_ARCHETYPE, "vehicle_id", ids,
+                             _offsets(np.array([len(g) for _, _, g, _ in exits], np.int32)))]
+        if any(e[3] for e in exits):
+            texts = [("vehicle " if len(g) == 1 else "vehicles ") + ", ".join(map(str, g))
+                     + " exited" if say else "" for _, _, g, say in exits]
+            cols = [*rr.TextLog.columns(text=texts, level=["INFO"] * len(exits)), *cols]
         self._rec.send_columns(
-            E_EXITS, self._index([e[0] for e in exits], [e[1] for e in exits]), [
-                *rr.TextLog.columns(text=texts, level=["INFO"] * len(exits)),
-                self._custom(EXIT_ARCHETYPE, "vehicle_id", ids,
-                             _offsets(np.array([len(g) for _, _, g in exits], np.int32)))])
+            E_EXITS, self._index([e[0] for e in exits], [e[1] for e in exits]), cols)
 
     def _send_vehicle_events(self, t_s: float, tick: int, vids: list[int], texts: list[str],
                              levels: list[str]) -> None:
@@ -786,6 +982,117 @@ class RerunRecorder:
             *rr.TextLog.columns(text=texts, level=levels),
             self._custom(EVENT_ARCHETYPE, "vehicle_id", np.asarray(vids, np.int64),
                          _offsets(np.ones(n, np.int32)))])
+
+    def _flush_display(self) -> None:
+        """Send the buffered display rows (sender thread, or the closing thread once the
+        sender has finished)."""
+        buf, self._disp, self._disp_n = self._disp, [], 0
+        self._disp_last = time.monotonic()
+        if buf:
+            self._send_vehicle_display(*(np.concatenate([b[k] for b in buf])
+                                         for k in range(7)))
+
+    def _send_vehicle_display(self, t: np.ndarray, ticks: np.ndarray, lengths: np.ndarray,
+                              ids: np.ndarray, pos: np.ndarray, vel: np.ndarray,
+                              classes: np.ndarray) -> None:
+        """``world/vehicles/<id>``: the point (radius r_s, phase class), the velocity arrow and
+        the trail (the last TRAIL_S of its path, a point every TRAIL_STEP_S) of each vehicle —
+        one send per vehicle and batch, plus one for the trails that changed. A vehicle that
+        disappears (exited from the simulator, or left the fleet's rows) is cleared (an empty
+        row), so it does not stay drawn at its last position."""
+        rr = self._rr
+        comps = rr.components
+        n_rows = len(t)
+        row_of = np.repeat(np.arange(n_rows), lengths)
+        order = np.argsort(ids, kind="stable")
+        sid = ids[order]
+        groups: dict[int, np.ndarray] = {}
+        if len(sid):
+            starts = np.flatnonzero(np.r_[True, sid[1:] != sid[:-1]])
+            for a, b in zip(starts.tolist(), np.r_[starts[1:], len(sid)].tolist(), strict=True):
+                groups[int(sid[a])] = order[a:b]
+        for vid in self._visible - groups.keys():
+            groups[vid] = np.zeros(0, dtype=np.int64)
+        pos32 = pos.astype(np.float32)
+        vec32 = (vel * self.arrow_scale_s).astype(np.float32)
+        show = (self._robots or len(groups)) <= LABELS_MAX_VEHICLES
+        for vid, sel in groups.items():
+            ent = vehicle_entity(vid)
+            if vid not in self._vehicle_static:
+                self._vehicle_static.add(vid)
+                radius = self._r_s if math.isfinite(self._r_s) else 0.25
+                self._rec.log(ent, rr.Points2D.from_fields(
+                    radii=[radius], labels=[str(vid)], show_labels=show, draw_order=30.0),
+                    rr.Arrows2D.from_fields(colors=[VELOCITY_COLOR], draw_order=31.0),
+                    rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(1.2)],
+                                                draw_order=29.0), static=True)
+            rows_here = row_of[sel]
+            present = np.zeros(n_rows, dtype=bool)
+            present[rows_here] = True
+            before = np.r_[vid in self._visible, present[:-1]]
+            off = ~present & before
+            send = present | off
+            if present[-1] if n_rows else False:
+                self._visible.add(vid)
+            else:
+                self._visible.discard(vid)
+            if not send.any():
+                continue
+            at = np.flatnonzero(send)
+            lens = present[at].astype(np.int32)
+            offs = _offsets(lens)
+            self._rec.send_columns(ent, self._index(t[at], ticks[at]), [
+                rr.ComponentColumn(rr.Points2D.descriptor_positions(),
+                                   comps.Position2DBatch(pos32[sel]), offsets=offs),
+                rr.ComponentColumn(rr.Points2D.descriptor_class_ids(),
+                                   comps.ClassIdBatch(classes[sel]), offsets=offs),
+                rr.ComponentColumn(rr.Arrows2D.descriptor_origins(),
+                                   comps.Position2DBatch(pos32[sel]), offsets=offs),
+                rr.ComponentColumn(rr.Arrows2D.descriptor_vectors(),
+                                   comps.Vector2DBatch(vec32[sel]), offsets=offs),
+            ])
+            self._send_trail(ent, vid, t, ticks, at, present, pos[sel], classes[sel])
+
+    def _send_trail(self, ent: str, vid: int, t: np.ndarray, ticks: np.ndarray,
+                    at: np.ndarray, present: np.ndarray, p: np.ndarray, cls: np.ndarray
+                    ) -> None:
+        """The trail rows of one vehicle in one batch: a new strip whenever a sample is added,
+        an empty one where the vehicle disappears."""
+        trail = self._trails.setdefault(vid, [])
+        nxt = self._trail_next.get(vid, -math.inf)
+        rows: list[int] = []
+        strips: list[np.ndarray] = []
+        strip_cls: list[int] = []
+        lens: list[int] = []
+        k = 0
+        for r in at.tolist():
+            if not present[r]:
+                trail.clear()
+                nxt = -math.inf
+                rows.append(r)
+                lens.append(0)
+                continue
+            x, y = float(p[k, 0]), float(p[k, 1])
+            c = int(cls[k])
+            k += 1
+            tr = float(t[r])
+            if tr < nxt:
+                continue
+            trail.append((tr, x, y))
+            while trail and trail[0][0] < tr - TRAIL_S:
+                trail.pop(0)
+            nxt = tr + TRAIL_STEP_S
+            if len(trail) >= 2:
+                rows.append(r)
+                lens.append(1)
+                strips.append(np.array([(q[1], q[2]) for q in trail], dtype=np.float32))
+                strip_cls.append(c)
+        self._trail_next[vid] = nxt
+        if not rows:
+            return
+        rr = self._rr
+        cols = rr.LineStrips2D.columns(strips=strips, class_ids=np.array(strip_cls, np.uint16))
+        self._rec.send_columns(ent, self._index(t[rows], ticks[rows]), cols.partition(lens))
 
     def _send_rows_now(self, rows: list[_Row]) -> None:
         rr, pa = self._rr, self._pa
@@ -798,20 +1105,13 @@ class RerunRecorder:
         pos = np.concatenate([r.pos for r in rows]).reshape(-1, 2)
         vel = np.concatenate([r.vel for r in rows]).reshape(-1, 2)
         ids = np.concatenate([r.ids for r in rows]).astype(np.int64)
-        labels = pa.concat_arrays([r.looks.labels for r in rows])
-        colors = np.concatenate([r.looks.colors for r in rows])
+        classes = np.concatenate([r.looks.classes for r in rows])
 
         def col(desc: Any, batch: Any, offs: np.ndarray = offsets) -> Any:
             return rr.ComponentColumn(desc, batch, offsets=offs)
 
-        from rerun.any_value import AnyBatchValue
-
-        lab_desc = rr.Points2D.descriptor_labels()
-        pos32 = pos.astype(np.float32)
+        # the exact state of the whole fleet, one row per tick (what review reads) ...
         cols = [
-            col(rr.Points2D.descriptor_positions(), comps.Position2DBatch(pos32)),
-            col(lab_desc, AnyBatchValue(lab_desc, labels)),
-            col(rr.Points2D.descriptor_colors(), comps.ColorBatch(colors)),
             self._custom(STATE_ARCHETYPE, "vehicle_id", ids, offsets),
             self._custom(STATE_ARCHETYPE, "x_m", pos[:, 0], offsets),
             self._custom(STATE_ARCHETYPE, "y_m", pos[:, 1], offsets),
@@ -822,11 +1122,13 @@ class RerunRecorder:
             cols.append(self._custom(STATE_ARCHETYPE, "phase", pa.concat_arrays(
                 [r.looks.phases for r in rows]), offsets))
         self._rec.send_columns(E_VEHICLES, idx, cols)
-        self._rec.send_columns(E_VELOCITY, idx, [
-            col(rr.Arrows2D.descriptor_origins(), comps.Position2DBatch(pos32)),
-            col(rr.Arrows2D.descriptor_vectors(),
-                comps.Vector2DBatch((vel * self.arrow_scale_s).astype(np.float32))),
-        ])
+        # ... and what the view draws, one entity per vehicle (in longer batches: a chunk per
+        # vehicle and send costs ~2 kB in the file)
+        self._disp.append((t, ticks, lengths, ids, pos, vel, classes))
+        self._disp_n += len(t)
+        if (self._disp_n >= self.display_max_ticks
+                or time.monotonic() - self._disp_last >= self.display_period_s):
+            self._flush_display()
         streams: dict[str, None] = {}
         for r in rows:
             streams.update(dict.fromkeys(r.safety))
@@ -849,6 +1151,10 @@ class RerunRecorder:
                     self._custom(SAFETY_ARCHETYPE, "vy_m_s", s_vel[:, 1], s_offs),
                 ])
         with_cmd = [k for k, r in enumerate(rows) if r.cmd is not None]
+        if with_cmd and not self._cmd_styled:
+            self._cmd_styled = True
+            self._rec.log(E_COMMANDS, rr.Arrows2D.from_fields(colors=[COMMAND_COLOR]),
+                          static=True)
         if with_cmd:
             sub = [rows[k] for k in with_cmd]
             cl = _offsets(lengths[with_cmd])
@@ -871,11 +1177,14 @@ class RerunRecorder:
             sel = [k for k, r in enumerate(rows) if key in r.metrics]
             vals = np.array([rows[k].metrics[key] for k in sel], dtype=float)
             vals[~np.isfinite(vals)] = np.nan  # no pair in range etc.: a gap in the plot
+            if np.isfinite(vals).any():
+                self._note_extremes(key, float(np.nanmin(vals)), float(np.nanmax(vals)))
             self._rec.send_columns(
                 METRICS_PREFIX + key,
                 idx if len(sel) == len(rows) else self._index(t[sel], ticks[sel]),
                 [rr.ComponentColumn(rr.Scalars.descriptor_scalars(), comps.ScalarBatch(vals))])
         new_keys = keys.keys() - self._metric_keys_seen
+        self._style_metrics(keys)
         self._metric_keys_seen.update(keys)
         self._send_limits(t, ticks, new_keys, due=t[-1] >= self._next_limit_t or self.closed)
 
@@ -901,12 +1210,18 @@ class RerunRecorder:
 
     def _send_status(self, row: _Row) -> None:
         speed = np.hypot(row.vel[:, 0], row.vel[:, 1]) if len(row.vel) else np.zeros(0)
-        phases = row.looks.phase_strs or ["-"] * len(row.ids)
-        lines = [f"t = {row.t_s:.2f} s, tick {row.tick}, {len(row.ids)} vehicles present", "",
-                 "| id | phase | x [m] | y [m] | speed [m/s] |", "|---:|---|---:|---:|---:|"]
-        lines += [f"| {i} | {p} | {x:.2f} | {y:.2f} | {s:.2f} |"
-                  for i, p, (x, y), s in zip(row.ids.tolist(), phases, row.pos.tolist(),
-                                             speed.tolist(), strict=True)]
+        phases = row.looks.phase_strs
+        lines = [f"t = {row.t_s:.2f} s, tick {row.tick}, {len(row.ids)} vehicles present", ""]
+        if phases is None:  # the simulator: no phases, no phase column
+            lines += ["| id | x [m] | y [m] | speed [m/s] |", "|---:|---:|---:|---:|"]
+            lines += [f"| {i} | {x:.2f} | {y:.2f} | {s:.2f} |"
+                      for i, (x, y), s in zip(row.ids.tolist(), row.pos.tolist(),
+                                              speed.tolist(), strict=True)]
+        else:
+            lines += ["| id | phase | x [m] | y [m] | speed [m/s] |", "|---:|---|---:|---:|---:|"]
+            lines += [f"| {i} | {p} | {x:.2f} | {y:.2f} | {s:.2f} |"
+                      for i, p, (x, y), s in zip(row.ids.tolist(), phases, row.pos.tolist(),
+                                                 speed.tolist(), strict=True)]
         rr = self._rr
         self._rec.send_columns(
             E_STATUS, self._index([row.t_s], [row.tick]),
@@ -990,10 +1305,13 @@ class RerunRecorder:
         idx = self._index(t, k)
         for key, vals in series.items():
             vals = np.where(np.isfinite(vals), vals, np.nan)
+            if np.isfinite(vals).any():
+                self._note_extremes(key, float(np.nanmin(vals)), float(np.nanmax(vals)))
             self._rec.send_columns(METRICS_PREFIX + key, idx, [
                 rr.ComponentColumn(rr.Scalars.descriptor_scalars(),
                                    rr.components.ScalarBatch(vals))])
         new_keys = series.keys() - self._metric_keys_seen
+        self._style_metrics(series)
         self._metric_keys_seen.update(series)
         self._send_limits(t, k, new_keys, due=t[-1] >= self._next_limit_t)
 
@@ -1009,7 +1327,7 @@ class RerunRecorder:
             if gone:
                 self._exited.update(gone)
                 t_s, tick = float(t_s), int(tick)
-                self._xbuf.append((t_s, tick, gone))
+                self._xbuf.append((t_s, tick, gone, not set(gone) <= self._told_exited))
                 self._maybe_send()
 
     @_never_raises
@@ -1028,6 +1346,11 @@ class RerunRecorder:
                     rr.TextLog.columns(text=[text], level=[lvl])))
             else:
                 vid = int(vehicle_id)
+                told = _announced_phase(text)
+                if told is not None:  # "old → new (why)": the change is told, once
+                    self._announced[vid] = told
+                    if told == "exited":
+                        self._told_exited.add(vid)
                 self._submit(lambda: self._send_vehicle_events(
                     t_s, tick, [vid], [f"vehicle {vid}: {text}"], [lvl]))
 
@@ -1085,6 +1408,9 @@ class RerunRecorder:
             if worker.is_alive():
                 log.warning("rerun recording: the sender did not finish within %.0f s",
                             self.flush_timeout_s + 30.0)
+        if worker is None or not worker.is_alive():
+            self._guard(self._flush_display)
+            self._guard(self._send_final_view)
         try:
             try:
                 self._rec.flush(timeout_sec=self.flush_timeout_s)
@@ -1130,44 +1456,102 @@ def _make_atexit(rec: RerunRecorder) -> Any:
 # ----------------------------------------------------------------------------------------------
 # blueprint
 # ----------------------------------------------------------------------------------------------
+def _variants(key: str) -> list[str]:
+    return [key] + [pattern.format(key) for pattern, _ in METRIC_VARIANTS]
+
+
+def _y_range(keys: Sequence[str], limits: Mapping[str, Sequence[float]],
+             extremes: Mapping[str, tuple[float, float]]) -> tuple[float, float] | None:
+    """The y-range of a safety view: from 0 (or below the lowest value) to well above the
+    limit, so the part of the curve near the limit fills the plot and end-of-run jumps (a
+    vehicle that leaves the tube) do not squash it; always containing the lowest value (and
+    for speeds the highest). None without limits (the viewer picks)."""
+    lim = [float(v) for k in keys for v in limits.get(k, ())]
+    if not lim:
+        return None
+    seen = [extremes[v] for k in keys for v in _variants(k) if v in extremes]
+    lows = [e[0] for e in seen if math.isfinite(e[0])]
+    highs = [e[1] for e in seen if math.isfinite(e[1])]
+    lo = min([0.0] + [1.1 * x for x in lows if x < 0])
+    if any(k.endswith("_m_s") for k in keys):  # speeds: both bounds matter
+        hi = max([1.4 * max(lim)] + [1.1 * x for x in highs])
+    else:
+        hi = max([4.0 * max(lim)] + [2.0 * x for x in lows])
+    return lo, hi
+
+
 def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
-                      kind: str = "fleet") -> Any:
-    """The default layout: the 2-D tube view (y up, framed on ``bounds`` = (x0, y0, x1, y1)
-    when given) with the status table and the event log under it, the time series (Fig. 11
-    quantities, and for ``kind="fleet"`` tick duration and link latency) on the right."""
+                      kind: str = "fleet", *,
+                      limits: Mapping[str, Sequence[float]] | None = None,
+                      metric_keys: Sequence[str] | None = None,
+                      extremes: Mapping[str, tuple[float, float]] | None = None) -> Any:
+    """The default layout: the 2-D tube view (origin ``/world``, the tube frame as it is, y
+    drawn downwards; framed on ``bounds`` = (x0, y0, x1, y1) when given) with the status table
+    and the event log under it, the time series (Fig. 11 quantities with their limits, and for
+    ``kind="fleet"`` tick duration and link latency) on the right; the blueprint and selection
+    panels collapsed, the time panel on ``mission_time``.
+
+    ``limits`` (metric key → limit values) set each safety view's y-range around its limits
+    (see :func:`_y_range`, using the ``extremes`` (min, max) seen per key); ``metric_keys``
+    (the keys the run logged, None: not known yet): only the views of those keys, and keys that
+    no view shows get an "other metrics" view — without any, there is none."""
     import rerun.blueprint as rrb
 
+    limits = limits or {}
+    extremes = extremes or {}
     series = []
+    shown: set[str] = set()
     for name, keys in METRIC_VIEWS:
         if kind == "sim" and keys[0] in ("tick_duration_s", "link_latency_s"):
             continue
-        contents = [f"/{METRICS_PREFIX}{k}" for k in keys] + [f"/{LIMITS_PREFIX}{k}" for k in keys]
-        series.append(rrb.TimeSeriesView(origin="/", contents=contents, name=name))
-    known = [k for _, keys in METRIC_VIEWS for k in keys]
-    series.append(rrb.TimeSeriesView(
-        origin="/metrics", name="other metrics",
-        contents=["$origin/**"] + [f"- /{METRICS_PREFIX}{k}" for k in known]))
+        every = [v for k in keys for v in _variants(k)]
+        shown.update(every)
+        if metric_keys is not None and not set(every) & set(metric_keys):
+            continue  # the run never logged it: no empty panel
+        lim_keys, lim_seen = [], set()
+        for k in keys:  # one limit line per distinct value (left and right leg share r_s)
+            vals = tuple(limits.get(k, ()))
+            if vals and vals not in lim_seen:
+                lim_seen.add(vals)
+                lim_keys.append(k)
+        contents = ([f"/{METRICS_PREFIX}{k}" for k in every]
+                    + [f"/{LIMITS_PREFIX}{k}" for k in lim_keys])
+        kw: dict[str, Any] = {}
+        rng = _y_range(keys, limits, extremes)
+        if rng is not None:
+            kw["axis_y"] = rrb.ScalarAxis(range=rng, zoom_lock=False)
+        corner = rrb.Corner2D.RightTop if lim_keys else rrb.Corner2D.LeftTop
+        series.append(rrb.TimeSeriesView(origin="/", contents=contents, name=name,
+                                         plot_legend=rrb.PlotLegend(corner=corner), **kw))
+    other = sorted(k for k in (metric_keys or ()) if k not in shown)
+    if other:
+        series.append(rrb.TimeSeriesView(
+            origin="/", name="other metrics",
+            contents=[f"/{METRICS_PREFIX}{k}" for k in other]
+            + [f"/{LIMITS_PREFIX}{k}" for k in other if k in limits],
+            plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)))
     view_kw: dict[str, Any] = {}
     if bounds is not None:
         x0, y0, x1, y1 = bounds
-        # the view looks at "/", where "world" is mirrored (y up): its y range is negated
-        view_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[-y1, -y0])
-    tube_view = rrb.Spatial2DView(origin="/", contents=["/world/**"], name="tube", **view_kw)
+        view_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[y0, y1])
+    tube_view = rrb.Spatial2DView(origin=f"/{E_WORLD}", contents=["$origin/**"],
+                                  name="tube (x →, y ↓ drawn downwards)", **view_kw)
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 tube_view,
                 rrb.Tabs(
-                    rrb.TextDocumentView(origin=f"/{E_STATUS}", name="status"),
                     rrb.TextLogView(origin=f"/{E_EVENTS}", name="events"),
+                    rrb.TextDocumentView(origin=f"/{E_STATUS}", name="status"),
                 ),
-                row_shares=[3, 2],
+                row_shares=[3, 1],
             ),
             rrb.Grid(*series, grid_columns=2),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(timeline=TIMELINE_TIME),
-        collapse_panels=False,
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="expanded", timeline=TIMELINE_TIME),
     )
 
 
