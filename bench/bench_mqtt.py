@@ -1,7 +1,10 @@
 """Benchmark: N agents' neighbour traffic at 20 Hz through a local mosquitto.
 
     python bench/bench_mqtt.py [--agents 100] [--procs 4] [--rate 20] [--seconds 20]
-                               [--warmup 5] [--broker mosquitto|amqtt] [--json]
+                               [--warmup 5] [--broker mosquitto|amqtt] [--secured] [--json]
+
+``--secured``: the broker ``vtube-fleet bus-setup`` configures (TLS listener, a password per
+agent, the ACL), every agent with its own credentials, as a secured fleet flies.
 
 Each agent is one :class:`~vtube_fleet.bus.mqtt.MqttBus` (its own MQTT connection, last will,
 subscriptions to every other vehicle's state, exactly what ``vtube-fleet agent`` uses),
@@ -84,6 +87,7 @@ async def _worker(
     t_end: float,
     cell_m: float,
     across: int,
+    setup: str | None = None,
 ) -> dict:
     ages = array("d")
 
@@ -91,7 +95,11 @@ async def _worker(
         if t_measure <= received <= t_end:
             ages.append(received - state.stamp_s)
 
-    buses = [MqttBus(url, MISSION_ID, vid, keepalive_s=5, cell_m=cell_m) for vid in ids]
+    def creds(vid: int) -> Path | None:
+        return None if setup is None else Path(setup) / "credentials" / f"vehicle-{vid}.toml"
+
+    buses = [MqttBus(url, MISSION_ID, vid, keepalive_s=5, cell_m=cell_m, credentials=creds(vid))
+             for vid in ids]
     for b in buses:
         b.add_state_listener(on_state)
         b.start()
@@ -120,7 +128,8 @@ async def _worker(
 def worker_main(args: argparse.Namespace) -> int:
     ids = [int(i) for i in args.ids.split(",")]
     out = asyncio.run(
-        _worker(args.url, ids, args.rate, args.t_measure, args.t_end, args.cell, args.across)
+        _worker(args.url, ids, args.rate, args.t_measure, args.t_end, args.cell, args.across,
+                args.setup)
     )
     Path(args.result).write_text(json.dumps(out))
     return 0
@@ -153,11 +162,16 @@ def run(args: argparse.Namespace) -> dict:
     import psutil
 
     sys.path.insert(0, str(ROOT / "tests"))
-    from broker import LocalBroker
+    from broker import LocalBroker, free_port
+
+    from vtube_fleet.bus.security import bus_setup
 
     n, procs = args.agents, max(1, min(args.procs, args.agents))
     tmp = Path(tempfile.mkdtemp(prefix="bench-mqtt-"))
-    with LocalBroker(kind=args.broker) as broker:
+    setup = (bus_setup(tmp / "bus", MISSION_ID, n, port=free_port(), bind="127.0.0.1")
+             if args.secured else None)
+    with (LocalBroker(config=setup.conf, ca_file=setup.ca_file) if setup is not None
+          else LocalBroker(kind=args.broker)) as broker:
         bproc = psutil.Process(broker.pid)
         t_measure = time.time() + 2.0 + args.warmup  # after start-up and the warm-up
         t_end = t_measure + args.seconds
@@ -188,6 +202,7 @@ def run(args: argparse.Namespace) -> dict:
                         repr(t_end),
                         "--result",
                         str(tmp / f"w{k}.json"),
+                        *(["--setup", str(setup.out)] if setup is not None else []),
                     ]
                 )
             )
@@ -216,6 +231,7 @@ def run(args: argparse.Namespace) -> dict:
         "rate_hz": args.rate,
         "seconds": args.seconds,
         "broker": args.broker,
+        "secured": bool(args.secured),
         "cell_m": args.cell,
         "across": args.across,
         "heard_per_agent": heard_pairs(n, args.across, args.cell, t_measure) / n,
@@ -255,7 +271,10 @@ def main(argv: list[str] | None = None) -> int:
         default=10,
         help="vehicles per row of the moving 2.5 m grid (default 10)",
     )
+    p.add_argument("--secured", action="store_true",
+                   help="TLS, passwords and ACL of `vtube-fleet bus-setup` (mosquitto)")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--setup", help=argparse.SUPPRESS)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--url", help=argparse.SUPPRESS)
     p.add_argument("--ids", help=argparse.SUPPRESS)
@@ -271,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(
         f"{r['agents']} agents in {r['procs']} processes at {r['rate_hz']:g} Hz through "
-        f"{r['broker']} ({r['seconds']:g} s measured, {r['cores']} cores); cells "
+        f"{r['broker']}{' (secured: TLS, passwords, ACL)' if r['secured'] else ''} "
+        f"({r['seconds']:g} s measured, {r['cores']} cores); cells "
         f"{r['cell_m']:g} m, {r['across']} across: each agent hears "
         f"{r['heard_per_agent']:.1f} others:\n"
         f"  neighbour-state age p50 {r['age_p50_ms']:.1f} ms, p99 {r['age_p99_ms']:.1f} ms, "

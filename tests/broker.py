@@ -11,6 +11,16 @@ sleeping. ``kill()`` (SIGKILL: no clean shutdown, clients see their TCP connecti
         bus = MqttBus(broker.url, ...)
         broker.kill(); broker.restart()
 
+    setup = bus_setup(tmp / "bus", "demo", 4, port=free_port(), bind="127.0.0.1")
+    with LocalBroker(config=setup.conf, ca_file=setup.ca_file) as broker:   # secured
+        bus = MqttBus(broker.url, "demo", 0, credentials=setup.vehicle_credentials(0))
+
+A secured broker runs mosquitto with the configuration ``vtube-fleet bus-setup`` wrote (TLS
+listener, passwords, ACL) plus one line, ``user <this user>`` (mosquitto started as root
+would otherwise switch to the ``mosquitto`` user, who cannot read the 0600 key files); its
+readiness probe is a TLS handshake verified with the setup's CA and an (anonymous, refused)
+CONNECT: any CONNACK means the broker answers.
+
 Test and benchmark infrastructure (not part of the package): production fleets use their own
 broker (``--broker mqtt://HOST:PORT``).
 """
@@ -22,9 +32,11 @@ import asyncio
 import contextlib
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -75,10 +87,15 @@ _CONNECT = bytes([0x10, 17, 0, 4]) + b"MQTT" + bytes([4, 0x02, 0, 5, 0, 5]) + b"
 _DISCONNECT = bytes([0xE0, 0])
 
 
-def mqtt_handshake(host: str, port: int, timeout_s: float = 1.0) -> bool:
-    """True if an MQTT broker at ``host:port`` answers CONNECT with an accepting CONNACK."""
+def mqtt_handshake(host: str, port: int, timeout_s: float = 1.0, *,
+                   tls: ssl.SSLContext | None = None, any_answer: bool = False) -> bool:
+    """True if an MQTT broker at ``host:port`` answers CONNECT with an accepting CONNACK
+    (``any_answer``: with any CONNACK, e.g. "not authorized" from a secured broker); ``tls``:
+    over TLS with this context (certificate and host name verified)."""
     try:
-        with socket.create_connection((host, port), timeout=timeout_s) as s:
+        with contextlib.ExitStack() as stack:
+            raw = stack.enter_context(socket.create_connection((host, port), timeout=timeout_s))
+            s = stack.enter_context(tls.wrap_socket(raw, server_hostname=host)) if tls else raw
             s.sendall(_CONNECT)
             ack = b""
             while len(ack) < 4:
@@ -88,7 +105,7 @@ def mqtt_handshake(host: str, port: int, timeout_s: float = 1.0) -> bool:
                 ack += chunk
             with contextlib.suppress(OSError):
                 s.sendall(_DISCONNECT)
-            return ack[0] == 0x20 and ack[3] == 0
+            return ack[0] == 0x20 and (any_answer or ack[3] == 0)
     except OSError:
         return False
 
@@ -121,10 +138,23 @@ class LocalBroker:
         host: str = "127.0.0.1",
         port: int | None = None,
         ready_timeout_s: float = 15.0,
+        config: str | os.PathLike[str] | None = None,
+        ca_file: str | os.PathLike[str] | None = None,
     ) -> None:
+        """``config``: run mosquitto with this configuration (``vtube-fleet bus-setup``'s
+        mosquitto.conf); the broker's address is its TLS listener (the first with a
+        ``certfile``), or its first listener; ``ca_file``: the CA its certificate is verified
+        with (readiness probe)."""
         if kind not in ("auto", "mosquitto", "amqtt"):
             raise BrokerError(f"unknown broker kind {kind!r}: use auto, mosquitto or amqtt")
         mosquitto = find_mosquitto()
+        self._config_text: str | None = None
+        self.tls = False
+        self.plain_port: int | None = None
+        if config is not None:
+            kind = "mosquitto"
+            self._config_text = Path(config).read_text()
+            host, port, self.tls, self.plain_port = _listeners(self._config_text)
         if kind == "mosquitto" and mosquitto is None:
             raise BrokerError(
                 "mosquitto not found on PATH or in /usr/sbin (apt-get install mosquitto)"
@@ -140,11 +170,13 @@ class LocalBroker:
         self._proc: subprocess.Popen[bytes] | None = None
         self._dir = tempfile.TemporaryDirectory(prefix="vtube-broker-")
         self._log_file: Path = Path(self._dir.name) / "broker.log"
+        self._tls_probe = ssl.create_default_context(
+            cafile=None if ca_file is None else str(ca_file)) if self.tls else None
 
     # -- properties ---------------------------------------------------------------------------
     @property
     def url(self) -> str:
-        return f"mqtt://{self.host}:{self.port}"
+        return f"{'mqtts' if self.tls else 'mqtt'}://{self.host}:{self.port}"
 
     @property
     def pid(self) -> int | None:
@@ -164,6 +196,13 @@ class LocalBroker:
 
     # -- lifecycle ----------------------------------------------------------------------------
     def _command(self) -> list[str]:
+        if self.kind == "mosquitto" and self._config_text is not None:
+            conf = Path(self._dir.name) / "mosquitto.conf"
+            # stay this user: dropping privileges would also drop the parent-death signal
+            # and make the 0600 key files unreadable
+            conf.write_text(f"user {_user_name()}\nlog_dest stderr\n" + self._config_text)
+            assert self._mosquitto is not None
+            return [self._mosquitto, "-c", str(conf)]
         if self.kind == "mosquitto":
             conf = Path(self._dir.name) / "mosquitto.conf"
             conf.write_text(
@@ -234,7 +273,8 @@ class LocalBroker:
         deadline = time.monotonic() + timeout
         while True:
             self._check_alive()
-            if mqtt_handshake(self.host, self.port, timeout_s=0.5):
+            if mqtt_handshake(self.host, self.port, timeout_s=0.5, tls=self._tls_probe,
+                              any_answer=self._config_text is not None):
                 return
             if time.monotonic() > deadline:
                 raise BrokerError(
@@ -293,6 +333,25 @@ class LocalBroker:
     def __repr__(self) -> str:
         state = f"pid {self.pid}" if self.running else "stopped"
         return f"LocalBroker({self.kind} {self.url}, {state})"
+
+
+def _listeners(text: str) -> tuple[str, int, bool, int | None]:
+    """(host, port, tls, plain port) of a mosquitto configuration: its TLS listener (the first
+    followed by a ``certfile``) or else its first listener; a plain one besides it."""
+    found: list[list[object]] = []  # [host, port, tls]
+    for line in text.splitlines():
+        m = re.match(r"\s*listener\s+(\d+)(?:\s+(\S+))?", line)
+        if m:
+            found.append([m.group(2) or "127.0.0.1", int(m.group(1)), False])
+        elif found and re.match(r"\s*certfile\s", line):
+            found[-1][2] = True
+    if not found:
+        raise BrokerError("the mosquitto configuration has no listener line")
+    tls = [f for f in found if f[2]]
+    main = tls[0] if tls else found[0]
+    plain = [f for f in found if not f[2] and f is not main]
+    host = "127.0.0.1" if main[0] in ("0.0.0.0", "::") else str(main[0])
+    return host, int(main[1]), bool(main[2]), int(plain[0][1]) if plain else None  # type: ignore[call-overload]
 
 
 # -- amqtt fallback (runs in the subprocess) ------------------------------------------------

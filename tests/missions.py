@@ -99,12 +99,11 @@ def straight_mission(length: float, positions: list[list[float]], *,
                            on_complete=on_complete, extra=extra)
 
 
-def grid_mission(count: int, rate_hz: float, seconds: float) -> str:
-    """``count`` vehicles on a grid (10 columns from 20 on) 2.5 m apart, a 0.5 m obstacle on
-    the axis, a tube long enough for ``seconds`` of flight at ~1.2 m/s."""
+def grid_mission(count: int, rate_hz: float, seconds: float, spacing: float = 2.5) -> str:
+    """``count`` vehicles on a grid (10 columns from 20 on) ``spacing`` m apart, a 0.5 m
+    obstacle on the axis, a tube long enough for ``seconds`` of flight at ~1.2 m/s."""
     cols = 10 if count >= 20 else max(1, min(count, 4))
     rows = math.ceil(count / cols)
-    spacing = 2.5
     width = (cols - 1) * spacing + 2 * 2.5
     length = rows * spacing + 2.0 + 15.0 + seconds * 1.2
     positions = []

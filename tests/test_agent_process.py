@@ -25,11 +25,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from broker import LocalBroker
+from broker import LocalBroker, free_port
 from fleet_ports import free_ports
 from missions import straight_mission
 
 from vtube_fleet.bus.mqtt import MqttBus
+from vtube_fleet.bus.security import BusSetup, bus_setup
+from vtube_fleet.bus.validate import mission_state_limits
 from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleet.distributed.coordinator import (
     default_max_age_s,
@@ -66,6 +68,15 @@ class Run:
     logs: list[Path] = field(default_factory=list)
     samples: list[Sample] = field(default_factory=list)
     observer: MqttBus | None = None
+    setup: BusSetup | None = None  # the secured broker's files (bus-setup), None: plain
+
+    def credentials(self, who: int | None) -> list[str]:
+        """``--credentials FILE`` of vehicle ``who``'s agent (None: the coordinator)."""
+        if self.setup is None:
+            return []
+        f = (self.setup.coordinator_credentials if who is None
+             else self.setup.vehicle_credentials(who))
+        return ["--credentials", str(f)]
 
     def log_text(self, i: int) -> str:
         return self.logs[i].read_text(errors="replace")
@@ -107,11 +118,17 @@ async def _sampler(run: Run, n: int, stop: asyncio.Event) -> None:
 
 
 @contextlib.asynccontextmanager
-async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION):
+async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION, *,
+                    secured: bool = False):
+    """``secured``: the broker ``vtube-fleet bus-setup`` configures (TLS, a password per
+    agent and the coordinator, the ACL); the observer reads with the coordinator's account."""
     mission = load_mission(mission_path).with_vehicles(n)
-    with LocalBroker() as broker:
+    setup = (bus_setup(tmp_path / "bus", default_mission_id(mission_path), n, port=free_port(),
+                       bind="127.0.0.1") if secured else None)
+    with (LocalBroker(config=setup.conf, ca_file=setup.ca_file) if setup is not None
+          else LocalBroker()) as broker:
         async with mock_fleet(mission, n, boot_time_scale=0.3, port_scheme=free_ports(n)) as fl:
-            run = Run(mission, mission_path, broker, fl, tmp_path / "out")
+            run = Run(mission, mission_path, broker, fl, tmp_path / "out", setup=setup)
             env = dict(os.environ, PYTHONUNBUFFERED="1")
             for i in range(n):
                 log = tmp_path / f"agent{i}.log"
@@ -131,6 +148,7 @@ async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION):
                             fl.endpoints[i],
                             "--broker",
                             broker.url,
+                            *run.credentials(i),
                             "--join-timeout",
                             "120",
                             "--out",
@@ -142,7 +160,9 @@ async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION):
                         )
                     )
             stop = asyncio.Event()
-            async with MqttBus(broker.url, default_mission_id(mission_path)) as obs:
+            creds = None if setup is None else setup.coordinator_credentials
+            async with MqttBus(broker.url, default_mission_id(mission_path),
+                               credentials=creds, limits=mission_state_limits(mission)) as obs:
                 run.observer = obs
                 sampler = asyncio.create_task(_sampler(run, n, stop))
                 try:
@@ -171,6 +191,7 @@ async def start_coordinator(run: Run, n: int) -> asyncio.subprocess.Process:
         str(run.path),
         "--broker",
         run.broker.url,
+        *run.credentials(None),
         "--vehicles",
         str(n),
         "--wait",
@@ -285,8 +306,9 @@ def agent_summary(run: Run, i: int) -> dict:
 
 # ----------------------------------------------------------------------------------------------
 async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
+    """Through the secured broker of `vtube-fleet bus-setup` (TLS, passwords, ACL)."""
     n = 8
-    async with fleet_run(tmp_path, n) as run:
+    async with fleet_run(tmp_path, n, secured=True) as run:
         code, err = await finish(await start_coordinator(run, n))
         codes = [await p.wait() for p in run.agents]
     assert code == 0, err + run.log_text(0)[-3000:]

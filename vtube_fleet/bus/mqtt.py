@@ -16,9 +16,17 @@
   vehicle), and reconnects with exponential back-off (``backoff_initial_s`` doubling up to
   ``backoff_max_s``, ±20 % jitter so a fleet does not reconnect in lock-step).
 
-A vehicle whose last will arrives stays in :meth:`latest` at its last known position with phase
-``LOST``: the agent treats it as a static obstacle (same rule as a silent one). States carry the
-sender's wall-clock stamp; ageing them is the agent's job (``vtube_fleet.fleet.agent``).
+A vehicle whose last will arrives (and which publishes no newer state within
+``lost_confirm_s``: a ``lost`` status is a claim, see :meth:`MqttBus._on_status`) stays in
+:meth:`latest` at its last known position with phase ``LOST``: the agent treats it as a static
+obstacle (same rule as a silent one). States carry the sender's wall-clock stamp; ageing them
+is the agent's job (``vtube_fleet.fleet.agent``).
+
+Security (``docs/security.md``): ``mqtts://`` URLs connect with TLS and verify the broker's
+certificate; ``credentials`` name the account (a file from ``vtube-fleet bus-setup``); a
+plain broker that is not on loopback is refused unless ``insecure``. Every message read is
+checked (:mod:`vtube_fleet.bus.validate`: ids, region, speed, stamps, seq); a refused one is
+counted in ``stats.refusals`` and logged once per sender and kind.
 
 Use from a running event loop::
 
@@ -41,7 +49,8 @@ import time
 import urllib.parse
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import aiomqtt
 
@@ -57,11 +66,25 @@ from vtube_fleet.bus.codec import (
     encode_state,
     encode_status,
 )
+from vtube_fleet.bus.security import (
+    DEFAULT_TLS_PORT,
+    BusCredentials,
+    is_loopback,
+    tls_context,
+)
 from vtube_fleet.bus.topics import MissionTopics
+from vtube_fleet.bus.validate import StateLimits
 from vtube_fleet.errors import UserError
 from vtube_fleet.state import NeighbourState, Phase
 
-__all__ = ["BrokerUrlError", "BusStats", "MqttBus", "parse_broker_url"]
+__all__ = [
+    "BrokerUrlError",
+    "BusStats",
+    "InsecureBrokerError",
+    "MqttBus",
+    "broker_uses_tls",
+    "parse_broker_url",
+]
 
 log = logging.getLogger(__name__)
 
@@ -69,19 +92,33 @@ _NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)
 
 
 class BrokerUrlError(UserError):
-    """A ``--broker`` URL that is not ``mqtt://HOST[:PORT]``."""
+    """A ``--broker`` URL that is not ``mqtt://HOST[:PORT]`` or ``mqtts://HOST[:PORT]``."""
+
+
+class InsecureBrokerError(UserError):
+    """A broker that is neither on loopback nor reached with TLS, without ``--insecure``."""
+
+
+_TLS_SCHEMES = ("mqtts", "ssl")
+
+
+def broker_uses_tls(url: str) -> bool:
+    """True for ``mqtts://`` (and ``ssl://``) URLs."""
+    return url.split("://", 1)[0] in _TLS_SCHEMES if "://" in url else False
 
 
 def parse_broker_url(url: str) -> tuple[str, int, str | None, str | None]:
-    """``mqtt://[user[:password]@]HOST[:PORT]`` → (host, port, user, password); port 1883."""
+    """``mqtt[s]://[user[:password]@]HOST[:PORT]`` → (host, port, user, password); port 1883
+    (``mqtts``: 8883, TLS)."""
     raw = url if "://" in url else f"mqtt://{url}"
     parsed = urllib.parse.urlsplit(raw)
-    if parsed.scheme not in ("mqtt", "tcp"):
+    if parsed.scheme not in ("mqtt", "tcp", *_TLS_SCHEMES):
         raise BrokerUrlError(
-            f"broker URL {url!r}: scheme {parsed.scheme!r} is not supported; use mqtt://HOST:PORT"
+            f"broker URL {url!r}: scheme {parsed.scheme!r} is not supported; use "
+            "mqtts://HOST:PORT (TLS) or mqtt://HOST:PORT"
         )
     try:
-        port = parsed.port or 1883
+        port = parsed.port or (DEFAULT_TLS_PORT if parsed.scheme in _TLS_SCHEMES else 1883)
     except ValueError:
         raise BrokerUrlError(f"broker URL {url!r}: the port is not a number in 1-65535") from None
     if not parsed.hostname:
@@ -102,6 +139,11 @@ class BusStats:
     received: int = 0  # others' states accepted into the table
     out_of_order: int = 0  # others' states not newer than the one already held (dups too)
     decode_errors: int = 0
+    #: messages refused (malformed, implausible, not in the mission, a refuted "lost"), and
+    #: by kind (``malformed``, ``id_mismatch``, ``not_in_mission``, ``future``, ``region``,
+    #: ``speed``, ``seq_jump``, ``wrong_mission``, ``lost_refuted``)
+    refused: int = 0
+    refusals: dict[str, int] = field(default_factory=dict)
     left_window: int = 0  # states showing a vehicle outside our cells (it is forgotten)
     connects: int = 0
     disconnects: int = 0
@@ -130,9 +172,43 @@ class MqttBus:
         last_period_s: float = 1.0,
         cell_m: float = math.inf,
         client_id: str | None = None,
+        credentials: str | Path | BusCredentials | None = None,
+        insecure: bool = False,
+        limits: StateLimits | None = None,
+        lost_confirm_s: float | None = None,
     ) -> None:
+        """``credentials``: a credentials file (``vtube_fleet.bus.security``) or its contents;
+        ``insecure``: allow a broker that is neither on loopback nor TLS; ``limits``: what
+        states are plausible (default: any vehicle id, anywhere); ``lost_confirm_s``: how long a
+        ``lost`` status waits for a contradicting fresh state (default 1.5 × ``last_period_s``;
+        see :meth:`_on_status`)."""
         self.url = url
         self.host, self.port, self._user, self._password = parse_broker_url(url)
+        self.tls = broker_uses_tls(url)
+        if self._password is not None:
+            raise BrokerUrlError(
+                f"broker URL {url.split('@')[-1]!r}: a password in the URL shows in the process "
+                "list and shell history; put it in a --credentials file (vtube-fleet bus-setup)"
+            )
+        if not self.tls and not insecure and not is_loopback(self.host):
+            raise InsecureBrokerError(
+                f"broker {self.host}:{self.port} is not on this machine and the URL is not "
+                "mqtts://: anyone on the network could read and forge the fleet's messages; "
+                "use mqtts://HOST:8883 with --credentials (vtube-fleet bus-setup), or "
+                "--insecure on a network you trust"
+            )
+        if isinstance(credentials, str | Path):
+            credentials = BusCredentials.load(credentials)
+        self.credentials: BusCredentials | None = credentials
+        if credentials is not None:
+            self._user, self._password = credentials.username, credentials.password
+        self._tls_context = (
+            tls_context(credentials.ca_file if credentials is not None else None)
+            if self.tls else None
+        )
+        self.limits = limits if limits is not None else StateLimits()
+        self._fleet_ids = self.limits.vehicle_ids  # the mission's slots (a run has fewer)
+        self.lost_confirm_s = 1.5 * last_period_s if lost_confirm_s is None else lost_confirm_s
         self.topics = MissionTopics(mission_id)
         self.mission_id = mission_id
         self.vehicle_id = vehicle_id
@@ -190,6 +266,11 @@ class MqttBus:
         self._state_filters: set[str] = set()
         self._want_last: set[int] = set()  # lost vehicles whose retained last state we read
         self._errors_logged = 0
+        #: Why the last connection attempt failed (e.g. "Not authorized", a TLS error).
+        self.last_error: str | None = None
+        self._refusal_counts: dict[tuple[str, str], int] = {}
+        #: pending "lost" statuses: vehicle id -> (status, wall time it arrived, timer)
+        self._claims: dict[int, _LostClaim] = {}
         self.set_cell_size(cell_m)
         self._disconnected_since: float | None = None
         self._echo_mono = -math.inf
@@ -425,6 +506,9 @@ class MqttBus:
             # Cancelling aiomqtt's connect midway leaks its socket: let it finish first.
             with contextlib.suppress(TimeoutError):
                 await self.wait_for(lambda: not self._connecting, self.connect_timeout_s + 1)
+        for claim in self._claims.values():
+            claim.timer.cancel()
+        self._claims.clear()
         task, self._task = self._task, None
         self._stop.set()  # the task disconnects cleanly (no last will) and ends
         try:
@@ -515,6 +599,7 @@ class MqttBus:
             password=self._password,
             identifier=self.client_id,
             will=will,
+            tls_context=self._tls_context,
             clean_session=True,
             keepalive=self.keepalive_s,
             timeout=self.connect_timeout_s,
@@ -563,6 +648,7 @@ class MqttBus:
                     )
                 else:
                     self.stats.connect_failures += 1
+                    self.last_error = str(exc)
                     log.log(
                         logging.WARNING if attempts == 1 else logging.DEBUG,
                         "%s: cannot reach the MQTT broker %s:%d (%s); retrying with back-off",
@@ -676,49 +762,100 @@ class MqttBus:
                     "%s: failed to handle a message on %s", self._who(), message.topic.value
                 )
 
+    # -- what is accepted (docs/mqtt.md, "What an agent accepts") ---------------------------
+    def set_limits(self, limits: StateLimits) -> None:
+        """Accept only states within ``limits`` from now on (e.g. the run's vehicles once
+        joined); vehicles no longer allowed are forgotten."""
+        self.limits = limits
+        for vid in [v for v in self._states if limits.id_problem(v) is not None]:
+            del self._states[vid]
+
+    def refusal_counts(self) -> dict[tuple[str, str], int]:
+        """``{(sender, kind): count}`` of the refused messages (at most 1024 senders)."""
+        return dict(self._refusal_counts)
+
+    def _refuse(self, kind: str, sender: str, topic: str, reason: str) -> None:
+        """Count a refused message; log it once per sender and kind."""
+        self.stats.refused += 1
+        self.stats.refusals[kind] = self.stats.refusals.get(kind, 0) + 1
+        key = (sender, kind)
+        n = self._refusal_counts.get(key)
+        if n is not None:
+            self._refusal_counts[key] = n + 1
+            return
+        if len(self._refusal_counts) >= _MAX_REFUSAL_SENDERS:
+            return  # counted in stats only: a flood of made-up senders fills neither
+        self._refusal_counts[key] = 1
+        logged = len(self._refusal_counts)
+        if logged <= _MAX_LOGGED_SENDERS:
+            log.warning(
+                "%s: refused a message from %s on %s (%s): %s [logged once per sender; %d "
+                "refused so far]", self._who(), sender, topic, kind, reason, self.stats.refused,
+            )
+        if logged == _MAX_LOGGED_SENDERS:
+            log.warning("%s: refusals from %d senders; further senders are only counted "
+                        "(stats.refusals)", self._who(), logged)
+
     def _dispatch(self, topic: str, payload: bytes) -> None:
         kind, vid = self.topics.classify(topic)
         if kind == "unknown" and topic == self._sync_topic:
             self._sync_seen = payload.decode(errors="replace")
             self._notify()
             return
+        sender = f"vehicle {vid}" if vid is not None else kind if kind != "unknown" else topic
+        if vid is not None and vid != self.vehicle_id:
+            why = self.limits.id_problem(vid)
+            if why is not None:
+                if payload:  # (clearing a retained message is not a claim)
+                    self._refuse("not_in_mission", sender, topic, why)
+                return
         try:
             if kind == "state" or kind == "last":
                 if vid == self.vehicle_id:
                     if kind == "state":
                         self._echo_mono = time.monotonic()  # our own state came back
                     return
-                self._on_state(decode_state(payload), from_last=kind == "last", topic_id=vid)
+                self._on_state(decode_state(payload), from_last=kind == "last", topic_id=vid,
+                               topic=topic)
             elif kind == "status":
                 if not payload:  # a cleared retained message
                     return
-                self._on_status(decode_status(payload), vid)
+                self._on_status(decode_status(payload), vid, topic)
             elif kind == "config":
                 if payload:
-                    self.config = decode_config(payload)
-                    self._notify()
+                    self._on_config(decode_config(payload), topic)
             elif kind == "cmd":
                 if payload:
-                    self._on_command(decode_command(payload))
+                    self._on_command(decode_command(payload), topic)
         except CodecError as exc:
             self.stats.decode_errors += 1
-            if self.stats.decode_errors <= 5 or self.stats.decode_errors % 1000 == 0:
-                log.warning(
-                    "%s: dropped a malformed message on %s (%s); %d so far",
-                    self._who(),
-                    topic,
-                    exc,
-                    self.stats.decode_errors,
-                )
+            self._refuse("malformed", sender, topic, str(exc))
 
-    def _on_state(self, state: NeighbourState, *, from_last: bool, topic_id: int | None) -> None:
+    def _on_state(self, state: NeighbourState, *, from_last: bool, topic_id: int | None,
+                  topic: str = "") -> None:
         vid = state.vehicle_id
         if vid != topic_id:
-            raise CodecError(f"vehicle id {vid} in the payload differs from the topic's {topic_id}")
+            self._refuse("id_mismatch", f"vehicle {topic_id}", topic,
+                         f"the payload says vehicle {vid}, the topic vehicle {topic_id}")
+            return
         prev = self._states.get(vid)
+        claim = self._claims.get(vid)
+        bad = self.limits.problem(state, prev if prev is not None else
+                                  (claim.last if claim is not None else None), time.time())
+        if bad is not None:
+            self._refuse(bad[0], f"vehicle {vid}", topic, bad[1])
+            return
         if prev is not None and state.seq <= prev.seq and state.stamp_s <= prev.stamp_s:
             self.stats.out_of_order += 1
             return
+        if claim is not None:
+            if state.stamp_s > claim.since_wall_s:
+                self._refute(vid, claim, state, topic)
+            elif from_last and not self._in_window(state):
+                # where it was, kept for the moment its silence confirms the claim
+                if claim.last is None or state.stamp_s > claim.last.stamp_s:
+                    claim.last = state
+                return
         if not self._in_window(state):
             # it left our cells (its notice to the cell it left), or a late message of a cell
             # we left: forget it
@@ -739,40 +876,112 @@ class MqttBus:
         if self._waiters:
             self._notify()
 
-    def _on_status(self, status: Status, vid: int | None) -> None:
+    def _on_status(self, status: Status, vid: int | None, topic: str = "") -> None:
+        """A presence message. ``lost`` (a last will, or anybody's claim) is a *claim*: the
+        vehicle counts as lost only if no state stamped after the claim arrived comes from it
+        within ``lost_confirm_s`` (live states at the control rate in our cells, its retained
+        ``last/<id>`` at ~1 Hz wherever it is). A vehicle still publishing is not lost,
+        whatever a retained status says; a dead one is silent and confirmed. Its status stays
+        what it was until then."""
         if vid is None or status.vehicle_id != vid:
-            raise CodecError(f"status for vehicle {status.vehicle_id} on the topic of {vid}")
+            self._refuse("id_mismatch", f"vehicle {vid}", topic,
+                         f"status of vehicle {status.vehicle_id} on the topic of {vid}")
+            return
         if vid == self.vehicle_id:
             if status.status == "lost" and self._connected and self._client is not None:
                 # Our own previous connection's will (e.g. a session take-over after a network
                 # glitch) overwrote our presence: say again that we are online.
                 self.announce(*self._presence)
             return
-        self.statuses[vid] = status
         if status.status == "lost":
-            if vid not in self._lost:
-                log.warning("%s: vehicle %d lost (its last will arrived)", self._who(), vid)
-            self._lost.add(vid)
-            if vid not in self._want_last:
-                # where was it? its retained last-seen state (it may never have been near us)
-                self._want_last.add(vid)
-                client = self._client  # set while connected, also during _on_connect
-                if client is not None:
-                    asyncio.get_running_loop().create_task(self._subscribe_last(client, vid))
-            prev = self._states.get(vid)
-            if prev is not None:
-                self._states[vid] = dataclasses.replace(prev, phase=Phase.LOST)
-        elif status.status == "online":
+            if vid in self._lost:
+                self.statuses[vid] = status
+            elif vid not in self._claims:
+                loop = asyncio.get_running_loop()
+                self._claims[vid] = _LostClaim(
+                    status, time.time(), loop.call_later(self.lost_confirm_s,
+                                                         self._confirm_lost, vid))
+                if vid not in self._want_last:
+                    # where is it? its retained last-seen state (it may never have been near
+                    # us), and the evidence of a vehicle that is still there (~1 Hz)
+                    self._want_last.add(vid)
+                    client = self._client  # set while connected, also during _on_connect
+                    if client is not None:
+                        loop.create_task(self._subscribe_last(client, vid))
+            self._notify()
+            return
+        claim = self._claims.pop(vid, None)
+        if claim is not None:  # it spoke for itself after the claim
+            claim.timer.cancel()
+        self.statuses[vid] = status
+        if status.status == "online":
             self._lost.discard(vid)
+        self._notify()
+
+    def _confirm_lost(self, vid: int) -> None:
+        claim = self._claims.pop(vid, None)
+        if claim is None or self._closing:
+            return
+        self.statuses[vid] = claim.status
+        self._lost.add(vid)
+        log.warning("%s: vehicle %d lost (its last will arrived and no newer state from it "
+                    "within %.1f s)", self._who(), vid, self.lost_confirm_s)
+        prev = self._states.get(vid, claim.last)
+        if prev is not None:
+            self._states[vid] = dataclasses.replace(prev, phase=Phase.LOST)
+        self._notify()
+
+    def _refute(self, vid: int, claim: _LostClaim, state: NeighbourState, topic: str) -> None:
+        """A fresh state contradicts a pending ``lost``: drop the claim (counted, logged)."""
+        del self._claims[vid]
+        claim.timer.cancel()
+        self._refuse("lost_refuted", f"vehicle {vid}", self.topics.status(vid),
+                     f"status 'lost' ignored: the vehicle published a state (on {topic}) "
+                     f"stamped {state.stamp_s - claim.since_wall_s:.2f} s after it arrived")
+        if vid not in self._lost and vid in self._want_last:
+            self._want_last.discard(vid)
+            client = self._client
+            if client is not None:
+                asyncio.get_running_loop().create_task(self._unsubscribe(client,
+                                                                         self.topics.last(vid)))
         self._notify()
 
     async def _subscribe_last(self, client: aiomqtt.Client, vid: int) -> None:
         with contextlib.suppress(aiomqtt.MqttError):
             await client.subscribe(self.topics.last(vid), qos=0)
 
-    def _on_command(self, cmd: Command) -> None:
-        if cmd.mission_id != self.mission_id:
-            raise CodecError(f"command for mission {cmd.mission_id!r} on {self.mission_id!r}")
+    async def _unsubscribe(self, client: aiomqtt.Client, topic: str) -> None:
+        with contextlib.suppress(aiomqtt.MqttError):
+            await client.unsubscribe(topic)
+
+    def _control_problem(self, mission_id: str, stamp_s: float) -> tuple[str, str] | None:
+        if mission_id != self.mission_id:
+            return "wrong_mission", f"for mission {mission_id!r}, this is {self.mission_id!r}"
+        why = self.limits.future_problem(stamp_s, time.time())
+        return None if why is None else ("future", why)
+
+    def _on_config(self, cfg: MissionConfigMsg, topic: str) -> None:
+        bad = self._control_problem(cfg.mission_id, cfg.stamp_s)
+        ids = self._fleet_ids
+        if bad is None and ids is not None and not 1 <= cfg.vehicles <= len(ids):
+            bad = ("not_in_mission", f"a run of {cfg.vehicles} vehicles; the mission has "
+                                     f"{len(ids)}")
+        if bad is not None:
+            self._refuse(bad[0], "config", topic, bad[1])
+            return
+        self.config = cfg
+        self._notify()
+
+    def _on_command(self, cmd: Command, topic: str = "") -> None:
+        bad = self._control_problem(cmd.mission_id, cmd.stamp_s)
+        if bad is None:
+            ahead_s = cmd.seq / 1000.0 - time.time()
+            if ahead_s > self.limits.max_future_s:
+                bad = ("future", f"seq {cmd.seq} is {ahead_s:.3g} s in the future (ms since "
+                                 "the epoch)")
+        if bad is not None:
+            self._refuse(bad[0], "cmd", topic, bad[1])
+            return
         if self.command is not None and cmd.seq <= self.command.seq:
             return  # a re-published retained command already handled
         self.command = cmd
@@ -782,3 +991,19 @@ class MqttBus:
             except Exception:
                 log.exception("MqttBus command listener failed")
         self._notify()
+
+
+#: Distinct (sender, kind) pairs counted per sender (:meth:`MqttBus.refusal_counts`) ...
+_MAX_REFUSAL_SENDERS = 1024
+#: ... and logged (once each).
+_MAX_LOGGED_SENDERS = 32
+
+
+@dataclass
+class _LostClaim:
+    """A ``lost`` status waiting for confirmation (:meth:`MqttBus._on_status`)."""
+
+    status: Status
+    since_wall_s: float  # our clock when it arrived
+    timer: asyncio.TimerHandle
+    last: NeighbourState | None = None  # its last-seen state, if outside our cells

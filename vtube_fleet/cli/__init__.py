@@ -14,6 +14,7 @@ import os
 import sys
 
 from vtube_fleet import __version__
+from vtube_fleet.cli._args import OneLineParser, annotate_help
 from vtube_fleet.errors import UserError
 
 __all__ = ["main", "build_parser"]
@@ -28,11 +29,12 @@ COMMAND_MODULES: tuple[str, ...] = (
     "vtube_fleet.cli.review",
     "vtube_fleet.cli.agent",
     "vtube_fleet.cli.mission",
+    "vtube_fleet.cli.bus_setup",
 )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="vtube-fleet",
         description="Fly a swarm through a trapezoid virtual tube containing obstacles.",
     )
@@ -44,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)
+    annotate_help(parser)  # each declared option's unit and bound, from its key
     return parser
 
 

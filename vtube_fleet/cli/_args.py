@@ -1,12 +1,18 @@
-"""Command-line options shared by several commands (argparse only; no library code)."""
+"""Command-line options shared by several commands (argparse only; no library code).
+
+Every numeric option is declared with a :class:`~vtube_fleet.config.keys.Key` (type, unit,
+bounds, meaning) and parsed by :class:`OptionType`, so ``--join-timeout nan``, ``-5`` or ``inf``
+is refused with one line naming the option, the value and the bound, before anything connects.
+"""
 
 from __future__ import annotations
 
 import argparse
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
+from vtube_fleet.config.keys import POSITIVE, Bound, Key
 from vtube_fleet.fleet.distributed.coordinator import DEFAULT_BROKER
 from vtube_fleet.recording.api import Recorder, RecordingError
 from vtube_fleet.recording.layout import (
@@ -17,10 +23,127 @@ from vtube_fleet.recording.layout import (
 from vtube_fleet.recording.writer import open_recorder
 
 __all__ = [
+    "COUNT",
+    "DURATION",
+    "INDEX",
+    "PORT",
+    "SCALE",
+    "SEED",
+    "OneLineParser",
+    "OptionType",
     "add_bus_args",
+    "annotate_help",
+    "declared_options",
+    "options_table",
     "add_recording_args",
+    "bounded",
     "recorder_from_args",
 ]
+
+#: A duration in seconds (timeouts, waits, ages): finite and > 0 (NaN would wait forever, a
+#: negative one fail at once with a misleading cause).
+DURATION = Key("duration", "number", "a duration", "s", bound=POSITIVE)
+#: A scale factor (e.g. of the mock's boot timeline): finite and > 0.
+SCALE = Key("scale", "number", "a scale factor", bound=POSITIVE)
+#: A count of vehicles, ticks, …: an integer >= 1.
+COUNT = Key("count", "integer", "a count", bound=Bound(1, low_inclusive=True))
+#: A 0-based index (a slot): an integer >= 0.
+INDEX = Key("index", "integer", "a 0-based index", bound=Bound(0, low_inclusive=True))
+#: A UDP port.
+PORT = Key("port", "integer", "a UDP port", bound=Bound(1, 65535, low_inclusive=True))
+#: A random seed (numpy: 0 .. 2^32 - 1).
+SEED = Key("seed", "integer", "a random seed", bound=Bound(0, 2**32 - 1, low_inclusive=True))
+
+
+class OptionType:
+    """The argparse ``type`` of a declared option: text → the :class:`Key`'s checked value;
+    a refusal names the value and the bound (argparse adds the option's name)."""
+
+    def __init__(self, key: Key) -> None:
+        self.key = key
+        self.__name__ = key.name  # argparse names the type in some messages
+
+    def __call__(self, text: str) -> Any:
+        integer = self.key.kind == "integer"
+        try:
+            value: Any = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'an integer' if integer else 'a number'}, got {text!r}") from None
+        try:
+            return self.key.parse(value)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    def __repr__(self) -> str:
+        return f"OptionType({self.key.name})"
+
+
+def bounded(key: Key) -> OptionType:
+    """The argparse type of options declared by ``key`` (:data:`DURATION`, :data:`COUNT`, …)."""
+    return OptionType(key)
+
+
+def _parsers(parser: argparse.ArgumentParser, prefix: str
+             ) -> list[tuple[str, argparse.ArgumentParser]]:
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    out = [(prefix, parser)]
+    for sub in subs:
+        for name, p in sub.choices.items():
+            out += _parsers(p, f"{prefix} {name}")
+    return out
+
+
+def declared_options(parser: argparse.ArgumentParser
+                     ) -> list[tuple[str, str, Key, str]]:
+    """(command, option, key, help) of every option declared with an :class:`OptionType`
+    below ``parser`` (the whole ``vtube-fleet`` command line)."""
+    out = []
+    for prog, p in _parsers(parser, parser.prog):
+        for a in p._actions:
+            if isinstance(a.type, OptionType) and a.option_strings:
+                help_ = getattr(a, "plain_help", a.help)  # (before annotate_help)
+                out.append((prog, a.option_strings[-1], a.type.key, help_ or ""))
+    return out
+
+
+def bound_text(key: Key) -> str:
+    """``s, > 0`` / ``integer, [1, 65535]``: the unit (or the kind) and the bound of ``key``."""
+    assert key.bound is not None
+    kind = key.unit or ("integer" if key.kind == "integer" else "number")
+    return f"{kind}, {key.bound.text()}"
+
+
+def annotate_help(parser: argparse.ArgumentParser) -> None:
+    """Append each declared option's unit and bound to its ``--help`` text (from its key)."""
+    for _prog, p in _parsers(parser, parser.prog):
+        for a in p._actions:
+            if (isinstance(a.type, OptionType) and a.help is not argparse.SUPPRESS
+                    and not hasattr(a, "plain_help")):
+                a.plain_help = a.help  # type: ignore[attr-defined]
+                a.help = f"{a.help or ''} [{bound_text(a.type.key)}]".lstrip()
+
+
+def options_table(parser: argparse.ArgumentParser, commands: tuple[str, ...]) -> str:
+    """The docs' table of the declared options of ``commands`` (e.g. ``("run", "agent")``):
+    command, option, unit, bounds, meaning — generated from the parser (docs/fleet.md)."""
+    rows = ["| command | option | unit | bounds | meaning |", "|---|---|---|---|---|"]
+    for prog, opt, key, help_ in declared_options(parser):
+        words = prog.split()
+        if len(words) < 2 or words[1] not in commands:
+            continue
+        meaning = " ".join(help_.replace("|", "\\|").split())
+        rows.append(f"| `{prog}` | `{opt}` | {key.unit} | {key.bound_cell()} | {meaning} |")
+    return "\n".join(rows) + "\n"
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line, ``error: PROG: MESSAGE (see PROG
+    --help)``, exit 2, like every other user error of the command line."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {self.prog}: {' '.join(message.split())} "
+                     f"(see {self.prog} --help)\n")
 
 
 def add_bus_args(parser: argparse.ArgumentParser) -> None:
@@ -30,6 +153,16 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--mission-id", default=None, help="topic name of the mission (default: the file name)"
+    )
+    parser.add_argument(
+        "--credentials", type=Path, default=None, metavar="FILE",
+        help="this client's broker user, password and CA (a file written by `vtube-fleet "
+        "bus-setup`, mode 0600; use with --broker mqtts://HOST:8883)",
+    )
+    parser.add_argument(
+        "--insecure", action="store_true",
+        help="allow a plain mqtt:// broker that is not on this machine (no TLS: anyone on the "
+        "network can read and forge the fleet's messages)",
     )
 
 
@@ -43,7 +176,7 @@ def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int
                    default=None,
                    help="also stream to a live rerun viewer (default address "
                         f"{DEFAULT_CONNECT_URL}; HOST:PORT or a port also work)")
-    g.add_argument("--rerun-decimate", metavar="N", type=int, default=default_decimate,
+    g.add_argument("--rerun-decimate", metavar="N", type=bounded(COUNT), default=default_decimate,
                    help="record every N-th control tick / simulation step "
                         "(default: each command's own choice)")
     g.add_argument("--no-rerun", action="store_true",

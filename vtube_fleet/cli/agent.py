@@ -8,7 +8,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.cli._args import add_bus_args, add_recording_args, recorder_from_args
+from vtube_fleet.cli._args import (
+    DURATION,
+    INDEX,
+    add_bus_args,
+    add_recording_args,
+    bounded,
+    recorder_from_args,
+)
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.fleet.distributed.agent import AgentInterrupted, AgentProcess
 from vtube_fleet.fleet.distributed.coordinator import (
@@ -35,6 +42,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
         args.mission, args.vehicle, broker=args.broker, endpoint=args.endpoint,
         backend=args.link, mission_id=args.mission_id, join_timeout_s=args.join_timeout,
         broker_hold_limit_s=args.broker_hold_limit, out=out, recorder=recorder, say=_say,
+        credentials=args.credentials, insecure=args.insecure,
     )
 
     async def main() -> int:
@@ -43,8 +51,8 @@ def _cmd_agent(args: argparse.Namespace) -> int:
 
     try:
         return asyncio.run(main())
-    except AgentInterrupted:
-        _say(f"agent {args.vehicle}: interrupted (vehicle held, then landed)")
+    except AgentInterrupted as exc:
+        _say(f"agent {args.vehicle}: {exc or 'interrupted'}")
         return EXIT_INTERRUPTED
 
 
@@ -58,7 +66,8 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
     p.add_argument(
-        "--vehicle", type=int, required=True, metavar="I", help="the slot to fly (0-based)"
+        "--vehicle", type=bounded(INDEX), required=True, metavar="I",
+        help="the slot to fly (0-based)",
     )
     p.add_argument(
         "--endpoint",
@@ -75,14 +84,14 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--join-timeout",
-        type=float,
+        type=bounded(DURATION),
         default=600.0,
         metavar="S",
         help="seconds to wait for `mission start` (default 600)",
     )
     p.add_argument(
         "--broker-hold-limit",
-        type=float,
+        type=bounded(DURATION),
         default=30.0,
         metavar="S",
         help="land after standing still this long without the broker (default 30)",

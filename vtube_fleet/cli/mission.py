@@ -9,7 +9,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.cli._args import add_bus_args, add_recording_args, recorder_from_args
+from vtube_fleet.cli._args import (
+    COUNT,
+    DURATION,
+    add_bus_args,
+    add_recording_args,
+    bounded,
+    recorder_from_args,
+)
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.fleet.distributed.coordinator import Coordinator
 from vtube_fleet.outcome import EXIT_INTERRUPTED, EXIT_OK, exit_code
@@ -31,7 +38,8 @@ async def _start(args: argparse.Namespace) -> int:
         async with Coordinator(
             args.mission, args.broker, mission_id=args.mission_id, vehicles=args.vehicles,
             broker_timeout_s=args.broker_timeout, max_age_s=args.max_age,
-            cells=not args.no_cells, say=_say,
+            cells=not args.no_cells, say=_say, credentials=args.credentials,
+            insecure=args.insecure,
         ) as co:
             if not await co.start_run(stop, args.ready_timeout):
                 return EXIT_INTERRUPTED
@@ -48,14 +56,16 @@ async def _start(args: argparse.Namespace) -> int:
          f"centre {_fmt(s.get('min_obstacle_center_distance_m'))}, violations "
          f"{s.get('violations')}; state age p50/p99 {_fmt(s.get('state_age_p50_s'), 'ms', 1000)}/"
          f"{_fmt(s.get('state_age_p99_s'), 'ms', 1000)}; summary {res.summary_path}")
-    if res.outcome == "unsafe":
-        _say(f"error: mission unsafe: {res.reason}")
-    return exit_code(res.outcome)
+    code = exit_code(res.outcome)
+    if code not in (EXIT_OK, EXIT_INTERRUPTED) and res.reason:
+        _say(f"error: mission {res.outcome}: {' '.join(res.reason.split())}")
+    return code
 
 
 async def _abort(args: argparse.Namespace) -> int:
     async with Coordinator(args.mission, args.broker, mission_id=args.mission_id,
-                           broker_timeout_s=args.broker_timeout) as co:
+                           broker_timeout_s=args.broker_timeout, credentials=args.credentials,
+                           insecure=args.insecure) as co:
         run_id = await co.abort_announced()
     _say(f"mission {co.mission_id} run {run_id}: abort published")
     return EXIT_OK
@@ -63,7 +73,8 @@ async def _abort(args: argparse.Namespace) -> int:
 
 async def _status(args: argparse.Namespace) -> int:
     async with Coordinator(args.mission, args.broker, mission_id=args.mission_id,
-                           broker_timeout_s=args.broker_timeout) as co:
+                           broker_timeout_s=args.broker_timeout, credentials=args.credentials,
+                           insecure=args.insecure) as co:
         info = await co.status(args.listen)
     if args.json:
         print(json.dumps(info, indent=2))
@@ -114,7 +125,7 @@ def register(subparsers: Any) -> None:
         add_bus_args(sp)
         sp.add_argument(
             "--broker-timeout",
-            type=float,
+            type=bounded(DURATION),
             default=10.0,
             metavar="S",
             help="seconds to wait for the broker connection (default 10)",
@@ -125,13 +136,13 @@ def register(subparsers: Any) -> None:
     common(s)
     s.add_argument(
         "--vehicles",
-        type=int,
+        type=bounded(COUNT),
         default=None,
         help="fly slots 0..N-1 only (default: every slot of the mission)",
     )
     s.add_argument(
         "--max-age",
-        type=float,
+        type=bounded(DURATION),
         default=None,
         metavar="S",
         help="oldest neighbour state an agent uses as a live position, budgeted in the "
@@ -144,7 +155,7 @@ def register(subparsers: Any) -> None:
     )
     s.add_argument(
         "--ready-timeout",
-        type=float,
+        type=bounded(DURATION),
         default=None,
         metavar="S",
         help="seconds to wait for every agent to join with a READY vehicle "
@@ -165,7 +176,7 @@ def register(subparsers: Any) -> None:
     )
     s.add_argument(
         "--timeout",
-        type=float,
+        type=bounded(DURATION),
         default=None,
         metavar="S",
         help="give up following after S seconds (default: arm + take-off + "
@@ -177,7 +188,7 @@ def register(subparsers: Any) -> None:
     common(st)
     st.add_argument(
         "--listen",
-        type=float,
+        type=bounded(DURATION),
         default=1.0,
         metavar="S",
         help="seconds to listen for live states (default 1)",

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from vtube_fleet.cli._args import COUNT, PORT, SCALE, SEED, bounded
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import mock_fleet
@@ -25,13 +26,13 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
                 mission, args.count, gcs_port=args.gcs_port, vehicle_port=args.vehicle_port,
                 boot_time_scale=args.boot_time_scale, profile=args.profile,
                 estimator=args.estimator, estimator_shared=args.estimator_shared,
-                gcs_link=args.gcs_link, seed=args.seed,
+                gcs_link=args.gcs_link, seed=args.seed, processes=args.processes,
             ) as fleet:
                 eps = list(fleet.endpoints)
                 print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
                       flush=True)
                 print(",".join(eps), flush=True)
-                await stop.wait()
+                await fleet.serve(stop)
         print("mock fleet stopped", file=sys.stderr)
 
     asyncio.run(main())
@@ -44,9 +45,9 @@ def register(subparsers: Any) -> None:
         description="Start sim_stub vehicles placed in the mission's slots (PX4 SITL port "
                     "scheme: vehicle i on udpin://127.0.0.1:14540+i) and run until Ctrl-C.")
     m.add_argument("mission", type=Path)
-    m.add_argument("--count", type=int, default=None, help="number of vehicles (default: all "
-                                                           "slots)")
-    m.add_argument("--boot-time-scale", type=float, default=1.0, metavar="S",
+    m.add_argument("--count", type=bounded(COUNT), default=None,
+                   help="number of vehicles (default: all slots)")
+    m.add_argument("--boot-time-scale", type=bounded(SCALE), default=1.0, metavar="S",
                    help="scale the vehicles' boot timeline (default 1 = as PX4 SITL)")
     m.add_argument("--profile", choices=("full", "lite"), default="full",
                    help="sim_stub stream set: every stream PX4 sends (full) or what clients "
@@ -59,9 +60,12 @@ def register(subparsers: Any) -> None:
     m.add_argument("--gcs-link", choices=("lite", "full", "off"), default="lite",
                    help="PX4's GCS link (udp 18570+i -> 14550; ground truth on request): its "
                         "default stream set (default lite)")
-    m.add_argument("--seed", type=int, default=0, help="seed of the estimate errors")
-    m.add_argument("--gcs-port", type=int, default=None, metavar="N",
+    m.add_argument("--processes", type=bounded(COUNT), default=1, metavar="N",
+                   help="split the vehicles over N OS processes (one scheduler each, same "
+                        "ports; about 500 lite vehicles fit one core); default 1")
+    m.add_argument("--seed", type=bounded(SEED), default=0, help="seed of the estimate errors")
+    m.add_argument("--gcs-port", type=bounded(PORT), default=None, metavar="N",
                    help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
-    m.add_argument("--vehicle-port", type=int, default=None, metavar="N",
+    m.add_argument("--vehicle-port", type=bounded(PORT), default=None, metavar="N",
                    help="port vehicle 0 sends from (vehicle i: N+i; default GCS port + 40)")
     m.set_defaults(func=_cmd_mock_fleet)

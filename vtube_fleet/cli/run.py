@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.cli._args import add_recording_args, recorder_from_args
+from vtube_fleet.cli._args import SCALE, SEED, add_recording_args, bounded, recorder_from_args
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import BACKENDS, fleet_supervisor, parse_endpoint_list
@@ -22,7 +22,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     mission = load_mission(args.mission)
     endpoints = None
-    if args.endpoints:
+    if args.endpoints is not None:  # only its absence means "the built-in mock fleet"
         endpoints = parse_endpoint_list(args.endpoints, mission.count)
         if len(endpoints) < mission.count:
             print(f"note: {len(endpoints)} endpoints for {mission.count} slots: flying slots "
@@ -39,7 +39,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     async def main() -> FleetResult:
         async with fleet_supervisor(mission, backend=args.backend, endpoints=endpoints,
                                     out_dir=out, recorder=recorder, view=view,
-                                    mock_kwargs=mock_kwargs, truth=truth) as sup:
+                                    mock_kwargs=mock_kwargs, truth=truth,
+                                    fence=not args.no_fence,
+                                    fix_params=args.fix_params) as sup:
             with interrupt_on_signals(sup.interrupt):
                 return await sup.run()
 
@@ -95,22 +97,30 @@ def register(subparsers: Any) -> None:
                    help="vehicle link backend (default: mavlink)")
     p.add_argument("--endpoints", metavar="URL,URL,...",
                    help="vehicle endpoints in MAVSDK syntax, e.g. udpin://127.0.0.1:14540; "
-                        "fewer than the slots fly the first slots")
+                        "fewer than the slots fly the first slots; without it (not with an "
+                        "empty list, which is an error) the built-in mock fleet flies")
     p.add_argument("--out", type=Path, default=None,
                    help="output folder for summary.json and recording.rrd "
                         "(default: runs/<mission name>)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status view")
-    p.add_argument("--mock-boot-time-scale", type=float, default=1.0, metavar="S",
+    p.add_argument("--mock-boot-time-scale", type=bounded(SCALE), default=1.0, metavar="S",
                    help="without --endpoints: scale the mock vehicles' boot timeline (PX4 is "
                         "armable ~4 s after boot; 0.3 makes that ~1.2 s)")
     p.add_argument("--mock-estimator", choices=("px4-sih", "rtk", "ideal"), default="px4-sih",
                    help="without --endpoints: the mock vehicles' estimate errors (px4-sih: "
                         "like real PX4 SITL, the default; rtk: cm-level; ideal: none)")
-    p.add_argument("--mock-seed", type=int, default=0, metavar="N",
+    p.add_argument("--mock-seed", type=bounded(SEED), default=0, metavar="N",
                    help="without --endpoints: seed of the mock vehicles' estimate errors")
     p.add_argument("--truth", action="store_true",
                    help="ask every vehicle for its SITL ground truth (HIL_STATE_QUATERNION; "
                         "PX4 SITL and the mock send it) and judge the clearance truly flown "
                         "too (truth_* summary keys); always on for the built-in mock")
+    p.add_argument("--no-fence", action="store_true",
+                   help="do not upload the tube as every vehicle's PX4 geofence (for setups "
+                        "that forbid it; a warning says so; docs/fleet.md)")
+    p.add_argument("--fix-params", action="store_true",
+                   help="set the PX4 parameters the audit finds off (MPC_XY_VEL_MAX, "
+                        "MPC_ACC_HOR, COM_OF_LOSS_T, COM_OBL_RC_ACT, NAV_DLL_ACT) for the flight "
+                        "and restore the old values on exit")
     add_recording_args(p)
     p.set_defaults(func=_cmd_run)

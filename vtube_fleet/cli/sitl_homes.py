@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from vtube_fleet.cli._args import COUNT, bounded
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import FleetCliError, sitl_home_lines
 
@@ -28,5 +29,6 @@ def register(subparsers: Any) -> None:
         description="One line per instance: 'I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…' "
                     "so that PX4 SITL instance I starts in slot I.")
     h.add_argument("mission", type=Path)
-    h.add_argument("--count", type=int, default=None)
+    h.add_argument("--count", type=bounded(COUNT), default=None,
+                   help="the first N slots only (default: every slot)")
     h.set_defaults(func=_cmd_sitl_homes)

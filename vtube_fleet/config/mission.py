@@ -8,46 +8,17 @@ parser the simulator uses, with ``extra_sections=("mission",)``); this module pa
 :class:`~vtube_fleet.errors.ConfigError` naming the file and the key, e.g.
 ``mission.toml: [mission].rate_hz: must be > 0, got -5``.
 
-``[mission]`` keys (see ``docs/fleet.md``)::
-
-    origin_lat_deg, origin_lon_deg   geodetic anchor of the tube frame (WGS84), required
-    origin_alt_m                      AMSL altitude of the anchor (ground level), required
-    heading_deg                       heading of the tube's x axis, clockwise from north, required
-    altitude_m                        flight height above origin_alt_m, required
-    rate_hz = 20                      control rate
-    after_exit = "continue"           what a vehicle does past the finishing line:
-                                      "continue" | "hold" | "land"
-    on_complete = "land"              when every vehicle has exited: "land" | "hold"
-    exit_clear_m = 3.0                distance flown past the finishing line before "hold"/"land"
-    climb_speed_m_s = 1.0             offboard climb rate during take-off
-    max_vertical_speed_m_s = 1.0      clamp of the altitude-hold term
-    altitude_gain_1_s = 1.0           P gain of the altitude-hold term
-    altitude_tolerance_m = 0.3        take-off is complete within this of the mission altitude
-    connect_timeout_s = 15, ready_timeout_s = 30, arm_timeout_s = 20, takeoff_timeout_s = 40,
-    mission_timeout_s = 600, land_timeout_s = 60          timeouts
-    lost_after_s = 1.0                no telemetry for this long → the vehicle is LOST
-    neighbour_max_age_s = 0.5         older neighbour states are not used as live positions
-    lost_obstacle_margin_m = 0.5      a LOST vehicle becomes an obstacle of radius r_s + this
-    tracking_dead_time_s = 0.3        PX4 velocity-tracking dead time (captures: 0.27-0.35 s)
-    tracking_t63_s = 1.0              PX4 horizontal velocity time constant (captures: 0.8-1.2 s)
-    latency_s                         L of the safety budget: position age + setpoint delay
-                                      (default: measured round trip + latency_headroom_s)
-    latency_headroom_s = 0.05         added to the measured L (in-flight jitter)
-    max_latency_s = 0.25              refuse to fly above this L
-    position_accuracy_m               σ of the safety budget (default: the worst accuracy the
-                                      vehicles report before arming, ESTIMATOR_STATUS)
-    accuracy_factor = 2.0             k: the estimate error budgeted is k σ
-    max_position_accuracy_m = 1.0     wait (ready_timeout_s) until every vehicle reports at
-                                      most this σ
-    disturbance_residual_m_s = 0.25   D: estimate disturbance left after compensation
-    compensate_estimate = true        send v_c + d̂ (fleet/compensation.py) instead of v_c
-    safety_margin_m                   override the safety budget δ (default: computed)
+Every ``[mission]`` key, with its type, unit, default, bounds and meaning, is declared once in
+:data:`MISSION_KEYS` (:class:`~vtube_fleet.config.keys.Key`): the parser reads it, and the table
+in ``docs/fleet.md`` is generated from it (:func:`mission_keys_table`; a test keeps them equal).
+Bounds are physical: ``altitude_m`` within the documented ceiling :data:`MAX_ALTITUDE_M`,
+``rate_hz`` within the position stream rate :data:`POSITION_STREAM_HZ`, vertical speeds within
+PX4's defaults, timeouts finite and positive; relations between keys (a take-off timeout shorter
+than the climb, a tolerance that completes the take-off on the ground, …) are refused too.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -55,16 +26,23 @@ from typing import Any
 
 import numpy as np
 
+from vtube_fleet.config.keys import NON_NEGATIVE, POSITIVE, Bound, Key, markdown_table, show_value
 from vtube_fleet.config.scenario import Scenario, load_scenario
 from vtube_fleet.errors import ConfigError
 from vtube_fleet.frames import TubeFrame
 
 __all__ = [
     "AFTER_EXIT",
+    "FENCE_ACTIONS",
+    "MAX_ALTITUDE_M",
+    "MISSION_KEYS",
     "ON_COMPLETE",
+    "POSITION_STREAM_HZ",
+    "SlotError",
     "Mission",
     "MissionConfig",
     "load_mission",
+    "mission_keys_table",
     "parse_mission_config",
 ]
 
@@ -77,6 +55,8 @@ DEFAULT_DISTURBANCE_M_S = 0.25
 AFTER_EXIT: tuple[str, ...] = ("continue", "hold", "land")
 #: What every vehicle does once all have exited.
 ON_COMPLETE: tuple[str, ...] = ("land", "hold")
+#: PX4's geofence breach actions the mission may choose (GF_ACTION 2, 5, 3).
+FENCE_ACTIONS: tuple[str, ...] = ("hold", "land", "rtl")
 
 
 @dataclass(frozen=True)
@@ -116,6 +96,8 @@ class MissionConfig:
     disturbance_residual_m_s: float = DEFAULT_DISTURBANCE_M_S
     compensate_estimate: bool = True
     safety_margin_m: float | None = None
+    fence_action: str = "hold"
+    fence_margin_m: float = 1.0
 
     @property
     def period_s(self) -> float:
@@ -135,100 +117,137 @@ class MissionConfig:
         return self.origin_alt_m + self.altitude_m
 
 
-# (key, required, lower bound kind) — kinds: "pos" > 0, "nonneg" >= 0, None any finite number
-_NUMBERS: tuple[tuple[str, bool, str | None], ...] = (
-    ("origin_lat_deg", True, None),
-    ("origin_lon_deg", True, None),
-    ("origin_alt_m", True, None),
-    ("heading_deg", True, None),
-    ("altitude_m", True, "pos"),
-    ("rate_hz", False, "pos"),
-    ("exit_clear_m", False, "nonneg"),
-    ("climb_speed_m_s", False, "pos"),
-    ("max_vertical_speed_m_s", False, "pos"),
-    ("altitude_gain_1_s", False, "pos"),
-    ("altitude_tolerance_m", False, "pos"),
-    ("connect_timeout_s", False, "pos"),
-    ("ready_timeout_s", False, "pos"),
-    ("arm_timeout_s", False, "pos"),
-    ("takeoff_timeout_s", False, "pos"),
-    ("mission_timeout_s", False, "pos"),
-    ("land_timeout_s", False, "pos"),
-    ("lost_after_s", False, "pos"),
-    ("neighbour_max_age_s", False, "pos"),
-    ("lost_obstacle_margin_m", False, "nonneg"),
-    ("tracking_dead_time_s", False, "nonneg"),
-    ("tracking_t63_s", False, "nonneg"),
-    ("latency_s", False, "nonneg"),
-    ("latency_headroom_s", False, "nonneg"),
-    ("max_latency_s", False, "pos"),
-    ("position_accuracy_m", False, "nonneg"),
-    ("accuracy_factor", False, "nonneg"),
-    ("max_position_accuracy_m", False, "pos"),
-    ("disturbance_residual_m_s", False, "nonneg"),
-    ("safety_margin_m", False, "nonneg"),
+#: LOCAL_POSITION_NED rate (Hz) both link backends ask every vehicle for on connect (mavlink:
+#: ``DEFAULT_MESSAGE_RATES_HZ``, MAVSDK: ``set_rate_position_velocity_ned``); PX4 SITL delivers
+#: 49-49.5 Hz of it (tests/data/px4_sitl). A control tick faster than this recomputes the
+#: setpoint from positions it has already used: ``rate_hz`` is refused above it.
+POSITION_STREAM_HZ = 50.0
+#: The documented flight ceiling (m above the take-off ground): the 120 m of EASA's open
+#: category and FAA Part 107 (400 ft). PX4 does not bound it by default (GF_MAX_VER_DIST
+#: defaults to 0, i.e. disabled), so the mission does.
+MAX_ALTITUDE_M = 120.0
+#: PX4's default limits of the velocity setpoints it follows in offboard (MPC_Z_VEL_MAX_UP,
+#: MPC_Z_VEL_MAX_DN); a larger setpoint is silently clipped, so the mission refuses it.
+PX4_MAX_CLIMB_M_S = 3.0
+PX4_MAX_DESCENT_M_S = 1.5
+#: PX4's default limit of the horizontal velocity (MPC_XY_VEL_MAX): the scenario's v_max, the
+#: fastest the controller ever commands, must not exceed it.
+PX4_MAX_HORIZONTAL_M_S = 12.0
+
+def _timeout(name: str, default: float, what: str) -> Key:
+    return Key(name, "number", f"timeout: {what}", "s", default, bound=POSITIVE)
+
+
+#: Every ``[mission]`` key: type, unit, default, bounds, meaning. The one source of
+#: :func:`parse_mission_config` and of the table in docs/fleet.md (:func:`mission_keys_table`).
+MISSION_KEYS: tuple[Key, ...] = (
+    Key("origin_lat_deg", "number", "latitude of the tube frame's geodetic anchor (WGS84)",
+        "deg", required=True, bound=Bound(-90.0, 90.0, high_inclusive=False, interval=True)),
+    Key("origin_lon_deg", "number", "longitude of the tube frame's geodetic anchor (WGS84)",
+        "deg", required=True, bound=Bound(-180.0, 180.0, low_inclusive=True, interval=True)),
+    Key("origin_alt_m", "number", "AMSL altitude of the anchor (ground level)", "m",
+        required=True, bound=Bound(-500.0, 9000.0, low_inclusive=True,
+                                   why="the Earth's surface: Dead Sea to Everest")),
+    Key("heading_deg", "number", "heading of the tube's x axis, clockwise from true north",
+        "deg", required=True, bound=Bound(-360.0, 360.0, low_inclusive=True, interval=True)),
+    Key("altitude_m", "number", "flight height above `origin_alt_m`", "m", required=True,
+        bound=Bound(0.0, MAX_ALTITUDE_M, why="the documented ceiling: EASA open category / "
+                    "FAA Part 107; PX4's GF_MAX_VER_DIST is off by default")),
+    Key("rate_hz", "number", "control rate", "Hz", 20.0,
+        bound=Bound(0.0, POSITION_STREAM_HZ, why="the position stream rate the vehicles send: "
+                    "LOCAL_POSITION_NED at 50 Hz")),
+    Key("after_exit", "choice", "past the finishing line: `continue` (fly on at v along n_c "
+        "until everyone has exited), `hold` or `land` once `exit_clear_m` past the line",
+        default="continue", choices=AFTER_EXIT),
+    Key("on_complete", "choice", "when every vehicle has exited: `land` or `hold`",
+        default="land", choices=ON_COMPLETE),
+    Key("exit_clear_m", "number", "distance flown past the finishing line before `hold` / "
+        "`land`", "m", 3.0, bound=NON_NEGATIVE),
+    Key("climb_speed_m_s", "number", "offboard climb rate", "m/s", 1.0,
+        bound=Bound(0.0, PX4_MAX_CLIMB_M_S, why="PX4's MPC_Z_VEL_MAX_UP default")),
+    Key("max_vertical_speed_m_s", "number", "clamp of the altitude-hold term: v_up = "
+        "clamp(k (altitude − up), ±max)", "m/s", 1.0,
+        bound=Bound(0.0, PX4_MAX_DESCENT_M_S, why="PX4's MPC_Z_VEL_MAX_DN default")),
+    Key("altitude_gain_1_s", "number", "k of the altitude-hold term (at most `rate_hz`: one "
+        "period must not overshoot)", "1/s", 1.0, bound=POSITIVE),
+    Key("altitude_tolerance_m", "number", "take-off is complete within this of the mission "
+        "altitude (less than `altitude_m`)", "m", 0.3, bound=POSITIVE),
+    _timeout("connect_timeout_s", 15.0, "connect every endpoint"),
+    _timeout("ready_timeout_s", 30.0, "every vehicle ready (position, home, accuracy)"),
+    _timeout("arm_timeout_s", 20.0, "every vehicle armed in offboard"),
+    _timeout("takeoff_timeout_s", 40.0, "every vehicle at the mission altitude (at least "
+             "`altitude_m / climb_speed_m_s`)"),
+    _timeout("mission_timeout_s", 600.0, "every vehicle out of the tube"),
+    _timeout("land_timeout_s", 60.0, "every vehicle on the ground"),
+    Key("lost_after_s", "number", "no telemetry for this long → the vehicle is LOST (at least "
+        "one control period)", "s", 1.0, bound=POSITIVE),
+    Key("neighbour_max_age_s", "number", "a neighbour state older than this is not used as a "
+        "live position (at most `lost_after_s`)", "s", 0.5, bound=POSITIVE),
+    Key("lost_obstacle_margin_m", "number", "a LOST vehicle becomes an obstacle of radius "
+        "r_s + this", "m", 0.5, bound=NON_NEGATIVE),
+    Key("tracking_dead_time_s", "number", "τ_d: PX4's velocity-tracking dead time, for the "
+        "safety budget (captures: 0.27-0.35 s)", "s", 0.3, bound=NON_NEGATIVE),
+    Key("tracking_t63_s", "number", "t63: PX4's horizontal velocity time constant, for the "
+        "safety budget (captures: 0.8-1.2 s)", "s", 1.0, bound=NON_NEGATIVE),
+    Key("latency_s", "number", "L of the safety budget: position age + setpoint delay",
+        "s", None, bound=NON_NEGATIVE,
+        default_text="measured (round trip + `latency_headroom_s`)"),
+    Key("latency_headroom_s", "number", "added to the measured L (jitter in flight)", "s",
+        0.05, bound=NON_NEGATIVE),
+    Key("max_latency_s", "number", "above this L the mission is refused before arming", "s",
+        0.25, bound=POSITIVE),
+    Key("position_accuracy_m", "number", "σ of the safety budget", "m", None,
+        bound=NON_NEGATIVE, default_text="measured (the worst settled accuracy the vehicles "
+        "report: ESTIMATOR_STATUS `pos_horiz_accuracy`, else GPS_RAW_INT `h_acc`)"),
+    Key("accuracy_factor", "number", "k: the estimate error budgeted is k σ", "",
+        DEFAULT_ACCURACY_FACTOR, bound=NON_NEGATIVE),
+    Key("max_position_accuracy_m", "number", "wait (up to `ready_timeout_s`) until every "
+        "vehicle reports at most this σ", "m", 1.0, bound=POSITIVE),
+    Key("disturbance_residual_m_s", "number", "D: the estimate disturbance left after "
+        "compensation", "m/s", DEFAULT_DISTURBANCE_M_S, bound=NON_NEGATIVE),
+    Key("compensate_estimate", "flag", "send v_c + d̂ instead of v_c (below)", default=True),
+    Key("safety_margin_m", "number", "override the safety budget δ", "m", None,
+        bound=NON_NEGATIVE, default_text="computed"),
+    Key("fence_action", "choice", "PX4's GF_ACTION on a breach of the tube fence uploaded "
+        "before arming: `hold`, `land` or `rtl` (docs/fleet.md, the fence on the vehicle)",
+        default="hold", choices=FENCE_ACTIONS),
+    Key("fence_margin_m", "number", "the fence polygon lies r_s + this outside the tube's "
+        "legs and behind the start base", "m", 1.0, bound=NON_NEGATIVE),
 )
-_CHOICES: dict[str, tuple[str, ...]] = {"after_exit": AFTER_EXIT, "on_complete": ON_COMPLETE}
-_FLAGS: tuple[str, ...] = ("compensate_estimate",)
+_BY_NAME: dict[str, Key] = {k.name: k for k in MISSION_KEYS}
+
+
+def mission_keys_table() -> str:
+    """The ``[mission]`` table of docs/fleet.md, generated from :data:`MISSION_KEYS`."""
+    return markdown_table(MISSION_KEYS)
 
 
 def _show(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, dict):
-        return "a table"
-    try:
-        return json.dumps(value)
-    except (TypeError, ValueError):
-        return repr(value)
+    return show_value(value)
 
 
 def parse_mission_config(table: Mapping[str, Any], source: str = "<mission>") -> MissionConfig:
-    """Parse a decoded ``[mission]`` table; raise :class:`ConfigError` naming the key."""
+    """Parse a decoded ``[mission]`` table against :data:`MISSION_KEYS`, then the relations
+    between keys; raise :class:`ConfigError` naming the key, the value and the bound."""
 
     def err(key: str | None, msg: str) -> ConfigError:
         where = f"[mission].{key}" if key else "[mission]"
         return ConfigError(f"{source}: {where}: {msg}")
 
-    allowed = [k for k, _, _ in _NUMBERS] + list(_CHOICES) + list(_FLAGS)
     for key in table:
-        if key not in allowed:
-            raise err(key, f"unknown key (allowed: {', '.join(allowed)})")
+        if key not in _BY_NAME:
+            raise err(key, f"unknown key (allowed: {', '.join(_BY_NAME)})")
     values: dict[str, Any] = {}
-    for key, required, kind in _NUMBERS:
-        if key not in table:
-            if required:
-                raise err(key, "missing required key")
+    for k in MISSION_KEYS:
+        if k.name not in table:
+            if k.required:
+                raise err(k.name, "missing required key")
+            values[k.name] = k.default
             continue
-        v = table[key]
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise err(key, f"expected a number, got {_show(v)}")
-        x = float(v)
-        if not math.isfinite(x):
-            raise err(key, f"expected a finite number, got {_show(v)}")
-        if kind == "pos" and not x > 0:
-            raise err(key, f"must be > 0, got {_show(v)}")
-        if kind == "nonneg" and not x >= 0:
-            raise err(key, f"must be >= 0, got {_show(v)}")
-        values[key] = x
-    for key, choices in _CHOICES.items():
-        if key in table:
-            v = table[key]
-            if not isinstance(v, str) or v not in choices:
-                raise err(key, f"expected one of {', '.join(map(json.dumps, choices))}, "
-                               f"got {_show(v)}")
-            values[key] = v
-    for key in _FLAGS:
-        if key in table:
-            v = table[key]
-            if not isinstance(v, bool):
-                raise err(key, f"expected true or false, got {_show(v)}")
-            values[key] = v
-    if not -90.0 < values["origin_lat_deg"] < 90.0:
-        raise err("origin_lat_deg", f"must be within (-90, 90), got {values['origin_lat_deg']:g}")
-    if not -180.0 <= values["origin_lon_deg"] <= 180.0:
-        raise err("origin_lon_deg", f"must be within [-180, 180], got "
-                                    f"{values['origin_lon_deg']:g}")
+        try:
+            values[k.name] = k.parse(table[k.name])
+        except ValueError as exc:
+            raise err(k.name, str(exc)) from None
     cfg = MissionConfig(**values)
     if cfg.lost_after_s < cfg.period_s:
         raise err("lost_after_s", f"must be at least one control period "
@@ -237,7 +256,25 @@ def parse_mission_config(table: Mapping[str, Any], source: str = "<mission>") ->
     if cfg.neighbour_max_age_s > cfg.lost_after_s:
         raise err("neighbour_max_age_s", f"must not exceed lost_after_s = {cfg.lost_after_s:g}, "
                                          f"got {cfg.neighbour_max_age_s:g}")
+    if cfg.altitude_tolerance_m >= cfg.altitude_m:
+        raise err("altitude_tolerance_m", f"must be less than altitude_m = {cfg.altitude_m:g} "
+                                          f"(take-off would be complete on the ground), got "
+                                          f"{cfg.altitude_tolerance_m:g}")
+    climb_s = cfg.altitude_m / cfg.climb_speed_m_s
+    if climb_s > cfg.takeoff_timeout_s:
+        raise err("takeoff_timeout_s", f"must be at least altitude_m / climb_speed_m_s = "
+                                       f"{cfg.altitude_m:g} / {cfg.climb_speed_m_s:g} = "
+                                       f"{climb_s:.3g} s (the climb), got "
+                                       f"{cfg.takeoff_timeout_s:g}")
+    if cfg.altitude_gain_1_s > cfg.rate_hz:
+        raise err("altitude_gain_1_s", f"must be at most rate_hz = {cfg.rate_hz:g} (k T <= 1: "
+                                       f"one control period must not overshoot), got "
+                                       f"{cfg.altitude_gain_1_s:g}")
     return cfg
+
+
+class SlotError(ConfigError):
+    """The mission's start slots overlap, touch an obstacle or leave the tube."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,6 +317,22 @@ class Mission:
         """The same mission flying only the first ``n`` slots."""
         return Mission(self.scenario.with_robots(n), self.config)
 
+    def require_slots(self, count: int | None = None) -> None:
+        """Refuse slots 0..count-1 that overlap each other, an obstacle, or leave the tube
+        (Assumption 1 with the scenario's own r_s; the run's preflight re-checks with the safety
+        budget): raises :class:`SlotError` listing each offending slot with the numbers."""
+        from vtube_fleet.core.validation import validate_scenario
+
+        n = self.count if count is None else count
+        sc = self.scenario
+        _, violations = validate_scenario(sc.tube, sc.obstacles, sc.controller, self.slots[:n])
+        bad = [v.message.removeprefix("Assumption1 violated: ") for v in violations
+               if v.condition == "Assumption1"]
+        if bad:
+            text = "; ".join(bad).replace("robots ", "slots ").replace("robot ", "slot ")
+            raise SlotError(f"{self.source}: [robots].positions: {len(bad)} problem(s) with the "
+                            f"start slots (Assumption 1, r_s = {sc.robots.r_s:g} m): {text}")
+
 
 def load_mission(path: str | os.PathLike[str]) -> Mission:
     """Read a mission file: a scenario plus ``[mission]``. Raises :class:`ConfigError`."""
@@ -292,4 +345,8 @@ def load_mission(path: str | os.PathLike[str]) -> Mission:
         raise ConfigError(f"{source}: [robots].model: the fleet flies multicopters, which take "
                           f"velocity setpoints (single_integrator); got "
                           f"{_show(scenario.robots.model)}")
+    if scenario.robots.v_max > PX4_MAX_HORIZONTAL_M_S:
+        raise ConfigError(f"{source}: [robots].v_max: must be <= {PX4_MAX_HORIZONTAL_M_S:g} "
+                          f"(PX4's MPC_XY_VEL_MAX default: faster setpoints are clipped), got "
+                          f"{scenario.robots.v_max:g}")
     return Mission(scenario, parse_mission_config(scenario.extra["mission"], source))

@@ -50,9 +50,11 @@ class FleetCliError(UserError):
 # helpers shared by the commands, the tests and the benchmark
 # ----------------------------------------------------------------------------------------------
 def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
-    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1."""
-    geo = mission.slot_geodetic()
+    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1; refuses slots
+    that overlap or leave the tube (:meth:`Mission.require_slots`)."""
     n = mission.count if count is None else count
+    mission.require_slots(n)  # overlapping slots or slots outside the tube: no homes
+    geo = mission.slot_geodetic()
     return [f"{i} PX4_HOME_LAT={geo[i, 0]:.7f} PX4_HOME_LON={geo[i, 1]:.7f} "
             f"PX4_HOME_ALT={geo[i, 2]:.2f}" for i in range(n)]
 
@@ -65,14 +67,18 @@ def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:
 @contextlib.asynccontextmanager
 async def mock_fleet(mission: Mission, count: int | None = None, *,
                      gcs_port: int | None = None, vehicle_port: int | None = None,
-                     **kwargs: Any) -> AsyncIterator[Any]:
+                     processes: int = 1, **kwargs: Any) -> AsyncIterator[Any]:
     """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager); PX4's port
     scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond.
     ``gcs_port`` / ``vehicle_port``: a custom scheme instead (vehicle i: GCS port
     ``gcs_port`` + i, sending from ``vehicle_port`` + i; defaults 14540 and GCS port + 40);
-    other keyword arguments go to ``MockFleet``."""
+    ``processes`` > 1: a ``sim_stub.ProcessFleet`` (the vehicles split over that many OS
+    processes, same ports; ``endpoints``, ``serve(stop)`` but no in-process vehicles); other
+    keyword arguments go to ``MockFleet``. A mock error (also a mock process dying inside the
+    ``async with``, reported by ``serve``) is a :class:`FleetCliError` with the mock's exit
+    code."""
     try:
-        from sim_stub import MockFleet, PortScheme, SimStubError
+        from sim_stub import MockFleet, MockProcessError, PortScheme, ProcessFleet, SimStubError
     except ImportError as exc:  # pragma: no cover - sim_stub ships with the package
         raise FleetCliError(f"the built-in mock fleet (sim_stub) is not available: {exc}"
                             ) from None
@@ -80,20 +86,35 @@ async def mock_fleet(mission: Mission, count: int | None = None, *,
     if not 1 <= n <= mission.count:
         raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
                             f"slots), got {n}")
+    if not 1 <= processes <= n:
+        raise FleetCliError(f"--processes must be between 1 and {n} (the vehicle count), got "
+                            f"{processes}")
+    mission.require_slots(n)  # never place vehicles in overlapping slots or outside the tube
     if gcs_port is not None or vehicle_port is not None:
         gcs = 14540 if gcs_port is None else gcs_port
         veh = gcs + 40 if vehicle_port is None else vehicle_port
         kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
     kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
     try:
-        fleet = MockFleet(n, homes=_homes(mission, n), **kwargs)
+        if processes > 1:
+            fleet = ProcessFleet(n, processes=processes, homes=_homes(mission, n), **kwargs)
+        else:
+            fleet = MockFleet(n, homes=_homes(mission, n), **kwargs)
         await fleet.start()
     except SimStubError as exc:
-        raise FleetCliError(f"mock fleet: {exc}") from None
+        raise _mock_error(exc) from None
     try:
         yield fleet
+    except MockProcessError as exc:  # a child died (ProcessFleet.serve)
+        raise _mock_error(exc) from None
     finally:
         await fleet.stop()
+
+
+def _mock_error(exc: Exception) -> FleetCliError:
+    err = FleetCliError(f"mock fleet: {exc}")
+    err.exit_code = int(getattr(exc, "exit_code", 2))
+    return err
 
 
 def parse_endpoint_list(text: str, slots: int) -> list[str]:
@@ -101,7 +122,8 @@ def parse_endpoint_list(text: str, slots: int) -> list[str]:
 
     urls = [u.strip() for u in text.split(",") if u.strip()]
     if not urls:
-        raise FleetCliError("--endpoints: no endpoint given")
+        raise FleetCliError(f"--endpoints: no endpoint given (got {text!r}); leave "
+                            f"--endpoints out to fly the built-in mock fleet")
     if len(urls) > slots:
         raise FleetCliError(f"--endpoints: {len(urls)} endpoints but the mission has only "
                             f"{slots} slots (endpoint i flies slot i)")

@@ -90,7 +90,7 @@ from vtube_fleet.fleet.pilot import (
     sense_all,
     wait_accuracy,
 )
-from vtube_fleet.fleet.view import FleetStatus, FleetView
+from vtube_fleet.fleet.view import FleetStatus, FleetView, vehicle_rows
 from vtube_fleet.link.base import VehicleLink
 from vtube_fleet.outcome import EXIT_INCOMPLETE, exit_code
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, Phase
@@ -113,6 +113,16 @@ TRUTH_RATE_HZ = 20.0
 
 #: Minimum height of the mission altitude above every vehicle before take-off.
 MIN_CLIMB_M = 1.0
+#: While flying, ``summary.json`` is rewritten (atomically, ``complete: false``) this often (less
+#: often when writing it takes more than 1 % of the time), so a run killed without cleaning up
+#: (SIGKILL) still leaves its last summary.
+SUMMARY_EVERY_S = 2.0
+
+
+async def _raise(result: object) -> None:
+    """Re-raise a result of ``gather(..., return_exceptions=True)`` inside a coroutine."""
+    if isinstance(result, BaseException):
+        raise result
 
 
 class FleetError(UserError):
@@ -172,7 +182,8 @@ def preflight_report(
     (endpoint)``) with the numbers.
     """
     sc = mission.scenario
-    part, violations = validate_scenario(sc.tube, sc.obstacles, params, positions)
+    part, violations = validate_scenario(sc.tube, sc.obstacles, params, positions,
+                                         keep_out=mission.slots)  # "auto": plan on the slots
 
     def one(text: str) -> str:
         i = int(text)
@@ -210,6 +221,8 @@ class Supervisor:
         keep_trace: bool = False,
         tick_hook: Callable[[int, Supervisor], None] | None = None,
         truth: bool = False,
+        fence: bool = True,
+        fix_params: bool = False,
     ) -> None:
         if not links:
             raise FleetError("no vehicles to fly")
@@ -234,6 +247,13 @@ class Supervisor:
         self.trace: list[TickTrace] = []
         self.tick_hook = tick_hook
         self.truth = truth
+        self.fence = fence  # upload the tube as PX4's geofence before arming (fleet/onboard.py)
+        self.fix_params = fix_params  # --fix-params: set the audited PX4 parameters, restore
+        self._param_restore: list[dict[str, float]] = []
+        #: summary "onboard": fence ("uploaded" / "off" / "unsupported" / None = not reached),
+        #: fence_items, gf_action, px4_params (per vehicle, as read), params_fixed
+        self.onboard: dict[str, Any] = {"fence": None, "fence_items": 0, "gf_action": None,
+                                        "px4_params": [], "params_fixed": {}}
 
         sc = mission.scenario
         self.physical = sc.controller  # as configured: the PHYSICAL r_s, r_a (flown: plan.flown)
@@ -242,7 +262,7 @@ class Supervisor:
         self.budget = self._make_budget(None)
         flown = self.budget.inflate(self.physical)
         try:
-            self.plan = FlightPlan.build(sc.tube, sc.obstacles, flown)
+            self.plan = FlightPlan.build(sc.tube, sc.obstacles, flown, keep_out=mission.slots)
         except PartitionError as exc:
             raise PreflightError(
                 f"{mission.source}: with the safety budget {self.budget.describe(self.physical)}"
@@ -326,6 +346,7 @@ class Supervisor:
         loop = asyncio.get_running_loop()
         period = self.cfg.period_s
         next_t = loop.time()
+        next_checkpoint = next_t + SUMMARY_EVERY_S
         prev: float | None = None
         while not self._clock_stop.is_set():
             start = loop.time()
@@ -348,6 +369,12 @@ class Supervisor:
                     await stall  # fault injection: the control loop stalls (event loop alive)
             self.tick += 1
             next_t += period
+            if loop.time() >= next_checkpoint:  # in the slack after a tick, not before one
+                t_c = loop.time()
+                self._checkpoint()
+                cost = loop.time() - t_c
+                # a large fleet's summary costs more: at most ~1 % of the time goes to it
+                next_checkpoint = loop.time() + max(SUMMARY_EVERY_S, 100.0 * cost)
             now = loop.time()
             if next_t < now - period:  # more than a period behind: do not try to catch up
                 next_t = now
@@ -409,9 +436,42 @@ class Supervisor:
             p.actuate(now, cmds.get(p.vehicle_id), view)
         self._measure(t, now, view)
 
+    def _unreachable(self, now: float) -> str | None:
+        """Link loss, told apart from a lost vehicle: once a vehicle is LOST for silence during
+        take-off or the tube, if no other vehicle's telemetry has arrived within
+        ``neighbour_max_age_s`` either, nobody can be commanded — "cannot reach anyone", not a
+        geometry problem (whichever tick notices first gives this same reason). Vehicles lost
+        otherwise (left OFFBOARD, disarmed, unresponsive) still talk: they are not link loss."""
+        if self.stage not in ("takeoff", "tube"):
+            return None
+        silent = [p for p in self.pilots if p.phase == Phase.LOST
+                  and (p.reason or "").startswith("no telemetry")]
+        if not silent:
+            return None
+        others = [p for p in self.pilots if p not in silent
+                  and (p.phase in AIRBORNE_PHASES or p.phase == Phase.LOST)]
+        max_age = self.cfg.neighbour_max_age_s
+        since = -math.inf if self.listening_since is None else self.listening_since
+        # (after a stall of our own loop, silence is counted from when it resumed)
+        for p in others:
+            last = p.link.state.last_position_s
+            if last is not None and now - max(last, since) <= max_age:
+                return None  # someone still answers: a lost vehicle, not a dead fleet link
+        return (f"link loss: cannot reach anyone: {len(silent)} of {len(self.pilots)} vehicles "
+                f"silent for more than lost_after_s = {self.cfg.lost_after_s:g} s"
+                + (f" and the other {len(others)} not heard for more than "
+                   f"neighbour_max_age_s = {max_age:g} s" if others else "")
+                + "; no vehicle can be commanded (PX4's offboard-loss failsafe takes over); "
+                "check the links and the vehicles' processes, not the tube")
+
     def _update_partition(self, view: NeighbourView, t: float) -> None:
         if not view.lost_ids.size:
             return
+        if self._abort_reason is None:
+            dead = self._unreachable(time.monotonic())
+            if dead is not None:
+                self.request_abort(dead)
+                return
         if not any(p.phase in (Phase.IN_TUBE, Phase.TAKEOFF) for p in self.pilots):
             return  # nobody left to fly the tube
         root = self.pilots[0].agent.root_plan
@@ -421,9 +481,14 @@ class Supervisor:
             new = root.with_lost(lost)
         except PartitionError as exc:
             if self._abort_reason is None:
+                ids = [int(i) for i in view.lost_ids]
+                why = "; ".join(f"vehicle {p.vehicle_id}: {p.reason}" for p in self.pilots
+                                if p.vehicle_id in ids and p.reason)
                 self.request_abort(
-                    f"no valid partition with the lost vehicle(s) "
-                    f"{', '.join(str(int(i)) for i in view.lost_ids)} as obstacles: {exc}")
+                    f"cannot re-partition the tube around the lost vehicle(s) "
+                    f"{', '.join(map(str, ids))} (in the air at their last known positions, "
+                    f"each an obstacle of radius r_s + lost_obstacle_margin_m"
+                    f"{'; ' + why if why else ''}): {exc}")
             return
         if new is not self.plan:
             self.plan = new
@@ -444,6 +509,8 @@ class Supervisor:
         self._abort_reason = reason
         self.event(f"ABORT: {reason}", level="error")
         for p in self.pilots:
+            if p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.ARMING, Phase.TAKEOFF):
+                p.reason = p.reason or f"mission aborted: {reason}"
             if p.phase in (Phase.IN_TUBE, Phase.EXITED):
                 p.begin_hold("mission aborted")
         self._abort_event.set()
@@ -644,6 +711,9 @@ class Supervisor:
         if late:
             st.on_time = float(np.mean(np.asarray(late) <= self.cfg.period_s / 2))
         st.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
+        if self.view is not None and self.view.tty:  # the per-vehicle table (terminal only)
+            sc = self.mission.scenario
+            st.rows = vehicle_rows(self.pilots, sc.tube, sc.obstacles, self.monitor.r_s)
         return st
 
     def _achieved_rate(self, window: int | None = None) -> float:
@@ -773,6 +843,87 @@ class Supervisor:
                                  f"do, real vehicles do not): " + "; ".join(problems))
         self.event(f"ground truth (HIL_STATE_QUATERNION) requested at {TRUTH_RATE_HZ:g} Hz")
 
+    async def _audit_params(self) -> None:
+        """The PX4 parameter audit on connect (:func:`~vtube_fleet.fleet.onboard.audit_fleet`):
+        hard mismatches refuse to arm with the numbers, soft ones warn; ``fix_params`` sets
+        them (the old values are restored by :meth:`_shutdown`)."""
+        from vtube_fleet.fleet.onboard import audit_fleet
+
+        res = await audit_fleet([p.link for p in self.pilots], self.mission, fix=self.fix_params)
+        self._param_restore = res.changed
+        self.onboard["px4_params"] = res.values
+        self.onboard["params_fixed"] = {self.names[i]: old for i, old in enumerate(res.changed)
+                                        if old}
+        if res.unsupported:
+            self.event(f"PX4 parameter audit skipped: the {self.backend} backend cannot read "
+                       f"PX4 parameters (use --backend mavlink)", level="warning")
+        for w in res.warnings:
+            self.event(w, level="warning")
+        if res.problems:
+            raise PreflightError("preflight failed, nothing armed: PX4 parameters: "
+                                 + "; ".join(res.problems)
+                                 + " (vtube-fleet run --fix-params sets them for the flight)")
+        if not res.unsupported:
+            self.event(f"PX4 parameters checked on {len(self.pilots)} vehicles"
+                       + (" (--fix-params)" if self.fix_params else ""))
+
+    async def _install_fences(self) -> None:
+        """The tube as every vehicle's geofence (GF_ACTION, upload, read back, compare);
+        a vehicle that refuses it keeps the fleet on the ground."""
+        from vtube_fleet.fleet.onboard import (
+            GF_ACTION_VALUES,
+            fence_geometry,
+            fence_items,
+            install_fence,
+        )
+        from vtube_fleet.link.base import LinkUnsupported
+
+        if not self.fence:
+            self.onboard["fence"] = "off"
+            self.event("--no-fence: no geofence uploaded; PX4 does not know the tube and a "
+                       "vehicle that our process loses can leave it", level="warning")
+            return
+        geom = fence_geometry(self.mission)
+        positions = np.array([p.xy for p in self.pilots])
+        problems = geom.problems(positions, self.names)
+        if problems:
+            raise PreflightError("preflight failed, nothing armed: the fence would be breached "
+                                 "at once: " + "; ".join(problems))
+        items = fence_items(self.mission, geom)
+        action = self.cfg.fence_action
+        results = await asyncio.gather(
+            *(install_fence(p.link, items, GF_ACTION_VALUES[action]) for p in self.pilots),
+            return_exceptions=True)
+        if any(isinstance(r, LinkUnsupported) for r in results):
+            self.onboard["fence"] = "unsupported"
+            self.event(f"fence NOT uploaded: the {self.backend} backend cannot upload PX4 "
+                       f"fences (use --backend mavlink, or --no-fence to silence this)",
+                       level="warning")
+            return
+        problems = await self._gather_named("fence", [_raise(r) for r in results])
+        if problems:
+            raise PreflightError(f"preflight failed, nothing armed: {len(problems)} of "
+                                 f"{len(self.pilots)} vehicles refused the fence: "
+                                 + "; ".join(problems))
+        self.onboard.update(fence="uploaded", fence_items=len(items), gf_action=action)
+        self.event(f"fence on {len(self.pilots)} vehicles: {len(geom.polygon)}-vertex polygon "
+                   f"(legs + {geom.widen_m:.2f} m, {geom.back_m:.2f} m behind the start, "
+                   f"{geom.exit_m:.2f} m past the finish), {geom.circle_radii.size} exclusion "
+                   f"circle(s); GF_ACTION = {GF_ACTION_VALUES[action]} ({action})")
+
+    async def _restore_params(self) -> None:
+        """Set back what ``fix_params`` changed (every exit path: called by _shutdown)."""
+        if not any(self._param_restore):
+            return
+        from vtube_fleet.fleet.onboard import restore_params
+
+        fails = await restore_params([p.link for p in self.pilots], self._param_restore)
+        for line in fails:
+            self.event(line, level="error")
+        if not fails:
+            self.event("--fix-params: the PX4 parameters are restored")
+        self._param_restore = []
+
     async def _takeoff(self) -> None:
         self._set_stage("takeoff")
         problems = await self._gather_named("take-off",
@@ -840,6 +991,9 @@ class Supervisor:
     async def _emergency(self, why: str) -> None:
         """Everyone holds, then lands (Ctrl-C / SIGTERM)."""
         self.event(f"{why}: every vehicle holds, then lands", level="warning")
+        for p in self.pilots:
+            if p.exit_time_s is None and p.phase in AIRBORNE_PHASES:
+                p.reason = p.reason or f"{why}: held, then landed"
         self._set_stage("interrupted")
         await self._gather_named("hold", [p.hold() for p in self.pilots])
         await self._gather_named("land", [p.land() for p in self.pilots])
@@ -849,7 +1003,9 @@ class Supervisor:
         await self._connect()
         self._clock_task = asyncio.get_running_loop().create_task(self._clock())
         await self._ready()
+        await self._audit_params()
         await self._measure_budget()
+        await self._install_fences()
         await self._takeoff()
         await self._fly_tube()
         lost = [p for p in self.pilots if p.phase == Phase.LOST]
@@ -876,6 +1032,7 @@ class Supervisor:
         """Fly the mission; always writes ``summary.json`` (when ``out_dir`` is set)."""
         loop = asyncio.get_running_loop()
         error: BaseException | None = None
+        self._checkpoint()  # from the first moment on, a summary.json exists
         try:
             self._main = loop.create_task(self._mission())
             try:
@@ -949,6 +1106,21 @@ class Supervisor:
         except asyncio.CancelledError:
             pass
 
+    def _checkpoint(self) -> None:
+        """The summary so far, written atomically (``complete: false``): a run killed without
+        a chance to clean up (SIGKILL, power loss) still leaves its last summary."""
+        if self.out_dir is None:
+            return
+        try:
+            summary = self.summary()
+            summary.update(
+                outcome="running", complete=False,
+                reason=f"the run was still in flight (stage {self.stage}, {self.t_s():.1f} s) "
+                       f"when this summary was written; it ended without writing its own")
+            write_summary(self.out_dir, summary)
+        except Exception as exc:  # noqa: BLE001 - a checkpoint never stops the flight
+            log.warning("cannot write the interim summary.json in %s: %s", self.out_dir, exc)
+
     async def _shutdown(self) -> tuple[dict[str, Any], Path | None]:
         self._clock_stop.set()
         if self._clock_task is not None:
@@ -959,7 +1131,9 @@ class Supervisor:
         for p in self.pilots:
             for t in list(p._tasks):
                 t.cancel()
+        await self._restore_params()
         summary = self.summary()
+        summary["complete"] = True
         path = None
         self.recorder.log_summary(summary)
         if self.out_dir is not None:
@@ -997,12 +1171,16 @@ class Supervisor:
             "backend": self.backend,
             "outcome": self.outcome,
             "reason": self.reason,
+            "onboard": dict(self.onboard),  # the fence and the PX4 parameter audit
             "vehicles": len(self.pilots),
             "lost": [p.vehicle_id for p in self.pilots if p.phase == Phase.LOST],
             "r_s": self.physical.r_s,
             "r_a": self.physical.r_a,
             "r_s_flown": flown.r_s,
             "r_a_flown": flown.r_a,
+            "apex_distances_m": [  # h_k of the configured obstacles flown ("auto": core/plan.py)
+                next((t.h for t in self.plan.partition.triangles if t.obstacle == i), None)
+                for i in range(len(self.mission.scenario.obstacles))],
             "pair_limit_m": self.monitor.limits.pair_m,
             "safety_budget": self.budget.as_dict(),
             "min_pair_distance_airborne_m": finite_or_none(self.min_pair_airborne),

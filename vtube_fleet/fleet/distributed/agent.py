@@ -19,6 +19,8 @@ import numpy as np
 
 from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
+from vtube_fleet.bus.validate import mission_state_limits
+from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import finite_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
@@ -79,7 +81,8 @@ class AgentAborted(UserError):
 
 
 class AgentInterrupted(Exception):
-    """SIGINT / SIGTERM arrived (the vehicle has been held and landed when this propagates)."""
+    """SIGINT / SIGTERM arrived; the message says what became of the vehicle (held and landed
+    after the start; nothing armed before it; never reached during the join)."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -125,6 +128,12 @@ class BusAwarePilot(VehiclePilot):
         self.recording: AgentRecording | None = None  # fed after every tick once flying
         self._healthy_since: float | None = None  # wall time the bus became healthy again
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
+
+    def stop_for(self, why: str) -> None:
+        """Keep the first reason this vehicle stopped flying the tube (its summary's and its
+        state's ``reason``): a hold or landing is never left unexplained."""
+        if not self.reason:
+            self.reason = why
 
     def set_phase(self, phase: Phase, why: str = "") -> bool:
         changed = super().set_phase(phase, why)
@@ -186,7 +195,9 @@ class BusAwarePilot(VehiclePilot):
             super().tick(now_mono, now_wall)
         except PartitionError as exc:
             self.cmd_xy = None
-            self.begin_hold(f"no valid partition around the lost vehicles: {exc}")
+            why = f"cannot re-partition the tube around the lost vehicles: {exc}"
+            self.stop_for(why)
+            self.begin_hold(why)
         if self.phase == Phase.IN_TUBE and self.watch is not None:
             self.watch.add_ages(now_mono, [self.sample_age_s(now_mono)])
             warning, hold = self.watch.check(now_mono, self.link.latency_s or 0.0,
@@ -194,6 +205,7 @@ class BusAwarePilot(VehiclePilot):
             if warning:
                 self.event(warning, "warning")
             if hold:  # holding, this vehicle becomes an obstacle for every other agent
+                self.stop_for(hold)
                 self.begin_hold(hold)
 
     def _forget_out_of_range(self) -> None:
@@ -224,10 +236,10 @@ class BusAwarePilot(VehiclePilot):
             return  # check_faults declared it lost
         held = now_mono - (self.bus_hold_since or now_mono)
         if held > self.broker_hold_limit_s and not self.mqtt.connected:
-            self.begin_land(
-                f"no MQTT broker for {held:.0f} s > --broker-hold-limit "
-                f"{self.broker_hold_limit_s:g} s"
-            )
+            why = (f"no MQTT broker for {held:.0f} s > --broker-hold-limit "
+                   f"{self.broker_hold_limit_s:g} s")
+            self.stop_for(why)
+            self.begin_land(why)
             return
         self.cmd_xy = np.zeros(2)
         self.cmd_in_tube = False
@@ -348,8 +360,12 @@ class AgentProcess:
         out: str | Path | None = None,
         recorder: Recorder | None = None,
         say: Callable[[str], None] | None = None,
+        credentials: str | Path | None = None,
+        insecure: bool = False,
     ) -> None:
-        """``out``: folder for this agent's ``summary.json`` (None: nothing written);
+        """``credentials``: the agent's broker credentials file (``vtube-fleet bus-setup``);
+        ``insecure``: allow a plain-MQTT broker that is not on loopback;
+        ``out``: folder for this agent's ``summary.json`` (None: nothing written);
         ``recorder``: records this agent's view (:class:`AgentRecording`; default: nothing);
         ``say``: where progress lines go (the command prints them; default: the log)."""
         from vtube_fleet.config.mission import load_mission
@@ -369,6 +385,11 @@ class AgentProcess:
         parse_endpoint(self.endpoint)
         self.backend = backend
         self.max_age_s = default_max_age_s(self.mission)  # the run's value once joined
+        for flag, value in (("--join-timeout", join_timeout_s),
+                            ("--broker-hold-limit", broker_hold_limit_s)):
+            why = POSITIVE.problem(float(value))  # NaN would wait forever
+            if why is not None:
+                raise AgentRefused(f"{flag}: {why}, got {value:g}")
         self.join_timeout_s = join_timeout_s
         self.broker_hold_limit_s = broker_hold_limit_s
         self.out = None if out is None else Path(out)
@@ -376,7 +397,9 @@ class AgentProcess:
         self._say: Callable[[str], None] = say if say is not None else log.info
         self.recording: AgentRecording | None = None
         self.summary_path: Path | None = None
-        self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash)
+        self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash,
+                           credentials=credentials, insecure=insecure,
+                           limits=mission_state_limits(self.mission))
         self.run_cfg: MissionConfigMsg | None = None
         self.pilot: BusAwarePilot | None = None
         self.budget: SafetyBudget | None = None
@@ -421,6 +444,22 @@ class AgentProcess:
             return True
         return s is not None and s.phase in (Phase.LOST, Phase.FAILED, Phase.LANDED)
 
+    async def _unless_interrupted(self, aw: Any, doing: str) -> Any:
+        """Await ``aw`` (before the start: nothing armed) unless a signal comes first: then
+        cancel it and raise :class:`AgentInterrupted` saying so."""
+        task = asyncio.ensure_future(aw)
+        stop = asyncio.ensure_future(self._interrupt.wait())
+        try:
+            await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+        if task.done():
+            return task.result()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, UserError):
+            await task
+        raise AgentInterrupted(f"interrupted while {doing} (nothing armed)")
+
     async def _wait(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
         """Wait for ``predicate`` (False on timeout); an abort or a signal raises."""
 
@@ -429,8 +468,10 @@ class AgentProcess:
 
         with contextlib.suppress(TimeoutError):
             await self.bus.wait_for(check, timeout_s)
-        if self._interrupt.is_set():
-            raise AgentInterrupted
+        if self._interrupt.is_set():  # only waits before the start: nothing is armed
+            raise AgentInterrupted(
+                "interrupted before reaching the vehicle (nothing armed)" if self.pilot is None
+                else "interrupted before the start (vehicle connected, nothing armed)")
         if self._abort.is_set():
             raise AgentAborted(f"vehicle {self.vehicle}: run aborted by the coordinator")
         return predicate()
@@ -459,7 +500,9 @@ class AgentProcess:
         try:
             await self.bus.wait_connected(30.0)
         except TimeoutError:
-            raise AgentRefused(f"cannot reach the MQTT broker {self.bus.url} within 30 s") from None
+            why = f" ({self.bus.last_error})" if self.bus.last_error else ""
+            raise AgentRefused(
+                f"cannot reach the MQTT broker {self.bus.url} within 30 s{why}") from None
         await self.bus.sync()
         if self.bus.config is None:
             self.say(
@@ -476,6 +519,7 @@ class AgentProcess:
         assert cfg is not None
         self.check_run(cfg)
         self.run_cfg = cfg
+        self.bus.set_limits(self.bus.limits.with_vehicles(cfg.vehicles))
         if cfg.max_age_s > 0:
             self.max_age_s = cfg.max_age_s
         if cfg.cell_m > 0:
@@ -488,7 +532,8 @@ class AgentProcess:
     def _plan(self, budget: SafetyBudget) -> FlightPlan:
         sc = self.mission.scenario
         try:
-            return FlightPlan.build(sc.tube, sc.obstacles, budget.inflate(sc.controller))
+            return FlightPlan.build(sc.tube, sc.obstacles, budget.inflate(sc.controller),
+                                    keep_out=self.mission.slots)
         except PartitionError as exc:
             raise self.refuse(
                 f"with the safety budget {budget.describe(sc.controller)} the tube cannot be "
@@ -616,6 +661,8 @@ class AgentProcess:
         stop = asyncio.Event()
         clock = asyncio.get_running_loop().create_task(pilot.run_clock(stop))
         try:
+            if pilot.exit_time_s is None:
+                pilot.stop_for(why)
             pilot.event(f"{why}: hold, then land", "warning")
             with contextlib.suppress(UserError):
                 await pilot.hold()
@@ -657,13 +704,15 @@ class AgentProcess:
             broker_hold_limit_s=self.broker_hold_limit_s,
         )
         self.pilot = pilot
-        await link.connect(cfg.connect_timeout_s)
+        await self._unless_interrupted(link.connect(cfg.connect_timeout_s),
+                                       "connecting to the vehicle")
         stop_pre = asyncio.Event()
         pre_clock = asyncio.get_running_loop().create_task(pilot.run_clock(stop_pre))
         try:
-            await pilot.wait_ready()
+            await self._unless_interrupted(pilot.wait_ready(), "waiting for the vehicle")
             self.bus.announce("online", stage="ready")
-            await self.measure_budget(pilot)
+            await self._unless_interrupted(self.measure_budget(pilot),
+                                           "measuring the link")
             self.say("vehicle READY; waiting for the start command")
 
             def started() -> bool:
@@ -745,18 +794,22 @@ class AgentProcess:
             except UserError as exc:  # take-off failed, timeouts ...
                 await self._land_now(pilot, str(exc))
                 raise AgentAborted(f"vehicle {self.vehicle}: {exc}") from None
-            self.bus.announce("online", stage="done")
             ok = phase in (Phase.LANDED, Phase.HOLDING) and pilot.exit_time_s is not None
-            self.say(f"finished: {phase.value}" + ("" if ok else f" ({pilot.reason or ''})"))
+            why = "" if ok else (pilot.reason or f"did not exit (final phase {phase.value})")
+            if why:
+                pilot.stop_for(why)
+            self.bus.announce("online", why, stage="done")  # the coordinator's reason hears it
+            self.say(f"finished: {phase.value}" + ("" if ok else f" ({why})"))
             return EXIT_OK if ok else EXIT_INCOMPLETE
         fly_task.cancel()
         with contextlib.suppress(asyncio.CancelledError, UserError):
             await fly_task
         why = "interrupted" if self._interrupt.is_set() else "run aborted by the coordinator"
         await self._land_now(pilot, why)
-        self.bus.announce("online", stage="done")
+        self.bus.announce("online", pilot.reason or why, stage="done")
         if self._interrupt.is_set():
-            raise AgentInterrupted
+            raise AgentInterrupted(f"interrupted: vehicle held, then landed (final phase "
+                                   f"{pilot.phase.value})")
         raise AgentAborted(f"vehicle {self.vehicle}: {why}; final phase {pilot.phase.value}")
 
     async def run(self) -> int:

@@ -22,6 +22,8 @@ from vtube_fleet.artifacts import write_summary
 from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, encode_config
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.topics import validate_mission_id
+from vtube_fleet.bus.validate import mission_state_limits
+from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import verdict
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.distributed.monitor import RunMonitor
@@ -40,6 +42,7 @@ __all__ = [
     "bus_safety_budget",
     "default_max_age_s",
     "default_mission_id",
+    "mission_bus_setup",
     "needed_cell_m",
     "run_cell_m",
 ]
@@ -102,6 +105,23 @@ def run_cell_m(mission: Any, max_age_s: float) -> float:
     return math.ceil(2.0 * needed_cell_m(mission, max_age_s, delta)) / 2.0
 
 
+def mission_bus_setup(mission_path: str | Path, out: str | Path, *,
+                      mission_id: str | None = None, vehicles: int | None = None,
+                      **options: Any) -> Any:
+    """``vtube-fleet bus-setup``: :func:`vtube_fleet.bus.security.bus_setup` for a mission
+    file (its mission id and slots unless given); ``options`` go to ``bus_setup``."""
+    from vtube_fleet.bus.security import SetupError, bus_setup
+    from vtube_fleet.config.mission import load_mission
+
+    path = Path(mission_path)
+    mission = load_mission(path)
+    n = mission.count if vehicles is None else int(vehicles)
+    if not 1 <= n <= mission.count:
+        raise SetupError(f"--vehicles must be between 1 and {mission.count} (the slots of "
+                         f"{path.name}), got {n}")
+    return bus_setup(out, mission_id or default_mission_id(path), n, **options)
+
+
 def default_mission_id(path: str | Path) -> str:
     """The mission id used in the topics: the file name without extension, with characters
     that are not letters, digits, ``_.-`` replaced by ``-``."""
@@ -126,8 +146,12 @@ class Coordinator:
         max_age_s: float | None = None,
         cells: bool = True,
         say: Callable[[str], None] | None = None,
+        credentials: str | Path | None = None,
+        insecure: bool = False,
     ) -> None:
-        """``say``: where progress lines go (the command prints them; default: the log)."""
+        """``say``: where progress lines go (the command prints them; default: the log);
+        ``credentials``: the coordinator's broker credentials file (``vtube-fleet
+        bus-setup``); ``insecure``: allow a plain-MQTT broker that is not on loopback."""
         from vtube_fleet.config.mission import load_mission
 
         self.path = Path(mission_path)
@@ -142,6 +166,7 @@ class Coordinator:
                 f"{self.path.name}), got {n}"
             )
         self.vehicles = n
+        self.end_reason = ""  # why the followed run ended (:meth:`follow`), if not completed
         self.max_age_s = default_max_age_s(self.mission) if max_age_s is None else max_age_s
         lost_after = self.mission.config.lost_after_s
         if not 0 < self.max_age_s <= lost_after:
@@ -152,8 +177,12 @@ class Coordinator:
         self.cells = cells
         self.say: Callable[[str], None] = say if say is not None else log.info
         self.broker = broker
+        why = POSITIVE.problem(float(broker_timeout_s))
+        if why is not None:
+            raise MissionRunError(f"--broker-timeout: {why}, got {broker_timeout_s:g}")
         self.broker_timeout_s = broker_timeout_s
-        self.bus = MqttBus(broker, self.mission_id)
+        self.bus = MqttBus(broker, self.mission_id, credentials=credentials, insecure=insecure,
+                           limits=mission_state_limits(self.mission))
         self.run_id = ""
         self.announced: MissionConfigMsg | None = None
         self.t_start_wall: float | None = None
@@ -164,9 +193,10 @@ class Coordinator:
             await self.bus.wait_connected(self.broker_timeout_s)
         except TimeoutError:
             await self.bus.close()
+            why = self.bus.last_error or "is it running? --broker mqtts://HOST:PORT"
             raise MissionRunError(
                 f"cannot reach the MQTT broker {self.broker} within {self.broker_timeout_s:g} s "
-                f"(is it running? --broker mqtt://HOST:PORT)"
+                f"({why})"
             ) from None
         return self
 
@@ -293,6 +323,7 @@ class Coordinator:
         last_print = -math.inf
         next_t = loop.time()
         aborted_for: str | None = None
+        self.end_reason = ""
         while True:
             mon.sample(self.bus.latest(), time.time())
             if all(self.finished(v) for v in range(self.vehicles)):
@@ -304,6 +335,8 @@ class Coordinator:
                 self.command("abort")
             now = loop.time()
             if now > deadline:
+                self.end_reason = (f"timeout: still following after {timeout_s:g} s: "
+                                   + self._unfinished(mon, finished_only=True))
                 return "timeout"
             if progress and now - last_print >= 5.0:
                 last_print = now
@@ -319,7 +352,33 @@ class Coordinator:
             (s := self.bus.latest().get(v)) is not None and s.phase == Phase.LANDED
             for v in range(self.vehicles)
         )
-        return "completed" if done and aborted_for is None else "incomplete"
+        if done and aborted_for is None:
+            return "completed"
+        self.end_reason = (f"aborted: agent refused after start: {aborted_for}; "
+                           if aborted_for is not None else "") + self._unfinished(mon)
+        return "incomplete"
+
+    def _unfinished(self, mon: RunMonitor, finished_only: bool = False) -> str:
+        """``N of M vehicles …: vehicle 3 lost (its reason), …``: the vehicles that did not
+        exit and land (``finished_only``: that are not finished yet)."""
+        rows = []
+        for row in self.vehicle_table():
+            vid = int(row["id"])
+            if vid >= self.vehicles:
+                continue
+            exited = vid in mon.exit_stamp
+            if finished_only:
+                if self.finished(vid):
+                    continue
+            elif exited and row["phase"] == Phase.LANDED.value:
+                continue
+            what = row["phase"] or (f"agent {row['status']}" if row["status"] else "no state")
+            detail = row["detail"] or ""
+            rows.append(f"vehicle {vid} {what}" + ("" if exited else ", not exited")
+                        + (f" ({detail})" if detail else ""))
+        verb = "not finished" if finished_only else "did not exit and land"
+        return (f"{len(rows)} of {self.vehicles} vehicles {verb}: " + "; ".join(rows)
+                if rows else "every vehicle finished")
 
     # -- a whole run -------------------------------------------------------------------------
     async def start_run(self, stop: asyncio.Event, ready_timeout_s: float | None = None) -> bool:
@@ -369,23 +428,26 @@ class Coordinator:
             follow = asyncio.ensure_future(self.follow(timeout, mon))
             if await _race(follow, stop):
                 outcome = follow.result()
+                reason = self.end_reason
             else:
                 await _cancel(follow)
                 self.command("abort")
                 await self.bus.sync()
                 self.say("interrupted: abort published; the agents hold, then land")
                 outcome = "interrupted"
+                reason = "interrupted: abort published; the agents hold, then land"
         finally:  # the summary (and the recording) on every exit path
             summary = mon.summary(
                 mission_id=self.mission_id, run_id=self.run_id, config_hash=self.config_hash,
-                broker=self.broker, outcome=outcome, lost=self.lost_vehicles(),
+                broker=self.broker, outcome=outcome, reason=reason, lost=self.lost_vehicles(),
                 vehicle_states=self.vehicle_table(),
                 wall_s=round(time.time() - (self.t_start_wall or time.time()), 3),
             )
             v = verdict(summary)
             if not v.safe:  # THE verdict: a broken limit makes the run unsafe, whatever else
+                before = outcome + (f": {reason}" if reason else "")
                 summary["outcome"] = outcome = "unsafe"
-                summary["reason"] = reason = v.summary_line
+                summary["reason"] = reason = f"{v.summary_line} (the run itself ended {before})"
             path = write_summary(out, summary)
             recorder.log_summary(summary)
             recorder.close()

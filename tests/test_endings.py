@@ -1,0 +1,302 @@
+"""Every ending explained (issue 12), against real processes:
+
+* the mock vehicles' process is SIGKILLed or SIGSTOPped mid-flight → ``aborted`` with "link
+  loss: cannot reach anyone", whichever tick noticed first — never a partition / geometry
+  advice, never "incomplete";
+* ``vtube-fleet run`` is SIGKILLed in the tube → its last ``summary.json`` is there, marked
+  ``complete: false`` (rewritten atomically every few seconds during the flight);
+* a vehicle that held because the mission aborted carries that reason in the summary;
+* an agent SIGTERMed before it reached its vehicle says so (not "vehicle held, then landed");
+* the coordinator's ``incomplete`` names the vehicles that did not exit and land, and why.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fleet_ports import free_ports
+from missions import straight_mission
+
+from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet.launch import fly
+from vtube_fleet.fleet.supervisor import Supervisor
+from vtube_fleet.recording.review import review
+from vtube_fleet.recording.writer import open_recorder
+
+ROOT = Path(__file__).resolve().parents[1]
+
+MISSION = straight_mission(30.0, [[2.0, 4.5], [2.0, 0.0], [2.0, -4.5]], heading_deg=90.0,
+                           extra="land_timeout_s = 20.0\n")
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("MAVLINK20", "1")
+    return env
+
+
+def _read_line(proc: subprocess.Popen[str], stream: str, pred: Any, timeout_s: float) -> str:
+    pipe = getattr(proc, stream)
+    seen: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = pipe.readline()
+        if not line:
+            break
+        seen.append(line.rstrip())
+        if pred(line):
+            return line
+    raise AssertionError(f"condition not seen on {stream} (exit {proc.poll()}):\n"
+                         + "\n".join(seen[-30:]))
+
+
+@contextlib.contextmanager
+def mock_process(mission_path: Path, count: int) -> Iterator[tuple[subprocess.Popen[str],
+                                                                      list[str]]]:
+    """``vtube-fleet mock-fleet`` in a child process on free ports: (process, endpoints)."""
+    ports = free_ports(count)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
+         str(count), "--boot-time-scale", "0.3", "--gcs-port", str(ports.gcs_base),
+         "--vehicle-port", str(ports.vehicle_base)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env(), cwd=ROOT)
+    try:
+        line = _read_line(proc, "stdout", lambda s: s.startswith("udpin://"), 60)
+        yield proc, line.strip().split(",")
+    finally:
+        if proc.poll() is None:
+            proc.kill()  # (a SIGSTOPped process dies of SIGKILL too)
+        proc.wait(timeout=20)
+
+
+def _kill_in_tube(proc: subprocess.Popen[str], sig: signal.Signals, log: dict[str, Any]):
+    """A tick hook: once every vehicle has flown 1 s in the tube, send ``sig`` to the mock
+    vehicles' process (the links die all at once, as when a SITL host goes down)."""
+
+    def hook(tick: int, sup: Supervisor) -> None:
+        if sup.tube_start_s is None or "sent" in log:
+            return
+        if sup.t_s() - sup.tube_start_s >= 1.0:
+            log["sent"] = sup.t_s()
+            log["phases"] = [p.phase.value for p in sup.pilots]
+            os.kill(proc.pid, sig)
+
+    return hook
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize(("sig", "fleet"), [(signal.SIGKILL, 3), (signal.SIGSTOP, 3),
+                                            (signal.SIGKILL, 12)],
+                         ids=["SIGKILL-3", "SIGSTOP-3", "SIGKILL-12"])
+def test_dead_links_are_link_loss_not_geometry(tmp_path: Path, sig: signal.Signals,
+                                               fleet: int) -> None:
+    """12 vehicles (configs/mock_fleet.toml, the issue's case): the links are noticed dead
+    over several ticks, and the first ones lost made the re-partition fail before."""
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION if fleet == 3 else (ROOT / "configs" / "mock_fleet.toml").read_text())
+    mission = load_mission(path)
+    log: dict[str, Any] = {}
+    out = tmp_path / "run"
+    with mock_process(path, fleet) as (proc, endpoints), \
+            open_recorder(out / "recording.rrd", kind="fleet") as rec:
+        result = asyncio.run(fly(mission, endpoints=endpoints, out_dir=out, recorder=rec,
+                                 tick_hook=_kill_in_tube(proc, sig, log)))
+    assert "sent" in log and log["phases"] == ["in_tube"] * fleet, log
+    assert result.outcome == "aborted", result.reason
+    assert result.reason.startswith("link loss: cannot reach anyone"), result.reason
+    assert "partition" not in result.reason and "apex" not in result.reason
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["outcome"] == "aborted" and summary["reason"] == result.reason
+    assert summary["complete"] is True
+    for v in summary["vehicle_states"]:
+        assert v["reason"], v  # every vehicle says why it stopped
+    assert review(out / "recording.rrd", plots=False).differences == []
+    print(f"\n{sig.name}: {result.reason}")
+
+
+def _interrupt_in(stage: str, log: dict[str, Any]):
+    """A tick hook: ``Supervisor.interrupt("SIGINT")`` (what the signal handler calls) once
+    the run is in ``stage`` (take-off: once every vehicle climbs; tube: after 1 s in it)."""
+
+    def hook(tick: int, sup: Supervisor) -> None:
+        if "sent" in log or sup.stage != stage:
+            return
+        if stage == "takeoff" and not all(p.phase.value == "takeoff" and p.up_m > 0.3
+                                          for p in sup.pilots):
+            return
+        if stage == "tube" and (sup.tube_start_s is None or sup.t_s() - sup.tube_start_s < 1.0):
+            return
+        log["sent"] = [p.phase.value for p in sup.pilots]
+        sup.interrupt("SIGINT")
+
+    return hook
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("stage", ["takeoff", "tube"])
+def test_review_agrees_with_interrupted_runs(tmp_path: Path, stage: str) -> None:
+    """Interrupted in the take-off (no tick judged) or in the tube: the review recomputes over
+    the same ticks the run judged, so every recomputed key equals the run's."""
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    mission = load_mission(path)
+    log: dict[str, Any] = {}
+    rrd = tmp_path / "recording.rrd"
+    with open_recorder(rrd, kind="fleet") as rec:
+        result = asyncio.run(fly(mission, out_dir=tmp_path, recorder=rec,
+                                 tick_hook=_interrupt_in(stage, log),
+                                 mock_kwargs={"boot_time_scale": 0.3,
+                                              "port_scheme": free_ports(3)}))
+    assert "sent" in log, log
+    assert result.outcome == "interrupted", result.reason
+    assert result.reason == "SIGINT: held, then landed"
+    run = json.loads((tmp_path / "summary.json").read_text())
+    assert run["complete"] is True and run["outcome"] == "interrupted"
+    res = review(rrd, plots=False)
+    assert res.differences == [], res.differences
+    if stage == "takeoff":
+        assert run["steps"] == 0 and run["tube_start_s"] is None
+        assert res.summary["violations"] == run["violations"] == 0
+    else:
+        assert run["steps"] > 0 and run["min_speed_m_s"] is not None
+    for v in run["vehicle_states"]:
+        assert v["reason"] == "SIGINT: held, then landed", v
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_sigkilled_run_leaves_its_last_summary(tmp_path: Path) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    out = tmp_path / "run"
+    summary_path = out / "summary.json"
+    with mock_process(path, 3) as (_mock, endpoints):
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "vtube_fleet", "run", str(path), "--endpoints",
+             ",".join(endpoints), "--out", str(out)],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+        try:
+            _read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
+            # the next interim summary written in the tube (a condition, with a deadline)
+            deadline = time.monotonic() + 30.0
+            interim: dict[str, Any] = {}
+            while time.monotonic() < deadline:
+                with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
+                    interim = json.loads(summary_path.read_text())
+                if "stage tube" in str(interim.get("reason")):
+                    break
+                proc.stderr.readline() if proc.stderr else None  # (paced by the run's output)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    summary = json.loads(summary_path.read_text())  # whole JSON: written atomically
+    assert summary["complete"] is False and summary["outcome"] == "running"
+    assert "stage tube" in summary["reason"]
+    assert summary["ticks"] > 0 and summary["tube_start_s"] is not None
+    assert [v["phase"] for v in summary["vehicle_states"]] == ["in_tube"] * 3
+    assert not list(out.glob("*.tmp"))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_agent_interrupted_before_its_vehicle_says_so(tmp_path: Path) -> None:
+    from broker import LocalBroker
+
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    with LocalBroker() as broker:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "vtube_fleet", "agent", str(path), "--vehicle", "0",
+             "--broker", broker.url, "--mission-id", f"endings-{os.getpid()}",
+             "--endpoint", "udpin://127.0.0.1:9", "--no-rerun", "--out", str(tmp_path / "a")],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+        try:
+            _read_line(proc, "stderr", lambda s: "waiting for `vtube-fleet mission start" in s,
+                       60)
+            proc.send_signal(signal.SIGTERM)
+            tail = proc.stderr.read() if proc.stderr else ""
+            rc = proc.wait(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == 130, tail
+    assert "interrupted before reaching the vehicle (nothing armed)" in tail, tail
+    assert "held, then landed" not in tail
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_agent_interrupted_while_connecting_says_so(tmp_path: Path) -> None:
+    """Joined a run, connecting to a vehicle that never answers: SIGTERM stops it at once
+    (not after connect_timeout_s), saying nothing was armed."""
+    from broker import LocalBroker
+
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION.replace("[[2.0, 4.5], [2.0, 0.0], [2.0, -4.5]]", "[[2.0, 0.0]]")
+                    + "connect_timeout_s = 60.0\n")
+    mission_id = f"endings-connect-{os.getpid()}"
+    port = free_ports(1).gcs_base
+    with LocalBroker() as broker:
+        common = ["--broker", broker.url, "--mission-id", mission_id]
+        agent = subprocess.Popen(
+            [sys.executable, "-m", "vtube_fleet", "agent", str(path), "--vehicle", "0",
+             "--endpoint", f"udpin://127.0.0.1:{port}", "--no-rerun", *common],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+        coord = subprocess.Popen(
+            [sys.executable, "-m", "vtube_fleet", "mission", "start", str(path), *common,
+             "--ready-timeout", "60"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(), cwd=ROOT)
+        try:
+            _read_line(agent, "stderr", lambda s: "joined run" in s, 60)
+            agent.send_signal(signal.SIGTERM)
+            tail = agent.stderr.read() if agent.stderr else ""
+            rc = agent.wait(timeout=30)  # (connect_timeout_s is 60 s: it must not wait for it)
+        finally:
+            for p in (agent, coord):
+                if p.poll() is None:
+                    p.kill()
+                p.wait()
+    assert rc == 130, tail
+    assert "interrupted while connecting to the vehicle (nothing armed)" in tail, tail
+    assert "held, then landed" not in tail
+
+
+def test_coordinator_incomplete_names_the_vehicles() -> None:
+    """The reason of an ``incomplete`` run lists who did not exit and land, and why."""
+    from types import SimpleNamespace
+
+    from vtube_fleet.fleet.distributed.coordinator import Coordinator
+
+    rows = [
+        {"id": 0, "phase": "landed", "status": "online", "detail": None},
+        {"id": 1, "phase": "landed", "status": "online",
+         "detail": "cannot re-partition the tube around the lost vehicles: …"},
+        {"id": 2, "phase": "lost", "status": "online", "detail": "no telemetry for 1 s"},
+        {"id": 3, "phase": None, "status": "offline", "detail": None},
+    ]
+    co = SimpleNamespace(vehicles=4, vehicle_table=lambda: rows, finished=lambda v: v != 2)
+    mon = SimpleNamespace(exit_stamp={0: 10.0})
+    text = Coordinator._unfinished(co, mon)  # type: ignore[arg-type]
+    assert text.startswith("3 of 4 vehicles did not exit and land: ")
+    assert "vehicle 1 landed, not exited (cannot re-partition" in text
+    assert "vehicle 2 lost, not exited (no telemetry for 1 s)" in text
+    assert "vehicle 3 agent offline, not exited" in text and "vehicle 0" not in text
+    assert Coordinator._unfinished(co, mon, finished_only=True).startswith(
+        "1 of 4 vehicles not finished: vehicle 2 lost")

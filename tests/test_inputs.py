@@ -1,0 +1,471 @@
+"""Every input bounded (issue 12): the declared keys and options, their bounds, and the bad
+inputs a hostile user sent — each refused with ONE ``error:`` line and exit 2 before anything
+connects or flies.
+
+* the ``[mission]`` table is declared once (``MISSION_KEYS``): the parser and docs/fleet.md's
+  table come from it;
+* bounds are physical: ``altitude_m`` within the documented ceiling, ``rate_hz`` within the
+  position stream rate both link backends ask the vehicles for, vertical speeds within PX4's
+  defaults, timeouts finite and positive, relations between keys;
+* every numeric option of ``run``, ``mock-fleet``, ``sitl-homes``, ``agent`` and ``mission`` is
+  declared (``cli/_args.py``): NaN, inf, negative or out-of-range values are refused;
+* ``run --endpoints ""`` is an error; ``review --out FILE`` is an error, not a traceback;
+  ``sitl-homes`` / ``mock-fleet`` refuse overlapping slots and slots outside the tube;
+* a hypothesis test throws random out-of-bounds values at every declared key and option.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import math
+import re
+import tempfile
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from missions import MISSION_TABLE, NARROWING
+
+from vtube_fleet.cli import build_parser, main
+from vtube_fleet.cli._args import OptionType
+from vtube_fleet.config.keys import Key
+from vtube_fleet.config.mission import (
+    MAX_ALTITUDE_M,
+    MISSION_KEYS,
+    POSITION_STREAM_HZ,
+    MissionConfig,
+    load_mission,
+    mission_keys_table,
+)
+from vtube_fleet.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+#: an endpoint nobody answers on: if a refusal ever failed, the run would time out connecting
+#: (and create its output folder), never fly the built-in mock
+DEAD_ENDPOINT = "udpin://127.0.0.1:9"
+#: the commands of this issue (check / sim have their own tests)
+COMMANDS = ("run", "mock-fleet", "sitl-homes", "review", "agent", "mission")
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------
+def _toml(value: Any) -> str:
+    """A TOML value: numbers (nan / inf too), strings, booleans, arrays, an inline table."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, str):  # a basic string: escape quotes, backslashes, control chars
+        return '"' + "".join(
+            "\\" + c if c in '"\\' else f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F
+            else c for c in value) + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k} = {_toml(v)}" for k, v in value.items()) + "}"
+    raise TypeError(value)
+
+
+def mission_text(**mission: Any) -> str:
+    """NARROWING + MISSION_TABLE with ``[mission]`` keys set (replaced or added)."""
+    table = tomllib.loads(MISSION_TABLE)["mission"]
+    table.update(mission)
+    return NARROWING + "\n[mission]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in table.items())
+
+
+def one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def run_refused(path: Path, out: Path, capsys: pytest.CaptureFixture[str],
+                *extra: str) -> str:
+    """``vtube-fleet run`` of ``path`` must exit 2 with one error line, before any output."""
+    rc = main(["run", str(path), "--endpoints", DEAD_ENDPOINT, "--out", str(out), "--no-rerun",
+               "-q", *extra])
+    cap = capsys.readouterr()
+    assert rc == 2, cap.err
+    assert cap.out == ""
+    assert not out.exists(), "the run got as far as its output folder"
+    return one_error_line(cap.err)
+
+
+# ----------------------------------------------------------------------------------------------
+# the declared table
+# ----------------------------------------------------------------------------------------------
+def test_docs_table_is_generated_from_the_declared_keys() -> None:
+    text = (ROOT / "docs" / "fleet.md").read_text()
+    m = re.search(r"<!-- mission-keys:[^>]*-->\n(.*?)<!-- /mission-keys -->", text, re.S)
+    assert m, "docs/fleet.md lost its generated [mission] table"
+    assert m.group(1) == mission_keys_table(), (
+        "docs/fleet.md's [mission] table differs from MISSION_KEYS: paste "
+        "vtube_fleet.config.mission.mission_keys_table()")
+
+
+def test_docs_options_table_is_generated_from_the_parser() -> None:
+    from vtube_fleet.cli._args import options_table
+
+    text = (ROOT / "docs" / "fleet.md").read_text()
+    m = re.search(r"<!-- cli-options:[^>]*-->\n(.*?)<!-- /cli-options -->", text, re.S)
+    assert m, "docs/fleet.md lost its generated options table"
+    want = options_table(build_parser(), tuple(c for c in COMMANDS if c != "review"))
+    assert m.group(1) == want, "docs/fleet.md's options table differs: paste options_table()"
+
+
+def test_help_shows_the_bounds(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["agent", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "seconds to wait for `mission start` (default 600) [s, > 0]" in text
+
+
+def test_declared_keys_are_the_dataclass() -> None:
+    """MISSION_KEYS and MissionConfig name the same keys with the same defaults."""
+    import dataclasses
+
+    fields = {f.name: f for f in dataclasses.fields(MissionConfig)}
+    assert [k.name for k in MISSION_KEYS] == list(fields)
+    for k in MISSION_KEYS:
+        f = fields[k.name]
+        if k.required:
+            assert f.default is dataclasses.MISSING, k.name
+        else:
+            assert f.default == k.default, k.name
+        assert k.meaning and (k.unit or k.kind != "number" or k.name == "accuracy_factor")
+
+
+def test_rate_bound_is_the_position_stream_the_links_ask_for() -> None:
+    from vtube_fleet.link.mavlink import DEFAULT_MESSAGE_RATES_HZ, MSG_LOCAL_POSITION_NED
+    from vtube_fleet.link.mavsdk_link import MavsdkLink
+
+    assert DEFAULT_MESSAGE_RATES_HZ[MSG_LOCAL_POSITION_NED] == POSITION_STREAM_HZ
+    default = inspect.signature(MavsdkLink.__init__).parameters["position_rate_hz"].default
+    assert default == POSITION_STREAM_HZ
+
+
+# ----------------------------------------------------------------------------------------------
+# the bounds of the mission file
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("mission", "pattern"), [
+    ({"altitude_m": 1e7}, r"\[mission\]\.altitude_m: must be <= 120 \(the documented ceiling.*"
+                          r"GF_MAX_VER_DIST.*\), got 10000000\.0"),
+    ({"altitude_m": 120.5}, r"altitude_m: must be <= 120"),
+    ({"rate_hz": 1e6}, r"\[mission\]\.rate_hz: must be <= 50 \(the position stream rate the "
+                       r"vehicles send: LOCAL_POSITION_NED at 50 Hz\), got 1000000\.0"),
+    ({"rate_hz": 50.5}, r"rate_hz: must be <= 50"),
+    ({"climb_speed_m_s": 5.0}, r"climb_speed_m_s: must be <= 3 \(PX4's MPC_Z_VEL_MAX_UP"),
+    ({"max_vertical_speed_m_s": 2.0}, r"max_vertical_speed_m_s: must be <= 1\.5 \(PX4's "
+                                      r"MPC_Z_VEL_MAX_DN"),
+    ({"takeoff_timeout_s": math.nan}, r"takeoff_timeout_s: expected a finite number, got nan"),
+    ({"mission_timeout_s": -5}, r"mission_timeout_s: must be > 0, got -5"),
+    ({"land_timeout_s": math.inf}, r"land_timeout_s: expected a finite number, got inf"),
+    ({"connect_timeout_s": 0}, r"connect_timeout_s: must be > 0, got 0"),
+    ({"origin_alt_m": 1e5}, r"origin_alt_m: must be <= 9000 \(the Earth's surface"),
+    ({"heading_deg": 720.0}, r"heading_deg: must be within \[-360, 360\]"),
+    ({"altitude_m": 30.0, "climb_speed_m_s": 0.5},
+     r"takeoff_timeout_s: must be at least altitude_m / climb_speed_m_s = 30 / 0\.5 = 60 s"),
+    ({"altitude_m": 0.2}, r"altitude_tolerance_m: must be less than altitude_m = 0\.2"),
+    ({"altitude_gain_1_s": 30.0}, r"altitude_gain_1_s: must be at most rate_hz = 20"),
+])
+def test_out_of_bounds_mission_values_are_refused(tmp_path: Path, mission: dict[str, Any],
+                                                  pattern: str,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(mission_text(**mission))
+    with pytest.raises(ConfigError, match=pattern):
+        load_mission(path)
+    line = run_refused(path, tmp_path / "out", capsys)
+    assert re.search(pattern, line) and "m.toml" in line
+
+
+def test_v_max_within_px4s_horizontal_limit(tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(mission_text().replace("v_max = 1.6", "v_max = 15.0"))
+    line = run_refused(path, tmp_path / "out", capsys)
+    assert "[robots].v_max: must be <= 12 (PX4's MPC_XY_VEL_MAX default" in line
+    assert "got 15" in line
+
+
+def test_the_bounds_themselves_are_accepted(tmp_path: Path) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(mission_text(altitude_m=MAX_ALTITUDE_M, rate_hz=POSITION_STREAM_HZ,
+                                 climb_speed_m_s=3.0, max_vertical_speed_m_s=1.5,
+                                 takeoff_timeout_s=MAX_ALTITUDE_M / 3.0))
+    c = load_mission(path).config
+    assert (c.altitude_m, c.rate_hz) == (MAX_ALTITUDE_M, POSITION_STREAM_HZ)
+
+
+# ----------------------------------------------------------------------------------------------
+# the command-line options
+# ----------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def mission_file() -> Any:
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "m.toml"
+        p.write_text(NARROWING + MISSION_TABLE)
+        yield p
+
+
+@pytest.mark.parametrize("argv", [
+    ["agent", "{m}", "--vehicle", "0", "--broker-hold-limit", "nan"],
+    ["agent", "{m}", "--vehicle", "0", "--broker-hold-limit=-5"],
+    ["agent", "{m}", "--vehicle", "0", "--join-timeout", "nan"],
+    ["agent", "{m}", "--vehicle=-1"],
+    ["mission", "start", "{m}", "--ready-timeout", "nan"],
+    ["mission", "start", "{m}", "--broker-timeout=-1"],
+    ["mission", "start", "{m}", "--timeout", "inf"],
+    ["mission", "start", "{m}", "--max-age", "0"],
+    ["mission", "start", "{m}", "--vehicles", "0"],
+    ["mission", "status", "{m}", "--listen=-1"],
+    ["mission", "abort", "{m}", "--broker-timeout", "nan"],
+    ["run", "{m}", "--mock-boot-time-scale", "nan"],
+    ["run", "{m}", "--rerun-decimate", "0"],
+    ["mock-fleet", "{m}", "--gcs-port", "70000"],
+    ["mock-fleet", "{m}", "--count", "0"],
+    ["mock-fleet", "{m}", "--boot-time-scale", "inf"],
+    ["sitl-homes", "{m}", "--count=-3"],
+])
+def test_bad_option_values_are_one_line_errors(argv: list[str], mission_file: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main([a.format(m=mission_file) for a in argv])
+    assert info.value.code == 2
+    cap = capsys.readouterr()
+    line = one_error_line(cap.err)
+    opt = [a for a in argv if a.startswith("--")][-1].split("=")[0]
+    assert opt in line, line
+
+
+def _commands(parser: argparse.ArgumentParser, prefix: tuple[str, ...] = ()
+              ) -> list[tuple[tuple[str, ...], argparse.ArgumentParser]]:
+    """(argv prefix, parser) of every leaf command below ``parser``."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [(prefix, parser)]
+    out = []
+    for name, p in subs[0].choices.items():
+        out += _commands(p, (*prefix, name))
+    return out
+
+
+def _declared_options() -> list[tuple[tuple[str, ...], str, Key]]:
+    """(argv prefix, option, key) of every declared numeric option of :data:`COMMANDS`."""
+    out = []
+    for prefix, p in _commands(build_parser()):
+        if prefix[0] not in COMMANDS:
+            continue
+        for a in p._actions:
+            if isinstance(a.type, OptionType) and a.option_strings:
+                out.append((prefix, a.option_strings[-1], a.type.key))
+    return out
+
+
+DECLARED = _declared_options()
+
+
+def test_every_numeric_option_is_declared() -> None:
+    """No bare int/float option is left in the commands of this issue; the timeouts are."""
+    for prefix, p in _commands(build_parser()):
+        if prefix[0] not in COMMANDS:
+            continue
+        for a in p._actions:
+            assert a.type not in (int, float), f"{' '.join(prefix)} {a.option_strings}"
+    names = {opt for _, opt, _ in DECLARED}
+    for opt in ("--broker-hold-limit", "--join-timeout", "--ready-timeout", "--broker-timeout",
+                "--timeout", "--max-age", "--listen", "--vehicle", "--vehicles", "--count",
+                "--gcs-port", "--mock-boot-time-scale", "--rerun-decimate"):
+        assert opt in names, opt
+
+
+# ----------------------------------------------------------------------------------------------
+# the concrete bad inputs of the issue
+# ----------------------------------------------------------------------------------------------
+def test_empty_endpoints_is_an_error_not_the_mock(tmp_path: Path, mission_file: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    for text in ("", " ", ",", " , "):
+        out = tmp_path / "out"
+        rc = main(["run", str(mission_file), "--endpoints", text, "--out", str(out),
+                   "--no-rerun", "-q"])
+        cap = capsys.readouterr()
+        assert rc == 2, cap.err
+        line = one_error_line(cap.err)
+        assert "--endpoints: no endpoint given" in line and "built-in mock" in line
+        assert not out.exists()
+
+
+def test_review_out_is_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from vtube_fleet.config.scenario import parse_scenario
+    from vtube_fleet.recording.writer import open_recorder
+    from vtube_fleet.sim import simulate
+
+    sc = parse_scenario({
+        "tube": {"p_h0": [0.0, 0.0], "p_h1": [6.0, 0.0], "p_r0": [0.0, 4.0],
+                 "p_r1": [6.0, 4.0]},
+        "robots": {"r_s": 0.2, "r_a": 0.6, "v_min": 0.5, "v_max": 3.5,
+                   "positions": [[0.8, 2.0]]},
+        "controller": {"v": 2.0, "v_max_prime": 1.5},
+        "sim": {"dt": 0.01, "duration": 1.0}}, "tiny.toml")
+    rrd = tmp_path / "recording.rrd"
+    with open_recorder(rrd, kind="sim") as rec:
+        simulate(sc, recorder=rec)
+    blocker = tmp_path / "hostname"
+    blocker.write_text("not a folder\n")
+    for out, why in ((blocker, "not a folder"), (blocker / "sub", "cannot make the folder")):
+        rc = main(["review", str(rrd), "--out", str(out)])
+        cap = capsys.readouterr()
+        assert rc == 2 and cap.out == ""
+        line = one_error_line(cap.err)
+        assert f"--out {out}" in line and why in line
+    assert main(["review", str(rrd), "--out", str(tmp_path / "plots")]) == 0  # the control
+    assert list((tmp_path / "plots").glob("*.png"))
+
+
+def _slots_mission(tmp_path: Path, positions: list[list[float]]) -> Path:
+    path = tmp_path / "slots.toml"
+    path.write_text(NARROWING.replace("positions = [[2.0, 0.0], [2.0, 2.5]]",
+                                      f"positions = {positions}") + MISSION_TABLE)
+    return path
+
+
+@pytest.mark.parametrize(("positions", "expect"), [
+    ([[2.0, 0.0], [2.3, 0.0]], "slots 0 and 1 overlap: distance 0.3 m ≤ 2 r_s = 0.6 m"),
+    ([[2.0, 0.0], [-3.0, 0.0]], "slot 1 at (-3.0, 0.0) is not inside T"),
+    ([[2.0, 0.0], [2.0, 4.9]], "slot 1 at (2.0, 4.9) is not inside T"),
+])
+def test_sitl_homes_and_mock_fleet_refuse_bad_slots(
+        tmp_path: Path, positions: list[list[float]], expect: str,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    path = _slots_mission(tmp_path, positions)
+    # (mock-fleet on ports that cannot all open: without the slot check it would fail later,
+    # with another message, instead of flying vehicles in those slots)
+    for argv in (["sitl-homes", str(path)], ["mock-fleet", str(path), "--gcs-port", "65535"]):
+        rc = main(argv)
+        cap = capsys.readouterr()
+        assert rc == 2 and cap.out == "", (argv, cap)
+        line = one_error_line(cap.err)
+        assert expect in line and "[robots].positions" in line, line
+    # only the slots flown count: slot 0 alone is fine
+    if "slot 1" in expect or "slots 0 and 1" in expect:
+        assert main(["sitl-homes", str(path), "--count", "1"]) == 0
+        assert capsys.readouterr().out.startswith("0 PX4_HOME_LAT=")
+
+
+# ----------------------------------------------------------------------------------------------
+# property: random out-of-bounds values at every declared key and option
+# ----------------------------------------------------------------------------------------------
+def _bad_values(key: Key) -> st.SearchStrategy[Any]:
+    """Values ``key`` must refuse: wrong types, and numbers outside its bound."""
+    wrong = [st.text(max_size=8), st.lists(st.integers(0, 9), max_size=3),
+             st.just({"a": 1})]
+    if key.kind in ("number", "integer"):
+        b = key.bound
+        assert b is not None
+        nums: list[st.SearchStrategy[Any]] = [st.sampled_from([math.nan, math.inf, -math.inf])]
+        if b.low is not None:
+            nums.append(st.floats(max_value=b.low, allow_nan=False, allow_infinity=False))
+        if b.high is not None:
+            nums.append(st.floats(min_value=b.high, allow_nan=False, allow_infinity=False))
+        out = st.one_of(*nums).filter(lambda x: b.problem(x) is not None)
+        return st.one_of(out, st.booleans(), *wrong)
+    if key.kind == "choice":
+        return st.one_of(st.text(max_size=8).filter(lambda s: s not in key.choices),
+                         st.booleans(), st.integers(-5, 5))
+    if key.kind == "flag":
+        return st.one_of(st.integers(-5, 5), st.text(max_size=5), st.floats(allow_nan=True))
+    return st.one_of(st.integers(), st.booleans())
+
+
+@st.composite
+def _bad_mission(draw: st.DrawFn) -> tuple[str, Any]:
+    key = draw(st.sampled_from(MISSION_KEYS))
+    return key.name, draw(_bad_values(key))
+
+
+@settings(max_examples=300, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(bad=_bad_mission())
+def test_property_bad_mission_values(bad: tuple[str, Any],
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    name, value = bad
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "m.toml"
+        path.write_text(mission_text(**{name: value}))
+        line = run_refused(path, Path(d) / "out", capsys)
+    assert f"[mission].{name}:" in line, line
+
+
+def _bad_option_text(key: Key) -> st.SearchStrategy[str]:
+    b = key.bound
+    assert b is not None
+    texts: list[st.SearchStrategy[str]] = [
+        st.sampled_from(["nan", "inf", "-inf", "", "abc", "1e999", "0x10"])]
+    integer = key.kind == "integer"
+    if b.low is not None:
+        texts.append((st.integers(max_value=int(b.low)) if integer else
+                      st.floats(max_value=b.low, allow_nan=False, allow_infinity=False)
+                      ).filter(lambda x: b.problem(float(x)) is not None).map(str))
+    if b.high is not None:
+        texts.append((st.integers(min_value=int(b.high)) if integer else
+                      st.floats(min_value=b.high, allow_nan=False, allow_infinity=False)
+                      ).filter(lambda x: b.problem(float(x)) is not None).map(str))
+    if integer:
+        texts.append(st.floats(allow_nan=False, allow_infinity=False)
+                     .filter(lambda x: not float(x).is_integer()).map(repr))
+    return st.one_of(*texts)
+
+
+@st.composite
+def _bad_option(draw: st.DrawFn) -> tuple[tuple[str, ...], str, str]:
+    prefix, opt, key = draw(st.sampled_from(DECLARED))
+    return prefix, opt, draw(_bad_option_text(key))
+
+
+@settings(max_examples=300, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(bad=_bad_option())
+def test_property_bad_option_values(bad: tuple[tuple[str, ...], str, str], mission_file: Path,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    prefix, opt, text = bad
+    argv = [*prefix, str(mission_file)]
+    if prefix[0] == "review":
+        argv = [*prefix, str(mission_file.with_suffix(".rrd"))]
+    if prefix[0] == "agent" and opt != "--vehicle":
+        argv += ["--vehicle", "0"]
+    argv.append(f"{opt}={text}")
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2, argv
+    cap = capsys.readouterr()
+    line = one_error_line(cap.err)
+    assert opt in line, (argv, line)
+    assert cap.out == ""
+
+
+def test_the_library_refuses_the_same_durations(mission_file: Path) -> None:
+    """Called as a library (tests, benchmarks), the agent and the coordinator refuse NaN and
+    negative durations as the command line does."""
+    from vtube_fleet.errors import UserError
+    from vtube_fleet.fleet.distributed.agent import AgentProcess
+    from vtube_fleet.fleet.distributed.coordinator import Coordinator
+
+    for kw in ({"join_timeout_s": math.nan}, {"broker_hold_limit_s": -5.0}):
+        with pytest.raises(UserError, match=r"must be > 0|finite") as info:
+            AgentProcess(mission_file, 0, **kw)
+        assert info.value.exit_code == 2
+    with pytest.raises(UserError, match=r"--broker-timeout: must be > 0, got -1"):
+        Coordinator(mission_file, "mqtt://127.0.0.1:1883", broker_timeout_s=-1.0)
