@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from . import px4
+from .fence import FENCE_HANDLERS
 from .geo import project, reproject
 from .px4 import (
     BOOT_STAGES,
@@ -239,6 +240,9 @@ class CommanderMixin:
             self._rx_ignored += 1
             return
         mtype = getattr(m, "mission_type", 0)
+        if mtype == 1:  # MAV_MISSION_TYPE_FENCE (sim_stub/fence.py)
+            self._fence_request_list(m, ssys, scomp, now)  # type: ignore[attr-defined]
+            return
         self._send_named("MISSION_COUNT", _S["MISSION_COUNT"].pack(0, ssys, scomp, mtype))
 
     # ------------------------------------------------------------------------------------------
@@ -485,6 +489,7 @@ class CommanderMixin:
             self.sp_fresh = False
             if self.ready:
                 self._events(px4.HEALTH_BURST_NO_OFFBOARD)
+        self._fence_tick(now)  # type: ignore[attr-defined]  # sim_stub/fence.py
         if self.armed:
             self._armed_logic(now)
         else:
@@ -523,7 +528,7 @@ class CommanderMixin:
             if self.failsafe is None and not self.sp_fresh:
                 self._trigger_offboard_failsafe(now)
                 mode = self.mode
-            elif self.failsafe is not None and self.sp_fresh:
+            elif self.failsafe is not None and self.sp_fresh and not self.fence_failsafe:  # type: ignore[attr-defined]
                 self.failsafe = None  # PX4: mode fallback clears when the condition clears
                 mode = self.mode
                 self.hold = list(self._pos())
@@ -751,6 +756,7 @@ _HANDLERS: dict[int, Callable[..., None]] = {
     4: CommanderMixin._h_ping,
     43: CommanderMixin._h_mission_request_list,
 }
+_HANDLERS.update(FENCE_HANDLERS)  # sim_stub/fence.py: the FENCE mission protocol
 _COMMANDS: dict[int, Callable[..., int]] = {
     CMD_COMPONENT_ARM_DISARM: CommanderMixin._c_arm_disarm,
     CMD_DO_SET_MODE: CommanderMixin._c_set_mode,

@@ -206,6 +206,7 @@ PARAM_DEFAULTS: tuple[Param, ...] = (
     _p("COM_RCL_EXCEPT", 0, PARAM_INT32),  # capture
     _p("COM_RC_IN_MODE", 1, PARAM_INT32),  # capture
     _p("COM_SPOOLUP_TIME", 1.0),
+    _p("GF_ACTION", 2, PARAM_INT32),  # PX4 source: geofence_params.yaml default Hold
     _p("MAV_SYS_ID", 1, PARAM_INT32),  # set to instance+1 per vehicle
     _p("MIS_TAKEOFF_ALT", 2.5),
     _p("MPC_ACC_DOWN_MAX", 3.0),

@@ -28,6 +28,7 @@ from .commander import CommanderMixin, Setpoint
 from .errors import SimStubError
 from .estimator import EstimatorProfile, estimator_profile
 from .faults import Faults
+from .fence import FenceMixin
 from .geo import reproject
 from .ports import PortScheme, resolve_port_scheme
 from .px4 import (
@@ -141,7 +142,7 @@ class _GcsProto(asyncio.DatagramProtocol):
         pass
 
 
-class MockVehicle(CommanderMixin, TelemetryMixin):
+class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
     """PX4 SITL instance ``instance`` as seen on its MAVLink API link.
 
     ``home``: (lat, lon, alt AMSL) of the start point on the ground; it is the vehicle's
@@ -295,6 +296,7 @@ class MockVehicle(CommanderMixin, TelemetryMixin):
         # (uptime, MAV_CMD, params 1..7, MAV_RESULT) of the last 1000 commands
         self.command_log: deque[tuple[float, int, tuple[float, ...], int]] = deque(maxlen=1000)
         self._link_stat = (0.0, 0, 0)
+        self._fence_init()  # sim_stub/fence.py
 
     # ------------------------------------------------------------------------------------------
     # lifecycle

@@ -391,8 +391,12 @@ def test_cli_args(tmp_path: Path) -> None:
     assert isinstance(rec, RerunRecorder) and rec.min_period_s == 0.0  # explicit: every frame
     rec.close()
     assert isinstance(recorder_from_args(args, None), NullRecorder)
+    with pytest.raises(SystemExit) as exit_:  # refused while parsing, by its declared bound
+        _parse(["--rerun-decimate", "0"])
+    assert exit_.value.code == 2
+    args.rerun_decimate = 0  # a library caller that bypasses the parser
     with pytest.raises(RecordingError, match="--rerun-decimate"):
-        recorder_from_args(_parse(["--rerun-decimate", "0"]), tmp_path)
+        recorder_from_args(args, tmp_path)
 
 
 def _free_port() -> int:

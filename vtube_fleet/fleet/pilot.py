@@ -211,6 +211,9 @@ class VehiclePilot:
         self.cmd_xy: np.ndarray | None = None  # last horizontal tube-frame command (m/s)
         self.cmd_in_tube = False
         self.takeoff_xy: np.ndarray | None = None
+        #: :meth:`fly` audits the PX4 parameters and uploads the tube fence first
+        #: (fleet/onboard.py; the supervisor does it for all its pilots at once)
+        self.fence = True
         self.at_altitude = asyncio.Event()
         self.landed = asyncio.Event()
         self.sent_setpoint = asyncio.Event()
@@ -378,6 +381,10 @@ class VehiclePilot:
               and self._transition is None and s.flight_mode != "OFFBOARD"):
             reason = f"left OFFBOARD unexpectedly (mode {s.flight_mode}, status "\
                      f"{s.system_status})"
+            texts = [t.text for t in s.statustexts
+                     if 0 <= t.severity <= 2 and now_mono - t.time_s <= 3.0]
+            if texts:  # e.g. PX4's geofence or offboard-loss failsafe: "Failsafe activated"
+                reason += f"; vehicle says \"{texts[-1]}\""
         elif phase in (Phase.IN_TUBE, Phase.EXITED) and s.armed is False:
             reason = "disarmed in the air"
         elif phase == Phase.IN_TUBE and (listening_since is None
@@ -455,10 +462,10 @@ class VehiclePilot:
         hist.append((now_mono, dx, dy))
         lag = 0.5 * comp.window_s + self.cfg.period_s + (self.link.latency_s or 0.0)
         old = None
-        for t, ox, oy in hist:
-            if t <= now_mono - lag:
+        cutoff = now_mono - lag
+        for t, ox, oy in reversed(hist):  # the newest entry at least Δ old (times ascend)
+            if t <= cutoff:
                 old = (ox, oy)
-            else:
                 break
         if old is not None:
             self.disturbance_residual_m_s.append(math.hypot(dx - old[0], dy - old[1]))
@@ -593,6 +600,41 @@ class VehiclePilot:
             self.sense()
         self.set_phase(Phase.READY, f"at ({self.xy[0]:.2f}, {self.xy[1]:.2f}) "
                                     f"up {self.up_m:.2f} m")
+
+    async def prepare_onboard(self) -> None:
+        """This vehicle alone (:meth:`fly`): the PX4 parameter audit (hard mismatches raise
+        :class:`PilotError`, soft ones warn) and, unless ``fence`` is off, the tube as its
+        geofence (GF_ACTION, upload, read back); backends without them warn and go on."""
+        from vtube_fleet.fleet.onboard import (
+            GF_ACTION_VALUES,
+            audit_fleet,
+            fence_geometry,
+            fence_items,
+            install_fence,
+        )
+        from vtube_fleet.link.base import LinkUnsupported
+
+        res = await audit_fleet([self.link], self.mission)
+        for w in res.warnings:
+            self.event(w, "warning")
+        if res.problems:
+            raise PilotError("nothing armed: PX4 parameters: " + "; ".join(res.problems))
+        if not self.fence:
+            self.event("no fence: PX4 does not know the tube", "warning")
+            return
+        geom = fence_geometry(self.mission)
+        problems = geom.problems(self.xy.reshape(1, 2), [self.name])
+        if problems:
+            raise PilotError("nothing armed: the fence would be breached at once: "
+                             + "; ".join(problems))
+        try:
+            await install_fence(self.link, fence_items(self.mission, geom),
+                                GF_ACTION_VALUES[self.cfg.fence_action])
+        except LinkUnsupported as exc:
+            self.event(f"fence NOT uploaded: {exc}", "warning")
+            return
+        self.event(f"fence uploaded ({len(geom.polygon)} vertices, "
+                   f"{geom.circle_radii.size} circle(s), GF_ACTION {self.cfg.fence_action})")
 
     def check_altitude_margin(self, minimum_m: float = 1.0) -> str | None:
         """A problem if the mission altitude is less than ``minimum_m`` above the vehicle."""
@@ -770,6 +812,7 @@ class VehiclePilot:
         cfg = self.cfg
         try:
             await self.wait_ready()
+            await self.prepare_onboard()
             await self.arm_and_climb()
             if start is not None:
                 await start()

@@ -30,6 +30,9 @@ __all__ = [
     "LinkError",
     "LinkTimeout",
     "CommandRejected",
+    "FenceItem",
+    "FenceRejected",
+    "LinkUnsupported",
     "GeoPoint",
     "StatusText",
     "VehicleState",
@@ -74,6 +77,30 @@ class CommandRejected(LinkError):
         super().__init__(message)
         self.command = command
         self.result = result
+
+
+class LinkUnsupported(LinkError):
+    """This backend cannot do what was asked (e.g. the mavsdk backend and PX4 fences)."""
+
+
+class FenceRejected(LinkError):
+    """The vehicle answered a fence upload with a MISSION_ACK other than ACCEPTED, or the fence
+    read back differs from the one uploaded. ``result``: the MAV_MISSION_RESULT name."""
+
+    def __init__(self, message: str, *, result: str) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class FenceItem(NamedTuple):
+    """One PX4 fence item (MISSION_ITEM_INT of mission_type FENCE): ``command`` 5001 (polygon
+    inclusion vertex; ``param1`` = the polygon's vertex count) or 5004 (exclusion circle;
+    ``param1`` = radius in m), position in WGS84 degrees (sent as 1e-7 degree integers)."""
+
+    command: int
+    lat_deg: float
+    lon_deg: float
+    param1: float
 
 
 class GeoPoint(NamedTuple):
@@ -437,6 +464,25 @@ class VehicleLink(abc.ABC):
         """Measure the link's round trip now (``samples`` request → answer exchanges, the
         largest returned; None if none was answered). Also refreshes :attr:`latency_s`."""
         return None
+
+    # -- onboard safety: parameters and fences (mavlink backend; others raise) ----------------
+    async def read_param(self, name: str) -> float:
+        """PX4 parameter ``name`` (PARAM_REQUEST_READ → PARAM_VALUE; integers as floats).
+        :class:`LinkTimeout` if the vehicle does not answer (PX4 ignores unknown names)."""
+        raise LinkUnsupported(f"{self.name}: this backend cannot read PX4 parameters")
+
+    async def set_param(self, name: str, value: float) -> float:
+        """Set ``name`` (PARAM_SET, the type PX4 reported) and return the value PX4 echoes."""
+        raise LinkUnsupported(f"{self.name}: this backend cannot set PX4 parameters")
+
+    async def upload_fence(self, items: list[FenceItem]) -> None:
+        """Replace the vehicle's fence (MISSION_COUNT … MISSION_ACK, mission_type FENCE);
+        :class:`FenceRejected` on a MISSION_ACK other than ACCEPTED."""
+        raise LinkUnsupported(f"{self.name}: this backend cannot upload PX4 fences")
+
+    async def download_fence(self) -> list[FenceItem]:
+        """Read the vehicle's fence back (MISSION_REQUEST_LIST … MISSION_ACK)."""
+        raise LinkUnsupported(f"{self.name}: this backend cannot download PX4 fences")
 
     async def request_truth(self, rate_hz: float) -> None:
         """Ask the vehicle for the SITL ground truth (HIL_STATE_QUATERNION) at ``rate_hz``

@@ -28,6 +28,9 @@
   after the last setpoint, then POSCTL and descent). The link only logs a warning then.
 * Latency: half the smoothed round trip of TIMESYNC requests (1 Hz; PX4 answers them) or, until
   one is answered, of first-try COMMAND_ACKs (those include PX4's ~10 ms command handling).
+* Onboard safety (installed on first use, ``_onboard``): PX4 parameters by name
+  (PARAM_REQUEST_READ / PARAM_SET → PARAM_VALUE, integers bytewise in the float as PX4 sends
+  them) and the fence (mission protocol with ``mission_type`` FENCE: upload, download).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import struct
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -44,6 +48,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 from vtube_fleet.link import px4
 from vtube_fleet.link.base import (
     CommandRejected,
+    FenceItem,
+    FenceRejected,
     GeoPoint,
     LinkError,
     LinkTimeout,
@@ -859,3 +865,227 @@ class MavlinkLink(VehicleLink):
 
     async def stop_offboard(self) -> None:
         await self.hold()
+
+    # -- onboard safety: parameters and the fence (PX4's mission protocol, mission_type FENCE) --
+    # Kept apart from the rest of the link: the handlers are installed on first use.
+    def _onboard(self) -> _OnboardState:
+        ob: _OnboardState | None = getattr(self, "_onboard_state", None)
+        if ob is None:
+            ob = self._onboard_state = _OnboardState()
+            self._handlers[MSG_PARAM_VALUE] = self._on_param_value
+            for msgid in _MISSION_MSGS:
+                self._handlers[msgid] = self._on_mission_message
+        return ob
+
+    def _on_param_value(self, m: Any, now: float) -> None:
+        ob = self._onboard()
+        name = m.param_id if isinstance(m.param_id, str) else bytes(m.param_id).decode(
+            "ascii", "replace")
+        name = name.split("\x00", 1)[0]
+        ob.types[name] = int(m.param_type)
+        value = _param_from_wire(float(m.param_value), int(m.param_type))
+        for fut in ob.param_waiters.pop(name, []):
+            if not fut.done():
+                fut.set_result(value)
+
+    def _on_mission_message(self, m: Any, now: float) -> None:
+        ob = self._onboard()
+        if ob.mission_rx is None or getattr(m, "mission_type", 0) != _MISSION_TYPE_FENCE:
+            return
+        if getattr(m, "target_system", self.gcs_sysid) not in (0, self.gcs_sysid):
+            return
+        ob.mission_rx.put_nowait(m)
+
+    async def _param_exchange(self, name: str, msg: Any, tries: int, timeout_s: float,
+                              what: str) -> float:
+        ob = self._onboard()
+        loop = asyncio.get_running_loop()
+        for _ in range(tries):
+            fut: asyncio.Future[float] = loop.create_future()
+            ob.param_waiters.setdefault(name, []).append(fut)
+            self._send(msg)
+            try:
+                async with asyncio.timeout(timeout_s):
+                    return await fut
+            except TimeoutError:
+                continue
+        raise LinkTimeout(f"{self.name}: no PARAM_VALUE for {name} after {tries} {what} of "
+                          f"{timeout_s:.2f} s (PX4 does not answer unknown parameters)")
+
+    async def read_param(self, name: str, tries: int = 3, timeout_s: float = 0.5) -> float:
+        """PARAM_REQUEST_READ by name → the PARAM_VALUE's value (INT32 decoded bytewise, as
+        PX4 encodes it: capture)."""
+        if len(name) > 16:
+            raise LinkError(f"{self.name}: parameter names have at most 16 characters: {name!r}")
+        msg = self._mav.param_request_read_encode(self._sysid or 0, self.target_compid,
+                                                  name.encode("ascii"), -1)
+        return await self._param_exchange(name, msg, tries, timeout_s, "requests")
+
+    async def set_param(self, name: str, value: float, tries: int = 3,
+                        timeout_s: float = 0.5) -> float:
+        """PARAM_SET with the type PX4 reported for ``name`` (read first if unknown); returns
+        the echoed value, :class:`LinkError` if PX4 kept another one."""
+        ob = self._onboard()
+        if name not in ob.types:
+            await self.read_param(name)
+        ptype = ob.types[name]
+        if not math.isfinite(value):
+            raise LinkError(f"{self.name}: {name} must be finite, got {value}")
+        msg = self._mav.param_set_encode(self._sysid or 0, self.target_compid,
+                                         name.encode("ascii"), _param_to_wire(value, ptype),
+                                         ptype)
+        got = await self._param_exchange(name, msg, tries, timeout_s, "PARAM_SETs")
+        want = float(round(value)) if ptype in _PARAM_INT_TYPES else float(value)
+        if not math.isclose(got, want, rel_tol=1e-6, abs_tol=1e-6):
+            raise LinkError(f"{self.name}: PARAM_SET {name} = {value:g}: the vehicle kept "
+                            f"{got:g}")
+        return got
+
+    async def _mission_next(self, ob: _OnboardState, timeout_s: float) -> Any | None:
+        assert ob.mission_rx is not None
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await ob.mission_rx.get()
+        except TimeoutError:
+            return None
+
+    async def upload_fence(self, items: list[FenceItem], timeout_s: float = 10.0) -> None:
+        """MISSION_COUNT(FENCE) → answer each MISSION_REQUEST(_INT) with its MISSION_ITEM_INT
+        (frame GLOBAL_INT) → the final MISSION_ACK; MISSION_COUNT is repeated while no request
+        comes (PX4 treats a repeated count at seq 0 as a retry). :class:`FenceRejected` on a
+        non-ACCEPTED ACK, :class:`LinkTimeout` after ``timeout_s``."""
+        ob = self._onboard()
+        loop = asyncio.get_running_loop()
+        sysid, comp = self._sysid or 0, self.target_compid
+        async with ob.lock:
+            ob.mission_rx = asyncio.Queue()
+            try:
+                deadline = loop.time() + timeout_s
+                count_msg = self._mav.mission_count_encode(sysid, comp, len(items),
+                                                           _MISSION_TYPE_FENCE)
+                self._send(count_msg)
+                requested = -1
+                while True:
+                    left = deadline - loop.time()
+                    if left <= 0:
+                        raise LinkTimeout(
+                            f"{self.name}: fence upload of {len(items)} items not acknowledged "
+                            f"within {timeout_s:g} s (last item requested: {requested})")
+                    m = await self._mission_next(ob, min(1.0, left))
+                    if m is None:
+                        if requested < 0:
+                            self._send(count_msg)
+                        continue
+                    msgid = m.get_msgId()
+                    if msgid in (MSG_MISSION_REQUEST, MSG_MISSION_REQUEST_INT):
+                        seq = int(m.seq)
+                        if not 0 <= seq < len(items):
+                            continue
+                        requested = max(requested, seq)
+                        it = items[seq]
+                        self._send(self._mav.mission_item_int_encode(
+                            sysid, comp, seq, _FRAME_GLOBAL_INT, int(it.command), 0, 0,
+                            float(it.param1), 0.0, 0.0, 0.0, round(it.lat_deg * 1e7),
+                            round(it.lon_deg * 1e7), 0.0, _MISSION_TYPE_FENCE))
+                    elif msgid == MSG_MISSION_ACK:
+                        result = _mission_result_name(int(m.type))
+                        if int(m.type) != 0:
+                            where = (f"after item {requested} of {len(items)}" if requested >= 0
+                                     else f"to MISSION_COUNT {len(items)}")
+                            raise FenceRejected(
+                                f"{self.name}: fence upload refused: MISSION_ACK {result} "
+                                f"({where}){self._recent_text(2.0)}", result=result)
+                        if requested != len(items) - 1:
+                            raise FenceRejected(
+                                f"{self.name}: fence upload ACCEPTED after only {requested + 1}"
+                                f" of {len(items)} items", result=result)
+                        return
+            finally:
+                ob.mission_rx = None
+
+    async def download_fence(self, tries: int = 3, timeout_s: float = 1.0) -> list[FenceItem]:
+        """MISSION_REQUEST_LIST(FENCE) → MISSION_COUNT, MISSION_REQUEST_INT(seq) →
+        MISSION_ITEM_INT for each, then MISSION_ACK(ACCEPTED)."""
+        ob = self._onboard()
+        sysid, comp = self._sysid or 0, self.target_compid
+        async with ob.lock:
+            ob.mission_rx = asyncio.Queue()
+            try:
+                count = await self._mission_ask(
+                    ob, self._mav.mission_request_list_encode(sysid, comp, _MISSION_TYPE_FENCE),
+                    MSG_MISSION_COUNT, None, tries, timeout_s, "MISSION_COUNT")
+                out: list[FenceItem] = []
+                for seq in range(int(count.count)):
+                    m = await self._mission_ask(
+                        ob, self._mav.mission_request_int_encode(sysid, comp, seq,
+                                                                 _MISSION_TYPE_FENCE),
+                        MSG_MISSION_ITEM_INT, seq, tries, timeout_s, f"fence item {seq}")
+                    out.append(FenceItem(int(m.command), m.x * 1e-7, m.y * 1e-7,
+                                         float(m.param1)))
+                self._send(self._mav.mission_ack_encode(sysid, comp, 0, _MISSION_TYPE_FENCE))
+                return out
+            finally:
+                ob.mission_rx = None
+
+    async def _mission_ask(self, ob: _OnboardState, msg: Any, want: int, seq: int | None,
+                           tries: int, timeout_s: float, what: str) -> Any:
+        loop = asyncio.get_running_loop()
+        for _ in range(tries):
+            self._send(msg)
+            end = loop.time() + timeout_s
+            while (left := end - loop.time()) > 0:
+                m = await self._mission_next(ob, left)
+                if m is None:
+                    break
+                msgid = m.get_msgId()
+                if msgid == MSG_MISSION_ACK and int(m.type) != 0:
+                    result = _mission_result_name(int(m.type))
+                    raise FenceRejected(f"{self.name}: fence download refused while waiting "
+                                        f"for {what}: MISSION_ACK {result}", result=result)
+                if msgid == want and (seq is None or int(m.seq) == seq):
+                    return m
+        raise LinkTimeout(f"{self.name}: no {what} after {tries} requests of "
+                          f"{timeout_s:.2f} s (fence download)")
+
+
+MSG_PARAM_VALUE = 22
+MSG_MISSION_REQUEST = 40
+MSG_MISSION_COUNT = 44
+MSG_MISSION_ACK = 47
+MSG_MISSION_REQUEST_INT = 51
+MSG_MISSION_ITEM_INT = 73
+_MISSION_MSGS = (MSG_MISSION_REQUEST, MSG_MISSION_COUNT, MSG_MISSION_ACK,
+                 MSG_MISSION_REQUEST_INT, MSG_MISSION_ITEM_INT)
+_MISSION_TYPE_FENCE = 1
+_FRAME_GLOBAL_INT = 5
+_PARAM_INT_TYPES = (1, 2, 3, 4, 5, 6)  # MAV_PARAM_TYPE_UINT8 … INT32: PX4 sends them bytewise
+_F32 = struct.Struct("<f")
+_I32 = struct.Struct("<i")
+
+
+class _OnboardState:
+    """Per-link state of the parameter and fence exchanges (created on first use)."""
+
+    def __init__(self) -> None:
+        self.types: dict[str, int] = {}
+        self.param_waiters: dict[str, list[asyncio.Future[float]]] = {}
+        self.mission_rx: asyncio.Queue[Any] | None = None
+        self.lock = asyncio.Lock()
+
+
+def _param_from_wire(value: float, ptype: int) -> float:
+    """PARAM_VALUE.param_value → the value: integers are the float's bytes (PX4, capture)."""
+    if ptype in _PARAM_INT_TYPES:
+        return float(_I32.unpack(_F32.pack(value))[0])
+    return value
+
+
+def _param_to_wire(value: float, ptype: int) -> float:
+    if ptype in _PARAM_INT_TYPES:
+        return _F32.unpack(_I32.pack(int(round(value))))[0]
+    return float(value)
+
+
+def _mission_result_name(result: int) -> str:
+    entry = mavlink2.enums["MAV_MISSION_RESULT"].get(result)
+    return entry.name.removeprefix("MAV_MISSION_") if entry is not None else str(result)

@@ -1,0 +1,175 @@
+"""The preflight audit of the PX4 parameters the mission relies on (issue 15): the rules with
+the mission's numbers, the mock answering PX4's defaults and honouring MPC_XY_VEL_MAX, the
+fleet refusing a clipped speed before arming, and ``--fix-params`` restoring the old values on
+every exit path (an interrupt, a refusal later in the preflight)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+from pathlib import Path
+
+import pytest
+from fleet_ports import free_ports
+from missions import MOCK_FLEET, straight_mission, write_mission
+
+import sim_stub.fence
+from sim_stub import MockFleet
+from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet.launch import fly, mock_fleet
+from vtube_fleet.fleet.onboard import audit_rules
+from vtube_fleet.link import MavlinkLink
+
+pytestmark = pytest.mark.timeout(180)
+
+PX4_DEFAULTS = {"MPC_XY_VEL_MAX": 12.0, "MPC_ACC_HOR": 3.0, "COM_OF_LOSS_T": 1.0,
+                "COM_OBL_RC_ACT": 0.0, "NAV_DLL_ACT": 0.0}
+
+
+def judge(values: dict[str, float]) -> dict[str, str | None]:
+    rules = audit_rules(load_mission(MOCK_FLEET))
+    return {r.name: r.problem(values[r.name]) for r in rules}
+
+
+def test_the_rules_with_the_missions_numbers() -> None:
+    rules = {r.name: r for r in audit_rules(load_mission(MOCK_FLEET))}
+    assert [n for n, r in rules.items() if r.hard] == ["MPC_XY_VEL_MAX"]
+    got = judge(PX4_DEFAULTS)
+    assert got["MPC_XY_VEL_MAX"] is None and got["MPC_ACC_HOR"] is None
+    assert got["COM_OF_LOSS_T"] is None
+    assert "COM_OBL_RC_ACT = 0, Position mode" in (got["COM_OBL_RC_ACT"] or "")
+    assert "NAV_DLL_ACT = 0 (disabled)" in (got["NAV_DLL_ACT"] or "")
+    bad = judge({**PX4_DEFAULTS, "MPC_XY_VEL_MAX": 1.2, "MPC_ACC_HOR": 1.0,
+                 "COM_OF_LOSS_T": 2.0, "COM_OBL_RC_ACT": 5.0, "NAV_DLL_ACT": 3.0})
+    assert bad["MPC_XY_VEL_MAX"] == ("MPC_XY_VEL_MAX = 1.2 m/s < v_max = 1.6 m/s (PX4 would "
+                                     "clip the controller's speeds)")
+    assert bad["MPC_ACC_HOR"].startswith("MPC_ACC_HOR = 1.0 m/s² < v_max / t63 = 1.6 m/s²")
+    assert "for up to 3.2 m" in bad["COM_OF_LOSS_T"]
+    assert bad["COM_OBL_RC_ACT"] is None and bad["NAV_DLL_ACT"] is None
+    # the fix: v_max + D (the compensation's headroom), rounded up to 0.1 m/s
+    assert rules["MPC_XY_VEL_MAX"].fix == pytest.approx(1.9)
+    assert rules["MPC_XY_VEL_MAX"].problem(rules["MPC_XY_VEL_MAX"].fix) is None
+    assert rules["MPC_ACC_HOR"].problem(rules["MPC_ACC_HOR"].fix) is None
+
+
+async def test_the_mock_answers_px4_defaults_and_clips_to_mpc_xy_vel_max() -> None:
+    fleet = MockFleet(1, port_scheme=free_ports(1), boot_time_scale=0.3, estimator="ideal",
+                      params={"MPC_XY_VEL_MAX": 0.8})
+    await fleet.start()
+    link = MavlinkLink(fleet.endpoints[0], sysid=1)
+    stop = asyncio.Event()
+
+    async def stream(v: tuple[float, float, float]) -> None:
+        while not stop.is_set():
+            link.send_velocity_ned(*v)
+            await asyncio.sleep(0.05)  # the control period, not a synchronisation
+
+    try:
+        await link.connect(10.0)
+        for name, value in PX4_DEFAULTS.items():
+            if name != "MPC_XY_VEL_MAX":
+                assert await link.read_param(name) == value
+        assert await link.read_param("MPC_XY_VEL_MAX") == pytest.approx(0.8)
+        await link.wait_ready(20.0)
+        link.send_velocity_ned(0.0, 0.0, -1.0)
+        task = asyncio.get_running_loop().create_task(stream((0.0, 0.0, -1.0)))
+        await link.start_offboard()
+        await link.arm(timeout_s=15.0, retry_interval_s=0.25)
+        await link.wait_until(lambda s: s.down_m < -2.0, 20.0, "2 m")
+        stop.set()
+        await task
+        stop.clear()
+        task = asyncio.get_running_loop().create_task(stream((0.0, 2.0, 0.0)))
+        await link.wait_until(lambda s: s.ve_m_s > 0.6, 10.0, "moving east")
+        speeds = []
+        for _ in range(40):
+            await link.wait_until(lambda s: True, 1.0, "telemetry")
+            await asyncio.sleep(0.05)  # sampling the mock's truth at 20 Hz, not a sync
+            vn, ve, _ = fleet.vehicles[0].velocity_ned
+            speeds.append(math.hypot(vn, ve))
+        stop.set()
+        await task
+        assert max(speeds) <= 0.8 + 0.05, max(speeds)  # PX4 clips the 2 m/s command
+        assert max(speeds) > 0.6
+    finally:
+        stop.set()
+        await link.close()
+        await fleet.stop()
+
+
+def _mission(tmp_path: Path):
+    return write_mission(tmp_path, straight_mission(12.0, [[3.0, 4.5], [3.0, -4.5]]))
+
+
+def _armed_ever(fleet) -> bool:
+    return any(a for v in fleet.vehicles for _, _, a in v.mode_log)
+
+
+async def test_a_clipped_speed_is_refused_before_arming(tmp_path: Path) -> None:
+    m = _mission(tmp_path)
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=1,
+                          params={"MPC_XY_VEL_MAX": 1.2}) as fleet:
+        result = await fly(m, endpoints=fleet.endpoints, sysids=[1, 2], out_dir=tmp_path)
+        assert not _armed_ever(fleet)
+    assert result.outcome == "failed" and result.exit_code == 2
+    assert "nothing armed" in result.reason
+    assert ("MPC_XY_VEL_MAX = 1.2 m/s < v_max = 1.6 m/s (PX4 would clip the controller's "
+            "speeds)") in result.reason
+    assert "--fix-params" in result.reason
+    warnings = [e["text"] for e in result.summary["events"] if e["level"] == "warning"]
+    assert any("COM_OBL_RC_ACT = 0" in w for w in warnings)  # soft ones only warn
+    print(f"\n{result.reason}")
+
+
+BAD = {"MPC_XY_VEL_MAX": 1.2, "COM_OBL_RC_ACT": 0, "NAV_DLL_ACT": 0, "MPC_ACC_HOR": 1.0}
+
+
+def _values(v) -> dict[str, float]:
+    return {k: v.params[k].value for k in BAD}
+
+
+async def test_fix_params_sets_them_for_the_flight_and_restores_on_an_interrupt(
+        tmp_path: Path) -> None:
+    m = _mission(tmp_path)
+    seen: list[dict[str, float]] = []
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=2,
+                          params=BAD) as fleet:
+
+        def hook(tick: int, sup) -> None:
+            if sup.stage == "takeoff" and sup._interrupted is None:
+                seen.extend(_values(v) for v in fleet.vehicles)
+                sup.interrupt("SIGINT")
+
+        result = await fly(m, endpoints=fleet.endpoints, sysids=[1, 2], out_dir=tmp_path,
+                           fix_params=True, tick_hook=hook)
+        after = [_values(v) for v in fleet.vehicles]
+    assert result.outcome == "interrupted", result.reason
+    assert seen and all(s == {"MPC_XY_VEL_MAX": pytest.approx(1.9), "COM_OBL_RC_ACT": 5,
+                              "NAV_DLL_ACT": 3, "MPC_ACC_HOR": pytest.approx(1.6)}
+                        for s in seen)
+    assert all(a == {k: pytest.approx(x) for k, x in BAD.items()} for a in after)
+    assert any("restored" in e["text"] for e in result.summary["events"])
+    onboard = result.summary["onboard"]
+    assert onboard["fence"] == "uploaded" and onboard["gf_action"] == "hold"
+    assert onboard["fence_items"] == 4 and len(onboard["px4_params"]) == 2
+    assert onboard["px4_params"][0]["MPC_XY_VEL_MAX"] == pytest.approx(1.2)
+    assert sorted(onboard["params_fixed"]) == [f"slot {i} ({fleet.endpoints[i]})" for i in (0, 1)]
+    assert onboard["params_fixed"]["slot 0 (" + fleet.endpoints[0] + ")"] == {
+        k: pytest.approx(x) for k, x in BAD.items()}
+
+
+async def test_fix_params_restores_when_a_later_preflight_step_refuses(
+        tmp_path: Path, monkeypatch) -> None:
+    m = _mission(tmp_path)
+    monkeypatch.setattr(sim_stub.fence, "FENCE_MAX_ITEMS", 3)  # the fence is refused
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=3,
+                          params=BAD) as fleet:
+        result = await fly(m, endpoints=fleet.endpoints, sysids=[1, 2], out_dir=tmp_path,
+                           fix_params=True)
+        after = [_values(v) for v in fleet.vehicles]
+        assert not _armed_ever(fleet)
+    assert result.outcome == "failed" and "refused the fence" in result.reason
+    assert all(a == {k: pytest.approx(x) for k, x in BAD.items()} for a in after)
+    with contextlib.suppress(StopIteration):
+        next(e for e in result.summary["events"] if "restored" in e["text"])

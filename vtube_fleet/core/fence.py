@@ -1,0 +1,155 @@
+"""The tube as a geofence: an inclusion polygon around the main tube and one exclusion circle
+per obstacle, in the paper's 2-D tube frame (pure numpy; the runtime turns it into PX4 fence
+items, ``docs/fleet.md`` "The fence on the vehicle").
+
+Geometry (w = r_s + ``margin_m``, the vehicle radius r_s of the *physical* parameters plus a
+margin):
+
+* the left and right legs of T are moved outwards by w (their inward normals n_h, n_r);
+* between ξ = 0 and ξ = L the polygon follows these moved legs; behind the start base it goes
+  straight back along −n_c by ``back_m`` (at least w, and far enough to hold every start slot
+  with w to spare), past the finishing line straight on along n_c by ``exit_m`` — the exit
+  behaviour (Assumption 2: straight on along n_c) and the landing stay inside;
+* each obstacle O_k gets an exclusion circle of radius r_o,k + r_s (the body touches the
+  obstacle on PX4's estimate).
+
+The controller keeps every vehicle's estimate r_s' = r_s + δ inside the legs and r_o + r_s'
+from an obstacle centre, so in a correct flight the fence never fires; it is the vehicle's own
+backstop when our process, its host or its link fails.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from vtube_fleet.core.text import compact_number, point_text
+from vtube_fleet.core.tube import Obstacle, Trapezoid
+
+__all__ = ["FENCE_MARGIN_M", "FenceGeometry", "tube_fence"]
+
+#: Default margin beyond r_s by which the legs are widened (metres).
+FENCE_MARGIN_M = 1.0
+
+_EPS = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class FenceGeometry:
+    """Inclusion polygon ``polygon`` (K, 2) (counter-clockwise, tube frame, no repeated
+    vertex) and exclusion circles ``circle_centers`` (C, 2) / ``circle_radii`` (C,)."""
+
+    polygon: np.ndarray
+    circle_centers: np.ndarray
+    circle_radii: np.ndarray
+    widen_m: float
+    back_m: float
+    exit_m: float
+
+    def inside_polygon(self, x: np.ndarray) -> np.ndarray:
+        """Points (…, 2) inside the inclusion polygon (crossing-number test, as PX4's
+        ``insidePolygon``; points on an edge may go either way)."""
+        p = np.asarray(x, dtype=float)
+        px, py = p[..., 0][..., None], p[..., 1][..., None]
+        a = self.polygon
+        b = np.roll(a, -1, axis=0)
+        ax, ay, bx, by = a[:, 0], a[:, 1], b[:, 0], b[:, 1]
+        straddle = (ay > py) != (by > py)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = (bx - ax) * (py - ay) / (by - ay) + ax
+        hits = straddle & (px < x_cross)
+        return (np.count_nonzero(hits, axis=-1) % 2) == 1
+
+    def inside_exclusion(self, x: np.ndarray) -> np.ndarray:
+        """Points (…, 2) strictly inside any exclusion circle."""
+        p = np.asarray(x, dtype=float)
+        if self.circle_radii.size == 0:
+            return np.zeros(p.shape[:-1], dtype=bool)
+        d = np.linalg.norm(p[..., None, :] - self.circle_centers, axis=-1)
+        return np.any(d < self.circle_radii, axis=-1)
+
+    def contains(self, x: np.ndarray) -> np.ndarray:
+        """Points (…, 2) the fence allows: inside the polygon, outside every circle."""
+        return self.inside_polygon(x) & ~self.inside_exclusion(x)
+
+    def problems(self, x: np.ndarray, names: Sequence[str]) -> list[str]:
+        """One line per point of ``x`` (M, 2) the fence would not allow (vehicles before
+        arming: PX4 would breach at once)."""
+        pts = np.asarray(x, dtype=float).reshape(-1, 2)
+        out = []
+        poly_in = self.inside_polygon(pts)
+        excl = self.inside_exclusion(pts)
+        for i, p in enumerate(pts):
+            if not poly_in[i]:
+                out.append(f"{names[i]} at {point_text(p)} is outside the fence polygon (legs "
+                           f"widened by {compact_number(self.widen_m)} m, "
+                           f"{compact_number(self.back_m)} m behind the start base, "
+                           f"{compact_number(self.exit_m)} m past the finishing line)")
+            elif excl[i]:
+                out.append(f"{names[i]} at {point_text(p)} is inside an obstacle's exclusion "
+                           f"circle")
+        return out
+
+
+def _leg_point(p0: np.ndarray, t: np.ndarray, n_in: np.ndarray, n_c: np.ndarray,
+               origin: np.ndarray, w: float, xi: float) -> np.ndarray:
+    """Point at longitudinal coordinate ``xi`` of the leg line through ``p0`` (direction t)
+    moved outwards by ``w`` (against its inward normal)."""
+    q0 = p0 - w * n_in
+    s = (xi - float(n_c @ (q0 - origin))) / float(t @ n_c)
+    return q0 + s * t
+
+
+def _drop_collinear(poly: np.ndarray) -> np.ndarray:
+    keep = []
+    n = len(poly)
+    for i in range(n):
+        a, b, c = poly[i - 1], poly[i], poly[(i + 1) % n]
+        u, v = b - a, c - b
+        if np.hypot(*u) < _EPS:
+            continue
+        cross = u[0] * v[1] - u[1] * v[0]
+        if abs(cross) > _EPS * max(1.0, np.hypot(*u) * np.hypot(*v)):
+            keep.append(b)
+    return np.array(keep)
+
+
+def tube_fence(tube: Trapezoid, obstacles: Sequence[Obstacle], r_s: float, *,
+               slots: np.ndarray | None = None, margin_m: float = FENCE_MARGIN_M,
+               exit_m: float | None = None, exit_clear_m: float = 0.0) -> FenceGeometry:
+    """The fence of ``tube`` (module docstring). ``slots`` (M, 2): start positions that must
+    be inside with w to spare (they set ``back_m``). ``exit_m`` (default: L + ``exit_clear_m``
+    + w): how far past the finishing line the polygon reaches.
+
+    Raises ``ValueError`` for a negative margin or exit length.
+    """
+    if not (np.isfinite(margin_m) and margin_m >= 0):
+        raise ValueError(f"fence margin must be >= 0 m, got {margin_m}")
+    w = float(r_s) + float(margin_m)
+    L = tube.length
+    if exit_m is None:
+        exit_m = L + float(exit_clear_m) + w
+    if not (np.isfinite(exit_m) and exit_m >= 0):
+        raise ValueError(f"fence exit length must be >= 0 m, got {exit_m}")
+    back_m = w
+    if slots is not None and len(slots):
+        behind = -float(np.min(tube.xi(np.asarray(slots, dtype=float))))
+        back_m = max(back_m, behind + w)
+    n_c, o = tube.n_c, tube.p_h0
+    left = [_leg_point(tube.p_h0, tube.t_h, tube.n_h, n_c, o, w, xi) for xi in (0.0, L)]
+    right = [_leg_point(tube.p_r0, tube.t_r, tube.n_r, n_c, o, w, xi) for xi in (0.0, L)]
+    # left side from the back to the front, then the right side from the front to the back
+    poly = np.array([left[0] - back_m * n_c, left[0], left[1], left[1] + exit_m * n_c,
+                     right[1] + exit_m * n_c, right[1], right[0], right[0] - back_m * n_c])
+    poly = _drop_collinear(poly)
+    x, y = poly[:, 0], poly[:, 1]
+    area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    if area2 < 0:
+        poly = poly[::-1].copy()
+    centers = np.array([ob.center for ob in obstacles], dtype=float).reshape(-1, 2)
+    radii = np.array([ob.radius + float(r_s) for ob in obstacles], dtype=float)
+    for a in (poly, centers, radii):
+        a.setflags(write=False)
+    return FenceGeometry(poly, centers, radii, w, back_m, float(exit_m))

@@ -1,0 +1,254 @@
+"""Defence in depth on the vehicle: PX4's own geofence from the tube, and the audit of the PX4
+parameters the mission relies on (``docs/fleet.md``, "The fence on the vehicle" and "The PX4
+parameter audit").
+
+* :func:`fence_items` turns :func:`vtube_fleet.core.fence.tube_fence` (the tube frame) into
+  PX4 fence items (WGS84); :func:`install_fence` sets GF_ACTION, uploads them, reads them back
+  and compares, on one link.
+* :func:`audit_rules` are the parameters checked with the mission's numbers;
+  :func:`audit_fleet` reads them from every vehicle, returns the hard problems (refuse to arm),
+  the warnings, and — with ``fix`` — sets them, returning the old values for
+  :func:`restore_params`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vtube_fleet.config.mission import Mission
+from vtube_fleet.core.fence import FenceGeometry, tube_fence
+from vtube_fleet.core.text import compact_number
+from vtube_fleet.link.base import FenceItem, FenceRejected, LinkError, LinkUnsupported, VehicleLink
+
+__all__ = [
+    "AuditResult",
+    "GF_ACTION_VALUES",
+    "ParamRule",
+    "audit_fleet",
+    "audit_rules",
+    "fence_geometry",
+    "fence_items",
+    "install_fence",
+    "restore_params",
+]
+
+#: mission ``fence_action`` → PX4 GF_ACTION (geofence_params.yaml: 2 Hold, 3 Return, 5 Land)
+GF_ACTION_VALUES: dict[str, int] = {"hold": 2, "rtl": 3, "land": 5}
+CMD_POLYGON_INCLUSION = 5001
+CMD_CIRCLE_EXCLUSION = 5004
+
+
+def fence_geometry(mission: Mission) -> FenceGeometry:
+    """The mission's fence in the tube frame (physical r_s, slots inside, exit_clear_m)."""
+    sc, cfg = mission.scenario, mission.config
+    return tube_fence(sc.tube, sc.obstacles, sc.controller.r_s, slots=mission.slots,
+                      margin_m=cfg.fence_margin_m, exit_clear_m=cfg.exit_clear_m)
+
+
+def fence_items(mission: Mission, geom: FenceGeometry | None = None) -> list[FenceItem]:
+    """PX4 fence items: one inclusion polygon (5001, param1 = vertex count) and one exclusion
+    circle (5004, param1 = radius) per obstacle, positions via the mission's tube frame."""
+    geom = fence_geometry(mission) if geom is None else geom
+    frame = mission.frame
+    lat, lon, _ = frame.tube_to_geodetic(geom.polygon[:, 0], geom.polygon[:, 1], 0.0)
+    n = len(geom.polygon)
+    items = [FenceItem(CMD_POLYGON_INCLUSION, float(a), float(b), float(n))
+             for a, b in zip(np.atleast_1d(lat), np.atleast_1d(lon), strict=True)]
+    if geom.circle_radii.size:
+        clat, clon, _ = frame.tube_to_geodetic(geom.circle_centers[:, 0],
+                                               geom.circle_centers[:, 1], 0.0)
+        items += [FenceItem(CMD_CIRCLE_EXCLUSION, float(a), float(b), float(r))
+                  for a, b, r in zip(np.atleast_1d(clat), np.atleast_1d(clon),
+                                     geom.circle_radii, strict=True)]
+    return items
+
+
+def _same_item(a: FenceItem, b: FenceItem) -> bool:
+    return (a.command == b.command and round(a.lat_deg * 1e7) == round(b.lat_deg * 1e7)
+            and round(a.lon_deg * 1e7) == round(b.lon_deg * 1e7)
+            and math.isclose(a.param1, b.param1, rel_tol=1e-6, abs_tol=1e-4))
+
+
+async def install_fence(link: VehicleLink, items: list[FenceItem], gf_action: int) -> None:
+    """GF_ACTION, upload, download and compare: :class:`FenceRejected` naming the first
+    difference; :class:`LinkUnsupported` from backends without fences."""
+    got = await link.set_param("GF_ACTION", float(gf_action))
+    if round(got) != gf_action:
+        raise FenceRejected(f"{link.name}: GF_ACTION = {got:g} after setting {gf_action}",
+                            result="PARAM")
+    await link.upload_fence(items)
+    back = await link.download_fence()
+    if len(back) != len(items):
+        raise FenceRejected(f"{link.name}: fence read back has {len(back)} items, uploaded "
+                            f"{len(items)}", result="MISMATCH")
+    for k, (a, b) in enumerate(zip(items, back, strict=True)):
+        if not _same_item(a, b):
+            raise FenceRejected(f"{link.name}: fence item {k} read back as {b}, uploaded {a}",
+                                result="MISMATCH")
+
+
+# -- the parameter audit ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ParamRule:
+    """One PX4 parameter the mission relies on: ``problem(value)`` is None when fine, else the
+    message; ``fix`` the value ``--fix-params`` sets; ``hard`` problems refuse to arm."""
+
+    name: str
+    hard: bool
+    problem: Callable[[float], str | None]
+    fix: float
+
+
+def _n(x: float) -> str:
+    return compact_number(float(x), 2)
+
+
+_OBL_NAMES = {0: "Position mode (without RC PX4 descends where it is: captures)",
+              1: "Altitude mode (descends without RC)", 2: "Stabilized (descends without RC)",
+              3: "Return (climbs to RTL_RETURN_ALT and flies home across the others' paths)",
+              4: "Land", 5: "Hold", 6: "Terminate", 7: "Disarm"}
+_DLL_NAMES = {0: "disabled", 1: "Hold", 2: "Return (climbs and flies home across the tube)",
+              3: "Land", 5: "Terminate", 6: "Disarm"}
+
+
+def audit_rules(mission: Mission) -> list[ParamRule]:
+    """The parameters checked against ``mission`` (docs/fleet.md lists why)."""
+    sc, cfg = mission.scenario, mission.config
+    v_max = float(sc.controller.v_max)
+    d = float(cfg.disturbance_residual_m_s) if cfg.compensate_estimate else 0.0
+    t63 = max(float(cfg.tracking_t63_s), 1e-3)
+    acc_need = v_max / t63
+
+    def vel(x: float) -> str | None:
+        if x >= v_max:
+            return None
+        return (f"MPC_XY_VEL_MAX = {_n(x)} m/s < v_max = {_n(v_max)} m/s (PX4 would clip the "
+                f"controller's speeds)")
+
+    def acc(x: float) -> str | None:
+        if x >= acc_need:
+            return None
+        return (f"MPC_ACC_HOR = {_n(x)} m/s² < v_max / t63 = {_n(acc_need)} m/s²: PX4 reaches "
+                f"a commanded speed more slowly than the tracking_t63_s = {_n(t63)} s the safety "
+                f"budget assumes")
+
+    def loss(x: float) -> str | None:
+        if x <= 1.0:
+            return None
+        return (f"COM_OF_LOSS_T = {_n(x)} s > 1 s: when our setpoints stop, PX4 flies the last "
+                f"one for up to {_n(x * v_max)} m (at v_max) before its failsafe")
+
+    def obl(x: float) -> str | None:
+        if round(x) in (4, 5):
+            return None
+        return (f"COM_OBL_RC_ACT = {round(x)}, {_OBL_NAMES.get(round(x), 'unknown')}: on "
+                f"offboard loss a vehicle should hold (5) or land (4) where it is")
+
+    def dll(x: float) -> str | None:
+        if round(x) == 3:
+            return None
+        return (f"NAV_DLL_ACT = {round(x)} ({_DLL_NAMES.get(round(x), 'unknown')}): a vehicle "
+                f"whose ground station is gone for COM_DL_LOSS_T should land (3), not hover "
+                f"until its battery fails")
+
+    vel_fix = math.ceil((v_max + d) * 10.0 - 1e-9) / 10.0
+    return [
+        ParamRule("MPC_XY_VEL_MAX", True, vel, vel_fix),
+        ParamRule("MPC_ACC_HOR", False, acc, math.ceil(acc_need * 10.0 - 1e-9) / 10.0),
+        ParamRule("COM_OF_LOSS_T", False, loss, 1.0),
+        ParamRule("COM_OBL_RC_ACT", False, obl, 5.0),
+        ParamRule("NAV_DLL_ACT", False, dll, 3.0),
+    ]
+
+
+@dataclass
+class AuditResult:
+    """What :func:`audit_fleet` found: ``problems`` (refuse to arm), ``warnings``,
+    ``values[i][name]`` as read, ``changed[i][name]`` = the old value of what was set."""
+
+    problems: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    values: list[dict[str, float]] = field(default_factory=list)
+    changed: list[dict[str, float]] = field(default_factory=list)
+    unsupported: bool = False
+
+
+async def _audit_one(link: VehicleLink, rules: Sequence[ParamRule], fix: bool,
+                     changed: dict[str, float]) -> tuple[dict[str, float], list[str], list[str]]:
+    values: dict[str, float] = {}
+    problems: list[str] = []
+    warnings: list[str] = []
+    for rule in rules:
+        try:
+            x = await link.read_param(rule.name)
+        except LinkUnsupported:
+            raise
+        except LinkError as exc:
+            (problems if rule.hard else warnings).append(
+                f"{link.name}: {rule.name} cannot be read ({exc}); not checked")
+            continue
+        values[rule.name] = x
+        why = rule.problem(x)
+        if why is None:
+            continue
+        if fix:
+            await link.set_param(rule.name, rule.fix)
+            changed[rule.name] = x
+            warnings.append(f"{link.name}: {why}; --fix-params set {rule.name} = "
+                            f"{_n(rule.fix)} (restored to {_n(x)} on exit)")
+        else:
+            (problems if rule.hard else warnings).append(f"{link.name}: {why}")
+    return values, problems, warnings
+
+
+async def audit_fleet(links: Sequence[VehicleLink], mission: Mission, *, fix: bool = False
+                      ) -> AuditResult:
+    """Read :func:`audit_rules` from every link (concurrently) and judge them; with ``fix``
+    set what is off (the old values are in ``changed``, also when a later step fails)."""
+    rules = audit_rules(mission)
+    res = AuditResult(changed=[{} for _ in links])
+    outs = await asyncio.gather(*(_audit_one(link, rules, fix, res.changed[i])
+                                  for i, link in enumerate(links)), return_exceptions=True)
+    for link, out in zip(links, outs, strict=True):
+        if isinstance(out, asyncio.CancelledError):
+            raise out
+        if isinstance(out, LinkUnsupported):
+            res.unsupported = True
+            res.values.append({})
+            continue
+        if isinstance(out, BaseException):
+            res.problems.append(f"{link.name}: parameter audit failed: {out}")
+            res.values.append({})
+            continue
+        values, problems, warnings = out
+        res.values.append(values)
+        res.problems += problems
+        res.warnings += warnings
+    return res
+
+
+async def restore_params(links: Sequence[VehicleLink], changed: Sequence[dict[str, float]]
+                         ) -> list[str]:
+    """Set every recorded old value back; returns one line per failure (never raises)."""
+
+    async def one(link: VehicleLink, old: dict[str, float]) -> list[str]:
+        fails = []
+        for name, value in old.items():
+            try:
+                await link.set_param(name, value)
+            except Exception as exc:  # noqa: BLE001 - restore as much as possible, report
+                fails.append(f"{link.name}: cannot restore {name} = {_n(value)}: {exc}")
+        return fails
+
+    outs = await asyncio.gather(*(one(link, old) for link, old in zip(links, changed,
+                                                                     strict=True) if old),
+                                return_exceptions=True)
+    lines: list[str] = []
+    for out in outs:
+        lines += [str(out)] if isinstance(out, BaseException) else out
+    return lines
