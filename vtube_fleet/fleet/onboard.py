@@ -180,6 +180,8 @@ class AuditResult:
 
 async def _audit_one(link: VehicleLink, rules: Sequence[ParamRule], fix: bool,
                      changed: dict[str, float]) -> tuple[dict[str, float], list[str], list[str]]:
+    """(values, problems, warnings) of one vehicle; warnings without the vehicle's name
+    (:func:`audit_fleet` says which vehicles share each)."""
     values: dict[str, float] = {}
     problems: list[str] = []
     warnings: list[str] = []
@@ -189,8 +191,10 @@ async def _audit_one(link: VehicleLink, rules: Sequence[ParamRule], fix: bool,
         except LinkUnsupported:
             raise
         except LinkError as exc:
-            (problems if rule.hard else warnings).append(
-                f"{link.name}: {rule.name} cannot be read ({exc}); not checked")
+            if rule.hard:
+                problems.append(f"{link.name}: {rule.name} cannot be read ({exc}); not checked")
+            else:
+                warnings.append(f"{rule.name} cannot be read ({exc}); not checked")
             continue
         values[rule.name] = x
         why = rule.problem(x)
@@ -199,10 +203,12 @@ async def _audit_one(link: VehicleLink, rules: Sequence[ParamRule], fix: bool,
         if fix:
             await link.set_param(rule.name, rule.fix)
             changed[rule.name] = x
-            warnings.append(f"{link.name}: {why}; --fix-params set {rule.name} = "
+            warnings.append(f"{why}; --fix-params set {rule.name} = "
                             f"{_n(rule.fix)} (restored to {_n(x)} on exit)")
+        elif rule.hard:
+            problems.append(f"{link.name}: {why}")
         else:
-            (problems if rule.hard else warnings).append(f"{link.name}: {why}")
+            warnings.append(why)
     return values, problems, warnings
 
 
@@ -214,6 +220,7 @@ async def audit_fleet(links: Sequence[VehicleLink], mission: Mission, *, fix: bo
     res = AuditResult(changed=[{} for _ in links])
     outs = await asyncio.gather(*(_audit_one(link, rules, fix, res.changed[i])
                                   for i, link in enumerate(links)), return_exceptions=True)
+    shared: dict[str, list[str]] = {}  # one warning per fact, naming the vehicles it holds for
     for link, out in zip(links, outs, strict=True):
         if isinstance(out, asyncio.CancelledError):
             raise out
@@ -228,7 +235,12 @@ async def audit_fleet(links: Sequence[VehicleLink], mission: Mission, *, fix: bo
         values, problems, warnings = out
         res.values.append(values)
         res.problems += problems
-        res.warnings += warnings
+        for w in warnings:
+            shared.setdefault(w, []).append(link.name)
+    for w, names in shared.items():
+        who = (f"all {len(names)} vehicles" if len(names) == len(links) > 1
+               else ", ".join(names))
+        res.warnings.append(f"{who}: {w}")
     return res
 
 
