@@ -127,3 +127,47 @@ def test_compensator_window_and_clip() -> None:
     assert c.max_m_s == pytest.approx(2.0)
     with pytest.raises(ValueError):
         EstimateCompensator(window_s=0.0)
+
+
+class _Correction:
+    """A compensator whose correction d̂ the test sets (window as the real one)."""
+
+    window_s = 0.4
+
+    def __init__(self) -> None:
+        self.correction = (0.0, 0.0)
+
+
+def _pilot_with(mission):
+    from vtube_fleet.bus import InProcessBus
+    from vtube_fleet.fleet.agent import Agent, FlightPlan
+    from vtube_fleet.fleet.pilot import VehiclePilot
+    from vtube_fleet.link import MavlinkLink
+
+    sc = mission.scenario
+    plan = FlightPlan.build(sc.tube, sc.obstacles, sc.controller)
+    events: list[tuple[str, str]] = []
+    pilot = VehiclePilot(MavlinkLink("udpin://127.0.0.1:24999"), Agent(0, plan), InProcessBus(),
+                         mission, on_event=lambda text, vid, level: events.append((level, text)))
+    pilot.compensator = _Correction()  # type: ignore[assignment]
+    return pilot, events
+
+
+def test_a_lasting_residual_above_d_warns_once_a_spike_does_not(mission) -> None:
+    """The budget covers D integrated over time: one tick's jump of d̂ is not a warning, a
+    residual that stays above D is, once per vehicle, naming the numbers."""
+    pilot, events = _pilot_with(mission)
+    period, d = mission.config.period_s, mission.config.disturbance_residual_m_s
+    comp = pilot.compensator
+    t = 0.0
+    for k in range(200):  # a single spike of 3 D, then calm
+        comp.correction = (3 * d, 0.0) if k == 100 else (0.0, 0.0)
+        pilot._track_residual(t)
+        t += period
+    assert max(pilot.disturbance_residual_m_s) > d and not events
+    for k in range(200):  # d̂ drifting at 2 D per compensation delay: the residual stays > D
+        comp.correction = (2 * d * k * period / (0.5 * comp.window_s + period), 0.0)
+        pilot._track_residual(t)
+        t += period
+    warnings = [text for level, text in events if level == "warning"]
+    assert len(warnings) == 1 and "budgeted D" in warnings[0]
