@@ -79,6 +79,11 @@ def _blueprint(path: Path) -> dict[str, Any]:
         for n in rb.schema.names:
             if ":" in n:
                 row[n.split(":", 1)[1]] = rb.column(n).to_pylist()[-1]
+            if n == "TimeAxis:view_range":  # the boundary kinds (Infinite, Absolute, ...)
+                rng = rb.column(n).flatten()[-1:]
+                row["view_range_kinds"] = tuple(
+                    u.type.field(u.type.type_codes.index(u.type_codes[0].as_py())).name
+                    for u in (rng.field("start"), rng.field("end")))
     views: dict[str, dict[str, Any]] = {}
     for ent, row in ents.items():
         if ent.startswith("/view/") and ent.count("/") == 2:
@@ -90,6 +95,7 @@ def _blueprint(path: Path) -> dict[str, Any]:
                 "bounds": (sub.get("VisualBounds2D", {}).get("range") or [None])[0],
                 "y_range": (sub.get("ScalarAxis", {}).get("range") or [None])[0],
                 "legend": (sub.get("PlotLegend", {}).get("corner") or [None])[0],
+                "x_range": sub.get("TimeAxis", {}).get("view_range_kinds"),
             }
     panels = {k.strip("/"): v for k, v in ents.items() if k.endswith("_panel")}
     return {"views": views, "panels": panels}
@@ -136,10 +142,16 @@ def test_blueprint_is_built_and_saved_without_a_viewer(tmp_path: Path) -> None:
     assert speed["y_range"][0] <= 0.5 and speed["y_range"][1] >= 3.9  # both bounds, the max
     assert pair["legend"] is not None and speed["legend"] is not None
     assert "tick duration [s]" in views and "link latency [s]" in views
-    # side panels collapsed, time panel open on mission_time
+    # every time series shows the whole run, on either timeline (rerun's default: a window
+    # around the time cursor, a narrow one on `tick`, "+0s" as the only label)
+    plots = [v for v in views.values() if v["class"] == "TimeSeries"]
+    assert len(plots) >= 5
+    assert all(v["x_range"] == ("Infinite", "Infinite") for v in plots)
+    # side panels collapsed, the time panel (collapsed: its slider) on mission_time
     assert b["panels"]["blueprint_panel"]["state"] == [2]  # PanelState.Collapsed
     assert b["panels"]["selection_panel"]["state"] == [2]
     assert b["panels"]["time_panel"]["timeline"] == ["mission_time"]
+    assert b["panels"]["time_panel"]["state"] == [2]
 
 
 def test_other_metrics_only_when_there_are_any(tmp_path: Path) -> None:
@@ -230,6 +242,18 @@ def test_fleet_recording_per_vehicle_entities_trails_and_legend(tmp_path: Path) 
     assert len(strip) >= 2 and strip[-1][0] == pytest.approx(0.9 * tick, abs=1e-5)
     span = strip[-1][0] - strip[0][0]
     assert 0 < span <= 0.9 * (3.0 / 0.05) + 1e-6  # at most the last TRAIL_S = 3 s
+    # only the point is labelled (its id): a trail carrying the phase class must not draw the
+    # class label too (in the viewer: "connecting" written over every id)
+    (_, shown), = _column(rows["world/vehicles/1"], "LineStrips2D:show_labels", static=True)
+    assert shown == [False]
+    (_, ids), = _column(rows["world/vehicles/1"], "Points2D:labels", static=True)
+    assert ids == ["1"]
+    # the axis key: short labels on the arrows (a long one on the vertical arrow at the
+    # frame's left edge was cut off), the sentence as one label centred above the frame
+    arrow_labels = _column(rows["world/axes"], "Arrows2D:labels", static=True)[-1][1]  # last
+    assert arrow_labels == ["+x", "+y"]
+    line = _column(rows["world/axes"], "Points2D:labels", static=True)[-1][1]
+    assert "y to the left of the heading (drawn downwards" in line[0]
     # the phase legend, labelled, under the frame
     labels = _column(rows["world/legend"], "Points2D:labels", static=True)[-1][1]  # last
     assert "in tube" in labels and "LOST" in labels and "exited" in labels

@@ -632,8 +632,8 @@ class VehiclePilot:
         from vtube_fleet.link.base import LinkUnsupported
 
         res = await audit_fleet([self.link], self.mission)
-        for w in res.warnings:  # a setting noted: no limit, no loss
-            self.event(w, "info")
+        for w in res.warnings:
+            self.event(w, "warning")
         if res.problems:
             raise PilotError("nothing armed: PX4 parameters: " + "; ".join(res.problems))
         if not self.fence:

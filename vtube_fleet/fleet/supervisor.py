@@ -857,8 +857,8 @@ class Supervisor:
         if res.unsupported:
             self.event(f"PX4 parameter audit skipped: the {self.backend} backend cannot read "
                        f"PX4 parameters (use --backend mavlink)", level="warning")
-        for w in res.warnings:
-            self.event(w, level="warning")
+        for w in res.warnings:  # what --fix-params set is routine (info), the rest warns
+            self.event(w, level="info" if "; --fix-params set " in w else "warning")
         if res.problems:
             raise PreflightError("preflight failed, nothing armed: PX4 parameters: "
                                  + "; ".join(res.problems)
@@ -881,7 +881,7 @@ class Supervisor:
         if not self.fence:
             self.onboard["fence"] = "off"
             self.event("--no-fence: no geofence uploaded; PX4 does not know the tube and a "
-                       "vehicle that our process loses can leave it", level="warning")
+                       "vehicle that our process loses can leave it")
             return
         geom = fence_geometry(self.mission)
         positions = np.array([p.xy for p in self.pilots])

@@ -532,11 +532,18 @@ class RerunRecorder:
         span = max(x1 - x0, y1 - y0, 1e-6)
         pad = 0.05 * span
         length = 0.08 * span
+        # short arrow labels (rerun centres a label on its arrow: a long one on the vertical
+        # arrow at the frame's left edge is cut off), the sentence centred above the frame
         self._rec.log(E_AXES, rr.Arrows2D(
             origins=[[x0, y0 - 1.5 * pad], [x0, y0 - 1.5 * pad]],
             vectors=[[length, 0.0], [0.0, length]], colors=[0xFFFFFFC0, 0xFFFFFFC0],
-            labels=["+x (along the tube)", "+y (left of heading, drawn downwards)"],
-            radii=rr.Radius.ui_points(1.0), show_labels=True, draw_order=40.0), static=True)
+            labels=["+x", "+y"], radii=rr.Radius.ui_points(1.0), show_labels=True,
+            draw_order=40.0),
+            rr.Points2D([[0.5 * (x0 + x1), y0 - 1.5 * pad]], radii=rr.Radius.ui_points(0.5),
+                        colors=[0xFFFFFFC0], show_labels=True, draw_order=40.0,
+                        labels=["x along the tube, y to the left of the heading "
+                                "(drawn downwards: the mirror image of the paper's figures)"]),
+            static=True)
         classes = [(cid, label) for cid, _, label, _ in PHASE_CLASSES if self._legend_class(cid)]
         if not classes:
             return
@@ -1025,7 +1032,8 @@ class RerunRecorder:
                     radii=[radius], labels=[str(vid)], show_labels=show, draw_order=30.0),
                     rr.Arrows2D.from_fields(colors=[VELOCITY_COLOR], draw_order=31.0),
                     rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(1.2)],
-                                                draw_order=29.0), static=True)
+                                                show_labels=False, draw_order=29.0),
+                    static=True)
             rows_here = row_of[sel]
             present = np.zeros(n_rows, dtype=bool)
             present[rows_here] = True
@@ -1489,16 +1497,22 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
     drawn downwards; framed on ``bounds`` = (x0, y0, x1, y1) when given) with the status table
     and the event log under it, the time series (Fig. 11 quantities with their limits, and for
     ``kind="fleet"`` tick duration and link latency) on the right; the blueprint and selection
-    panels collapsed, the time panel on ``mission_time``.
+    panels collapsed, the time panel (collapsed to its slider) on ``mission_time``; every time
+    series shows the whole run on its time axis (either timeline).
 
     ``limits`` (metric key → limit values) set each safety view's y-range around its limits
     (see :func:`_y_range`, using the ``extremes`` (min, max) seen per key); ``metric_keys``
     (the keys the run logged, None: not known yet): only the views of those keys, and keys that
     no view shows get an "other metrics" view — without any, there is none."""
     import rerun.blueprint as rrb
+    from rerun import TimeRange as rr_range
+    from rerun import TimeRangeBoundary as rr_bound
 
     limits = limits or {}
     extremes = extremes or {}
+    # the whole recorded run on the time axis, on either timeline (rerun's default is a window
+    # around the time cursor: a narrow one on `tick`, "+0s" as the only label)
+    whole = rr_range(start=rr_bound.infinite(), end=rr_bound.infinite())
     series = []
     shown: set[str] = set()
     for name, keys in METRIC_VIEWS:
@@ -1522,14 +1536,16 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
             kw["axis_y"] = rrb.ScalarAxis(range=rng, zoom_lock=False)
         corner = rrb.Corner2D.RightTop if lim_keys else rrb.Corner2D.LeftTop
         series.append(rrb.TimeSeriesView(origin="/", contents=contents, name=name,
-                                         plot_legend=rrb.PlotLegend(corner=corner), **kw))
+                                         plot_legend=rrb.PlotLegend(corner=corner),
+                                         axis_x=rrb.TimeAxis(view_range=whole), **kw))
     other = sorted(k for k in (metric_keys or ()) if k not in shown)
     if other:
         series.append(rrb.TimeSeriesView(
             origin="/", name="other metrics",
             contents=[f"/{METRICS_PREFIX}{k}" for k in other]
             + [f"/{LIMITS_PREFIX}{k}" for k in other if k in limits],
-            plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)))
+            plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop),
+            axis_x=rrb.TimeAxis(view_range=whole)))
     view_kw: dict[str, Any] = {}
     if bounds is not None:
         x0, y0, x1, y1 = bounds
@@ -1551,7 +1567,8 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="expanded", timeline=TIMELINE_TIME),
+        # collapsed: the play controls and the time slider, without the streams tree
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE_TIME),
     )
 
 
