@@ -1,16 +1,22 @@
 """Benchmark: one supervisor process drives N sim_stub vehicles (in ANOTHER process) at 20 Hz.
 
     python bench/bench_fleet.py [--count 200] [--seconds 30] [--rate 20] [--backend mavlink]
+                                [--processes N] [--spacing M] [--no-fence] [--profile-out FILE]
 
-1. writes a mission with N slots (a wide straight tube, one obstacle, 2.5 m grid) to a temp dir;
-2. starts ``vtube-fleet mock-fleet MISSION`` in a child process (sim_stub vehicles in the slots;
-   PX4's port scheme up to 40 vehicles, the mock's wide scheme beyond) and reads its endpoints;
+1. writes a mission with N slots (a wide straight tube, one obstacle, ``--spacing`` grid, 5 m;
+   ``latency_s = 0.25`` fixed, so the in-flight budget watch does not end a run on a loaded
+   machine) to a temp dir;
+2. starts ``vtube-fleet mock-fleet MISSION --processes N`` (sim_stub vehicles in the slots,
+   split over N mock processes, default one per 250 vehicles; on a free range of UDP ports,
+   no GCS link) and reads its endpoints;
 3. runs the :class:`~vtube_fleet.fleet.supervisor.Supervisor` in this process (connect, preflight,
    take-off, tube) and measures, over ``--seconds`` of tube flight: ticks, the share of ticks on
    time (started less than half a period after schedule), p50/p99/max tick duration, achieved
    rate, and the CPU time of THIS process (user + system) per wall second;
-4. aborts (every vehicle holds), stops the mock process, prints the numbers (and JSON with
-   ``--json``).
+4. aborts (every vehicle holds), stops the mock processes, prints the numbers (and JSON with
+   ``--json``; ``load_average`` is the machine's at the end). ``--profile-out FILE``: cProfile
+   of this process (ticks and telemetry receive) over the measured window only (``python -m
+   pstats FILE``).
 
 Run by hand (not in CI): it needs about 60-90 s and both cores.
 """
@@ -19,7 +25,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import cProfile
 import json
+import math
 import os
 import resource
 import signal
@@ -37,6 +45,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from missions import grid_mission  # noqa: E402
 
+from sim_stub.ports import free_port_scheme  # noqa: E402
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.launch import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
@@ -44,26 +53,29 @@ from vtube_fleet.link import fleet_sysid, open_links  # noqa: E402
 from vtube_fleet.state import Phase  # noqa: E402
 
 
-def start_mock(mission_path: Path, count: int, profile: str
+def start_mock(mission_path: Path, count: int, profile: str, processes: int
                ) -> tuple[subprocess.Popen[str], list[str]]:
+    ports = free_port_scheme(count)  # never the fixed px4/wide ranges other jobs may hold
     proc = subprocess.Popen(
         [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
-         str(count), "--profile", profile],
+         str(count), "--profile", profile, "--processes", str(processes),
+         "--gcs-port", str(ports.gcs_base), "--vehicle-port", str(ports.vehicle_base)],
         stdout=subprocess.PIPE, stderr=sys.stderr, text=True, cwd=ROOT)
     assert proc.stdout is not None
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         line = proc.stdout.readline()
         if not line:
             raise SystemExit(f"mock fleet exited early (code {proc.poll()})")
         if line.startswith(("udpin://", "udpout://", "udp://")):
             return proc, line.strip().split(",")
-    raise SystemExit("mock fleet did not print its endpoints within 60 s")
+    raise SystemExit("mock fleet did not print its endpoints within 120 s")
 
 
 async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]) -> dict:
     mission = load_mission(mission_path)
     window: dict[str, float] = {}
+    prof = cProfile.Profile() if args.profile_out else None
 
     def hook(tick: int, sup: Supervisor) -> None:
         if sup.tube_start_s is None:
@@ -72,16 +84,22 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t0=time.monotonic(), cpu0=ru.ru_utime + ru.ru_stime,
                           k0=len(sup.tick_durations))
+            if prof is not None:
+                prof.enable()
         elif time.monotonic() - window["t0"] >= args.seconds and "t1" not in window:
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t1=time.monotonic(), cpu1=ru.ru_utime + ru.ru_stime,
                           k1=len(sup.tick_durations))
+            if prof is not None:
+                prof.disable()
+                prof.dump_stats(args.profile_out)
             sup.request_abort(f"benchmark: {args.seconds:g} s of tube flight measured")
 
     sysids = [fleet_sysid(i) for i in range(len(endpoints))]
     options = {"message_rates_hz": dict(UNUSED_STREAMS_OFF)} if args.backend == "mavlink" else {}
     async with open_links(endpoints, args.backend, sysids=sysids, **options) as links:
-        sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook)
+        sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook,
+                         fence=not args.no_fence)
         result = await sup.run()
     if "t1" not in window:
         raise SystemExit(f"the tube flight did not last {args.seconds} s: {result.outcome}: "
@@ -94,6 +112,9 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
     in_tube = sum(p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING) for p in sup.pilots)
     return {
         "vehicles": len(endpoints),
+        "mock_processes": args.processes,
+        "fence": not args.no_fence,
+        "load_average": [round(x, 2) for x in os.getloadavg()],
         "backend": args.backend,
         "rate_hz": args.rate,
         "seconds": round(wall, 2),
@@ -122,13 +143,31 @@ def main() -> None:
     ap.add_argument("--backend", choices=("mavlink", "mavsdk"), default="mavlink")
     ap.add_argument("--profile", choices=("full", "lite"), default="lite",
                     help="sim_stub stream set of the mock process (default lite)")
+    ap.add_argument("--spacing", type=float, default=5.0, metavar="M",
+                    help="slot grid spacing (default 5 m: the safety budget with px4-sih's "
+                         "0.3 m estimate needs r_s' ~ 1.9 m)")
+    ap.add_argument("--processes", type=int, default=None, metavar="N",
+                    help="mock processes (default: one per 250 vehicles)")
+    ap.add_argument("--profile-out", type=Path, default=None, metavar="FILE",
+                    help="cProfile this process over the measured window into FILE")
+    ap.add_argument("--no-fence", action="store_true",
+                    help="skip the geofence upload before arming (a preflight step, several "
+                         "round trips per vehicle; not part of the measured tick)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    if args.processes is None:
+        args.processes = max(1, math.ceil(args.count / 250))
+    if not 1 <= args.processes <= args.count:
+        raise SystemExit(f"error: --processes must be in 1..{args.count}, got {args.processes}")
     os.environ.setdefault("MAVLINK20", "1")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"bench_{args.count}.toml"
-        path.write_text(grid_mission(args.count, args.rate, args.seconds))
-        proc, endpoints = start_mock(path, args.count, args.profile)
+        # [mission] is the last table: a fixed L (the most the budget accepts) instead of the
+        # measured one, so that a loaded shared machine does not end the measurement through
+        # the in-flight budget watch (what is measured here is the tick, not the clearance)
+        path.write_text(grid_mission(args.count, args.rate, args.seconds, args.spacing)
+                        + "latency_s = 0.25\n")
+        proc, endpoints = start_mock(path, args.count, args.profile, args.processes)
         try:
             out = asyncio.run(run(args, path, endpoints))
         finally:

@@ -13,6 +13,7 @@ from .errors import SimStubError
 from .faults import Faults, parse_fault_spec
 from .fleet import MockFleet, grid_homes, load_homes
 from .ports import PX4, WIDE, PortScheme, resolve_port_scheme
+from .processes import MockProcessError, ProcessFleet
 from .scheduler import Scheduler
 from .telemetry import PROFILES, STREAM_CATALOG
 from .vehicle import DEFAULT_HOME, MockVehicle, VehicleCounters
@@ -20,6 +21,8 @@ from .vehicle import DEFAULT_HOME, MockVehicle, VehicleCounters
 __all__ = [
     "MockVehicle",
     "MockFleet",
+    "MockProcessError",
+    "ProcessFleet",
     "Faults",
     "PortScheme",
     "PX4",

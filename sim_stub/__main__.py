@@ -1,4 +1,5 @@
-"""``python -m sim_stub --count N``: run N mock PX4 SITL vehicles until SIGINT/SIGTERM."""
+"""``python -m sim_stub --count N [--processes P]``: run N mock PX4 SITL vehicles (in P
+processes) until SIGINT/SIGTERM."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from .estimator import ESTIMATOR_PROFILES
 from .faults import Faults, parse_fault_spec
 from .fleet import MockFleet, load_homes
 from .ports import PX4, WIDE, PortScheme
+from .processes import ProcessFleet
 from .telemetry import GCS_LINK_PROFILES
 from .vehicle import DEFAULT_HOME, validate_home
 
@@ -34,7 +36,8 @@ def _home(text: str) -> tuple[float, float, float]:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m sim_stub",
-        description="Run mock PX4 SITL vehicles (MAVLink 2 over UDP) in one process.",
+        description="Run mock PX4 SITL vehicles (MAVLink 2 over UDP) in one process (or, with "
+        "--processes N, split over N).",
     )
     ap.add_argument("--count", type=int, default=None, help="number of vehicles (default 1)")
     ap.add_argument(
@@ -53,6 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="place the vehicles on a grid this many metres apart around --home",
+    )
+    ap.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        metavar="N",
+        help="split the vehicles over N OS processes (contiguous blocks, one scheduler each, "
+        "same ports; about 500 lite vehicles fit one core); default 1",
     )
     ap.add_argument("--seed", type=int, default=0, help="seed for loss/noise/stream phases")
     ap.add_argument(
@@ -150,21 +161,21 @@ def _faults(specs: Sequence[str], count: int) -> list[Faults]:
     return out
 
 
-async def _run(fleet: MockFleet) -> None:
+async def _run(fleet: MockFleet | ProcessFleet, profile: str, estimator: str) -> None:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     async with fleet:
+        procs = (f" in {fleet.processes} processes" if isinstance(fleet, ProcessFleet) else "")
         print(
-            f"sim_stub: {fleet.count} vehicle(s), ports {fleet.ports.name}, "
-            f"profile {fleet.vehicles[0].profile}, estimator {fleet.vehicles[0].estimator.name}"
-            f"; Ctrl-C to stop",
+            f"sim_stub: {fleet.count} vehicle(s){procs}, ports {fleet.ports.name}, "
+            f"profile {profile}, estimator {estimator}; Ctrl-C to stop",
             flush=True,
         )
         for line in fleet.describe():
             print(line, flush=True)
-        await stop.wait()
+        await fleet.serve(stop)
         print("sim_stub: stopping", flush=True)
 
 
@@ -178,10 +189,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             count = len(homes) if homes is not None else 1
         if count < 1:
             raise SimStubError(f"--count must be >= 1, got {count}")
+        if not 1 <= args.processes <= count:
+            raise SimStubError(f"--processes must be in 1..{count} (the vehicle count), got "
+                               f"{args.processes}")
         if homes is not None and len(homes) != count:
             raise SimStubError(f"--count {count} but {args.homes} has {len(homes)} homes")
-        fleet = MockFleet(
-            count,
+        kwargs = dict(
             homes=homes,
             home=home,
             spacing_m=args.spacing,
@@ -193,7 +206,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             estimator_shared=args.estimator_shared,
             gcs_link=args.gcs_link,
         )
-        asyncio.run(_run(fleet))
+        fleet = (ProcessFleet(count, processes=args.processes, **kwargs) if args.processes > 1
+                 else MockFleet(count, **kwargs))
+        asyncio.run(_run(fleet, args.profile, args.estimator))
     except SimStubError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code

@@ -131,7 +131,7 @@ class EstimatorErrors:
     the same draws from a second generator (SIH-like).
     """
 
-    def __init__(self, n: int, seed: int = 0) -> None:
+    def __init__(self, n: int, seed: int = 0, *, stream: int = 0) -> None:
         self.n = n
         self.e_v = np.zeros((n, 3))
         self.e_p = np.zeros((n, 3))
@@ -142,7 +142,8 @@ class EstimatorErrors:
         self._kick_dir = np.zeros((n, 2))
         self._air_s = np.full(n, -1.0)  # seconds since lift-off, -1 on the ground
         self._profiles: list[EstimatorProfile] = [ESTIMATOR_PROFILES["ideal"]] * n
-        self._rng = np.random.default_rng(seed)
+        # stream k > 0: an independent sequence (a fleet split over processes), same shared one
+        self._rng = np.random.default_rng(seed if stream == 0 else (seed, stream))
         self._shared = np.zeros(n, dtype=bool)
         self._running = np.zeros(n, dtype=bool)
         self._active = np.zeros(n, dtype=bool)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -96,6 +97,11 @@ class MockFleet:
     per endpoint still tells them apart (one MAVSDK instance for all would not). ``sysids``
     sets them explicitly (one per vehicle, 1..254; repeats allowed, as on separate networks).
 
+    ``first``: the first PX4 instance (vehicles ``first``..``first+count-1``: ports, default
+    sysids, link randomness); :class:`~sim_stub.processes.ProcessFleet` gives each of its
+    processes one block. Every list (``homes``, ``faults``, ``sysids``, ``vehicles``,
+    ``endpoints``) and :meth:`kill` count from 0 within this fleet.
+
     ``async with MockFleet(count=3) as fleet:`` starts all vehicles on one scheduler;
     ``fleet.endpoints[i]`` is the MAVSDK URL the GCS binds for vehicle i, ``fleet.vehicles[i]``
     the vehicle (true state, counters), ``fleet.kill(i, how)`` kills one.
@@ -120,6 +126,7 @@ class MockFleet:
         estimator_shared: bool = False,
         gcs_link: str = "lite",
         sysids: Sequence[int] | None = None,
+        first: int = 0,
     ) -> None:
         if homes is not None:
             homes = [validate_home(h) for h in homes]
@@ -133,13 +140,15 @@ class MockFleet:
             raise SimStubError(f"vehicle count must be >= 1, got {count}")
         if profile not in PROFILES:
             raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
+        if first < 0:
+            raise SimStubError(f"first instance must be >= 0, got {first}")
         if sysids is None:
-            sysids = [i % 254 + 1 for i in range(count)]
+            sysids = [(first + i) % 254 + 1 for i in range(count)]
         sysids = list(sysids)
         if len(sysids) != count or not all(1 <= int(s) <= 254 for s in sysids):
             raise SimStubError(f"sysids: {count} ids in 1..254 expected, got {sysids!r}")
         self.ports = resolve_port_scheme(port_scheme)
-        self.ports.check(count)
+        self.ports.check(first + count)
         if homes is None:
             homes = (
                 grid_homes(home, count, spacing_m)
@@ -148,12 +157,13 @@ class MockFleet:
             )
         self.homes: list[Home] = list(homes)
         self.count = count
+        self.first = first
         self.seed = seed
         self._faults = self._resolve_faults(faults, count)
-        self.scheduler = Scheduler(count, tick_hz=tick_hz, clock=clock, seed=seed)
+        self.scheduler = Scheduler(count, tick_hz=tick_hz, clock=clock, seed=seed, stream=first)
         self.vehicles: list[MockVehicle] = [
             MockVehicle(
-                i,
+                first + i,
                 home=self.homes[i],
                 ports=self.ports,
                 faults=self._faults[i],
@@ -170,7 +180,7 @@ class MockFleet:
             )
             for i in range(count)
         ]
-        self.endpoints: list[str] = [self.ports.endpoint(i) for i in range(count)]
+        self.endpoints: list[str] = [self.ports.endpoint(first + i) for i in range(count)]
         self._running = False
 
     @staticmethod
@@ -223,6 +233,10 @@ class MockFleet:
         for v in self.vehicles:
             await v.stop()
         self.scheduler.stop()
+
+    async def serve(self, stop: asyncio.Event) -> None:
+        """Run until ``stop`` is set (as :meth:`ProcessFleet.serve`, whose children can die)."""
+        await stop.wait()
 
     def kill(self, i: int, how: str = "silent") -> None:
         """Kill vehicle ``i``: ``"silent"`` (link dies) or ``"freeze"`` (hovers, ignores all)."""

@@ -54,7 +54,11 @@ class Scheduler:
         dynamics: DynamicsParams | None = None,
         max_lag_s: float = 0.25,
         seed: int = 0,
+        stream: int = 0,
     ) -> None:
+        """``seed``/``stream``: the estimate errors' generator (stream 0 = seed alone; the
+        processes of a :class:`~sim_stub.processes.ProcessFleet` use their first instance, so
+        their vehicles' errors are independent; shared draws stay common to all)."""
         if capacity < 1:
             raise ValueError(f"scheduler capacity must be >= 1, got {capacity}")
         if not 20.0 <= tick_hz <= 1000.0:
@@ -65,7 +69,7 @@ class Scheduler:
         self._clock = clock
         self.max_lag_s = max_lag_s
         self.dyn = QuadState(capacity, dynamics, nominal_dt=self.dt)
-        self.est = EstimatorErrors(capacity, seed)
+        self.est = EstimatorErrors(capacity, seed, stream=stream)
         n = capacity
         self.u = np.zeros((n, 3))
         self.airborne = np.zeros(n, dtype=bool)
