@@ -171,3 +171,33 @@ def test_a_lasting_residual_above_d_warns_once_a_spike_does_not(mission) -> None
         t += period
     warnings = [text for level, text in events if level == "warning"]
     assert len(warnings) == 1 and "budgeted D" in warnings[0]
+
+
+def test_the_watch_counts_stalls_of_our_own_loop(mission, tmp_path) -> None:
+    """A control loop that stalls beyond T + L flies the vehicles on stale setpoints: counted
+    over budget even when the mission fixes latency_s (that describes the link, not us)."""
+    b = mission_budget(mission, LinkMeasurement(0.03, 0.01, 0.29))
+    w = BudgetWatch(mission, b)
+    t = 0.0
+    for _ in range(3):  # ticks on time, and one a little late: nothing
+        w.add_tick_gap(b.period_s)
+        w.add_tick_gap(b.period_s + 0.5 * b.latency_s)
+        w.add_ages(t, [0.03] * 10)
+        assert w.check(t, 0.01, [0.29]) == (None, None)
+        t += 1.0
+    w.add_tick_gap(w.max_tick_gap_s + 0.1)  # one stall: a warning with the numbers
+    warning, hold = w.check(t, 0.01, [0.29])
+    assert warning and "control loop stalled" in warning and hold is None
+    t += 1.0
+    assert w.check(t, 0.01, [0.29]) == (None, None)  # not again: the gap was judged once
+    for _ in range(2):  # stalls in two seconds in a row: hold
+        t += 1.0
+        w.add_tick_gap(w.max_tick_gap_s + 0.1)
+        warning, hold = w.check(t, 0.01, [0.29])
+    assert hold and "control loop stalled" in hold
+    fixed = write_mission(tmp_path, COMPACT_12.replace("[mission]", "[mission]\nlatency_s = 0.25",
+                                                       1), name="fixed.toml")
+    assert fixed.config.latency_s == 0.25
+    wf = BudgetWatch(fixed, mission_budget(fixed, LinkMeasurement(0.03, 0.01, 0.29)))
+    wf.add_tick_gap(wf.max_tick_gap_s + 0.1)
+    assert "control loop stalled" in (wf.check(0.0, 0.01, [0.29])[0] or "")

@@ -237,6 +237,11 @@ class BudgetWatch:
     warning text the first second over, and a hold reason after ``persist_s`` seconds in a row.
     Overridden budgets and the mission's own ``latency_s`` / ``position_accuracy_m`` are not
     second-guessed.
+
+    The gaps between control ticks are fed too (:meth:`add_tick_gap`): while our own loop
+    stalls, the vehicles fly their last setpoint, so a gap longer than the budgeted T + L
+    delays every command beyond what δ covers. That counts as over whatever the mission fixed
+    (``latency_s`` describes the link, an override the margin; neither covers our own loop).
     """
 
     def __init__(self, mission: Mission, budget: SafetyBudget, *, window_s: float = 3.0,
@@ -248,9 +253,20 @@ class BudgetWatch:
         self._ages: list[tuple[float, float]] = []
         self._checked_s = -math.inf
         self._over = 0
+        self._worst_gap_s = 0.0  # the longest tick gap since the last check
 
     def add_ages(self, t_s: float, ages: Sequence[float]) -> None:
         self._ages.extend((t_s, a) for a in ages if math.isfinite(a))
+
+    def add_tick_gap(self, gap_s: float) -> None:
+        """The time between two control ticks (the period when on time)."""
+        if math.isfinite(gap_s):
+            self._worst_gap_s = max(self._worst_gap_s, gap_s)
+
+    @property
+    def max_tick_gap_s(self) -> float:
+        """The longest tick gap the budget covers: T + L (the delay of a fresh command)."""
+        return self.budget.period_s + self.budget.latency_s
 
     def check(self, t_s: float, uplink_s: float, accuracies_m: Sequence[float]
               ) -> tuple[str | None, str | None]:
@@ -259,19 +275,28 @@ class BudgetWatch:
         self._checked_s = t_s
         self._ages = [(ts, a) for ts, a in self._ages if ts >= t_s - self.window_s]
         b, cfg = self.budget, self.cfg
+        over = []
+        gap, self._worst_gap_s = self._worst_gap_s, 0.0
+        if gap > self.max_tick_gap_s:
+            over.append(f"control loop stalled {gap * 1000:.0f} ms > budgeted T + L = "
+                        f"{self.max_tick_gap_s * 1000:.0f} ms (the vehicles flew their last "
+                        f"setpoint)")
         if b.overridden:
-            return None, None
+            return self._judge(over)
         ages = [a for _, a in self._ages]
         latency = (sorted(ages)[int(0.95 * (len(ages) - 1))] + uplink_s) if ages else 0.0
         acc = [a for a in accuracies_m if math.isfinite(a)]
         sigma = max(acc, default=0.0)
-        over = []
         if cfg.latency_s is None and latency > b.latency_s + cfg.period_s:
             over.append(f"link latency L = {latency * 1000:.0f} ms (last {self.window_s:g} s) "
                         f"> budgeted {b.latency_s * 1000:.0f} ms + one period")
         if cfg.position_accuracy_m is None and sigma > 1.25 * b.accuracy_m + 0.02:
             over.append(f"reported position accuracy σ = {sigma:.2f} m > budgeted "
                         f"{b.accuracy_m:.2f} m (+25 %)")
+        return self._judge(over)
+
+    def _judge(self, over: list[str]) -> tuple[str | None, str | None]:
+        """(warning the first second over, hold reason after ``persist_s`` seconds in a row)."""
         if not over:
             self._over = 0
             return None, None

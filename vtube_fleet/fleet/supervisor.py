@@ -304,6 +304,7 @@ class Supervisor:
         self._main: asyncio.Task[None] | None = None
         self.watch: BudgetWatch | None = None  # the in-flight budget check, once flying
         self._recent_ages: list[float] = []
+        self._recent_tick_gap_s = 0.0  # the longest gap between control ticks, for the watch
         self.violations = ViolationLog(self.monitor)
         self.not_landed: list[str] = []
         self.truth_xy: np.ndarray | None = None  # (M, 2) ground truth, tube frame (truth=True)
@@ -355,6 +356,8 @@ class Supervisor:
                 # our own loop stalled: silence is counted from now on (pilot.check_faults)
                 self.listening_since = time.monotonic()
                 self.event(f"control loop stalled for {start - prev:.2f} s", level="warning")
+            if prev is not None:
+                self._recent_tick_gap_s = max(self._recent_tick_gap_s, start - prev)
             prev = start
             t0 = time.perf_counter()
             try:
@@ -654,10 +657,12 @@ class Supervisor:
     def _watch_budget(self, t: float) -> None:
         """Once a second in the tube (:class:`~vtube_fleet.fleet.budget.BudgetWatch`): L and σ
         over what the budget was built for, for 2 s → every vehicle in the tube holds."""
+        gap, self._recent_tick_gap_s = self._recent_tick_gap_s, 0.0
         if not any(p.phase == Phase.IN_TUBE for p in self.pilots):
             return
         if self.watch is None or self.watch.budget is not self.budget:
             self.watch = BudgetWatch(self.mission, self.budget)
+        self.watch.add_tick_gap(gap)
         self.watch.add_ages(t, self._recent_ages)
         self._recent_ages = []
         up = max((p.link.latency_s or 0.0 for p in self.pilots), default=0.0)

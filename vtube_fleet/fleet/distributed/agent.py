@@ -128,6 +128,7 @@ class BusAwarePilot(VehiclePilot):
         self.recording: AgentRecording | None = None  # fed after every tick once flying
         self._healthy_since: float | None = None  # wall time the bus became healthy again
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
+        self._last_tick_mono: float | None = None  # for the tick gaps the watch judges
 
     def stop_for(self, why: str) -> None:
         """Keep the first reason this vehicle stopped flying the tube (its summary's and its
@@ -181,6 +182,8 @@ class BusAwarePilot(VehiclePilot):
                 self.recording.sample(self, now_wall)
 
     def _tick(self, now_mono: float, now_wall: float) -> None:
+        gap = now_mono - (self._last_tick_mono or now_mono)  # every tick, holds included
+        self._last_tick_mono = now_mono
         if self.phase in (Phase.IN_TUBE, Phase.EXITED):
             problem = self.bus_problem(now_wall)
             if problem is not None:
@@ -199,6 +202,7 @@ class BusAwarePilot(VehiclePilot):
             self.stop_for(why)
             self.begin_hold(why)
         if self.phase == Phase.IN_TUBE and self.watch is not None:
+            self.watch.add_tick_gap(gap)
             self.watch.add_ages(now_mono, [self.sample_age_s(now_mono)])
             warning, hold = self.watch.check(now_mono, self.link.latency_s or 0.0,
                                              [self.position_accuracy_m()])
@@ -815,15 +819,22 @@ class AgentProcess:
     async def run(self) -> int:
         from vtube_fleet.link import open_links
         from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
+        from vtube_fleet.link.signing import slot_signing
 
         self.bus.add_command_listener(self._on_command)
         sysid = None
+        signing = slot_signing(self.mission, self.vehicle)  # its key file, checked before joining
         if self.backend == "mavsdk":
             sysid = px4_sitl_sysid(parse_endpoint(self.endpoint).port) or self.vehicle + 1
+            if signing is not None:
+                from vtube_fleet.link.mavsdk_link import refuse_signing
+
+                refuse_signing(self.endpoint)
         async with self.bus:
             await self.join()
             try:
-                async with open_links([self.endpoint], self.backend, sysids=[sysid]) as links:
+                async with open_links([self.endpoint], self.backend, sysids=[sysid],
+                                      signing=[signing]) as links:
                     return await self.fly(links[0])
             except (AgentRefused, AgentAborted):
                 raise
