@@ -169,18 +169,22 @@ def spec(name: str) -> MsgSpec:
 class Encoder:
     """Frames payloads as MAVLink 2 packets of one link (one ``sysid/compid``, one ``seq``)."""
 
-    __slots__ = ("sysid", "compid", "seq")
+    __slots__ = ("sysid", "compid", "seq", "signer")
 
     def __init__(self, sysid: int, compid: int = 1) -> None:
         self.sysid = sysid
         self.compid = compid
         self.seq = 0
+        #: ``signer(seq, spec, payload) -> frame`` while signing is on (sim_stub/signing.py)
+        self.signer: Callable[[int, MsgSpec, bytes], bytes] | None = None
 
     def frame(self, spec: MsgSpec, payload: bytes) -> bytes:
         """One complete packet: header, zero-truncated payload, CRC. Advances ``seq``."""
         payload = payload.rstrip(b"\x00") or b"\x00"
         seq = self.seq
         self.seq = (seq + 1) & 0xFF
+        if self.signer is not None:
+            return self.signer(seq, spec, payload)
         body = bytes((len(payload), 0, 0, seq, self.sysid, self.compid)) + spec.id3 + payload
         crc = _mcrf4xx(spec.crc_byte, _mcrf4xx(body, 0xFFFF))
         return b"\xfd" + body + _CRC.pack(crc)
@@ -196,6 +200,7 @@ class ParsedPacket:
     src_system: int
     src_component: int
     msg: object
+    raw: bytes = b""  # the complete frame (signature checks: sim_stub/signing.py)
 
 
 _CRC_EXTRA: dict[int, int] = {k: v.crc_extra for k, v in _mav.mavlink_map.items()}
@@ -259,7 +264,7 @@ class DatagramParser:
                 return out, 1, unknown
             fast = self._fast.get(msgid)
             if fast is not None:
-                out.append(ParsedPacket(msgid, src_sys, src_comp, fast(pkt[hdr:crc_end])))
+                out.append(ParsedPacket(msgid, src_sys, src_comp, fast(pkt[hdr:crc_end]), pkt))
                 continue
             if msgid in EXTRA_SPECS:
                 unknown += 1  # valid PX4-only message; the mock never receives these
@@ -268,7 +273,7 @@ class DatagramParser:
                 msg = self._mav.decode(bytearray(pkt))
             except Exception:  # pymavlink raises MAVError or struct.error on bad payloads
                 return out, 1, unknown
-            out.append(ParsedPacket(msgid, src_sys, src_comp, msg))
+            out.append(ParsedPacket(msgid, src_sys, src_comp, msg, pkt))
         return out, 0, unknown
 
 

@@ -40,6 +40,7 @@ from .px4 import (
     Mode,
 )
 from .scheduler import Scheduler
+from .signing import SigningState
 from .telemetry import (
     GCS_LINK_PROFILES,
     GCS_LINK_STREAMS,
@@ -160,6 +161,9 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
     :mod:`sim_stub.estimator`), ``estimator_shared``: the same error sequence as every other
     shared vehicle of the scheduler (SIH-like). ``gcs_link``: default stream set of PX4's GCS
     link (``"lite"``, ``"full"`` or ``"off"``; ports from the scheme, none if it has no GCS link).
+    ``signing``: MAVLink 2 signing as PX4 >= 1.18 (:mod:`sim_stub.signing`): ``False`` = an
+    older PX4 that ignores SETUP_SIGNING, ``True`` = no key yet (SETUP_SIGNING sets one), 32
+    bytes = the key already on the SD card.
 
     Use ``async with MockVehicle(0) as v:`` or ``await v.start()`` / ``await v.stop()``.
     """
@@ -181,6 +185,7 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         estimator: str = "px4-sih",
         estimator_shared: bool = False,
         gcs_link: str = "lite",
+        signing: bool | bytes = False,
     ) -> None:
         if instance < 0:
             raise SimStubError(f"instance must be >= 0, got {instance}")
@@ -238,6 +243,14 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         self._parser = DatagramParser(
             {84: fast_decoder("SET_POSITION_TARGET_LOCAL_NED"), 0: fast_decoder("HEARTBEAT")}
         )
+        try:
+            self.signing: SigningState | None = (
+                None if signing is False
+                else SigningState(None if signing is True else bytes(signing)))
+        except ValueError as exc:
+            raise SimStubError(f"signing: {exc}") from None
+        if self.signing is not None:
+            self._signing_changed()
         self._sock: socket.socket | None = None
         self._link_plain = False  # no fault, not dead: the fast send path
         self._transport: asyncio.DatagramTransport | None = None
@@ -604,8 +617,11 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         enc = self._enc
         seq = enc.seq
         enc.seq = (seq + 1) & 0xFF
-        body = bytes((len(payload), 0, 0, seq, self.sysid, 1)) + spec.id3 + payload
-        data = b"\xfd" + body + _CRC.pack(mcrf4xx(spec.crc_byte, mcrf4xx(body, 0xFFFF)))
+        if enc.signer is None:
+            body = bytes((len(payload), 0, 0, seq, self.sysid, 1)) + spec.id3 + payload
+            data = b"\xfd" + body + _CRC.pack(mcrf4xx(spec.crc_byte, mcrf4xx(body, 0xFFFF)))
+        else:
+            data = enc.signer(seq, spec, payload)
         self._tx_packets += 1
         self._tx_bytes += len(data)
         if self._link_plain:
@@ -699,6 +715,25 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
     def _log_mode(self, now: float, what: str) -> None:
         self.mode_log.append((now - self.t0, what, self.armed))
 
+    def _signing_changed(self) -> None:
+        """Sign (or stop signing) on every link after a key change (sim_stub/signing.py);
+        link ids as PX4's MAVLink instances: API link 0, GCS link 1."""
+        sg = self.signing
+        links = [(self._enc, 0)] + ([(self.gcs_link.enc, 1)] if self.gcs_link else [])
+        for enc, link_id in links:
+            if sg is None or sg.key is None:
+                enc.signer = None
+                continue
+
+            def signer(seq: int, spec: MsgSpec, payload: bytes, _enc: Encoder = enc,
+                       _lid: int = link_id, _sg: SigningState = sg) -> bytes:
+                return _sg.frame(seq, _enc.sysid, _enc.compid, spec.id3, spec.crc_byte,
+                                 payload, _lid, mcrf4xx)
+
+            enc.signer = signer
+        log.info("sim_stub vehicle %d: MAVLink signing %s", self.instance,
+                 "on" if sg is not None and sg.key is not None else "off")
+
     # ------------------------------------------------------------------------------------------
     # helpers
     def _tboot_ms(self, now: float) -> int:
@@ -759,6 +794,11 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         if malformed:
             self._rx_malformed += 1
         self._rx_unknown += unknown
+        if self.signing is not None and packets:
+            packets, changed = self.signing.filter(packets, armed=self.armed, sysid=self.sysid,
+                                                   compid=self.compid)
+            if changed:
+                self._signing_changed()
         if not packets:
             return
         if link is None:

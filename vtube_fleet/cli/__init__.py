@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "vtube_fleet.cli.agent",
     "vtube_fleet.cli.mission",
     "vtube_fleet.cli.bus_setup",
+    "vtube_fleet.cli.sign_setup",
 )
 
 

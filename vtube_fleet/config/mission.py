@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from vtube_fleet.config.keys import NON_NEGATIVE, POSITIVE, Bound, Key, markdown_table, show_value
-from vtube_fleet.config.scenario import Scenario, load_scenario
+from vtube_fleet.config.scenario import PX4_MAX_HORIZONTAL_M_S, Scenario, load_scenario
 from vtube_fleet.errors import ConfigError
 from vtube_fleet.frames import TubeFrame
 
@@ -98,6 +98,7 @@ class MissionConfig:
     safety_margin_m: float | None = None
     fence_action: str = "hold"
     fence_margin_m: float = 1.0
+    signing_key_file: str | None = None
 
     @property
     def period_s(self) -> float:
@@ -130,9 +131,9 @@ MAX_ALTITUDE_M = 120.0
 #: MPC_Z_VEL_MAX_DN); a larger setpoint is silently clipped, so the mission refuses it.
 PX4_MAX_CLIMB_M_S = 3.0
 PX4_MAX_DESCENT_M_S = 1.5
-#: PX4's default limit of the horizontal velocity (MPC_XY_VEL_MAX): the scenario's v_max, the
-#: fastest the controller ever commands, must not exceed it.
-PX4_MAX_HORIZONTAL_M_S = 12.0
+#: PX4's default limit of the horizontal velocity (MPC_XY_VEL_MAX) is
+#: ``vtube_fleet.config.scenario.PX4_MAX_HORIZONTAL_M_S``: the scenario parser bounds every
+#: speed (v_max, the fastest the controller ever commands, included) by it.
 
 def _timeout(name: str, default: float, what: str) -> Key:
     return Key(name, "number", f"timeout: {what}", "s", default, bound=POSITIVE)
@@ -213,6 +214,10 @@ MISSION_KEYS: tuple[Key, ...] = (
         default="hold", choices=FENCE_ACTIONS),
     Key("fence_margin_m", "number", "the fence polygon lies r_s + this outside the tube's "
         "legs and behind the start base", "m", 1.0, bound=NON_NEGATIVE),
+    Key("signing_key_file", "text", "MAVLink 2 signing key file (32 bytes, mode 0600), "
+        "relative to the mission file; `{slot}` in the name = one key per vehicle. Every "
+        "MAVLink packet is then signed and only signed ones are accepted (mavlink backend "
+        "only; docs/security.md)", default=None, default_text="none: no signing"),
 )
 _BY_NAME: dict[str, Key] = {k.name: k for k in MISSION_KEYS}
 

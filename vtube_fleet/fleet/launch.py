@@ -174,6 +174,10 @@ async def fleet_supervisor(
         options = dict(link_options or {})
         if backend == "mavlink":
             options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
+        if mission.config.signing_key_file and "signing" not in options:
+            from vtube_fleet.link.signing import fleet_signing  # docs/security.md
+
+            options["signing"] = fleet_signing(mission, len(endpoints))
         links = await stack.enter_async_context(
             open_links(list(endpoints), backend, sysids=sysids, **options))
         yield Supervisor(mission, links, backend=backend, recorder=recorder, view=view,

@@ -74,8 +74,10 @@ async def open_links(
     ``sysids`` (optional, one per endpoint) pins system ids; the mavsdk backend otherwise uses
     PX4 SITL's scheme (port 14540 + i → i + 1). ``watchdog_s`` is the mavsdk backend's stall
     limit (ignored by ``mavlink``, whose stall is caught by PX4's own failsafe). ``options`` go
-    to the link constructor (e.g. ``command_timeout_s`` for mavlink). Connecting is left to the
-    caller (concurrently, with its own timeouts and error report).
+    to the link constructor (e.g. ``command_timeout_s`` for mavlink). ``signing``: one
+    :class:`~vtube_fleet.link.signing.LinkSigning` (or None) per endpoint, mavlink only (the
+    mavsdk backend refuses). Connecting is left to the caller (concurrently, with its own
+    timeouts and error report).
     """
     if backend not in BACKENDS:
         raise LinkError(f"unknown link backend {backend!r}; choose one of {', '.join(BACKENDS)}")
@@ -104,11 +106,20 @@ async def open_links(
                     f"links are separate")
             if s is not None:
                 seen[s] = e.url
+    signing = options.pop("signing", None)
+    signings = list(signing) if isinstance(signing, (list, tuple)) else [signing] * len(eps)
+    if len(signings) != len(eps):
+        raise LinkError(f"{len(signings)} signing settings for {len(eps)} endpoints")
+    if backend == "mavsdk" and any(sg is not None for sg in signings):
+        from vtube_fleet.link.mavsdk_link import refuse_signing
+
+        refuse_signing(eps[0].url)
     links: list[VehicleLink] = []
     hub = None
     try:
         if backend == "mavlink":
-            links = [MavlinkLink(ep, sid, **options) for ep, sid in zip(eps, ids, strict=True)]
+            links = [MavlinkLink(ep, sid, signing=sg, **options)
+                     for ep, sid, sg in zip(eps, ids, signings, strict=True)]
         else:
             from vtube_fleet.link.mavsdk_link import DEFAULT_WATCHDOG_S, MavsdkHub
 

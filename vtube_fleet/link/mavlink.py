@@ -31,15 +31,25 @@
 * Onboard safety (installed on first use, ``_onboard``): PX4 parameters by name
   (PARAM_REQUEST_READ / PARAM_SET → PARAM_VALUE, integers bytewise in the float as PX4 sends
   them) and the fence (mission protocol with ``mission_type`` FENCE: upload, download).
+* MAVLink 2 signing (``signing=``, :mod:`vtube_fleet.link.signing`): every packet we send is
+  signed (timestamps from the persistent :class:`~vtube_fleet.link.signing.TimestampStore`);
+  a received packet counts only if its signature verifies with the key and its timestamp is
+  newer than the last of its stream (checked in that order, so a forged packet cannot poison
+  the replay window), apart from RADIO_STATUS, ADSB_VEHICLE and COLLISION (not HEARTBEAT: it
+  drives our armed/mode view). Refusals are counted by reason (``signing_refused``), never
+  decoded further; the skip-undecoded cheap path is off (every packet is verified).
+  :meth:`MavlinkLink.provision_signing` sends SETUP_SIGNING (``vtube-fleet sign-setup``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import logging
 import math
 import struct
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -58,6 +68,7 @@ from vtube_fleet.link.base import (
     cancel_tasks,
 )
 from vtube_fleet.link.endpoints import Endpoint
+from vtube_fleet.link.signing import LINK_UNSIGNED_ALLOWED, LinkSigning, SigningError
 
 __all__ = [
     "MavlinkLink",
@@ -160,6 +171,7 @@ class MavlinkLink(VehicleLink):
         command_timeout_s: float = 0.5,
         heartbeat_period_s: float = 1.0,
         decode_all: bool = False,
+        signing: LinkSigning | None = None,
     ) -> None:
         super().__init__(endpoint, sysid)
         if command_tries < 1 or not command_timeout_s > 0:
@@ -219,6 +231,11 @@ class MavlinkLink(VehicleLink):
         self._stall_warned = False
         self._hb_lost_warned = False
         self.tx_packets = 0
+        #: packets refused by signing, by reason: unsigned, bad_signature, stale
+        self.signing_refused: Counter[str] = Counter()
+        self.signing: LinkSigning | None = None
+        if signing is not None:
+            self._install_signing(signing)
 
     # -- properties ----------------------------------------------------------------------------
     @property
@@ -265,6 +282,7 @@ class MavlinkLink(VehicleLink):
         # Cheap path: exactly one MAVLink 2 packet from the known vehicle, id we do not use.
         if (
             not self.decode_all
+            and self.signing is None
             and addr == self._remote
             and len(data) >= 12
             and data[0] == 0xFD
@@ -294,10 +312,17 @@ class MavlinkLink(VehicleLink):
         if msgs:
             for m in msgs:
                 if isinstance(m, mavlink2.MAVLink_bad_data):
+                    if self.signing is not None and "Invalid signature" in str(m.reason):
+                        self._warn_signing_refused(addr)
+                        continue
                     bad = bad or str(m.reason)
                     continue
                 if isinstance(m, mavlink2.MAVLink_unknown):
                     buf = m._msgbuf
+                    if (self.signing is not None and self.signing.require_signed
+                            and not (buf[0] == 0xFD and buf[2] & 1)):
+                        self.signing_refused["unsigned"] += 1  # (ids pymavlink cannot verify)
+                        continue
                     sysid = buf[5] if buf[0] == 0xFD else buf[3]
                     if self._sysid is not None and sysid != self._sysid:
                         st.foreign_packets += 1
@@ -504,6 +529,8 @@ class MavlinkLink(VehicleLink):
         if self._remote is None:
             raise LinkError(f"{self.name}: vehicle not seen yet; call connect() first")
         mav = self._mav
+        if self.signing is not None:
+            self._signing_tick()
         buf = msg.pack(mav)
         mav.seq = (mav.seq + 1) & 0xFF
         if self.endpoint.listens:
@@ -594,7 +621,8 @@ class MavlinkLink(VehicleLink):
                         what = "nothing received"
                     raise LinkTimeout(
                         f"{self.name}: no HEARTBEAT within {timeout_s:.1f} s ({what}; "
-                        f"{st.bad_packets} malformed, {st.foreign_packets} from others)"
+                        f"{st.bad_packets} malformed, {st.foreign_packets} from others"
+                        f"{self._signing_note()})"
                     ) from None
             if not self._streams_requested:
                 self._streams_requested = True
@@ -710,6 +738,9 @@ class MavlinkLink(VehicleLink):
         self._pending.clear()
         if self._transport is not None:
             self._transport.close()
+            # the socket is closed by a call_soon callback: let it run, so that the port can
+            # be bound again as soon as close() returns (asyncio runs callbacks in FIFO order)
+            await asyncio.sleep(0)
         self._wake_all_closed()
 
     # -- commands -------------------------------------------------------------------------------
@@ -865,6 +896,89 @@ class MavlinkLink(VehicleLink):
 
     async def stop_offboard(self) -> None:
         await self.hold()
+
+    # -- MAVLink 2 signing (vtube_fleet/link/signing.py) ---------------------------------------
+    def _install_signing(self, signing: LinkSigning) -> None:
+        """Sign with ``signing`` from now on (a :class:`_SigningMAVLink` codec that keeps our
+        seq, and a timestamp never below the one already used)."""
+        old = self._mav
+        mav = _SigningMAVLink(self, srcSystem=self.gcs_sysid, srcComponent=self.gcs_compid)
+        mav.robust_parsing = True
+        mav.seq = old.seq
+        sg = mav.signing
+        sg.secret_key = signing.key
+        sg.sign_outgoing = True
+        sg.link_id = signing.link_id
+        sg.allow_unsigned_callback = mav.allow_unsigned
+        sg.timestamp = max(signing.store.start(), old.signing.timestamp)
+        if isinstance(old, _SigningMAVLink):
+            sg.stream_timestamps = dict(old.signing.stream_timestamps)
+        signing.store.ensure(sg.timestamp)
+        self._mav = mav
+        self.signing = signing
+
+    def _signing_tick(self) -> None:
+        """Before each signed packet: timestamp = max(last + 1, the wall clock), below the
+        reserved mark on disk (pymavlink's ``sign_packet`` uses it, then adds 1)."""
+        assert self.signing is not None
+        sg = self._mav.signing
+        store = self.signing.store
+        now = store.now()
+        if now > sg.timestamp:
+            sg.timestamp = now
+        store.ensure(sg.timestamp)
+
+    def _warn_signing_refused(self, addr: Any) -> None:
+        self._warn_limited(
+            "signing", f"{self.name}: refused a packet from {addr} that is not signed with "
+            f"our key or replays an old timestamp (so far: {self._signing_counts()})")
+
+    def _signing_counts(self) -> str:
+        return ", ".join(f"{n} {k}" for k, n in sorted(self.signing_refused.items())) or "none"
+
+    def _signing_note(self) -> str:
+        if self.signing is None or not self.signing_refused:
+            return ""
+        return (f"; refused by signing: {self._signing_counts()}: does the vehicle hold our "
+                f"key ({self.signing.key_file or 'the mission key'})? provision it with "
+                f"vtube-fleet sign-setup")
+
+    async def provision_signing(self, signing: LinkSigning, timeout_s: float = 10.0,
+                                tries: int = 3) -> int:
+        """SETUP_SIGNING with ``signing.key`` (sent ``tries`` times, signed with the link's
+        current key), then sign with the new key, require signed traffic and wait for a
+        HEARTBEAT signed with it (PX4 sends no ACK). Refused while armed, as PX4 refuses.
+        Returns the initial timestamp sent. Connect first."""
+        if self._remote is None:
+            raise LinkError(f"{self.name}: SETUP_SIGNING: vehicle not seen yet; connect first")
+        if self.state.armed:
+            raise SigningError(f"{self.name}: vehicle is armed: PX4 refuses SETUP_SIGNING "
+                               f"while armed; land and disarm it first")
+        if self.signing is not None:
+            self._signing_tick()
+        initial = max(self._mav.signing.timestamp, signing.store.start())
+        msg = self._mav.setup_signing_encode(self._sysid or 0, self.target_compid,
+                                             list(signing.key), initial)
+        for _ in range(max(1, tries)):
+            self._send(msg)
+        # packets the vehicle sent before it took the key are refused now: expected, so the
+        # rate-limited warning starts as if it had just been given (they are still counted)
+        self._warned_at["signing"] = time.monotonic()
+        self._install_signing(LinkSigning(signing.key, signing.store, signing.link_id,
+                                          require_signed=True, key_file=signing.key_file))
+        t0 = time.monotonic()
+        try:
+            await self.wait_until(
+                lambda s: s.last_heartbeat_s is not None and s.last_heartbeat_s > t0,
+                timeout_s, "a HEARTBEAT signed with the new key")
+        except LinkTimeout:
+            raise SigningError(
+                f"{self.name}: the vehicle did not sign with the new key within "
+                f"{timeout_s:g} s after SETUP_SIGNING (refused: {self._signing_counts()}); "
+                f"PX4 older than 1.18 ignores SETUP_SIGNING, an armed one refuses it, one "
+                f"holding another key takes a new key only signed with that key "
+                f"(--current-key)") from None
+        return initial
 
     # -- onboard safety: parameters and the fence (PX4's mission protocol, mission_type FENCE) --
     # Kept apart from the rest of the link: the handlers are installed on first use.
@@ -1089,3 +1203,42 @@ def _param_to_wire(value: float, ptype: int) -> float:
 def _mission_result_name(result: int) -> str:
     entry = mavlink2.enums["MAV_MISSION_RESULT"].get(result)
     return entry.name.removeprefix("MAV_MISSION_") if entry is not None else str(result)
+
+
+class _SigningMAVLink(mavlink2.MAVLink):
+    """pymavlink's codec with the signature checked *before* the replay window is moved
+    (pymavlink 2.4 records a stream's timestamp before comparing the signature, so one forged
+    packet with a huge timestamp would make every genuine one "old"), refusals counted."""
+
+    def __init__(self, link: MavlinkLink, *, srcSystem: int, srcComponent: int) -> None:
+        super().__init__(None, srcSystem=srcSystem, srcComponent=srcComponent)
+        self._link = link
+        self._why: str | None = None
+
+    def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
+        sg = self.signing
+        assert sg.secret_key is not None
+        if hashlib.sha256(bytes(sg.secret_key) + bytes(msgbuf[:-6])).digest()[:6] != bytes(
+                msgbuf[-6:]):
+            self._why = "bad_signature"
+            return False
+        link_id = msgbuf[-13]
+        timestamp = int.from_bytes(bytes(msgbuf[-12:-6]), "little")
+        stream = (link_id, srcSystem, srcComponent)
+        last = sg.stream_timestamps.get(stream)
+        if (timestamp + 6_000_000 < sg.timestamp) if last is None else timestamp <= last:
+            self._why = "stale"  # a replay, or a new stream more than a minute old
+            return False
+        sg.stream_timestamps[stream] = timestamp
+        sg.timestamp = max(sg.timestamp, timestamp)
+        return True
+
+    def allow_unsigned(self, mav: Any, msgid: int) -> bool:
+        """pymavlink asks this for every unsigned or refused packet."""
+        why, self._why = self._why or "unsigned", None
+        link = self._link
+        if msgid in LINK_UNSIGNED_ALLOWED or (
+                link.signing is not None and not link.signing.require_signed):
+            return True
+        link.signing_refused[why] += 1
+        return False

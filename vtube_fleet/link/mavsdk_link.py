@@ -51,7 +51,7 @@ from vtube_fleet.link.base import (
 )
 from vtube_fleet.link.endpoints import Endpoint, px4_sitl_sysid
 
-__all__ = ["MavsdkHub", "MavsdkLink", "DEFAULT_WATCHDOG_S"]
+__all__ = ["MavsdkHub", "MavsdkLink", "DEFAULT_WATCHDOG_S", "refuse_signing"]
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,13 @@ _HEALTH_FIELDS = (
     ("is_armable", "prearm"),
 )
 _RTT_ALPHA = 0.2
+
+
+def refuse_signing(url: str) -> None:
+    """MAVSDK has no MAVLink 2 signing API: a mission that signs cannot fly this backend."""
+    raise LinkError(f"{url}: the mission requires MAVLink 2 signing ([mission].signing_key_file)"
+                    f", which the mavsdk backend cannot do (MAVSDK has no signing API); fly "
+                    f"it with the mavlink backend (run --backend mavlink, agent --link mavlink)")
 
 
 def _import_mavsdk() -> Any:
@@ -283,8 +290,11 @@ class MavsdkLink(VehicleLink):
         watchdog_s: float | None = None,
         position_rate_hz: float = 50.0,
         global_rate_hz: float = 10.0,
+        signing: Any = None,
     ) -> None:
         super().__init__(endpoint, sysid)
+        if signing is not None:
+            refuse_signing(self.endpoint.url)
         if sysid is None:
             sysid = px4_sitl_sysid(self.endpoint.port)
             if sysid is None:
