@@ -11,6 +11,9 @@ connects or flies.
   declared (``cli/_args.py``): NaN, inf, negative or out-of-range values are refused;
 * ``run --endpoints ""`` is an error; ``review --out FILE`` is an error, not a traceback;
   ``sitl-homes`` / ``mock-fleet`` refuse overlapping slots and slots outside the tube;
+* every scenario key (``SCENARIO_KEYS``: [tube], [[obstacles]], [partition], [robots],
+  [controller], [sim]) is declared once too: the parser and docs/config.md's table come from it;
+  ``check`` and ``sim`` options are declared (docs/config.md's options table);
 * a hypothesis test throws random out-of-bounds values at every declared key and option.
 """
 
@@ -44,6 +47,8 @@ from vtube_fleet.config.mission import (
 from vtube_fleet.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "configs" / "paper.toml"
+ROBOTARIUM = ROOT / "configs" / "robotarium.toml"
 #: an endpoint nobody answers on: if a refusal ever failed, the run would time out connecting
 #: (and create its output folder), never fly the built-in mock
 DEAD_ENDPOINT = "udpin://127.0.0.1:9"
@@ -263,11 +268,12 @@ def _commands(parser: argparse.ArgumentParser, prefix: tuple[str, ...] = ()
     return out
 
 
-def _declared_options() -> list[tuple[tuple[str, ...], str, Key]]:
-    """(argv prefix, option, key) of every declared numeric option of :data:`COMMANDS`."""
+def _declared_options(commands: tuple[str, ...] = COMMANDS
+                      ) -> list[tuple[tuple[str, ...], str, Key]]:
+    """(argv prefix, option, key) of every declared numeric option of ``commands``."""
     out = []
     for prefix, p in _commands(build_parser()):
-        if prefix[0] not in COMMANDS:
+        if prefix[0] not in commands:
             continue
         for a in p._actions:
             if isinstance(a.type, OptionType) and a.option_strings:
@@ -275,20 +281,23 @@ def _declared_options() -> list[tuple[tuple[str, ...], str, Key]]:
     return out
 
 
-DECLARED = _declared_options()
+#: the scenario commands (the keys of docs/config.md)
+SCENARIO_COMMANDS = ("check", "sim")
+DECLARED = _declared_options((*COMMANDS, *SCENARIO_COMMANDS))
 
 
 def test_every_numeric_option_is_declared() -> None:
     """No bare int/float option is left in the commands of this issue; the timeouts are."""
     for prefix, p in _commands(build_parser()):
-        if prefix[0] not in COMMANDS:
+        if prefix[0] not in (*COMMANDS, *SCENARIO_COMMANDS):
             continue
         for a in p._actions:
             assert a.type not in (int, float), f"{' '.join(prefix)} {a.option_strings}"
     names = {opt for _, opt, _ in DECLARED}
     for opt in ("--broker-hold-limit", "--join-timeout", "--ready-timeout", "--broker-timeout",
                 "--timeout", "--max-age", "--listen", "--vehicle", "--vehicles", "--count",
-                "--gcs-port", "--mock-boot-time-scale", "--rerun-decimate"):
+                "--gcs-port", "--mock-boot-time-scale", "--rerun-decimate", "--latency-s",
+                "--accuracy-m", "--dt", "--duration", "--robots", "--record-every"):
         assert opt in names, opt
 
 
@@ -442,6 +451,8 @@ def test_property_bad_option_values(bad: tuple[tuple[str, ...], str, str], missi
                                     capsys: pytest.CaptureFixture[str]) -> None:
     prefix, opt, text = bad
     argv = [*prefix, str(mission_file)]
+    if prefix[0] in SCENARIO_COMMANDS:
+        argv = [*prefix, str(PAPER)]
     if prefix[0] == "review":
         argv = [*prefix, str(mission_file.with_suffix(".rrd"))]
     if prefix[0] == "agent" and opt != "--vehicle":
@@ -469,3 +480,273 @@ def test_the_library_refuses_the_same_durations(mission_file: Path) -> None:
         assert info.value.exit_code == 2
     with pytest.raises(UserError, match=r"--broker-timeout: must be > 0, got -1"):
         Coordinator(mission_file, "mqtt://127.0.0.1:1883", broker_timeout_s=-1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# the scenario file: every key declared once (SCENARIO_KEYS), bounded, and the check/sim options
+# ----------------------------------------------------------------------------------------------
+def test_config_docs_tables_are_generated() -> None:
+    from vtube_fleet.cli._args import options_table
+    from vtube_fleet.config.scenario import scenario_keys_table
+
+    text = (ROOT / "docs" / "config.md").read_text()
+    m = re.search(r"<!-- scenario-keys:[^>]*-->\n(.*?)<!-- /scenario-keys -->", text, re.S)
+    assert m, "docs/config.md lost its generated scenario table"
+    assert m.group(1) == scenario_keys_table(), (
+        "docs/config.md's scenario table differs from SCENARIO_KEYS: paste "
+        "vtube_fleet.config.scenario.scenario_keys_table()")
+    m = re.search(r"<!-- check-sim-options:[^>]*-->\n(.*?)<!-- /check-sim-options -->", text,
+                  re.S)
+    assert m, "docs/config.md lost its generated options table"
+    assert m.group(1) == options_table(build_parser(), SCENARIO_COMMANDS), (
+        "docs/config.md's options table differs: paste options_table(..., ('check', 'sim'))")
+
+
+def test_scenario_keys_are_the_parser_and_the_controller_params() -> None:
+    """The parser accepts exactly the declared keys; the controller's rows are ControllerParams'
+    own names and defaults (core/params.py, not a copy)."""
+    from vtube_fleet.config.scenario import SCENARIO_KEYS
+    from vtube_fleet.core.params import CONTROLLER_DEFAULTS, CONTROLLER_REQUIRED
+
+    ctrl = SCENARIO_KEYS["controller"]
+    assert [k.name for k in ctrl] == [*CONTROLLER_REQUIRED, *CONTROLLER_DEFAULTS]
+    for k in ctrl:
+        assert k.required == (k.name in CONTROLLER_REQUIRED)
+        assert k.default == CONTROLLER_DEFAULTS.get(k.name)
+    for section, keys in SCENARIO_KEYS.items():
+        for k in keys:
+            assert k.meaning, (section, k.name)
+            if k.kind in ("number", "point") and k.name not in CONTROLLER_DEFAULTS:
+                assert k.unit, (section, k.name)
+    for section in ("tube", "partition", "robots", "controller", "sim"):
+        data = tomllib.loads(PAPER.read_text())
+        data.setdefault(section, {})["surely_not_a_key"] = 1
+        with pytest.raises(ConfigError, match=rf"\[{section}\]\.surely_not_a_key: unknown key "
+                                              rf"\(allowed: {keys_of(section)}\)"):
+            from vtube_fleet.config.scenario import parse_scenario
+            parse_scenario(data, "paper.toml")
+
+
+def keys_of(section: str) -> str:
+    from vtube_fleet.config.scenario import SCENARIO_KEYS
+    return re.escape(", ".join(k.name for k in SCENARIO_KEYS[section]))
+
+
+def _scenario_doc(data: dict[str, Any]) -> str:
+    """A decoded scenario back as TOML text (tables, one array of tables, inline tables)."""
+    out = []
+    for name, value in data.items():
+        if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            for item in value:
+                out.append(f"[[{name}]]\n" + "".join(f"{k} = {_toml(v)}\n"
+                                                      for k, v in item.items()))
+        elif isinstance(value, dict):
+            out.append(f"[{name}]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in value.items()))
+        else:
+            out.append(f"{name} = {_toml(value)}\n")
+    return "\n".join(out)
+
+
+def scenario_refused(path: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> str:
+    """``check`` and ``sim`` of ``path`` both exit 2 with one error line, print nothing on
+    stdout and simulate nothing (no output folder); returns the (same) error line."""
+    lines = []
+    for argv in (["check", str(path)],
+                 ["sim", str(path), "--out", str(out), "--no-rerun", "--quiet", "--no-plots"]):
+        rc = main(argv)
+        cap = capsys.readouterr()
+        assert rc == 2, (argv, cap.err)
+        assert cap.out == "", argv
+        lines.append(one_error_line(cap.err))
+    assert not out.exists(), "sim got as far as its output folder"
+    assert lines[0] == lines[1]
+    return lines[0]
+
+
+@pytest.mark.parametrize(("edit", "pattern"), [
+    ({"robots.v_max": 15.0}, r"\[robots\]\.v_max: must be <= 12 \(PX4's MPC_XY_VEL_MAX default: "
+                             r"faster setpoints are clipped\), got 15\.0"),
+    ({"robots.v_min": 13}, r"\[robots\]\.v_min: must be <= 12 \(PX4's MPC_XY_VEL_MAX"),
+    ({"controller.v": 20.0}, r"\[controller\]\.v: must be <= 12 \(PX4's MPC_XY_VEL_MAX"),
+    ({"controller.k_t": 0.5}, r"\[controller\]: k_t = 0\.5 must be ≥ 1"),
+    ({"robots.r_s": 0}, r"\[robots\]\.r_s: must be > 0, got 0"),
+    ({"obstacles.0.radius": -1.0}, r"\[\[obstacles\]\]\[0\]\.radius: must be > 0, got -1\.0"),
+    ({"obstacles.0.apex_distance": "far"},
+     r'\[\[obstacles\]\]\[0\]\.apex_distance: expected a number or "auto", got "far"'),
+    ({"sim.dt": 1e-9}, r"\[sim\]\.dt: must be >= 1e-06, got 1e-09"),
+    ({"sim.dt": 2.0}, r"\[sim\]\.dt: must be <= 1 \(a second: .*\), got 2\.0"),
+    ({"sim.dt": 1e-6, "sim.duration": 1000.0},
+     r"\[sim\]\.dt: duration / dt must be <= 1e\+08 steps, got 1000 / 1e-06 = 1e\+09"),
+    ({"sim.duration": math.inf}, r"\[sim\]\.duration: expected a finite number, got inf"),
+    ({"sim.duration": 1e6}, r"\[sim\]\.duration: must be <= 86400 \(a day"),
+    ({"robots.grid.rows": 10**9}, r"\[robots\]\.grid\.rows: must be <= 10000 \(the documented "
+                                  r"ceiling of the swarm\), got 1000000000"),
+    ({"robots.grid.rows": 200, "robots.grid.cols": 200},
+     r"\[robots\]\.grid\.cols: rows × cols must be <= 10000 .*got 200 × 200"),
+    ({"partition.apex_distance": 1.5},
+     r'\[partition\]\.apex_distance: expected one of "auto", "default", got 1\.5'),
+    ({"sim.integrator": "leapfrog"}, r'\[sim\]\.integrator: expected one of "adaptive"'),
+])
+def test_out_of_bounds_scenario_values_are_refused(tmp_path: Path, edit: dict[str, Any],
+                                                   pattern: str,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    data = tomllib.loads(PAPER.read_text())
+    for dotted, value in edit.items():
+        _put(data, dotted, value)
+    path = tmp_path / "s.toml"
+    path.write_text(_scenario_doc(data))
+    line = scenario_refused(path, tmp_path / "out", capsys)
+    assert re.search(pattern, line), line
+    assert str(path) in line
+
+
+def _put(data: dict[str, Any], dotted: str, value: Any) -> None:
+    *parents, last = dotted.split(".")
+    d: Any = data
+    for k in parents:
+        d = d[int(k)] if isinstance(d, list) else d.setdefault(k, {})
+    d[last] = value
+
+
+def test_too_many_positions_are_refused(tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    from vtube_fleet.config.scenario import MAX_ROBOTS
+
+    data = tomllib.loads(ROBOTARIUM.read_text())
+    data["robots"]["positions"] = [[0.0, 0.0]] * (MAX_ROBOTS + 1)
+    data["robots"].pop("headings", None)
+    path = tmp_path / "s.toml"
+    path.write_text(_scenario_doc(data))
+    line = scenario_refused(path, tmp_path / "out", capsys)
+    assert f"[robots].positions: at most {MAX_ROBOTS} robots" in line and "got 10001" in line
+
+
+def test_the_scenario_bounds_themselves_are_accepted() -> None:
+    from vtube_fleet.config.scenario import PX4_MAX_HORIZONTAL_M_S, parse_scenario
+
+    data = tomllib.loads(PAPER.read_text())
+    data["robots"]["v_max"] = PX4_MAX_HORIZONTAL_M_S
+    data["sim"] = {"dt": 1.0, "duration": 86400.0}
+    sc = parse_scenario(data, "paper.toml")
+    assert sc.robots.v_max == 12.0 and (sc.sim.dt, sc.sim.duration) == (1.0, 86400.0)
+    data["sim"] = {"dt": 1e-6, "duration": 100.0}  # 1e8 steps: the ceiling itself
+    assert parse_scenario(data, "paper.toml").sim.dt == 1e-6
+
+
+def test_check_and_sim_help_show_the_bounds(capsys: pytest.CaptureFixture[str]) -> None:
+    for cmd, want in (("sim", "time step in seconds (default: [sim].dt of the config) "
+                              "[s, [1e-06, 1]]"),
+                      ("check", "(default 0) [m, [0, 100]]")):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        assert want in " ".join(capsys.readouterr().out.split())
+
+
+# the base document of each key: the paper (grid, obstacles), the Robotarium (unicycles with
+# positions and headings)
+_UNICYCLE_KEYS = {"nid_distance", "headings", "positions"}
+
+
+def _where(section: str, name: str) -> str:
+    if section == "obstacles":
+        return f"[[obstacles]][0].{name}"
+    if section == "robots.grid":
+        return f"[robots].grid.{name}"
+    return f"[{section}].{name}"
+
+
+def _bad_scenario_value(section: str, key: Key) -> st.SearchStrategy[Any]:
+    """Values the scenario key must refuse."""
+    from vtube_fleet.core.params import parameter_problems
+
+    wrong = st.one_of(st.text(max_size=6), st.booleans(), st.just({"a": 1}))
+    if key.kind == "point":
+        return st.one_of(
+            wrong, st.floats(allow_nan=True),
+            st.lists(st.floats(allow_nan=True), max_size=4).filter(
+                lambda v: len(v) != 2 or not all(math.isfinite(x) for x in v)),
+            st.lists(st.text(max_size=2), min_size=2, max_size=2))
+    if key.kind == "other":
+        if key.name == "grid":
+            return st.one_of(st.text(max_size=6), st.integers(-5, 5), st.just({}),
+                             st.lists(st.integers(0, 9), max_size=3),
+                             st.just({"origin": [0.0, 0.0], "rows": 2}))
+        if key.name == "positions":
+            return st.one_of(wrong.filter(lambda v: not isinstance(v, dict)), st.just([]),
+                             st.lists(st.text(max_size=2), min_size=1, max_size=3),
+                             st.just([[math.nan, 0.0]]), st.just([[0.0]]))
+        assert key.name == "headings", key.name
+        return st.one_of(st.text(max_size=6), st.booleans(), st.just({"a": 1}),
+                         st.sampled_from([math.nan, math.inf, -math.inf]),
+                         st.lists(st.floats(allow_nan=False), max_size=3),
+                         st.just([math.nan] * 7))
+    if key.kind == "integer":
+        b = key.bound
+        assert b is not None
+        ints = []
+        if b.low is not None:
+            ints.append(st.integers(-2**63, int(b.low) - (1 if b.low_inclusive else 0)))
+        if b.high is not None:
+            ints.append(st.integers(int(b.high) + 1, 2**63 - 1))
+        return st.one_of(*ints, st.floats(allow_nan=True), wrong)
+    base = _bad_values(key)
+    if section == "controller":  # also the ControllerParams domain (k_t >= 1, ε's <= 1 …)
+        domain = st.floats(1e-300, 12.0).filter(lambda x: bool(parameter_problems({key.name: x})))
+        return st.one_of(base, domain) if key.name in ("k_t", "eps_m", "eps_t", "eps_s",
+                                                       "eps_o") else base
+    return base
+
+
+def _scenario_cases() -> list[tuple[str, Key]]:
+    from vtube_fleet.config.scenario import SCENARIO_KEYS
+
+    return [(section, k) for section, keys in SCENARIO_KEYS.items() for k in keys]
+
+
+@st.composite
+def _bad_scenario(draw: st.DrawFn) -> tuple[str, str, Any]:
+    section, key = draw(st.sampled_from(_scenario_cases()))
+    return section, key.name, draw(_bad_scenario_value(section, key))
+
+
+_BASES = {"paper": tomllib.loads(PAPER.read_text()),
+          "robotarium": tomllib.loads(ROBOTARIUM.read_text())}
+
+
+def test_the_bases_of_the_property_test_are_valid(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """The control: without the bad value, both documents (as the property test writes them,
+    with an obstacle and [partition]) check fine."""
+    for name, data in _BASES.items():
+        path = tmp_path / f"{name}.toml"
+        doc = {**data, "partition": {"apex_distance": "default"}}
+        path.write_text(_scenario_doc(doc))
+        assert main(["check", str(path), "--no-fixes"]) == 0, capsys.readouterr()
+        capsys.readouterr()
+
+
+@settings(max_examples=300, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(bad=_bad_scenario())
+def test_property_bad_scenario_values(bad: tuple[str, str, Any],
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    import copy
+
+    section, name, value = bad
+    base = "robotarium" if (section == "robots" and name in _UNICYCLE_KEYS) else "paper"
+    data = copy.deepcopy(_BASES[base])
+    data["partition"] = {"apex_distance": "default"}
+    if section == "obstacles":
+        data["obstacles"][0][name] = value
+    elif section == "robots.grid":
+        data["robots"]["grid"][name] = value
+    else:
+        data.setdefault(section, {})[name] = value
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "s.toml"
+        path.write_text(_scenario_doc(data))
+        line = scenario_refused(path, Path(d) / "out", capsys)
+    if section == "controller":
+        assert "[controller]" in line and name in line, line
+    else:
+        assert _where(section, name) in line, line

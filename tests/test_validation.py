@@ -346,8 +346,8 @@ def test_scenario_apex_distance_keys(tmp_path):
     cfg.write_text(text)
     assert [o.apex_distance for o in load_scenario(cfg).obstacles] == [None, "auto"]
     cfg.write_text(DENSE_TOML.format(partition='[partition]\napex_distance = "best"\n'))
-    with pytest.raises(ConfigError, match=r'\[partition\].apex_distance: expected "auto" or '
-                                          r'"default", got "best"'):
+    with pytest.raises(ConfigError, match=r'\[partition\].apex_distance: expected one of '
+                                          r'"auto", "default", got "best"'):
         load_scenario(cfg)
 
 

@@ -6,10 +6,27 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from vtube_fleet.cli._args import bounded
+from vtube_fleet.config.keys import Bound, Key
+
 __all__ = [
+    "ACCURACY_M",
+    "LATENCY_S",
     "cmd_check",
     "register",
 ]
+
+#: ``--latency-s``: a latency L the vehicles would measure, within [0, 10] s (a mission refuses
+#: far less before arming: its ``max_latency_s``, default 0.25 s).
+LATENCY_S = Key("latency_s", "number", "a link latency", "s",
+                bound=Bound(0.0, 10.0, low_inclusive=True,
+                            why="no link to fly a swarm on; missions refuse L > max_latency_s"))
+#: ``--accuracy-m``: a position accuracy σ the vehicles would report, within [0, 100] m (a
+#: mission waits for far less: its ``max_position_accuracy_m``, default 1 m).
+ACCURACY_M = Key("accuracy_m", "number", "a position accuracy", "m",
+                 bound=Bound(0.0, 100.0, low_inclusive=True,
+                             why="no position fix; missions wait for σ <= "
+                                 "max_position_accuracy_m"))
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -36,10 +53,10 @@ def register(subparsers: Any) -> None:
         "printed.",
     )
     p.add_argument("config", help="scenario or mission TOML file (docs/config.md)")
-    p.add_argument("--latency-s", type=float, default=None, metavar="S",
+    p.add_argument("--latency-s", type=bounded(LATENCY_S), default=None, metavar="S",
                    help="missions: the link latency the vehicles would measure (position age "
                         "+ setpoint delay; default 0, plus the mission's latency_headroom_s)")
-    p.add_argument("--accuracy-m", type=float, default=None, metavar="M",
+    p.add_argument("--accuracy-m", type=bounded(ACCURACY_M), default=None, metavar="M",
                    help="missions: the position accuracy σ the vehicles would report "
                         "(default 0)")
     p.add_argument("--no-fixes", action="store_true",

@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from vtube_fleet.artifacts import write_sim_outputs
-from vtube_fleet.cli._args import add_recording_args
+from vtube_fleet.cli._args import COUNT, add_recording_args, bounded
+from vtube_fleet.config.scenario import scenario_key
 from vtube_fleet.core.integrate import INTEGRATORS
 from vtube_fleet.errors import UserError
 from vtube_fleet.outcome import EXIT_INTERRUPTED, EXIT_OK, EXIT_SIM_UNFINISHED
@@ -31,7 +32,7 @@ def register(subparsers: Any) -> None:
     s.add_argument("config", help="scenario TOML file (see docs/config.md)")
     s.add_argument("--out", metavar="DIR", default=None,
                    help="output directory (default: sim_out/<config name>_<controller>)")
-    s.add_argument("--dt", type=float, metavar="S", default=None,
+    s.add_argument("--dt", type=bounded(scenario_key("sim", "dt")), metavar="S", default=None,
                    help="time step in seconds (default: [sim].dt of the config)")
     s.add_argument("--integrator", choices=INTEGRATORS, default=None,
                    help="adaptive = Euler, with steps cut in halves while a barrier margin "
@@ -43,14 +44,15 @@ def register(subparsers: Any) -> None:
                    "circumscribed about O instead of O' as the authors' published code does; "
                    "the summary says certified: false and lists the failed conditions "
                    "(simulation only: `run` never flies an uncertified scenario)")
-    s.add_argument("--duration", type=float, metavar="S", default=None,
+    s.add_argument("--duration", type=bounded(scenario_key("sim", "duration")), metavar="S",
+                   default=None,
                    help="simulated time in seconds (default: [sim].duration of the config)")
     s.add_argument("--controller", choices=("new", "old", "apf"), default="new",
                    help="new = (ModifiedVectorField), old = (Oldcontroller), apf = Appendix C "
                    "potential term on the main tube (default: new)")
-    s.add_argument("--robots", type=int, metavar="N", default=None,
+    s.add_argument("--robots", type=bounded(COUNT), metavar="N", default=None,
                    help="keep only the first N robots of the config")
-    s.add_argument("--record-every", type=int, metavar="K", default=None,
+    s.add_argument("--record-every", type=bounded(COUNT), metavar="K", default=None,
                    help="record every K-th step in trajectory.npz (default: every 10 ms of "
                    "simulated time, coarser if the file would exceed ~40 MB)")
     s.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

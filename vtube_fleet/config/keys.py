@@ -45,9 +45,10 @@ def show_value(value: Any) -> str:
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     try:
-        return json.dumps(value)
+        text = json.dumps(value)
     except (TypeError, ValueError):
-        return repr(value)
+        text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."  # an error is one readable line
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,7 @@ POSITIVE = Bound(low=0.0)
 #: x >= 0 (and finite): margins, latencies, factors.
 NON_NEGATIVE = Bound(low=0.0, low_inclusive=True)
 
-KINDS = ("number", "integer", "choice", "flag", "text")
+KINDS = ("number", "integer", "choice", "flag", "text", "point", "other")
 
 
 @dataclass(frozen=True)
@@ -111,9 +112,14 @@ class Key:
     """One declared key or option.
 
     ``kind``: ``number`` (int or float, within ``bound``), ``integer`` (within ``bound``),
-    ``choice`` (one of ``choices``), ``flag`` (true/false) or ``text``. ``default`` is the value
-    when absent (``None``: none, e.g. measured or computed at run time; ``default_text`` says
-    what then); ``required`` keys have no default. ``unit`` is the SI unit (``""`` for none).
+    ``choice`` (one of ``choices``), ``flag`` (true/false), ``text``, ``point`` (``[x, y]``, two
+    finite numbers) or ``other`` (a structured value its section parses itself; the row only
+    documents it, ``type_label`` says what it is). ``default`` is the value when absent
+    (``None``: none, e.g. measured or computed at run time; ``default_text`` says what then);
+    ``required`` keys have no default. ``unit`` is the SI unit (``""`` for none). ``also``:
+    words a number may be replaced with (``apex_distance = "auto"``). ``bound_note``: what is
+    checked besides ``bound`` (a relation to another key, the domain check of another module),
+    shown in the docs' bounds column.
     """
 
     name: str
@@ -125,6 +131,9 @@ class Key:
     bound: Bound | None = None
     choices: tuple[str, ...] = ()
     default_text: str | None = None
+    also: tuple[str, ...] = ()
+    type_label: str | None = None
+    bound_note: str = ""
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -136,10 +145,15 @@ class Key:
         """The checked value (floats for numbers); raises :class:`ValueError` with a message
         ``… , got VALUE`` naming the bound."""
         got = f"got {show_value(value)}"
+        if self.also and isinstance(value, str) and value in self.also:
+            return value
         if self.kind in ("number", "integer"):
             integer = self.kind == "integer"
             if isinstance(value, bool) or not isinstance(value, int if integer else int | float):
-                raise ValueError(f"expected {'an integer' if integer else 'a number'}, {got}")
+                what = "an integer" if integer else "a number"
+                if self.also:
+                    what += " or " + " or ".join(map(json.dumps, self.also))
+                raise ValueError(f"expected {what}, {got}")
             x = int(value) if integer else float(value)
             assert self.bound is not None
             why = self.bound.problem(float(x))
@@ -155,12 +169,29 @@ class Key:
             if not isinstance(value, bool):
                 raise ValueError(f"expected true or false, {got}")
             return value
+        if self.kind == "point":
+            if (not isinstance(value, list) or len(value) != 2
+                    or not all(isinstance(v, int | float) and not isinstance(v, bool)
+                               for v in value)):
+                raise ValueError(f"expected a point [x, y] of two numbers, {got}")
+            pt = [float(v) for v in value]
+            if not all(math.isfinite(v) for v in pt):
+                raise ValueError(f"expected finite numbers, {got}")
+            return pt
+        if self.kind == "other":
+            raise TypeError(f"{self.name}: a structured value, parsed by its section")
         if not isinstance(value, str):
             raise ValueError(f"expected a string, {got}")
         return value
 
     def type_text(self) -> str:
         """The docs' ``type`` column: ``number``, ``integer``, ``"a" \\| "b"``, ``true/false``."""
+        if self.type_label is not None:
+            return self.type_label
+        if self.kind == "point":
+            return "`[x, y]`"
+        if self.also:
+            return " \\| ".join([self.kind, *(f'`"{w}"`' for w in self.also)])
         if self.kind == "choice":
             return " \\| ".join(f'`"{c}"`' for c in self.choices)
         if self.kind == "flag":
@@ -179,10 +210,12 @@ class Key:
         return _num(float(self.default))
 
     def bound_cell(self) -> str:
+        note = self.bound_note
         if self.kind not in ("number", "integer") or self.bound is None:
-            return ""
+            return note
         b = self.bound
-        return b.text() + (f" ({b.why})" if b.why else "")
+        text = b.text() + (f" ({b.why})" if b.why else "")
+        return f"{text}; {note}" if note else text
 
 
 def markdown_table(keys: Iterable[Key]) -> str:

@@ -9,6 +9,15 @@ Parsing is strict: an unknown key, a wrong type (``true`` is not a number), a mi
 key or a non-finite number raises :class:`~vtube_fleet.errors.ConfigError` whose message names
 the file and the key, e.g. ``paper.toml: [robots].r_s: expected a number, got "abc"``.
 
+Every key, with its type, unit, default, bounds and meaning, is declared once in
+:data:`SCENARIO_KEYS` (:class:`~vtube_fleet.config.keys.Key`, one tuple per section): the parser
+reads it, and the table in ``docs/config.md`` is generated from it (:func:`scenario_keys_table`;
+a test keeps them equal). Bounds are physical where they exist: radii and spacings > 0, speeds
+within PX4's horizontal limit :data:`PX4_MAX_HORIZONTAL_M_S`, ``dt`` within [1 µs, 1 s] and at most
+:data:`MAX_SIM_STEPS` steps, durations finite, at most :data:`MAX_ROBOTS` robots. The
+controller's parameters come from :mod:`vtube_fleet.core.params` (their names, defaults and the
+one domain check, :func:`~vtube_fleet.core.params.parameter_problems`).
+
 Other programs reuse the parser for files that carry extra top-level tables (the fleet's mission
 files add ``[mission]``): pass ``extra_sections=("mission",)`` and read the raw table from
 :attr:`Scenario.extra`.
@@ -28,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from vtube_fleet.config.keys import POSITIVE, Bound, Key, markdown_table
 from vtube_fleet.core.integrate import DEFAULT_INTEGRATOR, INTEGRATORS
 from vtube_fleet.core.params import (
     CONTROLLER_DEFAULTS,
@@ -39,7 +49,12 @@ from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
 from vtube_fleet.errors import ConfigError, UserError
 
 __all__ = [
+    "MAX_ROBOTS",
+    "MAX_SIM_STEPS",
+    "MIN_DT_S",
     "MODELS",
+    "PX4_MAX_HORIZONTAL_M_S",
+    "SCENARIO_KEYS",
     "RobotsConfig",
     "Scenario",
     "SimConfig",
@@ -47,6 +62,8 @@ __all__ = [
     "grid_positions",
     "load_scenario",
     "parse_scenario",
+    "scenario_key",
+    "scenario_keys_table",
 ]
 
 #: Robot models understood by the simulator: (Single) and the unicycle driven through (NID).
@@ -55,6 +72,142 @@ MODELS: tuple[str, ...] = ("single_integrator", "unicycle")
 #: Defaults of the optional [sim] table.
 DEFAULT_DT_S = 0.001
 DEFAULT_DURATION_S = 60.0
+
+#: PX4's default limit of the horizontal velocity (MPC_XY_VEL_MAX, m/s): a faster setpoint is
+#: silently clipped, so no speed of a scenario (v_min, v_max, v, v'_max) may exceed it.
+PX4_MAX_HORIZONTAL_M_S = 12.0
+#: The documented ceiling of the swarm's size: the controller's pair terms grow as M² per step
+#: (the paper flies 120; MAVLink's system ids cap a real fleet at 255).
+MAX_ROBOTS = 10_000
+#: At most this many simulation steps (``[sim].duration / [sim].dt``): 10^8 steps of the paper's
+#: scenario take days; a smaller ``dt`` is a typo, not a plan.
+MAX_SIM_STEPS = 10**8
+#: The smallest ``dt`` (s): a microsecond, a thousandth of the paper's step (smaller is a typo).
+MIN_DT_S = 1e-6
+
+_SPEED = Bound(0.0, PX4_MAX_HORIZONTAL_M_S, why="PX4's MPC_XY_VEL_MAX default: faster "
+               "setpoints are clipped")
+_COUNT = Bound(1, MAX_ROBOTS, low_inclusive=True, why="the documented ceiling of the swarm")
+
+#: The meaning of each controller parameter (their names, defaults and domain:
+#: :mod:`vtube_fleet.core.params`).
+_CONTROLLER_MEANINGS: Mapping[str, tuple[str, str]] = {
+    "v": ("speed of the line-approaching term u1''", "m/s"),
+    "v_max_prime": ("v'_max, the bound of the saturated repulsive part", "m/s"),
+    "k2": ("gain of the robot–robot barrier (Vmij)", ""),
+    "k3": ("gain of the tube-leg barriers (Vtli1)/(Vtri1)", ""),
+    "k_t": ("width factor of the L/R areas (≥ 1)", ""),
+    "eps_m": ("ε_m of (Vmij) (in [1e-12, 1])", ""),
+    "eps_t": ("ε_t of (Vtli1)/(Vtri1) (in [1e-12, 1])", ""),
+    "eps_s": ("ε_s of the smooth saturation s(·) (in [1e-12, 0.1])", ""),
+    "eps_0": ("ε_0 of (TraCondition): a robot exits when −n_cᵀ(p − p_r1) ≤ ε_0", "m"),
+    "k4": ("gain of Appendix C's obstacle potential (`--controller apf` only)", ""),
+    "eps_o": ("ε_o of Appendix C's obstacle potential (`--controller apf` only, in "
+              "[1e-12, 1])", ""),
+}
+_DOMAIN = "then the `ControllerParams` domain check (core/params.py)"
+
+
+def _controller_key(name: str) -> Key:
+    meaning, unit = _CONTROLLER_MEANINGS[name]
+    speed = name in ("v", "v_max_prime")
+    return Key(name, "number", meaning, unit, CONTROLLER_DEFAULTS.get(name),
+               required=name in CONTROLLER_REQUIRED, bound=_SPEED if speed else POSITIVE,
+               bound_note=_DOMAIN)
+
+
+#: Every scenario key, section by section (``"robots.grid"``: the inline table ``[robots].grid``):
+#: type, unit, default, bounds, meaning. The one source of the parser and of the table in
+#: docs/config.md (:func:`scenario_keys_table`).
+SCENARIO_KEYS: Mapping[str, tuple[Key, ...]] = {
+    "tube": (
+        Key("p_h0", "point", "start of the left leg", "m", required=True),
+        Key("p_h1", "point", "end of the left leg", "m", required=True),
+        Key("p_r0", "point", "start of the right leg", "m", required=True),
+        Key("p_r1", "point", "end of the right leg", "m", required=True),
+    ),
+    "obstacles": (
+        Key("center", "point", "obstacle centre p_o,k", "m", required=True),
+        Key("radius", "number", "obstacle radius r_o,k", "m", required=True, bound=POSITIVE),
+        Key("apex_distance", "number", "h_k = ‖p_oth,k − p_o,k‖ of the circumscribed triangle; "
+            '`"auto"`: chosen by the planner jointly with the other `"auto"` ones', "m",
+            bound=POSITIVE, also=(APEX_AUTO,), bound_note="and > `radius`",
+            default_text="`[partition].apex_distance`"),
+    ),
+    "partition": (
+        Key("apex_distance", "choice", "the apex distance of every obstacle that has none of "
+            'its own: `"auto"` lets the planner choose them all jointly, `"default"` is '
+            "1.3 h_min", default="default", choices=(APEX_AUTO, "default")),
+    ),
+    "robots": (
+        Key("model", "choice", "(Single), or a unicycle driven through (NID)",
+            default="single_integrator", choices=MODELS),
+        Key("r_s", "number", "safety radius", "m", required=True, bound=POSITIVE),
+        Key("r_a", "number", "avoidance radius", "m", required=True, bound=POSITIVE,
+            bound_note="and > `r_s`"),
+        Key("v_min", "number", "minimum permitted speed", "m/s", required=True,
+            bound=Bound(0.0, PX4_MAX_HORIZONTAL_M_S, low_inclusive=True, why=_SPEED.why)),
+        Key("v_max", "number", "maximum permitted speed", "m/s", required=True, bound=_SPEED,
+            bound_note="and > `v_min`"),
+        Key("grid", "other", "`{ origin = [x0, y0], rows = R, cols = C, spacing = s }` (below)",
+            type_label="table", default_text="one of `grid`/`positions`"),
+        Key("positions", "other", "explicit initial positions", "m",
+            type_label="array of `[x, y]`", default_text="one of `grid`/`positions`",
+            bound_note=f"1 to {MAX_ROBOTS} points"),
+        Key("nid_distance", "number", "s of (NID): the control point is p + s[cos θ, sin θ] "
+            "(unicycles only)", "m", bound=POSITIVE, default_text="required for unicycles"),
+        Key("headings", "other", "initial headings θ_i (unicycles only)", "rad",
+            type_label="number or array of M numbers", default_text="facing n_c",
+            bound_note="finite"),
+    ),
+    "robots.grid": (
+        Key("origin", "point", "position (x0, y0) of robot 0", "m", required=True),
+        Key("rows", "integer", "R, robots along x", required=True, bound=_COUNT),
+        Key("cols", "integer", "C, robots along y", required=True, bound=_COUNT,
+            bound_note=f"and rows × cols <= {MAX_ROBOTS}"),
+        Key("spacing", "number", "s, the distance between neighbours of the grid", "m",
+            required=True, bound=POSITIVE),
+    ),
+    "controller": tuple(_controller_key(n) for n in (*CONTROLLER_REQUIRED,
+                                                     *CONTROLLER_DEFAULTS)),
+    "sim": (
+        Key("dt", "number", "time step", "s", DEFAULT_DT_S,
+            bound=Bound(MIN_DT_S, 1.0, low_inclusive=True,
+                        why="a second: the barriers need many steps per crossing"),
+            bound_note=f"in a file also `duration / dt` <= {MAX_SIM_STEPS:.0e}".replace(
+                "e+0", "e")),
+        Key("duration", "number", "simulated time; the run also stops when every robot has "
+            "exited", "s", DEFAULT_DURATION_S,
+            bound=Bound(0.0, 86400.0, why="a day of simulated time")),
+        Key("record_every", "integer", "keep every K-th step in `trajectory.npz`",
+            bound=Bound(1, low_inclusive=True), default_text="automatic"),
+        Key("integrator", "choice", "`adaptive`, `rk4` or `euler` (see [Integrators]"
+            "(#integrators))", default=DEFAULT_INTEGRATOR, choices=INTEGRATORS),
+    ),
+}
+
+
+def _section_title(section: str) -> str:
+    return {"obstacles": "[[obstacles]]", "robots.grid": "[robots].grid"}.get(
+        section, f"[{section}]")
+
+
+def scenario_key(section: str, name: str) -> Key:
+    """The declared key ``name`` of ``section`` (``"sim"``, ``"robots.grid"`` …)."""
+    for k in SCENARIO_KEYS[section]:
+        if k.name == name:
+            return k
+    raise KeyError(f"{section}.{name}")
+
+
+def scenario_keys_table() -> str:
+    """The table of docs/config.md, generated from :data:`SCENARIO_KEYS`: one row per key,
+    named ``[section].key``."""
+    rows = []
+    for section, keys in SCENARIO_KEYS.items():
+        title = _section_title(section)
+        rows += [dataclasses.replace(k, name=f"{title}.{k.name}") for k in keys]
+    return markdown_table(rows)
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,6 +389,10 @@ def _show(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+#: a point ``[x, y]`` (positions of ``[robots].positions``)
+_POINT = Key("point", "point", "a point", "m")
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
@@ -277,71 +434,40 @@ class _Parser:
             raise self.error(where, f"expected a table, got {_show(value)}")
         return value
 
-    def number(
-        self,
-        table: Mapping[str, Any],
-        key: str,
-        section: str,
-        *,
-        default: float | None = None,
-        required: bool = True,
-        positive: bool = False,
-        nonnegative: bool = False,
-    ) -> float:
-        where = self.name(section, key)
-        if key not in table:
-            if default is not None or not required:
-                return default  # type: ignore[return-value]
-            raise self.error(where, "missing required key")
-        value = table[key]
-        if not _is_number(value):
-            raise self.error(where, f"expected a number, got {_show(value)}")
-        x = float(value)
-        if not math.isfinite(x):
-            raise self.error(where, f"expected a finite number, got {_show(value)}")
-        if positive and not x > 0:
-            raise self.error(where, f"must be > 0, got {_show(value)}")
-        if nonnegative and not x >= 0:
-            raise self.error(where, f"must be >= 0, got {_show(value)}")
-        return x
+    def value(self, table: Mapping[str, Any], key: Key, section: str) -> Any:
+        """``table[key.name]`` checked against its declaration (:data:`SCENARIO_KEYS`): its
+        default when absent, ``missing required key`` when required."""
+        where = self.name(section, key.name)
+        if key.name not in table:
+            if key.required:
+                raise self.error(where, "missing required key")
+            return key.default
+        try:
+            return key.parse(table[key.name])
+        except ValueError as exc:
+            raise self.error(where, str(exc)) from None
 
-    def integer(
-        self, table: Mapping[str, Any], key: str, section: str, *, minimum: int = 1
-    ) -> int:
-        where = self.name(section, key)
-        if key not in table:
-            raise self.error(where, "missing required key")
-        value = table[key]
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise self.error(where, f"expected an integer, got {_show(value)}")
-        if value < minimum:
-            raise self.error(where, f"must be >= {minimum}, got {value}")
-        return int(value)
-
-    def point(self, table: Mapping[str, Any], key: str, section: str) -> np.ndarray:
-        where = self.name(section, key)
-        if key not in table:
-            raise self.error(where, "missing required key")
-        return self.point_value(table[key], where)
+    def section_values(self, table: Mapping[str, Any], section: str, sec: str,
+                       skip: Iterable[str] = ()) -> dict[str, Any]:
+        """Check ``table``'s keys against ``SCENARIO_KEYS[section]`` and parse each declared
+        (non-structured) key not in ``skip``: name → value."""
+        keys = SCENARIO_KEYS[section]
+        self.check_keys(table, (k.name for k in keys), sec)
+        skip = tuple(skip)
+        return {k.name: self.value(table, k, sec) for k in keys
+                if k.kind != "other" and k.name not in skip}
 
     def point_value(self, value: Any, where: str) -> np.ndarray:
-        if (
-            not isinstance(value, list)
-            or len(value) != 2
-            or not all(_is_number(v) for v in value)
-        ):
-            raise self.error(where, f"expected a point [x, y] of two numbers, got {_show(value)}")
-        pt = np.array(value, dtype=float)
-        if not np.all(np.isfinite(pt)):
-            raise self.error(where, f"expected finite numbers, got {_show(value)}")
-        return pt
+        try:
+            return np.array(_POINT.parse(value), dtype=float)
+        except ValueError as exc:
+            raise self.error(where, str(exc)) from None
 
     # ----- sections ---------------------------------------------------------------------
     def parse_tube(self, t: Mapping[str, Any]) -> Trapezoid:
         sec = "[tube]"
-        keys = ("p_h0", "p_h1", "p_r0", "p_r1")
-        self.check_keys(t, keys, sec)
-        pts = {k: self.point(t, k, sec) for k in keys}
+        v = self.section_values(t, "tube", sec)
+        pts = {k: np.array(x, dtype=float) for k, x in v.items()}
         try:
             return Trapezoid(pts["p_h0"], pts["p_h1"], pts["p_r0"], pts["p_r1"])
         except UserError as exc:
@@ -350,13 +476,8 @@ class _Parser:
     def parse_partition(self, t: Mapping[str, Any]) -> str | None:
         """[partition]: ``apex_distance = "auto" | "default"``, the apex distance of every
         obstacle without its own (``"default"``: 1.3 h_min; ``"auto"``: core/plan.py)."""
-        sec = "[partition]"
-        self.check_keys(t, ("apex_distance",), sec)
-        v = t.get("apex_distance", "default")
-        if v not in (APEX_AUTO, "default"):
-            raise self.error(self.name(sec, "apex_distance"),
-                             f'expected "auto" or "default", got {_show(v)}')
-        return APEX_AUTO if v == APEX_AUTO else None
+        v = self.section_values(t, "partition", "[partition]")
+        return APEX_AUTO if v["apex_distance"] == APEX_AUTO else None
 
     def parse_obstacles(self, value: Any, apex_default: str | None = None
                         ) -> tuple[Obstacle, ...]:
@@ -367,43 +488,28 @@ class _Parser:
         out = []
         for idx, o in enumerate(value):
             sec = f"[[obstacles]][{idx}]"
-            self.check_keys(o, ("center", "radius", "apex_distance"), sec)
-            center = self.point(o, "center", sec)
-            radius = self.number(o, "radius", sec, positive=True)
-            apex: float | str | None = apex_default
-            if o.get("apex_distance") == APEX_AUTO:
-                apex = APEX_AUTO
-            elif "apex_distance" in o:
-                apex = self.number(o, "apex_distance", sec, positive=True)
+            v = self.section_values(o, "obstacles", sec)
+            radius = v["radius"]
+            apex: float | str | None = apex_default if v["apex_distance"] is None \
+                else v["apex_distance"]
             if isinstance(apex, float) and apex <= radius:
                 raise self.error(
                     self.name(sec, "apex_distance"),
                     f"must exceed the radius {radius:g}, got {apex:g}",
                 )
-            out.append(Obstacle(center=center, radius=radius, apex_distance=apex))
+            out.append(Obstacle(center=np.array(v["center"], dtype=float), radius=radius,
+                                apex_distance=apex))
         return tuple(out)
 
     def parse_robots(self, r: Mapping[str, Any], tube: Trapezoid) -> RobotsConfig:
         sec = "[robots]"
-        allowed = (
-            "model", "r_s", "r_a", "v_min", "v_max", "grid", "positions",
-            "nid_distance", "headings",
-        )
-        self.check_keys(r, allowed, sec)
-        model = r.get("model", "single_integrator")
-        if not isinstance(model, str) or model not in MODELS:
-            raise self.error(
-                self.name(sec, "model"),
-                f"expected one of {', '.join(json.dumps(m) for m in MODELS)}, got {_show(model)}",
-            )
-        r_s = self.number(r, "r_s", sec, positive=True)
-        r_a = self.number(r, "r_a", sec, positive=True)
+        v = self.section_values(r, "robots", sec, skip=("nid_distance",))
+        model, r_s, r_a = v["model"], v["r_s"], v["r_a"]
         if not r_a > r_s:
             raise self.error(
                 self.name(sec, "r_a"), f"must exceed r_s = {r_s:g} (paper: r_a > r_s), got {r_a:g}"
             )
-        v_min = self.number(r, "v_min", sec, nonnegative=True)
-        v_max = self.number(r, "v_max", sec, positive=True)
+        v_min, v_max = v["v_min"], v["v_max"]
         if not v_max > v_min:
             raise self.error(
                 self.name(sec, "v_max"), f"must exceed v_min = {v_min:g}, got {v_max:g}"
@@ -419,17 +525,20 @@ class _Parser:
             g = r["grid"]
             if not isinstance(g, dict):
                 raise self.error(gsec, f"expected a table, got {_show(g)}")
-            self.check_keys(g, ("origin", "rows", "cols", "spacing"), gsec)
-            origin = self.point(g, "origin", gsec)
-            rows = self.integer(g, "rows", gsec)
-            cols = self.integer(g, "cols", gsec)
-            spacing = self.number(g, "spacing", gsec, positive=True)
-            positions = grid_positions(origin, rows, cols, spacing)
+            gv = self.section_values(g, "robots.grid", gsec)
+            if gv["rows"] * gv["cols"] > MAX_ROBOTS:
+                raise self.error(self.name(gsec, "cols"),
+                                 f"rows × cols must be <= {MAX_ROBOTS} (the documented ceiling "
+                                 f"of the swarm), got {gv['rows']} × {gv['cols']}")
+            positions = grid_positions(gv["origin"], gv["rows"], gv["cols"], gv["spacing"])
         else:
             psec = self.name(sec, "positions")
             pv = r["positions"]
             if not isinstance(pv, list) or not pv:
                 raise self.error(psec, f"expected a non-empty array of [x, y], got {_show(pv)}")
+            if len(pv) > MAX_ROBOTS:
+                raise self.error(psec, f"at most {MAX_ROBOTS} robots (the documented ceiling of "
+                                       f"the swarm), got {len(pv)}")
             positions = np.array(
                 [self.point_value(v, f"{psec}[{i}]") for i, v in enumerate(pv)], dtype=float
             )
@@ -437,14 +546,18 @@ class _Parser:
 
         headings = nid = None
         if model == "unicycle":
-            nid = self.number(r, "nid_distance", sec, positive=True)
+            nid = self.value(r, scenario_key("robots", "nid_distance"), sec)
+            if nid is None:
+                raise self.error(self.name(sec, "nid_distance"), "missing required key")
             hv = r.get("headings")
             hsec = self.name(sec, "headings")
             if hv is None:
                 # default: every robot faces along n_c (towards the finishing line)
                 headings = np.full(m, math.atan2(tube.n_c[1], tube.n_c[0]))
             elif _is_number(hv):
-                headings = np.full(m, float(self.number(r, "headings", sec)))
+                if not math.isfinite(hv):
+                    raise self.error(hsec, f"expected a finite number, got {_show(hv)}")
+                headings = np.full(m, float(hv))
             elif isinstance(hv, list):
                 if len(hv) != m or not all(_is_number(h) for h in hv):
                     raise self.error(
@@ -474,10 +587,7 @@ class _Parser:
 
     def parse_controller(self, c: Mapping[str, Any], robots: RobotsConfig) -> ControllerParams:
         sec = "[controller]"
-        self.check_keys(c, (*CONTROLLER_REQUIRED, *CONTROLLER_DEFAULTS), sec)
-        values = {k: self.number(c, k, sec, positive=True) for k in CONTROLLER_REQUIRED}
-        for k, d in CONTROLLER_DEFAULTS.items():
-            values[k] = self.number(c, k, sec, default=d, positive=True)
+        values = self.section_values(c, "controller", sec)
         problems = parameter_problems(
             {"r_s": robots.r_s, "r_a": robots.r_a, "v_min": robots.v_min, "v_max": robots.v_max,
              **values})
@@ -489,17 +599,11 @@ class _Parser:
 
     def parse_sim(self, s: Mapping[str, Any]) -> SimConfig:
         sec = "[sim]"
-        self.check_keys(s, ("dt", "duration", "record_every", "integrator"), sec)
-        dt = self.number(s, "dt", sec, default=DEFAULT_DT_S, positive=True)
-        duration = self.number(s, "duration", sec, default=DEFAULT_DURATION_S, positive=True)
-        record_every = None
-        if "record_every" in s:
-            record_every = self.integer(s, "record_every", sec)
-        integrator = s.get("integrator", DEFAULT_INTEGRATOR)
-        if not isinstance(integrator, str) or integrator not in INTEGRATORS:
-            raise self.error(
-                self.name(sec, "integrator"),
-                f"expected one of {', '.join(json.dumps(n) for n in INTEGRATORS)}, "
-                f"got {_show(integrator)}")
-        return SimConfig(dt=dt, duration=duration, record_every=record_every,
-                         integrator=integrator)
+        v = self.section_values(s, "sim", sec)
+        steps = v["duration"] / v["dt"]
+        if steps > MAX_SIM_STEPS:
+            raise self.error(self.name(sec, "dt"),
+                             f"duration / dt must be <= {MAX_SIM_STEPS:.0e} steps, got "
+                             f"{v['duration']:g} / {v['dt']:g} = {steps:.3g}")
+        return SimConfig(dt=v["dt"], duration=v["duration"], record_every=v["record_every"],
+                         integrator=v["integrator"])

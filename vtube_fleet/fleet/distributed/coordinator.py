@@ -313,15 +313,22 @@ class Coordinator:
         s = self.bus.latest().get(vid)
         return "no state" if s is None else s.phase.value
 
-    async def follow(self, timeout_s: float, mon: RunMonitor, progress: bool = True) -> str:
+    async def follow(self, timeout_s: float, mon: RunMonitor, progress: bool = True,
+                     checkpoint: Callable[[], None] | None = None) -> str:
         """Feed ``mon`` (states as they arrive, snapshots at the control rate) until every
-        vehicle is finished; the outcome: ``completed``, ``incomplete`` or ``timeout``."""
+        vehicle is finished; the outcome: ``completed``, ``incomplete`` or ``timeout``.
+        ``checkpoint`` (the interim summary) is called at once, then every
+        ``SUMMARY_EVERY_S`` (less often when it takes more than 1 % of the time), as ``run``
+        does."""
+        from vtube_fleet.fleet.supervisor import SUMMARY_EVERY_S
+
         self.bus.add_state_listener(mon.on_state)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
         period = self.mission.config.period_s
         last_print = -math.inf
         next_t = loop.time()
+        next_checkpoint = next_t
         aborted_for: str | None = None
         self.end_reason = ""
         while True:
@@ -346,6 +353,11 @@ class Coordinator:
                     counts[ph] = counts.get(ph, 0) + 1
                 self.say("fleet: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
                          + f"; exited {len(mon.exit_stamp)}/{self.vehicles}")
+            if checkpoint is not None and now >= next_checkpoint:
+                t_c = loop.time()
+                checkpoint()
+                cost = loop.time() - t_c
+                next_checkpoint = loop.time() + max(SUMMARY_EVERY_S, 100.0 * cost)
             next_t += period
             await asyncio.sleep(max(0.0, next_t - loop.time()))  # the coordinator's clock
         done = len(mon.exit_stamp) == self.vehicles and all(
@@ -410,9 +422,11 @@ class Coordinator:
                          timeout_s: float | None = None) -> RunResult:
         """Follow the started run until every vehicle is finished, ``timeout_s`` passed
         (default: arm + take-off + mission + land timeouts) or ``stop`` is set (abort
-        published). Writes ``out/summary.json`` and the recording on every exit path; the
-        verdict (:func:`~vtube_fleet.core.metrics.verdict`) makes a run that broke a limit
-        ``unsafe``, whatever else happened."""
+        published). Writes ``out/summary.json`` and the recording on every exit path, and the
+        interim summary (``complete: false``, atomically) every few seconds while following,
+        so a SIGKILLed coordinator still leaves its last one; the final one says ``complete:
+        true``. The verdict (:func:`~vtube_fleet.core.metrics.verdict`) makes a run that broke
+        a limit ``unsafe``, whatever else happened."""
         cfg = self.mission.config
         timeout = (cfg.arm_timeout_s + cfg.takeoff_timeout_s + cfg.mission_timeout_s
                    + cfg.land_timeout_s) if timeout_s is None else timeout_s
@@ -424,8 +438,29 @@ class Coordinator:
             "kind": "mqtt", "rate_hz": cfg.rate_hz, "run_id": self.run_id,
             "broker": self.broker, "vehicles": self.vehicles})
         outcome, reason = "failed", ""
+
+        def summary(**extra: Any) -> dict[str, Any]:
+            return mon.summary(
+                mission_id=self.mission_id, run_id=self.run_id, config_hash=self.config_hash,
+                broker=self.broker, lost=self.lost_vehicles(),
+                vehicle_states=self.vehicle_table(),
+                wall_s=round(time.time() - (self.t_start_wall or time.time()), 3), **extra)
+
+        def checkpoint() -> None:
+            """The summary so far (``complete: false``): a coordinator killed without a
+            chance to clean up (SIGKILL) still leaves its last summary."""
+            try:
+                t = time.time() - (self.t_start_wall or time.time())
+                write_summary(out, summary(
+                    outcome="running", complete=False,
+                    reason=f"the run was still being followed ({t:.1f} s after start) when "
+                           f"this summary was written; the coordinator ended without writing "
+                           f"its own"))
+            except Exception as exc:  # noqa: BLE001 - a checkpoint never stops the run
+                log.warning("cannot write the interim summary.json in %s: %s", out, exc)
+
         try:
-            follow = asyncio.ensure_future(self.follow(timeout, mon))
+            follow = asyncio.ensure_future(self.follow(timeout, mon, checkpoint=checkpoint))
             if await _race(follow, stop):
                 outcome = follow.result()
                 reason = self.end_reason
@@ -437,21 +472,16 @@ class Coordinator:
                 outcome = "interrupted"
                 reason = "interrupted: abort published; the agents hold, then land"
         finally:  # the summary (and the recording) on every exit path
-            summary = mon.summary(
-                mission_id=self.mission_id, run_id=self.run_id, config_hash=self.config_hash,
-                broker=self.broker, outcome=outcome, reason=reason, lost=self.lost_vehicles(),
-                vehicle_states=self.vehicle_table(),
-                wall_s=round(time.time() - (self.t_start_wall or time.time()), 3),
-            )
-            v = verdict(summary)
+            final = summary(outcome=outcome, reason=reason, complete=True)
+            v = verdict(final)
             if not v.safe:  # THE verdict: a broken limit makes the run unsafe, whatever else
                 before = outcome + (f": {reason}" if reason else "")
-                summary["outcome"] = outcome = "unsafe"
-                summary["reason"] = reason = f"{v.summary_line} (the run itself ended {before})"
-            path = write_summary(out, summary)
-            recorder.log_summary(summary)
+                final["outcome"] = outcome = "unsafe"
+                final["reason"] = reason = f"{v.summary_line} (the run itself ended {before})"
+            path = write_summary(out, final)
+            recorder.log_summary(final)
             recorder.close()
-        return RunResult(outcome, reason, summary, path)
+        return RunResult(outcome, reason, final, path)
 
     async def abort_announced(self) -> str:
         """Publish abort for the run announced on the broker; returns its run id."""
