@@ -100,7 +100,9 @@ class MockFleet:
     ``first``: the first PX4 instance (vehicles ``first``..``first+count-1``: ports, default
     sysids, link randomness); :class:`~sim_stub.processes.ProcessFleet` gives each of its
     processes one block. Every list (``homes``, ``faults``, ``sysids``, ``vehicles``,
-    ``endpoints``) and :meth:`kill` count from 0 within this fleet.
+    ``endpoints``) and :meth:`kill` count from 0 within this fleet. ``signing``: MAVLink 2
+    signing of every vehicle, or one setting per vehicle (``False``, ``True`` = waits for
+    SETUP_SIGNING, or the 32-byte key it already holds, as after ``vtube-fleet sign-setup``).
 
     ``async with MockFleet(count=3) as fleet:`` starts all vehicles on one scheduler;
     ``fleet.endpoints[i]`` is the MAVSDK URL the GCS binds for vehicle i, ``fleet.vehicles[i]``
@@ -127,6 +129,7 @@ class MockFleet:
         gcs_link: str = "lite",
         sysids: Sequence[int] | None = None,
         first: int = 0,
+        signing: bool | bytes | Sequence[bool | bytes] = False,
     ) -> None:
         if homes is not None:
             homes = [validate_home(h) for h in homes]
@@ -160,6 +163,12 @@ class MockFleet:
         self.first = first
         self.seed = seed
         self._faults = self._resolve_faults(faults, count)
+        if isinstance(signing, (bool, bytes)):
+            signing = [signing] * count
+        signing = list(signing)
+        if len(signing) != count:
+            raise SimStubError(f"signing: one setting per vehicle expected ({count}), "
+                               f"got {len(signing)}")
         self.scheduler = Scheduler(count, tick_hz=tick_hz, clock=clock, seed=seed, stream=first)
         self.vehicles: list[MockVehicle] = [
             MockVehicle(
@@ -177,6 +186,7 @@ class MockFleet:
                 estimator=estimator,
                 estimator_shared=estimator_shared,
                 gcs_link=gcs_link,
+                signing=signing[i],
             )
             for i in range(count)
         ]

@@ -399,3 +399,25 @@ async def test_a_signed_mission_flies_through_the_tube(tmp_path: Path) -> None:
         north, east, _ = v.position_ned
         assert math.hypot(north, east) > 8.0  # from x = 3 m past the line at x = 12 m
     assert result.outcome == "completed", result.reason
+
+
+async def test_the_built_in_mock_holds_a_signing_missions_keys(tmp_path: Path) -> None:
+    """`run` without endpoints flies the built-in mock: its vehicles hold the mission's keys
+    (as after sign-setup), so an unsigned link is refused and the mission's signed link arms."""
+    from vtube_fleet.fleet.launch import mock_fleet
+
+    mission = write_mission(tmp_path, straight_mission(
+        12.0, [[3.0, 0.0]], extra='signing_key_file = "fleet.key"\n'))
+    keyfile = tmp_path / "fleet.key"
+    keyfile.write_bytes(KEY)
+    os.chmod(keyfile, 0o600)
+    async with mock_fleet(mission, boot_time_scale=0.3, port_scheme=free_port_scheme(1)) as fleet:
+        v = fleet.vehicles[0]
+        assert v.signing is not None and v.signing.key == KEY
+        link = MavlinkLink(fleet.endpoints[0], sysid=v.sysid, signing=fleet_signing(mission)[0])
+        try:
+            await link.connect(15.0)
+            await link.arm(timeout_s=15.0, retry_interval_s=0.25)
+        finally:
+            await link.close()
+        assert v.armed and v.signing.accepted_signed > 0

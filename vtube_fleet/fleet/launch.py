@@ -95,6 +95,15 @@ async def mock_fleet(mission: Mission, count: int | None = None, *,
         veh = gcs + 40 if vehicle_port is None else vehicle_port
         kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
     kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
+    if mission.config.signing_key_file and "signing" not in kwargs:
+        # the built-in mock holds the mission's keys, as vehicles after `sign-setup` do
+        if processes > 1:
+            raise FleetCliError("a signing mission (signing_key_file) needs --processes 1: "
+                                "the mock's processes are not given keys")
+        from vtube_fleet.link.signing import load_key, mission_key_path
+
+        kwargs["signing"] = [load_key(mission_key_path(mission, i))  # type: ignore[arg-type]
+                             for i in range(n)]
     try:
         if processes > 1:
             fleet = ProcessFleet(n, processes=processes, homes=_homes(mission, n), **kwargs)
