@@ -11,6 +11,7 @@ keeps order, and the mock handles datagrams one after another.
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import os
 import stat
@@ -399,6 +400,8 @@ async def test_a_signed_mission_flies_through_the_tube(tmp_path: Path) -> None:
         north, east, _ = v.position_ned
         assert math.hypot(north, east) > 8.0  # from x = 3 m past the line at x = 12 m
     assert result.outcome == "completed", result.reason
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["mavlink_signing"] == {"enabled": True, "refused": {}}
 
 
 async def test_the_built_in_mock_holds_a_signing_missions_keys(tmp_path: Path) -> None:

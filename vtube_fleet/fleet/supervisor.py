@@ -1177,6 +1177,7 @@ class Supervisor:
             "outcome": self.outcome,
             "reason": self.reason,
             "onboard": dict(self.onboard),  # the fence and the PX4 parameter audit
+            "mavlink_signing": self._signing_summary(),
             "vehicles": len(self.pilots),
             "lost": [p.vehicle_id for p in self.pilots if p.phase == Phase.LOST],
             "r_s": self.physical.r_s,
@@ -1243,6 +1244,14 @@ class Supervisor:
             log.error("summary accumulator failed: %s", exc)
             return extra
         return truth_keys(out)
+
+    def _signing_summary(self) -> dict[str, Any]:
+        """Whether the links signed (docs/security.md) and what they refused, by reason."""
+        refused: dict[str, int] = {}
+        for p in self.pilots:
+            for why, n in getattr(p.link, "signing_refused", {}).items():
+                refused[why] = refused.get(why, 0) + int(n)
+        return {"enabled": bool(self.cfg.signing_key_file), "refused": refused}
 
     def _summary_core(self) -> dict[str, Any]:
         """The accumulator's figures only (what the verdict reads)."""
