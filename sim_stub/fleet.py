@@ -80,6 +80,25 @@ def load_homes(path: str | Path) -> list[Home]:
     return homes
 
 
+def check_fleet_args(count: int | None, homes: Sequence[Home] | None, profile: str
+                     ) -> tuple[int, list[Home] | None]:
+    """(vehicle count, validated homes) from ``count`` and/or ``homes``; one line on error
+    (MockFleet and ProcessFleet alike)."""
+    if homes is not None:
+        homes = [validate_home(h) for h in homes]
+        if count is None:
+            count = len(homes)
+        elif count != len(homes):
+            raise SimStubError(f"count={count} but {len(homes)} homes were given")
+    if count is None:
+        raise SimStubError("give count or homes")
+    if count < 1:
+        raise SimStubError(f"vehicle count must be >= 1, got {count}")
+    if profile not in PROFILES:
+        raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
+    return count, homes
+
+
 class MockFleet:
     """``count`` mock PX4 SITL vehicles (instances 0..count-1) in this event loop.
 
@@ -131,18 +150,7 @@ class MockFleet:
         first: int = 0,
         signing: bool | bytes | Sequence[bool | bytes] = False,
     ) -> None:
-        if homes is not None:
-            homes = [validate_home(h) for h in homes]
-            if count is None:
-                count = len(homes)
-            elif count != len(homes):
-                raise SimStubError(f"count={count} but {len(homes)} homes were given")
-        if count is None:
-            raise SimStubError("give count or homes")
-        if count < 1:
-            raise SimStubError(f"vehicle count must be >= 1, got {count}")
-        if profile not in PROFILES:
-            raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
+        count, homes = check_fleet_args(count, homes, profile)
         if first < 0:
             raise SimStubError(f"first instance must be >= 0, got {first}")
         if sysids is None:

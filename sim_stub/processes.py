@@ -32,9 +32,8 @@ from typing import Any
 
 from .errors import SimStubError
 from .faults import Faults
-from .fleet import MockFleet, grid_homes
+from .fleet import MockFleet, check_fleet_args, grid_homes
 from .ports import PortScheme, resolve_port_scheme
-from .telemetry import PROFILES
 from .vehicle import DEFAULT_HOME, validate_home
 
 __all__ = ["MockProcessError", "ProcessFleet", "child_main", "split_blocks"]
@@ -97,18 +96,7 @@ class ProcessFleet:
         python: str = sys.executable,
         ready_timeout_s: float = 120.0,
     ) -> None:
-        if homes is not None:
-            homes = [validate_home(h) for h in homes]
-            if count is None:
-                count = len(homes)
-            elif count != len(homes):
-                raise SimStubError(f"count={count} but {len(homes)} homes were given")
-        if count is None:
-            raise SimStubError("give count or homes")
-        if count < 1:
-            raise SimStubError(f"vehicle count must be >= 1, got {count}")
-        if profile not in PROFILES:
-            raise SimStubError(f"profile must be one of {PROFILES}, got {profile!r}")
+        count, homes = check_fleet_args(count, homes, profile)
         self.blocks = split_blocks(count, processes)
         if sysids is None:
             sysids = [i % 254 + 1 for i in range(count)]

@@ -20,13 +20,13 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from fleet_ports import free_ports
 from missions import straight_mission
+from mock_process import child_env, mock_process, read_line, start_run
 
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import fly
@@ -38,47 +38,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 MISSION = straight_mission(30.0, [[2.0, 4.5], [2.0, 0.0], [2.0, -4.5]], heading_deg=90.0,
                            extra="land_timeout_s = 20.0\n")
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    env.setdefault("MAVLINK20", "1")
-    return env
-
-
-def _read_line(proc: subprocess.Popen[str], stream: str, pred: Any, timeout_s: float) -> str:
-    pipe = getattr(proc, stream)
-    seen: list[str] = []
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        line = pipe.readline()
-        if not line:
-            break
-        seen.append(line.rstrip())
-        if pred(line):
-            return line
-    raise AssertionError(f"condition not seen on {stream} (exit {proc.poll()}):\n"
-                         + "\n".join(seen[-30:]))
-
-
-@contextlib.contextmanager
-def mock_process(mission_path: Path, count: int) -> Iterator[tuple[subprocess.Popen[str],
-                                                                      list[str]]]:
-    """``vtube-fleet mock-fleet`` in a child process on free ports: (process, endpoints)."""
-    ports = free_ports(count)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
-         str(count), "--boot-time-scale", "0.3", "--gcs-port", str(ports.gcs_base),
-         "--vehicle-port", str(ports.vehicle_base)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env(), cwd=ROOT)
-    try:
-        line = _read_line(proc, "stdout", lambda s: s.startswith("udpin://"), 60)
-        yield proc, line.strip().split(",")
-    finally:
-        if proc.poll() is None:
-            proc.kill()  # (a SIGSTOPped process dies of SIGKILL too)
-        proc.wait(timeout=20)
 
 
 def _kill_in_tube(proc: subprocess.Popen[str], sig: signal.Signals, log: dict[str, Any]):
@@ -185,12 +144,9 @@ def test_sigkilled_run_leaves_its_last_summary(tmp_path: Path) -> None:
     out = tmp_path / "run"
     summary_path = out / "summary.json"
     with mock_process(path, 3) as (_mock, endpoints):
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "vtube_fleet", "run", str(path), "--endpoints",
-             ",".join(endpoints), "--out", str(out)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+        proc = start_run(path, endpoints, out)
         try:
-            _read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
+            read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
             # the next interim summary written in the tube (a condition, with a deadline)
             deadline = time.monotonic() + 30.0
             interim: dict[str, Any] = {}
@@ -226,9 +182,9 @@ def test_agent_interrupted_before_its_vehicle_says_so(tmp_path: Path) -> None:
             [sys.executable, "-m", "vtube_fleet", "agent", str(path), "--vehicle", "0",
              "--broker", broker.url, "--mission-id", f"endings-{os.getpid()}",
              "--endpoint", "udpin://127.0.0.1:9", "--no-rerun", "--out", str(tmp_path / "a")],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=child_env(), cwd=ROOT)
         try:
-            _read_line(proc, "stderr", lambda s: "waiting for `vtube-fleet mission start" in s,
+            read_line(proc, "stderr", lambda s: "waiting for `vtube-fleet mission start" in s,
                        60)
             proc.send_signal(signal.SIGTERM)
             tail = proc.stderr.read() if proc.stderr else ""
@@ -258,13 +214,13 @@ def test_agent_interrupted_while_connecting_says_so(tmp_path: Path) -> None:
         agent = subprocess.Popen(
             [sys.executable, "-m", "vtube_fleet", "agent", str(path), "--vehicle", "0",
              "--endpoint", f"udpin://127.0.0.1:{port}", "--no-rerun", *common],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=child_env(), cwd=ROOT)
         coord = subprocess.Popen(
             [sys.executable, "-m", "vtube_fleet", "mission", "start", str(path), *common,
              "--ready-timeout", "60"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(), cwd=ROOT)
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=child_env(), cwd=ROOT)
         try:
-            _read_line(agent, "stderr", lambda s: "joined run" in s, 60)
+            read_line(agent, "stderr", lambda s: "joined run" in s, 60)
             agent.send_signal(signal.SIGTERM)
             tail = agent.stderr.read() if agent.stderr else ""
             rc = agent.wait(timeout=30)  # (connect_timeout_s is 60 s: it must not wait for it)

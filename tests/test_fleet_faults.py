@@ -16,19 +16,13 @@ Everything is asserted from the vehicles' telemetry (flight modes, status texts,
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import os
 import signal
-import subprocess
-import sys
-import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from fleet_ports import free_ports
 from missions import straight_mission
+from mock_process import mock_process, read_line, start_run
 
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import fly
@@ -40,50 +34,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 MISSION = straight_mission(30.0, [[2.0, 4.5], [2.0, -4.5]], heading_deg=90.0,
                            extra="land_timeout_s = 40.0\n")
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    env.setdefault("MAVLINK20", "1")
-    return env
-
-
-def _read_line(proc: subprocess.Popen[str], stream: str, pred, timeout_s: float) -> str:
-    """Read lines of ``proc.<stream>`` until ``pred(line)``; fail with what was read."""
-    pipe = getattr(proc, stream)
-    seen: list[str] = []
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        line = pipe.readline()
-        if not line:
-            break
-        seen.append(line.rstrip())
-        if pred(line):
-            return line
-    raise AssertionError(f"condition not seen on {stream} (exit {proc.poll()}):\n"
-                         + "\n".join(seen[-30:]))
-
-
-@contextlib.contextmanager
-def mock_process(mission_path: Path, count: int) -> Iterator[list[str]]:
-    """``vtube-fleet mock-fleet`` in a child process on free ports; yields the endpoints."""
-    ports = free_ports(count)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
-         str(count), "--boot-time-scale", "0.3", "--gcs-port", str(ports.gcs_base),
-         "--vehicle-port", str(ports.vehicle_base)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=_env(), cwd=ROOT)
-    try:
-        line = _read_line(proc, "stdout", lambda s: s.startswith("udpin://"), 60)
-        yield line.strip().split(",")
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def freeze_in_tube(after_s: float, until, log: dict, limit_s: float = 15.0):
@@ -137,7 +87,7 @@ async def test_frozen_loop_mavlink_px4_failsafe_fires(tmp_path: Path) -> None:
     def failsafe_reported(sup: Supervisor) -> bool:
         return all(p.link.state.flight_mode == "POSCTL" for p in sup.pilots)
 
-    with mock_process(path, 2) as endpoints:
+    with mock_process(path, 2) as (_mock, endpoints):
         result = await fly(mission, backend="mavlink", endpoints=endpoints, sysids=[1, 2],
                            out_dir=tmp_path, tick_hook=freeze_in_tube(1.0, failsafe_reported,
                                                                        log))
@@ -166,7 +116,7 @@ async def test_frozen_loop_mavsdk_watchdog_holds(tmp_path: Path) -> None:
         return all(p.link.watchdog_trips >= 1 and p.link.state.flight_mode == "HOLD"
                    for p in sup.pilots)
 
-    with mock_process(path, 2) as endpoints:
+    with mock_process(path, 2) as (_mock, endpoints):
         result = await fly(mission, backend="mavsdk", endpoints=endpoints, sysids=[1, 2],
                            out_dir=tmp_path, tick_hook=freeze_in_tube(1.0, holding, log))
     sup: Supervisor = log["sup"]
@@ -188,15 +138,12 @@ def test_sigint_lands_everyone_and_leaves_a_complete_summary(tmp_path: Path) -> 
     path.write_text(MISSION.replace("[[2.0, 4.5], [2.0, -4.5]]",
                                     "[[2.0, 4.5], [2.0, 0.0], [2.0, -4.5]]"))
     out = tmp_path / "run"
-    with mock_process(path, 3) as endpoints:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "vtube_fleet", "run", str(path), "--endpoints",
-             ",".join(endpoints), "--out", str(out)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    with mock_process(path, 3) as (_mock, endpoints):
+        proc = start_run(path, endpoints, out)
         try:
-            _read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
+            read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
             # the status line (every 5 s when stderr is not a terminal) shows them in the tube
-            _read_line(proc, "stderr", lambda s: "in tube 3" in s, 30)
+            read_line(proc, "stderr", lambda s: "in tube 3" in s, 30)
             proc.send_signal(signal.SIGINT)
             tail = proc.stderr.read() if proc.stderr else ""
             rc = proc.wait(timeout=90)
