@@ -1,7 +1,8 @@
 """Benchmark: N agents' neighbour traffic at 20 Hz through a local mosquitto.
 
     python bench/bench_mqtt.py [--agents 100] [--procs 4] [--rate 20] [--seconds 20]
-                               [--warmup 5] [--broker mosquitto|amqtt] [--secured] [--json]
+                               [--warmup 5] [--cell M] [--across K] [--broker mosquitto|amqtt]
+                               [--secured] [--profile FILE] [--json]
 
 ``--secured``: the broker ``vtube-fleet bus-setup`` configures (TLS listener, a password per
 agent, the ACL), every agent with its own credentials, as a secured fleet flies.
@@ -10,13 +11,16 @@ Each agent is one :class:`~vtube_fleet.bus.mqtt.MqttBus` (its own MQTT connectio
 subscriptions to every other vehicle's state, exactly what ``vtube-fleet agent`` uses),
 publishing its :class:`~vtube_fleet.state.NeighbourState` at ``--rate`` Hz from its own
 asyncio task; the agents are spread over ``--procs`` worker processes (a vehicle's controller
-and link are not simulated: only the bus). Measured over ``--seconds`` after ``--warmup``:
+and link are not simulated: only the bus). The warm-up starts when every worker reports all its
+agents connected. Measured over ``--seconds`` after ``--warmup``:
 
 * **neighbour-state age** at the receivers: receive wall time − the sender's stamp, for every
   state an agent accepted from another (p50 / p99 / max), and the share of the expected
   deliveries (N·(N−1)·rate·seconds) that arrived;
 * **broker CPU**: psutil CPU time of the broker process per wall second (100 % = one core),
-  and the workers' CPU likewise;
+  and the workers' CPU likewise; both also per received state (less sensitive to the load of
+  other work than the ages), and the 1-minute load average at the start and the end;
+* ``--profile FILE``: the first worker under cProfile (CPU time) over the window;
 * publisher side: states sent, superseded in the one-slot mailbox (the sender could not keep
   up), dropped while disconnected.
 
@@ -83,16 +87,16 @@ async def _worker(
     url: str,
     ids: list[int],
     rate: float,
-    t_measure: float,
-    t_end: float,
     cell_m: float,
     across: int,
     setup: str | None = None,
+    profile: str | None = None,
 ) -> dict:
     ages = array("d")
+    window = [math.inf, -math.inf]  # the measurement window, once the parent has sent it
 
     def on_state(state: NeighbourState, received: float) -> None:
-        if t_measure <= received <= t_end:
+        if window[0] <= received <= window[1]:
             ages.append(received - state.stamp_s)
 
     def creds(vid: int) -> Path | None:
@@ -105,6 +109,20 @@ async def _worker(
         b.start()
     for b in buses:
         await b.wait_connected(60)
+    # every agent of this worker is connected: tell the parent, which opens the measurement
+    # window (after its warm-up) once every worker is, so start-up never counts
+    loop = asyncio.get_running_loop()
+    print("ready", flush=True)
+    line = await loop.run_in_executor(None, sys.stdin.readline)
+    t_measure, t_end = (float(v) for v in line.split())
+    window[:] = [t_measure, t_end]
+    prof = None
+    if profile is not None:
+        import cProfile
+
+        prof = cProfile.Profile(time.process_time)  # CPU, not time spent descheduled
+        loop.call_at(loop.time() + (t_measure - time.time()), prof.enable)
+        loop.call_at(loop.time() + (t_end - time.time()), prof.disable)
     sent = [0]
     await asyncio.gather(
         *(
@@ -112,6 +130,9 @@ async def _worker(
             for b, vid in zip(buses, ids, strict=True)
         )
     )
+    if prof is not None:
+        prof.disable()
+        prof.dump_stats(profile)
     stats = [b.stats for b in buses]
     for b in buses:
         await b.close()
@@ -128,8 +149,8 @@ async def _worker(
 def worker_main(args: argparse.Namespace) -> int:
     ids = [int(i) for i in args.ids.split(",")]
     out = asyncio.run(
-        _worker(args.url, ids, args.rate, args.t_measure, args.t_end, args.cell, args.across,
-                args.setup)
+        _worker(args.url, ids, args.rate, args.cell, args.across, args.setup,
+                args.worker_profile)
     )
     Path(args.result).write_text(json.dumps(out))
     return 0
@@ -146,14 +167,22 @@ def _pct(a: list[float], q: float) -> float:
 
 def heard_pairs(n: int, across: int, cell_m: float, t: float) -> int:
     """Ordered pairs (i hears j) at time ``t``: j in the 3×3 cells around i (all with inf)."""
-    bus = MqttBus("mqtt://127.0.0.1", MISSION_ID, 0, cell_m=cell_m)
-    cells = [bus.cell_of(*position(v, across, t)) for v in range(n)]
-    return sum(
-        1
-        for i in range(n)
-        for j in range(n)
-        if i != j and abs(cells[i][0] - cells[j][0]) <= 1 and abs(cells[i][1] - cells[j][1]) <= 1
-    )
+    import numpy as np
+
+    if not math.isfinite(cell_m):
+        return n * (n - 1)
+    xy = np.array([position(v, across, t) for v in range(n)])
+    cells = np.floor(xy / cell_m)  # MqttBus.cell_of
+    near = np.all(np.abs(cells[:, None, :] - cells[None, :, :]) <= 1, axis=2)
+    return int(near.sum()) - n
+
+
+def expected_deliveries(n: int, across: int, cell_m: float, rate: float, t0: float,
+                        seconds: float) -> float:
+    """Deliveries the window should see: the heard pairs at every control tick of it (the grid
+    moves, so who hears whom changes as the vehicles cross cell borders)."""
+    ticks = max(1, round(rate * seconds))
+    return sum(heard_pairs(n, across, cell_m, t0 + (k + 0.5) / rate) for k in range(ticks))
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -173,8 +202,6 @@ def run(args: argparse.Namespace) -> dict:
     with (LocalBroker(config=setup.conf, ca_file=setup.ca_file) if setup is not None
           else LocalBroker(kind=args.broker)) as broker:
         bproc = psutil.Process(broker.pid)
-        t_measure = time.time() + 2.0 + args.warmup  # after start-up and the warm-up
-        t_end = t_measure + args.seconds
         chunks = [list(range(n))[k::procs] for k in range(procs)]
         workers = []
         for k, ids in enumerate(chunks):
@@ -196,18 +223,29 @@ def run(args: argparse.Namespace) -> dict:
                         repr(args.cell),
                         "--across",
                         str(args.across),
-                        "--t-measure",
-                        repr(t_measure),
-                        "--t-end",
-                        repr(t_end),
                         "--result",
                         str(tmp / f"w{k}.json"),
                         *(["--setup", str(setup.out)] if setup is not None else []),
-                    ]
+                        *(["--worker-profile", args.profile]
+                          if args.profile is not None and k == 0 else []),
+                    ],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    text=True,
                 )
             )
+        for w in workers:  # every agent connected (start-up is not part of the warm-up)
+            if w.stdout is None or w.stdout.readline().strip() != "ready":
+                raise SystemExit(f"worker {w.pid} failed to start (code {w.wait()})")
+        t_measure = time.time() + args.warmup
+        t_end = t_measure + args.seconds
+        for w in workers:
+            assert w.stdin is not None
+            w.stdin.write(f"{t_measure!r} {t_end!r}\n")
+            w.stdin.flush()
         wprocs = [psutil.Process(w.pid) for w in workers]
         time.sleep(max(0.0, t_measure - time.time()))  # until the measurement window opens
+        load0 = os.getloadavg()[0]
         b0 = bproc.cpu_times()
         w0 = [p.cpu_times() for p in wprocs]
         m0 = time.time()
@@ -215,16 +253,18 @@ def run(args: argparse.Namespace) -> dict:
         b1 = bproc.cpu_times()
         w1 = [p.cpu_times() for p in wprocs]
         wall = time.time() - m0
+        load1 = os.getloadavg()[0]
         for w in workers:
             if w.wait(timeout=120) != 0:
                 raise SystemExit(f"worker {w.pid} failed with code {w.returncode}")
     results = [json.loads((tmp / f"w{k}.json").read_text()) for k in range(procs)]
     ages = [a for r in results for a in r["ages"]]
-    expected = heard_pairs(n, args.across, args.cell, t_measure) * args.rate * args.seconds
+    expected = expected_deliveries(n, args.across, args.cell, args.rate, t_measure,
+                                   args.seconds)
     broker_cpu = (b1.user + b1.system - b0.user - b0.system) / wall
-    worker_cpu = (
-        sum((b.user + b.system - a.user - a.system) for a, b in zip(w0, w1, strict=True)) / wall
-    )
+    worker_cpu_s = sum((b.user + b.system - a.user - a.system)
+                       for a, b in zip(w0, w1, strict=True))
+    worker_cpu = worker_cpu_s / wall
     return {
         "agents": n,
         "procs": procs,
@@ -234,7 +274,7 @@ def run(args: argparse.Namespace) -> dict:
         "secured": bool(args.secured),
         "cell_m": args.cell,
         "across": args.across,
-        "heard_per_agent": heard_pairs(n, args.across, args.cell, t_measure) / n,
+        "heard_per_agent": expected / (args.rate * args.seconds) / n,
         "published_msgs_per_s": sum(r["published"] for r in results) / args.seconds,
         "deliveries_expected": int(expected),
         "deliveries_measured": len(ages),
@@ -244,6 +284,11 @@ def run(args: argparse.Namespace) -> dict:
         "age_max_ms": 1000 * max(ages) if ages else math.nan,
         "broker_cpu_percent": 100 * broker_cpu,
         "workers_cpu_percent": 100 * worker_cpu,
+        # the agents' CPU (publishing included) per state received: less load-sensitive
+        "workers_cpu_us_per_received": 1e6 * worker_cpu_s / len(ages) if ages else math.nan,
+        "broker_cpu_us_per_delivered": (1e6 * broker_cpu * wall / len(ages) if ages
+                                        else math.nan),
+        "load_average_1min": [load0, load1],
         "superseded": sum(r["superseded"] for r in results),
         "dropped_offline": sum(r["dropped_offline"] for r in results),
         "dropped_stale": sum(r["dropped_stale"] for r in results),
@@ -274,12 +319,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--secured", action="store_true",
                    help="TLS, passwords and ACL of `vtube-fleet bus-setup` (mosquitto)")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--profile", metavar="FILE",
+                   help="cProfile the first worker process over the measured seconds into FILE "
+                        "(pstats format)")
     p.add_argument("--setup", help=argparse.SUPPRESS)
+    p.add_argument("--worker-profile", help=argparse.SUPPRESS)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--url", help=argparse.SUPPRESS)
     p.add_argument("--ids", help=argparse.SUPPRESS)
-    p.add_argument("--t-measure", type=float, help=argparse.SUPPRESS)
-    p.add_argument("--t-end", type=float, help=argparse.SUPPRESS)
     p.add_argument("--result", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
@@ -300,7 +347,10 @@ def main(argv: list[str] | None = None) -> int:
         f"({100 * r['delivered_share']:.1f} %); published {r['published_msgs_per_s']:.0f} "
         f"states/s; superseded in the mailbox {r['superseded']}\n"
         f"  broker CPU {r['broker_cpu_percent']:.0f} % of a core; agents' processes "
-        f"{r['workers_cpu_percent']:.0f} %"
+        f"{r['workers_cpu_percent']:.0f} % ({r['workers_cpu_us_per_received']:.1f} µs per "
+        f"received state; broker {r['broker_cpu_us_per_delivered']:.1f} µs per delivery)\n"
+        f"  load average (1 min) {r['load_average_1min'][0]:.2f} at the start, "
+        f"{r['load_average_1min'][1]:.2f} at the end of the measurement"
     )
     return 0
 

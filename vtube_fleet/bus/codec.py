@@ -94,7 +94,10 @@ def decode_state(payload: bytes) -> NeighbourState:
         raise CodecError(f"state payload version {version}, this build reads {STATE_VERSION}")
     if phase >= len(PHASES):
         raise CodecError(f"state payload phase code {phase} unknown (max {len(PHASES) - 1})")
-    if not all(math.isfinite(v) for v in (stamp, x, y, vx, vy)):
+    # (one sum first: it is finite unless a term is, or the sum overflowed)
+    if not math.isfinite(stamp + x + y + vx + vy) and not all(
+        math.isfinite(v) for v in (stamp, x, y, vx, vy)
+    ):
         raise CodecError(f"state payload of vehicle {vid} has non-finite numbers")
     return NeighbourState(
         vehicle_id=vid,

@@ -1,7 +1,9 @@
-"""The neighbour bus over an MQTT broker (aiomqtt): one agent process per vehicle.
+"""The neighbour bus over an MQTT broker: one agent process per vehicle.
 
 :class:`MqttBus` implements :class:`~vtube_fleet.bus.base.NeighbourBus` (``publish`` /
-``latest``) on top of one MQTT connection owned by a background task, which:
+``latest``) on top of one MQTT connection (:class:`~vtube_fleet.bus.client.MqttClient`, an
+asyncio protocol that parses every chunk read from the socket in one go) owned by a background
+task, which:
 
 * connects with a **last will** (``vtube/<m>/status/<id>`` = ``lost``, retained, QoS 1), so a
   vehicle whose agent dies or loses its network is marked lost for everybody within
@@ -9,9 +11,11 @@
 * publishes ``online`` (with the agent's config hash) on every (re)connect, re-publishes the
   retained messages it owns (a coordinator's config and command) and subscribes to the others'
   states, statuses, last-seen states, the mission config and the fleet commands;
-* sends this vehicle's state from a **one-slot mailbox**: :meth:`publish` never blocks and never
-  queues; a newer state replaces one not yet sent, a state older than ``max_publish_age_s``
-  when its turn comes is dropped, and nothing is sent (or kept for later) while disconnected;
+* sends this vehicle's state at once (:meth:`publish` writes it to the socket when all that
+  was written before is in the kernel) or else from a **one-slot mailbox**: :meth:`publish`
+  never blocks and never queues; a newer state replaces one not yet sent, a state older than
+  ``max_publish_age_s`` when its turn comes is dropped, and nothing is sent (or kept for later)
+  while disconnected;
 * on a lost connection sets ``connected`` to False, notifies listeners (the pilot holds its
   vehicle), and reconnects with exponential back-off (``backoff_initial_s`` doubling up to
   ``backoff_max_s``, ±20 % jitter so a fleet does not reconnect in lock-step).
@@ -44,7 +48,6 @@ import dataclasses
 import logging
 import math
 import random
-import socket
 import time
 import urllib.parse
 import uuid
@@ -52,8 +55,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import aiomqtt
-
+from vtube_fleet.bus.client import MqttClient, MqttError, Will
 from vtube_fleet.bus.codec import (
     CodecError,
     Command,
@@ -87,9 +89,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-_NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)
-
 
 class BrokerUrlError(UserError):
     """A ``--broker`` URL that is not ``mqtt://HOST[:PORT]`` or ``mqtts://HOST[:PORT]``."""
@@ -247,7 +246,7 @@ class MqttBus:
         self._connecting = False
         self._closing = False
         self._task: asyncio.Task[None] | None = None
-        self._client: aiomqtt.Client | None = None
+        self._client: MqttClient | None = None
         self._out_slot: NeighbourState | None = None
         self._out_event: asyncio.Event | None = None
         self._own_last: NeighbourState | None = None
@@ -294,6 +293,14 @@ class MqttBus:
         self._own_last = state
         if not self._connected or self._out_event is None:
             self.stats.dropped_offline += 1
+            return
+        client = self._client
+        if self._out_slot is None and client is not None and client.writable:
+            # nothing waiting and room in the socket: send it now (no wake-up of the sender)
+            try:
+                self._send_state(client, state)
+            except MqttError:
+                self.stats.dropped_offline += 1  # the connection just ended
             return
         if self._out_slot is not None:
             self.stats.superseded += 1
@@ -344,7 +351,7 @@ class MqttBus:
         cx, cy = cell
         return frozenset((cx + i, cy + j) for i in (-1, 0, 1) for j in (-1, 0, 1))
 
-    async def _apply_window(self, client: aiomqtt.Client) -> None:
+    async def _apply_window(self, client: MqttClient) -> None:
         """Subscribe to the state filters of the current window (new ones first, then drop
         the old ones)."""
         t = self.topics
@@ -365,7 +372,7 @@ class MqttBus:
         if old:
             await client.unsubscribe(sorted(old), timeout=math.inf)
 
-    async def _windower(self, client: aiomqtt.Client) -> None:
+    async def _windower(self, client: MqttClient) -> None:
         """Follow our cell with the subscriptions, apart from the sender (which must never
         wait for a SUBACK)."""
         while True:
@@ -429,8 +436,8 @@ class MqttBus:
         if self._connected and client is not None:
             asyncio.get_running_loop().create_task(self._publish_retained(client, topic, payload))
 
-    async def _publish_retained(self, client: aiomqtt.Client, topic: str, payload: bytes) -> None:
-        with contextlib.suppress(aiomqtt.MqttError):
+    async def _publish_retained(self, client: MqttClient, topic: str, payload: bytes) -> None:
+        with contextlib.suppress(MqttError):
             await client.publish(topic, payload, qos=1, retain=True)
 
     async def wait_for(
@@ -487,7 +494,7 @@ class MqttBus:
         # a refusal stays readable after we leave; anything else becomes "offline"
         goodbye = "refused" if self._presence[0] == "refused" else "offline"
         if client is not None and self._connected and self.vehicle_id is not None:
-            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            with contextlib.suppress(MqttError, TimeoutError):
                 async with asyncio.timeout(timeout_s):
                     if self._own_last is not None:
                         await client.publish(
@@ -503,7 +510,7 @@ class MqttBus:
                         retain=True,
                     )
         if self._connecting:
-            # Cancelling aiomqtt's connect midway leaks its socket: let it finish first.
+            # Let a connect in progress finish (then leave cleanly), never cut it midway.
             with contextlib.suppress(TimeoutError):
                 await self.wait_for(lambda: not self._connecting, self.connect_timeout_s + 1)
         for claim in self._claims.values():
@@ -576,35 +583,25 @@ class MqttBus:
                 log.exception("MqttBus connection listener failed")
         self._notify()
 
-    def _make_client(self) -> aiomqtt.Client:
+    def _make_client(self) -> MqttClient:
         will = None
         if self.vehicle_id is not None:
             lost = Status(self.vehicle_id, "lost", self.config_hash, self.run_id, 0.0, "last will")
-            will = aiomqtt.Will(
-                self.topics.status(self.vehicle_id), encode_status(lost), qos=1, retain=True
-            )
-        bus = self
-
-        class _DispatchQueue(asyncio.Queue):  # type: ignore[type-arg]
-            """aiomqtt's incoming queue, replaced: each message is handled at once (no
-            per-message task, no backlog of old states)."""
-
-            def put_nowait(self, item: aiomqtt.Message) -> None:
-                bus._on_message(item)
-
-        return aiomqtt.Client(
+            will = Will(self.topics.status(self.vehicle_id), encode_status(lost), qos=1,
+                        retain=True)
+        # clean session, TCP_NODELAY; every message handled as it is parsed (no per-message
+        # task, no backlog of old states)
+        return MqttClient(
             self.host,
             self.port,
+            client_id=self.client_id,
+            on_message=self._on_message,
             username=self._user,
             password=self._password,
-            identifier=self.client_id,
             will=will,
             tls_context=self._tls_context,
-            clean_session=True,
-            keepalive=self.keepalive_s,
-            timeout=self.connect_timeout_s,
-            socket_options=_NODELAY,
-            queue_type=_DispatchQueue,
+            keepalive_s=self.keepalive_s,
+            timeout_s=self.connect_timeout_s,
         )
 
     def _who(self) -> str:
@@ -637,7 +634,7 @@ class MqttBus:
                     backoff = self.backoff_initial_s
                     self._set_connected(True)
                     await self._serve(client)
-            except aiomqtt.MqttError as exc:
+            except MqttError as exc:
                 if self._connected:
                     log.warning(
                         "%s: lost the MQTT broker %s:%d (%s); reconnecting with back-off",
@@ -670,7 +667,7 @@ class MqttBus:
                 await asyncio.wait_for(self._stop.wait(), backoff * random.uniform(0.8, 1.2))
             backoff = min(backoff * 2.0, self.backoff_max_s)
 
-    async def _serve(self, client: aiomqtt.Client) -> None:
+    async def _serve(self, client: MqttClient) -> None:
         """Run the sender and the receiver until the connection fails (their MqttError is
         raised) or :meth:`close` asks to stop (return; the caller disconnects cleanly)."""
         workers = [asyncio.ensure_future(self._receiver(client))]
@@ -690,7 +687,7 @@ class MqttBus:
         if not self._stop.is_set():
             raise RuntimeError("MQTT bus worker ended unexpectedly")
 
-    async def _on_connect(self, client: aiomqtt.Client) -> None:
+    async def _on_connect(self, client: MqttClient) -> None:
         if self.vehicle_id is not None:
             await client.publish(
                 self.topics.status(self.vehicle_id),
@@ -708,59 +705,56 @@ class MqttBus:
         self._state_filters = set()
         await self._apply_window(client)
 
-    async def _sender(self, client: aiomqtt.Client) -> None:
+    async def _sender(self, client: MqttClient) -> None:
+        """Send what :meth:`publish` left in the mailbox (while the socket was full)."""
         assert self._out_event is not None
         event = self._out_event
         self._out_slot = None
-        vid = self.vehicle_id
-        assert vid is not None
-        last_topic = self.topics.last(vid)
         while True:
             await event.wait()
             event.clear()
+            await client.wait_writable()
             state, self._out_slot = self._out_slot, None
-            if state is None:
-                continue
-            if state.age_s() > self.max_publish_age_s:
-                self.stats.dropped_stale += 1
-                continue
-            payload = encode_state(state)
-            cell = self.cell_of(state.x_m, state.y_m)
-            await client.publish(self.topics.state(vid, cell), payload, qos=0, timeout=math.inf)
-            self.stats.published += 1
-            if cell != self._pub_cell:
-                if self._pub_cell is not None:
-                    # tell the old cell's subscribers where we went (they may not hear us again)
-                    await client.publish(
-                        self.topics.state(vid, self._pub_cell), payload, qos=0, timeout=math.inf
-                    )
-                self._pub_cell = cell
-                self._window = self._window_around(cell)
-                self._prune_to_window()
-                self._window_changed.set()
-            now = time.monotonic()
-            if state.phase != self._last_phase or now - self._last_sent_mono >= self.last_period_s:
-                self._last_phase = state.phase
-                self._last_sent_mono = now
-                await client.publish(last_topic, payload, qos=0, retain=True, timeout=math.inf)
+            if state is not None:
+                self._send_state(client, state)
 
-    async def _receiver(self, client: aiomqtt.Client) -> None:
-        # Messages are dispatched as paho reads them (see _make_client); this only waits for
-        # the connection to end (the iterator raises MqttError then).
-        async for _ in client.messages:
-            pass
+    def _send_state(self, client: MqttClient, state: NeighbourState) -> None:
+        """Write our state to its cell's topic (QoS 0, no waiting), plus the notice to the cell
+        it left and the retained last-seen state when due; drop it if it is too old."""
+        if state.age_s() > self.max_publish_age_s:
+            self.stats.dropped_stale += 1
+            return
+        vid = state.vehicle_id
+        payload = encode_state(state)
+        cell = self.cell_of(state.x_m, state.y_m)
+        client.publish_nowait(self.topics.state(vid, cell), payload)
+        self.stats.published += 1
+        if cell != self._pub_cell:
+            if self._pub_cell is not None:
+                # tell the old cell's subscribers where we went (they may not hear us again)
+                client.publish_nowait(self.topics.state(vid, self._pub_cell), payload)
+            self._pub_cell = cell
+            self._window = self._window_around(cell)
+            self._prune_to_window()
+            self._window_changed.set()
+        now = time.monotonic()
+        if state.phase != self._last_phase or now - self._last_sent_mono >= self.last_period_s:
+            self._last_phase = state.phase
+            self._last_sent_mono = now
+            client.publish_nowait(self.topics.last(vid), payload, retain=True)
 
-    def _on_message(self, message: aiomqtt.Message) -> None:
+    async def _receiver(self, client: MqttClient) -> None:
+        # Messages are dispatched as the client parses them (on_message, see _make_client);
+        # this only waits for the connection to end (MqttError says why).
+        await client.wait_closed()
+
+    def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            payload = message.payload
-            if isinstance(payload, bytes | bytearray):
-                self._dispatch(message.topic.value, bytes(payload))
-        except Exception:  # a bug here must not break paho's socket reader
+            self._dispatch(topic, payload)
+        except Exception:  # a bug here must not break the client's socket reader
             self._errors_logged += 1
             if self._errors_logged <= 5:
-                log.exception(
-                    "%s: failed to handle a message on %s", self._who(), message.topic.value
-                )
+                log.exception("%s: failed to handle a message on %s", self._who(), topic)
 
     # -- what is accepted (docs/mqtt.md, "What an agent accepts") ---------------------------
     def set_limits(self, limits: StateLimits) -> None:
@@ -802,12 +796,11 @@ class MqttBus:
             self._sync_seen = payload.decode(errors="replace")
             self._notify()
             return
-        sender = f"vehicle {vid}" if vid is not None else kind if kind != "unknown" else topic
         if vid is not None and vid != self.vehicle_id:
             why = self.limits.id_problem(vid)
             if why is not None:
                 if payload:  # (clearing a retained message is not a claim)
-                    self._refuse("not_in_mission", sender, topic, why)
+                    self._refuse("not_in_mission", f"vehicle {vid}", topic, why)
                 return
         try:
             if kind == "state" or kind == "last":
@@ -829,6 +822,7 @@ class MqttBus:
                     self._on_command(decode_command(payload), topic)
         except CodecError as exc:
             self.stats.decode_errors += 1
+            sender = f"vehicle {vid}" if vid is not None else kind if kind != "unknown" else topic
             self._refuse("malformed", sender, topic, str(exc))
 
     def _on_state(self, state: NeighbourState, *, from_last: bool, topic_id: int | None,
@@ -946,13 +940,13 @@ class MqttBus:
                                                                          self.topics.last(vid)))
         self._notify()
 
-    async def _subscribe_last(self, client: aiomqtt.Client, vid: int) -> None:
-        with contextlib.suppress(aiomqtt.MqttError):
-            await client.subscribe(self.topics.last(vid), qos=0)
+    async def _subscribe_last(self, client: MqttClient, vid: int) -> None:
+        with contextlib.suppress(MqttError):
+            await client.subscribe([(self.topics.last(vid), 0)])
 
-    async def _unsubscribe(self, client: aiomqtt.Client, topic: str) -> None:
-        with contextlib.suppress(aiomqtt.MqttError):
-            await client.unsubscribe(topic)
+    async def _unsubscribe(self, client: MqttClient, topic: str) -> None:
+        with contextlib.suppress(MqttError):
+            await client.unsubscribe([topic])
 
     def _control_problem(self, mission_id: str, stamp_s: float) -> tuple[str, str] | None:
         if mission_id != self.mission_id:

@@ -56,7 +56,7 @@ def _is_int(text: str) -> bool:
 class MissionTopics:
     """The topic names of one mission (``vtube/<mission>/…``) and their parsers."""
 
-    __slots__ = ("mission_id", "base", "config", "cmd", "_state", "_status", "_last")
+    __slots__ = ("mission_id", "base", "config", "cmd", "_state", "_status", "_last", "_kinds")
 
     def __init__(self, mission_id: str) -> None:
         self.mission_id = validate_mission_id(mission_id)
@@ -66,6 +66,7 @@ class MissionTopics:
         self._state = f"{self.base}/state/"
         self._status = f"{self.base}/status/"
         self._last = f"{self.base}/last/"
+        self._kinds: dict[str, tuple[str, int | None]] = {}  # classify()'s answers
 
     # -- per-vehicle topics -------------------------------------------------------------------
     def state(self, vehicle_id: int, cell: tuple[int, int] = (0, 0)) -> str:
@@ -97,7 +98,19 @@ class MissionTopics:
 
         ``kind`` is ``"state"``, ``"status"``, ``"last"`` (with the vehicle id), ``"config"``,
         ``"cmd"`` (id ``None``) or ``"unknown"`` (also for a malformed vehicle id).
+
+        Answers are remembered (the same few hundred topics arrive at the control rate); at
+        most :data:`_MAX_KNOWN_TOPICS`, then the memory starts anew.
         """
+        known = self._kinds.get(topic)
+        if known is None:
+            known = self._classify(topic)
+            if len(self._kinds) >= _MAX_KNOWN_TOPICS:
+                self._kinds.clear()
+            self._kinds[topic] = known
+        return known
+
+    def _classify(self, topic: str) -> tuple[str, int | None]:
         for kind, prefix in (
             ("state", self._state),
             ("status", self._status),
@@ -118,3 +131,7 @@ class MissionTopics:
         if topic == self.cmd:
             return "cmd", None
         return "unknown", None
+
+
+#: Topics whose classification :meth:`MissionTopics.classify` remembers at most.
+_MAX_KNOWN_TOPICS = 4096
