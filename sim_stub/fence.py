@@ -256,10 +256,9 @@ class FenceMixin:
             self._mt_ack(_ERROR, ssys, scomp)  # PX4: "Fence: too few vertices" (console only)
             self._mt_state = "idle"
             return
-        if frame in (5, 6):
-            lat_e7, lon_e7 = int(m.x), int(m.y)  # type: ignore[attr-defined]
-        else:
-            lat_e7, lon_e7 = round(m.x * 1e7), round(m.y * 1e7)  # type: ignore[attr-defined]
+        # MISSION_ITEM_INT: x, y are degrees * 1e7 in every global frame (PX4's int mode),
+        # also for frame GLOBAL (0), which MAVSDK's geofence plugin sends
+        lat_e7, lon_e7 = int(m.x), int(m.y)  # type: ignore[attr-defined]
         self._mt_staging.append(FenceItem(cmd, lat_e7, lon_e7, float(m.z), p1, frame))  # type: ignore[attr-defined]
         self._mt_seq = seq + 1
         if self._mt_seq == self._mt_count:

@@ -270,7 +270,8 @@ async def test_no_fence_flies_without_one(tmp_path: Path) -> None:
                            fence=False, tick_hook=hook)
         assert all(v.fence_items == [] for v in fleet.vehicles)
     assert result.outcome == "interrupted"
-    assert any("--no-fence" in e["text"] for e in result.summary["events"])
+    assert any("--no-fence" in e["text"] and e["level"] == "warning"
+               for e in result.summary["events"])
     assert result.summary["onboard"]["fence"] == "off"
 
 
@@ -379,9 +380,12 @@ async def test_one_agent_audits_and_fences_its_vehicle(tmp_path: Path) -> None:
             await link.close()
 
 
-async def test_the_mavsdk_backend_skips_fence_and_audit_with_a_warning(tmp_path: Path) -> None:
+async def test_the_mavsdk_backend_audits_and_fences_the_fleet(tmp_path: Path) -> None:
+    """``--backend mavsdk``: the same preflight as mavlink (GF_ACTION, upload, read back and
+    compare, through MAVSDK's param and geofence plugins); stopped after take-off."""
     m = _mission(tmp_path)
-    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=6) as fleet:
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=6,
+                          params={"GF_ACTION": 0}) as fleet:
 
         def hook(tick: int, sup) -> None:
             if sup.stage == "takeoff" and sup._interrupted is None:
@@ -389,18 +393,77 @@ async def test_the_mavsdk_backend_skips_fence_and_audit_with_a_warning(tmp_path:
 
         result = await fly(m, backend="mavsdk", endpoints=fleet.endpoints, sysids=[1, 2],
                            out_dir=tmp_path, tick_hook=hook)
-        assert all(v.fence_items == [] for v in fleet.vehicles)
+        want = fence_items(m)
+        for v in fleet.vehicles:
+            assert [(it.command, it.lat_e7, it.lon_e7) for it in v.fence_items] == [
+                (it.command, round(it.lat_deg * 1e7), round(it.lon_deg * 1e7)) for it in want]
+            assert v.params["GF_ACTION"].value == 2
+    assert result.outcome == "interrupted", result.reason
     texts = [e["text"] for e in result.summary["events"] if e["level"] == "warning"]
-    assert any("fence NOT uploaded: the mavsdk backend cannot upload PX4 fences" in t
-               for t in texts)
-    assert any("PX4 parameter audit skipped" in t for t in texts)
-    assert result.summary["onboard"]["fence"] == "unsupported"
+    assert not any("NOT uploaded" in t or "audit skipped" in t for t in texts), texts
+    onboard = result.summary["onboard"]
+    assert onboard["fence"] == "uploaded" and onboard["fence_items"] == len(want)
+    assert onboard["px4_params"][0]["MPC_XY_VEL_MAX"] == pytest.approx(12.0)
+
+
+@contextlib.asynccontextmanager
+async def one_vehicle_mavsdk(**kwargs):
+    from vtube_fleet.link.mavsdk_link import MavsdkHub
+
+    fleet = MockFleet(1, port_scheme=free_ports(1), boot_time_scale=0.3, **kwargs)
+    await fleet.start()
+    try:
+        async with MavsdkHub() as hub:
+            link = hub.link(fleet.endpoints[0], sysid=1)
+            await link.connect(10.0)
+            yield fleet.vehicles[0], link
+    finally:
+        await fleet.stop()
+
+
+async def test_mavsdk_fence_upload_download_install_and_refusals(monkeypatch) -> None:
+    """The real MAVSDK client's geofence plugin against the mock's FENCE protocol: what the
+    vehicle stores is what we meant (degrees * 1e7), the read-back matches, install_fence sets
+    GF_ACTION; a refusal is a FenceRejected with MAVSDK's result and keeps the stored fence."""
+    from vtube_fleet.fleet.onboard import install_fence
+
+    async with one_vehicle_mavsdk() as (v, link):
+        items = square(v) + [FenceItem(5004, v.origin[0] + 5e-5, v.origin[1], 2.5)]
+        await link.upload_fence(items)
+        assert [(it.command, it.lat_e7, it.lon_e7, it.param1) for it in v.fence_items] == [
+            (a.command, round(a.lat_deg * 1e7), round(a.lon_deg * 1e7), a.param1)
+            for a in items]
+        back = await link.download_fence()
+        assert [(b.command, round(b.lat_deg * 1e7), round(b.lon_deg * 1e7)) for b in back] == [
+            (a.command, round(a.lat_deg * 1e7), round(a.lon_deg * 1e7)) for a in items]
+        assert [b.param1 for b in back] == pytest.approx([a.param1 for a in items])
+        await install_fence(link, items, 3)
+        assert v.params["GF_ACTION"].value == 3 and len(v.fence_items) == 5
+        # refusals: too many items (PX4 NO_SPACE), a waypoint is not a fence item (refused
+        # before sending), a circle before a polygon (MAVSDK would reorder them)
+        monkeypatch.setattr(sim_stub.fence, "FENCE_MAX_ITEMS", 4)
+        with pytest.raises(FenceRejected, match="fence upload refused: MAVSDK") as exc:
+            await link.upload_fence(items)
+        print(f"\n{exc.value}")
+        assert exc.value.result != "SUCCESS"
+        with pytest.raises(FenceRejected, match="command 16 is not a fence"):
+            await link.upload_fence([FenceItem(16, v.origin[0], v.origin[1], 0.0)])
+        with pytest.raises(FenceRejected, match="polygons before circles"):
+            await link.upload_fence(items[-1:] + items[:-1])
+        with pytest.raises(FenceRejected, match="polygon of 4 vertices"):
+            await link.upload_fence(items[:3])
+        assert len(v.fence_items) == 5 and len(await link.download_fence()) == 5
+        await link.upload_fence([])  # clear_geofence
+        assert v.fence_items == [] and await link.download_fence() == []
 
 
 def test_run_has_no_fence_and_fix_params_flags() -> None:
     out = subprocess.run([sys.executable, "-m", "vtube_fleet", "run", "--help"],
                          capture_output=True, text=True, check=True).stdout
     assert "--no-fence" in out and "--fix-params" in out
+    out = subprocess.run([sys.executable, "-m", "vtube_fleet", "agent", "--help"],
+                         capture_output=True, text=True, check=True).stdout
+    assert "--no-fence" in out
 
 
 class RawGcs(asyncio.DatagramProtocol):
@@ -499,3 +562,55 @@ async def test_fence_protocol_retries_busy_duplicates_and_timeout() -> None:
     finally:
         g.transport.close()
         await v.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("no_fence", [True, False])
+async def test_agent_process_no_fence(tmp_path: Path, no_fence: bool) -> None:
+    """``vtube-fleet agent --no-fence`` (one agent process, a real mosquitto, the coordinator
+    process, a mock vehicle): nothing uploaded and the run's warning printed; without the flag
+    the agent's vehicle has the tube fence before it arms. Interrupted (SIGINT) once armed."""
+    from broker import LocalBroker
+
+    m = load_mission(MOCK_FLEET).with_vehicles(1)
+    root = Path(__file__).resolve().parents[1]
+    log_path = tmp_path / "agent.log"
+    with LocalBroker() as broker:
+        async with mock_fleet(m, 1, boot_time_scale=0.3, port_scheme=free_ports(1)) as fleet:
+            v = fleet.vehicles[0]
+            with open(log_path, "wb") as fh:
+                agent = await asyncio.create_subprocess_exec(
+                    sys.executable, "-m", "vtube_fleet", "agent", str(MOCK_FLEET),
+                    "--vehicle", "0", "--endpoint", fleet.endpoints[0], "--broker", broker.url,
+                    "--join-timeout", "120", *(["--no-fence"] if no_fence else []),
+                    stdout=fh, stderr=fh, cwd=root)
+            coord = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "vtube_fleet", "mission", "start", str(MOCK_FLEET),
+                "--broker", broker.url, "--vehicles", "1", "--wait", "--out",
+                str(tmp_path / "out"), "--ready-timeout", "90", "--timeout", "200",
+                stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL, cwd=root)
+            try:
+                loop = asyncio.get_running_loop()
+                deadline = loop.time() + 120
+                while not v.armed and agent.returncode is None:
+                    assert loop.time() < deadline, log_path.read_text(errors="replace")[-2000:]
+                    await asyncio.sleep(0.05)  # polling period of the condition
+                fenced = list(v.fence_items)
+                agent.send_signal(signal.SIGINT)
+                await asyncio.wait_for(agent.wait(), 120)
+            finally:
+                for p in (agent, coord):
+                    if p.returncode is None:
+                        p.send_signal(signal.SIGTERM)
+                        with contextlib.suppress(TimeoutError):
+                            await asyncio.wait_for(p.wait(), 60)
+                    if p.returncode is None:
+                        p.kill()
+                        await p.wait()
+    text = log_path.read_text(errors="replace")
+    from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
+
+    if no_fence:
+        assert fenced == [] and NO_FENCE_WARNING in text, text[-2000:]
+    else:
+        assert len(fenced) == len(fence_items(m)) and NO_FENCE_WARNING not in text, text[-2000:]

@@ -173,3 +173,66 @@ async def test_fix_params_restores_when_a_later_preflight_step_refuses(
     assert all(a == {k: pytest.approx(x) for k, x in BAD.items()} for a in after)
     with contextlib.suppress(StopIteration):
         next(e for e in result.summary["events"] if "restored" in e["text"])
+
+
+# -- the mavsdk backend (the real MAVSDK client's param plugin) ---------------------------------
+async def test_mavsdk_reads_and_sets_px4_typed_params() -> None:
+    """PX4's INT32 and FLOAT parameters through MAVSDK's get/set_param_int/_float (the type
+    PX4 declared is found once and kept: the mock's PARAM_VALUE keeps its type), the same
+    values as the mavlink link; an unknown name is a LinkTimeout."""
+    from vtube_fleet.link import LinkTimeout
+    from vtube_fleet.link.mavsdk_link import MavsdkHub
+
+    fleet = MockFleet(1, port_scheme=free_ports(1), boot_time_scale=0.3, estimator="ideal",
+                      params={"MPC_XY_VEL_MAX": 0.8})
+    await fleet.start()
+    v = fleet.vehicles[0]
+    try:
+        async with MavsdkHub() as hub:
+            link = hub.link(fleet.endpoints[0], sysid=1)
+            await link.connect(10.0)
+            for name, value in PX4_DEFAULTS.items():
+                if name != "MPC_XY_VEL_MAX":
+                    assert await link.read_param(name) == value
+            assert await link.read_param("MPC_XY_VEL_MAX") == pytest.approx(0.8)
+            types = {n: v.params[n].type for n in PX4_DEFAULTS}
+            assert await link.set_param("NAV_DLL_ACT", 3.2) == 3.0  # int32: rounded
+            assert await link.set_param("MPC_XY_VEL_MAX", 1.9) == pytest.approx(1.9)
+            assert v.params["NAV_DLL_ACT"].value == 3
+            assert v.params["MPC_XY_VEL_MAX"].value == pytest.approx(1.9)
+            assert {n: v.params[n].type for n in PX4_DEFAULTS} == types
+            assert await link.read_param("NAV_DLL_ACT") == 3.0
+            with pytest.raises(LinkTimeout, match="NO_SUCH_PARAM"):
+                await link.read_param("NO_SUCH_PARAM")
+    finally:
+        await fleet.stop()
+
+
+async def test_mavsdk_backend_refuses_a_clipped_speed_and_fix_params_restores(
+        tmp_path: Path) -> None:
+    m = _mission(tmp_path)
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=1,
+                          params={"MPC_XY_VEL_MAX": 1.2}) as fleet:
+        result = await fly(m, backend="mavsdk", endpoints=fleet.endpoints, sysids=[1, 2],
+                           out_dir=tmp_path)
+        assert not _armed_ever(fleet)
+    assert result.outcome == "failed" and result.exit_code == 2
+    assert ("MPC_XY_VEL_MAX = 1.2 m/s < v_max = 1.6 m/s (PX4 would clip the controller's "
+            "speeds)") in result.reason
+    seen: list[dict[str, float]] = []
+    async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(2), seed=2,
+                          params=BAD) as fleet:
+
+        def hook(tick: int, sup) -> None:
+            if sup.stage == "takeoff" and sup._interrupted is None:
+                seen.extend(_values(v) for v in fleet.vehicles)
+                sup.interrupt("SIGINT")
+
+        result = await fly(m, backend="mavsdk", endpoints=fleet.endpoints, sysids=[1, 2],
+                           out_dir=tmp_path, fix_params=True, tick_hook=hook)
+        after = [_values(v) for v in fleet.vehicles]
+    assert result.outcome == "interrupted", result.reason
+    assert seen and all(s == {"MPC_XY_VEL_MAX": pytest.approx(1.9), "COM_OBL_RC_ACT": 5,
+                              "NAV_DLL_ACT": 3, "MPC_ACC_HOR": pytest.approx(1.6)}
+                        for s in seen)
+    assert all(a == {k: pytest.approx(x) for k, x in BAD.items()} for a in after)

@@ -32,6 +32,7 @@ __all__ = [
     "OneLineParser",
     "OptionType",
     "add_bus_args",
+    "add_fence_arg",
     "annotate_help",
     "declared_options",
     "options_table",
@@ -163,6 +164,15 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
         "--insecure", action="store_true",
         help="allow a plain mqtt:// broker that is not on this machine (no TLS: anyone on the "
         "network can read and forge the fleet's messages)",
+    )
+
+
+def add_fence_arg(parser: argparse.ArgumentParser) -> None:
+    """``--no-fence``, the same for ``vtube-fleet run`` (every vehicle) and ``agent`` (its one)."""
+    parser.add_argument(
+        "--no-fence", action="store_true",
+        help="do not upload the tube as the vehicles' PX4 geofence (for setups that forbid "
+        "it; a warning says so; docs/fleet.md)",
     )
 
 

@@ -12,6 +12,7 @@ from vtube_fleet.cli._args import (
     DURATION,
     INDEX,
     add_bus_args,
+    add_fence_arg,
     add_recording_args,
     bounded,
     recorder_from_args,
@@ -42,7 +43,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
         args.mission, args.vehicle, broker=args.broker, endpoint=args.endpoint,
         backend=args.link, mission_id=args.mission_id, join_timeout_s=args.join_timeout,
         broker_hold_limit_s=args.broker_hold_limit, out=out, recorder=recorder, say=_say,
-        credentials=args.credentials, insecure=args.insecure,
+        credentials=args.credentials, insecure=args.insecure, fence=not args.no_fence,
     )
 
     async def main() -> int:
@@ -82,6 +83,7 @@ def register(subparsers: Any) -> None:
         default="mavlink",
         help="vehicle link backend (default mavlink)",
     )
+    add_fence_arg(p)
     p.add_argument(
         "--join-timeout",
         type=bounded(DURATION),

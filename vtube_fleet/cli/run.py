@@ -8,7 +8,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.cli._args import SCALE, SEED, add_recording_args, bounded, recorder_from_args
+from vtube_fleet.cli._args import (
+    SCALE,
+    SEED,
+    add_fence_arg,
+    add_recording_args,
+    bounded,
+    recorder_from_args,
+)
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import BACKENDS, fleet_supervisor, parse_endpoint_list
@@ -115,9 +122,7 @@ def register(subparsers: Any) -> None:
                    help="ask every vehicle for its SITL ground truth (HIL_STATE_QUATERNION; "
                         "PX4 SITL and the mock send it) and judge the clearance truly flown "
                         "too (truth_* summary keys); always on for the built-in mock")
-    p.add_argument("--no-fence", action="store_true",
-                   help="do not upload the tube as every vehicle's PX4 geofence (for setups "
-                        "that forbid it; a warning says so; docs/fleet.md)")
+    add_fence_arg(p)
     p.add_argument("--fix-params", action="store_true",
                    help="set the PX4 parameters the audit finds off (MPC_XY_VEL_MAX, "
                         "MPC_ACC_HOR, COM_OF_LOSS_T, COM_OBL_RC_ACT, NAV_DLL_ACT) for the flight "

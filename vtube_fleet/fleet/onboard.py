@@ -28,6 +28,7 @@ from vtube_fleet.link.base import FenceItem, FenceRejected, LinkError, LinkUnsup
 __all__ = [
     "AuditResult",
     "GF_ACTION_VALUES",
+    "NO_FENCE_WARNING",
     "ParamRule",
     "audit_fleet",
     "audit_rules",
@@ -39,6 +40,9 @@ __all__ = [
 
 #: mission ``fence_action`` → PX4 GF_ACTION (geofence_params.yaml: 2 Hold, 3 Return, 5 Land)
 GF_ACTION_VALUES: dict[str, int] = {"hold": 2, "rtl": 3, "land": 5}
+#: what ``run --no-fence`` and ``agent --no-fence`` say (an info event: the user asked for it)
+NO_FENCE_WARNING = ("--no-fence: no geofence uploaded; PX4 does not know the tube and a "
+                    "vehicle that our process loses can leave it")
 CMD_POLYGON_INCLUSION = 5001
 CMD_CIRCLE_EXCLUSION = 5004
 

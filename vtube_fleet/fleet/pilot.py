@@ -624,6 +624,7 @@ class VehiclePilot:
         geofence (GF_ACTION, upload, read back); backends without them warn and go on."""
         from vtube_fleet.fleet.onboard import (
             GF_ACTION_VALUES,
+            NO_FENCE_WARNING,
             audit_fleet,
             fence_geometry,
             fence_items,
@@ -637,7 +638,7 @@ class VehiclePilot:
         if res.problems:
             raise PilotError("nothing armed: PX4 parameters: " + "; ".join(res.problems))
         if not self.fence:
-            self.event("no fence: PX4 does not know the tube", "info")
+            self.event(NO_FENCE_WARNING, "warning")  # a safety layer turned off
             return
         geom = fence_geometry(self.mission)
         problems = geom.problems(self.xy.reshape(1, 2), [self.name])

@@ -877,6 +877,7 @@ class Supervisor:
         a vehicle that refuses it keeps the fleet on the ground."""
         from vtube_fleet.fleet.onboard import (
             GF_ACTION_VALUES,
+            NO_FENCE_WARNING,
             fence_geometry,
             fence_items,
             install_fence,
@@ -885,8 +886,7 @@ class Supervisor:
 
         if not self.fence:
             self.onboard["fence"] = "off"
-            self.event("--no-fence: no geofence uploaded; PX4 does not know the tube and a "
-                       "vehicle that our process loses can leave it")
+            self.event(NO_FENCE_WARNING, level="warning")  # a safety layer turned off
             return
         geom = fence_geometry(self.mission)
         positions = np.array([p.xy for p in self.pilots])

@@ -18,6 +18,10 @@
 * Latency: MAVSDK exposes no round-trip measurement; :attr:`MavsdkLink.latency_s` is half the
   smoothed duration of action calls answered on the first try (command → COMMAND_ACK plus a
   thread hop; an overestimate).
+* Parameters and the fence (the onboard layer, ``docs/fleet.md``): MAVSDK's ``param`` plugin
+  (PX4's int32/float types found by WRONG_TYPE and kept; set, then read back) and its
+  ``geofence`` plugin (``upload_geofence`` / ``download_geofence`` / ``clear_geofence``);
+  refusals carry MAVSDK's result name, not PX4's MAV_MISSION_RESULT.
 * MAVSDK result names appear in :class:`CommandRejected` (``COMMAND_DENIED``, ``TIMEOUT`` → a
   :class:`LinkTimeout`); MAVSDK maps PX4's TEMPORARILY_REJECTED and DENIED both to
   COMMAND_DENIED, so :meth:`MavsdkLink.arm` retries COMMAND_DENIED until its deadline.
@@ -42,6 +46,8 @@ from typing import Any
 from vtube_fleet.link import px4
 from vtube_fleet.link.base import (
     CommandRejected,
+    FenceItem,
+    FenceRejected,
     GeoPoint,
     LinkError,
     LinkTimeout,
@@ -72,6 +78,11 @@ _HEALTH_FIELDS = (
     ("is_armable", "prearm"),
 )
 _RTT_ALPHA = 0.2
+#: MAV_CMD_NAV_FENCE_* ↔ MAVSDK's geofence FenceType
+_POLYGON_TYPES = {5001: "INCLUSION", 5002: "EXCLUSION"}
+_CIRCLE_TYPES = {5003: "INCLUSION", 5004: "EXCLUSION"}
+_FENCE_CMD = {**{("polygon", t): c for c, t in _POLYGON_TYPES.items()},
+              **{("circle", t): c for c, t in _CIRCLE_TYPES.items()}}
 
 
 def refuse_signing(url: str) -> None:
@@ -313,6 +324,9 @@ class MavsdkLink(VehicleLink):
         self._offboard: Any = None
         self._offboard_sync: Any = None
         self._direct: Any = None
+        self._param: Any = None
+        self._geofence: Any = None
+        self._param_types: dict[str, str] = {}  #: "int" / "float", as PX4 declared them
         self._velocity_cls: Any = None
         self._tasks: list[asyncio.Task[None]] = []
         self._connect_lock = asyncio.Lock()
@@ -384,6 +398,146 @@ class MavsdkLink(VehicleLink):
         except Exception as exc:
             raise LinkError(f"{self.name}: ground truth (HIL_STATE_QUATERNION) at "
                             f"{rate_hz:g} Hz refused: {exc}") from None
+
+    # -- onboard safety: parameters and the fence (MAVSDK's param and geofence plugins) ------
+    def _plugins(self, what: str) -> tuple[Any, Any]:
+        """(ParamAsync, GeofenceAsync) of this system, built on first use."""
+        self._require_connected(what)
+        if self._param is None:
+            from mavsdk.asyncio.plugins.geofence import GeofenceAsync
+            from mavsdk.asyncio.plugins.param import ParamAsync
+
+            self._param = ParamAsync(self._system)
+            self._geofence = GeofenceAsync(self._system)
+        return self._param, self._geofence
+
+    def _param_error(self, name: str, what: str, exc: Exception) -> LinkError:
+        result = getattr(getattr(exc, "result", None), "name", None)
+        if result == "TIMEOUT":
+            return LinkTimeout(f"{self.name}: {what} {name}: no answer (MAVSDK TIMEOUT; PX4 "
+                               f"does not answer unknown parameters)")
+        return LinkError(f"{self.name}: {what} {name} failed: {result or exc}")
+
+    async def read_param(self, name: str) -> float:
+        """``param.get_param_float`` or ``get_param_int``, as PX4 declared ``name`` (MAVSDK
+        answers WRONG_TYPE for the other; the type found is remembered): integers as floats,
+        as :meth:`MavlinkLink.read_param <vtube_fleet.link.mavlink.MavlinkLink.read_param>`."""
+        if len(name) > 16:
+            raise LinkError(f"{self.name}: parameter names have at most 16 characters: {name!r}")
+        param, _ = self._plugins("read a parameter")
+        known = self._param_types.get(name)
+        order = [known] if known else ["float", "int"]
+        for kind in order:
+            get = param.get_param_float if kind == "float" else param.get_param_int
+            try:
+                value = await get(name)
+            except Exception as exc:
+                result = getattr(getattr(exc, "result", None), "name", None)
+                if result == "WRONG_TYPE" and known is None and kind == "float":
+                    continue
+                raise self._param_error(name, "read", exc) from None
+            self._param_types[name] = kind
+            return float(value)
+        raise LinkError(f"{self.name}: read {name}: MAVSDK says it is neither float nor int32 "
+                        f"(WRONG_TYPE for both)")
+
+    async def set_param(self, name: str, value: float) -> float:
+        """``set_param_int`` (rounded) or ``set_param_float``, the type PX4 declared (read
+        first if unknown), then read back: returns the value the vehicle holds,
+        :class:`LinkError` if it kept another one."""
+        if not math.isfinite(value):
+            raise LinkError(f"{self.name}: {name} must be finite, got {value}")
+        param, _ = self._plugins("set a parameter")
+        if name not in self._param_types:
+            await self.read_param(name)
+        is_int = self._param_types[name] == "int"
+        try:
+            if is_int:
+                await param.set_param_int(name, int(round(value)))
+            else:
+                await param.set_param_float(name, float(value))
+        except Exception as exc:
+            raise self._param_error(name, "set", exc) from None
+        got = await self.read_param(name)
+        want = float(round(value)) if is_int else float(value)
+        if not math.isclose(got, want, rel_tol=1e-6, abs_tol=1e-6):
+            raise LinkError(f"{self.name}: set {name} = {value:g}: the vehicle kept {got:g}")
+        return got
+
+    async def upload_fence(self, items: list[FenceItem]) -> None:
+        """``geofence.upload_geofence(GeofenceData(polygons, circles))`` (MAVSDK sends the
+        mission protocol with mission_type FENCE: polygons first, then circles, frame GLOBAL,
+        degrees * 1e7); an empty list is ``clear_geofence``. MAVSDK's result names
+        (e.g. ``ERROR``, ``TOO_MANY_GEOFENCE_ITEMS``) are in :class:`FenceRejected`: MAVSDK
+        does not pass on PX4's MAV_MISSION_RESULT."""
+        _, geofence = self._plugins("upload the fence")
+        from mavsdk.plugins.geofence import Circle, FenceType, GeofenceData, Point, Polygon
+
+        polygons, circles = [], []
+        k = 0
+        while k < len(items):
+            it = items[k]
+            if it.command in _POLYGON_TYPES:
+                n = int(round(it.param1))
+                group = items[k:k + n]
+                if n < 1 or len(group) < n or any(g.command != it.command for g in group):
+                    raise FenceRejected(f"{self.name}: fence item {k}: polygon of {n} vertices "
+                                        f"is not {n} consecutive {it.command} items",
+                                        result="INVALID_ARGUMENT")
+                polygons.append(Polygon([Point(g.lat_deg, g.lon_deg) for g in group],
+                                        getattr(FenceType, _POLYGON_TYPES[it.command])))
+                k += n
+            elif it.command in _CIRCLE_TYPES:
+                circles.append(Circle(Point(it.lat_deg, it.lon_deg), float(it.param1),
+                                      getattr(FenceType, _CIRCLE_TYPES[it.command])))
+                k += 1
+            else:
+                raise FenceRejected(f"{self.name}: fence item {k}: command {it.command} is not "
+                                    f"a fence polygon vertex or circle (MAVSDK's geofence API "
+                                    f"has no other items)", result="UNSUPPORTED")
+        kinds = [it.command in _CIRCLE_TYPES for it in items]
+        if True in kinds and False in kinds[kinds.index(True):]:
+            raise FenceRejected(f"{self.name}: MAVSDK uploads polygons before circles; the "
+                                f"items must be in that order to be read back alike",
+                                result="INVALID_ARGUMENT")
+        try:
+            if items:
+                await geofence.upload_geofence(GeofenceData(polygons, circles))
+            else:
+                await geofence.clear_geofence()
+        except Exception as exc:
+            result = getattr(getattr(exc, "result", None), "name", None) or "ERROR"
+            if result == "TIMEOUT":
+                raise LinkTimeout(f"{self.name}: fence upload of {len(items)} items: no answer "
+                                  f"(MAVSDK TIMEOUT)") from None
+            raise FenceRejected(f"{self.name}: fence upload refused: MAVSDK {result} "
+                                f"({len(items)} items){self._recent_text()}",
+                                result=result) from None
+
+    async def download_fence(self) -> list[FenceItem]:
+        """``geofence.download_geofence()`` as fence items (polygon vertices with param1 = the
+        vertex count, then circles with param1 = the radius)."""
+        _, geofence = self._plugins("download the fence")
+        try:
+            data = await geofence.download_geofence()
+        except Exception as exc:
+            result = getattr(getattr(exc, "result", None), "name", None) or "ERROR"
+            if result == "TIMEOUT":
+                raise LinkTimeout(f"{self.name}: fence download: no answer (MAVSDK TIMEOUT)"
+                                  ) from None
+            raise FenceRejected(f"{self.name}: fence download failed: MAVSDK {result}",
+                                result=result) from None
+        out: list[FenceItem] = []
+        for poly in data.polygons or []:
+            cmd = _FENCE_CMD[("polygon", poly.fence_type.name)]
+            pts = list(poly.points)
+            out += [FenceItem(cmd, float(p.latitude_deg), float(p.longitude_deg),
+                              float(len(pts))) for p in pts]
+        for c in data.circles or []:
+            cmd = _FENCE_CMD[("circle", c.fence_type.name)]
+            out.append(FenceItem(cmd, float(c.point.latitude_deg),
+                                 float(c.point.longitude_deg), float(c.radius)))
+        return out
 
     # -- connect -------------------------------------------------------------------------------
     async def connect(self, timeout_s: float = 10.0) -> None:
@@ -714,7 +868,8 @@ class MavsdkLink(VehicleLink):
         self._offboard_active = False
         self.hub._unregister(self)
         await cancel_tasks(self._tasks)
-        for plugin in (self._action, self._telemetry, self._offboard):
+        for plugin in (self._action, self._telemetry, self._offboard, self._param,
+                       self._geofence):
             if plugin is not None:
                 try:
                     plugin.destroy()

@@ -35,6 +35,7 @@ from vtube_fleet.fleet.distributed.coordinator import (
     default_mission_id,
     needed_cell_m,
 )
+from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
 from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
 from vtube_fleet.link.base import LinkError
 from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
@@ -366,9 +367,12 @@ class AgentProcess:
         say: Callable[[str], None] | None = None,
         credentials: str | Path | None = None,
         insecure: bool = False,
+        fence: bool = True,
     ) -> None:
         """``credentials``: the agent's broker credentials file (``vtube-fleet bus-setup``);
         ``insecure``: allow a plain-MQTT broker that is not on loopback;
+        ``fence``: upload the tube as the vehicle's PX4 geofence before arming (``--no-fence``
+        turns it off, with :data:`~vtube_fleet.fleet.onboard.NO_FENCE_WARNING`);
         ``out``: folder for this agent's ``summary.json`` (None: nothing written);
         ``recorder``: records this agent's view (:class:`AgentRecording`; default: nothing);
         ``say``: where progress lines go (the command prints them; default: the log)."""
@@ -407,6 +411,7 @@ class AgentProcess:
         self.run_cfg: MissionConfigMsg | None = None
         self.pilot: BusAwarePilot | None = None
         self.budget: SafetyBudget | None = None
+        self.fence = fence
         self._interrupt = asyncio.Event()
         self._abort = asyncio.Event()
 
@@ -707,6 +712,9 @@ class AgentProcess:
             mqtt=self.bus,
             broker_hold_limit_s=self.broker_hold_limit_s,
         )
+        pilot.fence = self.fence
+        if not self.fence:
+            self.say(NO_FENCE_WARNING)
         self.pilot = pilot
         await self._unless_interrupted(link.connect(cfg.connect_timeout_s),
                                        "connecting to the vehicle")
