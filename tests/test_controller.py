@@ -533,3 +533,54 @@ def test_command_evaluator_tracks_the_minimum_pair_distance():
     ev(p, k, empty)
     assert ev.min_pair_distance == math.inf
     assert CommandEvaluator(ta, PAPER).min_pair_distance == math.inf  # not tracked
+
+
+@pytest.mark.parametrize("kind", ["new", "old", "apf"])
+def test_command_evaluator_element_subset_is_bitwise_the_full_evaluation(kind, monkeypatch):
+    """step(move=...) skips the elements that are exactly 0 (legs/σ beyond max(r_a, k_t r_a),
+    pairs beyond r_s + r_a) while the points move less than ACTIVE_SKIN: over a closed loop
+    with sub-tube changes, new pair lists, a violating pair and a sparse phase (no pair
+    within reach: the minimum comes from all candidates), every command and every minimum
+    pair distance is bitwise velocity_command's / the candidates' minimum."""
+    from vtube_fleet.core import controller as ctl
+    from vtube_fleet.core.neighbours import VerletPairs
+
+    rng = np.random.default_rng(21)
+    tubes = [make_tube(a_h=0.25, a_r=0.2, length=10.0, w0=7.0),
+             make_tube(phi=0.4, origin=(10.0, 0.0), a_h=-0.1, a_r=0.3, w0=4.0, length=5.0)]
+    ta = TubeArrays.from_tubes(tubes)
+    ob = (Obstacle([6.0, 0.5], 0.9),) if kind == "apf" else ()
+    ev = CommandEvaluator(ta, PAPER, kind, ob, track_min_pair=True)
+    M = 60
+    p = np.column_stack([rng.uniform(0.5, 9.0, M), rng.uniform(-2.8, 2.8, M)])
+    p[3] = p[4] + [0.2, 0.0]  # a violating pair (the barriers' general formula)
+    dt = 1e-3
+    move = dt * (PAPER.v + PAPER.v_max_prime) * (1 + 1e-6)
+    verlet = VerletPairs(PAPER.r_s + PAPER.r_a, 0.375)
+    k = (p[:, 0] > 8.0).astype(np.intp)
+    k.setflags(write=False)
+    fast = 0
+    real_core = ctl._Active.core
+
+    def counting_core(self, z):
+        nonlocal fast
+        fast += 1
+        return real_core(self, z)
+
+    monkeypatch.setattr(ctl._Active, "core", counting_core)
+    for step in range(400):
+        if step == 300:  # sparse phase: a 12 x 5 grid 1 m apart (> r_s + r_a + 2 ACTIVE_SKIN)
+            p = np.column_stack([1.0 + np.arange(M) % 12, -2.0 + np.arange(M) // 12])
+        knew = (p[:, 0] > 8.0).astype(np.intp)
+        if not np.array_equal(knew, k):
+            k = knew
+            k.setflags(write=False)
+        pairs = verlet.candidates(p)
+        want = velocity_command(p, k, ta, PAPER, pairs=pairs, kind=kind, obstacles=ob)
+        z = p.view(np.complex128).ravel()
+        got = ev.step(z, k, pairs, move=move).view(np.float64).reshape(M, 2)
+        assert got.tobytes() == want.tobytes(), step
+        d = np.abs(z[pairs[0]] - z[pairs[1]])
+        assert ev.min_pair_distance == (d.min() if d.size else math.inf), step
+        p = p + dt * want
+    assert fast > 300  # the subset served most steps

@@ -398,3 +398,99 @@ def test_adaptive_unicycles_guard_their_control_points() -> None:
     s = simulate(sc, dt=0.5).summary
     assert s["exited"] == 7 and s["violations"] == 0
     assert s["integrator_stats"]["split_steps"] > 0
+
+
+# ------------------------------------------------------------------------------ pinned bits
+#: The trajectories of three short runs as the simulator computed them before the speed-up of
+#: issue 16 (numpy 2.4.6, x86_64): sha256 (first 16 hex digits) of the float64 bytes of
+#: ``pos``, ``vel`` and the per-step minimum pair distance, with a few plain values. A change
+#: that reassociates a sum (or reorders any float operation) changes the bytes.
+PINNED_NUMPY = "2.4.6"
+PINNED = {
+    "paper_adaptive_2s": {
+        "pos": "e6bff1a20cd1447c", "vel": "1c43aba880a9d2f7", "min_pair": "2c58a52cce8ee26b",
+        "split_steps": 0, "min_pair_m": 0.6744157726189018,
+        "robot7": (4.489359294748476, 1.1999999953965035, 8.659683082347771e-07)},
+    "perturbed_adaptive_6s": {
+        "pos": "1742c8c429fc0bf5", "vel": "44196ad3f4276433", "min_pair": "ea8dc06404538c4c",
+        "split_steps": 142, "min_pair_m": 0.500163355074004,
+        "robot7": (11.377714728721806, 2.4331689018431524, 0.9864693176175037)},
+    "paper_rk4_0.5s": {
+        "pos": "e9b3917dd497bcf0", "vel": "0bd322944cd0a128", "min_pair": "aa6fd8f94d7b0742",
+        "split_steps": 0, "min_pair_m": 0.692188284056291,
+        "robot7": (1.4980000000000009, 1.2000000000000002, 0.0)},
+}
+#: obstacle centres of a certified perturbation of configs/paper.toml (bench_sim --search,
+#: seed 3, draw 25) where the adaptive integrator splits steps between t = 4 and 6 s
+PERTURBED_CENTRES = [[10.551, -0.028], [17.228, 4.628], [21.574, -0.888], [26.062, 0.176],
+                     [30.677, -0.585]]
+
+
+def _pinned_run(name: str, paper):
+    if name == "paper_adaptive_2s":
+        return simulate(paper, duration=2.0, record_every=1)
+    if name == "paper_rk4_0.5s":
+        return simulate(paper, duration=0.5, record_every=1, integrator="rk4")
+    import tomllib
+
+    data = tomllib.loads(PAPER.read_text())
+    for ob, c in zip(data["obstacles"], PERTURBED_CENTRES, strict=True):
+        ob["center"] = c
+    return simulate(parse_scenario(data, "perturbed"), duration=6.0, record_every=10)
+
+
+def _sha(a: np.ndarray) -> str:
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
+
+
+@pytest.mark.parametrize("name", sorted(PINNED))
+def test_trajectory_is_pinned_bit_for_bit(name, paper) -> None:
+    """The optimised step computes exactly what the straightforward order of operations did
+    (values to 1e-9 everywhere; the bytes themselves with the numpy the pins were made with:
+    another numpy may round a library function differently, see PINNED)."""
+    res = _pinned_run(name, paper)
+    pin = PINNED[name]
+    assert res.summary["integrator_stats"]["split_steps"] == pin["split_steps"]
+    last = (res.pos[-1, 7, 0], res.pos[-1, 7, 1], res.vel[-1, 7, 1])
+    np.testing.assert_allclose(last, pin["robot7"], rtol=0, atol=1e-9)
+    assert res.summary["min_pair_distance_m"] == pytest.approx(pin["min_pair_m"], abs=1e-9)
+    if np.__version__ != PINNED_NUMPY:
+        pytest.skip(f"bytes pinned with numpy {PINNED_NUMPY}, this is {np.__version__}")
+    got = {"pos": _sha(res.pos), "vel": _sha(res.vel),
+           "min_pair": _sha(res.metrics.min_pair_distance_m)}
+    assert got == {k: pin[k] for k in got}
+    assert last == pin["robot7"]
+
+
+def test_element_subset_changes_no_bit(paper, monkeypatch) -> None:
+    """The simulator's controller calls skip the elements that are exactly 0
+    (CommandEvaluator.step(move=...)); without that (every element evaluated) the run is the
+    same to the last bit: trajectory, per-step metrics, summary."""
+    from vtube_fleet.core import controller as ctl
+
+    calls = {"subset": 0}
+    core = ctl._Active.core
+
+    def counted(self, z):
+        calls["subset"] += 1
+        return core(self, z)
+
+    monkeypatch.setattr(ctl._Active, "core", counted)
+    fast = _pinned_run("perturbed_adaptive_6s", paper)
+    assert calls["subset"] > 5000
+    step = ctl.CommandEvaluator.step
+    monkeypatch.setattr(ctl.CommandEvaluator, "step",
+                        lambda self, z, k, pairs, out=None, move=None: step(self, z, k, pairs,
+                                                                            out))
+    calls["subset"] = 0
+    full = _pinned_run("perturbed_adaptive_6s", paper)
+    assert calls["subset"] == 0
+    for key, arr in fast.trajectory_arrays().items():
+        assert arr.tobytes() == full.trajectory_arrays()[key].tobytes(), key
+    for key in METRIC_KEYS:
+        assert getattr(fast.metrics, key).tobytes() == getattr(full.metrics, key).tobytes(), key
+    drop = ("wall_s", "us_per_step")
+    assert ({k: v for k, v in fast.summary.items() if k not in drop}
+            == {k: v for k, v in full.summary.items() if k not in drop})

@@ -11,7 +11,8 @@ Each step (all robots still in the tube at once):
    uses the main tube (Appendix C);
 3. neighbour candidates come from a Verlet list (:class:`~vtube_fleet.core.neighbours.VerletPairs`);
 4. the velocity commands v_c come from :func:`~vtube_fleet.core.controller.velocity_command`
-   (through its per-loop form :class:`~vtube_fleet.core.controller.CommandEvaluator`)
+   (through its per-loop form :class:`~vtube_fleet.core.controller.CommandEvaluator`, told how
+   far a point can move per step so that it skips the barrier elements that are exactly 0)
    ("new" = (ModifiedVectorField), "old" = (Oldcontroller), "apf" = Appendix C);
 5. the robots move one step of their model (:mod:`vtube_fleet.core.models`): the single
    integrator (Single), or the unicycle driven through (NID), whose controller is evaluated at
@@ -402,6 +403,7 @@ class _Run:
         arrays, params = self.arrays, p
         tracker = self.tracker
         max_move = v_bound * dt
+        dt_z = np.array(dt, dtype=np.complex128)  # the Euler step's factor, converted once
         # the tracker's bound between calls: RK4's last evaluation (at z + h k3) is up to two
         # steps' move away from the next step's start
         track_move = 2.0 * max_move if integ == "rk4" else max_move
@@ -511,7 +513,6 @@ class _Run:
         progress_every = max(1, int(round(0.1 / dt)))
         progress = self.progress
         n_steps = self.n_steps
-        euler = models._single_step  # (Single) without re-checking dt (checked above)
         n = pos.shape[0]
         # single integrator: the rows of the first n robots, as (n, 2) floats (P2) and as
         # complex x + iy (Z2: positions, V2: commands), the form the controller works in
@@ -552,7 +553,7 @@ class _Run:
             def rhs(z: np.ndarray, move: float) -> np.ndarray:
                 kk = k0 if tracker is None else tracker.update(
                     z.view(np.float64).reshape(-1, 2), move)
-                return command.step(z, kk, prs)
+                return command.step(z, kk, prs, move=move)
             return rhs
 
         def uni_move(state: tuple, vcmd: np.ndarray, hs: float) -> tuple[tuple, np.ndarray]:
@@ -628,8 +629,10 @@ class _Run:
                         dq = q - q_build
                         dmax = float(np.sqrt((dq * dq).sum(axis=1).max()))
                         next_verlet = step + max(1, int((half_skin - dmax) / (v_bound * dt)))
-                # metrics buffer (the chunk must share one pair list and one robot set)
-                if pairs[0] is not cur_I or nc == chunk:
+                # metrics buffer: one robot set per chunk (exits flush above); for unicycles
+                # also one pair list (the centre metrics search it), while the single
+                # integrator's pair minima come with the buffer (cpm), whatever the list
+                if nc == chunk or (unicycle and pairs[0] is not cur_I):
                     if nc:
                         flush(n, step)
                         if not unicycle:  # the current positions move to row 0
@@ -637,7 +640,8 @@ class _Run:
                             q = pos = P2[0]
                     cur_I, cur_pairs = pairs[0], pairs
                 if not unicycle:
-                    vz = command.step(Z2[nc], k, pairs, out=V2[nc])
+                    zc = Z2[nc]
+                    vz = command.step(zc, k, pairs, out=V2[nc], move=track_move)
                 else:
                     vc = command(q, k, pairs, out=cvel[nc, :n])
                     v_lin, omega = models.nid_inputs(theta, vc, s_nid)
@@ -646,7 +650,7 @@ class _Run:
                     cpos[nc, :n] = q
                     ccen[nc, :n] = pos
                     ccvel[nc, :n] = vcen
-                cpm[nc] = command.min_pair_distance
+                cpm[nc] = min_pair = command.min_pair_distance
                 # recording (decimated; the last step always)
                 if step == next_rec or step == last_step:
                     if unicycle:
@@ -665,7 +669,7 @@ class _Run:
                         near_single = ms < thr_single
                         next_single = step + (1 if near_single else
                                               max(1, int((ms - thr_single) / max_move)))
-                    guarded = near_single or cpm[nc] < thr_pair
+                    guarded = near_single or min_pair < thr_pair
                 if unicycle:
                     theta_prev = theta
                     if guarded:
@@ -681,8 +685,10 @@ class _Run:
                 elif rk4:
                     rk4_step(Z2[nc], vz, dt, rhs_of(k, pairs), out=Z2[nc + 1])
                     pos = P2[nc + 1]
-                else:  # p + dt v_c, on x + iy
-                    euler(Z2[nc], vz, dt, out=Z2[nc + 1])
+                else:  # (Single) p + dt v_c, on x + iy (models._single_step, inlined)
+                    zn = Z2[nc + 1]
+                    np.multiply(vz, dt_z, out=zn)  # (dt as complex: what numpy casts it to)
+                    np.add(zc, zn, out=zn)
                     pos = P2[nc + 1]
                 nc, step = nc + 1, step + 1  # the step is done (and in the buffer)
                 if step >= next_progress and progress is not None:

@@ -24,9 +24,6 @@ import math
 
 import numpy as np
 
-#: ndarray.min as the public ufunc reduction (no Python wrapper): same result, NaN too
-_min = np.minimum.reduce
-
 __all__ = [
     "X_MIN",
     "BarrierBank",
@@ -294,7 +291,9 @@ class BarrierBank:
             return np.zeros(0) if out is None else out
         g = x * E1
         g -= D1  # ĝ = g/g_th
-        if not _min(g) >= 1.0:  # some x < d1·x2 (or NaN): fix those up with the general formula
+        # some x < d1·x2 (or NaN): fix those up with the general formula. g[g.argmin()] is
+        # min(g), NaN if any (argmin returns the first NaN), at a third of a reduction's cost
+        if not g[g.argmin()] >= 1.0:
             np.maximum(x, X_MIN, out=x)
             idx = np.flatnonzero(g < 1.0)
             xb = x.copy()
@@ -302,7 +301,21 @@ class BarrierBank:
             y = self._band(xb, xb * E1 - D1, sl[1], out)
             y[idx] = self._general(x[idx], idx)
             return y
-        return self._band(x, g, sl[1], out)
+        # the band formula (as _band, inlined: this is the common path of every step)
+        a = d2 - x
+        a *= B
+        np.maximum(a, self._zero, out=a)
+        np.minimum(a, self._one, out=a)
+        num = a * R2
+        num += R1
+        num *= a
+        num += Q0
+        num *= a
+        g *= g
+        if out is None:
+            num /= g
+            return num
+        return np.divide(num, g, out=out)
 
     def _band(self, x: np.ndarray, g: np.ndarray, sl: tuple, out: np.ndarray | None = None
               ) -> np.ndarray:

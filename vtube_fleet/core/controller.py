@@ -27,7 +27,12 @@ Implementation: 2-D vectors are complex numbers (``p.view(complex128)``), so vec
 one numpy call; all robot–robot and robot–leg barrier derivatives of a step are evaluated in ONE
 fused :class:`~vtube_fleet.core.barrier.BarrierBank` call, together with the σ's of u1''; the sums
 over neighbours, legs and σ's are one ``np.bincount``. Per-sub-tube constants are precomputed
-once per (TubeArrays, ControllerParams) and gathered with one ``take`` per step.
+once per (TubeArrays, ControllerParams) and gathered with one ``take`` per step. In a loop of
+small moves (:meth:`CommandEvaluator.step` with ``move``, the simulator) only the elements
+that can be non-zero are evaluated: legs/σ's within max(r_a, k_t r_a) + :data:`ACTIVE_SKIN`,
+pairs within r_s + r_a + 2 :data:`ACTIVE_SKIN`, chosen again when the points may have moved
+ACTIVE_SKIN; the others are exactly 0 and the sums keep their order, so the commands are
+bitwise those of the full evaluation.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
+    "ACTIVE_SKIN",
     "CommandEvaluator",
     "TubeArrays",
     "u1pp",
@@ -56,7 +62,9 @@ __all__ = [
 
 Kind = Literal["new", "old", "apf"]
 
-_min = np.minimum.reduce  # ndarray.min without its Python wrapper
+# Minima in the hot paths are x[x.argmin()]: the same value as np.minimum.reduce, NaN included
+# (argmin returns the first NaN), in a third of the time of a ufunc reduction on a few hundred
+# elements.
 
 
 def _c(v: np.ndarray) -> np.ndarray:
@@ -215,6 +223,7 @@ class _Prepared:
         self.r_pair = params.r_s + params.r_a  # V_m,ij ≡ 0 beyond (Vmij)
         self._layouts: dict = {}
         self._blocks: tuple[BarrierBank, BarrierBank, BarrierBank] | None = None
+        self.active_banks: dict = {}  # (leg capacity, pair capacity) → bank (_Active)
 
     def blocks(self, n_legs: int, n_pairs: int) -> tuple[BarrierBank, BarrierBank, BarrierBank]:
         """The three kinds of barrier elements, as banks of at least n_legs, n_legs and
@@ -336,7 +345,7 @@ def _core(z: np.ndarray, zr: np.ndarray, g: _Gathered, bank: BarrierBank, IJ: np
     dz -= zz[:P]  # p_j − p_i
     np.abs(dz, out=w.xp)
     if w.track:
-        w.pmin = float(_min(w.xp)) if P else math.inf
+        w.pmin = float(w.xp[w.xp.argmin()]) if P else math.inf
     # --- all barrier derivatives and σ's in one call (clamps X ≥ X_MIN if needed) -------
     y = bank.evaluate(w.X)
     # --- weights, summed per robot by one bincount -------------------------------------
@@ -345,7 +354,7 @@ def _core(z: np.ndarray, zr: np.ndarray, g: _Gathered, bank: BarrierBank, IJ: np
     yp = y[n4:]
     yp /= w.xp
     np.multiply(dz, yp, out=w.Wi)
-    np.negative(w.Wi, out=w.Wj)
+    np.negative(w.Wi.view(np.float64), out=w.Wj.view(np.float64))  # (complex negative: slow)
     # + n_c (the last block of W) → q = n_c + σ_h A_h + σ_r A_r
     return np.bincount(slots, w.Wf, 4 * M).view(np.complex128)
 
@@ -501,6 +510,145 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
     return v.view(np.float64).reshape(-1, 2)
 
 
+#: Margin (m) of the element subset of :meth:`CommandEvaluator.step` with ``move``: a leg
+#: element is kept if its distance is below max(r_a, k_t r_a) + ACTIVE_SKIN, a pair if below
+#: r_s + r_a + 2 ACTIVE_SKIN; the subset is chosen again once the points may have moved that far.
+ACTIVE_SKIN = 0.1
+
+_FAR = 1e9  # distance of the padding leg elements (m): beyond every barrier, exactly 0
+
+
+def _finite(x: np.ndarray) -> bool:
+    """All of the non-empty ``x`` finite (argmin/argmax return the first NaN)."""
+    return bool(-math.inf < x[x.argmin()] and x[x.argmax()] < math.inf)
+
+
+class _Active:
+    """The elements of :func:`_core` that can be non-zero, for a loop of small moves.
+
+    :meth:`refresh` chooses them at the current points: the candidate pairs closer than
+    ``r_pair + 2 skin`` and the leg/σ elements closer than ``cut + skin`` (cut =
+    max(r_a, k_t r_a)). Every element left out is then exactly 0 (a = 0 in the band formula of
+    :class:`BarrierBank`) while the points have moved less than ``skin`` in total (:attr:`slack`
+    counts down), and ``np.bincount`` sums the kept ones in the same order as the full layout
+    (a sum that starts at +0 is unchanged by ±0 terms), so B is bitwise the same. The leg block
+    is padded to a multiple of 16 (padding at distance ``_FAR``, weights 0) so that a few banks
+    serve every subset.
+    """
+
+    __slots__ = ("g", "pa", "slack", "P", "Lc", "n", "M", "idx", "G01a", "G23a", "GAa",
+                 "slots", "bank", "X", "X2", "xp", "W", "Wf", "Wl", "Wi", "Wif", "Wjf", "tmpc",
+                 "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "pair_slots",
+                 "nc_slots", "fslots")
+
+    def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
+        legs, sig, _ = prep.blocks(16, 16)
+        self.cut = max(float(legs.d2[0]), float(sig.d2[0]))
+        self.prep, self.n, self.M, self.track = prep, M, M, track
+        self.r_pair, self.pmin, self.slack = prep.r_pair, math.inf, -math.inf
+        self.g = self.pa = None
+
+    def refresh(self, g: _Gathered, pa: tuple, z: np.ndarray) -> bool:
+        """Choose the elements at the points ``z`` for the sub-tubes of ``g`` and the pairs of
+        ``pa`` (the evaluator's pair entry); False if a distance is not finite (then the caller
+        evaluates everything). New sub-tubes only (same pairs, slack left): the pairs are kept
+        and the leg elements are chosen with the slack that is left."""
+        M = self.M
+        d = np.subtract((g.G01 * z).real, g.G23).reshape(2 * M)  # (dtl)/(dtr), as _core
+        if not _finite(d):
+            return False
+        if pa is self.pa and self.slack > 0.0:
+            self._legs(g, d, self.cut + self.slack)
+            return True
+        skin = ACTIVE_SKIN
+        IJ = pa[4]
+        P0 = IJ.shape[0] >> 1
+        zz = z.take(IJ)
+        dp = np.abs(zz[P0:] - zz[:P0])
+        if P0 and not _finite(dp):
+            return False
+        self.pa, self.IJ, self.slack = pa, IJ, skin
+        sel = (dp < self.r_pair + 2.0 * skin).nonzero()[0]
+        self.P = sel.shape[0]
+        self.pair_idx = np.concatenate([pa[0].take(sel), pa[1].take(sel)])
+        fs = self.fslots = pa[5]  # the full layout's float slots: legs | σ | I | J | n_c
+        n8 = 8 * M
+        self.pair_slots = [fs[n8: n8 + 2 * P0].reshape(P0, 2).take(sel, axis=0).ravel(),
+                           fs[n8 + 2 * P0: n8 + 4 * P0].reshape(P0, 2).take(sel, axis=0).ravel()]
+        self.nc_slots = fs[n8 + 4 * P0:]
+        self._legs(g, d, self.cut + skin)
+        return True
+
+    def _legs(self, g: _Gathered, d: np.ndarray, thr: float) -> None:
+        n, P = self.n, self.P
+        e = (d < thr).nonzero()[0]  # side·n + robot
+        L = e.shape[0]
+        Lc = self.Lc = max(16, -(-L // 16) * 16)
+        pad = Lc - L
+        zi, zc = np.zeros(pad, np.intp), np.zeros(pad, np.complex128)
+        self.g = g
+        self.idx = np.concatenate([self.pair_idx, e % n, zi])
+        self.G01a = np.concatenate([g.G01.reshape(2 * n).take(e), zc])
+        self.G23a = np.concatenate([g.G23.reshape(2 * n).take(e), np.full(pad, -_FAR)])
+        self.GAa = np.concatenate([g.GA.take(e), zc, g.GA.take(e + 2 * n), zc])
+        fs = self.fslots
+        zs = np.zeros(2 * pad, np.intp)  # ±0 weights: harmless in any slot
+        self.slots = np.concatenate([
+            fs[: 4 * n].reshape(2 * n, 2).take(e, axis=0).ravel(), zs,
+            fs[4 * n: 8 * n].reshape(2 * n, 2).take(e, axis=0).ravel(), zs,
+            *self.pair_slots, self.nc_slots])
+        _, _, pair = self.prep.blocks(Lc, P)
+        key = (Lc, len(pair))
+        banks = self.prep.active_banks
+        bank = banks.get(key)
+        if bank is None:
+            if len(banks) > 32:
+                banks.clear()
+            legs, sig, pair = self.prep.blocks(Lc, P)
+            bank = banks[key] = BarrierBank.concatenate_prefixes(
+                [(legs, Lc), (sig, Lc), (pair, len(pair))])
+        self.bank = bank
+        self.X = np.empty(2 * Lc + P)
+        self.X2 = self.X[: 2 * Lc].reshape(2, Lc)
+        self.xp = self.X[2 * Lc:]
+        self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
+        self.Wf = self.W.view(np.float64)
+        self.Wl = self.W[: 2 * Lc]
+        self.Wi = self.W[2 * Lc: 2 * Lc + P]
+        self.Wif = self.Wf[4 * Lc: 4 * Lc + 2 * P]
+        self.Wjf = self.Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P]
+        self.W[2 * Lc + 2 * P:] = g.n_c
+        self.tmpc = np.empty(Lc, np.complex128)
+
+    def core(self, z: np.ndarray) -> np.ndarray:
+        """:func:`_core` on the subset (same operations per element); sets :attr:`pmin`."""
+        P, Lc = self.P, self.Lc
+        zz = z.take(self.idx)  # [p_I | p_J | leg points]
+        dz = zz[P: 2 * P]
+        dz -= zz[:P]  # p_j − p_i
+        np.abs(dz, out=self.xp)
+        if self.track:
+            pm = float(self.xp[self.xp.argmin()]) if P else math.inf
+            # a pair left out is farther than r_pair + 2·slack; else take all candidates
+            if not pm < self.r_pair + 2.0 * self.slack and self.IJ.shape[0]:
+                Pa = self.IJ.shape[0] >> 1
+                za = z.take(self.IJ)
+                da = za[Pa:]
+                da -= za[:Pa]
+                da = np.abs(da)
+                pm = float(da[da.argmin()])
+            self.pmin = pm
+        np.multiply(self.G01a, zz[2 * P:], out=self.tmpc)
+        np.subtract(self.tmpc.real, self.G23a, out=self.X2)
+        y = self.bank.evaluate(self.X)
+        np.multiply(y[: 2 * Lc], self.GAa, out=self.Wl)
+        yp = y[2 * Lc:]
+        yp /= self.xp
+        np.multiply(dz, yp, out=self.Wi)
+        np.negative(self.Wif, out=self.Wjf)  # on the floats: numpy's complex negative is slow
+        return np.bincount(self.slots, self.Wf, 4 * self.M).view(np.complex128)
+
+
 class CommandEvaluator:
     """:func:`velocity_command` for all robots of a simulator, called every step.
 
@@ -536,6 +684,7 @@ class CommandEvaluator:
         self._prep = tubes._prepared(params)
         self._g: _Gathered | None = None
         self._pairs: tuple | None = None  # (I, J, M, lay, IJ, slots, scratch, writeable)
+        self._act: _Active | None = None  # the non-zero elements (step(move=...))
 
     def __call__(self, p: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                  out: np.ndarray | None = None) -> np.ndarray:
@@ -551,10 +700,16 @@ class CommandEvaluator:
         return v.view(np.float64).reshape(M, 2)
 
     def step(self, z: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
-             out: np.ndarray | None = None) -> np.ndarray:
+             out: np.ndarray | None = None, move: float | None = None) -> np.ndarray:
         """:meth:`__call__` on complex numbers (the simulator's state): ``z`` (M,) complex128
         C-contiguous positions x + iy, ``out`` an optional (M,) complex128 array receiving
-        the commands; returns the (M,) complex commands. ``z`` is not checked."""
+        the commands; returns the (M,) complex commands. ``z`` is not checked.
+
+        ``move``: an upper bound of how far any point moved since the previous call (the
+        simulator's v_bound·dt). With it, the elements that are exactly 0 (legs and σ's
+        beyond max(r_a, k_t r_a), pairs beyond r_s + r_a) are skipped while no point can have
+        moved :data:`ACTIVE_SKIN` since the subset was chosen (:class:`_Active`); the result is
+        bitwise the same (a sum that starts at +0 is unchanged by adding ±0)."""
         M = z.shape[0]
         g = self._g
         pa = self._pairs
@@ -571,6 +726,18 @@ class CommandEvaluator:
             self.min_pair_distance = math.inf
             return np.zeros(0, np.complex128)
         lay, w = pa[3], pa[6]
+        if move is not None:  # the elements that can be non-zero only (_Active)
+            act = self._act
+            if act is None or act.M != M:
+                act = self._act = _Active(self._prep, M, w.track)
+            act.slack -= move * (1.0 + 1e-9) + 1e-9
+            if (act.slack > 0.0 and act.g is g and act.pa is pa) or act.refresh(g, pa, z):
+                B = act.core(z)
+                if w.track:
+                    self.min_pair_distance = act.pmin
+                p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
+                return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
+        self._act = None  # (how far the points move until the next call is unknown)
         B = _core(z, z, g, lay.bank, pa[4], pa[5], w, M)
         if w.track:
             self.min_pair_distance = w.pmin
