@@ -146,6 +146,18 @@ def test_sim_not_finished_exits_1(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert "duration reached" not in capsys.readouterr().err  # --quiet: no progress bar
 
 
+def test_sim_refuses_too_many_steps_from_the_command_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--dt and --duration are each within bounds, together 8.6e10 steps: refused in one line
+    before anything is simulated (the scenario file's [sim] has the same bound)."""
+    out = tmp_path / "long"
+    assert main(["sim", str(PAPER), "--out", str(out), "--dt", "1e-6", "--duration", "86400",
+                 "--no-rerun", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "1e8 steps" in err and "8.64e+10" in err
+    assert not (out / "summary.json").exists()
+
+
 def test_sim_old_controller_breaks_min_speed(tmp_path: Path) -> None:
     out = tmp_path / "old"
     # (Oldcontroller) on a reduced paper scenario: still safe, but slower than v_min somewhere

@@ -48,7 +48,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from vtube_fleet.config.scenario import Scenario
+from vtube_fleet.config.scenario import MAX_SIM_STEPS, Scenario
 from vtube_fleet.core import models
 from vtube_fleet.core.controller import CommandEvaluator, TubeArrays
 from vtube_fleet.core.integrate import (
@@ -239,6 +239,9 @@ def simulate(
     if not (math.isfinite(duration) and duration > 0):
         raise SimError(f"duration must be > 0, got {duration}")
     n_steps = int(math.ceil(duration / dt - 1e-9))
+    if n_steps > MAX_SIM_STEPS:  # as the scenario file's [sim] check, for --dt/--duration too
+        raise SimError(f"duration / dt must be <= {MAX_SIM_STEPS:.0e} steps, got "
+                       f"{duration:g} s / {dt:g} s = {n_steps:.3g} steps".replace("e+0", "e"))
     rcfg = scenario.robots
     params = scenario.controller
     unicycle = rcfg.model == "unicycle"
