@@ -286,7 +286,7 @@ class BarrierBank:
                 raise ValueError(f"{n} values for a bank of {self.k.shape[0]} elements")
             sl = self._sl = (n, tuple(a[:n] for a in (
                 self.d2, self._B, self._E1, self._D1, self._Q0, self._R1, self._R2)))
-        d2, B, E1, D1, Q0, R1, R2 = sl[1]
+        _, _, E1, D1, _, _, _ = sl[1]
         if n == 0:
             return np.zeros(0) if out is None else out
         g = x * E1
@@ -301,21 +301,7 @@ class BarrierBank:
             y = self._band(xb, xb * E1 - D1, sl[1], out)
             y[idx] = self._general(x[idx], idx)
             return y
-        # the band formula (as _band, inlined: this is the common path of every step)
-        a = d2 - x
-        a *= B
-        np.maximum(a, self._zero, out=a)
-        np.minimum(a, self._one, out=a)
-        num = a * R2
-        num += R1
-        num *= a
-        num += Q0
-        num *= a
-        g *= g
-        if out is None:
-            num /= g
-            return num
-        return np.divide(num, g, out=out)
+        return self._band(x, g, sl[1], out)  # the common path of every step
 
     def _band(self, x: np.ndarray, g: np.ndarray, sl: tuple, out: np.ndarray | None = None
               ) -> np.ndarray:
