@@ -22,12 +22,33 @@ __all__ = [
     "write_npz_atomic",
     "write_sim_outputs",
     "SUMMARY_NAME",
+    "SUMMARY_EVERY_S",
+    "SummaryPacer",
     "write_json_atomic",
     "write_summary",
 ]
 
 #: File name of a run's summary in its output folder.
 SUMMARY_NAME = "summary.json"
+#: While flying, ``summary.json`` is rewritten (atomically, ``complete: false``) this often (less
+#: often when writing it takes more than 1 % of the time), so a run killed without cleaning up
+#: (SIGKILL) still leaves its last summary (``run`` and ``mission start --wait`` alike).
+SUMMARY_EVERY_S = 2.0
+
+
+class SummaryPacer:
+    """When the next interim summary is due (:data:`SUMMARY_EVERY_S`, stretched so that
+    writing takes at most ~1 % of the time); times in seconds of one monotonic clock."""
+
+    def __init__(self, first_s: float) -> None:
+        self.next_s = first_s
+
+    def due(self, now_s: float) -> bool:
+        return now_s >= self.next_s
+
+    def written(self, start_s: float, end_s: float) -> None:
+        """One interim summary took ``start_s``..``end_s``: schedule the next."""
+        self.next_s = end_s + max(SUMMARY_EVERY_S, 100.0 * (end_s - start_s))
 
 
 def json_safe(obj: Any) -> Any:

@@ -8,17 +8,13 @@ from typing import Any
 
 from vtube_fleet.cli._args import COUNT, bounded
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import FleetCliError, sitl_home_lines
+from vtube_fleet.fleet.launch import sitl_home_lines
 
 __all__ = ["register"]
 
 
 def _cmd_sitl_homes(args: argparse.Namespace) -> int:
-    mission = load_mission(args.mission)
-    n = mission.count if args.count is None else args.count
-    if not 1 <= n <= mission.count:
-        raise FleetCliError(f"--count must be between 1 and {mission.count}, got {n}")
-    for line in sitl_home_lines(mission, n):
+    for line in sitl_home_lines(load_mission(args.mission), args.count):
         print(line)
     return 0
 

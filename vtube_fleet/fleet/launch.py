@@ -28,6 +28,7 @@ __all__ = [
     "mock_fleet",
     "parse_endpoint_list",
     "sitl_home_lines",
+    "slot_count",
 ]
 
 log = logging.getLogger(__name__)
@@ -49,11 +50,21 @@ class FleetCliError(UserError):
 # ----------------------------------------------------------------------------------------------
 # helpers shared by the commands, the tests and the benchmark
 # ----------------------------------------------------------------------------------------------
-def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
-    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1; refuses slots
-    that overlap or leave the tube (:meth:`Mission.require_slots`)."""
+def slot_count(mission: Mission, count: int | None) -> int:
+    """``count`` (default: every slot) checked against the mission's slots: 1..slots, placed
+    apart and inside the tube (:meth:`Mission.require_slots`)."""
     n = mission.count if count is None else count
-    mission.require_slots(n)  # overlapping slots or slots outside the tube: no homes
+    if not 1 <= n <= mission.count:
+        raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
+                            f"slots), got {n}")
+    mission.require_slots(n)  # overlapping slots or slots outside the tube: no vehicles
+    return n
+
+
+def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
+    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1
+    (:func:`slot_count`)."""
+    n = slot_count(mission, count)
     geo = mission.slot_geodetic()
     return [f"{i} PX4_HOME_LAT={geo[i, 0]:.7f} PX4_HOME_LON={geo[i, 1]:.7f} "
             f"PX4_HOME_ALT={geo[i, 2]:.2f}" for i in range(n)]
@@ -82,14 +93,10 @@ async def mock_fleet(mission: Mission, count: int | None = None, *,
     except ImportError as exc:  # pragma: no cover - sim_stub ships with the package
         raise FleetCliError(f"the built-in mock fleet (sim_stub) is not available: {exc}"
                             ) from None
-    n = mission.count if count is None else count
-    if not 1 <= n <= mission.count:
-        raise FleetCliError(f"--count must be between 1 and {mission.count} (the mission's "
-                            f"slots), got {n}")
+    n = slot_count(mission, count)
     if not 1 <= processes <= n:
         raise FleetCliError(f"--processes must be between 1 and {n} (the vehicle count), got "
                             f"{processes}")
-    mission.require_slots(n)  # never place vehicles in overlapping slots or outside the tube
     if gcs_port is not None or vehicle_port is not None:
         gcs = 14540 if gcs_port is None else gcs_port
         veh = gcs + 40 if vehicle_port is None else vehicle_port

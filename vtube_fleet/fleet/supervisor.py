@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.artifacts import write_summary
+from vtube_fleet.artifacts import SUMMARY_EVERY_S, SummaryPacer, write_summary
 from vtube_fleet.bus.base import InProcessBus
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.metrics import (
@@ -113,10 +113,6 @@ TRUTH_RATE_HZ = 20.0
 
 #: Minimum height of the mission altitude above every vehicle before take-off.
 MIN_CLIMB_M = 1.0
-#: While flying, ``summary.json`` is rewritten (atomically, ``complete: false``) this often (less
-#: often when writing it takes more than 1 % of the time), so a run killed without cleaning up
-#: (SIGKILL) still leaves its last summary.
-SUMMARY_EVERY_S = 2.0
 
 
 async def _raise(result: object) -> None:
@@ -347,7 +343,7 @@ class Supervisor:
         loop = asyncio.get_running_loop()
         period = self.cfg.period_s
         next_t = loop.time()
-        next_checkpoint = next_t + SUMMARY_EVERY_S
+        pacer = SummaryPacer(next_t + SUMMARY_EVERY_S)
         prev: float | None = None
         while not self._clock_stop.is_set():
             start = loop.time()
@@ -372,12 +368,10 @@ class Supervisor:
                     await stall  # fault injection: the control loop stalls (event loop alive)
             self.tick += 1
             next_t += period
-            if loop.time() >= next_checkpoint:  # in the slack after a tick, not before one
+            if pacer.due(loop.time()):  # in the slack after a tick, not before one
                 t_c = loop.time()
                 self._checkpoint()
-                cost = loop.time() - t_c
-                # a large fleet's summary costs more: at most ~1 % of the time goes to it
-                next_checkpoint = loop.time() + max(SUMMARY_EVERY_S, 100.0 * cost)
+                pacer.written(t_c, loop.time())
             now = loop.time()
             if next_t < now - period:  # more than a period behind: do not try to catch up
                 next_t = now

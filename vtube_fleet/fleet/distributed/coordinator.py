@@ -318,9 +318,9 @@ class Coordinator:
         """Feed ``mon`` (states as they arrive, snapshots at the control rate) until every
         vehicle is finished; the outcome: ``completed``, ``incomplete`` or ``timeout``.
         ``checkpoint`` (the interim summary) is called at once, then every
-        ``SUMMARY_EVERY_S`` (less often when it takes more than 1 % of the time), as ``run``
+        ``artifacts.SUMMARY_EVERY_S`` (:class:`~vtube_fleet.artifacts.SummaryPacer`), as ``run``
         does."""
-        from vtube_fleet.fleet.supervisor import SUMMARY_EVERY_S
+        from vtube_fleet.artifacts import SummaryPacer
 
         self.bus.add_state_listener(mon.on_state)
         loop = asyncio.get_running_loop()
@@ -328,7 +328,7 @@ class Coordinator:
         period = self.mission.config.period_s
         last_print = -math.inf
         next_t = loop.time()
-        next_checkpoint = next_t
+        pacer = SummaryPacer(next_t)
         aborted_for: str | None = None
         self.end_reason = ""
         while True:
@@ -353,11 +353,10 @@ class Coordinator:
                     counts[ph] = counts.get(ph, 0) + 1
                 self.say("fleet: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items()))
                          + f"; exited {len(mon.exit_stamp)}/{self.vehicles}")
-            if checkpoint is not None and now >= next_checkpoint:
+            if checkpoint is not None and pacer.due(now):
                 t_c = loop.time()
                 checkpoint()
-                cost = loop.time() - t_c
-                next_checkpoint = loop.time() + max(SUMMARY_EVERY_S, 100.0 * cost)
+                pacer.written(t_c, loop.time())
             next_t += period
             await asyncio.sleep(max(0.0, next_t - loop.time()))  # the coordinator's clock
         done = len(mon.exit_stamp) == self.vehicles and all(
