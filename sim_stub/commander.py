@@ -289,6 +289,8 @@ class CommanderMixin:
         self._event(px4.EVENTS["disarmed"], bytes((px4.ARM_REASON.get(reason, 4),)))
         if self.phase in ("flying", "landed") and self.took_off:
             self._set_home(now)  # capture: home re-set to the landing point at disarm
+        if reason == "landing":
+            self.health_rereport_at = now + px4.HEALTH_AFTER_LANDING_S
         self.failsafe = None  # PX4: the user intention returns to the mode set before
         self.phase = "ground"
         self.took_off = False
@@ -489,6 +491,12 @@ class CommanderMixin:
             self.sp_fresh = False
             if self.ready:
                 self._events(px4.HEALTH_BURST_NO_OFFBOARD)
+        if self.health_rereport_at is not None and now >= self.health_rereport_at:
+            self.health_rereport_at = None
+            if not self.armed:
+                self._events(
+                    px4.HEALTH_BURST_READY if self.sp_fresh else px4.HEALTH_BURST_NO_OFFBOARD
+                )
         self._fence_tick(now)  # type: ignore[attr-defined]  # sim_stub/fence.py
         if self.armed:
             self._armed_logic(now)
@@ -604,8 +612,8 @@ class CommanderMixin:
         self.hold = list(self._pos())
         if self.failsafe.name == "AUTO.RTL":
             self.rtl_phase = "climb"
+        # the health burst went out when the offboard signal was lost (capture 1c: once)
         self._text(px4.SEV_CRITICAL, "Failsafe activated")
-        self._events(px4.HEALTH_BURST_NO_OFFBOARD)
         self._event(px4.EVENTS["failsafe"])
         self._log_mode(now, self.failsafe.name)
 

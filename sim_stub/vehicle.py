@@ -294,6 +294,7 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         self.origin_time_us = 0
         self.ready = False
         self.stage = 0
+        self.health_rereport_at: float | None = None  # px4.HEALTH_AFTER_LANDING_S
         self.dead: str | None = None
         self.statustexts: list[tuple[float, int, str]] = []
         self.mode_log: list[tuple[float, str, bool]] = []

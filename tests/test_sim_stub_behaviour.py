@@ -217,7 +217,9 @@ async def test_commands_acks_and_px4_rules() -> None:
 
 async def test_message_requests_and_intervals() -> None:
     async with vehicle() as v, Gcs(v) as g:
-        await g.wait_type("HEARTBEAT")
+        # home and origin exist from the boot's "origin" stage on (the one unsolicited
+        # GPS_GLOBAL_ORIGIN); before it, PX4 denies HOME_POSITION and GPS_GLOBAL_ORIGIN requests
+        await g.wait_type("GPS_GLOBAL_ORIGIN")
         for msgid, name in ((148, "AUTOPILOT_VERSION"), (242, "HOME_POSITION"),
                             (49, "GPS_GLOBAL_ORIGIN")):  # fmt: skip
             mark = g.mark()
