@@ -430,3 +430,56 @@ def test_k_t_and_lateral_fixes():
     for f in lateral:  # value: the signed move along m (+: towards the right leg)
         moved = (Obstacle(obs[0].center + tube.m * f.value, 0.9),)
         assert not validate_scenario(tube, moved, params, DENSE_ROBOTS)[1]
+
+
+TAPERED_TWO_OBSTACLES = """
+[tube]
+p_h0 = [0.0, 18.0]
+p_h1 = [50.0, 13.0]
+p_r0 = [0.0, -18.0]
+p_r1 = [50.0, -13.0]
+
+[partition]
+apex_distance = "auto"
+
+[[obstacles]]
+center = [20.0, 0.5]
+radius = 0.6
+
+[[obstacles]]
+center = [36.0, -2.0]
+radius = 0.5
+
+[robots]
+r_s = 0.3
+r_a = 1.0
+v_min = 0.3
+v_max = 1.8
+positions = [[3.0, -9.0], [3.0, -4.5], [3.0, 0.0], [3.0, 4.5], [3.0, 9.0]]
+
+[controller]
+v = 1.2
+v_max_prime = 0.5
+"""
+
+
+def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
+    """The planner scores the apex look-ahead too (Assumption 1): with PX4 SITL's budget
+    (r_s' ≈ 2 m) the longest triangle for obstacle #1 (h ≈ 12.7 m, what the planner chose
+    before) puts the middle slot 1.4 m from the side tube it would fly, and the mission was
+    refused; the plan must keep every slot flyable."""
+    from tests.missions import MISSION_TABLE, write_mission
+    from vtube_fleet.check import check_file
+    from vtube_fleet.fleet.agent import FlightPlan
+    from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
+
+    mission = write_mission(tmp_path, TAPERED_TWO_OBSTACLES + MISSION_TABLE)
+    rep = check_file(tmp_path / "mission.toml", latency_s=0.1, accuracy_m=0.31)
+    assert rep.ok, messages(rep.violations)
+    flown = mission_budget(mission, LinkMeasurement(0.1, 0.0, 0.31)).inflate(
+        mission.scenario.controller)
+    assert flown.r_s > 2.0
+    plan = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles, flown,
+                            keep_out=mission.slots)
+    assert plan.lookahead_conflicts(mission.slots) == []
+    assert [t.h for t in plan.partition.triangles] == [t.h for t in rep.partition.triangles]

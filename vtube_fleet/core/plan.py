@@ -13,7 +13,10 @@ gets its h_k from :func:`plan_apex`, together with every other ``"auto"`` obstac
   max(d_Th, d_Tr) − k_t r_a (how much k_t r_a could grow before L ∩ R ≠ ∅); for M, max over
   the tube of min(d_Th, d_Tr) − k_t r_a; the length minus 2 r_a; each base width minus the
   width one safety disc needs; and over all triangles, the distance of the nearest start
-  position minus r_s (a robot must start clear of its sub-tube's legs, Assumption 1). Ties
+  position minus r_s (a robot must start clear of its sub-tube's legs, Assumption 1), and for
+  a start position inside an apex look-ahead zone (:func:`~vtube_fleet.core.partition.
+  apex_zones`, the side tube it is flown in) max(its distance upstream of the zone, its
+  distance to that side tube's legs − r_s) (:meth:`_Planner._lookahead_margin`). Ties
   (the smallest margin not moved by an obstacle's h) go to the larger sum over the obstacles
   of each one's own smallest margin (its sub-tubes and triangle), so every h_k is placed, not
   only the binding one. A plan that builds beats one that does not, one without start
@@ -384,7 +387,67 @@ class _Planner:
                                      tri.obstacle)
                 own[tri.obstacle] = min(own.get(tri.obstacle, math.inf), v)
             spread = sum(own.values())
+            for tri in b.triangles.values():
+                v = self._lookahead_margin(tri)
+                if v < worst:
+                    worst = v
+                    binding = Margin(v, "start positions clear of the apex look-ahead "
+                                     "(Assumption 1)",
+                                     f"ahead of the apex of obstacle #{tri.obstacle + 1}",
+                                     tri.obstacle)
+                own[tri.obstacle] = min(own.get(tri.obstacle, math.inf), v)
+            spread = sum(own.values())
         return (2 if inside == 0 else 1, -inside, worst, spread), None, binding
+
+    def _lookahead_margin(self, tri) -> float:
+        """Smallest margin of the keep-out points to the apex look-ahead of ``tri``
+        (:func:`~vtube_fleet.core.partition.apex_zones`): a start position of the tube before
+        the apex, within the zone's depth upstream of the apex line, is flown in the side tube
+        on its side and must be more than r_s from that tube's legs. Per point
+        max(ξ_apex − depth − ξ, d − r_s): how far it is upstream of the zone, or clear of
+        the legs (< 0: validation's look-ahead conflict)."""
+        b, p = self.b, self.params
+        apex = np.asarray(tri.p_oth, dtype=float)
+        xi_a = b.xi(apex)
+        before = None
+        for nd in b.nodes:
+            if (abs(nd.xe - xi_a) < 1e-6 and float(nd.tube.d_Th(apex)) >= -1e-6
+                    and float(nd.tube.d_Tr(apex)) >= -1e-6):
+                before = nd
+                break
+        q = self.keep_out
+        if before is None or not len(q):
+            return math.inf
+        n_c = b.n_c
+        sides = {"left": np.asarray(tri.p_otu, float) - apex,
+                 "right": np.asarray(tri.p_otd, float) - apex}
+        if tri.remark5 is not None:
+            sides.pop(tri.remark5)
+        sin_t = min(math.sqrt(max(0.0, 1.0 - (float(t @ n_c) / float(np.hypot(*t))) ** 2))
+                    for t in sides.values())
+        xs = before.xs if math.isfinite(before.xs) else 0.0
+        room = xi_a - xs
+        depth = (p.r_s + p.r_a) / sin_t if sin_t > 1e-9 else room
+        depth = max(0.0, min(depth, room))
+        xi = q @ n_c - b.xi0
+        t = before.tube
+        dh, dr = np.asarray(t.d_Th(q), float), np.asarray(t.d_Tr(q), float)
+        hit = (xi >= xs) & (xi < xi_a) & (dh >= 0.0) & (dr >= 0.0)
+        if not hit.any():
+            return math.inf
+        m = np.array([n_c[1], -n_c[0]])  # from the left leg towards the right leg
+        if float(m @ (b.tube.p_r0 - b.tube.p_h0)) < 0:
+            m = -m
+        lat = (q - apex) @ m
+        out = math.inf
+        for j in np.flatnonzero(hit):
+            side = ("left" if lat[j] <= 0.0 else "right") if len(sides) == 2 else next(
+                iter(sides))
+            e = sides[side] / float(np.hypot(*sides[side]))
+            to_side = abs(float(e[0] * (q[j, 1] - apex[1]) - e[1] * (q[j, 0] - apex[0])))
+            d = min(to_side, float(dh[j] if side == "left" else dr[j]))
+            out = min(out, max(xi_a - depth - float(xi[j]), d - p.r_s))
+        return out
 
     # --- the search ---------------------------------------------------------------------
     def run(self) -> ApexPlan:
