@@ -1,6 +1,7 @@
 """``mavlink`` backend: pymavlink's MAVLink 2 codec on an asyncio UDP socket, one per vehicle.
 
-* One :class:`asyncio.DatagramProtocol` per endpoint. ``udpin://HOST:PORT`` binds locally and
+* One UDP socket per endpoint (:class:`~vtube_fleet.link.udp.DatagramSocket`: read by the
+  event loop in bursts of up to 64 datagrams per wake-up). ``udpin://HOST:PORT`` binds locally and
   learns the vehicle's address from its first valid packet (PX4 SITL's API link sends from
   14580+i to 14540+i); ``udpout://HOST:PORT`` sends to the vehicle from an ephemeral port.
 * Decoding: a pymavlink ``MAVLink`` object (``robust_parsing``) fed one datagram at a time with
@@ -69,6 +70,8 @@ from vtube_fleet.link.base import (
 )
 from vtube_fleet.link.endpoints import Endpoint
 from vtube_fleet.link.signing import LINK_UNSIGNED_ALLOWED, LinkSigning, SigningError
+from vtube_fleet.link.udp import DatagramSocket
+from vtube_fleet.link.wire import WireCodec
 
 __all__ = [
     "MavlinkLink",
@@ -98,6 +101,11 @@ MSG_ESTIMATOR_STATUS = 230
 MSG_HOME_POSITION = 242
 MSG_EXTENDED_SYS_STATE = 245
 MSG_STATUSTEXT = 253
+MSG_SET_POSITION_TARGET_LOCAL_NED = 84
+
+#: received through the struct fast path (vtube_fleet/link/wire.py) when unsigned
+_FAST_RX = frozenset((MSG_HEARTBEAT, MSG_LOCAL_POSITION_NED, MSG_GLOBAL_POSITION_INT))
+_WIRE = WireCodec((*_FAST_RX, MSG_SET_POSITION_TARGET_LOCAL_NED))
 
 CMD_NAV_LAND = 21
 CMD_NAV_TAKEOFF = 22
@@ -135,27 +143,15 @@ def _message_name(msgid: int) -> str:
     return cls.msgname if cls is not None else f"MSG({msgid})"
 
 
-class _Protocol(asyncio.DatagramProtocol):
-    __slots__ = ("link",)
-
-    def __init__(self, link: MavlinkLink) -> None:
-        self.link = link
-
-    def datagram_received(self, data: bytes, addr: Any) -> None:
-        self.link.feed_datagram(data, addr)
-
-    def error_received(self, exc: Exception) -> None:
-        # e.g. ICMP port unreachable for udpout while the vehicle is not up yet
-        self.link._warn_limited("socket", f"{self.link.name}: socket error: {exc}")
-
-
 class MavlinkLink(VehicleLink):
     """One PX4 vehicle over pymavlink + asyncio UDP. See the module docstring.
 
     ``sysid``: the vehicle's system id, or None to lock onto the first autopilot (compid 1)
     that sends a valid packet. ``message_rates_hz`` overrides/extends
     :data:`DEFAULT_MESSAGE_RATES_HZ` (0 disables a stream, e.g. ``{30: 0}`` for ATTITUDE).
-    ``decode_all`` disables the skip-undecoded cheap path (tests, debugging).
+    ``decode_all`` disables the skip-undecoded cheap path (tests, debugging); ``fast_codec``
+    False sends and decodes everything through pymavlink (the struct fast path of
+    :mod:`vtube_fleet.link.wire` is byte-identical; tests compare both).
     """
 
     def __init__(
@@ -171,6 +167,7 @@ class MavlinkLink(VehicleLink):
         command_timeout_s: float = 0.5,
         heartbeat_period_s: float = 1.0,
         decode_all: bool = False,
+        fast_codec: bool = True,
         signing: LinkSigning | None = None,
     ) -> None:
         super().__init__(endpoint, sysid)
@@ -189,6 +186,7 @@ class MavlinkLink(VehicleLink):
         self.command_timeout_s = command_timeout_s
         self.heartbeat_period_s = heartbeat_period_s
         self.decode_all = decode_all
+        self.fast_codec = fast_codec
 
         mav = mavlink2.MAVLink(None, srcSystem=gcs_sysid, srcComponent=gcs_compid)
         mav.robust_parsing = True
@@ -197,7 +195,7 @@ class MavlinkLink(VehicleLink):
         self._remote: Any = None if self.endpoint.listens else (
             self.endpoint.host, self.endpoint.port
         )
-        self._transport: asyncio.DatagramTransport | None = None
+        self._transport: DatagramSocket | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._connect_lock = asyncio.Lock()
         self._streams_requested = False
@@ -279,20 +277,33 @@ class MavlinkLink(VehicleLink):
         if now is None:
             now = time.monotonic()
         st = self.state
-        # Cheap path: exactly one MAVLink 2 packet from the known vehicle, id we do not use.
         if (
-            not self.decode_all
-            and self.signing is None
+            self.signing is None
             and addr == self._remote
             and len(data) >= 12
             and data[0] == 0xFD
-            and len(data) == data[1] + (25 if data[2] & 1 else 12)
             and data[5] == self._sysid
-            and (data[7] | (data[8] << 8) | (data[9] << 16)) not in self._handlers
+            and len(data) == data[1] + (25 if data[2] & 1 else 12)
         ):
-            st.rx_packets += 1
-            st.last_packet_s = now
-            return
+            msgid = data[7] | (data[8] << 8) | (data[9] << 16)
+            # Cheap path: exactly one MAVLink 2 packet from the known vehicle, id we do not use.
+            if not self.decode_all and msgid not in self._handlers:
+                st.rx_packets += 1
+                st.last_packet_s = now
+                return
+            # Fast path: a hot message, one valid unsigned frame (anything else: pymavlink)
+            if msgid in _FAST_RX and self.fast_codec:
+                m = _WIRE.unpack(data)
+                if m is not None:
+                    if msgid == MSG_HEARTBEAT and m.autopilot == 8:  # a GCS using its id
+                        st.foreign_packets += 1
+                        return
+                    st.rx_packets += 1
+                    st.last_packet_s = now
+                    handler = self._handlers.get(msgid)
+                    if handler is not None:
+                        handler(m, now)
+                    return
         self._decode(data, addr, now)
 
     def _decode(self, data: bytes, addr: Any, now: float) -> None:
@@ -533,6 +544,9 @@ class MavlinkLink(VehicleLink):
             self._signing_tick()
         buf = msg.pack(mav)
         mav.seq = (mav.seq + 1) & 0xFF
+        self._send_bytes(transport, buf)
+
+    def _send_bytes(self, transport: DatagramSocket, buf: bytes) -> None:
         if self.endpoint.listens:
             transport.sendto(buf, self._remote)
         else:
@@ -556,12 +570,23 @@ class MavlinkLink(VehicleLink):
             mask, yaw = TYPE_MASK_VELOCITY, 0.0
         else:
             mask, yaw = TYPE_MASK_VELOCITY_YAW, math.radians(yaw_deg)
-        msg = self._mav.set_position_target_local_ned_encode(
-            self._time_boot_ms(), self._sysid or 0, self.target_compid,
-            mavlink2.MAV_FRAME_LOCAL_NED, mask,
-            0.0, 0.0, 0.0, north_m_s, east_m_s, down_m_s, 0.0, 0.0, 0.0, yaw, 0.0,
-        )
-        self._send(msg)
+        transport = self._transport
+        if (self.fast_codec and self.signing is None and transport is not None
+                and self._remote is not None and not transport.is_closing()):
+            # the frame pymavlink would build, byte for byte (tests/test_link_wire.py)
+            mav = self._mav
+            self._send_bytes(transport, _WIRE.pack(
+                MSG_SET_POSITION_TARGET_LOCAL_NED, mav.seq, self.gcs_sysid, self.gcs_compid,
+                self._time_boot_ms(), 0.0, 0.0, 0.0, north_m_s, east_m_s, down_m_s,
+                0.0, 0.0, 0.0, yaw, 0.0, mask, self._sysid or 0, self.target_compid,
+                mavlink2.MAV_FRAME_LOCAL_NED))
+            mav.seq = (mav.seq + 1) & 0xFF
+        else:
+            self._send(self._mav.set_position_target_local_ned_encode(
+                self._time_boot_ms(), self._sysid or 0, self.target_compid,
+                mavlink2.MAV_FRAME_LOCAL_NED, mask,
+                0.0, 0.0, 0.0, north_m_s, east_m_s, down_m_s, 0.0, 0.0, 0.0, yaw, 0.0,
+            ))
         self._last_setpoint_s = time.monotonic()
         self._setpoints_sent += 1
         self._stall_warned = False
@@ -582,31 +607,34 @@ class MavlinkLink(VehicleLink):
             return
         loop = asyncio.get_running_loop()
         ep = self.endpoint
-        try:
-            if ep.listens:
-                transport, _ = await loop.create_datagram_endpoint(
-                    lambda: _Protocol(self), local_addr=(ep.host, ep.port)
-                )
-            else:
-                transport, _ = await loop.create_datagram_endpoint(
-                    lambda: _Protocol(self), remote_addr=(ep.host, ep.port)
-                )
+        try:  # read in bursts (vtube_fleet/link/udp.py), not one datagram per callback
+            transport = await DatagramSocket.open(ep.host, ep.port, listens=ep.listens,
+                                                  on_datagram=self.feed_datagram,
+                                                  on_error=self._socket_error)
         except OSError as exc:
             verb = "bind" if ep.listens else "open"
             raise LinkError(f"{self.name}: cannot {verb} {ep.url}: {exc.strerror or exc}") from None
-        self._transport = transport  # type: ignore[assignment]
+        self._transport = transport
         if not ep.listens:  # compare received addresses with the resolved peer
             self._remote = transport.get_extra_info("peername") or self._remote
         self._t0 = time.monotonic()
         self._tasks.append(loop.create_task(self._heartbeat_loop(), name=f"gcs-hb {ep.url}"))
 
+    def _socket_error(self, exc: OSError) -> None:
+        # e.g. ICMP port unreachable for udpout while the vehicle is not up yet
+        self._warn_limited("socket", f"{self.name}: socket error: {exc}")
+
     async def connect(self, timeout_s: float = 10.0) -> None:
         """Open the socket, wait for the vehicle's HEARTBEAT, request the telemetry streams.
 
-        Raises :class:`LinkTimeout` saying what arrived (nothing / packets but no HEARTBEAT).
-        Safe to call concurrently and repeatedly.
+        ``timeout_s`` bounds the whole: a stream request that gets no COMMAND_ACK is repeated
+        (as a GCS does) until then, at least ``command_tries`` times; the streams turned off
+        go first (they cut the load of a busy link). Raises :class:`LinkTimeout` saying what
+        arrived (nothing / packets but no HEARTBEAT / no ACK after n tries). Safe to call
+        concurrently and repeatedly.
         """
         async with self._connect_lock:
+            deadline = asyncio.get_running_loop().time() + timeout_s
             await self.open()
             if self.state.last_heartbeat_s is None:
                 try:
@@ -625,21 +653,30 @@ class MavlinkLink(VehicleLink):
                         f"{self._signing_note()})"
                     ) from None
             if not self._streams_requested:
+                await self._request_streams(deadline)
                 self._streams_requested = True
-                await self._request_streams()
             log.info("%s: connected", self.name)
 
-    async def _request_streams(self) -> None:
-        for msgid, rate in self.message_rates_hz.items():
+    async def _request_streams(self, deadline: float | None = None) -> None:
+        """SET_MESSAGE_INTERVAL for every stream (those turned off first), then REQUEST_MESSAGE
+        for home and origin; each repeated without ACK until ``deadline`` (loop time)."""
+        rates = sorted(self.message_rates_hz.items(), key=lambda kv: kv[1] > 0)
+        for msgid, rate in rates:
             interval_us = -1.0 if rate <= 0 else 1e6 / rate
             await self._try_command(CMD_SET_MESSAGE_INTERVAL, float(msgid), interval_us,
-                                    what=f"{_message_name(msgid)} at {rate:g} Hz")
+                                    what=f"{_message_name(msgid)} at {rate:g} Hz",
+                                    deadline=deadline)
         for msgid in (MSG_HOME_POSITION, MSG_GPS_GLOBAL_ORIGIN):
             await self._try_command(CMD_REQUEST_MESSAGE, float(msgid),
-                                    what=_message_name(msgid))
+                                    what=_message_name(msgid), deadline=deadline)
 
-    async def _try_command(self, command: int, *params: float, what: str) -> None:
-        result = await self.command_long(command, *params, raise_on_reject=False)
+    async def _try_command(self, command: int, *params: float, what: str,
+                           deadline: float | None = None) -> None:
+        tries = self.command_tries
+        if deadline is not None:  # as many tries as fit before the deadline, at least the usual
+            left = deadline - asyncio.get_running_loop().time()
+            tries = max(tries, int(left / self.command_timeout_s))
+        result = await self.command_long(command, *params, tries=tries, raise_on_reject=False)
         if result != "ACCEPTED":
             # REQUEST_MESSAGE is repeated by wait_ready while home/origin are missing
             level = logging.INFO if command == CMD_REQUEST_MESSAGE else logging.WARNING

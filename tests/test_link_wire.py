@@ -1,0 +1,224 @@
+"""The struct fast path of the ``mavlink`` link (vtube_fleet/link/wire.py) against pymavlink:
+byte-identical frames, identical decoded values, and every frame it does not fully accept
+(bad CRC, cut off, padded, signed, MAVLink 1, unknown id, too long) left to pymavlink, which
+counts it as malformed exactly as before."""
+
+from __future__ import annotations
+
+import math
+import random
+import struct
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+from pymavlink.generator.mavcrc import x25crc_slow
+
+from vtube_fleet.link import MavlinkLink
+from vtube_fleet.link.wire import WireCodec, _mcrf4xx_hqx, mcrf4xx
+
+PX4_ADDR = ("127.0.0.1", 14580)
+HB, LPN, GPI, SPT = 0, 32, 33, 84
+CODEC = WireCodec((HB, LPN, GPI, SPT))
+
+
+def _f32(x: float) -> float:
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def _random_values(rng: random.Random, msgid: int) -> list:
+    cls = mavlink2.mavlink_map[msgid]
+    fmt = cls.unpacker.format[1:]
+    out: list = []
+    for c in fmt:
+        if c == "f":
+            out.append(rng.choice([0.0, _f32(rng.uniform(-1e3, 1e3)), -0.0, 1.0]))
+        else:
+            bits = struct.calcsize(c) * 8
+            lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if c.islower() else (
+                0, (1 << bits) - 1)
+            out.append(rng.choice([0, lo if lo < 0 else 1, hi, rng.randint(lo, hi)]))
+    return out
+
+
+def _pymavlink_frame(msgid: int, values: list, seq: int, sysid: int, compid: int) -> bytes:
+    cls = mavlink2.mavlink_map[msgid]
+    named = dict(zip(cls.ordered_fieldnames, values, strict=True))
+    msg = cls(*(named[f] for f in cls.fieldnames))
+    mav = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+    mav.seq = seq
+    return msg.pack(mav)
+
+
+def test_crc_matches_pymavlink() -> None:
+    rng = random.Random(1)
+    for n in (0, 1, 2, 9, 40, 255):
+        data = bytes(rng.randrange(256) for _ in range(n))
+        start = rng.randrange(1 << 16)
+        ref = x25crc_slow()
+        ref.crc = start
+        ref.accumulate(data)
+        assert mcrf4xx(data, start) == _mcrf4xx_hqx(data, start) == ref.crc
+
+
+@pytest.mark.parametrize("msgid", [HB, LPN, GPI, SPT])
+def test_pack_is_byte_identical_and_unpack_equals_pymavlink(msgid: int) -> None:
+    rng = random.Random(msgid)
+    dec = mavlink2.MAVLink(None)
+    dec.robust_parsing = True
+    cases = [[0] * len(mavlink2.mavlink_map[msgid].ordered_fieldnames)]  # all zero: 1 byte
+    cases += [_random_values(rng, msgid) for _ in range(300)]
+    for values in cases:
+        seq, sysid, compid = rng.randrange(256), rng.randint(1, 255), rng.randrange(256)
+        ref = _pymavlink_frame(msgid, values, seq, sysid, compid)
+        assert CODEC.pack(msgid, seq, sysid, compid, *values) == ref
+        fast = CODEC.unpack(ref)
+        (slow,) = dec.parse_buffer(ref)
+        assert fast is not None and slow.get_msgId() == msgid
+        for name in mavlink2.mavlink_map[msgid].ordered_fieldnames:
+            a, b = getattr(fast, name), getattr(slow, name)
+            assert a == b or (math.isnan(a) and math.isnan(b)), (name, a, b)
+
+
+def test_unpack_refuses_what_it_does_not_fully_accept() -> None:
+    good = _pymavlink_frame(LPN, [1234, 1.5, -2.25, 3.0, 0.5, 0.25, -0.5], 7, 3, 1)
+    assert CODEC.unpack(good) is not None
+    bad_crc = good[:-1] + bytes(((good[-1] ^ 0x01),))
+    flipped = good[:12] + bytes((good[12] ^ 0x80,)) + good[13:]
+    cut = good[:-1]
+    padded = good + b"\x00"
+    signed = good[:2] + b"\x01" + good[3:]
+    compat = good[:3] + b"\x01" + good[4:]
+    mav1 = b"\xfe" + good[1:]
+    statustext = _pymavlink_frame(253, [6, b"hi", 0, 0], 1, 3, 1)  # unknown to the codec
+    # a payload longer than the dialect's (a newer extension): the length byte and CRC agree
+    body = bytearray(good[:-2]) + b"\x11"
+    body[1] += 1
+    longer = bytes(body) + struct.pack("<H", mcrf4xx(bytes((185,)), mcrf4xx(bytes(body[1:]))))
+    for frame in (bad_crc, flipped, cut, padded, signed, compat, mav1, statustext, longer,
+                  b"", good[:11]):
+        assert CODEC.unpack(frame) is None, frame.hex()
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["fast_codec", "pymavlink"])
+def test_link_counts_bad_frames_and_decodes_good_ones_alike(fast: bool) -> None:
+    v = mavlink2.MAVLink(None, 3, 1)
+    link = MavlinkLink("udpin://127.0.0.1:14540", sysid=3, fast_codec=fast)
+    slow: list[bytes] = []
+    decode = link._decode
+
+    def counting_decode(data: bytes, addr: object, now: float) -> None:
+        slow.append(data)
+        decode(data, addr, now)
+
+    link._decode = counting_decode  # type: ignore[method-assign]
+    link.feed_datagram(v.heartbeat_encode(2, 12, 29, 50593792, 3).pack(v), PX4_ADDR)
+    assert link.state.flight_mode == "HOLD" and link.state.armed is False
+    link.feed_datagram(v.heartbeat_encode(2, 12, 29 | 0x80, 393216, 4).pack(v), PX4_ADDR)
+    assert link.state.flight_mode == "OFFBOARD" and link.state.armed is True
+    good = v.local_position_ned_encode(1234, 1.5, -2.25, 3.0, 0.5, 0.25, -0.5).pack(v)
+    link.feed_datagram(good[:-1] + bytes((good[-1] ^ 1,)), PX4_ADDR)  # bad CRC
+    link.feed_datagram(good[:-3], PX4_ADDR)  # cut off
+    s = link.state
+    assert s.bad_packets == 2 and math.isnan(s.north_m)
+    link.feed_datagram(good, PX4_ADDR, now=50.0)
+    assert (s.time_boot_ms, s.north_m, s.east_m, s.down_m, s.vn_m_s, s.ve_m_s, s.vd_m_s) == (
+        1234, 1.5, -2.25, 3.0, 0.5, 0.25, -0.5)
+    assert s.last_position_s == 50.0
+    link.feed_datagram(v.global_position_int_encode(1, 473977420, 85455940, 489400, 2500,
+                                                    0, 0, 0, 65535).pack(v), PX4_ADDR)
+    assert s.lat_deg == pytest.approx(47.397742) and s.alt_m == pytest.approx(489.4)
+    assert math.isnan(s.heading_deg)
+    # a GCS using the vehicle's id, another vehicle: ignored on both paths
+    gcs = mavlink2.MAVLink(None, 3, 190)
+    other = mavlink2.MAVLink(None, 4, 1)
+    link.feed_datagram(gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs), PX4_ADDR)
+    link.feed_datagram(other.local_position_ned_encode(5, 9.0, 9.0, 9.0, 0, 0, 0).pack(other),
+                       PX4_ADDR)
+    assert s.foreign_packets == 2 and s.armed is True and s.north_m == 1.5
+    assert (s.rx_packets, s.bad_packets) == (4, 2)
+    # pymavlink saw: the first packet (address not known yet), the two bad ones, the foreign
+    # vehicle's; or everything
+    assert len(slow) == (4 if fast else 8)
+
+
+# -- connect: stream requests repeated within the connect timeout ---------------------------
+async def test_connect_retries_unanswered_stream_requests_within_its_timeout() -> None:
+    """A busy vehicle loses the first ACKs: connect repeats the request beyond the usual 3
+    tries (as a GCS does) while its timeout lasts, the streams turned off first."""
+    from link_fake_vehicle import FakeVehicle, free_udp_port
+
+    port = free_udp_port()
+    fake = FakeVehicle(sysid=1, gcs_addr=("127.0.0.1", port))
+    link = MavlinkLink(f"udpin://127.0.0.1:{port}", command_timeout_s=0.1,
+                       message_rates_hz={30: 0.0})
+    await fake.start()
+    try:
+        fake.script[511] = [None] * 5  # five requests without an ACK, then ACCEPTED
+        await link.connect(timeout_s=10.0)
+        sent = fake.commands(511)
+        assert [int(m.param1) for m in sent[:6]] == [30] * 6  # ATTITUDE off goes first
+        assert [m.confirmation for m in sent[:6]] == [0, 1, 2, 3, 4, 5]
+        assert {int(m.param1) for m in sent} == {30, 32, 33, 245, 242, 230}
+    finally:
+        await link.close()
+        await fake.stop()
+
+
+async def test_connect_to_a_vehicle_that_never_acks_ends_with_the_numbers() -> None:
+    from link_fake_vehicle import FakeVehicle, free_udp_port
+
+    from vtube_fleet.link import LinkTimeout
+
+    port = free_udp_port()
+    fake = FakeVehicle(sysid=1, gcs_addr=("127.0.0.1", port))
+    link = MavlinkLink(f"udpin://127.0.0.1:{port}", command_timeout_s=0.1)
+    await fake.start()
+    try:
+        fake.script[511] = [None] * 1000
+        with pytest.raises(LinkTimeout) as info:
+            await link.connect(timeout_s=1.5)
+        msg = str(info.value)
+        assert "no COMMAND_ACK for SET_MESSAGE_INTERVAL after" in msg
+        tries = int(msg.split(" after ")[1].split(" tries")[0])
+        assert tries > 3 and len(fake.commands(511)) == tries
+    finally:
+        await link.close()
+        await fake.stop()
+
+
+# -- the burst-reading socket (vtube_fleet/link/udp.py) --------------------------------------
+async def test_datagram_socket_drains_in_bursts_and_sends() -> None:
+    """One wake-up reads up to ``burst`` queued datagrams (asyncio's transport reads one), in
+    order; sending works both ways; closed: nothing more is read or sent."""
+    import socket
+
+    from vtube_fleet.link.udp import DatagramSocket
+
+    got: list[tuple[bytes, object]] = []
+    errors: list[OSError] = []
+    ds = await DatagramSocket.open("127.0.0.1", 0, listens=True,
+                                   on_datagram=lambda d, a: got.append((d, a)),
+                                   on_error=errors.append, burst=64)
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    try:
+        here = ds.get_extra_info("sockname")
+        for k in range(100):
+            peer.sendto(k.to_bytes(2, "little"), here)
+        ds._readable()
+        assert [int.from_bytes(d, "little") for d, _ in got] == list(range(64))
+        ds._readable()
+        assert len(got) == 100 and got[-1] == ((99).to_bytes(2, "little"), peer.getsockname())
+        ds._readable()  # nothing queued: returns at once
+        assert len(got) == 100 and not errors
+        ds.sendto(b"pong", peer.getsockname())
+        assert peer.recvfrom(16) == (b"pong", here)
+        ds.close()
+        assert ds.is_closing()
+        ds.sendto(b"late", peer.getsockname())  # ignored, no error
+        peer.setblocking(False)
+        with pytest.raises(BlockingIOError):
+            peer.recvfrom(16)
+    finally:
+        ds.close()
+        peer.close()
