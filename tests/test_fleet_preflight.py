@@ -98,3 +98,23 @@ async def test_the_measured_accuracy_refuses_a_tight_mission_before_arming(tmp_p
     assert "nothing armed" in r and "σ = 0.29 m" in r and "r_s' = " in r
     assert "slot 0 (" in r and "and slot 1 (" in r and "overlap: distance 2.5 m" in r
     print(f"\n{r}")
+
+
+async def test_connect_window_and_one_deadline_name_every_vehicle(tmp_path, monkeypatch) -> None:
+    """Links connect at most CONNECT_WINDOW at a time, all within connect_timeout_s: silent
+    endpoints end the run with one error naming each (waited for, or never reached)."""
+    import vtube_fleet.fleet.supervisor as supervisor_module
+
+    monkeypatch.setattr(supervisor_module, "CONNECT_WINDOW", 1)
+    text = "\n".join(line for line in COMPACT_12.splitlines()
+                     if not line.startswith("connect_timeout_s"))
+    m = write_mission(tmp_path, text + "\nconnect_timeout_s = 0.5\n").with_vehicles(3)
+    ports = free_ports(3)
+    endpoints = [f"udpin://127.0.0.1:{ports.gcs_base + i}" for i in range(3)]
+    result = await fly(m, endpoints=endpoints, sysids=[1, 2, 3], out_dir=tmp_path)
+    assert result.exit_code == 2 and result.outcome == "failed"
+    r = result.reason
+    assert "3 of 3 vehicles did not connect within connect_timeout_s = 0.5 s" in r
+    assert "no HEARTBEAT within" in r
+    assert r.count("not tried: connect_timeout_s = 0.5 s ran out while connecting the "
+                   "others (at most 1 at a time)") == 2

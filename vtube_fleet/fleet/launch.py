@@ -39,8 +39,8 @@ BACKENDS = ("mavlink", "mavsdk")
 
 #: mavlink backend: streams the fleet does not use, switched off on connect (SET_MESSAGE_INTERVAL
 #: −1 via rate 0) to save link bandwidth and CPU on both ends: ATTITUDE (100 Hz in the
-#: captures), ATTITUDE_QUATERNION, HIGHRES_IMU, ODOMETRY.
-UNUSED_STREAMS_OFF: dict[int, float] = {30: 0.0, 31: 0.0, 105: 0.0, 331: 0.0}
+#: captures), ATTITUDE_QUATERNION, HIGHRES_IMU, ODOMETRY, POSITION_TARGET_LOCAL_NED (10 Hz).
+UNUSED_STREAMS_OFF: dict[int, float] = {30: 0.0, 31: 0.0, 105: 0.0, 331: 0.0, 85: 0.0}
 
 
 class FleetCliError(UserError):

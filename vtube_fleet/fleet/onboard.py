@@ -15,23 +15,35 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.fence import FenceGeometry, tube_fence
 from vtube_fleet.core.text import compact_number
-from vtube_fleet.link.base import FenceItem, FenceRejected, LinkError, LinkUnsupported, VehicleLink
+from vtube_fleet.link.base import (
+    FenceItem,
+    FenceRejected,
+    LinkError,
+    LinkTimeout,
+    LinkUnsupported,
+    VehicleLink,
+)
+
+T = TypeVar("T")
 
 __all__ = [
     "AuditResult",
     "GF_ACTION_VALUES",
     "NO_FENCE_WARNING",
     "ParamRule",
+    "ONBOARD_WINDOW",
     "audit_fleet",
     "audit_rules",
+    "gather_bounded",
     "fence_geometry",
     "fence_items",
     "install_fence",
@@ -43,6 +55,12 @@ GF_ACTION_VALUES: dict[str, int] = {"hold": 2, "rtl": 3, "land": 5}
 #: what ``run --no-fence`` and ``agent --no-fence`` say (an info event: the user asked for it)
 NO_FENCE_WARNING = ("--no-fence: no geofence uploaded; PX4 does not know the tube and a "
                     "vehicle that our process loses can leave it")
+#: vehicles whose parameter / fence exchanges run at once (the rest wait for a slot): a
+#: thousand vehicles answering PARAM_REQUEST_READ together would overrun the sockets' buffers
+#: and the per-try timeouts of a busy process
+ONBOARD_WINDOW = 64
+#: an audit read that times out is repeated, up to this many reads in all
+AUDIT_READ_ROUNDS = 3
 CMD_POLYGON_INCLUSION = 5001
 CMD_CIRCLE_EXCLUSION = 5004
 
@@ -76,6 +94,19 @@ def _same_item(a: FenceItem, b: FenceItem) -> bool:
     return (a.command == b.command and round(a.lat_deg * 1e7) == round(b.lat_deg * 1e7)
             and round(a.lon_deg * 1e7) == round(b.lon_deg * 1e7)
             and math.isclose(a.param1, b.param1, rel_tol=1e-6, abs_tol=1e-4))
+
+
+async def gather_bounded(coros: Sequence[Awaitable[T]], limit: int | None = None
+                         ) -> list[T | BaseException]:
+    """``asyncio.gather(*coros, return_exceptions=True)`` with at most ``limit`` (default
+    :data:`ONBOARD_WINDOW`) running at once; results in order."""
+    window = asyncio.Semaphore(ONBOARD_WINDOW if limit is None else limit)
+
+    async def one(coro: Awaitable[T]) -> T:
+        async with window:
+            return await coro
+
+    return await asyncio.gather(*(one(c) for c in coros), return_exceptions=True)
 
 
 async def install_fence(link: VehicleLink, items: list[FenceItem], gf_action: int) -> None:
@@ -182,6 +213,18 @@ class AuditResult:
     unsupported: bool = False
 
 
+async def _read_param(link: VehicleLink, name: str) -> float:
+    """``link.read_param`` repeated :data:`AUDIT_READ_ROUNDS` times while it times out (a busy
+    vehicle or link, as with hundreds of vehicles on one computer)."""
+    for k in range(AUDIT_READ_ROUNDS):
+        try:
+            return await link.read_param(name)
+        except LinkTimeout as exc:
+            if k == AUDIT_READ_ROUNDS - 1:
+                raise LinkTimeout(f"{exc}; read {AUDIT_READ_ROUNDS} times") from None
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
 async def _audit_one(link: VehicleLink, rules: Sequence[ParamRule], fix: bool,
                      changed: dict[str, float]) -> tuple[dict[str, float], list[str], list[str]]:
     """(values, problems, warnings) of one vehicle; warnings without the vehicle's name
@@ -191,7 +234,7 @@ async def _audit_one(link: VehicleLink, rules: Sequence[ParamRule], fix: bool,
     warnings: list[str] = []
     for rule in rules:
         try:
-            x = await link.read_param(rule.name)
+            x = await _read_param(link, rule.name)
         except LinkUnsupported:
             raise
         except LinkError as exc:
@@ -222,8 +265,8 @@ async def audit_fleet(links: Sequence[VehicleLink], mission: Mission, *, fix: bo
     set what is off (the old values are in ``changed``, also when a later step fails)."""
     rules = audit_rules(mission)
     res = AuditResult(changed=[{} for _ in links])
-    outs = await asyncio.gather(*(_audit_one(link, rules, fix, res.changed[i])
-                                  for i, link in enumerate(links)), return_exceptions=True)
+    outs = await gather_bounded([_audit_one(link, rules, fix, res.changed[i])
+                                 for i, link in enumerate(links)])
     shared: dict[str, list[str]] = {}  # one warning per fact, naming the vehicles it holds for
     for link, out in zip(links, outs, strict=True):
         if isinstance(out, asyncio.CancelledError):

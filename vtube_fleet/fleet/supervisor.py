@@ -91,11 +91,12 @@ from vtube_fleet.fleet.pilot import (
     wait_accuracy,
 )
 from vtube_fleet.fleet.view import FleetStatus, FleetView, vehicle_rows
-from vtube_fleet.link.base import VehicleLink
+from vtube_fleet.link.base import LinkTimeout, VehicleLink
 from vtube_fleet.outcome import EXIT_INCOMPLETE, exit_code
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, Phase
 
 __all__ = [
+    "CONNECT_WINDOW",
     "FleetError",
     "FleetResult",
     "MissionAborted",
@@ -113,6 +114,9 @@ TRUTH_RATE_HZ = 20.0
 
 #: Minimum height of the mission altitude above every vehicle before take-off.
 MIN_CLIMB_M = 1.0
+
+#: Links connecting at once (:meth:`Supervisor._connect`).
+CONNECT_WINDOW = 64
 
 
 async def _raise(result: object) -> None:
@@ -742,11 +746,24 @@ class Supervisor:
         return problems
 
     async def _connect(self) -> None:
+        """Connect every link within ``connect_timeout_s``, at most :data:`CONNECT_WINDOW` at
+        a time: a link binds its socket only when its turn comes, so the vehicles not reached
+        yet are not heard (their default streams, ATTITUDE at 100 Hz among them, would
+        otherwise flood this process before the first links have turned them off)."""
         self._set_stage("connecting")
         cfg = self.cfg
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + cfg.connect_timeout_s
+        window = asyncio.Semaphore(CONNECT_WINDOW)
 
         async def one(link: VehicleLink) -> None:
-            await link.connect(timeout_s=cfg.connect_timeout_s)
+            async with window:
+                left = deadline - loop.time()
+                if left <= 0:
+                    raise LinkTimeout(f"not tried: connect_timeout_s = "
+                                      f"{cfg.connect_timeout_s:g} s ran out while connecting "
+                                      f"the others (at most {CONNECT_WINDOW} at a time)")
+                await link.connect(timeout_s=left)
 
         problems = await self._gather_named("connect", [one(p.link) for p in self.pilots])
         if problems:
@@ -874,6 +891,7 @@ class Supervisor:
             NO_FENCE_WARNING,
             fence_geometry,
             fence_items,
+            gather_bounded,
             install_fence,
         )
         from vtube_fleet.link.base import LinkUnsupported
@@ -890,9 +908,8 @@ class Supervisor:
                                  "at once: " + "; ".join(problems))
         items = fence_items(self.mission, geom)
         action = self.cfg.fence_action
-        results = await asyncio.gather(
-            *(install_fence(p.link, items, GF_ACTION_VALUES[action]) for p in self.pilots),
-            return_exceptions=True)
+        results = await gather_bounded(
+            [install_fence(p.link, items, GF_ACTION_VALUES[action]) for p in self.pilots])
         if any(isinstance(r, LinkUnsupported) for r in results):
             self.onboard["fence"] = "unsupported"
             self.event(f"fence NOT uploaded: the {self.backend} backend cannot upload PX4 "
