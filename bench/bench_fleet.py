@@ -2,6 +2,7 @@
 
     python bench/bench_fleet.py [--count 200] [--seconds 30] [--rate 20] [--backend mavlink]
                                 [--processes N] [--spacing M] [--no-fence] [--profile-out FILE]
+                                [--lean-streams] [--position-hz HZ] [--mock-nice N]
 
 1. writes a mission with N slots (a wide straight tube, one obstacle, ``--spacing`` grid, 5 m;
    ``latency_s = 0.25`` fixed, so the in-flight budget watch does not end a run on a loaded
@@ -12,7 +13,12 @@
 3. runs the :class:`~vtube_fleet.fleet.supervisor.Supervisor` in this process (connect, preflight,
    take-off, tube) and measures, over ``--seconds`` of tube flight: ticks, the share of ticks on
    time (started less than half a period after schedule), p50/p99/max tick duration, achieved
-   rate, and the CPU time of THIS process (user + system) per wall second;
+   rate, the CPU time of THIS process (user + system) per wall second and per tick, the CPU of
+   the mock processes (the mock-fleet process and its children) and of the whole machine
+   (/proc/stat) over the same window; ``connect_timeout_s`` is 0.15 s per vehicle (at least
+   60 s); ``--lean-streams`` asks for fewer telemetry messages (:data:`LEAN_STREAMS_HZ`),
+   ``--mock-nice 10`` runs the mocks at a lower priority (the supervisor first, as on a
+   computer of its own); if the run ends before the window, the ticks until then are printed;
 4. aborts (every vehicle holds), stops the mock processes, prints the numbers (and JSON with
    ``--json``; ``load_average`` is the machine's at the end). ``--profile-out FILE``: cProfile
    of this process (ticks and telemetry receive) over the measured window only (``python -m
@@ -50,17 +56,22 @@ from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.launch import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
 from vtube_fleet.link import fleet_sysid, open_links  # noqa: E402
+from vtube_fleet.link.mavlink import (  # noqa: E402
+    DEFAULT_MESSAGE_RATES_HZ,
+    MSG_LOCAL_POSITION_NED,
+)
 from vtube_fleet.state import Phase  # noqa: E402
 
 
-def start_mock(mission_path: Path, count: int, profile: str, processes: int
+def start_mock(mission_path: Path, count: int, profile: str, processes: int, nice: int = 0
                ) -> tuple[subprocess.Popen[str], list[str]]:
     ports = free_port_scheme(count)  # never the fixed px4/wide ranges other jobs may hold
     proc = subprocess.Popen(
         [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
          str(count), "--profile", profile, "--processes", str(processes),
          "--gcs-port", str(ports.gcs_base), "--vehicle-port", str(ports.vehicle_base)],
-        stdout=subprocess.PIPE, stderr=sys.stderr, text=True, cwd=ROOT)
+        stdout=subprocess.PIPE, stderr=sys.stderr, text=True, cwd=ROOT,
+        preexec_fn=(lambda: os.nice(nice)) if nice else None)  # the children inherit it
     assert proc.stdout is not None
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
@@ -72,7 +83,37 @@ def start_mock(mission_path: Path, count: int, profile: str, processes: int
     raise SystemExit("mock fleet did not print its endpoints within 120 s")
 
 
-async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]) -> dict:
+#: ``--lean-streams``: what the supervisor reads, at lower rates (message id → Hz; 0 = off):
+#: LOCAL_POSITION_NED 25 Hz (> the 20 Hz control rate), GLOBAL_POSITION_INT 2 Hz (take-off
+#: altitude, heading), GPS_RAW_INT 1 Hz, SYS_STATUS 2 Hz (health), BATTERY_STATUS off
+LEAN_STREAMS_HZ: dict[int, float] = {32: 25.0, 33: 2.0, 24: 1.0, 1: 2.0, 147: 0.0}
+
+
+def _tree_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` and its descendants (Linux /proc; 0 if gone)."""
+    total, todo = 0.0, [pid]
+    tick = os.sysconf("SC_CLK_TCK")
+    while todo:
+        p = todo.pop()
+        try:
+            stat = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(stat[11]) + int(stat[12])) / tick
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return total
+
+
+def _machine_busy_s() -> float:
+    """CPU seconds the whole machine spent busy (all cores; /proc/stat)."""
+    fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle + iowait
+    return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str],
+              mock_pid: int) -> dict:
     mission = load_mission(mission_path)
     window: dict[str, float] = {}
     prof = cProfile.Profile() if args.profile_out else None
@@ -83,27 +124,46 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
         if "t0" not in window:
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t0=time.monotonic(), cpu0=ru.ru_utime + ru.ru_stime,
-                          k0=len(sup.tick_durations))
+                          k0=len(sup.tick_durations), mock0=_tree_cpu_s(mock_pid),
+                          busy0=_machine_busy_s())
             if prof is not None:
                 prof.enable()
         elif time.monotonic() - window["t0"] >= args.seconds and "t1" not in window:
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t1=time.monotonic(), cpu1=ru.ru_utime + ru.ru_stime,
-                          k1=len(sup.tick_durations))
+                          k1=len(sup.tick_durations), mock1=_tree_cpu_s(mock_pid),
+                          busy1=_machine_busy_s())
             if prof is not None:
                 prof.disable()
                 prof.dump_stats(args.profile_out)
             sup.request_abort(f"benchmark: {args.seconds:g} s of tube flight measured")
 
     sysids = [fleet_sysid(i) for i in range(len(endpoints))]
-    options = {"message_rates_hz": dict(UNUSED_STREAMS_OFF)} if args.backend == "mavlink" else {}
+    rates = dict(UNUSED_STREAMS_OFF)
+    if args.lean_streams:
+        rates.update(LEAN_STREAMS_HZ)
+    if args.position_hz is not None:
+        rates[MSG_LOCAL_POSITION_NED] = args.position_hz
+    options = {"message_rates_hz": rates} if args.backend == "mavlink" else {}
     async with open_links(endpoints, args.backend, sysids=sysids, **options) as links:
         sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook,
                          fence=not args.no_fence)
         result = await sup.run()
     if "t1" not in window:
+        # what the control clock did until the run ended (connect .. take-off), then the end
+        dur = np.asarray(sup.tick_durations)
+        late = np.asarray(sup.tick_lateness)
+        if dur.size:
+            period = 1.0 / args.rate
+            print(f"before the end ({dur.size} ticks, {len(endpoints)} vehicles, stage "
+                  f"{sup.stage}, load {os.getloadavg()[0]:.2f}): on time "
+                  f"{float(np.mean(late <= period / 2)):.4f}, tick p50 "
+                  f"{1000 * float(np.percentile(dur, 50)):.1f} ms, p99 "
+                  f"{1000 * float(np.percentile(dur, 99)):.1f} ms, max "
+                  f"{1000 * float(dur.max()):.1f} ms", file=sys.stderr)
+        reason = result.reason if len(result.reason) < 600 else result.reason[:600] + " …"
         raise SystemExit(f"the tube flight did not last {args.seconds} s: {result.outcome}: "
-                         f"{result.reason}")
+                         f"{reason}")
     k0, k1 = int(window["k0"]), int(window["k1"])
     dur = np.asarray(sup.tick_durations[k0:k1])
     late = np.asarray(sup.tick_lateness[k0:k1])
@@ -113,6 +173,10 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
     return {
         "vehicles": len(endpoints),
         "mock_processes": args.processes,
+        "mock_nice": args.mock_nice,
+        "streams": "lean" if args.lean_streams else "default",
+        "position_hz": rates.get(MSG_LOCAL_POSITION_NED,
+                                 DEFAULT_MESSAGE_RATES_HZ[MSG_LOCAL_POSITION_NED]),
         "fence": not args.no_fence,
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "backend": args.backend,
@@ -127,6 +191,11 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
         "tick_p99_ms": round(1000 * float(np.percentile(dur, 99)), 2),
         "tick_max_ms": round(1000 * float(dur.max()), 2),
         "cpu_share": round((window["cpu1"] - window["cpu0"]) / wall, 3),
+        "cpu_ms_per_tick": round(1000 * (window["cpu1"] - window["cpu0"]) / max(dur.size, 1),
+                                 2),
+        "mock_cpu_share": round((window["mock1"] - window["mock0"]) / wall, 3),
+        "machine_busy_cores": round((window["busy1"] - window["busy0"]) / wall, 3),
+        "machine_cores": os.cpu_count(),
         "vehicles_airborne_at_end": int(in_tube),
         "min_pair_distance_airborne_m": result.summary.get("min_pair_distance_airborne_m"),
         "link_latency_p50_ms": (None if result.summary.get("link_latency_p50_s") is None
@@ -153,6 +222,15 @@ def main() -> None:
     ap.add_argument("--no-fence", action="store_true",
                     help="skip the geofence upload before arming (a preflight step, several "
                          "round trips per vehicle; not part of the measured tick)")
+    ap.add_argument("--position-hz", type=float, default=None, metavar="HZ",
+                    help="LOCAL_POSITION_NED rate asked for (default: the link's, "
+                         f"{DEFAULT_MESSAGE_RATES_HZ[MSG_LOCAL_POSITION_NED]:g} Hz)")
+    ap.add_argument("--lean-streams", action="store_true",
+                    help="ask for fewer telemetry messages (LEAN_STREAMS_HZ: ~43 instead of ~84 "
+                         "per vehicle and second)")
+    ap.add_argument("--mock-nice", type=int, default=0, metavar="N",
+                    help="run the mock processes at this nice value (e.g. 10: the supervisor "
+                         "is served first, as on its own computer; the mocks get the rest)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.processes is None:
@@ -165,11 +243,16 @@ def main() -> None:
         # [mission] is the last table: a fixed L (the most the budget accepts) instead of the
         # measured one, so that a loaded shared machine does not end the measurement through
         # the in-flight budget watch (what is measured here is the tick, not the clearance)
-        path.write_text(grid_mission(args.count, args.rate, args.seconds, args.spacing)
-                        + "latency_s = 0.25\n")
-        proc, endpoints = start_mock(path, args.count, args.profile, args.processes)
+        text = grid_mission(args.count, args.rate, args.seconds, args.spacing)
+        # the fixture's 60 s to connect are for ~200 vehicles; a starved machine connects a
+        # thousand in ~1.5-2 min (docs/fleet.md)
+        connect_s = max(60.0, 0.15 * args.count)
+        text = text.replace("connect_timeout_s = 60.0", f"connect_timeout_s = {connect_s:g}")
+        path.write_text(text + "latency_s = 0.25\n")
+        proc, endpoints = start_mock(path, args.count, args.profile, args.processes,
+                                     args.mock_nice)
         try:
-            out = asyncio.run(run(args, path, endpoints))
+            out = asyncio.run(run(args, path, endpoints, proc.pid))
         finally:
             proc.send_signal(signal.SIGINT)
             try:
