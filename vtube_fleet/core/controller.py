@@ -53,6 +53,7 @@ __all__ = [
     "ACTIVE_SKIN",
     "CommandEvaluator",
     "TubeArrays",
+    "reuse_heap",
     "u1pp",
     "u2",
     "u3p_u4p",
@@ -260,12 +261,12 @@ class _Prepared:
 class _Gathered:
     """Per-robot sub-tube constants of one ``k`` (columns of :attr:`_Prepared.table`, one
     take): G01 the conj(n_h), conj(n_r) (2, n); G23 n_hᵀp_h1, n_rᵀp_r1 (2, n); GA E_h, E_r,
-    A_h, A_r (4n,); n_c (n,). ``buf``: a (9, n) complex array to gather into (a scratch's,
-    see :meth:`_Scratch.gbuf`) instead of a new one: a fresh multi-megabyte array on every
-    call makes the allocator unmap and re-fault memory (10,000 robots: 2.1 instead of 1.3 ms
-    per call)."""
+    A_h, A_r (4n,); n_c (n,); G8 rows 0–7 as (4, 2n), one column per leg/σ element.
+    ``buf``: a (9, n) complex array to gather into (a scratch's, see :meth:`_Scratch.gbuf`)
+    instead of a new one: a fresh multi-megabyte array on every call makes the allocator unmap
+    and re-fault memory (10,000 robots: 2.1 instead of 1.3 ms per call)."""
 
-    __slots__ = ("k", "writeable", "G01", "G23", "GA", "n_c")
+    __slots__ = ("k", "writeable", "G01", "G23", "GA", "n_c", "G8")
 
     def __init__(self, prep: _Prepared, k: np.ndarray, buf: np.ndarray | None = None) -> None:
         n = k.shape[0]
@@ -275,11 +276,13 @@ class _Gathered:
         # k is checked above, so mode="clip" (with "raise", take buffers its output)
         G = np.take(prep.table, k, axis=1, out=buf, mode="clip")
         self.G01, self.G23, self.GA, self.n_c = G[0:2], G[2:4].real, G[4:8].reshape(4 * n), G[8]
+        # the four per-element rows of the leg/σ elements (side·n + robot): conj(n), nᵀp_1, E, A
+        self.G8 = G[:8].reshape(4, 2 * n)
         self.k = k
         self.writeable = k.flags.writeable  # (then it may change in place: gather every time)
 
 
-def _reuse_heap(nbytes: int) -> None:
+def reuse_heap(nbytes: int) -> None:
     """Allocate and free ``nbytes`` once, so that the C allocator keeps temporaries of up to
     that size on its heap instead of mapping and unmapping (and page-faulting) them on every
     call: glibc raises its mmap threshold (dynamically, up to 32 MB) to the size of a freed
@@ -319,7 +322,7 @@ class _Scratch:
         # track: keep min ‖p_i − p_j‖ over the pairs (before the barriers clamp it) in pmin
         self.track, self.pmin = track, math.inf
         self._g: np.ndarray | None = None
-        _reuse_heap(64 * (5 * n + 2 * P))  # > every temporary of a call (the largest: 32 P)
+        reuse_heap(64 * (5 * n + 2 * P))  # > every temporary of a call (the largest: 32 P)
 
     def gbuf(self) -> np.ndarray:
         """The (9, n) array for a :class:`_Gathered` of these n robots (made on first use)."""
@@ -516,6 +519,8 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
 ACTIVE_SKIN = 0.1
 
 _FAR = 1e9  # distance of the padding leg elements (m): beyond every barrier, exactly 0
+#: the padding column of (conj(n), nᵀp_1, E, A): distance _FAR (as Re(0·z) − (−_FAR)), weights 0
+_PAD = np.array([[0.0], [-_FAR], [0.0], [0.0]], np.complex128)
 
 
 def _finite(x: np.ndarray) -> bool:
@@ -538,8 +543,8 @@ class _Active:
 
     __slots__ = ("g", "pa", "slack", "P", "Lc", "n", "M", "idx", "G01a", "G23a", "GAa",
                  "slots", "bank", "X", "X2", "xp", "W", "Wf", "Wl", "Wi", "Wif", "Wjf", "tmpc",
-                 "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "pair_slots",
-                 "nc_slots", "fslots")
+                 "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "tail_slots",
+                 "fslots", "tmpr", "zz", "zI", "dz", "zL", "Y", "Yl", "Yp")
 
     def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
         legs, sig, _ = prep.blocks(16, 16)
@@ -547,6 +552,7 @@ class _Active:
         self.prep, self.n, self.M, self.track = prep, M, M, track
         self.r_pair, self.pmin, self.slack = prep.r_pair, math.inf, -math.inf
         self.g = self.pa = None
+        self.Lc, self.X = 0, np.empty(0)
 
     def refresh(self, g: _Gathered, pa: tuple, z: np.ndarray) -> bool:
         """Choose the elements at the points ``z`` for the sub-tubes of ``g`` and the pairs of
@@ -569,34 +575,34 @@ class _Active:
             return False
         self.pa, self.IJ, self.slack = pa, IJ, skin
         sel = (dp < self.r_pair + 2.0 * skin).nonzero()[0]
-        self.P = sel.shape[0]
-        self.pair_idx = np.concatenate([pa[0].take(sel), pa[1].take(sel)])
+        P = self.P = sel.shape[0]
+        self.pair_idx = IJ.reshape(2, P0).take(sel, axis=1).reshape(2 * P)  # [I | J] kept
         fs = self.fslots = pa[5]  # the full layout's float slots: legs | σ | I | J | n_c
         n8 = 8 * M
-        self.pair_slots = [fs[n8: n8 + 2 * P0].reshape(P0, 2).take(sel, axis=0).ravel(),
-                           fs[n8 + 2 * P0: n8 + 4 * P0].reshape(P0, 2).take(sel, axis=0).ravel()]
-        self.nc_slots = fs[n8 + 4 * P0:]
+        self.tail_slots = np.concatenate([  # I | J slots of the kept pairs, then n_c
+            fs[n8: n8 + 4 * P0].reshape(2, P0, 2).take(sel, axis=1).reshape(4 * P),
+            fs[n8 + 4 * P0:]])
         self._legs(g, d, self.cut + skin)
         return True
 
     def _legs(self, g: _Gathered, d: np.ndarray, thr: float) -> None:
+        """The leg/σ elements closer than ``thr`` (``d``: their distances, side·n + robot),
+        padded to Lc (elements of robot 0 with distance ``_FAR`` and weights 0)."""
         n, P = self.n, self.P
         e = (d < thr).nonzero()[0]  # side·n + robot
         L = e.shape[0]
-        Lc = self.Lc = max(16, -(-L // 16) * 16)
-        pad = Lc - L
-        zi, zc = np.zeros(pad, np.intp), np.zeros(pad, np.complex128)
+        Lc = max(16, -(-L // 16) * 16)
+        ep = np.zeros(Lc, np.intp)
+        ep[:L] = e
+        la = g.G8.take(ep, axis=1)  # (4, Lc): conj(n), nᵀp_1, E, A of the kept elements
+        la[:, L:] = _PAD
         self.g = g
-        self.idx = np.concatenate([self.pair_idx, e % n, zi])
-        self.G01a = np.concatenate([g.G01.reshape(2 * n).take(e), zc])
-        self.G23a = np.concatenate([g.G23.reshape(2 * n).take(e), np.full(pad, -_FAR)])
-        self.GAa = np.concatenate([g.GA.take(e), zc, g.GA.take(e + 2 * n), zc])
-        fs = self.fslots
-        zs = np.zeros(2 * pad, np.intp)  # ±0 weights: harmless in any slot
+        self.G01a, self.G23a, self.GAa = la[0], la[1].real, la[2:].reshape(2 * Lc)
+        self.idx = np.concatenate([self.pair_idx, ep % n])
+        # legs | σ slots of the kept elements (the pads': robot 0's, with ±0 weights: harmless)
         self.slots = np.concatenate([
-            fs[: 4 * n].reshape(2 * n, 2).take(e, axis=0).ravel(), zs,
-            fs[4 * n: 8 * n].reshape(2 * n, 2).take(e, axis=0).ravel(), zs,
-            *self.pair_slots, self.nc_slots])
+            self.fslots[: 8 * n].reshape(2, 2 * n, 2).take(ep, axis=1).reshape(4 * Lc),
+            self.tail_slots])
         _, _, pair = self.prep.blocks(Lc, P)
         key = (Lc, len(pair))
         banks = self.prep.active_banks
@@ -608,27 +614,34 @@ class _Active:
             bank = banks[key] = BarrierBank.concatenate_prefixes(
                 [(legs, Lc), (sig, Lc), (pair, len(pair))])
         self.bank = bank
-        self.X = np.empty(2 * Lc + P)
-        self.X2 = self.X[: 2 * Lc].reshape(2, Lc)
-        self.xp = self.X[2 * Lc:]
-        self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
-        self.Wf = self.W.view(np.float64)
-        self.Wl = self.W[: 2 * Lc]
-        self.Wi = self.W[2 * Lc: 2 * Lc + P]
-        self.Wif = self.Wf[4 * Lc: 4 * Lc + 2 * P]
-        self.Wjf = self.Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P]
+        if self.Lc != Lc or self.X.shape[0] != 2 * Lc + P:  # else the buffers of the last call
+            self.Lc = Lc
+            self.X = np.empty(2 * Lc + P)
+            self.X2 = self.X[: 2 * Lc].reshape(2, Lc)
+            self.xp = self.X[2 * Lc:]
+            self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
+            self.Wf = self.W.view(np.float64)
+            self.Wl = self.W[: 2 * Lc]
+            self.Wi = self.W[2 * Lc: 2 * Lc + P]
+            self.Wif = self.Wf[4 * Lc: 4 * Lc + 2 * P]
+            self.Wjf = self.Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P]
+            self.tmpc = np.empty(Lc, np.complex128)
+            self.tmpr = self.tmpc.real
+            self.zz = np.empty(2 * P + Lc, np.complex128)  # [p_I | p_J | leg points]
+            self.zI, self.dz, self.zL = self.zz[:P], self.zz[P: 2 * P], self.zz[2 * P:]
+            self.Y = np.empty(2 * Lc + P)  # the bank's values: legs, σ | pairs
+            self.Yl, self.Yp = self.Y[: 2 * Lc], self.Y[2 * Lc:]
         self.W[2 * Lc + 2 * P:] = g.n_c
-        self.tmpc = np.empty(Lc, np.complex128)
 
     def core(self, z: np.ndarray) -> np.ndarray:
-        """:func:`_core` on the subset (same operations per element); sets :attr:`pmin`."""
-        P, Lc = self.P, self.Lc
-        zz = z.take(self.idx)  # [p_I | p_J | leg points]
-        dz = zz[P: 2 * P]
-        dz -= zz[:P]  # p_j − p_i
-        np.abs(dz, out=self.xp)
+        """:func:`_core` on the subset (same operations per element, into buffers kept
+        between calls); sets :attr:`pmin`."""
+        z.take(self.idx, out=self.zz, mode="clip")  # [p_I | p_J | leg points] (valid indices)
+        dz, xp = self.dz, self.xp
+        dz -= self.zI  # p_j − p_i
+        np.abs(dz, out=xp)
         if self.track:
-            pm = float(self.xp[self.xp.argmin()]) if P else math.inf
+            pm = float(xp[xp.argmin()]) if self.P else math.inf
             # a pair left out is farther than r_pair + 2·slack; else take all candidates
             if not pm < self.r_pair + 2.0 * self.slack and self.IJ.shape[0]:
                 Pa = self.IJ.shape[0] >> 1
@@ -638,12 +651,12 @@ class _Active:
                 da = np.abs(da)
                 pm = float(da[da.argmin()])
             self.pmin = pm
-        np.multiply(self.G01a, zz[2 * P:], out=self.tmpc)
-        np.subtract(self.tmpc.real, self.G23a, out=self.X2)
-        y = self.bank.evaluate(self.X)
-        np.multiply(y[: 2 * Lc], self.GAa, out=self.Wl)
-        yp = y[2 * Lc:]
-        yp /= self.xp
+        np.multiply(self.G01a, self.zL, out=self.tmpc)
+        np.subtract(self.tmpr, self.G23a, out=self.X2)
+        yp = self.Yp
+        self.bank.evaluate(self.X, self.Y)
+        np.multiply(self.Yl, self.GAa, out=self.Wl)
+        yp /= xp
         np.multiply(dz, yp, out=self.Wi)
         np.negative(self.Wif, out=self.Wjf)  # on the floats: numpy's complex negative is slow
         return np.bincount(self.slots, self.Wf, 4 * self.M).view(np.complex128)
@@ -685,6 +698,7 @@ class CommandEvaluator:
         self._g: _Gathered | None = None
         self._pairs: tuple | None = None  # (I, J, M, lay, IJ, slots, scratch, writeable)
         self._act: _Active | None = None  # the non-zero elements (step(move=...))
+        self._same: tuple | None = None  # (k, I, J, M) of g and the pair entry, if read-only
 
     def __call__(self, p: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                  out: np.ndarray | None = None) -> np.ndarray:
@@ -711,20 +725,25 @@ class CommandEvaluator:
         moved :data:`ACTIVE_SKIN` since the subset was chosen (:class:`_Active`); the result is
         bitwise the same (a sum that starts at +0 is unchanged by adding ±0)."""
         M = z.shape[0]
-        g = self._g
-        pa = self._pairs
-        if g is None or g.k is not k or g.writeable:
-            if type(k) is not np.ndarray or k.dtype != np.intp or k.shape != (M,):
-                raise ValueError(f"k must be an intp array of shape ({M},)")
-            g = self._g = _Gathered(self._prep, k)
-            if pa is not None and pa[2] == M:
-                pa[6].Wnc[:] = g.n_c
-        I, J = pairs
-        if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M or pa[7]:
-            pa = self._pairs = self._new_pairs(I, J, M, g)
-        if M == 0:
-            self.min_pair_distance = math.inf
-            return np.zeros(0, np.complex128)
+        f = self._same
+        if f is not None and f[0] is k and f[1] is pairs[0] and f[2] is pairs[1] and f[3] == M:
+            g, pa = self._g, self._pairs  # the read-only k and pairs of the last call
+        else:
+            g = self._g
+            pa = self._pairs
+            if g is None or g.k is not k or g.writeable:
+                if type(k) is not np.ndarray or k.dtype != np.intp or k.shape != (M,):
+                    raise ValueError(f"k must be an intp array of shape ({M},)")
+                g = self._g = _Gathered(self._prep, k)
+                if pa is not None and pa[2] == M:
+                    pa[6].Wnc[:] = g.n_c
+            I, J = pairs
+            if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M or pa[7]:
+                pa = self._pairs = self._new_pairs(I, J, M, g)
+            if M == 0:
+                self.min_pair_distance = math.inf
+                return np.zeros(0, np.complex128)
+            self._same = None if g.writeable or pa[7] else (k, I, J, M)
         lay, w = pa[3], pa[6]
         if move is not None:  # the elements that can be non-zero only (_Active)
             act = self._act

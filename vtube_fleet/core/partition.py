@@ -560,6 +560,7 @@ class SubTubeTracker:
                 R = self._tables[0].shape[0]
                 self._v = np.empty((R, M), np.complex128)
                 self._vr = np.empty((R, M))
+                self._vrf = self._vr.reshape(R * M)
                 self._M = M
             k, self._C, self._B = self._locate_rows(p, self._rowoff)
         self._shape = (M, 2)
@@ -619,7 +620,8 @@ class SubTubeTracker:
         if M:
             v = np.multiply(self._C, p.view(np.complex128).reshape(M), out=self._v)
             vr = np.add(v.real, self._B, out=self._vr)
-            vmin = float(np.minimum.reduce(vr, axis=None))
+            vf = self._vrf  # min(vr) (NaN if any, as argmin returns the first NaN)
+            vmin = float(vf[vf.argmin()])
         else:
             vmin = math.inf
         if vmin > 0.0:
