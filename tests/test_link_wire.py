@@ -222,3 +222,41 @@ async def test_datagram_socket_drains_in_bursts_and_sends() -> None:
     finally:
         ds.close()
         peer.close()
+
+
+async def test_datagram_socket_counts_sends_the_kernel_refuses() -> None:
+    """A full send buffer (EAGAIN) drops that datagram and counts it (the event loop never
+    blocks); other socket errors go to ``on_error``."""
+    import asyncio
+    import errno
+    import socket
+
+    from vtube_fleet.link.udp import DatagramSocket
+
+    class FullSocket:
+        """A real UDP socket (for the loop's reader) whose sends the kernel refuses: first
+        for a full buffer, then because the peer is gone."""
+
+        def __init__(self) -> None:
+            self.real = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.refusal: OSError = BlockingIOError(errno.EAGAIN, "full")
+
+        def sendto(self, data: bytes, addr: object) -> int:
+            raise self.refusal
+
+        def fileno(self) -> int:
+            return self.real.fileno()
+
+        def close(self) -> None:
+            self.real.close()
+
+    errors: list[OSError] = []
+    sock = FullSocket()
+    ds = DatagramSocket(asyncio.get_running_loop(), sock, lambda d, a: None, errors.append)
+    ds.sendto(b"a", ("127.0.0.1", 9))
+    ds.sendto(b"b", ("127.0.0.1", 9))
+    assert ds.tx_dropped == 2 and not errors
+    sock.refusal = ConnectionRefusedError(errno.ECONNREFUSED, "refused")
+    ds.sendto(b"c", ("127.0.0.1", 9))
+    assert ds.tx_dropped == 2 and [e.errno for e in errors] == [errno.ECONNREFUSED]
+    ds.close()

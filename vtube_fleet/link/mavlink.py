@@ -774,6 +774,9 @@ class MavlinkLink(VehicleLink):
                 fut.set_exception(LinkError(f"{self.name}: link closed"))
         self._pending.clear()
         if self._transport is not None:
+            if self._transport.tx_dropped:
+                log.warning("%s: %d datagram(s) not sent: the kernel's send buffer was full",
+                            self.name, self._transport.tx_dropped)
             self._transport.close()
             # the socket is closed by a call_soon callback: let it run, so that the port can
             # be bound again as soon as close() returns (asyncio runs callbacks in FIFO order)
