@@ -55,6 +55,7 @@ __all__ = [
     "check_assumption3",
     "check_constraint2",
     "h_min",
+    "lookahead_depth",
     "partition",
 ]
 
@@ -706,13 +707,21 @@ def apex_zones(part: Partition, params: ControllerParams) -> tuple[ApexZone, ...
             continue
         sides = [part.sub_tubes[k].t_r for k in (left,) if k is not None] + \
                 [part.sub_tubes[k].t_h for k in (right,) if k is not None]
-        sin_t = min(math.sqrt(max(0.0, 1.0 - float(t @ n_c) ** 2)) for t in sides)
         xs_b = float(part.xi_start[before])
         room = xi_a - (xs_b if math.isfinite(xs_b) else 0.0)
-        depth = (params.r_s + params.r_a) / sin_t if sin_t > 1e-9 else room
         out.append(ApexZone(tri.obstacle, before, left, right, apex, xi_a,
-                            float(max(0.0, min(depth, room)))))
+                            lookahead_depth(sides, n_c, params, room)))
     return tuple(out)
+
+
+def lookahead_depth(sides: Sequence[np.ndarray], n_c: np.ndarray, params: ControllerParams,
+                    room: float) -> float:
+    """Depth of an apex look-ahead zone (:func:`apex_zones`): (r_s + r_a) / sin θ, θ the
+    smallest angle of the triangle sides ``sides`` (unit directions) to n_c, within [0, room]
+    (``room``: the before-tube's length up to the apex line)."""
+    sin_t = min(math.sqrt(max(0.0, 1.0 - float(t @ n_c) ** 2)) for t in sides)
+    depth = (params.r_s + params.r_a) / sin_t if sin_t > 1e-9 else room
+    return float(max(0.0, min(depth, room)))
 
 
 def apex_lookahead(part: Partition, zones: Sequence[ApexZone], p: np.ndarray,

@@ -48,6 +48,7 @@ from vtube_fleet.core.partition import (
     _Builder,
     _Node,
     h_min,
+    lookahead_depth,
 )
 from vtube_fleet.core.text import compact_number as _num
 from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
@@ -423,12 +424,9 @@ class _Planner:
                  "right": np.asarray(tri.p_otd, float) - apex}
         if tri.remark5 is not None:
             sides.pop(tri.remark5)
-        sin_t = min(math.sqrt(max(0.0, 1.0 - (float(t @ n_c) / float(np.hypot(*t))) ** 2))
-                    for t in sides.values())
         xs = before.xs if math.isfinite(before.xs) else 0.0
-        room = xi_a - xs
-        depth = (p.r_s + p.r_a) / sin_t if sin_t > 1e-9 else room
-        depth = max(0.0, min(depth, room))
+        depth = lookahead_depth([t / float(np.hypot(*t)) for t in sides.values()], n_c, p,
+                                xi_a - xs)
         xi = q @ n_c - b.xi0
         t = before.tube
         dh, dr = np.asarray(t.d_Th(q), float), np.asarray(t.d_Tr(q), float)

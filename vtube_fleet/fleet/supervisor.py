@@ -732,8 +732,16 @@ class Supervisor:
         return (k - 1) / span if span > 0 else math.nan
 
     # -- the procedure -------------------------------------------------------------------------
-    async def _gather_named(self, what: str, coros: Sequence[Any]) -> list[str]:
-        results = await asyncio.gather(*coros, return_exceptions=True)
+    async def _gather_named(self, what: str, coros: Sequence[Any], limit: int | None = None
+                            ) -> list[str]:
+        """One problem line per pilot whose coroutine failed; ``limit``: at most that many
+        running at once (:func:`~vtube_fleet.fleet.onboard.gather_bounded`)."""
+        if limit is None:
+            results = await asyncio.gather(*coros, return_exceptions=True)
+        else:
+            from vtube_fleet.fleet.onboard import gather_bounded
+
+            results = await gather_bounded(coros, limit)
         problems = []
         for p, r in zip(self.pilots, results, strict=True):
             if isinstance(r, asyncio.CancelledError):
@@ -754,18 +762,17 @@ class Supervisor:
         cfg = self.cfg
         loop = asyncio.get_running_loop()
         deadline = loop.time() + cfg.connect_timeout_s
-        window = asyncio.Semaphore(CONNECT_WINDOW)
 
-        async def one(link: VehicleLink) -> None:
-            async with window:
-                left = deadline - loop.time()
-                if left <= 0:
-                    raise LinkTimeout(f"not tried: connect_timeout_s = "
-                                      f"{cfg.connect_timeout_s:g} s ran out while connecting "
-                                      f"the others (at most {CONNECT_WINDOW} at a time)")
-                await link.connect(timeout_s=left)
+        async def one(link: VehicleLink) -> None:  # runs when its turn in the window comes
+            left = deadline - loop.time()
+            if left <= 0:
+                raise LinkTimeout(f"not tried: connect_timeout_s = "
+                                  f"{cfg.connect_timeout_s:g} s ran out while connecting "
+                                  f"the others (at most {CONNECT_WINDOW} at a time)")
+            await link.connect(timeout_s=left)
 
-        problems = await self._gather_named("connect", [one(p.link) for p in self.pilots])
+        problems = await self._gather_named("connect", [one(p.link) for p in self.pilots],
+                                            limit=CONNECT_WINDOW)
         if problems:
             raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles did not connect "
                              f"within connect_timeout_s = {cfg.connect_timeout_s:g} s: "
