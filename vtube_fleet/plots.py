@@ -17,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import EllipseCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Polygon
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.core.tube import Obstacle, Trapezoid
@@ -42,18 +43,37 @@ def _save(fig: Figure, path: str | os.PathLike[str], dpi: int) -> None:
     fig.savefig(os.fspath(path), dpi=dpi)
 
 
+#: :func:`fit_y` draws a positive panel on a log scale when its largest value is more than this
+#: many times its median (an end-of-run jump, e.g. the last robots far apart, would otherwise
+#: flatten the story near the limits to a line)
+LOG_SCALE_RATIO = 5.0
+
+
 def fit_y(ax: Any, curves: Iterable[Any], limits: Iterable[float] = (), pad: float = 0.06
           ) -> tuple[float, float]:
     """Set the y-limits of ``ax`` to contain every finite value of ``curves`` and every limit,
     with a margin of ``pad`` of the span: a curve is never clipped (matplotlib's autoscaling
-    is not relied on). Returns the limits set."""
+    is not relied on). When every value is positive and the largest is more than
+    :data:`LOG_SCALE_RATIO` times the curves' median, the axis is logarithmic (ticks 1-2-5),
+    so both the part near the limits and the jump stay readable. Returns the limits set."""
     vals = [np.asarray(c, dtype=float).ravel() for c in curves]
+    cv = np.concatenate(vals) if vals else np.zeros(0)
+    cv = cv[np.isfinite(cv)]
     vals.append(np.asarray(list(limits), dtype=float))
-    allv = np.concatenate(vals) if vals else np.zeros(0)
+    allv = np.concatenate(vals)
     allv = allv[np.isfinite(allv)]
     if allv.size == 0:
         return ax.get_ylim()
     lo, hi = float(allv.min()), float(allv.max())
+    if lo > 0.0 and cv.size and hi > LOG_SCALE_RATIO * float(np.median(cv)):
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        f = (hi / lo) ** pad
+        lo, hi = lo / f, hi * f
+        ax.set_ylim(lo, hi)
+        return lo, hi
     span = hi - lo if hi > lo else max(abs(hi), 1.0)
     lo, hi = lo - pad * span, hi + pad * span
     ax.set_ylim(lo, hi)
