@@ -242,6 +242,14 @@ def test_fleet_recording_per_vehicle_entities_trails_and_legend(tmp_path: Path) 
     assert len(strip) >= 2 and strip[-1][0] == pytest.approx(0.9 * tick, abs=1e-5)
     span = strip[-1][0] - strip[0][0]
     assert 0 < span <= 0.9 * (3.0 / 0.05) + 1e-6  # at most the last TRAIL_S = 3 s
+    # the whole flight, static (shown at any time cursor): vehicle 1 flew x = 0.9 t for 40 ticks,
+    # vehicle 2 until it left at tick 30; a point every PATH_STEP_S
+    (_, paths), = _column(rows["world/vehicles/1/path"], "LineStrips2D:strips", static=True)
+    (whole,) = paths
+    assert whole[0][0] == pytest.approx(0.0) and whole[-1][0] == pytest.approx(0.9 * 39, abs=1.0)
+    assert len(whole) == pytest.approx(39 * 0.05 / 0.5 + 1, abs=1)
+    (_, paths2), = _column(rows["world/vehicles/2/path"], "LineStrips2D:strips", static=True)
+    assert paths2[0][-1][0] <= 0.9 * 29 + 1e-5
     # only the point is labelled (its id): a trail carrying the phase class must not draw the
     # class label too (in the viewer: "connecting" written over every id)
     (_, shown), = _column(rows["world/vehicles/1"], "LineStrips2D:show_labels", static=True)

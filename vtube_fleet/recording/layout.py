@@ -52,6 +52,8 @@ __all__ = [
     "SUB_TUBE_COLOR",
     "TIMELINE_TICK",
     "TIMELINE_TIME",
+    "PATH_COLOR",
+    "PATH_STEP_S",
     "TRAIL_S",
     "TRAIL_STEP_S",
     "TRIANGLE_COLOR",
@@ -61,6 +63,7 @@ __all__ = [
     "metric_name",
     "stream_entity",
     "vehicle_entity",
+    "vehicle_path_entity",
 ]
 
 #: ``--rerun-connect`` without an address: the viewer's default gRPC proxy.
@@ -301,6 +304,12 @@ TRAIL_S = 3.0
 TRAIL_STEP_S = 0.2
 
 
+#: Whole-flight paths: at close, each vehicle's path (a point every PATH_STEP_S), drawn thin
+#: and faint under the trails, so the whole flight shows at any time cursor.
+PATH_STEP_S = 0.5
+PATH_COLOR = (120, 120, 120, 140)
+
+
 #: Vehicle labels (ids) are shown in the view up to this many vehicles (beyond: hover / click).
 LABELS_MAX_VEHICLES = 30
 
@@ -309,6 +318,11 @@ def vehicle_entity(vehicle_id: int) -> str:
     """Display entity of one vehicle: its point (radius r_s, phase class), velocity arrow and
     trail — a click selects one drone."""
     return f"{E_VEHICLES}/{int(vehicle_id)}"
+
+
+def vehicle_path_entity(vehicle_id: int) -> str:
+    """The whole-flight path of one vehicle (static, written at close), under its entity."""
+    return f"{vehicle_entity(vehicle_id)}/path"
 
 
 #: Event level → rerun TextLog level.

@@ -18,6 +18,7 @@ import threading
 import time
 import uuid
 import weakref
+from array import array
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,8 @@ from vtube_fleet.recording.layout import (
     METRIC_VIEWS,
     METRICS_PREFIX,
     OBSTACLE_COLOR,
+    PATH_COLOR,
+    PATH_STEP_S,
     PHASE_CLASSES,
     SAFETY_ARCHETYPE,
     STATE_ARCHETYPE,
@@ -76,6 +79,7 @@ from vtube_fleet.recording.layout import (
     metric_name,
     stream_entity,
     vehicle_entity,
+    vehicle_path_entity,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -218,6 +222,12 @@ def _never_raises(method: _M) -> _M:
             return None
 
     return wrapper  # type: ignore[return-value]
+
+
+def _end_strip(strip: array, xy: tuple[float, float]) -> None:
+    """End a path strip (flat x, y pairs) at ``xy`` unless it already ends there."""
+    if len(strip) < 2 or (strip[-2], strip[-1]) != xy:
+        strip.extend(xy)
 
 
 @dataclass(frozen=True, eq=False)
@@ -395,6 +405,10 @@ class RerunRecorder:
         self._visible: set[int] = set()
         self._trails: dict[int, list[tuple[float, float, float]]] = {}
         self._trail_next: dict[int, float] = {}
+        # whole-flight paths (written at close): per vehicle, strips of x, y pairs
+        self._paths: dict[int, list[array]] = {}
+        self._path_next: dict[int, float] = {}
+        self._path_tail: dict[int, tuple[float, float] | None] = {}  # its latest position
         self._vehicle_static: set[int] = set()
         self._r_s = math.nan
         self._robots = 0
@@ -483,6 +497,7 @@ class RerunRecorder:
         """At close: frame the view on the tube ∪ the flown extent, and give the metrics that
         appeared their views. Sent only when that differs from the blueprint sent at the start;
         a live viewer keeps the layout it shows (the new one becomes its default)."""
+        self._send_paths()
         frame = self._frame()
         if frame is None:
             return
@@ -490,6 +505,21 @@ class RerunRecorder:
             self._send_frame_keys(frame)
         self._send_blueprint(self._view_bounds(frame), make_active=self.connect_url is None,
                              final=True)
+
+    def _send_paths(self) -> None:
+        """Each vehicle's whole flight, one static thin strip per stretch it was present (a
+        point every PATH_STEP_S), under ``world/vehicles/<id>/path``."""
+        rr = self._rr
+        for vid, strips in self._paths.items():
+            tail = self._path_tail.get(vid)
+            if tail is not None:
+                _end_strip(strips[-1], tail)
+            pts = [np.frombuffer(a, dtype=np.float64).reshape(-1, 2).astype(np.float32)
+                   for a in strips if len(a) >= 4]
+            if pts:
+                self._rec.log(vehicle_path_entity(vid), rr.LineStrips2D(
+                    pts, colors=[PATH_COLOR], radii=[rr.Radius.ui_points(0.8)],
+                    draw_order=28.0), static=True)
 
     def _frame(self) -> tuple[float, float, float, float] | None:
         """The region a user should see: the tube ∪ everything flown so far."""
@@ -1068,6 +1098,9 @@ class RerunRecorder:
         an empty one where the vehicle disappears."""
         trail = self._trails.setdefault(vid, [])
         nxt = self._trail_next.get(vid, -math.inf)
+        path = self._paths.setdefault(vid, [array("d")])
+        pnext = self._path_next.get(vid, -math.inf)
+        tail = self._path_tail.get(vid)
         rows: list[int] = []
         strips: list[np.ndarray] = []
         strip_cls: list[int] = []
@@ -1077,6 +1110,11 @@ class RerunRecorder:
             if not present[r]:
                 trail.clear()
                 nxt = -math.inf
+                if tail is not None:  # gone: the stretch ends where it was last seen
+                    _end_strip(path[-1], tail)
+                    tail = None
+                if len(path[-1]):
+                    path.append(array("d"))  # the path resumes as a new strip
                 rows.append(r)
                 lens.append(0)
                 continue
@@ -1084,6 +1122,10 @@ class RerunRecorder:
             c = int(cls[k])
             k += 1
             tr = float(t[r])
+            tail = (x, y)
+            if tr >= pnext:
+                path[-1].extend(tail)
+                pnext = tr + PATH_STEP_S
             if tr < nxt:
                 continue
             trail.append((tr, x, y))
@@ -1096,6 +1138,8 @@ class RerunRecorder:
                 strips.append(np.array([(q[1], q[2]) for q in trail], dtype=np.float32))
                 strip_cls.append(c)
         self._trail_next[vid] = nxt
+        self._path_next[vid] = pnext
+        self._path_tail[vid] = tail
         if not rows:
             return
         rr = self._rr
