@@ -33,14 +33,9 @@ PX4_SITL_3 = ROOT / "configs" / "px4_sitl_3.toml"
 COMPACT_12_PATH = Path(__file__).parent / "data" / "missions" / "compact_12.toml"
 COMPACT_12 = COMPACT_12_PATH.read_text()
 
-STRAIGHT = """
-[tube]
-p_h0 = [0.0, 10.0]
-p_h1 = [{length}, 10.0]
-p_r0 = [0.0, -10.0]
-p_r1 = [{length}, -10.0]
-
-[robots]
+#: The vehicles, controller and origin the generated missions share (:data:`STRAIGHT`,
+#: :func:`grid_mission`); ``{positions}`` to fill in, then the rest of ``[mission]``.
+FLEET_BLOCK = """[robots]
 r_s = 0.3
 r_a = 1.0
 v_min = 0.3
@@ -55,7 +50,16 @@ v_max_prime = 0.5
 origin_lat_deg = 47.397742
 origin_lon_deg = 8.545594
 origin_alt_m = 488.0
-heading_deg = {heading_deg}
+"""
+
+STRAIGHT = """
+[tube]
+p_h0 = [0.0, 10.0]
+p_h1 = [{length}, 10.0]
+p_r0 = [0.0, -10.0]
+p_r1 = [{length}, -10.0]
+
+""" + FLEET_BLOCK + """heading_deg = {heading_deg}
 altitude_m = 3.0
 climb_speed_m_s = 1.5
 on_complete = "{on_complete}"
@@ -123,22 +127,7 @@ p_r1 = [{length}, {-half - 0.5}]
 center = [{ob_x}, 0.0]
 radius = 0.5
 
-[robots]
-r_s = 0.3
-r_a = 1.0
-v_min = 0.3
-v_max = 1.6
-positions = {json.dumps(positions)}
-
-[controller]
-v = 1.0
-v_max_prime = 0.5
-
-[mission]
-origin_lat_deg = 47.397742
-origin_lon_deg = 8.545594
-origin_alt_m = 488.0
-heading_deg = 0.0
+{FLEET_BLOCK.format(positions=json.dumps(positions))}heading_deg = 0.0
 altitude_m = 3.0
 rate_hz = {rate_hz}
 climb_speed_m_s = 1.5

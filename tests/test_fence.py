@@ -12,13 +12,12 @@ import os
 import signal
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
 from fleet_ports import free_ports
-from missions import MOCK_FLEET, NARROWING, straight_mission, write_mission
+from missions import MISSION_TABLE, MOCK_FLEET, NARROWING, straight_mission, write_mission
 
 import sim_stub.fence
 from sim_stub import MockFleet
@@ -94,15 +93,7 @@ def test_narrowing_tube_fence_covers_the_tube_and_goes_straight_on() -> None:
 def test_fence_items_are_the_geometry_in_wgs84(tmp_path: Path) -> None:
     m = write_mission(tmp_path, NARROWING.replace("[robots]", "[[obstacles]]\ncenter = [10.0, "
                                                   "0.0]\nradius = 0.5\n\n[robots]")
-                      + textwrap.dedent("""
-        [mission]
-        origin_lat_deg = 47.397742
-        origin_lon_deg = 8.545594
-        origin_alt_m = 488.0
-        heading_deg = 30.0
-        altitude_m = 3.0
-        fence_margin_m = 0.5
-        """))
+                      + MISSION_TABLE + "fence_margin_m = 0.5\n")
     g = fence_geometry(m)
     items = fence_items(m, g)
     k = len(g.polygon)

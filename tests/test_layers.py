@@ -82,6 +82,36 @@ def test_core_is_pure(path: Path) -> None:
     assert not bad, "\n".join(bad)
 
 
+#: docs/architecture.md's layer table below the runtime: what each may import of vtube_fleet
+#: (besides itself). The runtime layers (link, bus, recording, fleet, sim, check) may import
+#: these; only the cli imports the cli (test below).
+BELOW_RUNTIME: dict[str, set[str]] = {
+    "errors": set(), "outcome": set(), "state": set(),
+    "frames": {"errors"},
+    "config": {"core", "errors", "frames"},
+    "plots": {"core"},
+    "artifacts": {"plots"},
+}
+#: The runtime layers that may not import each other (fleet and check sit above them).
+RUNTIME_BASE: dict[str, set[str]] = {
+    "bus": {"errors", "state"},
+    "link": {"config", "errors"},
+    "recording": {"artifacts", "config", "core", "errors", "plots"},
+    "sim": {"config", "core", "errors"},
+}
+
+
+@pytest.mark.parametrize("layer", sorted(BELOW_RUNTIME | RUNTIME_BASE))
+def test_the_layer_table_holds(layer: str) -> None:
+    allowed = (BELOW_RUNTIME | RUNTIME_BASE)[layer] | {layer}
+    top = PACKAGE / layer
+    paths = _files(top) if top.is_dir() else [PACKAGE / f"{layer}.py"]
+    bad = [f"{_rel(path)}:{line} imports {mod}" for path in paths
+           for line, mod in _imports(path)
+           if mod.startswith("vtube_fleet.") and mod.split(".")[1] not in allowed]
+    assert not bad, "\n".join(bad)
+
+
 def test_only_cli_imports_cli() -> None:
     bad = []
     for path in _files(PACKAGE):

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.recording.layout import (
     METRIC_COLORS,
     OBSTACLE_COLOR,
@@ -549,7 +550,8 @@ def test_vehicle_rows_from_pilots() -> None:
               pilot(1, Phase.IN_TUBE, (8.0, 6.0), 99.5),
               pilot(2, Phase.READY, (5.0, 2.5), None),  # on the ground: no neighbour
               pilot(3, Phase.LANDING, (40.0, 6.0), 100.0)]  # out of the tube: no leg
-    rows = vehicle_rows(pilots, tube, [Obstacle(np.array([5.0, 5.0]), 1.0)], 0.25,
+    rows = vehicle_rows(pilots, tube, [Obstacle(np.array([5.0, 5.0]), 1.0)],
+                        SafetyLimits(0.25, 1.0, 2.0),
                         now_mono=100.0)
     assert [r.phase for r in rows] == ["in_tube", "in_tube", "ready", "landing"]
     assert rows[0].speed_m_s == pytest.approx(5.0)

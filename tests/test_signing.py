@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
+from tests.gcs_wait import first_message
 from tests.missions import straight_mission, write_mission
 from vtube_fleet.errors import UserError
 from vtube_fleet.link import LinkError, LinkTimeout, MavlinkLink, open_links
@@ -112,23 +113,8 @@ class Gcs(asyncio.DatagramProtocol):
         self.transport.sendto(buf, self.v.bind_address)
 
     async def wait(self, pred, timeout: float = 10.0, what: str = "") -> object:
-        i = len(self.msgs)
-
-        async def scan() -> object:
-            nonlocal i
-            while True:
-                while i < len(self.msgs):
-                    m = self.msgs[i]
-                    i += 1
-                    if pred(m):
-                        return m
-                self._new.clear()
-                await self._new.wait()
-
-        try:
-            return await asyncio.wait_for(scan(), timeout)
-        except TimeoutError:
-            raise AssertionError(f"no {what} within {timeout} s") from None
+        return await first_message(self.msgs, self._new, pred, since=len(self.msgs),
+                                   timeout=timeout, what=what)
 
     async def command(self, cmd: int, *params: float, signer: mav.MAVLink | None = None
                       ) -> tuple[object, bytes]:

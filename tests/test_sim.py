@@ -366,10 +366,12 @@ def test_rk4_step_is_fourth_order() -> None:
 
 def test_margin_guard_sees_crossings_between_end_points() -> None:
     from vtube_fleet.core.integrate import MarginGuard
+    from vtube_fleet.core.metrics import SafetyLimits
     from vtube_fleet.core.tube import Obstacle, Trapezoid
 
     tube = Trapezoid([0, 5], [20, 5], [0, -5], [20, -5])
-    guard = MarginGuard(tube, (Obstacle(center=np.array([10.0, 0.0]), radius=0.5),), 0.25)
+    guard = MarginGuard(tube, (Obstacle(center=np.array([10.0, 0.0]), radius=0.5),),
+                        SafetyLimits(0.25, 1.0, 2.0))
     pairs = (np.array([0]), np.array([1]))
     # two robots 1 m apart swap places: both end points are safe, the segment is not
     z0 = np.array([2.0 + 0j, 3.0 + 0j])

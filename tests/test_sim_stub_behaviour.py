@@ -20,6 +20,7 @@ from sim_stub import Faults, MockFleet, MockVehicle
 from sim_stub.codec import DatagramParser
 from sim_stub.geo import project
 from sim_stub.ports import free_port_scheme
+from tests.gcs_wait import first_message
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -70,23 +71,8 @@ class Gcs(asyncio.DatagramProtocol):
         self, pred: Callable[[object], bool], timeout: float = 10.0, since: int = 0, what: str = ""
     ) -> object:
         """First message (at index >= since) satisfying ``pred``."""
-        i = since
-
-        async def scan() -> object:
-            nonlocal i
-            while True:
-                while i < len(self.msgs):
-                    m = self.msgs[i][1]
-                    i += 1
-                    if pred(m):
-                        return m
-                self._new.clear()
-                await self._new.wait()
-
-        try:
-            return await asyncio.wait_for(scan(), timeout)
-        except TimeoutError:
-            raise AssertionError(f"no {what or 'matching message'} within {timeout} s") from None
+        return await first_message(self.msgs, self._new, pred, since=since, timeout=timeout,
+                                   what=what, message=lambda e: e[1])
 
     async def wait_type(self, name: str, pred=lambda m: True, **kw) -> object:
         return await self.wait(lambda m: m.get_type() == name and pred(m), what=name, **kw)

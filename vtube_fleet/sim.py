@@ -59,7 +59,13 @@ from vtube_fleet.core.integrate import (
     adaptive_step,
     rk4_step,
 )
-from vtube_fleet.core.metrics import METRIC_KEYS, SafetyMonitor, StepMetrics, SummaryAccumulator
+from vtube_fleet.core.metrics import (
+    METRIC_KEYS,
+    SafetyLimits,
+    SafetyMonitor,
+    StepMetrics,
+    SummaryAccumulator,
+)
 from vtube_fleet.core.neighbours import VerletPairs
 from vtube_fleet.core.partition import Partition, PartitionError, SubTubeTracker
 from vtube_fleet.core.validation import ScenarioError, validate_scenario
@@ -412,9 +418,9 @@ class _Run:
         track_move = 2.0 * max_move if integ == "rk4" else max_move
         adaptive = integ == "adaptive"
         rk4 = integ == "rk4"
-        guard = MarginGuard(tube, sc.obstacles, p.r_s)
+        guard = MarginGuard(tube, sc.obstacles, SafetyLimits.from_params(p))
         thr_single = guard.single_threshold(max_move)
-        thr_pair = guard.pair_threshold(max_move) + 2.0 * p.r_s  # on the pair distance
+        thr_pair = guard.pair_threshold(max_move) + guard.limits.pair_m  # on the pair distance
         next_single = 0
         near_single = False
         istats = self.istats

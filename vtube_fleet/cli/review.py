@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.recording.review import ReviewResult, _recorded_every, review
+from vtube_fleet.recording.review import ReviewResult, recorded_every, review
 
 __all__ = [
     "register",
@@ -33,7 +33,7 @@ def _print_text(res: ReviewResult) -> None:
     d = res.data
     meta = d.meta
     span = f"{d.t_s[0]:.3f}–{d.t_s[-1]:.3f} s" if len(d.t_s) else "no ticks"
-    every = _recorded_every(d)
+    every = recorded_every(d)
     print(f"recording  {d.path}")
     print(f"run        {d.kind}, source {meta.get('source') or '-'}, "
           f"{int(meta.get('robots', len(d.ids)))} robots, positions recorded every "

@@ -16,7 +16,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from vtube_fleet.core.text import compact_number
+from vtube_fleet.core.text import plain_number
 
 __all__ = [
     "FINITE",
@@ -29,15 +29,9 @@ __all__ = [
 ]
 
 
-def _num(x: float) -> str:
-    """A bound as written in a message: 50, 0.5, 1.5 (no trailing zeros)."""
-    if float(x).is_integer():
-        return str(int(x))
-    return f"{x:g}" if abs(x) < 1e6 else compact_number(x)
-
-
 def show_value(value: Any) -> str:
-    """A config value as the user wrote it (TOML/JSON spelling: ``true``, ``"abc"``, ``-5``)."""
+    """A config value as the user wrote it (TOML/JSON spelling: ``true``, ``"abc"``, ``-5``;
+    ``nan`` / ``inf``; a TOML date as its text), for every config error message."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, dict):
@@ -45,7 +39,7 @@ def show_value(value: Any) -> str:
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     try:
-        text = json.dumps(value)
+        text = json.dumps(value, default=str)
     except (TypeError, ValueError):
         text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."  # an error is one readable line
@@ -69,12 +63,12 @@ class Bound:
         """The bound as the docs write it: ``> 0``, ``>= 0``, ``(0, 50]``, ``finite``."""
         lo, hi = self.low, self.high
         if lo is not None and hi is not None:
-            return (f"{'[' if self.low_inclusive else '('}{_num(lo)}, "
-                    f"{_num(hi)}{']' if self.high_inclusive else ')'}")
+            return (f"{'[' if self.low_inclusive else '('}{plain_number(lo)}, "
+                    f"{plain_number(hi)}{']' if self.high_inclusive else ')'}")
         if lo is not None:
-            return (">= " if self.low_inclusive else "> ") + _num(lo)
+            return (">= " if self.low_inclusive else "> ") + plain_number(lo)
         if hi is not None:
-            return ("<= " if self.high_inclusive else "< ") + _num(hi)
+            return ("<= " if self.high_inclusive else "< ") + plain_number(hi)
         return "finite"
 
     def _interval_text(self) -> str:
@@ -87,13 +81,13 @@ class Bound:
         if self.low is not None and not (x >= self.low if self.low_inclusive else x > self.low):
             if self.interval:
                 return f"must be {self._interval_text()}"
-            return f"must be {'>=' if self.low_inclusive else '>'} {_num(self.low)}"
+            return f"must be {'>=' if self.low_inclusive else '>'} {plain_number(self.low)}"
         if self.high is not None and not (x <= self.high if self.high_inclusive
                                           else x < self.high):
             if self.interval:
                 return f"must be {self._interval_text()}"
             why = f" ({self.why})" if self.why else ""
-            return f"must be {'<=' if self.high_inclusive else '<'} {_num(self.high)}{why}"
+            return f"must be {'<=' if self.high_inclusive else '<'} {plain_number(self.high)}{why}"
         return None
 
 
@@ -207,7 +201,7 @@ class Key:
             return "true" if self.default else "false"
         if isinstance(self.default, str):
             return f'`"{self.default}"`'
-        return _num(float(self.default))
+        return plain_number(float(self.default))
 
     def bound_cell(self) -> str:
         note = self.bound_note

@@ -227,10 +227,6 @@ def mission_keys_table() -> str:
     return markdown_table(MISSION_KEYS)
 
 
-def _show(value: Any) -> str:
-    return show_value(value)
-
-
 def parse_mission_config(table: Mapping[str, Any], source: str = "<mission>") -> MissionConfig:
     """Parse a decoded ``[mission]`` table against :data:`MISSION_KEYS`, then the relations
     between keys; raise :class:`ConfigError` naming the key, the value and the bound."""
@@ -349,7 +345,7 @@ def load_mission(path: str | os.PathLike[str]) -> Mission:
     if scenario.robots.model != "single_integrator":
         raise ConfigError(f"{source}: [robots].model: the fleet flies multicopters, which take "
                           f"velocity setpoints (single_integrator); got "
-                          f"{_show(scenario.robots.model)}")
+                          f"{show_value(scenario.robots.model)}")
     if scenario.robots.v_max > PX4_MAX_HORIZONTAL_M_S:
         raise ConfigError(f"{source}: [robots].v_max: must be <= {PX4_MAX_HORIZONTAL_M_S:g} "
                           f"(PX4's MPC_XY_VEL_MAX default: faster setpoints are clipped), got "

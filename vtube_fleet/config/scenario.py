@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.config.keys import POSITIVE, Bound, Key, markdown_table
+from vtube_fleet.config.keys import POSITIVE, Bound, Key, markdown_table, show_value
 from vtube_fleet.core.integrate import DEFAULT_INTEGRATOR, INTEGRATORS
 from vtube_fleet.core.params import (
     CONTROLLER_DEFAULTS,
@@ -374,21 +374,6 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _show(value: Any) -> str:
-    """A value as the user wrote it (TOML-ish), for error messages."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, dict):
-        return "a table"
-    try:
-        text = json.dumps(value, default=str)
-    except (TypeError, ValueError):
-        text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 #: a point ``[x, y]`` (positions of ``[robots].positions``)
 _POINT = Key("point", "point", "a point", "m")
 
@@ -431,7 +416,7 @@ class _Parser:
             return {}
         value = data[key]
         if not isinstance(value, dict):
-            raise self.error(where, f"expected a table, got {_show(value)}")
+            raise self.error(where, f"expected a table, got {show_value(value)}")
         return value
 
     def value(self, table: Mapping[str, Any], key: Key, section: str) -> Any:
@@ -483,7 +468,7 @@ class _Parser:
                         ) -> tuple[Obstacle, ...]:
         if not isinstance(value, list) or not all(isinstance(o, dict) for o in value):
             raise self.error(
-                "[[obstacles]]", f"expected an array of tables, got {_show(value)}"
+                "[[obstacles]]", f"expected an array of tables, got {show_value(value)}"
             )
         out = []
         for idx, o in enumerate(value):
@@ -505,15 +490,13 @@ class _Parser:
         sec = "[robots]"
         v = self.section_values(r, "robots", sec, skip=("nid_distance",))
         model, r_s, r_a = v["model"], v["r_s"], v["r_a"]
-        if not r_a > r_s:
-            raise self.error(
-                self.name(sec, "r_a"), f"must exceed r_s = {r_s:g} (paper: r_a > r_s), got {r_a:g}"
-            )
         v_min, v_max = v["v_min"], v["v_max"]
-        if not v_max > v_min:
-            raise self.error(
-                self.name(sec, "v_max"), f"must exceed v_min = {v_min:g}, got {v_max:g}"
-            )
+        robot_values = {"r_s": r_s, "r_a": r_a, "v_min": v_min, "v_max": v_max}
+        problems = parameter_problems(robot_values)  # the one domain check (core/params.py)
+        if problems:  # its messages start with the parameter's name: the key to blame
+            key = problems[0].split(" ", 1)[0]
+            raise self.error(self.name(sec, key) if key in robot_values else sec,
+                             "; ".join(problems))
 
         has_grid, has_pos = "grid" in r, "positions" in r
         if has_grid and has_pos:
@@ -524,7 +507,7 @@ class _Parser:
             gsec = self.name(sec, "grid")
             g = r["grid"]
             if not isinstance(g, dict):
-                raise self.error(gsec, f"expected a table, got {_show(g)}")
+                raise self.error(gsec, f"expected a table, got {show_value(g)}")
             gv = self.section_values(g, "robots.grid", gsec)
             if gv["rows"] * gv["cols"] > MAX_ROBOTS:
                 raise self.error(self.name(gsec, "cols"),
@@ -535,7 +518,8 @@ class _Parser:
             psec = self.name(sec, "positions")
             pv = r["positions"]
             if not isinstance(pv, list) or not pv:
-                raise self.error(psec, f"expected a non-empty array of [x, y], got {_show(pv)}")
+                raise self.error(psec, "expected a non-empty array of [x, y], got "
+                                 f"{show_value(pv)}")
             if len(pv) > MAX_ROBOTS:
                 raise self.error(psec, f"at most {MAX_ROBOTS} robots (the documented ceiling of "
                                        f"the swarm), got {len(pv)}")
@@ -556,18 +540,19 @@ class _Parser:
                 headings = np.full(m, math.atan2(tube.n_c[1], tube.n_c[0]))
             elif _is_number(hv):
                 if not math.isfinite(hv):
-                    raise self.error(hsec, f"expected a finite number, got {_show(hv)}")
+                    raise self.error(hsec, f"expected a finite number, got {show_value(hv)}")
                 headings = np.full(m, float(hv))
             elif isinstance(hv, list):
                 if len(hv) != m or not all(_is_number(h) for h in hv):
                     raise self.error(
-                        hsec, f"expected a number or {m} numbers (one per robot), got {_show(hv)}"
+                        hsec, f"expected a number or {m} numbers (one per robot), got "
+                        f"{show_value(hv)}"
                     )
                 headings = np.array(hv, dtype=float)
                 if not np.all(np.isfinite(headings)):
-                    raise self.error(hsec, f"expected finite numbers, got {_show(hv)}")
+                    raise self.error(hsec, f"expected finite numbers, got {show_value(hv)}")
             else:
-                raise self.error(hsec, f"expected a number or an array, got {_show(hv)}")
+                raise self.error(hsec, f"expected a number or an array, got {show_value(hv)}")
         else:
             for key in ("nid_distance", "headings"):
                 if key in r:

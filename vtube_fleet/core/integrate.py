@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
@@ -84,14 +85,16 @@ class AdaptiveStats:
 @dataclass(frozen=True, eq=False)
 class MarginGuard:
     """The barrier margins of Theorem 1 in the MAIN tube: pairs ‖p_ij‖ − 2 r_s, legs
-    d_Th − r_s and d_Tr − r_s (dtl)/(dtr), obstacle centres ‖p − p_o,k‖ − (r_o,k + r_s).
+    d_Th − r_s and d_Tr − r_s (dtl)/(dtr), obstacle centres ‖p − p_o,k‖ − (r_o,k + r_s): each
+    distance minus its :class:`~vtube_fleet.core.metrics.SafetyLimits` limit.
 
-    ``frac``: the largest fraction of a positive margin one (sub-)step may consume.
+    ``frac``: the largest fraction of a positive margin one (sub-)step may consume (the
+    integrator's own step-size rule, not a safety limit).
     """
 
     tube: Trapezoid
     obstacles: Sequence[Obstacle]
-    r_s: float
+    limits: SafetyLimits
     frac: float = ADAPTIVE_FRACTION
     _g: dict = field(init=False, repr=False)
 
@@ -100,12 +103,14 @@ class MarginGuard:
             raise ValueError(f"frac must be in (0, 1), got {self.frac}")
         t = self.tube
         c = np.array([o.center for o in self.obstacles], dtype=float).reshape(-1, 2)
-        r = np.array([o.radius for o in self.obstacles], dtype=float)
+        lim = self.limits
+        orad = np.array([lim.obstacle_center_m(o.radius) for o in self.obstacles], dtype=float)
         object.__setattr__(self, "_g", {
             # d_Th(z) − r_s = Re(z conj(n_h)) − (n_hᵀp_h1 + r_s); same for d_Tr
-            "nh": complex(t.n_h[0], -t.n_h[1]), "bh": float(t.n_h @ t.p_h1) + self.r_s,
-            "nr": complex(t.n_r[0], -t.n_r[1]), "br": float(t.n_r @ t.p_r1) + self.r_s,
-            "oc": (c[:, 0] + 1j * c[:, 1])[None, :], "orad": (r + self.r_s)[None, :],
+            "nh": complex(t.n_h[0], -t.n_h[1]), "bh": float(t.n_h @ t.p_h1) + lim.leg_m,
+            "nr": complex(t.n_r[0], -t.n_r[1]), "br": float(t.n_r @ t.p_r1) + lim.leg_m,
+            "oc": (c[:, 0] + 1j * c[:, 1])[None, :], "orad": orad[None, :],
+            "pair": lim.pair_m,
         })
 
     # ----- cheap bounds: is a guarded step needed at all? ------------------------------------
@@ -131,7 +136,7 @@ class MarginGuard:
         return 2.0 * move / self.frac
 
     def pair_margin(self, min_pair_distance: float) -> float:
-        return min_pair_distance - 2.0 * self.r_s
+        return min_pair_distance - self._g["pair"]
 
     # ----- the exact test of one (sub-)step ---------------------------------------------------
     def accepts(self, z0: np.ndarray, z1: np.ndarray, pairs: Pairs) -> bool:
@@ -154,8 +159,8 @@ class MarginGuard:
         I, J = pairs
         if I.shape[0]:
             r0 = z0[I] - z0[J]
-            m0 = np.abs(r0) - 2.0 * self.r_s
-            dmin = _closest(r0, (z1[I] - z1[J]) - r0) - 2.0 * self.r_s
+            m0 = np.abs(r0) - g["pair"]
+            dmin = _closest(r0, (z1[I] - z1[J]) - r0) - g["pair"]
             if np.any((m0 > 0) & (dmin < keep * m0)):
                 return False
         return True

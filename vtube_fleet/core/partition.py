@@ -45,7 +45,9 @@ __all__ = [
     "DEFAULT_APEX_FACTOR",
     "LOCATE_TOL",
     "Partition",
+    "PartitionBuilder",
     "PartitionError",
+    "SubTubeNode",
     "SubTubeTracker",
     "Triangle",
     "Violation",
@@ -633,8 +635,8 @@ class SubTubeTracker:
 
 
 @dataclass
-class _Node:
-    """A sub-tube under construction."""
+class SubTubeNode:
+    """A sub-tube under construction (also the apex planner's, ``core/plan.py``)."""
 
     tube: Trapezoid
     xs: float  # −inf when the start base is T's
@@ -789,11 +791,12 @@ def partition(
         return plan_partition(tube, obstacles, params, strict=strict, keep_out=keep_out)
     if triangles_about not in ("O'", "O"):
         raise ValueError(f"triangles_about must be \"O'\" or \"O\", got {triangles_about!r}")
-    return _Builder(tube, obstacles, params, strict, about=triangles_about).run()
+    return PartitionBuilder(tube, obstacles, params, strict, about=triangles_about).run()
 
 
-class _Builder:
-    """The recursive split of partition §3, one obstacle at a time."""
+class PartitionBuilder:
+    """The recursive split of partition §3, one obstacle at a time (:func:`partition`; the
+    apex planner of ``core/plan.py`` drives it split by split)."""
 
     def __init__(self, tube: Trapezoid, obstacles: Sequence[Obstacle],
                  params: ControllerParams, strict: bool, about: str = "O'") -> None:
@@ -807,7 +810,7 @@ class _Builder:
         self.L = tube.length
         self.a_max = alpha_max(params)
         self.warnings: list[Violation] = []
-        self.nodes = [_Node(tube, -math.inf, math.inf, "the main tube", None)]
+        self.nodes = [SubTubeNode(tube, -math.inf, math.inf, "the main tube", None)]
         self.triangles: dict[int, Triangle] = {}
 
     # --- helpers ------------------------------------------------------------------------
@@ -1031,8 +1034,8 @@ class _Builder:
 
         before = Trapezoid(Q.p_h0, lh(x_apex), Q.p_r0, lr(x_apex), name=f"before #{num}")
         after = Trapezoid(hB, Q.p_h1, rB, Q.p_r1, name=f"after #{num}")
-        new = [_Node(before, par.xs, x_apex, f"the tube before obstacle #{num}", i)]
-        new += [_Node(t, x_apex, xB, origin, i) for t, origin in sides]
-        new.append(_Node(after, xB, par.xe, f"the tube after obstacle #{num}", i))
+        new = [SubTubeNode(before, par.xs, x_apex, f"the tube before obstacle #{num}", i)]
+        new += [SubTubeNode(t, x_apex, xB, origin, i) for t, origin in sides]
+        new.append(SubTubeNode(after, xB, par.xe, f"the tube after obstacle #{num}", i))
         nodes[k_par:k_par + 1] = new
         self.triangles[i] = tri

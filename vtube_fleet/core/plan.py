@@ -44,9 +44,9 @@ from vtube_fleet.core.partition import (
     DEFAULT_APEX_FACTOR,
     LOCATE_TOL,
     Partition,
+    PartitionBuilder,
     PartitionError,
-    _Builder,
-    _Node,
+    SubTubeNode,
     h_min,
     lookahead_depth,
 )
@@ -179,7 +179,7 @@ def tube_margins(tube: Trapezoid, k_t: float, r_a: float, r_s: float) -> list[tu
 # ----------------------------------------------------------------------------------------------
 # the planner
 # ----------------------------------------------------------------------------------------------
-def _locate_among(nodes: Sequence[_Node], b: _Builder, p: np.ndarray) -> int:
+def _locate_among(nodes: Sequence[SubTubeNode], b: PartitionBuilder, p: np.ndarray) -> int:
     """The §5 rule (:meth:`Partition.locate`) for one point among a few sub-tubes: half-open
     slabs (a point within LOCATE_TOL upstream of a base counts as on it), the least violation
     max(−d_Th, −d_Tr), ties (up to LOCATE_TOL) to the first."""
@@ -211,7 +211,7 @@ class _Planner:
         for ob in obstacles:
             if isinstance(ob.apex_distance, str) and ob.apex_distance != APEX_AUTO:
                 raise ValueError(f"apex_distance {ob.apex_distance!r}")
-        self.b = _Builder(tube, self.obstacles, params, strict)
+        self.b = PartitionBuilder(tube, self.obstacles, params, strict)
         self.order = self.b.order()
         self.lo: dict[int, float] = {}
         self.hi: dict[int, float] = {}
@@ -235,10 +235,10 @@ class _Planner:
         self._margin_memo: dict[int, tuple[float, Margin]] = {}
         self._tri_memo: dict[int, tuple[int, float]] = {}
         self._hold: list = []  # keeps memoised objects alive (ids are keys)
-        self._descend: dict[tuple, _Node] = {}
+        self._descend: dict[tuple, SubTubeNode] = {}
         self._ob_memo: dict[tuple[int, float], Obstacle] = {}
-        self._intern: dict[tuple, _Node] = {}
-        self.kids: dict[int, tuple[_Node, ...]] = {}
+        self._intern: dict[tuple, SubTubeNode] = {}
+        self.kids: dict[int, tuple[SubTubeNode, ...]] = {}
         self.root_node = self.b.nodes[0]
 
     # --- one trial ----------------------------------------------------------------------
@@ -264,7 +264,7 @@ class _Planner:
         b.nodes, b.triangles, b.warnings = list(st[0]), dict(st[1]), list(st[2])
         self.kids = dict(st[3])
 
-    def _parent(self, i: int) -> _Node:
+    def _parent(self, i: int) -> SubTubeNode:
         """The leaf sub-tube containing obstacle ``i``'s centre, found by descending the split
         tree (the §5 rule among the children of each split; cached per children tuple)."""
         node = self.root_node
@@ -280,7 +280,7 @@ class _Planner:
             node = nxt
 
     def _split(self, i: int, obs: list[Obstacle]) -> None:
-        """``_Builder.split`` of obstacle ``i``, reused when its parent sub-tube (the same
+        """``PartitionBuilder.split`` of obstacle ``i``, reused when its parent sub-tube (the same
         object) and h are unchanged; the new sub-tubes are interned by geometry, so a tube
         that does not depend on h_i (the one after the triangle) stays the same object and
         what is built inside it is reused too."""
@@ -319,7 +319,7 @@ class _Planner:
             b.triangles[i] = tri
         b.warnings += list(warns)
 
-    def _node_margin(self, nd: _Node) -> tuple[float, Margin]:
+    def _node_margin(self, nd: SubTubeNode) -> tuple[float, Margin]:
         got = self._margin_memo.get(id(nd))
         if got is None:
             p = self.params
@@ -550,5 +550,5 @@ def plan_partition(tube: Trapezoid, obstacles: Sequence[Obstacle], params, *,
     partition` does, with the planner's best choice); :attr:`Partition.apex` holds the plan."""
     obstacles = tuple(obstacles)
     plan = plan_apex(tube, obstacles, params, keep_out, strict)
-    part = _Builder(tube, resolved_obstacles(obstacles, plan), params, strict).run()
+    part = PartitionBuilder(tube, resolved_obstacles(obstacles, plan), params, strict).run()
     return dataclasses.replace(part, apex=plan)

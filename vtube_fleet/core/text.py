@@ -10,7 +10,7 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.tube import Obstacle
 
-__all__ = ["compact_number", "obstacle_label", "point_text"]
+__all__ = ["compact_number", "obstacle_label", "plain_number", "point_text"]
 
 
 def compact_number(x: float, nd: int = 3) -> str:
@@ -20,6 +20,14 @@ def compact_number(x: float, nd: int = 3) -> str:
     s = f"{x:.{nd}f}".rstrip("0")
     s = s + "0" if s.endswith(".") else s
     return "0.0" if s == "-0.0" else s
+
+
+def plain_number(x: float) -> str:
+    """A bound or default as written in a message or a docs table: 50, 0.5, 1.5 (no trailing
+    zeros, unlike :func:`compact_number`'s 50.0); beyond 1e6 in :func:`compact_number`."""
+    if float(x).is_integer():
+        return str(int(x))
+    return f"{x:g}" if abs(x) < 1e6 else compact_number(x)
 
 
 def point_text(p: np.ndarray) -> str:

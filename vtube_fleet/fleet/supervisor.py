@@ -66,7 +66,7 @@ from vtube_fleet.core.metrics import (
 )
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.partition import PartitionError
-from vtube_fleet.core.validation import validate_scenario
+from vtube_fleet.core.validation import flown_symbols, validate_scenario
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import (
     Agent,
@@ -93,7 +93,7 @@ from vtube_fleet.fleet.pilot import (
 from vtube_fleet.fleet.view import FleetStatus, FleetView, vehicle_rows
 from vtube_fleet.link.base import LinkTimeout, VehicleLink
 from vtube_fleet.outcome import EXIT_INCOMPLETE, exit_code
-from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, Phase
+from vtube_fleet.state import AIRBORNE_PHASES, COUNTED_AIRBORNE_PHASES, STOPPED_PHASES, Phase
 
 __all__ = [
     "CONNECT_WINDOW",
@@ -169,20 +169,21 @@ class TickTrace:
 
 def preflight_report(
     mission: Mission,
-    params: Any,
+    flown: Any,
     positions: np.ndarray,
     names: Sequence[str],
     *,
     where: str = "on the ground",
 ) -> tuple[Any, list[str]]:
-    """Validate the (inflated) scenario with the vehicles' actual positions.
+    """Validate the (inflated) scenario with the vehicles' actual positions; ``flown``: the
+    parameters with the flown radii r_s', r_a' (the plan's ``flown``).
 
     Returns (partition or None, problems). Each problem is one line naming the vehicles
     (``robot i`` of :func:`vtube_fleet.core.validation.validate_scenario` becomes ``vehicle i
     (endpoint)``) with the numbers.
     """
     sc = mission.scenario
-    part, violations = validate_scenario(sc.tube, sc.obstacles, params, positions,
+    part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions,
                                          keep_out=mission.slots)  # "auto": plan on the slots
 
     def one(text: str) -> str:
@@ -194,7 +195,8 @@ def preflight_report(
         msg = re.sub(r"\brobots (\d+) and (\d+)",
                      lambda m: f"{one(m.group(1))} and {one(m.group(2))}", v.message)
         msg = re.sub(r"\brobot (\d+)", lambda m: one(m.group(1)), msg)
-        problems.append(f"{msg} ({where}, r_s' = {params.r_s:.3f} m)")
+        problems.append(f"{flown_symbols(msg)} ({where}, r_s' = {flown.r_s:.3f} m: the "
+                        f"physical r_s = {sc.robots.r_s:g} m + δ)")
     return part, problems
 
 
@@ -450,7 +452,7 @@ class Supervisor:
         if not silent:
             return None
         others = [p for p in self.pilots if p not in silent
-                  and (p.phase in AIRBORNE_PHASES or p.phase == Phase.LOST)]
+                  and p.phase in COUNTED_AIRBORNE_PHASES]
         max_age = self.cfg.neighbour_max_age_s
         since = -math.inf if self.listening_since is None else self.listening_since
         # (after a stall of our own loop, silence is counted from when it resumed)
@@ -539,8 +541,7 @@ class Supervisor:
                 self.tube_start_s is not None and p.has_position()
                 and (p.phase == Phase.LOST or (p.phase in STOPPED_PHASES and p.airborne()))
                 and bool(tube.contains(p.position())))
-            airborne[i] = p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.LOST) or (
-                p.phase in (Phase.HOLDING, Phase.LANDING) and p.exit_time_s is not None)
+            airborne[i] = p.phase in COUNTED_AIRBORNE_PHASES  # the mission monitor's rule too
         lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
         latency = float(np.median(lat)) if lat else math.nan
         if lat:
@@ -716,7 +717,7 @@ class Supervisor:
         st.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
         if self.view is not None and self.view.tty:  # the per-vehicle table (terminal only)
             sc = self.mission.scenario
-            st.rows = vehicle_rows(self.pilots, sc.tube, sc.obstacles, self.monitor.r_s)
+            st.rows = vehicle_rows(self.pilots, sc.tube, sc.obstacles, self.monitor.limits)
         return st
 
     def _achieved_rate(self, window: int | None = None) -> float:

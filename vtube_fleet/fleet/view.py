@@ -24,6 +24,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.state import COUNTED_AIRBORNE_PHASES, Phase
 
 __all__ = ["FleetStatus", "FleetView", "VehicleRow", "vehicle_rows"]
@@ -87,12 +88,14 @@ class FleetStatus:
     rows: list[VehicleRow] = field(default_factory=list)  #: one per vehicle (the table)
 
 
-def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any], r_s: float,
+def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
+                 limits: SafetyLimits,
                  now_mono: float | None = None) -> list[VehicleRow]:
     """The table rows of the fleet's pilots (``VehiclePilot``: ``vehicle_id``, ``phase``,
     ``position()``, ``vel_xy``, ``link.state``, ``position_accuracy_m()``). Neighbour distances
     among the vehicles that count as airborne (:data:`~vtube_fleet.state.COUNTED_AIRBORNE_PHASES`),
-    the leg distance (:meth:`Trapezoid.d_Th` / :meth:`~Trapezoid.d_Tr`) for those in the tube."""
+    the leg distance (:meth:`Trapezoid.d_Th` / :meth:`~Trapezoid.d_Tr`) for those in the tube;
+    each obstacle's limit is ``limits.obstacle_center_m`` (the physical r_s)."""
     now = time.monotonic() if now_mono is None else now_mono
     m = len(pilots)
     pos = np.full((m, 2), np.nan)
@@ -119,7 +122,7 @@ def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any], r_s
             rows[k].neighbour_m = v
     if len(obstacles):
         c = np.array([o.center for o in obstacles], dtype=float).reshape(-1, 2)
-        lim = np.array([float(o.radius) + r_s for o in obstacles])
+        lim = np.array([limits.obstacle_center_m(o.radius) for o in obstacles])
         ok = flying
         if ok.any():
             d = np.hypot(pos[ok, None, 0] - c[None, :, 0], pos[ok, None, 1] - c[None, :, 1])

@@ -5,6 +5,8 @@ Entity paths, timelines, component names, the metadata format, colours and metri
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 __all__ = [
     "COMMAND_COLOR",
     "DEFAULT_COLOR",
@@ -61,6 +63,7 @@ __all__ = [
     "VELOCITY_COLOR",
     "class_of",
     "metric_name",
+    "metric_variants",
     "stream_entity",
     "vehicle_entity",
     "vehicle_path_entity",
@@ -229,16 +232,21 @@ METRIC_COLORS: dict[str, int] = {
 }
 
 
+def metric_variants(key: str) -> Iterator[tuple[str, str]]:
+    """(base key, legend suffix) of every :data:`METRIC_VARIANTS` pattern ``key`` fits."""
+    for pattern, suffix in METRIC_VARIANTS:
+        head, _, tail = pattern.partition("{}")
+        if key.startswith(head) and key.endswith(tail):
+            yield (key[len(head):len(key) - len(tail)] if tail else key[len(head):]), suffix
+
+
 def metric_name(key: str) -> str:
     """Legend name of a metric key (variants named after their base key; unknown keys as is)."""
     if key in METRIC_NAMES:
         return METRIC_NAMES[key]
-    for pattern, suffix in METRIC_VARIANTS:
-        head, _, tail = pattern.partition("{}")
-        if key.startswith(head) and key.endswith(tail):
-            base = key[len(head):len(key) - len(tail)] if tail else key[len(head):]
-            if base in METRIC_NAMES:
-                return METRIC_NAMES[base] + suffix
+    for base, suffix in metric_variants(key):
+        if base in METRIC_NAMES:
+            return METRIC_NAMES[base] + suffix
     return key
 
 

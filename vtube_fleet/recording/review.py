@@ -23,6 +23,7 @@ __all__ = [
     "ReviewResult",
     "compare_summaries",
     "full_pair_curve",
+    "recorded_every",
     "review",
     "step_metrics",
     "summary_from_recording",
@@ -279,7 +280,7 @@ def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True)
                         plots=written)
 
 
-def _recorded_every(d: RecordingData) -> int:
+def recorded_every(d: RecordingData) -> int:
     """Steps (ticks) per recorded tick, typically (the median spacing of the recorded ticks)."""
     if len(d.tick) < 2:
         return 1

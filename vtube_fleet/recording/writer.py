@@ -77,6 +77,7 @@ from vtube_fleet.recording.layout import (
     VELOCITY_COLOR,
     class_of,
     metric_name,
+    metric_variants,
     stream_entity,
     vehicle_entity,
     vehicle_path_entity,
@@ -274,12 +275,9 @@ def _metric_color(key: str) -> int | None:
     centre, truth); ``None`` (the viewer picks) for unknown keys."""
     if key in METRIC_COLORS:
         return METRIC_COLORS[key]
-    for pattern, _ in METRIC_VARIANTS:
-        head, _, tail = pattern.partition("{}")
-        if key.startswith(head) and key.endswith(tail):
-            base = key[len(head):len(key) - len(tail)] if tail else key[len(head):]
-            if base in METRIC_COLORS:
-                return (METRIC_COLORS[base] & 0xFFFFFF00) | 0x90
+    for base, _ in metric_variants(key):
+        if base in METRIC_COLORS:
+            return (METRIC_COLORS[base] & 0xFFFFFF00) | 0x90
     return None
 
 
@@ -768,20 +766,19 @@ class RerunRecorder:
 
     def _set_limits(self, r_s: float, obstacles: Sequence[Obstacle], v_min: float,
                     v_max: float) -> None:
-        from vtube_fleet.core.metrics import SafetyLimits
+        from vtube_fleet.core.metrics import METRIC_KEYS, SafetyLimits
 
         lim = SafetyLimits(r_s, v_min, v_max)
-        self._limits = {
-            "min_pair_distance_m": (lim.pair_m,),
-            "min_left_leg_distance_m": (lim.leg_m,),
-            "min_right_leg_distance_m": (lim.leg_m,),
-            "min_speed_m_s": (lim.v_min,),
-            "max_speed_m_s": (lim.v_max,),
-        }
-        if obstacles:
-            self._limits["min_obstacle_center_distance_m"] = tuple(
-                sorted({lim.obstacle_center_m(o.radius) for o in obstacles}))
-            self._limits["min_obstacle_clearance_m"] = (lim.leg_m,)  # ‖p − p_o‖ − r_o > r_s
+        radii = [float(o.radius) for o in obstacles]
+        self._limits = {}
+        for key in METRIC_KEYS:  # each key's limit from SafetyLimits.limit
+            if key == "min_obstacle_center_distance_m":  # a line per obstacle radius
+                if radii:
+                    self._limits[key] = tuple(sorted({lim.obstacle_center_m(r) for r in radii}))
+            elif key == "min_obstacle_clearance_m" and not radii:
+                continue
+            elif (value := lim.limit(key, radii)) is not None:
+                self._limits[key] = (value,)
         what = {"min_pair_distance_m": "2 r_s", "min_left_leg_distance_m": "r_s",
                 "min_right_leg_distance_m": "r_s", "min_speed_m_s": "v_min",
                 "max_speed_m_s": "v_max", "min_obstacle_center_distance_m": "r_o + r_s",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import time
@@ -130,6 +131,7 @@ class BusAwarePilot(VehiclePilot):
         self._healthy_since: float | None = None  # wall time the bus became healthy again
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
         self._last_tick_mono: float | None = None  # for the tick gaps the watch judges
+        self._aborted = False  # _abort_for has run
 
     def stop_for(self, why: str) -> None:
         """Keep the first reason this vehicle stopped flying the tube (its summary's and its
@@ -180,7 +182,20 @@ class BusAwarePilot(VehiclePilot):
             self._tick(now_mono, now_wall)
         finally:
             if self.recording is not None:
-                self.recording.sample(self, now_wall)
+                try:
+                    self.recording.sample(self, now_wall)
+                except Exception:  # noqa: BLE001 - the safety evaluation failed (noted there)
+                    self._abort_for(self.recording.failure or "safety monitor failed")
+
+    def _abort_for(self, why: str) -> None:
+        """What the supervisor's ``request_abort`` does for one vehicle: keep the reason, hold
+        while in the tube (every tick: a vehicle still taking off holds once it is in)."""
+        if not self._aborted:
+            self._aborted = True
+            self.event(f"ABORT: {why}", "error")
+        self.stop_for(why)
+        if self.phase in (Phase.IN_TUBE, Phase.EXITED):
+            self.begin_hold("mission aborted")
 
     def _tick(self, now_mono: float, now_wall: float) -> None:
         gap = now_mono - (self._last_tick_mono or now_mono)  # every tick, holds included
@@ -283,7 +298,9 @@ class AgentRecording:
         self.cmd_speed = [math.inf, -math.inf]
         self.unsafe = False
         self._own_seq: int | None = None
-        self._failed = False
+        #: the safety evaluation's first failure: the summary's outcome is "aborted" with this
+        #: reason, as the supervisor's for a failed control tick
+        self.failure: str | None = None
 
     def on_neighbour(self, state: NeighbourState, received_s: float) -> None:
         """The bus's state listener: every live state of another vehicle."""
@@ -291,7 +308,12 @@ class AgentRecording:
             self.monitor.on_state(state, received_s)
 
     def sample(self, pilot: BusAwarePilot, now_wall: float) -> None:
-        """After each control tick: this vehicle's state and command, the latest neighbours."""
+        """After each control tick: this vehicle's state and command, the latest neighbours.
+
+        The recorder never raises (:class:`~vtube_fleet.recording.api.Recorder`: it logs its own
+        problems), so an error here is the safety evaluation's: it is noted in
+        :attr:`failure` (logged once) and raised again; the pilot aborts its tube run on it
+        (:meth:`BusAwarePilot.tick`), as the supervisor does for a failed control tick."""
         try:
             own = pilot.last_state
             states = dict(pilot.mqtt.latest())
@@ -307,10 +329,11 @@ class AgentRecording:
                     sp = float(np.hypot(*pilot.cmd_xy))
                     self.cmd_speed = [min(self.cmd_speed[0], sp), max(self.cmd_speed[1], sp)]
             self.monitor.sample(states, now_wall, cmd)
-        except Exception as exc:  # noqa: BLE001 - the recording must never stop the vehicle
-            if not self._failed:
-                self._failed = True
-                log.warning("agent recording: %s: %s", type(exc).__name__, exc)
+        except Exception as exc:
+            if self.failure is None:
+                self.failure = f"safety monitor failed: {type(exc).__name__}: {exc}"
+                log.exception("agent %d: %s", self.vehicle, self.failure)
+            raise
 
     def finish(self, out: Path, pilot: BusAwarePilot | None, **extra: Any) -> Path:
         """Write ``OUT/summary.json``, store it in the recording and close it (every exit
@@ -337,6 +360,9 @@ class AgentRecording:
             summary["outcome"] = "unsafe"
             summary["reason"] = v.summary_line
         self.unsafe = not v.safe
+        if self.failure is not None and v.safe:  # its safety data stops at the failure
+            summary["outcome"] = "aborted"
+            summary["reason"] = self.failure
         try:
             return write_summary(out, summary)
         finally:
@@ -573,14 +599,9 @@ class AgentProcess:
                     f"{1000 * ASSUMED_LINK_LATENCY_S:.0f} ms and σ = "
                     f"{cfg.position_accuracy_m or ASSUMED_ACCURACY_M:.2f} m; measured here: "
                     f"L = {1000 * measured.latency_s:.0f} ms, σ = {measured.accuracy_m:.2f} m)")
-            self.budget = SafetyBudget.compute(params, period_s=own.period_s,
-                                               latency_s=own.latency_s,
-                                               dead_time_s=own.dead_time_s, t63_s=own.t63_s,
-                                               accuracy_m=own.accuracy_m,
-                                               accuracy_factor=own.accuracy_factor,
-                                               disturbance_m_s=own.disturbance_m_s,
-                                               override_m=run_delta,
-                                               override_source="the run's announced δ")
+            # its own measured terms, the run's δ (what SafetyBudget.compute's override does)
+            self.budget = dataclasses.replace(own, delta_m=float(run_delta), overridden=True,
+                                              override_source="the run's announced δ")
         else:
             self.budget = own
         plan = self._plan(self.budget)
@@ -625,23 +646,25 @@ class AgentProcess:
             raise self.refuse("preflight failed, nothing armed: " + "; ".join(mine or problems))
 
     # -- 3. fly ------------------------------------------------------------------------------
+    async def _wait_teammates(self, stages: Any, timeout_s: float) -> list[int]:
+        """Wait (up to ``timeout_s``) until every teammate's status in this run is at one of
+        ``stages`` or it is gone; returns the teammates still missing (empty: all there)."""
+        mates = [v for v in self._teammates() if v != self.vehicle]
+
+        def there(v: int) -> bool:
+            st = self.bus.statuses.get(v)
+            return ((st is not None and st.run_id == self.bus.run_id and st.stage in stages)
+                    or self._gone(v))
+
+        with contextlib.suppress(TimeoutError):
+            await self.bus.wait_for(lambda: all(there(v) for v in mates), timeout_s)
+        return [v for v in mates if not there(v)]
+
     async def _altitude_barrier(self) -> None:
         assert self.pilot is not None
         self.bus.announce("online", stage="at_altitude")
-        mates = [v for v in self._teammates() if v != self.vehicle]
-
-        def all_up() -> bool:
-            for v in mates:
-                st = self.bus.statuses.get(v)
-                up = st is not None and st.run_id == self.bus.run_id and st.stage in _UP_STAGES
-                if not (up or self._gone(v)):
-                    return False
-            return True
-
-        with contextlib.suppress(TimeoutError):
-            await self.bus.wait_for(all_up, self.cfg.takeoff_timeout_s)
-        if not all_up():
-            late = [v for v in mates if not self._gone(v)]
+        late = await self._wait_teammates(_UP_STAGES, self.cfg.takeoff_timeout_s)
+        if late:
             self.pilot.event(
                 f"teammates not at altitude after {self.cfg.takeoff_timeout_s:g} s "
                 f"({', '.join(map(str, late))}); entering the tube anyway",
@@ -652,18 +675,7 @@ class AgentProcess:
     async def _exit_barrier(self) -> None:
         """Past the finishing line: wait until every teammate is too (its status stage says
         so: statuses reach everyone, states only the vehicles in our cells) or gone."""
-        mates = [v for v in self._teammates() if v != self.vehicle]
-
-        def all_done() -> bool:
-            for v in mates:
-                st = self.bus.statuses.get(v)
-                out = st is not None and st.run_id == self.bus.run_id and st.stage in _OUT_STAGES
-                if not (out or self._gone(v)):
-                    return False
-            return True
-
-        with contextlib.suppress(TimeoutError):
-            await self.bus.wait_for(all_done, self.cfg.mission_timeout_s)
+        await self._wait_teammates(_OUT_STAGES, self.cfg.mission_timeout_s)
 
     async def _land_now(self, pilot: BusAwarePilot, why: str) -> None:
         """Hold, then land, with our own control clock; until touch-down (or timeout)."""
