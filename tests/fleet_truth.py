@@ -82,6 +82,22 @@ def flight_series(flight: str, sysid: int) -> Series:
     )
 
 
+def reported_accuracy(flight: str, sysid: int) -> dict[str, float]:
+    """What PX4 *reported* about its accuracy in that flight: the medians of
+    ``ESTIMATOR_STATUS.pos_horiz_accuracy`` (m) and of ``GPS_RAW_INT`` eph (cm), h_acc (mm),
+    vel_acc (mm/s) and fix_type over the whole log."""
+    m = mavutil.mavlink_connection(str(FLEET_TRUTH / flight / f"sys{sysid}_gcs_link.tlog"))
+    acc, gps = [], []
+    while (msg := m.recv_match(type=["ESTIMATOR_STATUS", "GPS_RAW_INT"])) is not None:
+        if msg.get_type() == "ESTIMATOR_STATUS":
+            acc.append(msg.pos_horiz_accuracy)
+        else:
+            gps.append((msg.eph, msg.h_acc, msg.vel_acc, msg.fix_type))
+    g = np.median(np.array(gps, dtype=float), axis=0)
+    return {"pos_horiz_accuracy": float(np.median(acc)), "eph": float(g[0]),
+            "h_acc": float(g[1]), "vel_acc": float(g[2]), "fix_type": float(g[3])}
+
+
 def acf(x: np.ndarray, lag: int) -> float:
     x = x - x.mean()
     return float((x[:-lag] * x[lag:]).mean() / (x * x).mean())

@@ -29,7 +29,7 @@ from missions import straight_mission
 from mock_process import child_env, mock_process, read_line, start_run
 
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import fly
+from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.supervisor import Supervisor
 from vtube_fleet.recording.review import review
 from vtube_fleet.recording.writer import open_recorder
@@ -256,3 +256,39 @@ def test_coordinator_incomplete_names_the_vehicles() -> None:
     assert "vehicle 3 agent offline, not exited" in text and "vehicle 0" not in text
     assert Coordinator._unfinished(co, mon, finished_only=True).startswith(
         "1 of 4 vehicles not finished: vehicle 2 lost")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(90)
+def test_a_vehicle_still_airborne_after_land_timeout_is_not_completed(tmp_path: Path) -> None:
+    """Every vehicle exits, then one freezes in the air as the fleet lands (it keeps streaming
+    and hovering but ignores LAND): after ``land_timeout_s`` the run ends ``incomplete``
+    (exit 3), naming it; not ``completed`` (real PX4, issue 9: "3 vehicles still armed after
+    land_timeout_s" was printed as ``completed``)."""
+    path = tmp_path / "m.toml"
+    path.write_text(straight_mission(8.0, [[2.0, 4.5], [2.0, -4.5]], heading_deg=90.0,
+                                     extra="land_timeout_s = 12.0\nexit_clear_m = 1.0\n"))
+    mission = load_mission(path)
+    log: dict[str, Any] = {}
+
+    async def main() -> Any:
+        async with mock_fleet(mission, boot_time_scale=0.3, port_scheme=free_ports(2),
+                              estimator="ideal") as fleet:
+
+            def hook(tick: int, sup: Supervisor) -> None:
+                if "frozen" not in log and sup.pilots[1].phase.value == "landing":
+                    log["frozen"] = sup.t_s()
+                    fleet.kill(1, "freeze")  # hovers where it is, ignores everything
+
+            return await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
+                             out_dir=tmp_path, tick_hook=hook)
+
+    result = asyncio.run(main())
+    assert "frozen" in log, result.reason
+    assert result.summary["exited"] == 2
+    assert result.outcome == "incomplete" and result.exit_code == 3, result.reason
+    assert result.reason.startswith("1 vehicle(s) still airborne after land_timeout_s = 12 s: "
+                                    "slot 1 "), result.reason
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["outcome"] == "incomplete"
+    print(f"\nnot landed: {result.reason}")

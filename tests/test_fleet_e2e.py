@@ -162,17 +162,24 @@ async def test_mavsdk_4_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> N
     report("mavsdk x4", result, worst, truth)
 
 
-async def test_the_px4_sitl_mission_flies_on_the_mock(tmp_path: Path) -> None:
-    """The shipped real-SITL mission, on mock vehicles with PX4 SITL's estimate errors, through
-    MAVSDK, to touch-down (the offboard watchdog must not turn LAND into Hold)."""
+@pytest.mark.parametrize(("backend", "seed"), [("mavlink", 7), ("mavsdk", 3)],
+                         ids=["mavlink", "mavsdk"])
+async def test_the_px4_sitl_mission_flies_on_the_mock(tmp_path: Path, backend: str,
+                                                      seed: int) -> None:
+    """The shipped real-SITL mission, on mock vehicles with PX4 SITL's estimate errors, on both
+    backends, to touch-down (with MAVSDK, the offboard watchdog must not turn LAND into Hold)."""
     mission = load_mission(ROOT / "configs" / "px4_sitl_3.toml")
-    result, sup, log = await fly_logged(mission, 3, backend="mavsdk", tmp_path=tmp_path)
+    result, sup, log = await fly_logged(mission, seed, backend=backend, tmp_path=tmp_path,
+                                        truth=True)
     assert result.exit_code == 0, result.reason
+    assert result.outcome == "completed"
     assert [v["phase"] for v in result.summary["vehicle_states"]] == ["landed"] * 3
-    assert all(p.link.watchdog_trips == 0 for p in sup.pilots)
+    if backend == "mavsdk":
+        assert all(p.link.watchdog_trips == 0 for p in sup.pilots)
     worst = check_safety(mission, sup.trace)
     truth = assert_true_clearance(log)
-    report("px4_sitl_3 on the mock", result, worst, truth)
+    assert result.summary["truth_violations"] == 0
+    report(f"px4_sitl_3 on the mock ({backend})", result, worst, truth)
 
 
 async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None:

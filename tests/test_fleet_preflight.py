@@ -49,6 +49,11 @@ def test_overlap_and_outside_are_named(mission) -> None:
     assert "distance to the left leg 0.58 m" in text
     assert f"r_s' = {params.r_s:.3f} m" in text
     assert "robot " not in text
+    # the flown radius is r_s' in every clause; r_s stays the physical one
+    assert f"overlap: distance 1.5 m ≤ 2 r_s' = {2 * params.r_s:.2f} m" in text
+    assert f"< r_s' = {params.r_s:.3f} m" in text
+    assert f"the physical r_s = {mission.scenario.robots.r_s:g} m + δ" in text
+    assert "2 r_s =" not in text and "< r_s =" not in text
 
 
 def test_position_moved_into_obstacle(mission) -> None:

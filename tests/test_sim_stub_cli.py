@@ -148,3 +148,55 @@ def test_the_gcs_link_serves_ground_truth_on_request(tmp_path) -> None:
         if p.poll() is None:
             p.kill()
         obs.close()
+
+
+def test_mock_fleet_custom_ports_say_what_becomes_of_the_gcs_link(tmp_path) -> None:
+    """``vtube-fleet mock-fleet --gcs-port/--vehicle-port`` (audit of issue 9): a GCS link
+    asked for without ``--gcs-link-base`` is one error line; with it, the GCS link runs on
+    those ports (HEARTBEATs from N+i to ``--gcs-link-port``); without either, stderr says
+    there is none instead of starting none silently."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    mission = str(ROOT / "configs" / "px4_sitl_3.toml")
+    cmd = [sys.executable, "-m", "vtube_fleet", "mock-fleet", mission, "--count", "1"]
+    ports = free_port_scheme(2)  # [0]: API link, [1]: the GCS link's bind port
+    custom = ["--gcs-port", str(ports.gcs_base), "--vehicle-port", str(ports.vehicle_base)]
+    refused = subprocess.run([*cmd, *custom, "--gcs-link", "full"], capture_output=True,
+                             text=True, timeout=30, cwd=ROOT, env=env)
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr.splitlines() == [
+        "error: --gcs-link full with --gcs-port/--vehicle-port: give --gcs-link-base N too "
+        "(vehicle i's GCS link binds N+i; PX4: 18570), or --gcs-link off"]
+
+    obs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    obs.bind((ports.host, ports.gcs_port(1)))  # where the GCS link sends (as 14550)
+    obs.settimeout(10.0)
+    m = mav.MAVLink(None, 254, 190)
+    runs = {"with": ["--gcs-link-base", str(ports.vehicle_base + 1), "--gcs-link-port",
+                     str(ports.gcs_port(1))], "without": []}
+    try:
+        for name, extra in runs.items():
+            p = subprocess.Popen([*cmd, *custom, "--boot-time-scale", "0.3", *extra],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                 cwd=ROOT, env=env)
+            try:
+                assert p.stdout is not None
+                p.stdout.readline()
+                assert p.stdout.readline().strip() == ports.endpoint(0)
+                if name == "with":
+                    for _ in range(200):
+                        data, addr = obs.recvfrom(4096)
+                        if any(x.get_type() == "HEARTBEAT" for x in m.parse_buffer(data) or []):
+                            break
+                    else:
+                        raise AssertionError("no HEARTBEAT on the GCS link")
+                    assert addr[1] == ports.vehicle_base + 1
+                p.send_signal(signal.SIGINT)
+                _, err = p.communicate(timeout=10)
+                assert p.returncode == 0 and "Traceback" not in err, err
+                said = "no GCS link (custom ports: --gcs-link-base N gives one" in err
+                assert said == (name == "without"), err
+            finally:
+                if p.poll() is None:
+                    p.kill()
+    finally:
+        obs.close()

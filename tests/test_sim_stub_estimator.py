@@ -11,10 +11,12 @@ import math
 
 import numpy as np
 import pytest
-from fleet_truth import DT, FLIGHTS, error_stats, flight_series
+from fleet_truth import DT, FLIGHTS, error_stats, flight_series, reported_accuracy
 
 from sim_stub.dynamics import QuadState
 from sim_stub.estimator import ESTIMATOR_PROFILES, EstimatorErrors, estimator_profile
+from sim_stub.telemetry import STRUCTS
+from sim_stub.vehicle import MockVehicle
 
 
 @pytest.fixture(scope="module")
@@ -29,6 +31,7 @@ def real() -> dict[str, object]:
             i0 = int(np.argmax(s.up_m > 0.05))
             i4 = int(np.argmax(s.up_m > 4.0))
             drifts.append(float(np.hypot(*(s.truth_ne[i4] - s.truth_ne[i0]))))
+            accuracy.append(reported_accuracy(flight, sysid))
     return {"stats": stats, "drift": drifts, "accuracy": accuracy}
 
 
@@ -63,6 +66,40 @@ def test_px4_sih_errors_match_the_fleet_truth_flights(real: dict) -> None:
     print("mock  " + " ".join(f"{k} {v:.2f}" for k, v in sim.items()))
     bad = {k: (sim[k], ref[k]) for k in ref if not within_half(sim[k], ref[k])}
     assert not bad, f"outside ±50 % of the real flights (sim, real): {bad}"
+
+
+def mock_reported(estimator: str, up_s: float = 60.0) -> dict[str, float]:
+    """What a mock vehicle of that profile reports ``up_s`` after its start: the payloads its
+    ESTIMATOR_STATUS and GPS_RAW_INT builders send, decoded with pymavlink's own field order."""
+    from pymavlink.dialects.v20 import common
+
+    v = MockVehicle(0, clock=lambda: 0.0, estimator=estimator)
+    now = v.t0 + up_s
+    out = {}
+    for name, cls, payload in (
+            ("ESTIMATOR_STATUS", common.MAVLink_estimator_status_message,
+             v._b_estimator_status(now)),
+            ("GPS_RAW_INT", common.MAVLink_gps_raw_int_message, v._b_gps_raw_int(now))):
+        assert STRUCTS[name].format == cls.unpacker.format  # the wire order pymavlink reads
+        out.update(zip(cls.ordered_fieldnames, cls.unpacker.unpack(payload), strict=True))
+    return out
+
+
+def test_px4_sih_reports_the_accuracy_px4_reported(real: dict) -> None:
+    """The accuracy the mock *reports* (what the safety budget is built from) is what PX4 SIH
+    reported in the fleet flights: ESTIMATOR_STATUS.pos_horiz_accuracy within ±10 % of every
+    flight's median (the tlogs: 0.291–0.294 m); GPS_RAW_INT eph, h_acc, vel_acc and fix_type,
+    constants in every tlog, equal."""
+    assert len(real["accuracy"]) == 9
+    mock = mock_reported("px4-sih")
+    print(f"\nmock  pos_horiz_accuracy {mock['pos_horiz_accuracy']:.3f} m, eph {mock['eph']}, "
+          f"h_acc {mock['h_acc']} mm, vel_acc {mock['vel_acc']} mm/s, fix {mock['fix_type']}")
+    for k, acc in enumerate(real["accuracy"]):
+        print("real  " + " ".join(f"{key} {val:g}" for key, val in acc.items()))
+        assert 0.9 * acc["pos_horiz_accuracy"] <= mock["pos_horiz_accuracy"] \
+            <= 1.1 * acc["pos_horiz_accuracy"], (k, acc, mock["pos_horiz_accuracy"])
+        for key in ("eph", "h_acc", "vel_acc", "fix_type"):
+            assert mock[key] == acc[key], (k, key, mock[key], acc[key])
 
 
 def test_takeoff_drift_under_the_old_weak_hold_is_as_real(real: dict) -> None:

@@ -11,27 +11,47 @@ from typing import Any
 from vtube_fleet.cli._args import COUNT, PORT, SCALE, SEED, bounded
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import mock_fleet
+from vtube_fleet.fleet.launch import FleetCliError, mock_fleet
 
 __all__ = ["register"]
 
 
+def _gcs_link(args: argparse.Namespace) -> tuple[str, str]:
+    """(the GCS link's stream set, what to say about it). With --gcs-port/--vehicle-port,
+    PX4's ports 18570+i are not assumed free: the GCS link is off unless --gcs-link-base says
+    where it goes; asked for by --gcs-link lite/full without one, it is an error."""
+    custom = args.gcs_port is not None or args.vehicle_port is not None
+    if not custom or args.gcs_link_base is not None or args.gcs_link == "off":
+        return args.gcs_link or "lite", ""
+    if args.gcs_link is not None:
+        raise FleetCliError(f"--gcs-link {args.gcs_link} with --gcs-port/--vehicle-port: give "
+                            f"--gcs-link-base N too (vehicle i's GCS link binds N+i; PX4: "
+                            f"18570), or --gcs-link off")
+    return "off", ("no GCS link (custom ports: --gcs-link-base N gives one, vehicle i on "
+                   "N+i -> 14550)")
+
+
 def _cmd_mock_fleet(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
+    gcs_link, note = _gcs_link(args)
 
     async def main() -> None:
         stop = asyncio.Event()
         with interrupt_on_signals(lambda _name: stop.set()):
             async with mock_fleet(
                 mission, args.count, gcs_port=args.gcs_port, vehicle_port=args.vehicle_port,
+                gcs_link_base=args.gcs_link_base if gcs_link != "off" else None,
+                gcs_link_port=args.gcs_link_port if gcs_link != "off" else None,
                 boot_time_scale=args.boot_time_scale, profile=args.profile,
                 estimator=args.estimator, estimator_shared=args.estimator_shared,
-                gcs_link=args.gcs_link, seed=args.seed, processes=args.processes,
+                gcs_link=gcs_link, seed=args.seed, processes=args.processes,
             ) as fleet:
                 eps = list(fleet.endpoints)
                 print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
                       flush=True)
                 print(",".join(eps), flush=True)
+                if note:
+                    print(note, file=sys.stderr, flush=True)
                 await fleet.serve(stop)
         print("mock fleet stopped", file=sys.stderr)
 
@@ -57,9 +77,10 @@ def register(subparsers: Any) -> None:
                         "rtk (cm-level), ideal (none)")
     m.add_argument("--estimator-shared", action="store_true",
                    help="every vehicle gets the same estimate-error sequence (as SIH does)")
-    m.add_argument("--gcs-link", choices=("lite", "full", "off"), default="lite",
+    m.add_argument("--gcs-link", choices=("lite", "full", "off"), default=None,
                    help="PX4's GCS link (udp 18570+i -> 14550; ground truth on request): its "
-                        "default stream set (default lite)")
+                        "default stream set (default lite; off with --gcs-port/--vehicle-port "
+                        "unless --gcs-link-base is given)")
     m.add_argument("--processes", type=bounded(COUNT), default=1, metavar="N",
                    help="split the vehicles over N OS processes (one scheduler each, same "
                         "ports; about 500 lite vehicles fit one core); default 1")
@@ -68,4 +89,9 @@ def register(subparsers: Any) -> None:
                    help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
     m.add_argument("--vehicle-port", type=bounded(PORT), default=None, metavar="N",
                    help="port vehicle 0 sends from (vehicle i: N+i; default GCS port + 40)")
+    m.add_argument("--gcs-link-base", type=bounded(PORT), default=None, metavar="N",
+                   help="port vehicle i's GCS link binds: N+i (default 18570 as PX4 SITL; "
+                        "none with --gcs-port/--vehicle-port unless given)")
+    m.add_argument("--gcs-link-port", type=bounded(PORT), default=None, metavar="N",
+                   help="port every vehicle's GCS link sends to (default 14550 as PX4 SITL)")
     m.set_defaults(func=_cmd_mock_fleet)

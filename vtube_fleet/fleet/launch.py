@@ -8,6 +8,7 @@ The built-in mock fleet in a mission's slots, endpoint lists, PX4 SITL homes, an
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
@@ -78,11 +79,15 @@ def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:
 @contextlib.asynccontextmanager
 async def mock_fleet(mission: Mission, count: int | None = None, *,
                      gcs_port: int | None = None, vehicle_port: int | None = None,
+                     gcs_link_base: int | None = None, gcs_link_port: int | None = None,
                      processes: int = 1, **kwargs: Any) -> AsyncIterator[Any]:
     """A ``sim_stub.MockFleet`` whose vehicle i starts in slot i (context manager); PX4's port
     scheme (vehicle i: GCS port 14540+i) up to 40 vehicles, the mock's wide scheme beyond.
     ``gcs_port`` / ``vehicle_port``: a custom scheme instead (vehicle i: GCS port
-    ``gcs_port`` + i, sending from ``vehicle_port`` + i; defaults 14540 and GCS port + 40);
+    ``gcs_port`` + i, sending from ``vehicle_port`` + i; defaults 14540 and GCS port + 40),
+    which has PX4's GCS link (ground truth on request) only with ``gcs_link_base``;
+    ``gcs_link_base`` / ``gcs_link_port``: vehicle i's GCS link binds ``gcs_link_base`` + i
+    (PX4: 18570) and sends to ``gcs_link_port`` (PX4: 14550), with either scheme;
     ``processes`` > 1: a ``sim_stub.ProcessFleet`` (the vehicles split over that many OS
     processes, same ports; ``endpoints``, ``serve(stop)`` but no in-process vehicles); other
     keyword arguments go to ``MockFleet``. A mock error (also a mock process dying inside the
@@ -102,6 +107,18 @@ async def mock_fleet(mission: Mission, count: int | None = None, *,
         veh = gcs + 40 if vehicle_port is None else vehicle_port
         kwargs["port_scheme"] = PortScheme("custom", vehicle_base=veh, gcs_base=gcs)
     kwargs.setdefault("port_scheme", "px4" if n <= 40 else "wide")
+    if gcs_link_base is not None or gcs_link_port is not None:
+        from sim_stub.ports import resolve_port_scheme
+
+        scheme = resolve_port_scheme(kwargs["port_scheme"])
+        base = scheme.gcs_link_base if gcs_link_base is None else gcs_link_base
+        if base is None:
+            raise FleetCliError("--gcs-link-port with --gcs-port/--vehicle-port needs "
+                                "--gcs-link-base N too (vehicle i's GCS link binds N+i)")
+        remotes = (scheme.gcs_link_remotes if gcs_link_port is None
+                   else ((0, gcs_link_port),))
+        kwargs["port_scheme"] = dataclasses.replace(scheme, gcs_link_base=base,
+                                                    gcs_link_remotes=remotes)
     if mission.config.signing_key_file and "signing" not in kwargs:
         # the built-in mock holds the mission's keys, as vehicles after `sign-setup` do
         if processes > 1:
