@@ -207,11 +207,19 @@ PARAM_DEFAULTS: tuple[Param, ...] = (
     _p("COM_RC_IN_MODE", 1, PARAM_INT32),  # capture
     _p("COM_SPOOLUP_TIME", 1.0),
     _p("GF_ACTION", 2, PARAM_INT32),  # PX4 source: geofence_params.yaml default Hold
+    # PX4 source: src/modules/navigator/geofence_params.yaml, "Disabled if 0" (the mock does
+    # not enforce a ceiling; the fleet's audit refuses a set one below the mission altitude)
+    _p("GF_MAX_VER_DIST", 0.0),
     _p("MAV_SYS_ID", 1, PARAM_INT32),  # set to instance+1 per vehicle
     _p("MIS_TAKEOFF_ALT", 2.5),
     _p("MPC_ACC_DOWN_MAX", 3.0),
     _p("MPC_ACC_HOR", 3.0),
     _p("MPC_ACC_UP_MAX", 4.0),
+    # PX4 source: src/modules/mc_pos_control/multicopter_autonomous_params.yaml (MPC_JERK_AUTO,
+    # auto modes) and multicopter_position_mode_params.yaml (MPC_JERK_MAX, Position mode);
+    # answered only: offboard velocity setpoints bypass PX4's jerk-limited trajectory
+    _p("MPC_JERK_AUTO", 4.0),
+    _p("MPC_JERK_MAX", 8.0),
     _p("MPC_LAND_SPEED", 0.7),
     _p("MPC_TKO_RAMP_T", 3.0),
     _p("MPC_TKO_SPEED", 1.5),
@@ -220,6 +228,8 @@ PARAM_DEFAULTS: tuple[Param, ...] = (
     _p("MPC_XY_VEL_MAX", 12.0),
     _p("MPC_YAWRAUTO_MAX", 45.0),
     _p("MPC_Z_P", 1.0),
+    # PX4 source: src/modules/mc_pos_control/multicopter_position_control_limits_params.yaml;
+    # in offboard PX4 clips the vertical velocity setpoint to [-UP, DN] (commander.py _limit)
     _p("MPC_Z_VEL_MAX_DN", 1.5),
     _p("MPC_Z_VEL_MAX_UP", 3.0),
     _p("NAV_DLL_ACT", 0, PARAM_INT32),  # capture

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import math
 from pathlib import Path
 
@@ -15,8 +16,9 @@ from fleet_ports import free_ports
 from missions import MOCK_FLEET, straight_mission, write_mission
 
 import sim_stub.fence
-from sim_stub import MockFleet
+from sim_stub import MockFleet, px4
 from vtube_fleet.config.mission import load_mission
+from vtube_fleet.fleet import onboard
 from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.onboard import audit_rules
 from vtube_fleet.link import MavlinkLink
@@ -24,7 +26,11 @@ from vtube_fleet.link import MavlinkLink
 pytestmark = pytest.mark.timeout(180)
 
 PX4_DEFAULTS = {"MPC_XY_VEL_MAX": 12.0, "MPC_ACC_HOR": 3.0, "COM_OF_LOSS_T": 1.0,
-                "COM_OBL_RC_ACT": 0.0, "NAV_DLL_ACT": 0.0}
+                "COM_OBL_RC_ACT": 0.0, "NAV_DLL_ACT": 0.0,
+                # PX4's parameter files (geofence_params.yaml, multicopter_autonomous_params
+                # .yaml, multicopter_position_control_limits_params.yaml): 0 = no ceiling
+                "GF_MAX_VER_DIST": 0.0, "MPC_JERK_AUTO": 4.0, "MPC_Z_VEL_MAX_UP": 3.0,
+                "MPC_Z_VEL_MAX_DN": 1.5}
 
 
 def judge(values: dict[str, float]) -> dict[str, str | None]:
@@ -34,9 +40,11 @@ def judge(values: dict[str, float]) -> dict[str, str | None]:
 
 def test_the_rules_with_the_missions_numbers() -> None:
     rules = {r.name: r for r in audit_rules(load_mission(MOCK_FLEET))}
-    assert [n for n, r in rules.items() if r.hard] == ["MPC_XY_VEL_MAX"]
+    assert [n for n, r in rules.items() if r.hard] == ["MPC_XY_VEL_MAX", "GF_MAX_VER_DIST"]
     got = judge(PX4_DEFAULTS)
     assert got["MPC_XY_VEL_MAX"] is None and got["MPC_ACC_HOR"] is None
+    assert all(got[n] is None for n in ("GF_MAX_VER_DIST", "MPC_JERK_AUTO", "MPC_Z_VEL_MAX_UP",
+                                        "MPC_Z_VEL_MAX_DN"))
     assert got["COM_OF_LOSS_T"] is None
     assert "COM_OBL_RC_ACT = 0, Position mode" in (got["COM_OBL_RC_ACT"] or "")
     assert "NAV_DLL_ACT = 0 (disabled)" in (got["NAV_DLL_ACT"] or "")
@@ -51,6 +59,130 @@ def test_the_rules_with_the_missions_numbers() -> None:
     assert rules["MPC_XY_VEL_MAX"].fix == pytest.approx(1.9)
     assert rules["MPC_XY_VEL_MAX"].problem(rules["MPC_XY_VEL_MAX"].fix) is None
     assert rules["MPC_ACC_HOR"].problem(rules["MPC_ACC_HOR"].fix) is None
+
+
+def test_a_fence_ceiling_below_the_mission_altitude_is_hard() -> None:
+    """configs/mock_fleet.toml flies at altitude_m = 3 m, altitude_tolerance_m = 0.3 m: a
+    GF_MAX_VER_DIST below 3.3 m would breach PX4's own ceiling in the climb; 0 is PX4's "off"."""
+    rule = {r.name: r for r in audit_rules(load_mission(MOCK_FLEET))}["GF_MAX_VER_DIST"]
+    assert rule.hard
+    assert rule.problem(3.0) == (
+        "GF_MAX_VER_DIST = 3.0 m < altitude_m + altitude_tolerance_m = 3.3 m: PX4's own fence "
+        "ceiling (height above home) would breach during the climb and take the vehicle out "
+        "of offboard (GF_ACTION); lower altitude_m or raise GF_MAX_VER_DIST")
+    assert rule.problem(0.0) is None and rule.problem(3.3) is None and rule.problem(120) is None
+    assert rule.fix == 4.0 and rule.problem(rule.fix) is None  # whole metres, as PX4 steps it
+
+
+def test_vertical_speed_and_jerk_rules_warn_with_the_numbers() -> None:
+    """MPC_Z_VEL_MAX_UP / _DN clip what the pilot commands (climb_speed_m_s = 1.5 m/s, the
+    altitude hold's max_vertical_speed_m_s = 1 m/s): soft, a slower take-off or height
+    correction; MPC_JERK_AUTO against the budget's t63 like MPC_ACC_HOR (v_max 1.6, t63 1 s)."""
+    rules = {r.name: r for r in audit_rules(load_mission(MOCK_FLEET))}
+    assert not any(rules[n].hard for n in ("MPC_JERK_AUTO", "MPC_Z_VEL_MAX_UP",
+                                           "MPC_Z_VEL_MAX_DN"))
+    up = rules["MPC_Z_VEL_MAX_UP"].problem
+    assert up(1.2) == ("MPC_Z_VEL_MAX_UP = 1.2 m/s < climb_speed_m_s = 1.5 m/s: PX4 clips the "
+                       "climb (take-off 2.5 s instead of 2.0 s); the horizontal flight is not "
+                       "affected")
+    assert "longer than takeoff_timeout_s = 40.0 s: the take-off will time out" in up(0.05)
+    assert up(1.5) is None
+    dn = rules["MPC_Z_VEL_MAX_DN"].problem
+    assert dn(0.5) == ("MPC_Z_VEL_MAX_DN = 0.5 m/s < max_vertical_speed_m_s = 1.0 m/s: PX4 "
+                       "clips the altitude-hold descents (slower height corrections; the "
+                       "horizontal flight is not affected)")
+    assert dn(1.0) is None
+    jerk = rules["MPC_JERK_AUTO"].problem
+    assert jerk(1.0) == ("MPC_JERK_AUTO = 1.0 m/s³ < 1.3 v_max / t63² = 2.09 m/s³: a "
+                         "jerk-limited start reaches 63 % of a v_max step later than the "
+                         "tracking_t63_s = 1.0 s the safety budget assumes")
+    assert jerk(2.09) is None
+    assert {n: rules[n].fix for n in ("MPC_JERK_AUTO", "MPC_Z_VEL_MAX_UP",
+                                      "MPC_Z_VEL_MAX_DN")} == {
+        "MPC_JERK_AUTO": 2.1, "MPC_Z_VEL_MAX_UP": 1.5, "MPC_Z_VEL_MAX_DN": 1.0}
+    # the factor: an S-curve from rest to V with jerk j is at 1 - 1/e of V after
+    # (2 - sqrt(2/e)) sqrt(V / j); at the bound that time is exactly t63
+    v, t63 = 1.6, 1.0
+    j = onboard.JERK_T63_FACTOR * v / t63 ** 2
+    t = (2 - math.sqrt(2 / math.e)) * math.sqrt(v / j)
+    tt = 2 * math.sqrt(v / j)
+    assert t == pytest.approx(t63)
+    assert v - j * (tt - t) ** 2 / 2 == pytest.approx(v * (1 - 1 / math.e))
+    # the rule follows the mission's numbers: a climb faster than the hold
+    m = load_mission(MOCK_FLEET)
+    m2 = dataclasses.replace(m, config=dataclasses.replace(m.config, climb_speed_m_s=0.5))
+    up2 = {r.name: r for r in audit_rules(m2)}["MPC_Z_VEL_MAX_UP"].problem
+    assert up2(0.8) == ("MPC_Z_VEL_MAX_UP = 0.8 m/s < max_vertical_speed_m_s = 1.0 m/s: PX4 "
+                        "clips the altitude-hold climbs (slower height corrections; the "
+                        "horizontal flight is not affected)")
+
+
+class _ParamLink:
+    """Just what :func:`audit_fleet` uses of a link: a name and PX4's parameter exchange."""
+
+    def __init__(self, name: str, params: dict[str, float]) -> None:
+        self.name, self.params, self.sets = name, dict(params), []
+
+    async def read_param(self, name: str) -> float:
+        return self.params[name]
+
+    async def set_param(self, name: str, value: float) -> float:
+        self.sets.append((name, value))
+        self.params[name] = value
+        return value
+
+
+async def test_the_new_rules_refuse_warn_and_fix_in_the_audit() -> None:
+    """audit_fleet with the new rules (no sockets): a low ceiling refuses naming the vehicle,
+    the vertical and jerk limits warn once for both vehicles; --fix-params sets all four and
+    records the old values for the restore."""
+    m = load_mission(MOCK_FLEET)
+    low = {**PX4_DEFAULTS, "GF_MAX_VER_DIST": 2.0, "MPC_JERK_AUTO": 1.0,
+           "MPC_Z_VEL_MAX_UP": 1.0, "MPC_Z_VEL_MAX_DN": 0.5}
+    links = [_ParamLink(f"vehicle {i}", low) for i in (1, 2)]
+    res = await onboard.audit_fleet(links, m)
+    assert res.problems == [
+        f"vehicle {i}: GF_MAX_VER_DIST = 2.0 m < altitude_m + altitude_tolerance_m = 3.3 m: "
+        f"PX4's own fence ceiling (height above home) would breach during the climb and take "
+        f"the vehicle out of offboard (GF_ACTION); lower altitude_m or raise GF_MAX_VER_DIST"
+        for i in (1, 2)]
+    warned = [w for w in res.warnings if w.startswith("all 2 vehicles: MPC_")]
+    assert [w.split(" = ")[0] for w in warned] == [
+        "all 2 vehicles: MPC_JERK_AUTO", "all 2 vehicles: MPC_Z_VEL_MAX_UP",
+        "all 2 vehicles: MPC_Z_VEL_MAX_DN"]
+    assert "take-off 3.0 s instead of 2.0 s" in warned[1]
+    assert not any(link.sets for link in links)
+    res = await onboard.audit_fleet(links, m, fix=True)
+    assert res.problems == []
+    new = {"GF_MAX_VER_DIST": 4.0, "MPC_JERK_AUTO": 2.1, "MPC_Z_VEL_MAX_UP": 1.5,
+           "MPC_Z_VEL_MAX_DN": 1.0}
+    for link, old in zip(links, res.changed, strict=True):
+        assert {k: link.params[k] for k in new} == new
+        assert {k: old[k] for k in new} == {k: low[k] for k in new}
+    assert any("--fix-params set GF_MAX_VER_DIST = 4.0 (restored to 2.0 on exit)" in w
+               for w in res.warnings)
+    assert await onboard.restore_params(links, res.changed) == []
+    assert all(link.params == low for link in links)
+
+
+async def test_the_mock_answers_the_new_parameters_with_px4_defaults() -> None:
+    """No flight: PARAM_REQUEST_READ of the four new parameters over UDP gives PX4's defaults
+    (REAL32), and a PARAM_SET of one sticks."""
+    fleet = MockFleet(1, port_scheme=free_ports(1), boot_time_scale=0.3, estimator="ideal")
+    await fleet.start()
+    link = MavlinkLink(fleet.endpoints[0], sysid=1)
+    try:
+        await link.connect(10.0)
+        for name in ("GF_MAX_VER_DIST", "MPC_JERK_AUTO", "MPC_JERK_MAX", "MPC_Z_VEL_MAX_UP",
+                     "MPC_Z_VEL_MAX_DN"):
+            want = {**PX4_DEFAULTS, "MPC_JERK_MAX": 8.0}[name]
+            assert await link.read_param(name) == pytest.approx(want), name
+            assert fleet.vehicles[0].params[name].type == px4.PARAM_REAL32
+        assert await link.set_param("GF_MAX_VER_DIST", 4.0) == pytest.approx(4.0)
+        assert fleet.vehicles[0].params["GF_MAX_VER_DIST"].value == pytest.approx(4.0)
+    finally:
+        await link.close()
+        await fleet.stop()
 
 
 async def test_the_mock_answers_px4_defaults_and_clips_to_mpc_xy_vel_max() -> None:

@@ -18,6 +18,7 @@ from vtube_fleet.core.validation import (
     Violation,
     binding_constraints,
     check_scenario,
+    further_failures,
     nearest_fixes,
     validate_scenario,
 )
@@ -332,6 +333,70 @@ def test_check_scenario_file_prints_binding_and_fixes(tmp_path, capsys):
     assert "h = 1.6" in out and "(auto)" in out
     assert "apex distances chosen (auto): #1 h = " in out
     assert out.rstrip().endswith("valid")
+
+
+# Two obstacles that each block a 4 m wide tube (issue 11 / audit 11-12 gap 6): the
+# construction stops at #1; strict `check` also names #2.
+TWO_BLOCKING_TOML = """
+[tube]
+p_h0 = [0.0, 2.0]
+p_h1 = [24.0, 2.0]
+p_r0 = [0.0, -2.0]
+p_r1 = [24.0, -2.0]
+
+[[obstacles]]
+center = [8.0, 0.0]
+radius = 0.9
+
+[[obstacles]]
+center = [16.0, 0.0]
+radius = 0.9
+
+[robots]
+r_s = 0.25
+r_a = 0.5
+v_min = 0.5
+v_max = 3.5
+grid = { origin = [1.0, -1.0], rows = 2, cols = 3, spacing = 1.0 }
+
+[controller]
+v = 2.0
+v_max_prime = 1.5
+"""
+
+
+def test_check_names_every_failing_obstacle_not_only_the_first(tmp_path, capsys):
+    from vtube_fleet.cli import main
+
+    cfg = tmp_path / "two.toml"
+    cfg.write_text(TWO_BLOCKING_TOML)
+    assert main(["check", str(cfg)]) == 2
+    out = capsys.readouterr().out
+    blocks = ("the obstacle blocks the tube: neither side passage is valid (left: inverted: "
+              "the triangle crosses the parent's left leg by 0.089 m; right: inverted: the "
+              "triangle crosses the parent's right leg by 0.089 m)")
+    verdict = out[out.index("INVALID"):].splitlines()
+    assert verdict[:4] == [
+        "INVALID: 1 violation:",  # the first line and the first failure stay as they were
+        f"  [Partition] Partition failed: obstacle #1 at (8.0, 0.0) r_o=0.9: {blocks}",
+        "further obstacles that fail (the construction continued without the failing ones "
+        "above):",
+        f"  obstacle #2 at (16.0, 0.0) r_o=0.9: {blocks}",
+    ]
+    assert verdict[4] == "nearest fixes (each alone, the rest unchanged):"
+    assert 'apex_distance = "auto"' in verdict[5]
+
+
+def test_further_failures_continue_the_construction_without_the_failing_ones():
+    """The authors' geometry: #3 fails first (reported by validate_scenario); without it the
+    construction reaches #5, which blocks the tube; #1, #2 and #4 split. A feasible scenario
+    and one failing for no single obstacle give nothing."""
+    got = further_failures(AUTHORS_TUBE, AUTHORS, AUTHORS_PARAMS, AUTHORS_ROBOTS)
+    assert len(got) == 1
+    assert got[0].startswith("obstacle #5 at (33.0, 0.0) r_o=0.9: the obstacle blocks the tube")
+    assert further_failures(PAPER_TUBE, PAPER_OBSTACLES, PARAMS, PAPER_ROBOTS) == []
+    narrow = Trapezoid((0.0, 2.0), (20.0, 2.0), (0.0, -2.0), (20.0, -2.0))
+    assert further_failures(narrow, [Obstacle((12.0, 0.0), 0.9)], PARAMS) == []
 
 
 def test_scenario_apex_distance_keys(tmp_path):

@@ -32,6 +32,8 @@ from vtube_fleet.core.partition import Partition, Violation
 from vtube_fleet.core.validation import (
     Fix,
     binding_constraints,
+    flown_symbols,
+    further_failures,
     nearest_fixes,
     validate_scenario,
 )
@@ -58,6 +60,9 @@ class CheckReport:
     binding: tuple[str, ...] = ()
     fixes: tuple[Fix, ...] = field(default=())
     fixes_searched: bool = False
+    #: the obstacles that fail after the first one (:func:`~vtube_fleet.core.validation.
+    #: further_failures`), one line each
+    further: tuple[str, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -71,6 +76,10 @@ class CheckReport:
         n = len(self.violations)
         out = [f"INVALID: {n} violation{'s' if n != 1 else ''}:"]
         out += [f"  [{v.condition}] {v.message}" for v in self.violations]
+        if self.further:
+            out.append("further obstacles that fail (the construction continued without the "
+                       "failing ones above):")
+            out += [f"  {x}" for x in self.further]
         new = [b for b in self.binding  # a failed construction already names it above
                if not any(b in v.message for v in self.violations)]
         if new:
@@ -192,31 +201,40 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
                   extra)
 
 
-def _check(sc: Scenario, kind: str, params: ControllerParams, positions: np.ndarray,
+def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarray,
            budget: Any, pre: list[str], want_fixes: bool, delta_m: float,
            extra: list[Violation] | None = None) -> CheckReport:
-    part, violations = validate_scenario(sc.tube, sc.obstacles, params, positions)
+    """``flown``: the parameters the checks use, with the flown radii r_s', r_a' (a mission's
+    inflated by the safety budget; a scenario's are its own)."""
+    part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions)
     violations = list(extra or []) + violations
     if kind == "mission" and part is not None:
         from vtube_fleet.fleet.agent import FlightPlan
 
-        plan = FlightPlan.build(sc.tube, sc.obstacles, params, part=part)
+        plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
         for i, k, d in plan.lookahead_conflicts(positions):
             violations.append(Violation("Assumption1", (
                 f"Assumption1 violated: slot {i} at {_pt(positions[i])} is in the look-ahead "
                 f"zone of an apex: it would fly {part.sub_tubes[k].name} with {d:.2f} m to its "
-                f"legs ≤ r_s' = {params.r_s:.2f} m (move the slot upstream or the obstacle "
+                f"legs ≤ r_s' = {flown.r_s:.2f} m (move the slot upstream or the obstacle "
                 f"downstream)")))
     lines = [f"{sc.source}:"] + [f"  {x}" for x in _header(sc, sc.controller) + pre]
     if part is not None:
         lines += [f"  {x}" for x in describe_partition(sc, part)]
     binding: list[str] = []
     fixes: list[Fix] = []
+    further: list[str] = []
+    if any(v.condition == "Partition" and v.message.startswith("Partition failed")
+           for v in violations):  # the construction stopped at one obstacle: the others
+        further = further_failures(sc.tube, sc.obstacles, flown, positions)
+        if kind == "mission":
+            further = [flown_symbols(x) for x in further]
     partition_bad = any(v.condition in ("Partition", "Assumption3'", "Constraint3")
                         for v in violations)
     if partition_bad:
-        binding = binding_constraints(sc.tube, sc.obstacles, params, positions)
+        binding = binding_constraints(sc.tube, sc.obstacles, flown, positions)
         if want_fixes:
-            fixes = nearest_fixes(sc.tube, sc.obstacles, params, positions, r_offset_m=delta_m)
-    return CheckReport(sc.source, kind, sc, params, part, tuple(violations), tuple(lines),
-                       budget, tuple(binding), tuple(fixes), partition_bad and want_fixes)
+            fixes = nearest_fixes(sc.tube, sc.obstacles, flown, positions, r_offset_m=delta_m)
+    return CheckReport(sc.source, kind, sc, flown, part, tuple(violations), tuple(lines),
+                       budget, tuple(binding), tuple(fixes), partition_bad and want_fixes,
+                       tuple(further))

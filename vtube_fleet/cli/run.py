@@ -125,7 +125,8 @@ def register(subparsers: Any) -> None:
     add_fence_arg(p)
     p.add_argument("--fix-params", action="store_true",
                    help="set the PX4 parameters the audit finds off (MPC_XY_VEL_MAX, "
-                        "MPC_ACC_HOR, COM_OF_LOSS_T, COM_OBL_RC_ACT, NAV_DLL_ACT) for the flight "
-                        "and restore the old values on exit")
+                        "GF_MAX_VER_DIST, MPC_ACC_HOR, MPC_JERK_AUTO, MPC_Z_VEL_MAX_UP/_DN, "
+                        "COM_OF_LOSS_T, COM_OBL_RC_ACT, NAV_DLL_ACT) for the flight and restore "
+                        "the old values on exit")
     add_recording_args(p)
     p.set_defaults(func=_cmd_run)

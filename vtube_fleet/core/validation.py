@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -62,6 +63,8 @@ __all__ = [
     "Violation",
     "binding_constraints",
     "check_scenario",
+    "flown_symbols",
+    "further_failures",
     "nearest_fixes",
     "validate_scenario",
 ]
@@ -71,6 +74,16 @@ __all__ = [
 MAX_LISTED = 10
 
 _TOL = 1e-9
+
+
+_RADIUS_SYMBOL = re.compile(r"\b(r_s|r_a)\b(?!')")
+
+
+def flown_symbols(text: str) -> str:
+    """A message of :func:`validate_scenario` run with the *flown* parameters (the radii
+    inflated by the safety budget) in their own symbols: ``r_s`` → ``r_s'``, ``r_a`` →
+    ``r_a'`` ("2 r_s' = 3.91 m"), so that ``r_s`` keeps meaning the physical radius."""
+    return _RADIUS_SYMBOL.sub(r"\1'", text)
 
 
 def _ob(i: int, ob: Obstacle) -> str:
@@ -334,6 +347,37 @@ def binding_constraints(tube: Trapezoid, obstacles: Sequence[Obstacle],
         out.append(plan.binding.describe())
     if plan.inside:
         out.append(f"{plan.inside} start position(s) inside circumscribed triangles")
+    return out
+
+
+def further_failures(tube: Trapezoid, obstacles: Sequence[Obstacle],
+                     params: ControllerParams, positions: np.ndarray | None = None
+                     ) -> list[str]:
+    """The obstacles that fail *after* the first one, one line each (``obstacle #5 at (33.0,
+    0.0) r_o=0.9: the obstacle blocks the tube: …``): the construction stops at the first
+    obstacle it cannot split around (:class:`PartitionError`, which :func:`validate_scenario`
+    reports); here it is continued without that obstacle, and again without the next one to
+    fail, until it builds. So each line holds with the obstacles named before it left out
+    (fixing the first may change the rest). Empty when the partition builds, or fails for a
+    reason not tied to one obstacle."""
+    obstacles = tuple(obstacles)
+    left = list(range(len(obstacles)))
+    out: list[str] = []
+    for n in range(len(obstacles)):
+        try:
+            partition(tube, [obstacles[i] for i in left], params, strict=False,
+                      keep_out=positions)
+        except PartitionError as e:
+            if e.obstacle is None:
+                break
+            k = left[e.obstacle]  # the index among the obstacles left → the scenario's
+            if n:  # the first failure is the violation already reported
+                out.append(f"{obstacle_label(k, obstacles[k])}: {e.reason}")
+            left.remove(k)
+        except (UserError, ValueError):  # pragma: no cover - reported by validate_scenario
+            break
+        else:
+            break
     return out
 
 

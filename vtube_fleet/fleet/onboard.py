@@ -151,6 +151,19 @@ _DLL_NAMES = {0: "disabled", 1: "Hold", 2: "Return (climbs and flies home across
               3: "Land", 5: "Terminate", 6: "Disarm"}
 
 
+#: a jerk-limited start from rest (PX4's S-curve, jerk j, no acceleration cap) reaches
+#: 1 − 1/e of a speed step V after (2 − √(2/e)) √(V / j): within t63 when j ≥ this × V / t63²
+JERK_T63_FACTOR = (2.0 - math.sqrt(2.0 / math.e)) ** 2
+#: PX4's largest MPC_JERK_AUTO (multicopter_autonomous_params.yaml): ``--fix-params`` sets no more
+JERK_AUTO_MAX = 80.0
+
+
+def _up(x: float, step: float) -> float:
+    """``x`` rounded up to a multiple of ``step`` = 1 / n (what ``--fix-params`` sets)."""
+    n = round(1.0 / step)
+    return math.ceil(x * n - 1e-9) / n
+
+
 def audit_rules(mission: Mission) -> list[ParamRule]:
     """The parameters checked against ``mission`` (docs/fleet.md lists why)."""
     sc, cfg = mission.scenario, mission.config
@@ -158,6 +171,13 @@ def audit_rules(mission: Mission) -> list[ParamRule]:
     d = float(cfg.disturbance_residual_m_s) if cfg.compensate_estimate else 0.0
     t63 = max(float(cfg.tracking_t63_s), 1e-3)
     acc_need = v_max / t63
+    jerk_need = JERK_T63_FACTOR * v_max / t63 ** 2
+    # PX4 judges GF_MAX_VER_DIST on its estimate of the height above home (the slots are on
+    # the ground, origin_alt_m): the take-off ends within altitude_tolerance_m of altitude_m
+    ceiling_need = float(cfg.altitude_m) + float(cfg.altitude_tolerance_m)
+    climb, hold_v = float(cfg.climb_speed_m_s), float(cfg.max_vertical_speed_m_s)
+    up_need = max(climb, hold_v)
+    up_what = ("climb_speed_m_s" if climb >= hold_v else "max_vertical_speed_m_s")
 
     def vel(x: float) -> str | None:
         if x >= v_max:
@@ -191,10 +211,49 @@ def audit_rules(mission: Mission) -> list[ParamRule]:
                 f"whose ground station is gone for COM_DL_LOSS_T should land (3), not hover "
                 f"until its battery fails")
 
-    vel_fix = math.ceil((v_max + d) * 10.0 - 1e-9) / 10.0
+    def ceiling(x: float) -> str | None:
+        if x <= 0.0 or x >= ceiling_need:  # 0 = disabled (PX4 geofence_params.yaml)
+            return None
+        return (f"GF_MAX_VER_DIST = {_n(x)} m < altitude_m + altitude_tolerance_m = "
+                f"{_n(ceiling_need)} m: PX4's own fence ceiling (height above home) would "
+                f"breach during the climb and take the vehicle out of offboard (GF_ACTION); "
+                f"lower altitude_m or raise GF_MAX_VER_DIST")
+
+    def z_up(x: float) -> str | None:
+        if x >= up_need:
+            return None
+        head = f"MPC_Z_VEL_MAX_UP = {_n(x)} m/s < {up_what} = {_n(up_need)} m/s: PX4 clips"
+        if x >= climb:
+            return (f"{head} the altitude-hold climbs (slower height corrections; the "
+                    f"horizontal flight is not affected)")
+        slow, plan = cfg.altitude_m / max(x, 1e-3), cfg.altitude_m / climb
+        late = (f", longer than takeoff_timeout_s = {_n(cfg.takeoff_timeout_s)} s: the "
+                f"take-off will time out" if slow > cfg.takeoff_timeout_s else "")
+        return (f"{head} the climb (take-off {_n(slow)} s instead of {_n(plan)} s{late}); "
+                f"the horizontal flight is not affected")
+
+    def z_dn(x: float) -> str | None:
+        if x >= hold_v:
+            return None
+        return (f"MPC_Z_VEL_MAX_DN = {_n(x)} m/s < max_vertical_speed_m_s = {_n(hold_v)} m/s: "
+                f"PX4 clips the altitude-hold descents (slower height corrections; the "
+                f"horizontal flight is not affected)")
+
+    def jerk(x: float) -> str | None:
+        if x >= jerk_need:
+            return None
+        return (f"MPC_JERK_AUTO = {_n(x)} m/s³ < {_n(JERK_T63_FACTOR)} v_max / t63² = "
+                f"{_n(jerk_need)} m/s³: a jerk-limited start reaches 63 % of a v_max step "
+                f"later than the tracking_t63_s = {_n(t63)} s the safety budget assumes")
+
+    vel_fix = _up(v_max + d, 0.1)
     return [
         ParamRule("MPC_XY_VEL_MAX", True, vel, vel_fix),
-        ParamRule("MPC_ACC_HOR", False, acc, math.ceil(acc_need * 10.0 - 1e-9) / 10.0),
+        ParamRule("GF_MAX_VER_DIST", True, ceiling, _up(ceiling_need, 1.0)),
+        ParamRule("MPC_ACC_HOR", False, acc, _up(acc_need, 0.1)),
+        ParamRule("MPC_JERK_AUTO", False, jerk, min(_up(jerk_need, 0.1), JERK_AUTO_MAX)),
+        ParamRule("MPC_Z_VEL_MAX_UP", False, z_up, _up(up_need, 0.1)),
+        ParamRule("MPC_Z_VEL_MAX_DN", False, z_dn, _up(hold_v, 0.1)),
         ParamRule("COM_OF_LOSS_T", False, loss, 1.0),
         ParamRule("COM_OBL_RC_ACT", False, obl, 5.0),
         ParamRule("NAV_DLL_ACT", False, dll, 3.0),
