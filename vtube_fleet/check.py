@@ -10,7 +10,9 @@ the partition it would fly, or why there is none and what would fix it.
   vehicles will report; before any vehicle is connected they are the mission's ``latency_s`` /
   ``position_accuracy_m`` if set, else ``latency_s`` / ``accuracy_m`` given here (defaults: a
   measured latency of 0 s, to which the mission's ``latency_headroom_s`` is added as in
-  flight, and σ = 0). The partition printed is the one the fleet builds from those radii (the
+  flight, and σ = :data:`~vtube_fleet.fleet.budget.ASSUMED_ACCURACY_M`, what PX4 SITL and the
+  built-in mock report, so that ``check`` predicts what ``run`` will accept). The
+  partition printed is the one the fleet builds from those radii (the
   same planner input: the slots); the fleet re-checks with what it measures before arming.
 * When the partition is infeasible, the report names what binds (:func:`~vtube_fleet.core.
   validation.binding_constraints`) and the nearest single changes that fix it
@@ -19,6 +21,7 @@ the partition it would fly, or why there is none and what would fix it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -171,13 +174,18 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
         return _check(sc, "scenario", sc.controller, sc.robots.control_points(), None, [],
                       fixes, 0.0)
     from vtube_fleet.config.mission import load_mission
-    from vtube_fleet.fleet.budget import LinkMeasurement, budget_problems, mission_budget
+    from vtube_fleet.fleet.budget import (
+        ASSUMED_ACCURACY_M,
+        LinkMeasurement,
+        budget_problems,
+        mission_budget,
+    )
 
     mission = load_mission(path)
     sc = mission.scenario
     measured = LinkMeasurement(
         position_age_s=0.0 if latency_s is None else float(latency_s), setpoint_delay_s=0.0,
-        accuracy_m=0.0 if accuracy_m is None else float(accuracy_m))
+        accuracy_m=ASSUMED_ACCURACY_M if accuracy_m is None else float(accuracy_m))
     budget = mission_budget(mission, measured)
     flown = budget.inflate(sc.controller)
     cfg = mission.config
@@ -187,9 +195,10 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
                        + (" (--latency-s)" if latency_s is not None else " (default; "
                           "--latency-s)") + f" + latency_headroom_s {cfg.latency_headroom_s:g} s")
     if cfg.position_accuracy_m is None:
-        assumed.append(f"σ = {0.0 if accuracy_m is None else accuracy_m:g} m"
+        assumed.append(f"σ = {measured.accuracy_m:g} m"
                        + (" (--accuracy-m)" if accuracy_m is not None else
-                          " (default; the vehicles report it before arming; --accuracy-m)"))
+                          " (default: what PX4 SITL reports; the vehicles report theirs "
+                          "before arming; --accuracy-m)"))
     pre = [f"mission: {mission.count} vehicles at {cfg.rate_hz:g} Hz; safety budget "
            f"{budget.describe(sc.controller)}"
            + (f"; assumed {', '.join(assumed)}" if assumed else ""),
@@ -207,6 +216,9 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
     """``flown``: the parameters the checks use, with the flown radii r_s', r_a' (a mission's
     inflated by the safety budget; a scenario's are its own)."""
     part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions)
+    if kind == "mission":  # checked with the flown radii: say r_s', r_a' (r_s is physical)
+        violations = [dataclasses.replace(v, message=flown_symbols(v.message))
+                      for v in violations]
     violations = list(extra or []) + violations
     if kind == "mission" and part is not None:
         from vtube_fleet.fleet.agent import FlightPlan

@@ -47,6 +47,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.config.mission import Mission
 
 __all__ = [
+    "ASSUMED_ACCURACY_M",
     "BudgetWatch",
     "LinkMeasurement",
     "SafetyBudget",
@@ -54,6 +55,10 @@ __all__ = [
     "mission_budget",
 ]
 
+#: σ assumed before any vehicle has reported one (``vtube-fleet check`` of a mission): what PX4
+#: SITL (SIH) reports, ESTIMATOR_STATUS ``pos_horiz_accuracy`` 0.29 m in the captures, and so
+#: the built-in mock's default ``px4-sih`` profile. A run measures σ from its vehicles instead.
+ASSUMED_ACCURACY_M = 0.29
 
 
 @dataclass(frozen=True)
