@@ -469,9 +469,46 @@ async def test_interrupted_agent_lands_and_leaves_its_summary_and_recording(tmp_
     assert code == 3, err  # the fleet is incomplete: vehicle 1 never exited
     a = agent_summary(run, 1)
     assert a["outcome"] == "interrupted" and a["phase"] == "landed" and a["exit_time_s"] is None
+    assert a["complete"] is True  # the final one (issue 12: the interim ones say false)
     from vtube_fleet.recording.review import review
 
     res = review(tmp_path / "agent-1" / "recording.rrd", plots=False)
     assert res.differences == [] and res.data.summary["outcome"] == "interrupted"
     own = list(res.data.ids).index(1)
     assert res.data.phases is not None and res.data.phases[-1, own] == "landed"
+
+
+@pytest.mark.timeout(90)
+async def test_sigkilled_agent_leaves_its_last_summary(tmp_path: Path) -> None:
+    """Issue #12: while it flies, the agent rewrites ``summary.json`` atomically every
+    ``SUMMARY_EVERY_S`` with ``complete: false``, so a SIGKILLed agent (no chance to clean up)
+    still leaves its last one."""
+    async with fleet_run(tmp_path, 1) as run:
+        coord = await start_coordinator(run, 1)
+        try:
+            path = run.out.parent / "agent-0" / "summary.json"
+            seen: list[dict] = []
+
+            def interim_in_tube() -> bool:
+                with contextlib.suppress(FileNotFoundError):
+                    s = json.loads(path.read_text())  # whole JSON: replaced atomically
+                    if not seen or s != seen[-1]:
+                        seen.append(s)
+                    return s["phase"] == "in_tube" and s["steps"] > 0
+                return False
+
+            await until(interim_in_tube, 60, "an interim agent summary written in the tube")
+            run.agents[0].send_signal(signal.SIGKILL)
+            assert await run.agents[0].wait() == -signal.SIGKILL
+        finally:
+            if coord.returncode is None:
+                coord.kill()
+            await coord.wait()
+    s = json.loads(path.read_text())  # what the killed agent left
+    assert s["complete"] is False and s["outcome"] == "running", s
+    assert "still flying (phase in_tube" in s["reason"] and "without writing its own" in s["reason"]
+    assert s["kind"] == "agent" and s["vehicle"] == 0 and s["vehicles"] == 1 and s["run_id"]
+    assert s["steps"] > 0 and s["wall_s"] > 0 and s["violations"] == 0
+    assert len(seen) >= 2 and seen[0]["wall_s"] < s["wall_s"]  # rewritten during the flight
+    assert all(x["complete"] is False for x in seen)
+    assert not list(path.parent.glob("*.tmp"))

@@ -1,5 +1,7 @@
 """The agent's recording (fleet/distributed/agent.AgentRecording): a failure of the safety
-evaluation is not swallowed with the recording's problems (issue #10)."""
+evaluation is not swallowed with the recording's problems (issue #10); the interim summary
+(``complete: false``, every ``SUMMARY_EVERY_S`` during the flight) and the final one
+(``complete: true``) (issue #12)."""
 
 from __future__ import annotations
 
@@ -51,10 +53,11 @@ def test_the_pilot_aborts_its_tube_run_when_the_evaluation_fails() -> None:
         raise RuntimeError("y")
 
     recording.sample = sample
+    recording.after_tick = lambda _pilot, mono, wall: calls.append(f"after_tick {mono:g}")
     fake = SimpleNamespace(_tick=lambda *_: None, recording=recording,
                            _abort_for=calls.append)
     BusAwarePilot.tick(fake, 0.0, 0.0)  # type: ignore[arg-type]
-    assert calls == ["safety monitor failed: X: y"]
+    assert calls == ["safety monitor failed: X: y", "after_tick 0"]  # the checkpoint too
 
     events: list[tuple[str, str]] = []
     holds: list[str] = []
@@ -92,3 +95,58 @@ def test_the_teammate_wait_returns_who_is_missing() -> None:
     assert asyncio.run(AgentProcess._wait_teammates(fake, ("exited", "done"), 1.0)) == [1, 3, 5]
     fake._teammates = lambda: range(3)
     assert asyncio.run(AgentProcess._wait_teammates(fake, up, 1.0)) == []
+
+
+def test_the_interim_summary_is_rewritten_during_the_flight_and_the_final_is_complete(
+        tmp_path) -> None:
+    """Issue #12: a SIGKILLed agent leaves its last summary. After a tick (``after_tick``, as
+    :meth:`BusAwarePilot.tick` calls it) the summary is written at once, then again only once
+    ``SUMMARY_EVERY_S`` passed, atomically, ``complete: false``; ``finish`` writes
+    ``complete: true``."""
+    from vtube_fleet.artifacts import SUMMARY_EVERY_S
+    from vtube_fleet.state import NeighbourState
+
+    meta = {"mission_id": "m", "run_id": "r1", "config_hash": "h", "broker": "mqtt://b"}
+    rec = AgentRecording(compact_12(), 3, 0, NullRecorder(), t0_s=100.0, out=tmp_path,
+                         meta=meta)
+    path = tmp_path / "summary.json"
+    pilot = _pilot()
+
+    def hear(k: int) -> None:
+        for v in (1, 2):
+            rec.on_neighbour(NeighbourState(v, 5.0, 2.5 * v, 1.0, 0.0, Phase.IN_TUBE,
+                                            100.0 + 0.05 * k - 0.02, k), 100.0 + 0.05 * k)
+
+    hear(0)
+    rec.sample(pilot, 100.0)
+    rec.after_tick(pilot, 50.0, 100.0)  # the first tick: written at once
+    first = json.loads(path.read_text())
+    assert first["complete"] is False and first["outcome"] == "running"
+    assert "still flying (phase in_tube, 0.0 s after start)" in first["reason"]
+    assert "without writing its own" in first["reason"]
+    assert first["kind"] == "agent" and first["vehicle"] == 0 and first["run_id"] == "r1"
+    assert first["states_received"] == 2 and first["wall_s"] == 0.0
+    for k in range(1, 10):  # not due yet: not rewritten
+        hear(k)
+        rec.sample(pilot, 100.0 + 0.05 * k)
+        rec.after_tick(pilot, 50.0 + 0.05 * k, 100.0 + 0.05 * k)
+    assert json.loads(path.read_text()) == first
+    rec.after_tick(pilot, 50.0 + SUMMARY_EVERY_S + 0.01, 102.5)  # due: rewritten
+    later = json.loads(path.read_text())
+    assert later["complete"] is False and later["states_received"] == 20
+    assert later["wall_s"] == 2.5 and later["steps"] == 10
+    assert not list(tmp_path.glob("*.tmp"))
+    final = json.loads(rec.finish(tmp_path, pilot, outcome="completed").read_text())
+    assert final["complete"] is True and final["outcome"] == "completed"
+    assert final["run_id"] == "r1" and final["states_received"] == 20
+
+
+def test_no_interim_summary_without_an_out_folder_and_a_bad_one_never_raises(
+        tmp_path, caplog) -> None:
+    rec = AgentRecording(compact_12(), 3, 0, NullRecorder(), t0_s=0.0)
+    rec.after_tick(_pilot(), 0.0, 1.0)  # no out: nothing, no error
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    rec = AgentRecording(compact_12(), 3, 0, NullRecorder(), t0_s=0.0, out=blocker / "sub")
+    rec.after_tick(_pilot(), 0.0, 1.0)  # cannot write: a warning, the flight goes on
+    assert "cannot write the interim summary.json" in caplog.text

@@ -99,6 +99,6 @@ async def test_sigkilled_coordinator_leaves_an_interim_summary(tmp_path: Path) -
     s = json.loads(path.read_text())  # what the killed coordinator left
     assert s["complete"] is False and s["outcome"] == "running"
     assert s["states_received"] >= later["states_received"]
-    assert "still being followed" in s["reason"] and "without writing its own" in s["reason"]
+    assert "still following the run" in s["reason"] and "without writing its own" in s["reason"]
     assert s["kind"] == "mqtt" and s["vehicles"] == 2 and s["run_id"]
     assert not list(tmp_path.glob("*.tmp"))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import os
 from collections.abc import Mapping
@@ -24,6 +25,7 @@ __all__ = [
     "SUMMARY_NAME",
     "SUMMARY_EVERY_S",
     "SummaryPacer",
+    "write_interim_summary",
     "write_json_atomic",
     "write_summary",
 ]
@@ -91,6 +93,31 @@ def write_json_atomic(path: Path, obj: Any) -> Path:
 def write_summary(out: Path, summary: dict[str, Any]) -> Path:
     """Write ``out/summary.json`` atomically; returns its path."""
     return write_json_atomic(out / SUMMARY_NAME, summary)
+
+
+#: Outcomes an interim summary keeps: a limit already broken, or a run already aborted, stays
+#: visible in the last summary of a run that is then killed.
+KEPT_INTERIM_OUTCOMES = ("unsafe", "aborted")
+
+
+def write_interim_summary(out: Path, summary: dict[str, Any], doing: str) -> bool:
+    """The interim summary (``complete: false``) of a run still going on, written atomically
+    so that a run killed without a chance to clean up (SIGKILL, power loss) still leaves its
+    last one: ``outcome: running`` (unless it is already one of
+    :data:`KEPT_INTERIM_OUTCOMES`) and the reason "``doing`` when this summary was written;
+    it ended without writing its own". A failed write is logged, never raised (a checkpoint
+    never stops a flight); returns whether it was written."""
+    try:
+        if summary.get("outcome") not in KEPT_INTERIM_OUTCOMES:
+            summary.update(outcome="running", reason=f"{doing} when this summary was written; "
+                                                     f"it ended without writing its own")
+        summary["complete"] = False
+        write_summary(out, summary)
+        return True
+    except Exception as exc:  # noqa: BLE001 - a checkpoint never stops the flight
+        logging.getLogger(__name__).warning("cannot write the interim summary.json in %s: %s",
+                                            out, exc)
+        return False
 
 
 def write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> Path:

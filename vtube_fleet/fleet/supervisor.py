@@ -52,7 +52,12 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.artifacts import SUMMARY_EVERY_S, SummaryPacer, write_summary
+from vtube_fleet.artifacts import (
+    SUMMARY_EVERY_S,
+    SummaryPacer,
+    write_interim_summary,
+    write_summary,
+)
 from vtube_fleet.bus.base import InProcessBus
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.metrics import (
@@ -1137,13 +1142,11 @@ class Supervisor:
             return
         try:
             summary = self.summary()
-            summary.update(
-                outcome="running", complete=False,
-                reason=f"the run was still in flight (stage {self.stage}, {self.t_s():.1f} s) "
-                       f"when this summary was written; it ended without writing its own")
-            write_summary(self.out_dir, summary)
         except Exception as exc:  # noqa: BLE001 - a checkpoint never stops the flight
-            log.warning("cannot write the interim summary.json in %s: %s", self.out_dir, exc)
+            log.warning("cannot build the interim summary: %s", exc)
+            return
+        write_interim_summary(self.out_dir, summary, f"the run was still in flight (stage "
+                                                     f"{self.stage}, {self.t_s():.1f} s)")
 
     async def _shutdown(self) -> tuple[dict[str, Any], Path | None]:
         self._clock_stop.set()

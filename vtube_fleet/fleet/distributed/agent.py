@@ -181,11 +181,13 @@ class BusAwarePilot(VehiclePilot):
         try:
             self._tick(now_mono, now_wall)
         finally:
-            if self.recording is not None:
+            rec = self.recording
+            if rec is not None:
                 try:
-                    self.recording.sample(self, now_wall)
+                    rec.sample(self, now_wall)
                 except Exception:  # noqa: BLE001 - the safety evaluation failed (noted there)
-                    self._abort_for(self.recording.failure or "safety monitor failed")
+                    self._abort_for(rec.failure or "safety monitor failed")
+                rec.after_tick(self, now_mono, now_wall)  # the interim summary, when due
 
     def _abort_for(self, why: str) -> None:
         """What the supervisor's ``request_abort`` does for one vehicle: keep the reason, hold
@@ -286,15 +288,26 @@ class AgentRecording:
     ``exit_time_s`` (seconds since the start command, like every time in the summary),
     ``min/max_commanded_speed_m_s`` (its tube controller's commands),
     ``bus_holds`` and ``phase``.
+
+    While flying, ``OUT/summary.json`` is rewritten atomically every
+    :data:`~vtube_fleet.artifacts.SUMMARY_EVERY_S` with ``complete: false``
+    (:meth:`after_tick`); the one :meth:`finish` writes says ``complete: true``.
     """
 
     def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
-                 t0_s: float) -> None:
+                 t0_s: float, out: Path | None = None,
+                 meta: dict[str, Any] | None = None) -> None:
+        """``out``: where the interim summaries go (:meth:`after_tick`; None: none);
+        ``meta``: keys every summary carries (mission and run id, config hash, broker)."""
+        from vtube_fleet.artifacts import SummaryPacer
         from vtube_fleet.fleet.distributed.monitor import RunMonitor
 
         self.vehicle = vehicle
         self.recorder = recorder
         self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s)
+        self.out = out
+        self.meta = dict(meta or {})
+        self.pacer = SummaryPacer(-math.inf)  # the first interim summary at the first tick
         self.cmd_speed = [math.inf, -math.inf]
         self.unsafe = False
         self._own_seq: int | None = None
@@ -335,12 +348,13 @@ class AgentRecording:
                 log.exception("agent %d: %s", self.vehicle, self.failure)
             raise
 
-    def finish(self, out: Path, pilot: BusAwarePilot | None, **extra: Any) -> Path:
-        """Write ``OUT/summary.json``, store it in the recording and close it (every exit
-        path); returns the summary's path."""
-        from vtube_fleet.artifacts import write_summary
-
+    def summary(self, pilot: BusAwarePilot | None, now_wall: float | None = None,
+                **extra: Any) -> dict[str, Any]:
+        """The summary so far: the monitor's keys, this vehicle's own, :attr:`meta`, ``wall_s``
+        (seconds since the start command) and ``extra``; THE verdict applied (``unsafe``), or
+        ``aborted`` after a failed safety evaluation. Sets :attr:`unsafe`."""
         mon = self.monitor
+        now = time.time() if now_wall is None else now_wall
         stamp = mon.exit_stamp.get(self.vehicle)
         own: dict[str, Any] = {
             "kind": "agent",
@@ -353,8 +367,11 @@ class AgentRecording:
         own.update(
             min_commanded_speed_m_s=finite_or_none(self.cmd_speed[0]),
             max_commanded_speed_m_s=finite_or_none(self.cmd_speed[1]),
+            **self.meta,
+            wall_s=round(now - mon.t0_s, 3),
         )
-        summary = mon.summary(**own, **extra)
+        own.update(extra)
+        summary = mon.summary(**own)
         v = verdict(summary)
         if not v.safe:  # THE verdict, over what this agent heard
             summary["outcome"] = "unsafe"
@@ -363,11 +380,47 @@ class AgentRecording:
         if self.failure is not None and v.safe:  # its safety data stops at the failure
             summary["outcome"] = "aborted"
             summary["reason"] = self.failure
+        return summary
+
+    def after_tick(self, pilot: BusAwarePilot, now_mono: float, now_wall: float) -> None:
+        """After each control tick (its setpoint sent): when due (at the first tick, then every
+        :data:`~vtube_fleet.artifacts.SUMMARY_EVERY_S`, :class:`~vtube_fleet.artifacts.
+        SummaryPacer`, as ``run`` and the coordinator do), rewrite ``OUT/summary.json``
+        atomically with ``complete: false``: an agent killed without a chance to clean up
+        (SIGKILL, a power cut) still leaves its last summary. Never raises."""
+        if self.out is None or not self.pacer.due(now_mono):
+            return
+        t_c = time.perf_counter()
+        self.write_interim(pilot, now_wall)
+        self.pacer.written(now_mono, now_mono + time.perf_counter() - t_c)
+
+    def write_interim(self, pilot: BusAwarePilot | None, now_wall: float | None = None) -> None:
+        """The interim summary (``complete: false``, ``outcome: running``) to :attr:`out`."""
+        from vtube_fleet.artifacts import write_interim_summary
+
+        if self.out is None:
+            return
+        try:
+            summary = self.summary(pilot, now_wall)
+        except Exception as exc:  # noqa: BLE001 - a checkpoint never stops the flight
+            log.warning("agent %d: cannot build the interim summary: %s", self.vehicle, exc)
+            return
+        write_interim_summary(self.out, summary, f"the agent was still flying (phase "
+                                                 f"{summary.get('phase', '?')}, "
+                                                 f"{summary.get('wall_s', 0.0):.1f} s after start)")
+
+    def finish(self, out: Path, pilot: BusAwarePilot | None, **extra: Any) -> Path:
+        """Write ``OUT/summary.json`` (``complete: true``), store it in the recording and close
+        it (every exit path); returns the summary's path."""
+        from vtube_fleet.artifacts import write_summary
+
+        summary = self.summary(pilot, **extra)
+        summary["complete"] = True
         try:
             return write_summary(out, summary)
         finally:
-            mon.recorder.log_summary(summary)
-            mon.recorder.close()
+            self.monitor.recorder.log_summary(summary)
+            self.monitor.recorder.close()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -776,7 +829,10 @@ class AgentProcess:
         cmd = self.bus.command
         t0 = cmd.stamp_s if cmd is not None else time.time()  # the coordinator's time base
         mission = self.mission.with_vehicles(cfg.vehicles)
-        rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0)
+        rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0,
+                             out=self.out, meta={
+                                 "mission_id": self.mission_id, "run_id": cfg.run_id,
+                                 "config_hash": self.hash, "broker": self.bus.url})
         self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
                   "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles},
@@ -790,13 +846,8 @@ class AgentProcess:
         if rec is None or self.out is None:
             return
         pilot.recording = None
-        cfg = self.run_cfg
         try:
-            self.summary_path = rec.finish(
-                self.out, pilot, outcome=outcome, mission_id=self.mission_id,
-                run_id=cfg.run_id if cfg is not None else None, config_hash=self.hash,
-                broker=self.bus.url, wall_s=round(time.time() - rec.monitor.t0_s, 3),
-            )
+            self.summary_path = rec.finish(self.out, pilot, outcome=outcome)
             self.say(f"summary {self.summary_path}")
         except OSError as exc:
             log.error("agent %d: cannot write the summary to %s: %s", self.vehicle, self.out,

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from vtube_fleet.artifacts import write_summary
+from vtube_fleet.artifacts import write_interim_summary, write_summary
 from vtube_fleet.bus.codec import Command, MissionConfigMsg, encode_command, encode_config
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.topics import validate_mission_id
@@ -448,15 +448,14 @@ class Coordinator:
         def checkpoint() -> None:
             """The summary so far (``complete: false``): a coordinator killed without a
             chance to clean up (SIGKILL) still leaves its last summary."""
+            t = time.time() - (self.t_start_wall or time.time())
             try:
-                t = time.time() - (self.t_start_wall or time.time())
-                write_summary(out, summary(
-                    outcome="running", complete=False,
-                    reason=f"the run was still being followed ({t:.1f} s after start) when "
-                           f"this summary was written; the coordinator ended without writing "
-                           f"its own"))
+                s = summary(outcome="running")
             except Exception as exc:  # noqa: BLE001 - a checkpoint never stops the run
-                log.warning("cannot write the interim summary.json in %s: %s", out, exc)
+                log.warning("cannot build the interim summary: %s", exc)
+                return
+            write_interim_summary(out, s, f"the coordinator was still following the run "
+                                          f"({t:.1f} s after start)")
 
         try:
             follow = asyncio.ensure_future(self.follow(timeout, mon, checkpoint=checkpoint))
