@@ -10,7 +10,7 @@ the partition it would fly, or why there is none and what would fix it.
   vehicles will report; before any vehicle is connected they are the mission's ``latency_s`` /
   ``position_accuracy_m`` if set, else ``latency_s`` / ``accuracy_m`` given here (defaults: a
   measured latency of 0 s, to which the mission's ``latency_headroom_s`` is added as in
-  flight, and σ = :data:`~vtube_fleet.fleet.budget.ASSUMED_ACCURACY_M`, what PX4 SITL and the
+  flight, and σ = :data:`~vtube_fleet.fleet.budget.PX4_SITL_ACCURACY_M`, what PX4 SITL and the
   built-in mock report, so that ``check`` predicts what ``run`` will accept). The
   partition printed is the one the fleet builds from those radii (the
   same planner input: the slots); the fleet re-checks with what it measures before arming.
@@ -175,7 +175,7 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
                       fixes, 0.0)
     from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleet.budget import (
-        ASSUMED_ACCURACY_M,
+        PX4_SITL_ACCURACY_M,
         LinkMeasurement,
         budget_problems,
         mission_budget,
@@ -185,7 +185,7 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
     sc = mission.scenario
     measured = LinkMeasurement(
         position_age_s=0.0 if latency_s is None else float(latency_s), setpoint_delay_s=0.0,
-        accuracy_m=ASSUMED_ACCURACY_M if accuracy_m is None else float(accuracy_m))
+        accuracy_m=PX4_SITL_ACCURACY_M if accuracy_m is None else float(accuracy_m))
     budget = mission_budget(mission, measured)
     flown = budget.inflate(sc.controller)
     cfg = mission.config

@@ -8,7 +8,7 @@ from typing import Any
 
 from vtube_fleet.cli._args import bounded
 from vtube_fleet.config.keys import Bound, Key
-from vtube_fleet.fleet.budget import ASSUMED_ACCURACY_M
+from vtube_fleet.fleet.budget import PX4_SITL_ACCURACY_M
 
 __all__ = [
     "ACCURACY_M",
@@ -59,7 +59,7 @@ def register(subparsers: Any) -> None:
                         "+ setpoint delay; default 0, plus the mission's latency_headroom_s)")
     p.add_argument("--accuracy-m", type=bounded(ACCURACY_M), default=None, metavar="M",
                    help="missions: the position accuracy σ the vehicles would report "
-                        f"(default {ASSUMED_ACCURACY_M:g}: what PX4 SITL reports; RTK: ~0.02)")
+                        f"(default {PX4_SITL_ACCURACY_M:g}: what PX4 SITL reports; RTK: ~0.02)")
     p.add_argument("--no-fixes", action="store_true",
                    help="do not search for the nearest fixes of an infeasible partition")
     p.set_defaults(func=cmd_check)

@@ -47,18 +47,20 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.config.mission import Mission
 
 __all__ = [
-    "ASSUMED_ACCURACY_M",
     "BudgetWatch",
     "LinkMeasurement",
+    "PX4_SITL_ACCURACY_M",
     "SafetyBudget",
     "budget_problems",
     "mission_budget",
 ]
 
-#: σ assumed before any vehicle has reported one (``vtube-fleet check`` of a mission): what PX4
-#: SITL (SIH) reports, ESTIMATOR_STATUS ``pos_horiz_accuracy`` 0.29 m in the captures, and so
-#: the built-in mock's default ``px4-sih`` profile. A run measures σ from its vehicles instead.
-ASSUMED_ACCURACY_M = 0.29
+#: The σ PX4 SITL (SIH) reports: ESTIMATOR_STATUS ``pos_horiz_accuracy`` 0.29 m in the captures
+#: (the built-in mock's default ``px4-sih`` profile reports the same). ``vtube-fleet check``
+#: assumes it for a mission before any vehicle has reported its own; a run measures σ instead.
+#: (The MQTT coordinator's run budget assumes a ceiling above it, ``distributed.coordinator.
+#: ASSUMED_ACCURACY_M``, that every agent's vehicle must stay under.)
+PX4_SITL_ACCURACY_M = 0.29
 
 
 @dataclass(frozen=True)
