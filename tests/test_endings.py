@@ -7,13 +7,21 @@
   ``complete: false`` (rewritten atomically every few seconds during the flight);
 * a vehicle that held because the mission aborted carries that reason in the summary;
 * an agent SIGTERMed before it reached its vehicle says so (not "vehicle held, then landed");
-* the coordinator's ``incomplete`` names the vehicles that did not exit and land, and why.
+* the coordinator's ``incomplete`` names the vehicles that did not exit and land, and why;
+* a take-off or mission timeout, and a lost vehicle the tube cannot be re-partitioned around,
+  end ``aborted`` with that reason.
+
+``review`` agrees with the run for every ending flown here (link loss, interrupted, timeout,
+partition failure, incomplete); tests/test_fleet_e2e.py covers ``unsafe`` and a lost vehicle's
+``incomplete``. A SIGKILLed run's recording holds no summary: it is held to the last
+summary.json instead (the same figures over the ticks that summary judged).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -23,15 +31,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fleet_ports import free_ports
 from missions import straight_mission
 from mock_process import child_env, mock_process, read_line, start_run
 
 from vtube_fleet.config.mission import load_mission
+from vtube_fleet.core.metrics import METRIC_KEYS
 from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.supervisor import Supervisor
-from vtube_fleet.recording.review import review
+from vtube_fleet.recording.review import compare_summaries, review, summary_from_recording
 from vtube_fleet.recording.writer import open_recorder
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -143,17 +153,21 @@ def test_sigkilled_run_leaves_its_last_summary(tmp_path: Path) -> None:
     path.write_text(MISSION)
     out = tmp_path / "run"
     summary_path = out / "summary.json"
+    rrd = out / "recording.rrd"
     with mock_process(path, 3) as (_mock, endpoints):
         proc = start_run(path, endpoints, out)
         try:
             read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
-            # the next interim summary written in the tube (a condition, with a deadline)
+            # an interim summary written in the tube that judged ticks, and a recording that
+            # already holds them (it is sent in batches: a condition, with a deadline)
             deadline = time.monotonic() + 30.0
-            interim: dict[str, Any] = {}
             while time.monotonic() < deadline:
+                recorded = _judged_ticks(rrd)
+                interim: dict[str, Any] = {}
                 with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
                     interim = json.loads(summary_path.read_text())
-                if "stage tube" in str(interim.get("reason")):
+                if ("stage tube" in str(interim.get("reason"))
+                        and 0 < interim["steps"] <= recorded):
                     break
                 proc.stderr.readline() if proc.stderr else None  # (paced by the run's output)
             proc.send_signal(signal.SIGKILL)
@@ -168,6 +182,46 @@ def test_sigkilled_run_leaves_its_last_summary(tmp_path: Path) -> None:
     assert summary["ticks"] > 0 and summary["tube_start_s"] is not None
     assert [v["phase"] for v in summary["vehicle_states"]] == ["in_tube"] * 3
     assert not list(out.glob("*.tmp"))
+    # The recording, cut by the kill, still reads, but it holds no run summary (written at
+    # close), so review's ``differences == []`` would be vacuous: it says "nothing to compare".
+    # What it can honestly be held to is the last summary.json: over the ticks that summary
+    # judged the review recomputes exactly its figures; the recording goes on up to the kill,
+    # so over all of it the figures are no better.
+    res = review(rrd, plots=False)
+    assert res.data.summary is None and res.differences == []
+    judged = res.data.safety_ticks[""]
+    rows = np.flatnonzero(judged)
+    steps = summary["steps"]
+    assert len(rows) == res.summary["steps"] > 0
+    if len(rows) >= steps:  # (always, but for a checkpoint written just before the kill)
+        cut = dataclasses.replace(res.data, safety_ticks={"": np.isin(np.arange(judged.size),
+                                                                      rows[:steps])})
+        upto, keys = summary_from_recording(cut)
+        assert compare_summaries(upto, summary, keys) == [], compare_summaries(upto, summary,
+                                                                               keys)
+    later, earlier = (res.summary, summary) if len(rows) >= steps else (summary, res.summary)
+    for key in METRIC_KEYS:  # the one that judged more ticks is no better
+        if later[key] is None or earlier[key] is None:
+            assert later[key] == earlier[key] or earlier[key] is None, key
+        elif key.startswith("min_"):
+            assert later[key] <= earlier[key], key
+        else:
+            assert later[key] >= earlier[key], key
+    assert later["violations"] >= earlier["violations"]
+    print(f"\nSIGKILL: the last summary judged {steps} ticks, the recording {len(rows)}")
+
+
+def _judged_ticks(rrd: Path) -> int:
+    """Ticks the (still written) recording holds safety inputs for; 0 if it is not readable yet."""
+    from vtube_fleet.recording.api import RecordingError
+    from vtube_fleet.recording.reader import load_recording
+
+    try:
+        data = load_recording(rrd)
+    except (RecordingError, OSError):
+        return 0
+    judged = data.safety_ticks.get("")
+    return 0 if judged is None else int(judged.sum())
 
 
 @pytest.mark.slow
@@ -280,8 +334,9 @@ def test_a_vehicle_still_airborne_after_land_timeout_is_not_completed(tmp_path: 
                     log["frozen"] = sup.t_s()
                     fleet.kill(1, "freeze")  # hovers where it is, ignores everything
 
-            return await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
-                             out_dir=tmp_path, tick_hook=hook)
+            with open_recorder(tmp_path / "recording.rrd", kind="fleet") as rec:
+                return await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
+                                 out_dir=tmp_path, recorder=rec, tick_hook=hook)
 
     result = asyncio.run(main())
     assert "frozen" in log, result.reason
@@ -291,4 +346,100 @@ def test_a_vehicle_still_airborne_after_land_timeout_is_not_completed(tmp_path: 
                                     "slot 1 "), result.reason
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["outcome"] == "incomplete"
+    res = review(tmp_path / "recording.rrd", plots=False)
+    assert res.data.summary is not None and res.differences == [], res.differences
     print(f"\nnot landed: {result.reason}")
+
+
+def _fly_recorded(tmp_path: Path, text: str, hook=None, kill: tuple[int, str] | None = None,
+                  when=None) -> tuple[Any, Any]:
+    """Fly ``text`` (a mission) on 2 mock vehicles (ideal estimator, fast boot) with a fleet
+    recording; ``when(sup)`` true once → ``fleet.kill(*kill)``. → (result, review result)."""
+    path = tmp_path / "m.toml"
+    path.write_text(text)
+    mission = load_mission(path)
+    rrd = tmp_path / "recording.rrd"
+    log: dict[str, Any] = {}
+
+    async def main() -> Any:
+        async with mock_fleet(mission, boot_time_scale=0.3, port_scheme=free_ports(2),
+                              estimator="ideal") as fleet:
+
+            def tick(tick: int, sup: Supervisor) -> None:
+                if kill is not None and "killed" not in log and when(sup):
+                    log["killed"] = [p.phase.value for p in sup.pilots]
+                    fleet.kill(*kill)
+
+            with open_recorder(rrd, kind="fleet") as rec:
+                return await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
+                                 out_dir=tmp_path, recorder=rec, tick_hook=tick)
+
+    result = asyncio.run(main())
+    assert kill is None or "killed" in log, result.reason
+    return result, review(rrd, plots=False)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("stage", ["takeoff", "tube"])
+def test_a_timeout_aborts_and_the_review_agrees(tmp_path: Path, stage: str) -> None:
+    """``takeoff_timeout_s`` reached in the climb (no tick judged) or ``mission_timeout_s``
+    in the tube: ``aborted`` (exit 3), the reason names the timeout and the vehicles; the review
+    recomputes over the same ticks the run judged (none in the take-off)."""
+    extra = "takeoff_timeout_s = 2.0\n" if stage == "takeoff" else ""  # (the climb: 2 s)
+    text = straight_mission(30.0, [[2.0, 2.25], [2.0, -2.25]], heading_deg=90.0,
+                            extra=extra)
+    if stage == "tube":
+        text = text.replace("mission_timeout_s = 120.0", "mission_timeout_s = 2.0")
+    result, res = _fly_recorded(tmp_path, text)
+    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
+    run = json.loads((tmp_path / "summary.json").read_text())
+    assert run["outcome"] == "aborted" and run["reason"] == result.reason
+    assert run["complete"] is True and run["exited"] == 0
+    if stage == "takeoff":
+        assert result.reason.startswith("take-off failed for 2 of 2 vehicles: "), result.reason
+        assert result.reason.count("within takeoff_timeout_s = 2 s") == 2, result.reason
+        assert run["steps"] == 0 and run["tube_start_s"] is None
+        why = "mission aborted: take-off failed"
+    else:
+        assert result.reason.startswith("mission_timeout_s = 2 s reached with 2 vehicle(s) "
+                                        "still in the tube: "), result.reason
+        assert run["steps"] > 0
+        why = "mission aborted: mission_timeout_s"
+    for v in run["vehicle_states"]:
+        assert v["reason"].startswith(why), v
+    assert res.data.summary is not None and res.differences == [], res.differences
+    assert res.summary["steps"] == run["steps"]
+    print(f"\n{stage} timeout: {result.reason}")
+
+
+#: One pole in a short tube: with the mock's budget (δ ≈ 1.67 m: r_s' ≈ 1.97 m, r_a' ≈ 2.67 m)
+#: a lost vehicle anywhere in it leaves no valid partition, with the lost obstacle's default h
+#: and with the planner's (checked offline on a 1 m grid, also for δ = 1.05 m).
+POLE = "\n[[obstacles]]\ncenter = [14.0, 0.0]\nradius = 0.5\n" + straight_mission(
+    26.0, [[2.0, 2.25], [2.0, -2.25]], heading_deg=90.0)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(90)
+def test_a_lost_vehicle_that_blocks_the_tube_cannot_re_partition(tmp_path: Path) -> None:
+    """Vehicle 0's link dies 1 s into the tube; vehicle 1 still answers, so it is a lost
+    vehicle (not link loss) and the tube cannot be partitioned around it: ``aborted``, the
+    reason says "cannot re-partition" (not "cannot reach anyone") and why vehicle 0 is lost;
+    the review agrees."""
+    result, res = _fly_recorded(
+        tmp_path, POLE, kill=(0, "silent"),
+        when=lambda sup: sup.tube_start_s is not None and sup.t_s() - sup.tube_start_s >= 1.0)
+    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
+    assert result.reason.startswith("cannot re-partition the tube around the lost vehicle(s) 0 "
+                                    "(in the air at their last known positions"), result.reason
+    assert "vehicle 0: no telemetry" in result.reason and "link loss" not in result.reason
+    run = json.loads((tmp_path / "summary.json").read_text())
+    assert run["outcome"] == "aborted" and run["reason"] == result.reason
+    assert run["lost"] == [0] and run["steps"] > 0
+    states = run["vehicle_states"]
+    assert states[0]["phase"] == "lost" and states[0]["reason"].startswith("no telemetry")
+    assert states[1]["reason"].startswith("mission aborted: cannot re-partition"), states[1]
+    assert res.data.summary is not None and res.differences == [], res.differences
+    assert res.summary["steps"] == run["steps"]
+    print(f"\npartition failure: {result.reason}")

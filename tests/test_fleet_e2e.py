@@ -24,6 +24,8 @@ from udp_relay import UdpRelay
 from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.supervisor import Supervisor, TickTrace
+from vtube_fleet.recording.review import review
+from vtube_fleet.recording.writer import open_recorder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -199,8 +201,9 @@ async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None
                 killed.append(p.xy.copy())
                 fleet.kill(0, "silent")
 
-        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3, 4],
-                           out_dir=tmp_path, keep_trace=True, tick_hook=hook)
+        with open_recorder(tmp_path / "recording.rrd", kind="fleet") as rec:
+            result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3, 4],
+                               out_dir=tmp_path, keep_trace=True, recorder=rec, tick_hook=hook)
     sup = holder[0]
     assert killed, "vehicle 0 never reached x = 18 m"
     assert result.outcome == "incomplete" and result.exit_code == 3
@@ -219,6 +222,9 @@ async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None
     assert float(others[:, 0].max()) > dead_true[0] + 3.0  # they did pass it
     worst = check_safety(mission, sup.trace, lost=(0,))
     truth = assert_true_clearance(log)
+    # the review agrees with the run (its lost vehicle counted as the run counted it)
+    res = review(tmp_path / "recording.rrd", plots=False)
+    assert res.data.summary is not None and res.differences == [], res.differences
     report("vehicle dies", result, worst, truth)
     print(f"killed at ({killed[0][0]:.2f}, {killed[0][1]:.2f}); closest TRUE approach to it "
           f"{clearance:.3f} m")
@@ -244,8 +250,9 @@ async def test_a_run_that_breaks_a_limit_ends_unsafe(tmp_path: Path) -> None:
                 left = np.array([np.sin(h), -np.cos(h)])  # tube +y as (north, east)
                 fleet.vehicles[0].push(2.0 * left[0], 2.0 * left[1], 6.0)
 
-        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
-                           out_dir=tmp_path, tick_hook=hook)
+        with open_recorder(tmp_path / "recording.rrd", kind="fleet") as rec:
+            result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2],
+                               out_dir=tmp_path, recorder=rec, tick_hook=hook)
     assert pushed
     s = result.summary
     assert result.outcome == "unsafe" and result.exit_code == 4, result.reason
@@ -256,6 +263,10 @@ async def test_a_run_that_breaks_a_limit_ends_unsafe(tmp_path: Path) -> None:
     assert first["source"] == "telemetry"
     assert "UNSAFE" in result.reason and "left_leg" in result.reason
     assert (tmp_path / "summary.json").is_file()
+    # the review recomputes the same violations over the same ticks (issue 12)
+    res = review(tmp_path / "recording.rrd", plots=False)
+    assert res.data.summary is not None and res.differences == [], res.differences
+    assert res.verdict.safe is False and res.summary["violations"] == s["violations"]
     print(f"\nunsafe run: {result.reason}")
 
 
