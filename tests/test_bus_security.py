@@ -664,9 +664,12 @@ async def test_bus_attacks_during_a_flight_leave_it_unchanged(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 async def test_a_compromised_agent_account_cannot_steer_the_secured_fleet(tmp_path):
-    """Through the secured broker: a client with vehicle 3's credentials reads the run id and
-    hash from the retained config and publishes an abort, a fake config, vehicle 1's state 2 m
-    ahead of the leader and ``status/2 = lost``. The ACL drops all of it: the run completes."""
+    """Through the secured broker: a client with vehicle 3's credentials, before any
+    coordinator runs, announces a rogue run (the mission's real id and config hash) and
+    starts it, to idle agents; then, in flight, reads the run id and hash from the retained
+    config and publishes an abort, a fake config, vehicle 1's state 2 m ahead of the leader and
+    ``status/2 = lost``. The ACL drops all of it: no agent joins the rogue run, the real run
+    completes."""
     from test_agent_process import (
         all_in_tube_past,
         check_safety,
@@ -677,14 +680,28 @@ async def test_a_compromised_agent_account_cannot_steer_the_secured_fleet(tmp_pa
         until,
     )
 
-    from vtube_fleet.bus.codec import decode_config, encode_config
+    from vtube_fleet.bus.codec import MissionConfigMsg, decode_config, encode_config
+    from vtube_fleet.fleet.distributed.coordinator import default_mission_id
 
     n = 4
     async with fleet_run(tmp_path, n, secured=True) as run:
-        coord = await start_coordinator(run, n)
-        await until(lambda: all_in_tube_past(run, n, 5.0), 120, "all vehicles in the tube")
         three = BusCredentials.load(run.setup.vehicle_credentials(3))
         t = run.observer.topics
+        # every agent subscribed and idle, waiting for a run: a rogue run would reach them now
+        await until(lambda: all("waiting for `vtube-fleet mission start" in run.log_text(i)
+                                for i in range(n)), 60, "every agent waiting for a run")
+        async with aiomqtt.Client(run.broker.host, run.broker.port, username=three.username,
+                                  password=three.password, identifier="intruder-idle",
+                                  tls_context=tls_context(three.ca_file)) as c:
+            now = time.time()
+            rogue_cfg = MissionConfigMsg(default_mission_id(run.path), "rogue",
+                                         run.mission.config_hash, n, now, run.path.name)
+            await c.publish(t.config, encode_config(rogue_cfg), qos=1, retain=True)
+            start = Command("start", rogue_cfg.mission_id, "rogue", rogue_cfg.config_hash,
+                            int(now * 1000), now)
+            await c.publish(t.cmd, encode_command(start), qos=1, retain=True)
+        coord = await start_coordinator(run, n)
+        await until(lambda: all_in_tube_past(run, n, 5.0), 120, "all vehicles in the tube")
         async with aiomqtt.Client(run.broker.host, run.broker.port, username=three.username,
                                   password=three.password, identifier="intruder",
                                   tls_context=tls_context(three.ca_file)) as c:
@@ -712,6 +729,9 @@ async def test_a_compromised_agent_account_cannot_steer_the_secured_fleet(tmp_pa
     assert codes == [0] * n, [run.log_text(i)[-1500:] for i, c in enumerate(codes) if c]
     s = summary(run)
     assert s["outcome"] == "completed" and s["exited"] == n and s["lost"] == []
+    for i in range(n):  # each agent joined the coordinator's run only, never the rogue one
+        log = run.log_text(i)
+        assert "joined run rogue" not in log and f"joined run {s['run_id']}" in log, log[-1500:]
     check_safety(run)
 
 
