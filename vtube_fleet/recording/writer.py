@@ -29,6 +29,7 @@ import numpy as np
 
 from vtube_fleet.artifacts import json_safe
 from vtube_fleet.recording.api import NullRecorder, Recorder, RecordingError
+from vtube_fleet.recording.events import ChangeDetector, merge_metric, phase_str
 from vtube_fleet.recording.layout import (
     COMMAND_COLOR,
     DEFAULT_CONNECT_URL,
@@ -104,11 +105,6 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------------
-def _phase_str(p: Any) -> str:
-    """``Phase.IN_TUBE`` → ``"in_tube"``; plain strings unchanged."""
-    return str(getattr(p, "value", p))
-
-
 def _pt(p: np.ndarray) -> list[float]:
     return [float(p[0]), float(p[1])]
 
@@ -130,19 +126,6 @@ def _present_rows(ids: np.ndarray, pos: Any, vel: Any
     vel = np.asarray(vel, dtype=float)
     present = ~np.isnan(pos[:, 0])
     return ids[present], pos[present], vel[present]
-
-
-def _merge(key: str, old: float, new: float) -> float:
-    """Combine two values of one metric over consecutive ticks (decimation keeps extremes)."""
-    if math.isnan(old):
-        return new
-    if math.isnan(new):
-        return old
-    if key.startswith("min_"):
-        return min(old, new)
-    if key.startswith("max_") or key in ("tick_duration_s", "link_latency_s"):
-        return max(old, new)
-    return new
 
 
 def _offsets(lengths: np.ndarray) -> np.ndarray:
@@ -251,23 +234,6 @@ class _Row:
     looks: _Looks
     metrics: dict[str, float]
     safety: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-
-#: Phases whose change is a warning (a vehicle lost or failed); every other change is INFO.
-_ALARM_PHASES = frozenset({"lost", "failed"})
-
-
-_PHASE_NAMES = frozenset(p for _, p, _, _ in PHASE_CLASSES if p not in ("", "?"))
-
-
-def _announced_phase(text: str) -> str | None:
-    """The new phase when ``text`` tells a phase change ("in_tube → exited (why)"), else
-    None."""
-    old, sep, rest = text.partition(" → ")
-    if not sep:
-        return None
-    new = rest.split(" ", 1)[0]
-    return new if new in _PHASE_NAMES and (old in _PHASE_NAMES or old == "-") else None
 
 
 def _metric_color(key: str) -> int | None:
@@ -380,10 +346,7 @@ class RerunRecorder:
         self._agg: dict[str, float] = {}  # metric extrema since the last recorded tick
         self._looks_key: tuple[bytes, tuple[Any, ...] | None] | None = None
         self._looks: _Looks | None = None
-        self._prev_ids: np.ndarray | None = None
-        self._prev_present: np.ndarray | None = None
-        self._prev_phases: tuple[Any, ...] | None = None
-        self._exited: set[int] = set()
+        self._changes = ChangeDetector(self.detect_exits)  # phase changes and exits
         self._last_tick = 0
         self._next_status_t = -math.inf
         self._limits: dict[str, tuple[float, ...]] = {}
@@ -398,8 +361,6 @@ class RerunRecorder:
         self._xbuf: list[tuple[float, int, list[int], bool]] = []
         # display state (sender thread): vehicles drawn, their trails, per-vehicle statics
         self._has_phases = False
-        self._announced: dict[int, str] = {}  # vehicle → phase its owner announced in a text
-        self._told_exited: set[int] = set()  # vehicles whose exit a phase-change event told
         self._visible: set[int] = set()
         self._trails: dict[int, list[tuple[float, float, float]]] = {}
         self._trail_next: dict[int, float] = {}
@@ -875,7 +836,7 @@ class RerunRecorder:
             if phases is None:
                 looks = _Looks(None, None, np.full(len(ids), class_of(None), dtype=np.uint16))
             else:
-                ph = [_phase_str(p) for p in phases]
+                ph = [phase_str(p) for p in phases]
                 looks = _Looks(pa.array(ph, type=pa.string()), ph,
                                np.array([class_of(p) for p in ph], dtype=np.uint16))
                 self._has_phases = True
@@ -886,7 +847,7 @@ class RerunRecorder:
         agg = self._agg
         for k, v in metrics.items():
             old = agg.get(k)
-            agg[k] = float(v) if old is None else _merge(k, old, float(v))
+            agg[k] = float(v) if old is None else merge_metric(k, old, float(v))
 
     def _push(self, row: _Row) -> None:
         row.metrics, self._agg = self._agg, {}
@@ -927,53 +888,14 @@ class RerunRecorder:
 
     def _detect_changes(self, t_s: float, tick: int, ids: np.ndarray, pos: np.ndarray,
                         phases: Sequence[Any] | None) -> None:
-        """Phase changes (→ ``events/vehicles``) and exits (→ ``events/exits``), every call."""
-        gone: list[int] = []
-        if phases is not None:
-            ph = tuple(phases)
-            if ph != self._prev_phases or not np.array_equal(ids, self._prev_ids):
-                prev = {}
-                if self._prev_phases is not None and self._prev_ids is not None:
-                    prev = dict(zip(self._prev_ids.tolist(), self._prev_phases, strict=True))
-                changed_ids, texts, levels = [], [], []
-                for i, p in zip(ids.tolist(), ph, strict=True):
-                    q = prev.get(i)
-                    if q != p:
-                        ps = _phase_str(p)
-                        if ps == "exited":
-                            gone.append(i)
-                        if self._announced.get(i) == ps:  # the owner told it already
-                            del self._announced[i]
-                            continue
-                        if ps == "exited":
-                            self._told_exited.add(i)
-                        changed_ids.append(i)
-                        texts.append(f"vehicle {i}: {_phase_str(q)} → {ps}" if q is not None
-                                     else f"vehicle {i}: {ps}")
-                        levels.append("WARN" if ps in _ALARM_PHASES else "INFO")
-                if texts:
-                    self._submit(lambda: self._send_vehicle_events(t_s, tick, changed_ids, texts,
-                                                                   levels))
-                self._prev_phases = ph
-                self._prev_ids = ids.copy()
-        else:
-            present = ~np.isnan(pos[:, 0])
-            pids, pprev = self._prev_ids, self._prev_present
-            if pids is not None and pprev is not None:
-                if np.array_equal(ids, pids):
-                    left = pprev & ~present
-                    if left.any():
-                        gone = [int(i) for i in ids[left]]
-                else:
-                    now = set(ids[present].tolist())
-                    gone = [int(i) for i in pids[pprev].tolist() if int(i) not in now]
-            if pids is None or not np.array_equal(ids, pids):
-                self._prev_ids = ids.copy()
-            self._prev_present = present
-        gone = [i for i in gone if i not in self._exited] if self.detect_exits else []
-        if gone:
-            self._exited.update(gone)
-            self._xbuf.append((t_s, tick, gone, not set(gone) <= self._told_exited))
+        """Phase changes (→ ``events/vehicles``) and exits (→ ``events/exits``), every call
+        (:class:`~vtube_fleet.recording.events.ChangeDetector`)."""
+        changes, exits = self._changes.update(ids, pos, phases)
+        if changes is not None:
+            self._submit(lambda: self._send_vehicle_events(t_s, tick, changes.ids,
+                                                           changes.texts, changes.levels))
+        if exits is not None:
+            self._xbuf.append((t_s, tick, exits.ids, exits.untold))
 
     # ----- sending (sender thread) ------------------------------------------------------
     def _index(self, t_s: Sequence[float] | np.ndarray, ticks: Sequence[int] | np.ndarray
@@ -1316,7 +1238,7 @@ class RerunRecorder:
                 tt[0], kk[0] = op[1], op[2]
                 for key, v in out.items():
                     if key in op[3]:
-                        v[0] = _merge(key, op[3][key], float(v[0]))
+                        v[0] = merge_metric(key, op[3][key], float(v[0]))
             elif op is not None:
                 self._emit_metric_block(op)
             # the last group may continue in the next call
@@ -1371,12 +1293,9 @@ class RerunRecorder:
         with self._lock:
             if self.closed:
                 return
-            gone = [int(i) for i in np.asarray(ids).reshape(-1).tolist() if int(i) not in
-                    self._exited]
-            if gone:
-                self._exited.update(gone)
-                t_s, tick = float(t_s), int(tick)
-                self._xbuf.append((t_s, tick, gone, not set(gone) <= self._told_exited))
+            exits = self._changes.explicit_exits(ids)
+            if exits is not None:
+                self._xbuf.append((float(t_s), int(tick), exits.ids, exits.untold))
                 self._maybe_send()
 
     @_never_raises
@@ -1395,11 +1314,7 @@ class RerunRecorder:
                     rr.TextLog.columns(text=[text], level=[lvl])))
             else:
                 vid = int(vehicle_id)
-                told = _announced_phase(text)
-                if told is not None:  # "old → new (why)": the change is told, once
-                    self._announced[vid] = told
-                    if told == "exited":
-                        self._told_exited.add(vid)
+                self._changes.announced(vid, text)
                 self._submit(lambda: self._send_vehicle_events(
                     t_s, tick, [vid], [f"vehicle {vid}: {text}"], [lvl]))
 
