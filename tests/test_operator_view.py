@@ -155,6 +155,32 @@ def test_blueprint_is_built_and_saved_without_a_viewer(tmp_path: Path) -> None:
     assert b["panels"]["time_panel"]["state"] == [2]
 
 
+def test_legends_go_to_the_corner_the_curves_leave_free(tmp_path: Path) -> None:
+    """At close the recorder knows each curve's shape: a pair curve that ends far above its
+    range (vehicles spreading out after the line) leaves the top right to itself, so the
+    legend goes top left; a curve that starts high and comes down keeps the top right."""
+    import rerun.blueprint as rrb
+
+    from vtube_fleet.recording.writer import _legend_corner
+
+    t = np.linspace(0.0, 60.0, 121)
+    jump = [(a, 2.0 if a < 50.0 else 8.0) for a in t]
+    falling = [(a, 3.0 - a / 30.0) for a in t]
+    low = [(a, 0.2) for a in t]  # near the bottom, where the limit line also is
+    assert _legend_corner([jump], [0.6], (0.0, 4.0)) == "LeftTop"
+    assert _legend_corner([falling], [0.6], (0.0, 4.0)) == "RightTop"
+    assert _legend_corner([low], [0.3], (0.0, 4.0)) == "RightTop"
+    assert _legend_corner([], [0.6], (0.0, 4.0)) == "RightTop"  # nothing known: the default
+    bp = default_blueprint(None, "fleet", limits=LIMITS, metric_keys=FLEET_KEYS,
+                           extremes={"min_pair_distance_m": (2.0, 8.0),
+                                     "min_left_leg_distance_m": (1.0, 3.0)},
+                           shapes={"min_pair_distance_m": jump, "min_left_leg_distance_m": falling})
+    bp.save("vtube_fleet", tmp_path / "bp.rbl")
+    views = _blueprint(tmp_path / "bp.rbl")["views"]
+    assert views["min pair distance [m]"]["legend"] == rrb.Corner2D.LeftTop.value
+    assert views["min leg distances [m]"]["legend"] == rrb.Corner2D.RightTop.value
+
+
 def test_other_metrics_only_when_there_are_any(tmp_path: Path) -> None:
     default_blueprint(None, "sim", limits=LIMITS, metric_keys=["min_pair_distance_m",
                                                                "my_gauge"]).save(

@@ -375,6 +375,8 @@ class RerunRecorder:
         self._flown_lo = np.full(2, np.inf)
         self._flown_hi = np.full(2, -np.inf)
         self._extremes: dict[str, tuple[float, float]] = {}  # metric key → (min, max) seen
+        # metric key → its curve's shape, a point every SHAPE_STEP_S (where a legend fits)
+        self._shapes: dict[str, list[tuple[float, float]]] = {}
         self._styled: set[str] = set()  # metric keys whose legend name / colour were sent
         self._blueprint_state: tuple[Any, ...] | None = None
         self._cmd_styled = False
@@ -442,12 +444,13 @@ class RerunRecorder:
         keys and extremes the run produced (the sender thread owns them until then)."""
         keys = tuple(sorted(self._metric_keys_seen)) if final else ()
         extremes = dict(self._extremes) if final else {}
+        shapes = {k: list(v) for k, v in self._shapes.items()} if final else None
         state = (bounds, keys)
         if self._blueprint_sent and state == self._blueprint_state:
             return
         self._rec.send_blueprint(
             default_blueprint(bounds, self.kind, limits=self._limits, metric_keys=keys or None,
-                              extremes=extremes),
+                              extremes=extremes, shapes=shapes),
             make_active=make_active, make_default=True)
         self._blueprint_sent = True
         self._blueprint_state = state
@@ -620,6 +623,18 @@ class RerunRecorder:
             if color is not None:
                 kw["colors"] = [color]
             self._rec.log(METRICS_PREFIX + key, rr.SeriesLines(**kw), static=True)
+
+    def _note_shape(self, key: str, t: np.ndarray, vals: np.ndarray) -> None:
+        """Keep the first finite value of every SHAPE_STEP_S bucket of a metric's curve."""
+        ok = np.isfinite(vals)
+        if not ok.any():
+            return
+        t, vals = np.asarray(t, dtype=float)[ok], vals[ok]
+        bucket = np.floor(t / SHAPE_STEP_S)
+        pts = self._shapes.setdefault(key, [])
+        last = math.floor(pts[-1][0] / SHAPE_STEP_S) if pts else -math.inf
+        first = np.r_[True, bucket[1:] != bucket[:-1]] & (bucket > last)
+        pts.extend(zip(t[first].tolist(), vals[first].tolist(), strict=True))
 
     def _note_extremes(self, key: str, lo: float, hi: float) -> None:
         old = self._extremes.get(key)
@@ -1150,6 +1165,7 @@ class RerunRecorder:
             vals[~np.isfinite(vals)] = np.nan  # no pair in range etc.: a gap in the plot
             if np.isfinite(vals).any():
                 self._note_extremes(key, float(np.nanmin(vals)), float(np.nanmax(vals)))
+                self._note_shape(key, t[sel], vals)
             self._rec.send_columns(
                 METRICS_PREFIX + key,
                 idx if len(sel) == len(rows) else self._index(t[sel], ticks[sel]),
@@ -1278,6 +1294,7 @@ class RerunRecorder:
             vals = np.where(np.isfinite(vals), vals, np.nan)
             if np.isfinite(vals).any():
                 self._note_extremes(key, float(np.nanmin(vals)), float(np.nanmax(vals)))
+                self._note_shape(key, t, vals)
             self._rec.send_columns(METRICS_PREFIX + key, idx, [
                 rr.ComponentColumn(rr.Scalars.descriptor_scalars(),
                                    rr.components.ScalarBatch(vals))])
@@ -1444,11 +1461,49 @@ def _y_range(keys: Sequence[str], limits: Mapping[str, Sequence[float]],
     return lo, hi
 
 
+#: The recorder keeps the shape of every metric curve, a point per this many seconds of its time
+#: axis, to place each view's legend at close (:func:`_legend_corner`).
+SHAPE_STEP_S = 0.5
+
+#: Legend corners in the order of preference when as many points cross them (rerun's names).
+LEGEND_CORNERS = ("RightTop", "LeftTop", "RightBottom", "LeftBottom")
+
+
+def _legend_corner(curves: Sequence[Sequence[tuple[float, float]]], lines: Sequence[float],
+                   y_range: tuple[float, float]) -> str:
+    """The corner of a time-series view whose box (the outer 35 % of the width, 30 % of the
+    height, where a legend sits) the fewest curve points and limit lines cross: values above
+    the y-range count at the top (the curve leaves the plot there), below at the bottom."""
+    pts = [p for c in curves for p in c]
+    if not pts:
+        return LEGEND_CORNERS[0]
+    t = np.array([p[0] for p in pts])
+    y = np.array([p[1] for p in pts])
+    t0, t1 = float(t.min()), float(t.max())
+    span = t1 - t0 if t1 > t0 else 1.0
+    u = (t - t0) / span
+    lo, hi = y_range
+    v = np.clip((y - lo) / (hi - lo if hi > lo else 1.0), 0.0, 1.0)
+    # a limit line crosses a box over its whole width: as many points as a curve there
+    per_line = max(1, len(pts) // max(1, len(curves)))
+    lv = [min(max((x - lo) / (hi - lo if hi > lo else 1.0), 0.0), 1.0) for x in lines]
+    counts = []
+    for name in LEGEND_CORNERS:
+        right, top = name.startswith("Right"), name.endswith("Top")
+        in_u = u >= 0.65 if right else u <= 0.35
+        in_v = v >= 0.7 if top else v <= 0.3
+        n = int(np.count_nonzero(in_u & in_v))
+        n += per_line * sum(1 for x in lv if (x >= 0.7 if top else x <= 0.3)) * 35 // 100
+        counts.append(n)
+    return LEGEND_CORNERS[int(np.argmin(counts))]
+
+
 def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
                       kind: str = "fleet", *,
                       limits: Mapping[str, Sequence[float]] | None = None,
                       metric_keys: Sequence[str] | None = None,
-                      extremes: Mapping[str, tuple[float, float]] | None = None) -> Any:
+                      extremes: Mapping[str, tuple[float, float]] | None = None,
+                      shapes: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> Any:
     """The default layout: the 2-D tube view (origin ``/world``, the tube frame as it is, y
     drawn downwards; framed on ``bounds`` = (x0, y0, x1, y1) when given) with the status table
     and the event log under it, the time series (Fig. 11 quantities with their limits, and for
@@ -1459,7 +1514,10 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
     ``limits`` (metric key → limit values) set each safety view's y-range around its limits
     (see :func:`_y_range`, using the ``extremes`` (min, max) seen per key); ``metric_keys``
     (the keys the run logged, None: not known yet): only the views of those keys, and keys that
-    no view shows get an "other metrics" view — without any, there is none."""
+    no view shows get an "other metrics" view — without any, there is none. ``shapes`` (metric
+    key → (t, value) points of its curve, the recorder's at close): each safety view's legend
+    goes to the corner its curves and limit lines cross least (:func:`_legend_corner`; without
+    shapes: the top right)."""
     import rerun.blueprint as rrb
     from rerun import TimeRange as rr_range
     from rerun import TimeRangeBoundary as rr_bound
@@ -1490,7 +1548,14 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
         rng = _y_range(keys, limits, extremes)
         if rng is not None:
             kw["axis_y"] = rrb.ScalarAxis(range=rng, zoom_lock=False)
-        corner = rrb.Corner2D.RightTop if lim_keys else rrb.Corner2D.LeftTop
+        if not lim_keys:
+            corner = rrb.Corner2D.LeftTop
+        elif shapes and rng is not None:
+            curves = [shapes[v] for v in every if v in shapes]
+            lines = [v for k in lim_keys for v in limits.get(k, ())]
+            corner = getattr(rrb.Corner2D, _legend_corner(curves, lines, rng))
+        else:
+            corner = rrb.Corner2D.RightTop
         series.append(rrb.TimeSeriesView(origin="/", contents=contents, name=name,
                                          plot_legend=rrb.PlotLegend(corner=corner),
                                          axis_x=rrb.TimeAxis(view_range=whole), **kw))
