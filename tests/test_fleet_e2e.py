@@ -186,7 +186,7 @@ async def test_the_px4_sitl_mission_flies_on_the_mock(tmp_path: Path, backend: s
 
 async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None:
     positions = [[12.0, 0.0], [2.0, 4.5], [2.0, 0.0], [2.0, -4.5]]
-    mission = mission_file(tmp_path, straight_mission(45.0, positions, on_complete="hold"))
+    mission = mission_file(tmp_path, straight_mission(32.0, positions, on_complete="hold"))
     holder: list[Supervisor] = []
     killed: list[np.ndarray] = []
     async with mock_fleet(mission, **boot(4, seed=4)) as fleet:
@@ -235,7 +235,7 @@ async def test_a_run_that_breaks_a_limit_ends_unsafe(tmp_path: Path) -> None:
     vehicle 0 out through the left leg: the run's own telemetry breaks the limit, so the run
     ends ``unsafe``, exit code 4, with the first violation's time, vehicle and figure."""
     positions = [[3.0, 4.5], [3.0, -4.5]]
-    mission = mission_file(tmp_path, straight_mission(40.0, positions, on_complete="land"))
+    mission = mission_file(tmp_path, straight_mission(22.0, positions, on_complete="land"))
     pushed: list[float] = []
     holder: list[Supervisor] = []
     async with mock_fleet(mission, **boot(2, seed=5, estimator="ideal")) as fleet:

@@ -170,7 +170,8 @@ def test_review_of_a_bad_file_is_a_one_line_error(tmp_path: Path,
 @pytest.mark.timeout(240)
 def test_mock_fleet_run_recording_reviews(tmp_path: Path) -> None:
     """A short flight of 3 built-in mock vehicles over real UDP (configs/mock_fleet.toml, lower
-    altitude, land right after the line): the recording gives back the fleet's own summary."""
+    altitude, the tube cut to 30 m, land right after the line): the recording gives back the
+    fleet's own summary."""
     import asyncio
 
     from fleet_ports import free_ports
@@ -180,6 +181,8 @@ def test_mock_fleet_run_recording_reviews(tmp_path: Path) -> None:
 
     text = (ROOT / "configs" / "mock_fleet.toml").read_text()
     for old, new in (("altitude_m = 3.0", "altitude_m = 1.5"),
+                     ("p_h1 = [40.0, 10.0]", "p_h1 = [30.0, 10.0]"),
+                     ("p_r1 = [40.0, -10.0]", "p_r1 = [30.0, -10.0]"),
                      ('after_exit = "continue"', 'after_exit = "land"\nexit_clear_m = 0.5')):
         assert old in text
         text = text.replace(old, new)
