@@ -11,29 +11,16 @@ from typing import Any
 from vtube_fleet.cli._args import COUNT, PORT, SCALE, SEED, bounded
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import FleetCliError, mock_fleet
+from vtube_fleet.fleet.launch import gcs_link_mode, mock_fleet
 
 __all__ = ["register"]
 
 
-def _gcs_link(args: argparse.Namespace) -> tuple[str, str]:
-    """(the GCS link's stream set, what to say about it). With --gcs-port/--vehicle-port,
-    PX4's ports 18570+i are not assumed free: the GCS link is off unless --gcs-link-base says
-    where it goes; asked for by --gcs-link lite/full without one, it is an error."""
-    custom = args.gcs_port is not None or args.vehicle_port is not None
-    if not custom or args.gcs_link_base is not None or args.gcs_link == "off":
-        return args.gcs_link or "lite", ""
-    if args.gcs_link is not None:
-        raise FleetCliError(f"--gcs-link {args.gcs_link} with --gcs-port/--vehicle-port: give "
-                            f"--gcs-link-base N too (vehicle i's GCS link binds N+i; PX4: "
-                            f"18570), or --gcs-link off")
-    return "off", ("no GCS link (custom ports: --gcs-link-base N gives one, vehicle i on "
-                   "N+i -> 14550)")
-
-
 def _cmd_mock_fleet(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
-    gcs_link, note = _gcs_link(args)
+    gcs_link, note = gcs_link_mode(
+        args.gcs_link, custom_ports=args.gcs_port is not None or args.vehicle_port is not None,
+        gcs_link_base=args.gcs_link_base)
 
     async def main() -> None:
         stop = asyncio.Event()

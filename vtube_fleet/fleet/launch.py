@@ -26,6 +26,7 @@ __all__ = [
     "UNUSED_STREAMS_OFF",
     "fleet_supervisor",
     "fly",
+    "gcs_link_mode",
     "mock_fleet",
     "parse_endpoint_list",
     "sitl_home_lines",
@@ -74,6 +75,22 @@ def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
 def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:
     geo = mission.slot_geodetic()
     return [(float(g[0]), float(g[1]), float(g[2])) for g in geo[:count]]
+
+
+def gcs_link_mode(requested: str | None, *, custom_ports: bool,
+                  gcs_link_base: int | None) -> tuple[str, str]:
+    """The mock fleet's GCS link stream set (``lite`` / ``full`` / ``off``) and what to say
+    about it. With custom ports (``--gcs-port`` / ``--vehicle-port``) PX4's 18570+i are not
+    assumed free: the link is off unless ``gcs_link_base`` says where it goes, and asking
+    for it (``requested`` lite/full) without one is a :class:`FleetCliError`."""
+    if not custom_ports or gcs_link_base is not None or requested == "off":
+        return requested or "lite", ""
+    if requested is not None:
+        raise FleetCliError(f"--gcs-link {requested} with --gcs-port/--vehicle-port: give "
+                            f"--gcs-link-base N too (vehicle i's GCS link binds N+i; PX4: "
+                            f"18570), or --gcs-link off")
+    return "off", ("no GCS link (custom ports: --gcs-link-base N gives one, vehicle i on "
+                   "N+i -> 14550)")
 
 
 @contextlib.asynccontextmanager

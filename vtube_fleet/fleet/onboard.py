@@ -164,6 +164,11 @@ def _up(x: float, step: float) -> float:
     return math.ceil(x * n - 1e-9) / n
 
 
+def _at_least(need: float, why: Callable[[float], str]) -> Callable[[float], str | None]:
+    """A rule "the parameter must be at least ``need``": None when it is, else ``why(x)``."""
+    return lambda x: None if x >= need else why(x)
+
+
 def audit_rules(mission: Mission) -> list[ParamRule]:
     """The parameters checked against ``mission`` (docs/fleet.md lists why)."""
     sc, cfg = mission.scenario, mission.config
@@ -179,18 +184,13 @@ def audit_rules(mission: Mission) -> list[ParamRule]:
     up_need = max(climb, hold_v)
     up_what = ("climb_speed_m_s" if climb >= hold_v else "max_vertical_speed_m_s")
 
-    def vel(x: float) -> str | None:
-        if x >= v_max:
-            return None
-        return (f"MPC_XY_VEL_MAX = {_n(x)} m/s < v_max = {_n(v_max)} m/s (PX4 would clip the "
-                f"controller's speeds)")
-
-    def acc(x: float) -> str | None:
-        if x >= acc_need:
-            return None
-        return (f"MPC_ACC_HOR = {_n(x)} m/s² < v_max / t63 = {_n(acc_need)} m/s²: PX4 reaches "
-                f"a commanded speed more slowly than the tracking_t63_s = {_n(t63)} s the safety "
-                f"budget assumes")
+    vel = _at_least(v_max, lambda x: (
+        f"MPC_XY_VEL_MAX = {_n(x)} m/s < v_max = {_n(v_max)} m/s (PX4 would clip the "
+        f"controller's speeds)"))
+    acc = _at_least(acc_need, lambda x: (
+        f"MPC_ACC_HOR = {_n(x)} m/s² < v_max / t63 = {_n(acc_need)} m/s²: PX4 reaches "
+        f"a commanded speed more slowly than the tracking_t63_s = {_n(t63)} s the safety "
+        f"budget assumes"))
 
     def loss(x: float) -> str | None:
         if x <= 1.0:
@@ -232,19 +232,14 @@ def audit_rules(mission: Mission) -> list[ParamRule]:
         return (f"{head} the climb (take-off {_n(slow)} s instead of {_n(plan)} s{late}); "
                 f"the horizontal flight is not affected")
 
-    def z_dn(x: float) -> str | None:
-        if x >= hold_v:
-            return None
-        return (f"MPC_Z_VEL_MAX_DN = {_n(x)} m/s < max_vertical_speed_m_s = {_n(hold_v)} m/s: "
-                f"PX4 clips the altitude-hold descents (slower height corrections; the "
-                f"horizontal flight is not affected)")
-
-    def jerk(x: float) -> str | None:
-        if x >= jerk_need:
-            return None
-        return (f"MPC_JERK_AUTO = {_n(x)} m/s³ < {_n(JERK_T63_FACTOR)} v_max / t63² = "
-                f"{_n(jerk_need)} m/s³: a jerk-limited start reaches 63 % of a v_max step "
-                f"later than the tracking_t63_s = {_n(t63)} s the safety budget assumes")
+    z_dn = _at_least(hold_v, lambda x: (
+        f"MPC_Z_VEL_MAX_DN = {_n(x)} m/s < max_vertical_speed_m_s = {_n(hold_v)} m/s: "
+        f"PX4 clips the altitude-hold descents (slower height corrections; the "
+        f"horizontal flight is not affected)"))
+    jerk = _at_least(jerk_need, lambda x: (
+        f"MPC_JERK_AUTO = {_n(x)} m/s³ < {_n(JERK_T63_FACTOR)} v_max / t63² = "
+        f"{_n(jerk_need)} m/s³: a jerk-limited start reaches 63 % of a v_max step "
+        f"later than the tracking_t63_s = {_n(t63)} s the safety budget assumes"))
 
     vel_fix = _up(v_max + d, 0.1)
     return [
