@@ -771,8 +771,8 @@ class VehiclePilot:
             self.landed.set()
 
     def needs_landing(self) -> bool:
-        return self.phase in (Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING,
-                              Phase.LANDING)
+        """Airborne under our responsibility (:data:`~vtube_fleet.state.AIRBORNE_PHASES`)."""
+        return self.phase in AIRBORNE_PHASES
 
     # -- standalone operation -------------------------------------------------------------
     def tick(self, now_mono: float, now_wall: float) -> None:
