@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from vtube_fleet.core.controller import TubeArrays, velocity_command
+from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import (
     ApexZone,
@@ -193,7 +194,13 @@ class FlightPlan:
 
     def commands(self, p: np.ndarray, rows: Sequence[int] | np.ndarray) -> np.ndarray:
         """The controller's commands (len(rows), 2) for robots ``rows`` of the swarm ``p``
-        (M, 2): sub-tubes by :meth:`Partition.locate`, then ``velocity_command``."""
+        (M, 2): sub-tubes by :meth:`Partition.locate`, then ``velocity_command``.
+
+        One row (an agent) takes every other point as a pair candidate; several rows (the
+        supervisor) take the pairs within r_s + r_a (:func:`pairs_within`, a k-d tree): the
+        same nonzero terms (u2 is exactly 0 beyond, (Vmij)), summed in another order, so the
+        commands agree to the last bits (1,000 vehicles: ~1 M candidate pairs → a few
+        thousand)."""
         p = np.asarray(p, dtype=float).reshape(-1, 2)
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         if rows.size == 0:
@@ -202,6 +209,8 @@ class FlightPlan:
         extra: dict[str, Any] = {}
         if self.kind == "apf":
             extra["obstacles"] = self.all_obstacles
+        if rows.size > 1:
+            extra["pairs"] = pairs_within(p, self.neighbour_radius_m)
         return np.asarray(
             velocity_command(p, k, self.arrays, self.flown, kind=self.kind,
                              rows=rows, **extra),
@@ -467,8 +476,9 @@ def fleet_setpoints(plan: FlightPlan, p: np.ndarray, rows: Sequence[int] | np.nd
     """Commands of many agents at once (the supervisor's path).
 
     ``p`` (M, 2) is every point an agent would see (the agents' own positions plus the static
-    and lost points), ``rows`` the agents to compute. Identical, row for row, to each agent's
-    :meth:`Agent.setpoint` with the same view: ``velocity_command`` only couples a robot with
-    neighbours within r_s + r_a.
+    and lost points), ``rows`` the agents to compute. Row for row each agent's
+    :meth:`Agent.setpoint` with the same view, to the last bits (``velocity_command`` only
+    couples a robot with neighbours within r_s + r_a; the batch sums the same terms in
+    another order, :meth:`FlightPlan.commands`).
     """
     return plan.commands(p, rows)
