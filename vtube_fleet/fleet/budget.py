@@ -283,9 +283,14 @@ class BudgetWatch:
         """The longest tick gap the budget covers: T + L (the delay of a fresh command)."""
         return self.budget.period_s + self.budget.latency_s
 
+    def due(self, t_s: float) -> bool:
+        """A :meth:`check` at ``t_s`` would judge (once a second); before that it returns
+        (None, None) whatever it is given."""
+        return t_s - self._checked_s >= 1.0
+
     def check(self, t_s: float, uplink_s: float, accuracies_m: Sequence[float]
               ) -> tuple[str | None, str | None]:
-        if t_s - self._checked_s < 1.0:
+        if not self.due(t_s):
             return None, None
         self._checked_s = t_s
         while self._ages and self._ages[0][0] < t_s - self.window_s:

@@ -36,7 +36,7 @@ import asyncio
 import logging
 import math
 import time
-from collections import deque
+from bisect import bisect_right
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from typing import Any
 
@@ -49,7 +49,7 @@ from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
 from vtube_fleet.fleet.budget import LinkMeasurement
 from vtube_fleet.fleet.compensation import EstimateCompensator
 from vtube_fleet.frames import TubeFrame
-from vtube_fleet.link.base import LinkError, VehicleLink
+from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState
 from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, Phase
 
 __all__ = [
@@ -162,6 +162,10 @@ class PilotError(UserError):
     """A vehicle could not complete a step of its procedure (names the vehicle and why)."""
 
 
+#: d̂ history the compensation residual looks back in (ticks: 12.8 s at 20 Hz)
+_DIST_HISTORY = 256
+
+
 def _clamp(x: float, lo: float, hi: float) -> float:
     return lo if x < lo else hi if x > hi else x
 
@@ -236,7 +240,8 @@ class VehiclePilot:
         # command plus d̂ while flying offboard; ``sent_xy`` is the horizontal setpoint sent
         self.compensator = EstimateCompensator() if self.cfg.compensate_estimate else None
         self.sent_xy: np.ndarray | None = None
-        self._dist_hist: deque[tuple[float, float, float]] = deque(maxlen=256)
+        self._dist_times: list[float] = []  # tick times of d̂ (ascending) …
+        self._dist_hist: list[tuple[float, float]] = []  # … and d̂ then
         self.disturbance_residual_m_s: list[float] = []  #: |d̂(t) − d̂(t − Δ)| per tick
         self._residual_warned = False  # the residual > D warning is given once per vehicle
         self._residual_mean_m_s = 0.0
@@ -302,20 +307,24 @@ class VehiclePilot:
             x, y, up = self.frame.local_ned_to_tube(
                 s.north_m, s.east_m, s.down_m, o.lat_deg, o.lon_deg, o.alt_m)
             xyz = (float(x), float(y), float(up))
+        self._take(s, xyz[0], xyz[1], xyz[2])
+        return True
+
+    def _take(self, s: VehicleState, x: float, y: float, up: float) -> None:
+        """Use the sample of ``s`` (a pending one) at tube position (x, y, up)."""
         a, b, c, d = self._to_tube
         vn, ve = s.vn_m_s, s.ve_m_s
-        self.xy = np.array([xyz[0], xyz[1]], dtype=float)
-        self.up_m = float(xyz[2])
-        self.vel_xy = np.array([a * vn + b * ve, c * vn + d * ve])
-        self.sample_s = self._sample_seen = s.last_position_s
-        self._has_pos = math.isfinite(xyz[0]) and math.isfinite(xyz[1])
-        if self.compensator is not None and self._has_pos and s.last_position_s is not None:
-            self.compensator.add(s.last_position_s, xyz[0], xyz[1], float(self.vel_xy[0]),
-                                 float(self.vel_xy[1]))
-        if (self.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
-                and abs(self.up_m - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
+        vx, vy = a * vn + b * ve, c * vn + d * ve
+        self.xy = np.array((x, y))
+        self.up_m = up
+        self.vel_xy = np.array((vx, vy))
+        t = self.sample_s = self._sample_seen = s.last_position_s
+        has = self._has_pos = math.isfinite(x) and math.isfinite(y)
+        if self.compensator is not None and has and t is not None:
+            self.compensator.add(t, x, y, vx, vy)
+        if (self.agent.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
+                and abs(up - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
             self.at_altitude.set()
-        return True
 
     def position_accuracy_m(self, allow_gnss: bool = True) -> float:
         """The vehicle's reported horizontal position accuracy (1 σ): the estimator's
@@ -480,16 +489,16 @@ class VehiclePilot:
         if comp is None:
             return
         dx, dy = comp.correction
-        hist = self._dist_hist
-        hist.append((now_mono, dx, dy))
+        times, hist = self._dist_times, self._dist_hist
+        times.append(now_mono)
+        hist.append((dx, dy))
+        if len(times) >= 2 * _DIST_HISTORY:  # keep the newest _DIST_HISTORY .. 2× entries
+            del times[:-_DIST_HISTORY], hist[:-_DIST_HISTORY]
         lag = 0.5 * comp.window_s + self.cfg.period_s + (self.link.latency_s or 0.0)
-        old = None
-        cutoff = now_mono - lag
-        for t, ox, oy in reversed(hist):  # the newest entry at least Δ old (times ascend)
-            if t <= cutoff:
-                old = (ox, oy)
-                break
-        if old is not None:
+        # the newest entry at least Δ old, among the newest _DIST_HISTORY (times ascend)
+        k = bisect_right(times, now_mono - lag, max(0, len(times) - _DIST_HISTORY)) - 1
+        if k >= 0 and k >= len(times) - _DIST_HISTORY:
+            old = hist[k]
             residual = math.hypot(dx - old[0], dy - old[1])
             self.disturbance_residual_m_s.append(residual)
             # the budget integrates D over time, so single-tick spikes are harmless; what it
@@ -878,14 +887,11 @@ def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
     if not todo:
         return 0
     st = [p.link.state for p in todo]
-    n = np.array([s.north_m for s in st])
-    e = np.array([s.east_m for s in st])
-    d = np.array([s.down_m for s in st])
-    olat = np.array([s.origin.lat_deg for s in st])  # type: ignore[union-attr]
-    olon = np.array([s.origin.lon_deg for s in st])  # type: ignore[union-attr]
-    oalt = np.array([s.origin.alt_m for s in st])  # type: ignore[union-attr]
-    x, y, up = frame.local_ned_to_tube(n, e, d, olat, olon, oalt)
-    x, y, up = np.atleast_1d(x), np.atleast_1d(y), np.atleast_1d(up)
-    for i, p in enumerate(todo):
-        p.sense((float(x[i]), float(y[i]), float(up[i])))
+    cols = np.array([(s.north_m, s.east_m, s.down_m, s.origin.lat_deg,  # type: ignore[union-attr]
+                      s.origin.lon_deg, s.origin.alt_m) for s in st],  # type: ignore[union-attr]
+                    dtype=float).T
+    x, y, up = frame.local_ned_to_tube(*cols)
+    for p, s, xi, yi, ui in zip(todo, st, np.atleast_1d(x).tolist(), np.atleast_1d(y).tolist(),
+                                np.atleast_1d(up).tolist(), strict=True):
+        p._take(s, xi, yi, ui)
     return len(todo)

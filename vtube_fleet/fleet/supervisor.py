@@ -112,6 +112,7 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+_NAN2 = (math.nan, math.nan)  # a vehicle without a command yet
 
 
 #: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
@@ -528,25 +529,28 @@ class Supervisor:
     def _measure(self, t: float, now: float, view: NeighbourView) -> None:
         pilots = self.pilots
         m = len(pilots)
-        pos = np.full((m, 2), np.nan)
-        vel = np.full((m, 2), np.nan)
-        cmd = np.full((m, 2), np.nan)
-        tube_rows = np.zeros(m, dtype=bool)
-        airborne = np.zeros(m, dtype=bool)
-        tube = self.mission.scenario.tube
-        for i, p in enumerate(pilots):
-            if p.has_position():
-                pos[i] = p.position()
-                vel[i] = p.vel_xy
-            if p.cmd_xy is not None:
-                cmd[i] = p.cmd_xy
-            # judged in the tube: flying the controller, or stopped inside it (lost at its last
-            # position, holding, landing while still in the air)
-            tube_rows[i] = p.cmd_in_tube or (
-                self.tube_start_s is not None and p.has_position()
-                and (p.phase == Phase.LOST or (p.phase in STOPPED_PHASES and p.airborne()))
-                and bool(tube.contains(p.position())))
-            airborne[i] = p.phase in COUNTED_AIRBORNE_PHASES  # the mission monitor's rule too
+        # one list per quantity, one array each (not a numpy row write per vehicle)
+        has = np.fromiter((p.has_position() for p in pilots), bool, m)
+        pos = np.array([p.position() for p in pilots], dtype=float).reshape(m, 2)
+        vel = np.array([p.vel_xy for p in pilots], dtype=float).reshape(m, 2)
+        pos[~has] = np.nan
+        vel[~has] = np.nan
+        cmd = np.array([_NAN2 if p.cmd_xy is None else p.cmd_xy for p in pilots],
+                       dtype=float).reshape(m, 2)
+        phases = [p.phase for p in pilots]
+        inside = np.fromiter((p.cmd_in_tube for p in pilots), bool, m)
+        # judged in the tube: flying the controller, or stopped inside it (lost at its last
+        # position, holding, landing while still in the air)
+        tube_rows = inside.copy()
+        if self.tube_start_s is not None:
+            tube = self.mission.scenario.tube
+            for i, ph in enumerate(phases):
+                if (not inside[i] and has[i] and (ph == Phase.LOST or (
+                        ph in STOPPED_PHASES and pilots[i].airborne()))
+                        and bool(tube.contains(pos[i]))):
+                    tube_rows[i] = True
+        # the mission monitor's rule too
+        airborne = np.fromiter((ph in COUNTED_AIRBORNE_PHASES for ph in phases), bool, m)
         lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
         latency = float(np.median(lat)) if lat else math.nan
         if lat:
@@ -557,7 +561,7 @@ class Supervisor:
         if self.tube_start_s is not None:
             # the "" stream: in the tube (telemetry position, commanded velocity)
             p_tube = np.where(tube_rows[:, None], pos, np.nan)
-            commanded = np.array([p.cmd_in_tube for p in pilots]) & np.isfinite(cmd[:, 0])
+            commanded = inside & np.isfinite(cmd[:, 0])
             v_tube = np.where(commanded[:, None], cmd, np.nan)  # speeds: the controller's
             sm = self.monitor.evaluate(p_tube, v_tube)
             self.acc.add(t, sm)
@@ -593,7 +597,6 @@ class Supervisor:
             if cs.size:
                 self.cmd_speed[0] = min(self.cmd_speed[0], float(cs.min()))
                 self.cmd_speed[1] = max(self.cmd_speed[1], float(cs.max()))
-            inside = np.array([p.cmd_in_tube for p in pilots])
             ok = inside & np.isfinite(vel[:, 0])
             ms = np.hypot(*vel[ok].T)
             if ms.size:
@@ -620,11 +623,11 @@ class Supervisor:
             metrics["link_latency_s"] = latency
         self.recorder.log_tick(
             t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
-            phases=[p.phase.value for p in pilots], cmd=cmd, metrics=metrics,
+            phases=[ph.value for ph in phases], cmd=cmd, metrics=metrics,
             safety=safety)
         if self.keep_trace:
             self.trace.append(TickTrace(t, pos, vel, cmd, tube_rows & np.isfinite(cmd[:, 0]),
-                                        tuple(p.phase.value for p in pilots), truth))
+                                        tuple(ph.value for ph in phases), truth))
         if self.view is not None:
             self.view.update(self.status())
 
@@ -669,6 +672,8 @@ class Supervisor:
         self.watch.add_tick_gap(gap)
         self.watch.add_ages(t, self._recent_ages)
         self._recent_ages = []
+        if not self.watch.due(t):
+            return  # (the fleet-wide uplink and accuracy below: once a second, not per tick)
         up = max((p.link.latency_s or 0.0 for p in self.pilots), default=0.0)
         acc = [p.position_accuracy_m() for p in self.pilots if p.phase == Phase.IN_TUBE]
         warning, hold = self.watch.check(t, up, acc)
