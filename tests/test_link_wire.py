@@ -18,7 +18,9 @@ from vtube_fleet.link.wire import WireCodec, _mcrf4xx_hqx, mcrf4xx
 
 PX4_ADDR = ("127.0.0.1", 14580)
 HB, LPN, GPI, SPT = 0, 32, 33, 84
-CODEC = WireCodec((HB, LPN, GPI, SPT))
+SYS_STATUS, GPS_RAW_INT, ESTIMATOR_STATUS, EXTENDED_SYS_STATE = 1, 24, 230, 245
+FAST = (HB, LPN, GPI, SPT, SYS_STATUS, GPS_RAW_INT, ESTIMATOR_STATUS, EXTENDED_SYS_STATE)
+CODEC = WireCodec(FAST)
 
 
 def _f32(x: float) -> float:
@@ -60,7 +62,7 @@ def test_crc_matches_pymavlink() -> None:
         assert mcrf4xx(data, start) == _mcrf4xx_hqx(data, start) == ref.crc
 
 
-@pytest.mark.parametrize("msgid", [HB, LPN, GPI, SPT])
+@pytest.mark.parametrize("msgid", FAST)
 def test_pack_is_byte_identical_and_unpack_equals_pymavlink(msgid: int) -> None:
     rng = random.Random(msgid)
     dec = mavlink2.MAVLink(None)
