@@ -2,7 +2,7 @@
 
     python bench/bench_fleet.py [--count 200] [--seconds 30] [--rate 20] [--backend mavlink]
                                 [--processes N] [--spacing M] [--no-fence] [--profile-out FILE]
-                                [--lean-streams] [--position-hz HZ] [--mock-nice N]
+                                [--lean-streams] [--position-hz HZ] [--mock-nice N] [--pin]
 
 1. writes a mission with N slots (a wide straight tube, one obstacle, ``--spacing`` grid, 5 m;
    ``latency_s = 0.25`` fixed, so the in-flight budget watch does not end a run on a loaded
@@ -18,7 +18,8 @@
    (/proc/stat) over the same window; ``connect_timeout_s`` is 0.15 s per vehicle (at least
    60 s); ``--lean-streams`` asks for fewer telemetry messages (:data:`LEAN_STREAMS_HZ`),
    ``--mock-nice 10`` runs the mocks at a lower priority (the supervisor first, as on a
-   computer of its own); if the run ends before the window, the ticks until then are printed;
+   computer of its own), ``--pin`` puts this process on core 0 and the mocks on core 1;
+   if the run ends before the window, the ticks until then are printed;
 4. aborts (every vehicle holds), stops the mock processes, prints the numbers (and JSON with
    ``--json``; ``load_average`` is the machine's at the end). ``--profile-out FILE``: cProfile
    of this process (ticks and telemetry receive) over the measured window only (``python -m
@@ -63,15 +64,22 @@ from vtube_fleet.link.mavlink import (  # noqa: E402
 from vtube_fleet.state import Phase  # noqa: E402
 
 
-def start_mock(mission_path: Path, count: int, profile: str, processes: int, nice: int = 0
-               ) -> tuple[subprocess.Popen[str], list[str]]:
+def start_mock(mission_path: Path, count: int, profile: str, processes: int, nice: int = 0,
+               cpus: set[int] | None = None) -> tuple[subprocess.Popen[str], list[str]]:
     ports = free_port_scheme(count)  # never the fixed px4/wide ranges other jobs may hold
+
+    def child_setup() -> None:  # the mock processes inherit both
+        if nice:
+            os.nice(nice)
+        if cpus is not None:
+            os.sched_setaffinity(0, cpus)
+
     proc = subprocess.Popen(
         [sys.executable, "-m", "vtube_fleet", "mock-fleet", str(mission_path), "--count",
          str(count), "--profile", profile, "--processes", str(processes),
          "--gcs-port", str(ports.gcs_base), "--vehicle-port", str(ports.vehicle_base)],
         stdout=subprocess.PIPE, stderr=sys.stderr, text=True, cwd=ROOT,
-        preexec_fn=(lambda: os.nice(nice)) if nice else None)  # the children inherit it
+        preexec_fn=child_setup if nice or cpus is not None else None)
     assert proc.stdout is not None
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
@@ -174,6 +182,7 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
         "vehicles": len(endpoints),
         "mock_processes": args.processes,
         "mock_nice": args.mock_nice,
+        "pinned": args.pin,
         "streams": "lean" if args.lean_streams else "default",
         "position_hz": rates.get(MSG_LOCAL_POSITION_NED,
                                  DEFAULT_MESSAGE_RATES_HZ[MSG_LOCAL_POSITION_NED]),
@@ -231,6 +240,9 @@ def main() -> None:
     ap.add_argument("--mock-nice", type=int, default=0, metavar="N",
                     help="run the mock processes at this nice value (e.g. 10: the supervisor "
                          "is served first, as on its own computer; the mocks get the rest)")
+    ap.add_argument("--pin", action="store_true",
+                    help="run this process (the supervisor) on core 0 and the mock processes "
+                         "on core 1, as if the mocks ran on a computer of their own")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.processes is None:
@@ -249,8 +261,16 @@ def main() -> None:
         connect_s = max(60.0, 0.15 * args.count)
         text = text.replace("connect_timeout_s = 60.0", f"connect_timeout_s = {connect_s:g}")
         path.write_text(text + "latency_s = 0.25\n")
+        mock_cpus = None
+        if args.pin:
+            # as if the mocks ran on another computer: they share one core, this process
+            # (the supervisor) has the other (the kernel's loopback work still lands on both)
+            if (os.cpu_count() or 1) < 2:
+                raise SystemExit("error: --pin needs 2 cores")
+            os.sched_setaffinity(0, {0})
+            mock_cpus = {1}
         proc, endpoints = start_mock(path, args.count, args.profile, args.processes,
-                                     args.mock_nice)
+                                     args.mock_nice, mock_cpus)
         try:
             out = asyncio.run(run(args, path, endpoints, proc.pid))
         finally:
