@@ -18,8 +18,9 @@ from vtube_fleet.link.wire import WireCodec, _mcrf4xx_hqx, mcrf4xx
 
 PX4_ADDR = ("127.0.0.1", 14580)
 HB, LPN, GPI, SPT = 0, 32, 33, 84
-SYS_STATUS, GPS_RAW_INT, ESTIMATOR_STATUS, EXTENDED_SYS_STATE = 1, 24, 230, 245
-FAST = (HB, LPN, GPI, SPT, SYS_STATUS, GPS_RAW_INT, ESTIMATOR_STATUS, EXTENDED_SYS_STATE)
+SYS_STATUS, GPS_RAW_INT, ESTIMATOR_STATUS, EXTENDED_SYS_STATE, TIMESYNC = 1, 24, 230, 245, 111
+FAST = (HB, LPN, GPI, SPT, SYS_STATUS, GPS_RAW_INT, ESTIMATOR_STATUS, EXTENDED_SYS_STATE,
+        TIMESYNC)
 CODEC = WireCodec(FAST)
 
 
@@ -99,6 +100,41 @@ def test_unpack_refuses_what_it_does_not_fully_accept() -> None:
     for frame in (bad_crc, flipped, cut, padded, signed, compat, mav1, statustext, longer,
                   b"", good[:11]):
         assert CODEC.unpack(frame) is None, frame.hex()
+
+
+class _Sent:
+    """A transport stub that keeps what the link sends."""
+
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def sendto(self, data: bytes, addr: object = None) -> None:
+        self.frames.append(bytes(data))
+
+    def is_closing(self) -> bool:
+        return False
+
+
+def test_the_link_sends_what_pymavlink_would_send_on_both_paths() -> None:
+    """Heartbeat, TIMESYNC and a setpoint, fast path and pymavlink, byte for byte (the
+    sequence numbers run on across both)."""
+    sent = {}
+    for fast in (True, False):
+        link = MavlinkLink("udpin://127.0.0.1:14540", sysid=3, fast_codec=fast)
+        link._transport = _Sent()  # type: ignore[assignment]
+        link._remote = PX4_ADDR
+        link._t0 = 0.0  # time_boot_ms: the same clock on both (monotonic since 0)
+        link.send_heartbeat()
+        link._send_fast(TIMESYNC, 0, 123456789) or link._send(
+            link._mav.timesync_encode(0, 123456789))
+        link._time_boot_ms = lambda: 4321  # type: ignore[method-assign]
+        link.send_velocity_ned(1.0, -0.5, 0.25)
+        sent[fast] = link._transport.frames  # type: ignore[attr-defined]
+    assert len(sent[True]) == 3 and sent[True] == sent[False]
+    # and the heartbeat is a GCS's: type GCS (6), autopilot INVALID (8), state ACTIVE (4)
+    dec = mavlink2.MAVLink(None)
+    (hb,) = dec.parse_buffer(sent[True][0])
+    assert (hb.type, hb.autopilot, hb.system_status, hb.get_srcSystem()) == (6, 8, 4, 255)
 
 
 @pytest.mark.parametrize("fast", [True, False], ids=["fast_codec", "pymavlink"])
