@@ -496,3 +496,74 @@ def test_element_subset_changes_no_bit(paper, monkeypatch) -> None:
     drop = ("wall_s", "us_per_step")
     assert ({k: v for k, v in fast.summary.items() if k not in drop}
             == {k: v for k, v in full.summary.items() if k not in drop})
+
+
+def test_sub_tube_changes_update_the_element_subset_bitwise(paper, monkeypatch) -> None:
+    """When a few robots change sub-tube, the controller's element subset is patched in place
+    (their leg/σ elements only, _Active._legs_update) instead of chosen anew; the paper run
+    is then the same to the last bit as with every element evaluated at every step."""
+    from vtube_fleet.core import controller as ctl
+
+    calls = {"patched": 0}
+    update = ctl._Active._legs_update
+
+    def counted(self, g, z, ch):
+        ok = update(self, g, z, ch)
+        calls["patched"] += ok
+        return ok
+
+    monkeypatch.setattr(ctl._Active, "_legs_update", counted)
+    fast = simulate(paper, duration=4.0, record_every=1)
+    assert calls["patched"] > 50
+    step = ctl.CommandEvaluator.step
+    monkeypatch.setattr(ctl.CommandEvaluator, "step",
+                        lambda self, z, k, pairs, out=None, move=None: step(self, z, k, pairs,
+                                                                            out))
+    full = simulate(paper, duration=4.0, record_every=1)
+    for key, arr in fast.trajectory_arrays().items():
+        assert arr.tobytes() == full.trajectory_arrays()[key].tobytes(), key
+    for key in METRIC_KEYS:
+        assert getattr(fast.metrics, key).tobytes() == getattr(full.metrics, key).tobytes(), key
+
+
+def test_tracker_locates_one_point_in_python_as_numpy(paper) -> None:
+    """SubTubeTracker re-locates one or a few points with Python floats (_locate_one): the
+    same sub-tube and rows as its numpy computation at random points around the paper tube
+    (on and off the partition's boundaries), and update() equals locate() when points cross
+    sub-tubes one at a time."""
+    from vtube_fleet.core.validation import validate_scenario
+
+    part, _ = validate_scenario(paper.tube, paper.obstacles, paper.controller,
+                                paper.robots.control_points())
+    tr = part.tracker()
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-3.0, 36.0, 4000), rng.uniform(-11.0, 11.0, 4000)])
+    k, C, _ = tr._locate_rows(pts, (np.arange(len(pts)) * part.K)[:, None])
+    Ctab = tr._tables[0]
+    for i, (x, y) in enumerate(pts.tolist()):
+        kk, code = tr._locate_one(x, y)
+        assert kk == k[i] and np.array_equal(Ctab[:, code], C[:, i]), i
+    assert tr._locate_one(math.nan, 0.0) is None
+    # a swarm on a line across the tube moving downstream: robots change sub-tube singly
+    p = np.column_stack([np.linspace(0.5, 12.0, 40), np.linspace(-4.0, 4.0, 40)])
+    for _ in range(600):
+        p = p + [0.004, 0.0]
+        np.testing.assert_array_equal(tr.update(p, 0.0041), part.locate(p))
+    assert tr.partial > 10
+
+
+def test_pairs_within_sorted_as_lexsort() -> None:
+    """pairs_within sorts the KD-tree's pairs by one integer key: the same (I, J) as a
+    lexicographic sort of the brute-force pairs, NaN rows skipped, read-only int64."""
+    from vtube_fleet.core.neighbours import pairs_within
+
+    rng = np.random.default_rng(9)
+    for m in (48, 120, 700):
+        p = rng.uniform(0.0, 2.0 * math.sqrt(m), (m, 2))
+        p[rng.random(m) < 0.05] = np.nan
+        I, J = pairs_within(p, 1.1)
+        ok = np.flatnonzero(np.isfinite(p).all(axis=1))
+        d = np.hypot(*(p[ok, None, :] - p[None, ok, :]).transpose(2, 0, 1))
+        ii, jj = np.nonzero(np.triu(d <= 1.1, 1))
+        assert I.dtype == J.dtype == np.int64 and not I.flags.writeable
+        assert np.array_equal(I, ok[ii]) and np.array_equal(J, ok[jj])

@@ -520,7 +520,6 @@ class _Run:
         next_exit_check = 0
         next_verlet = 0
         builds = -1
-        q_build = np.zeros((0, 2))
         pairs = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         next_progress = 0
         progress_every = max(1, int(round(0.1 / dt)))
@@ -639,11 +638,9 @@ class _Run:
                     pairs = verlet.candidates(q)
                     if verlet.builds != builds:
                         builds = verlet.builds
-                        q_build = q.copy()
                         next_verlet = step + verlet_safe
                     else:  # still valid: ask again when the farthest mover may reach skin/2
-                        dq = q - q_build
-                        dmax = float(np.sqrt((dq * dq).sum(axis=1).max()))
+                        dmax = verlet.last_move  # (the largest move since the build)
                         next_verlet = step + max(1, int((half_skin - dmax) / (v_bound * dt)))
                 # metrics buffer: one robot set per chunk (exits flush above); for unicycles
                 # also one pair list (the centre metrics search it), while the single
@@ -703,8 +700,8 @@ class _Run:
                     pos = PR[nc + 1]
                 else:  # (Single) p + dt v_c, on x + iy (models._single_step, inlined)
                     zn = ZR[nc + 1]
-                    np.multiply(vz, dt_z, out=zn)  # (dt as complex: what numpy casts it to)
-                    np.add(zc, zn, out=zn)
+                    np.multiply(vz, dt_z, zn)  # (dt as complex: what numpy casts it to)
+                    np.add(zc, zn, zn)
                     pos = PR[nc + 1]
                 nc, step = nc + 1, step + 1  # the step is done (and in the buffer)
                 if step >= next_progress and progress is not None:

@@ -271,6 +271,18 @@ class BarrierBank:
         new._sl = (-1, ())
         return new
 
+    def prefix(self, n: int) -> tuple[np.ndarray, ...]:
+        """The band formula's per-element arrays of the first ``n`` elements: (d2, 1/(d2 − d1),
+        E1, D1, Q0, R1, R2) (class docstring), for callers that inline :meth:`evaluate`'s
+        common path (ĝ = x·E1 − D1 ≥ 1 everywhere; else they must call :meth:`evaluate`)."""
+        sl = self._sl
+        if sl[0] != n:
+            if n > self.k.shape[0]:
+                raise ValueError(f"{n} values for a bank of {self.k.shape[0]} elements")
+            sl = self._sl = (n, tuple(a[:n] for a in (
+                self.d2, self._B, self._E1, self._D1, self._Q0, self._R1, self._R2)))
+        return sl[1]
+
     def evaluate(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """y[i] = ∂V_n/∂x (k[i] > 0) or σ(x[i], d1[i], d2[i]) (k[i] = 0) for i < len(x).
 
@@ -282,10 +294,8 @@ class BarrierBank:
         n = x.shape[0]
         sl = self._sl
         if sl[0] != n:
-            if n > self.k.shape[0]:
-                raise ValueError(f"{n} values for a bank of {self.k.shape[0]} elements")
-            sl = self._sl = (n, tuple(a[:n] for a in (
-                self.d2, self._B, self._E1, self._D1, self._Q0, self._R1, self._R2)))
+            self.prefix(n)
+            sl = self._sl
         _, _, E1, D1, _, _, _ = sl[1]
         if n == 0:
             return np.zeros(0) if out is None else out

@@ -270,7 +270,7 @@ class _Gathered:
 
     def __init__(self, prep: _Prepared, k: np.ndarray, buf: np.ndarray | None = None) -> None:
         n = k.shape[0]
-        if n and (k.min() < 0 or k.max() >= prep.K):
+        if n and (k[k.argmin()] < 0 or k[k.argmax()] >= prep.K):  # (argmin: no reduction)
             bad = k.min() if k.min() < 0 else k.max()
             raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {bad}")
         # k is checked above, so mode="clip" (with "raise", take buffers its output)
@@ -303,7 +303,7 @@ class _Scratch:
     """
 
     __slots__ = ("n", "P", "X", "X4", "xp", "W", "Wf", "Wl", "Wi", "Wj", "Wnc", "NB", "NBr",
-                 "track", "pmin", "_g")
+                 "nb", "track", "pmin", "_g")
 
     def __init__(self, n: int, P: int, track: bool = False) -> None:
         self.n, self.P = n, P
@@ -319,6 +319,7 @@ class _Scratch:
         self.Wnc = self.W[n4 + 2 * P:]
         self.NB = np.zeros(2 * n, np.complex128)
         self.NBr = self.NB.real
+        self.nb = np.empty(2 * n)  # |B| (CommandEvaluator.step's inlined _finish)
         # track: keep min ‖p_i − p_j‖ over the pairs (before the barriers clamp it) in pmin
         self.track, self.pmin = track, math.inf
         self._g: np.ndarray | None = None
@@ -445,7 +446,8 @@ def _check_pairs(pairs) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _check_pair_range(I: np.ndarray, J: np.ndarray, M: int) -> None:
-    if I.size and (I.min() < 0 or J.max() >= M or I.max() >= M or J.min() < 0):
+    if I.size and (I[I.argmin()] < 0 or J[J.argmax()] >= M or I[I.argmax()] >= M
+                   or J[J.argmin()] < 0):
         raise ValueError(f"pairs must index the {M} robots")
 
 
@@ -519,6 +521,8 @@ def velocity_command(p: np.ndarray, k: np.ndarray, tubes: TubeArrays,
 ACTIVE_SKIN = 0.1
 
 _FAR = 1e9  # distance of the padding leg elements (m): beyond every barrier, exactly 0
+_ZPAD = np.zeros(16, np.intp)  # the padding leg elements' indices (robot 0's; weights 0)
+_ZPAD.setflags(write=False)
 #: the padding column of (conj(n), nᵀp_1, E, A): distance _FAR (as Re(0·z) − (−_FAR)), weights 0
 _PAD = np.array([[0.0], [-_FAR], [0.0], [0.0]], np.complex128)
 
@@ -544,7 +548,8 @@ class _Active:
     __slots__ = ("g", "pa", "slack", "P", "Lc", "n", "M", "idx", "G01a", "G23a", "GAa",
                  "slots", "bank", "X", "X2", "xp", "W", "Wf", "Wl", "Wi", "Wif", "Wjf", "tmpc",
                  "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "tail_slots",
-                 "fslots", "tmpr", "zz", "zI", "dz", "zL", "Y", "Yl", "Yp")
+                 "fslots", "tmpr", "zz", "zI", "dz", "zL", "Y", "Yc", "Ylc", "Ypc", "Yp", "gb",
+                 "ab", "nm", "bound", "pos", "free", "fs3")
 
     def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
         legs, sig, _ = prep.blocks(16, 16)
@@ -560,6 +565,13 @@ class _Active:
         evaluates everything). New sub-tubes only (same pairs, slack left): the pairs are kept
         and the leg elements are chosen with the slack that is left."""
         M = self.M
+        og = self.g
+        if (pa is self.pa and self.slack > 0.0 and og is not None and not g.writeable
+                and not og.writeable and og.k.shape == g.k.shape):
+            # new sub-tubes of a few robots (the tracker's common case): their elements only
+            ch = (g.k != og.k).nonzero()[0]
+            if ch.shape[0] <= 4 and self._legs_update(g, z, ch.tolist()):
+                return True
         d = np.subtract((g.G01 * z).real, g.G23).reshape(2 * M)  # (dtl)/(dtr), as _core
         if not _finite(d):
             return False
@@ -576,12 +588,17 @@ class _Active:
         self.pa, self.IJ, self.slack = pa, IJ, skin
         sel = (dp < self.r_pair + 2.0 * skin).nonzero()[0]
         P = self.P = sel.shape[0]
-        self.pair_idx = IJ.reshape(2, P0).take(sel, axis=1).reshape(2 * P)  # [I | J] kept
-        fs = self.fslots = pa[5]  # the full layout's float slots: legs | σ | I | J | n_c
-        n8 = 8 * M
-        self.tail_slots = np.concatenate([  # I | J slots of the kept pairs, then n_c
-            fs[n8: n8 + 4 * P0].reshape(2, P0, 2).take(sel, axis=1).reshape(4 * P),
-            fs[n8 + 4 * P0:]])
+        pi = self.pair_idx = IJ.reshape(2, P0).take(sel, axis=1).reshape(2 * P)  # [I | J] kept
+        lay = pa[3]
+        self.fslots = lay.slot_ls  # the full layout's float slots of the legs | σ elements
+        # the float slots of the kept pairs' weights (as _Layout.pair_arrays: u_rep of I,
+        # then of J, real and imaginary part), then those of n_c (q)
+        ts = self.tail_slots = np.empty(4 * P + 2 * M, np.intp)
+        s = ts[: 4 * P].reshape(2 * P, 2)
+        np.multiply(pi, 2, out=s[:, 0])
+        s[:, 0] += 2 * M
+        np.add(s[:, 0], 1, out=s[:, 1])
+        ts[4 * P:] = lay.q_slot
         self._legs(g, d, self.cut + skin)
         return True
 
@@ -592,32 +609,40 @@ class _Active:
         e = (d < thr).nonzero()[0]  # side·n + robot
         L = e.shape[0]
         Lc = max(16, -(-L // 16) * 16)
-        ep = np.zeros(Lc, np.intp)
-        ep[:L] = e
+        el = e.tolist()
+        self.pos = {e: j for j, e in enumerate(el)}  # element → its column (_legs_update)
+        self.free = list(range(Lc - 1, L - 1, -1))  # the pads' columns
+        ep = np.concatenate([e, _ZPAD[: Lc - L]])  # (< 16 pads)
         la = g.G8.take(ep, axis=1)  # (4, Lc): conj(n), nᵀp_1, E, A of the kept elements
-        la[:, L:] = _PAD
-        self.g = g
-        self.G01a, self.G23a, self.GAa = la[0], la[1].real, la[2:].reshape(2 * Lc)
-        self.idx = np.concatenate([self.pair_idx, ep % n])
+        if L < Lc:
+            la[:, L:] = _PAD
+        # both leg rows (the barrier and the σ element of one leg distance) as one block of
+        # 2 Lc: conj(n) and nᵀp_1 twice, the points gathered twice (1-D calls, no broadcast)
+        G2 = np.concatenate([la[:2], la[:2]], axis=1)
+        self.G01a, self.G23a = G2[0], G2[1].real
+        self.GAa = la[2:].reshape(2 * Lc)
+        er = ep % n
+        self.idx = np.concatenate([self.pair_idx, er, er])
         # legs | σ slots of the kept elements (the pads': robot 0's, with ±0 weights: harmless)
-        self.slots = np.concatenate([
-            self.fslots[: 8 * n].reshape(2, 2 * n, 2).take(ep, axis=1).reshape(4 * Lc),
-            self.tail_slots])
-        _, _, pair = self.prep.blocks(Lc, P)
-        key = (Lc, len(pair))
-        banks = self.prep.active_banks
-        bank = banks.get(key)
-        if bank is None:
-            if len(banks) > 32:
-                banks.clear()
-            legs, sig, pair = self.prep.blocks(Lc, P)
-            bank = banks[key] = BarrierBank.concatenate_prefixes(
-                [(legs, Lc), (sig, Lc), (pair, len(pair))])
-        self.bank = bank
-        if self.Lc != Lc or self.X.shape[0] != 2 * Lc + P:  # else the buffers of the last call
+        fs3 = self.fs3 = self.fslots[: 8 * n].reshape(2, 2 * n, 2)
+        self.slots = np.concatenate([fs3.take(ep, axis=1).reshape(4 * Lc), self.tail_slots])
+        nx = 2 * Lc + P
+        fresh = self.Lc != Lc or self.X.shape[0] != nx  # else the buffers of the last call
+        if fresh:  # (and the bank)
+            _, _, pair = self.prep.blocks(Lc, P)
+            key = (Lc, len(pair))
+            banks = self.prep.active_banks
+            bank = banks.get(key)
+            if bank is None:
+                if len(banks) > 32:
+                    banks.clear()
+                legs, sig, pair = self.prep.blocks(Lc, P)
+                bank = banks[key] = BarrierBank.concatenate_prefixes(
+                    [(legs, Lc), (sig, Lc), (pair, len(pair))])
+            self.bank = bank
             self.Lc = Lc
-            self.X = np.empty(2 * Lc + P)
-            self.X2 = self.X[: 2 * Lc].reshape(2, Lc)
+            self.X = np.empty(nx)
+            self.X2 = self.X[: 2 * Lc]
             self.xp = self.X[2 * Lc:]
             self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
             self.Wf = self.W.view(np.float64)
@@ -625,21 +650,93 @@ class _Active:
             self.Wi = self.W[2 * Lc: 2 * Lc + P]
             self.Wif = self.Wf[4 * Lc: 4 * Lc + 2 * P]
             self.Wjf = self.Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P]
-            self.tmpc = np.empty(Lc, np.complex128)
+            self.tmpc = np.empty(2 * Lc, np.complex128)
             self.tmpr = self.tmpc.real
-            self.zz = np.empty(2 * P + Lc, np.complex128)  # [p_I | p_J | leg points]
+            self.zz = np.empty(2 * P + 2 * Lc, np.complex128)  # [p_I | p_J | leg points × 2]
             self.zI, self.dz, self.zL = self.zz[:P], self.zz[P: 2 * P], self.zz[2 * P:]
-            self.Y = np.empty(2 * Lc + P)  # the bank's values: legs, σ | pairs
-            self.Yl, self.Yp = self.Y[: 2 * Lc], self.Y[2 * Lc:]
-        self.W[2 * Lc + 2 * P:] = g.n_c
+            # the bank's values (legs, σ | pairs) as the real parts of complex numbers with
+            # imaginary parts 0: the weights are then complex × complex products (what numpy
+            # computes for complex × float, after casting the float through a buffer)
+            self.Yc = np.zeros(nx, np.complex128)
+            self.Y = self.Yc.real
+            self.Ylc, self.Ypc, self.Yp = self.Yc[: 2 * Lc], self.Yc[2 * Lc:], self.Y[2 * Lc:]
+            self.gb, self.ab, self.nm = np.empty(nx), np.empty(nx), np.empty(nx)
+        if fresh or g is not self.g:
+            self.W[2 * Lc + 2 * P:] = g.n_c
+        self.g = g
+        bk = self.bank
+        sl = bk.prefix(nx)
+        self.bound = (self.idx, self.zz, self.dz, self.zI, self.xp, self.G01a, self.zL,
+                      self.tmpc, self.tmpr, self.G23a, self.X2, self.X, self.Y, self.Ylc,
+                      self.GAa, self.Wl, self.Yp, self.Ypc, self.Wi, self.Wif, self.Wjf,
+                      self.slots, self.Wf, 4 * self.M, self.gb, self.ab, self.nm, *sl,
+                      bk._zero, bk._one)
+
+    def _legs_update(self, g: _Gathered, z: np.ndarray, ch: list[int]) -> bool:
+        """The robots ``ch`` changed sub-tube (``g``: the new ones; pairs and slack as
+        before): their leg/σ elements become pads (distance ``_FAR``: values and weights
+        exactly 0) and those closer than the threshold of :meth:`_legs` are written into free
+        columns, with Python scalars (a few microseconds instead of a new subset). The other
+        robots keep their elements (chosen with more slack: a superset). A robot's two terms
+        per slot may then be summed in the other order, which gives the same bits (x + y =
+        y + x; the sums start at +0). False (nothing changed) if a distance is not finite or
+        the columns do not suffice: the caller chooses the subset anew."""
+        n, Lc, P = self.n, self.Lc, self.P
+        thr = self.cut + self.slack + 1e-9  # (a hair more: the scalars may round otherwise)
+        pos, free = self.pos, self.free
+        G8 = g.G8
+        adds = []
+        gone = 0
+        for r in ch:
+            zr = complex(z[r])
+            for e in (r, n + r):
+                gone += e in pos
+                c01, c23, cE, cA = G8[:, e].tolist()
+                d = (c01 * zr).real - c23.real
+                if not -math.inf < d < math.inf:
+                    return False
+                if d < thr:
+                    adds.append((e, r, c01, c23.real, cE, cA))
+        if len(adds) > len(free) + gone:
+            return False
+        G01a, G23a, GAa, idx, slots, fs3 = (self.G01a, self.G23a, self.GAa, self.idx,
+                                           self.slots, self.fs3)
+        for r in ch:
+            for e in (r, n + r):
+                j = pos.pop(e, None)
+                if j is not None:
+                    G01a[j] = G01a[Lc + j] = 0.0
+                    G23a[j] = G23a[Lc + j] = -_FAR
+                    free.append(j)
+        o = 2 * P
+        for e, r, c01, c23, cE, cA in adds:
+            j = free.pop()
+            pos[e] = j
+            G01a[j] = G01a[Lc + j] = c01
+            G23a[j] = G23a[Lc + j] = c23
+            GAa[j] = cE
+            GAa[Lc + j] = cA
+            idx[o + j] = idx[o + Lc + j] = r
+            slots[2 * j: 2 * j + 2] = fs3[0, e]
+            slots[2 * Lc + 2 * j: 2 * Lc + 2 * j + 2] = fs3[1, e]
+        W, nc = self.W, g.n_c
+        for r in ch:
+            W[2 * Lc + 2 * P + r] = nc[r]
+        self.g = g
+        return True
 
     def core(self, z: np.ndarray) -> np.ndarray:
-        """:func:`_core` on the subset (same operations per element, into buffers kept
-        between calls); sets :attr:`pmin`."""
-        z.take(self.idx, out=self.zz, mode="clip")  # [p_I | p_J | leg points] (valid indices)
-        dz, xp = self.dz, self.xp
-        dz -= self.zI  # p_j − p_i
-        np.abs(dz, out=xp)
+        """:func:`_core` on the subset (the same operations per element, the band formula of
+        :meth:`BarrierBank.evaluate` inlined, into buffers kept between calls); sets
+        :attr:`pmin`."""
+        (idx, zz, dz, zI, xp, G01a, zL, tmpc, tmpr, G23a, X2, X, Y, Ylc, GAa, Wl, Yp, Ypc, Wi,
+         Wif, Wjf, slots, Wf, M4, gb, ab, nm, d2, Bw, E1, D1, Q0, R1, R2, zero,
+         one) = self.bound
+        # (outputs passed by position: numpy then parses no keywords, ~10 % of a small call)
+        mul, sub = np.multiply, np.subtract
+        z.take(idx, None, zz, "clip")  # [p_I | p_J | leg points] (valid indices)
+        sub(dz, zI, dz)  # p_j − p_i
+        np.abs(dz, xp)
         if self.track:
             pm = float(xp[xp.argmin()]) if self.P else math.inf
             # a pair left out is farther than r_pair + 2·slack; else take all candidates
@@ -651,15 +748,30 @@ class _Active:
                 da = np.abs(da)
                 pm = float(da[da.argmin()])
             self.pmin = pm
-        np.multiply(self.G01a, self.zL, out=self.tmpc)
-        np.subtract(self.tmpr, self.G23a, out=self.X2)
-        yp = self.Yp
-        self.bank.evaluate(self.X, self.Y)
-        np.multiply(self.Yl, self.GAa, out=self.Wl)
-        yp /= xp
-        np.multiply(dz, yp, out=self.Wi)
-        np.negative(self.Wif, out=self.Wjf)  # on the floats: numpy's complex negative is slow
-        return np.bincount(self.slots, self.Wf, 4 * self.M).view(np.complex128)
+        mul(G01a, zL, tmpc)
+        sub(tmpr, G23a, X2)  # (dtl)/(dtr): Re(conj(n)·z) − nᵀp_1
+        # BarrierBank.evaluate(X, Y), its common path inlined (the same operations)
+        mul(X, E1, gb)
+        sub(gb, D1, gb)  # ĝ
+        if gb[gb.argmin()] >= 1.0:
+            sub(d2, X, ab)
+            mul(ab, Bw, ab)
+            np.maximum(ab, zero, out=ab)
+            np.minimum(ab, one, out=ab)
+            mul(ab, R2, nm)
+            np.add(nm, R1, nm)
+            mul(nm, ab, nm)
+            np.add(nm, Q0, nm)
+            mul(nm, ab, nm)
+            mul(gb, gb, gb)
+            np.divide(nm, gb, Y)
+        else:  # some element below d1·x2 (or NaN): the general formula
+            self.bank.evaluate(X, Y)
+        mul(Ylc, GAa, Wl)  # u3', u4'; σ·A
+        np.divide(Yp, xp, Yp)
+        mul(dz, Ypc, Wi)
+        np.negative(Wif, Wjf)  # on the floats: numpy's complex negative is slow
+        return np.bincount(slots, Wf, M4).view(np.complex128)
 
 
 class CommandEvaluator:
@@ -699,6 +811,7 @@ class CommandEvaluator:
         self._pairs: tuple | None = None  # (I, J, M, lay, IJ, slots, scratch, writeable)
         self._act: _Active | None = None  # the non-zero elements (step(move=...))
         self._same: tuple | None = None  # (k, I, J, M) of g and the pair entry, if read-only
+        self._fast: tuple | None = None  # what step's short path needs (set by the long one)
 
     def __call__(self, p: np.ndarray, k: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                  out: np.ndarray | None = None) -> np.ndarray:
@@ -724,6 +837,25 @@ class CommandEvaluator:
         beyond max(r_a, k_t r_a), pairs beyond r_s + r_a) are skipped while no point can have
         moved :data:`ACTIVE_SKIN` since the subset was chosen (:class:`_Active`); the result is
         bitwise the same (a sum that starts at +0 is unchanged by adding ±0)."""
+        fs = self._fast
+        if (fs is not None and move is not None and fs[0] is k and fs[1] is pairs[0]
+                and fs[2] is pairs[1] and fs[3] == z.shape[0]):
+            # the common call of a simulator loop: the read-only k and pairs of the last call,
+            # law "new", the element subset still valid: core and _finish, nothing else
+            act = fs[4]
+            slack = act.slack - (move * (1.0 + 1e-9) + 1e-9)
+            if slack > 0.0:  # (else the general path below counts the move down itself)
+                act.slack = slack
+                B = act.core(z)
+                if fs[5]:
+                    self.min_pair_distance = act.pmin
+                nb = np.abs(B, fs[6])
+                np.maximum(nb, fs[7], out=nb)
+                np.divide(fs[8], nb, fs[9])
+                np.multiply(B, fs[10], B)
+                M = fs[3]
+                return np.add(B[:M], B[M:], out)
+        self._fast = None
         M = z.shape[0]
         f = self._same
         if f is not None and f[0] is k and f[1] is pairs[0] and f[2] is pairs[1] and f[3] == M:
@@ -754,9 +886,20 @@ class CommandEvaluator:
                 B = act.core(z)
                 if w.track:
                     self.min_pair_distance = act.pmin
+                if self.kind == "new":  # _finish inlined (the same operations)
+                    if self._same is not None:  # the next call may take the short path
+                        self._fast = (k, pairs[0], pairs[1], M, act, w.track, w.nb, lay.mv,
+                                      lay.cv, w.NBr, w.NB)
+                    nb = np.abs(B, out=w.nb)
+                    np.maximum(nb, lay.mv, out=nb)
+                    np.divide(lay.cv, nb, out=w.NBr)
+                    np.multiply(B, w.NB, out=B)
+                    return np.add(B[:M], B[M:], out=out)
                 p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
                 return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
         self._act = None  # (how far the points move until the next call is unknown)
+        if pa[5] is None:
+            pa = self._pairs = (*pa[:5], lay.pair_arrays(pa[0], pa[1], cache=False)[1], *pa[6:])
         B = _core(z, z, g, lay.bank, pa[4], pa[5], w, M)
         if w.track:
             self.min_pair_distance = w.pmin
@@ -768,10 +911,12 @@ class CommandEvaluator:
         _check_pair_range(I, J, M)
         P = I.shape[0]
         lay = self._prep.layout(M, P)
-        IJ, slots = lay.pair_arrays(I, J, cache=False)
         w = _Scratch(M, P, self.track_min_pair)
         w.Wnc[:] = g.n_c
-        return (I, J, M, lay, IJ, slots, w, I.flags.writeable or J.flags.writeable)
+        # (the float slots of the full layout, entry 5, are made by the first call that
+        # evaluates all elements; the element subset does not need them)
+        return (I, J, M, lay, np.concatenate([I, J]), None, w,
+                I.flags.writeable or J.flags.writeable)
 
 
 # ----------------------------------------------------------------------------------------------

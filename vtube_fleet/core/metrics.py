@@ -392,10 +392,10 @@ class SafetyMonitor:
         if vel is not None:
             if vel.shape != (k, m, 2):
                 raise ValueError(f"vel shape {vel.shape} differs from pos shape {(k, m, 2)}")
-            zv = np.ascontiguousarray(_as_complex(vel).T)  # (M, K)
+            zv = _as_complex(vel)  # (K, M): the minima over the robots, along the last axis
             sp2 = (zv * zv.conj()).real
-            vmin = np.sqrt(minimum(sp2, axis=0))
-            vmax = np.sqrt(np.maximum.reduce(sp2, axis=0))
+            vmin = np.sqrt(minimum(sp2, axis=1))
+            vmax = np.sqrt(np.maximum.reduce(sp2, axis=1))
             speed_bad = self._speed_bad(vmin, vmax)
         else:
             vmin, vmax, speed_bad = self._no_speeds(k)

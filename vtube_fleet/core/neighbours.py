@@ -43,8 +43,11 @@ def pairs_within(p: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
     p = _as_points(p)
     if not radius >= 0:
         raise ValueError(f"radius must be >= 0, got {radius}")
-    finite = np.isfinite(p).all(axis=1)
-    idx = None if finite.all() else np.flatnonzero(finite)
+    if p.flags.c_contiguous and p.shape[0]:  # a complex is finite iff both parts are
+        finite = np.isfinite(p.view(np.complex128)[:, 0])
+    else:
+        finite = np.isfinite(p).all(axis=1)
+    idx = None if not finite.shape[0] or finite[finite.argmin()] else np.flatnonzero(finite)
     q = p if idx is None else p[idx]
     m = q.shape[0]
     if m < _BRUTE_MAX:
@@ -54,9 +57,11 @@ def pairs_within(p: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         I, J = I[keep], J[keep]
     else:
         ij = cKDTree(q).query_pairs(radius, output_type="ndarray")
-        if ij.shape[0]:
-            ij = ij[np.lexsort((ij[:, 1], ij[:, 0]))]
-        I, J = ij[:, 0], ij[:, 1]
+        # sorted by (i, j): the pairs are distinct, so sorting i·m + j sorts them
+        key = ij[:, 0] * m
+        key += ij[:, 1]
+        key.sort()
+        I, J = np.divmod(key, m)
     if idx is not None:
         I, J = idx[I], idx[J]
     return _readonly(np.ascontiguousarray(I, dtype=np.int64),
@@ -70,7 +75,8 @@ class VerletPairs:
     margin. The candidate list holds every pair within ``radius + skin`` at the last build; it
     is rebuilt when the largest displacement since then exceeds ``skin/2`` (two robots can then
     have closed at most ``skin``), when the number of robots changes or the set of NaN rows
-    changes. ``builds`` counts the rebuilds.
+    changes. ``builds`` counts the rebuilds; ``last_move`` is the largest displacement since
+    the build seen by the last :meth:`candidates` call (0 right after a build).
     """
 
     def __init__(self, radius: float, skin: float) -> None:
@@ -83,12 +89,14 @@ class VerletPairs:
         self._nan0: np.ndarray | None = None
         self._I = self._J = np.zeros(0, np.int64)
         self.builds = 0
+        self.last_move = 0.0
 
     def _build(self, p: np.ndarray, z: np.ndarray) -> None:
         self._I, self._J = pairs_within(p, self.radius + self.skin)
         self._z0 = z.copy()
         self._nan0 = np.isnan(z)
         self.builds += 1
+        self.last_move = 0.0
 
     def _needs_build(self, z: np.ndarray) -> bool:
         z0 = self._z0
@@ -96,6 +104,7 @@ class VerletPairs:
             return True
         dmax = np.abs(z - z0).max() if z.shape[0] else 0.0
         if dmax <= self._half:
+            self.last_move = float(dmax)
             return False
         if not np.isnan(dmax):
             return True
@@ -103,7 +112,9 @@ class VerletPairs:
         nan = np.isnan(z)
         if not np.array_equal(nan, self._nan0):
             return True
-        return bool(np.fmax.reduce(np.abs(z - z0)) > self._half)
+        dmax = np.fmax.reduce(np.abs(z - z0))
+        self.last_move = float(dmax)
+        return bool(dmax > self._half)
 
     def candidates(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A superset of the pairs within ``radius`` (read-only arrays, reused between builds)."""
@@ -114,7 +125,9 @@ class VerletPairs:
         z0 = self._z0
         if z0 is not None and z0.shape == z.shape and z.shape[0]:
             d = np.abs(z - z0)
-            if d[d.argmax()] <= self._half:  # common: 4 cheap numpy calls (argmax: first NaN)
+            dmax = d[d.argmax()]
+            if dmax <= self._half:  # common: 4 cheap numpy calls (argmax: first NaN)
+                self.last_move = float(dmax)
                 return self._I, self._J
         if self._needs_build(z):
             self._build(p, z)
