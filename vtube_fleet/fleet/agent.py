@@ -210,7 +210,9 @@ class FlightPlan:
         if self.kind == "apf":
             extra["obstacles"] = self.all_obstacles
         if rows.size > 1:
-            extra["pairs"] = pairs_within(p, self.neighbour_radius_m)
+            # + 1 nm: the k-d tree compares squared distances, so a pair 1 ulp inside the
+            # barrier's support could be missed; pairs beyond add exactly 0
+            extra["pairs"] = pairs_within(p, self.neighbour_radius_m + 1e-9)
         return np.asarray(
             velocity_command(p, k, self.arrays, self.flown, kind=self.kind,
                              rows=rows, **extra),

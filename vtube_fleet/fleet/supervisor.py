@@ -621,13 +621,15 @@ class Supervisor:
             metrics["tick_duration_s"] = self.tick_durations[-1]
         if math.isfinite(latency):
             metrics["link_latency_s"] = latency
+        # the phases as logged: after the budget watch, which may have made them hold
+        logged = [p.phase.value for p in pilots]
         self.recorder.log_tick(
             t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
-            phases=[ph.value for ph in phases], cmd=cmd, metrics=metrics,
+            phases=logged, cmd=cmd, metrics=metrics,
             safety=safety)
         if self.keep_trace:
             self.trace.append(TickTrace(t, pos, vel, cmd, tube_rows & np.isfinite(cmd[:, 0]),
-                                        tuple(ph.value for ph in phases), truth))
+                                        tuple(logged), truth))
         if self.view is not None:
             self.view.update(self.status())
 
