@@ -39,6 +39,9 @@ from .telemetry import STRUCTS as _S
 
 __all__ = ["CommanderMixin", "Setpoint"]
 
+_N_BOOT_STAGES = len(BOOT_STAGES)
+_OFFBOARD = MODE_BY_NAME["OFFBOARD"]
+
 log = logging.getLogger("sim_stub")
 
 _NAN = float("nan")
@@ -121,37 +124,44 @@ class CommanderMixin:
         self._ack(cmd, result, ssys, scomp)
 
     def _h_setpoint_local(self, m: dict, ssys: int, scomp: int, now: float) -> None:
-        if not self._for_me(m["target_system"], m["target_component"]):  # type: ignore[arg-type]
+        self._setpoint_local(m["target_system"], m["target_component"], m["coordinate_frame"],
+                             m["type_mask"], m["x"], m["y"], m["z"], m["vx"], m["vy"], m["vz"],
+                             m["yaw"], m["yaw_rate"], now)  # type: ignore[arg-type]
+
+    def _setpoint_local(self, tsys: int, tcomp: int, frame: int, mask: int, x: float, y: float,
+                        z: float, vx: float, vy: float, vz: float, yaw_sp: float,
+                        yaw_rate: float, now: float) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED's fields (also the datagram fast path's entry)."""
+        if not ((tsys == self.sysid or tsys == 0) and (tcomp == self.compid or tcomp == 0)):
             self._rx_ignored += 1
             return
-        frame = m["coordinate_frame"]
         if frame not in (1, 7, 8, 9):  # LOCAL_NED, LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED
             self._rx_ignored += 1
             return
-        mask = int(m["type_mask"])  # type: ignore[call-overload]
-        x, y, z = m["x"], m["y"], m["z"]
-        vx, vy, vz = m["vx"], m["vy"], m["vz"]
-        body = frame in (8, 9)
-        if body:
+        mask = int(mask)
+        if frame in (8, 9):  # body frames: rotate by the heading
             yaw = self._yaw()
             c, s = math.cos(yaw), math.sin(yaw)
-            x, y = c * x - s * y, s * x + c * y  # type: ignore[operator]
-            vx, vy = c * vx - s * vy, s * vx + c * vy  # type: ignore[operator]
-        p = self._pos()
-        offset = frame != 1
-        sp = Setpoint()
-        for i, (val, base) in enumerate(((x, p[0]), (y, p[1]), (z, p[2]))):
-            if not mask & (1 << i) and math.isfinite(val):  # type: ignore[arg-type]
-                sp.pos[i] = val + base if offset else val  # type: ignore[operator]
-        for i, val in enumerate((vx, vy, vz)):
-            if not mask & (8 << i) and math.isfinite(val):  # type: ignore[arg-type]
-                sp.vel[i] = val  # type: ignore[assignment]
-        yaw_sp, yaw_rate = m["yaw"], m["yaw_rate"]
-        if not mask & 0x400 and math.isfinite(yaw_sp):  # type: ignore[arg-type]
-            sp.yaw = yaw_sp  # type: ignore[assignment]
-        if not mask & 0x800 and math.isfinite(yaw_rate):  # type: ignore[arg-type]
-            sp.yaw_rate = yaw_rate  # type: ignore[assignment]
-        self._accept_setpoint(sp, now)
+            x, y = c * x - s * y, s * x + c * y
+            vx, vy = c * vx - s * vy, s * vx + c * vy
+        isfinite = math.isfinite
+        pos: list[float | None] = [None, None, None]
+        if mask & 7 != 7:
+            p = self._pos()
+            offset = frame != 1
+            for i, val in enumerate((x, y, z)):
+                if not mask & (1 << i) and isfinite(val):
+                    pos[i] = val + p[i] if offset else val
+        vel: list[float | None] = [
+            vx if not mask & 8 and isfinite(vx) else None,
+            vy if not mask & 16 and isfinite(vy) else None,
+            vz if not mask & 32 and isfinite(vz) else None,
+        ]
+        self._accept_setpoint(
+            Setpoint(pos, vel,
+                     yaw_sp if not mask & 0x400 and isfinite(yaw_sp) else None,
+                     yaw_rate if not mask & 0x800 and isfinite(yaw_rate) else None),
+            now)  # fmt: skip
 
     def _h_setpoint_global(self, m: object, ssys: int, scomp: int, now: float) -> None:
         if not self._for_me(m.target_system, m.target_component):  # type: ignore[attr-defined]
@@ -186,7 +196,7 @@ class CommanderMixin:
             if self.ready:
                 self._events(px4.HEALTH_BURST_READY)
         # a velocity setpoint acts at once in offboard (no wait for the 50 Hz logic)
-        if self.armed and self.mode.name == "OFFBOARD" and self.phase == "flying":
+        if self.armed and self.phase == "flying" and (self.failsafe or self.intended) is _OFFBOARD:
             self._command_offboard()
 
     def _h_param_request_read(self, m: object, ssys: int, scomp: int, now: float) -> None:
@@ -297,6 +307,7 @@ class CommanderMixin:
         self.landed_state = LANDED_ON_GROUND
         self._sched.airborne[self.slot] = False
         self._sched.u[self.slot] = 0.0
+        self._offboard_cache = None  # u no longer holds the setpoint's velocity
         self._log_mode(now, self.mode_name)
         return MAV_RESULT_ACCEPTED
 
@@ -483,10 +494,11 @@ class CommanderMixin:
             if now >= self._push_until:
                 self._push_until = None
                 self._sched.push[self.slot] = 0.0
-        if self.stage < len(BOOT_STAGES):
+        if self.stage < _N_BOOT_STAGES:
             self._boot_stages(now, up)
         # offboard signal (COM_OF_LOSS_T)
-        fresh = self.sp_time is not None and now - self.sp_time <= self._param("COM_OF_LOSS_T")
+        sp_time = self.sp_time
+        fresh = sp_time is not None and now - sp_time <= self.params["COM_OF_LOSS_T"].value
         if self.sp_fresh and not fresh:
             self.sp_fresh = False
             if self.ready:
@@ -543,7 +555,7 @@ class CommanderMixin:
                 self._log_mode(now, mode.name)
         phase = self.phase
         if phase == "spoolup":
-            if now - self.phase_t >= self._param("COM_SPOOLUP_TIME"):
+            if now - self.phase_t >= self.params["COM_SPOOLUP_TIME"].value:
                 self.phase = phase = "idle"
                 self.phase_t = now
         if phase in ("idle", "landed"):
@@ -562,10 +574,11 @@ class CommanderMixin:
                 self.touchdown_t = None
         if phase == "flying":
             sched.airborne[slot] = True
-            self._command(mode, now)
-            contact = sched.contact_rows[slot]
-            descending = sched.u[slot, 2] >= -0.05
-            if contact and descending:
+            if mode.name == "OFFBOARD":
+                self._command_offboard()
+            else:
+                self._command(mode, now)
+            if sched.contact_rows[slot] and sched.u[slot, 2] >= -0.05:  # touching, not climbing
                 if self.touchdown_t is None:
                     self.touchdown_t = now
                 elif now - self.touchdown_t >= LAND_DETECT_S:
@@ -574,6 +587,7 @@ class CommanderMixin:
                     self.landed_state = LANDED_ON_GROUND
                     sched.airborne[slot] = False
                     sched.u[slot] = 0.0
+                    self._offboard_cache = None
                     self._text(px4.SEV_INFO, "Landing detected")
                     self._event(px4.EVENTS["landing"])
             else:
@@ -587,6 +601,7 @@ class CommanderMixin:
         else:
             sched.airborne[slot] = False
             sched.u[slot] = 0.0
+            self._offboard_cache = None
         # auto-disarm
         if self.phase == "landed" and self.landed_t is not None:
             if now - self.landed_t >= self._param("COM_DISARM_LAND"):
@@ -631,32 +646,56 @@ class CommanderMixin:
         return False
 
     def _command_offboard(self) -> None:
-        u = self._sched.u
+        sched = self._sched
         slot = self.slot
         sp = self.sp
-        p = self._pos()
-        kp_xy = self._param("MPC_XY_P")
-        kp_z = self._param("MPC_Z_P")
-        out = [0.0, 0.0, 0.0]
-        hold = self.hold or p
-        for i in range(3):
-            pos, vel = sp.pos[i], sp.vel[i]
-            k = kp_z if i == 2 else kp_xy
-            if pos is not None:
-                out[i] = k * (pos - p[i]) + (vel or 0.0)
-            elif vel is not None:
-                out[i] = vel
-            else:
-                out[i] = k * (hold[i] - p[i])
-        self._limit(out, self._param("MPC_XY_VEL_MAX"))
-        u[slot, 0], u[slot, 1], u[slot, 2] = out
-        ysp = self._sched.yaw_sp
-        if sp.yaw is not None:
-            ysp[slot] = sp.yaw
-            self._sched.yaw_rate_sp[slot] = 0.0
+        params = self.params
+        pxy, pup, pdn = (params["MPC_XY_VEL_MAX"], params["MPC_Z_VEL_MAX_UP"],
+                         params["MPC_Z_VEL_MAX_DN"])  # fmt: skip
+        c = self._offboard_cache
+        spos, svel = sp.pos, sp.vel
+        if c is not None and c[0] is sp and c[1] is pxy and c[2] is pup and c[3] is pdn:
+            return  # u and the yaw setpoint still hold this velocity setpoint's command
+        if (spos[0] is None and spos[1] is None and spos[2] is None and svel[0] is not None
+              and svel[1] is not None and svel[2] is not None):
+            # velocity only (a fleet controller's setpoint): the general branch and _limit
+            # below, without the state they do not need
+            o0, o1, o2 = svel
+            xy_max = min(pxy.value, XY_SPEED_CAP)
+            nxy = math.hypot(o0, o1)
+            if nxy > xy_max > 0:
+                o0 *= xy_max / nxy
+                o1 *= xy_max / nxy
+            up = min(pup.value, UP_SPEED_CAP)
+            o2 = min(max(o2, -up), min(pdn.value, DOWN_SPEED_CAP))
+            out = [o0, o1, o2]
+            cache: tuple | None = (sp, pxy, pup, pdn)
         else:
-            ysp[slot] = _NAN
-            self._sched.yaw_rate_sp[slot] = sp.yaw_rate or 0.0
+            p = self._pos()
+            kp_xy = params["MPC_XY_P"].value
+            kp_z = params["MPC_Z_P"].value
+            out = [0.0, 0.0, 0.0]
+            hold = self.hold or p
+            for i in range(3):
+                pos, vel = sp.pos[i], sp.vel[i]
+                k = kp_z if i == 2 else kp_xy
+                if pos is not None:
+                    out[i] = k * (pos - p[i]) + (vel or 0.0)
+                elif vel is not None:
+                    out[i] = vel
+                else:
+                    out[i] = k * (hold[i] - p[i])
+            self._limit(out, pxy.value)
+            cache = None  # depends on the position: computed again every time
+        u = sched.u
+        u[slot, 0], u[slot, 1], u[slot, 2] = out
+        if sp.yaw is not None:
+            sched.yaw_sp[slot] = sp.yaw
+            sched.yaw_rate_sp[slot] = 0.0
+        else:
+            sched.yaw_sp[slot] = _NAN
+            sched.yaw_rate_sp[slot] = sp.yaw_rate or 0.0
+        self._offboard_cache = cache
 
     def _limit(self, out: list[float], xy_max: float) -> None:
         xy_max = min(xy_max, XY_SPEED_CAP)
@@ -687,6 +726,7 @@ class CommanderMixin:
         if name == "OFFBOARD":
             self._command_offboard()
             return
+        self._offboard_cache = None  # this mode writes u and the yaw setpoint
         sched.yaw_sp[slot] = _NAN
         sched.yaw_rate_sp[slot] = 0.0
         p = self._pos()

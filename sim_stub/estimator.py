@@ -149,6 +149,7 @@ class EstimatorErrors:
         self._active = np.zeros(n, dtype=bool)
         self._shared_rng = np.random.default_rng(seed + 1)
         self._params = np.zeros((n, 12))
+        self._k: tuple | None = None  # step()'s per-slot constants (_constants)
         self._refresh()
 
     # -- configuration -------------------------------------------------------------------
@@ -195,66 +196,83 @@ class EstimatorErrors:
                       p.coupling, p.pull_1_s, p.pos_noise_m_sqrt_s, p.ground_scale,
                       p.gnss_sigma_m, p.gnss_tau_s, p.gnss_vel_sigma_m_s)
             self._active[i] = p.perturbs and bool(self._running[i])
+        self._k = None  # the per-slot constants of step() are derived again
 
-    # -- time ----------------------------------------------------------------------------
-    def _noise(self, k: int) -> np.ndarray:
-        """(n, k) standard normal draws, the same row for shared slots."""
-        out = self._rng.standard_normal((self.n, k))
-        if self._shared.any():
-            out[self._shared] = self._shared_rng.standard_normal(k)
-        return out
-
-    def step(self, dt: float, airborne: np.ndarray, frozen: np.ndarray | None = None) -> None:
-        """Advance every slot by ``dt`` s; ``airborne`` (n,) bool (lift-off starts a kick);
-        ``frozen`` (n,) slots keep their errors unchanged (a frozen vehicle's state does not
-        change)."""
-        if not self._active.any() or dt <= 0.0:
-            return
-        keep = None
-        if frozen is not None and frozen.any():
-            keep = (frozen, self.e_v[frozen].copy(), self.e_p[frozen].copy(),
-                    self.e_gnss[frozen].copy(), self.e_gnss_v[frozen].copy())
+    def _constants(self) -> tuple:
+        """Per-slot constants of :meth:`step` that only change with the profiles (the same
+        expressions step() used to evaluate every tick, so the results are bit for bit the
+        same)."""
         prm = self._params
         sig, w, z, kick, ktau = prm[:, 0], prm[:, 1], prm[:, 2], prm[:, 3], prm[:, 4]
         coup, pull, qn, ground = prm[:, 5], prm[:, 6], prm[:, 7], prm[:, 8]
         gsig, gtau, gvsig = prm[:, 9], prm[:, 10], prm[:, 11]
-        noise = self._noise(10)
+        active = self._active
+        inactive = ~active
+        self._k = k = (
+            bool(active.any()), active.copy(), inactive, bool(inactive.any()),
+            bool(self._shared.any()),
+            (-2.0 * z * w)[:, None], (w * w)[:, None], 4.0 * z * w ** 3 * sig ** 2,
+            ktau.copy(), np.maximum(ktau, 1e-9), kick.copy(), ground.copy(), 1.0 - ground,
+            coup[:, None], pull[:, None], qn.copy(), np.maximum(gtau, 1e-9), gsig.copy(),
+            gvsig[:, None],
+        )  # fmt: skip
+        return k
+
+    # -- time ----------------------------------------------------------------------------
+    def _noise(self, k: int, shared: bool | None = None) -> np.ndarray:
+        """(n, k) standard normal draws, the same row for shared slots."""
+        out = self._rng.standard_normal((self.n, k))
+        if self._shared.any() if shared is None else shared:
+            out[self._shared] = self._shared_rng.standard_normal(k)
+        return out
+
+    def step(self, dt: float, airborne: np.ndarray, frozen: np.ndarray | None = None,
+             any_frozen: bool | None = None) -> None:
+        """Advance every slot by ``dt`` s; ``airborne`` (n,) bool (lift-off starts a kick);
+        ``frozen`` (n,) slots keep their errors unchanged (a frozen vehicle's state does not
+        change; ``any_frozen``: whether any is, if the caller knows)."""
+        k = self._k if self._k is not None else self._constants()
+        (any_active, active, inactive, any_inactive, any_shared, m2zw, ww, q, ktau, ktau_pos,
+         kick, ground, ground_c, coup, pull, qn, gtau_pos, gsig, gvsig) = k  # fmt: skip
+        if not any_active or dt <= 0.0:
+            return
+        keep = None
+        if frozen is not None and (frozen.any() if any_frozen is None else any_frozen):
+            keep = (frozen, self.e_v[frozen].copy(), self.e_p[frozen].copy(),
+                    self.e_gnss[frozen].copy(), self.e_gnss_v[frozen].copy())
+        noise = self._noise(10, any_shared)
         # lift-off: a new take-off transient with a random direction
-        air = np.asarray(airborne, dtype=bool) & self._active
-        lift = air & (self._air_s < 0.0)
+        air = np.asarray(airborne, dtype=bool) & active
+        air_s = self._air_s
+        lift = air & (air_s < 0.0)
         if lift.any():
             d = noise[lift, 0:2]
             nrm = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
             self._kick_dir[lift] = d / nrm[:, None]
-            self._air_s[lift] = 0.0
-        self._air_s[air] += dt
-        self._air_s[~air] = -1.0
+            air_s[lift] = 0.0
+        air_s[air] += dt
+        air_s[~air] = -1.0
         # stationary second-order process: x'' = -2 z w x' - w² x + sqrt(4 z w³ σ²) ξ
-        q = 4.0 * z * w ** 3 * sig ** 2
-        xdd = (-2.0 * z * w)[:, None] * self._xd - (w * w)[:, None] * self._x \
-            + np.sqrt(q / dt)[:, None] * noise[:, 2:4]
+        xdd = m2zw * self._xd - ww * self._x + np.sqrt(q / dt)[:, None] * noise[:, 2:4]
         self._xd += xdd * dt
         self._x += self._xd * dt
-        s = self._air_s
+        s = air_s
         on = s > 0.0
-        env = np.where(on, (s / ktau) * np.exp(1.0 - s / np.maximum(ktau, 1e-9)), 0.0)
-        scale = np.where(air, np.minimum(1.0, ground + (1.0 - ground) * np.maximum(s, 0.0)),
-                         ground)
+        env = np.where(on, (s / ktau) * np.exp(1.0 - s / ktau_pos), 0.0)
+        scale = np.where(air, np.minimum(1.0, ground + ground_c * np.maximum(s, 0.0)), ground)
         ev = scale[:, None] * self._x + (kick * env)[:, None] * self._kick_dir
         self.e_v[:, :2] = ev
         ep = self.e_p[:, :2]
-        ep += dt * (coup[:, None] * ev - pull[:, None] * ep) \
-            + (qn * math.sqrt(dt))[:, None] * noise[:, 4:6]
+        ep += dt * (coup * ev - pull * ep) + (qn * math.sqrt(dt))[:, None] * noise[:, 4:6]
         # GNSS receiver error: first-order Gauss-Markov
-        a = np.exp(-dt / np.maximum(gtau, 1e-9))
+        a = np.exp(-dt / gtau_pos)
         g = self.e_gnss[:, :2]
         g *= a[:, None]
         g += (gsig * np.sqrt(1.0 - a * a))[:, None] * noise[:, 6:8]
-        self.e_gnss_v[:, :2] = gvsig[:, None] * noise[:, 8:10]
+        self.e_gnss_v[:, :2] = gvsig * noise[:, 8:10]
         if keep is not None:
             m, ev0, ep0, g0, gv0 = keep
             self.e_v[m], self.e_p[m], self.e_gnss[m], self.e_gnss_v[m] = ev0, ep0, g0, gv0
-        inactive = ~self._active
-        if inactive.any():
+        if any_inactive:
             self.e_v[inactive] = self.e_p[inactive] = 0.0
             self.e_gnss[inactive] = self.e_gnss_v[inactive] = 0.0

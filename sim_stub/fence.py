@@ -36,6 +36,7 @@ __all__ = [
     "FENCE_HANDLERS",
     "MAV_MISSION_TYPE_FENCE",
     "MISSION_RESULT",
+    "fence_clearance",
     "point_in_fence",
 ]
 
@@ -107,6 +108,35 @@ def point_in_fence(north_m: float, east_m: float, polygons: list[list[tuple[floa
     return any(in_poly(p) for p in polygons) or any(in_circle(c) for c in circles_in)
 
 
+#: the breach check's shortcut keeps this much of the clearance back (float rounding)
+_CLEARANCE_MARGIN_M = 1e-6
+
+
+def fence_clearance(north_m: float, east_m: float,
+                    polygons: list[list[tuple[float, float]]],
+                    exclusions: list[list[tuple[float, float]]],
+                    circles_in: list[tuple[float, float, float]],
+                    circles_out: list[tuple[float, float, float]]) -> float:
+    """Distance (m) from the point to the nearest fence boundary (polygon edge or circle).
+
+    :func:`point_in_fence` is the same for every point closer to this one than that: its result
+    can only change where a path crosses a boundary. The 50 Hz breach check repeats the full
+    test only once the estimate has left that disc."""
+    best = math.inf
+    for poly in (*polygons, *exclusions):
+        n = len(poly)
+        for i in range(n):
+            (x1, y1), (x2, y2) = poly[i], poly[(i + 1) % n]
+            dx, dy = x2 - x1, y2 - y1
+            ll = dx * dx + dy * dy
+            t = 0.0 if ll <= 0.0 else min(1.0, max(0.0, ((north_m - x1) * dx
+                                                         + (east_m - y1) * dy) / ll))
+            best = min(best, math.hypot(north_m - (x1 + t * dx), east_m - (y1 + t * dy)))
+    for cn, ce, r in (*circles_in, *circles_out):
+        best = min(best, abs(math.hypot(north_m - cn, east_m - ce) - r))
+    return best
+
+
 class FenceMixin:
     """The fence part of :class:`~sim_stub.vehicle.MockVehicle` (module docstring)."""
 
@@ -118,6 +148,8 @@ class FenceMixin:
         self._fence_latched = False  # breach seen; re-armed once back inside
         self._fence_delayed: tuple[float, str] | None = None  # (due, mode) after the Hold delay
         self._fence_shapes: tuple = ([], [], [], [])
+        # (north, east, r², inside): no fence boundary within r of that point (fence_clearance)
+        self._fence_clear: tuple[float, float, float, bool] | None = None
         self._mt_state = "idle"  # idle | getlist (upload) | sendlist (download)
         self._mt_partner = (0, 0)
         self._mt_seq = 0
@@ -173,6 +205,7 @@ class FenceMixin:
                 c_out.append((ne[0], ne[1], it.param1))
             i += 1
         self._fence_shapes = (polys, excl, c_in, c_out)
+        self._fence_clear = None
         self._fence_latched = False
         self.fence_log.append((self.uptime, f"stored {len(items)} items"))
 
@@ -353,9 +386,15 @@ class FenceMixin:
         if not self.fence_items or not self.armed:
             self.fence_breached = False
             return
-        p = self._pos()  # PX4's estimate (GF_SOURCE 0)
-        polys, excl, c_in, c_out = self._fence_shapes
-        inside = point_in_fence(p[0], p[1], polys, excl, c_in, c_out)
+        north, east = self._pos()[:2]  # PX4's estimate (GF_SOURCE 0)
+        c = self._fence_clear
+        if c is not None and (north - c[0]) ** 2 + (east - c[1]) ** 2 < c[2]:
+            inside = c[3]  # still within the boundary-free disc of the last full check
+        else:
+            polys, excl, c_in, c_out = self._fence_shapes
+            inside = point_in_fence(north, east, polys, excl, c_in, c_out)
+            r = fence_clearance(north, east, polys, excl, c_in, c_out) - _CLEARANCE_MARGIN_M
+            self._fence_clear = (north, east, r * r, inside) if r > 0.0 else None
         self.fence_breached = not inside
         if inside:
             self._fence_latched = False

@@ -7,8 +7,8 @@ Per tick (default 100 Hz, absolute schedule so it does not drift):
 2. one vectorized step of the estimator errors (:class:`~sim_stub.estimator.EstimatorErrors`) and
    of the dynamics for all vehicles (:class:`~sim_stub.dynamics.QuadState`): PX4's velocity loop
    drives the *estimated* velocity to the command, so the true vehicle follows ``u − e_v``; then
-   the true state and the estimate (``p + e_p``, ``v + e_v``) are exported once as Python lists
-   for the message builders,
+   the estimate (``p + e_p``, ``v + e_v``) is exported as Python lists for the message
+   builders, every other row set (truth, attitude, GNSS, IMU, ...) on its first use in the tick,
 3. every telemetry message that is due, from a timing wheel of (due time, vehicle, stream)
    entries: a stream at rate r is sent at ``t_start + k/r`` exactly (no drift), several times in
    one tick if the loop fell behind (bounded by ``max_lag_s``), never more often,
@@ -16,14 +16,19 @@ Per tick (default 100 Hz, absolute schedule so it does not drift):
 
 There is no task per vehicle or per stream; a process serving 200 vehicles runs one callback per
 tick. The scheduler drives a vehicle only through its public interface: ``control(now)``,
-``send_stream(stream, payload)`` and ``flush_delayed(now)``.
+``send_stream(stream, payload)`` and ``flush_delayed(now)``. It also watches the vehicles'
+sockets (:meth:`Scheduler.add_reader`): one epoll for all of them, one event-loop reader, so a
+burst of setpoints to many vehicles costs one loop wake-up, not one loop callback per datagram.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
+import select
+import socket
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -79,6 +84,7 @@ class Scheduler:
         self.noise = np.zeros((n, 3))
         self.push = np.zeros((n, 3))  # fault: carried along at this NED velocity (m/s)
         self.noise_sigma = np.zeros(n)
+        self._noise_on = False  # noise_sigma.any(): a GPS noise fault somewhere
         self._noise_rng = np.random.default_rng(0)
         self.vehicles: list[MockVehicle | None] = [None] * n
         self._buckets: list[list[list]] = [[] for _ in range(_WHEEL_SIZE)]
@@ -93,6 +99,11 @@ class Scheduler:
         self.late_ticks = 0  # grid ticks missed (the loop was busy or the process starved)
         self.errors = 0  # exceptions caught in the tick (logged, the first 5 with traceback)
         self.skipped_msgs = 0  # messages dropped because the loop fell > max_lag_s behind
+        self.reader_errors = 0  # exceptions caught in a socket reader (logged, the first 5)
+        # the vehicles' sockets: one epoll, itself one reader of the event loop (add_reader)
+        self._readers: dict[int, Callable[[], None]] = {}
+        self._epoll: select.epoll | None = None
+        self._epoll_loop: asyncio.AbstractEventLoop | None = None
         self._export()
 
     # --- time -----------------------------------------------------------------------------
@@ -120,8 +131,69 @@ class Scheduler:
                 self.push[slot] = 0.0
                 self.est.release(slot)
 
+    # --- sockets ---------------------------------------------------------------------------
+    def add_reader(self, sock: socket.socket, on_readable: Callable[[], None]) -> None:
+        """Call ``on_readable()`` whenever ``sock`` has data (in the running event loop).
+
+        On Linux all sockets of the scheduler share one epoll, which is a single reader of the
+        loop: a wake-up serves every socket that is ready, without a loop callback each (the
+        loop's per-datagram cost of ``create_datagram_endpoint``); elsewhere plain
+        ``loop.add_reader``."""
+        loop = asyncio.get_running_loop()
+        if not hasattr(select, "epoll"):  # pragma: no cover - not Linux
+            loop.add_reader(sock.fileno(), on_readable)
+            return
+        if self._epoll is None or self._epoll_loop is not loop:
+            self._close_epoll()
+            self._epoll = select.epoll()
+            self._epoll_loop = loop
+            loop.add_reader(self._epoll.fileno(), self._poll_readers)
+        self._epoll.register(sock.fileno(), select.EPOLLIN)
+        self._readers[sock.fileno()] = on_readable
+
+    def remove_reader(self, sock: socket.socket) -> None:
+        """Undo :meth:`add_reader` (before the socket is closed)."""
+        fd = sock.fileno()
+        if self._epoll is None:
+            if not hasattr(select, "epoll"):  # pragma: no cover - not Linux
+                with contextlib.suppress(Exception):
+                    asyncio.get_running_loop().remove_reader(fd)
+            return
+        if self._readers.pop(fd, None) is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self._epoll.unregister(fd)
+        if not self._readers:
+            self._close_epoll()
+
+    def _close_epoll(self) -> None:
+        ep, loop = self._epoll, self._epoll_loop
+        self._epoll = self._epoll_loop = None
+        self._readers.clear()
+        if ep is not None:
+            if loop is not None and not loop.is_closed():
+                with contextlib.suppress(Exception):
+                    loop.remove_reader(ep.fileno())
+            ep.close()
+
+    def _poll_readers(self) -> None:
+        ep = self._epoll
+        if ep is None:
+            return
+        readers = self._readers
+        for fd, _ in ep.poll(0):
+            cb = readers.get(fd)
+            if cb is None:
+                continue
+            try:
+                cb()
+            except Exception:  # one vehicle's bug must not starve the others' sockets
+                self.reader_errors += 1
+                if self.reader_errors <= 5:
+                    log.exception("sim_stub socket reader failed (error %d)", self.reader_errors)
+
     def set_noise(self, slot: int, sigma_m: float, seed: int) -> None:
         self.noise_sigma[slot] = sigma_m
+        self._noise_on = bool(self.noise_sigma.any())
         self._noise_rng = np.random.default_rng(seed)
 
     # --- streams --------------------------------------------------------------------------
@@ -160,48 +232,30 @@ class Scheduler:
         return self._handle is not None
 
     # --- the tick -------------------------------------------------------------------------
-    def _export(self) -> None:
+    def _export(self, push_on: bool | None = None) -> None:
+        """Export the state of this tick as Python lists for the message builders: the estimate
+        (``p_rows``, ``v_rows``: what PX4 reports and its position loops use) at once, every
+        other row set (:data:`_LAZY_ROWS`) on its first use in the tick (a lite fleet whose GCS
+        switched the attitude streams off never computes the quaternion or IMU rows)."""
         d = self.dyn
         e = self.est
-        # the estimate (what PX4 reports and its position loops use) and the truth
-        v = d.v + self.push if self.push.any() else d.v
+        cache = self.__dict__
+        for name in _LAZY_ROWS:
+            cache.pop(name, None)
+        if push_on is None:
+            push_on = bool(self.push.any())
+        self._v_pushed = v = d.v + self.push if push_on else d.v
         self.p_rows = (d.p + e.e_p + self.noise).tolist()
         self.v_rows = (v + e.e_v).tolist()
-        self.p_true_rows = d.p.tolist()
-        self.v_true_rows = v.tolist()
-        # the GNSS receiver (GPS_RAW_INT)
-        self.gnss_p_rows = (d.p + e.e_gnss + self.noise).tolist()
-        self.gnss_v_rows = (v + e.e_gnss_v).tolist()
-        self.acc_rows = d.acc.tolist()
-        self.att_rows = np.stack(
-            (d.roll, d.pitch, d.yaw, d.roll_rate, d.pitch_rate, d.yaw_rate), axis=1
-        ).tolist()
-        self.contact_rows = d.contact.tolist()
-        # attitude quaternion and IMU (specific force, magnetic field) in the body frame
-        hr, hp, hy = 0.5 * d.roll, 0.5 * d.pitch, 0.5 * d.yaw
-        cr, sr, cp, sp, cy, sy = (
-            np.cos(hr),
-            np.sin(hr),
-            np.cos(hp),
-            np.sin(hp),
-            np.cos(hy),
-            np.sin(hy),
-        )
-        self.q_rows = np.stack(
-            (
-                cr * cp * cy + sr * sp * sy,
-                sr * cp * cy - cr * sp * sy,
-                cr * sp * cy + sr * cp * sy,
-                cr * cp * sy - sr * sp * cy,
-            ),
-            axis=1,
-        ).tolist()
-        f = d.acc.copy()
-        f[:, 2] -= GRAVITY
-        mag = np.broadcast_to(np.array([0.21, 0.0, 0.43]), f.shape)  # Zurich field [gauss]
-        self.imu_rows = np.concatenate(
-            (_to_body(f, d.roll, d.pitch, d.yaw), _to_body(mag, d.roll, d.pitch, d.yaw)), axis=1
-        ).tolist()
+
+    def __getattr__(self, name: str) -> list:
+        """A row set of :data:`_LAZY_ROWS`, computed on its first use after :meth:`_export`."""
+        build = _LAZY_ROWS.get(name)
+        if build is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        rows = build(self)
+        self.__dict__[name] = rows
+        return rows
 
     def _tick(self) -> None:
         """One tick; whatever happens, the next tick is scheduled (a failing vehicle is logged
@@ -226,27 +280,28 @@ class Scheduler:
         dt = now - self._last
         self._last = now
         self._ticks += 1
-        vehicles = self.vehicles
-        parity = self._ticks & 1
-        for slot in range(parity, self.capacity, 2):
-            v = vehicles[slot]
+        for v in self.vehicles[self._ticks & 1::2]:
             if v is not None:
                 try:
                     v.control(now)
                 except Exception:
                     self._vehicle_error(v, "PX4 logic")
         # dynamics for everyone
+        push_on = None
         if dt > 0.0:
             est = self.est
-            est.step(dt, self.airborne, self.frozen)
+            frozen = self.frozen
+            est.step(dt, self.airborne, frozen, bool(frozen.any()))
             u = self.u - est.e_v  # PX4 tracks the estimated velocity: the truth flies u − e_v
-            self.dyn.step(dt, u, self.airborne, self.frozen, self.yaw_sp, self.yaw_rate_sp)
-            pushed = self.push.any(axis=1) & self.airborne & ~self.frozen
-            if pushed.any():  # a gust the vehicle cannot hold against (Faults.push_*)
-                self.dyn.p[pushed] += self.push[pushed] * dt
-            if self.noise_sigma.any():
+            self.dyn.step(dt, u, self.airborne, frozen, self.yaw_sp, self.yaw_rate_sp)
+            push_on = bool(self.push.any())
+            if push_on:
+                pushed = self.push.any(axis=1) & self.airborne & ~frozen
+                if pushed.any():  # a gust the vehicle cannot hold against (Faults.push_*)
+                    self.dyn.p[pushed] += self.push[pushed] * dt
+            if self._noise_on:
                 self._step_noise(dt)
-        self._export()
+        self._export(push_on)
         # telemetry
         k_now = int((now - self._t0) * self.tick_hz)
         k_start = self._k_done + 1
@@ -319,6 +374,60 @@ class Scheduler:
         sigma = self.noise_sigma[:, None]
         w = self._noise_rng.standard_normal(self.noise.shape)
         self.noise = self.noise * a + sigma * math.sqrt(1.0 - a * a) * w
+
+
+def _gnss_p_rows(s: Scheduler) -> list:  # the GNSS receiver (GPS_RAW_INT)
+    return (s.dyn.p + s.est.e_gnss + s.noise).tolist()
+
+
+def _att_rows(s: Scheduler) -> list:
+    d = s.dyn
+    return np.stack(
+        (d.roll, d.pitch, d.yaw, d.roll_rate, d.pitch_rate, d.yaw_rate), axis=1
+    ).tolist()
+
+
+def _q_rows(s: Scheduler) -> list:
+    """Attitude quaternion (ZYX Euler angles)."""
+    d = s.dyn
+    hr, hp, hy = 0.5 * d.roll, 0.5 * d.pitch, 0.5 * d.yaw
+    cr, sr, cp, sp, cy, sy = (np.cos(hr), np.sin(hr), np.cos(hp), np.sin(hp), np.cos(hy),
+                              np.sin(hy))  # fmt: skip
+    return np.stack(
+        (
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ),
+        axis=1,
+    ).tolist()
+
+
+def _imu_rows(s: Scheduler) -> list:
+    """IMU in the body frame: specific force, magnetic field."""
+    d = s.dyn
+    f = d.acc.copy()
+    f[:, 2] -= GRAVITY
+    mag = np.broadcast_to(np.array([0.21, 0.0, 0.43]), f.shape)  # Zurich field [gauss]
+    return np.concatenate(
+        (_to_body(f, d.roll, d.pitch, d.yaw), _to_body(mag, d.roll, d.pitch, d.yaw)), axis=1
+    ).tolist()
+
+
+#: row sets the scheduler computes on first use per tick (name -> builder); true state,
+#: GNSS receiver, accelerations, attitude, ground contact, quaternion, IMU
+_LAZY_ROWS: dict[str, Callable[[Scheduler], list]] = {
+    "p_true_rows": lambda s: s.dyn.p.tolist(),
+    "v_true_rows": lambda s: s._v_pushed.tolist(),
+    "gnss_p_rows": _gnss_p_rows,
+    "gnss_v_rows": lambda s: (s._v_pushed + s.est.e_gnss_v).tolist(),
+    "acc_rows": lambda s: s.dyn.acc.tolist(),
+    "att_rows": _att_rows,
+    "contact_rows": lambda s: s.dyn.contact.tolist(),
+    "q_rows": _q_rows,
+    "imu_rows": _imu_rows,
+}
 
 
 def _to_body(v: np.ndarray, roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
