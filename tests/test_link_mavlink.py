@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from link_fake_vehicle import FakeVehicle, free_udp_port
+from link_fake_vehicle import FakeVehicle, RecordingTransport, free_udp_port
 from pymavlink.dialects.v20 import common as mavlink2
 
 from vtube_fleet.errors import UserError
@@ -157,17 +157,6 @@ def test_gcs_captures_parse_and_count_as_foreign(path: Path) -> None:
     s = link.state
     assert (s.rx_packets, s.bad_packets, s.foreign_packets) == (0, 0, n)
     assert s.sysid is None and s.last_heartbeat_s is None
-
-
-class RecordingTransport:
-    def __init__(self) -> None:
-        self.sent: list[bytes] = []
-
-    def sendto(self, data: bytes, addr: Any = None) -> None:
-        self.sent.append(bytes(data))
-
-    def is_closing(self) -> bool:
-        return False
 
 
 def _attach(link: MavlinkLink, sysid: int = 1) -> RecordingTransport:

@@ -10,6 +10,7 @@ import random
 import struct
 
 import pytest
+from link_fake_vehicle import RecordingTransport
 from pymavlink.dialects.v20 import common as mavlink2
 from pymavlink.generator.mavcrc import x25crc_slow
 
@@ -102,26 +103,13 @@ def test_unpack_refuses_what_it_does_not_fully_accept() -> None:
         assert CODEC.unpack(frame) is None, frame.hex()
 
 
-class _Sent:
-    """A transport stub that keeps what the link sends."""
-
-    def __init__(self) -> None:
-        self.frames: list[bytes] = []
-
-    def sendto(self, data: bytes, addr: object = None) -> None:
-        self.frames.append(bytes(data))
-
-    def is_closing(self) -> bool:
-        return False
-
-
 def test_the_link_sends_what_pymavlink_would_send_on_both_paths() -> None:
     """Heartbeat, TIMESYNC and a setpoint, fast path and pymavlink, byte for byte (the
     sequence numbers run on across both)."""
     sent = {}
     for fast in (True, False):
         link = MavlinkLink("udpin://127.0.0.1:14540", sysid=3, fast_codec=fast)
-        link._transport = _Sent()  # type: ignore[assignment]
+        link._transport = RecordingTransport()  # type: ignore[assignment]
         link._remote = PX4_ADDR
         link._t0 = 0.0  # time_boot_ms: the same clock on both (monotonic since 0)
         link.send_heartbeat()
@@ -129,7 +117,7 @@ def test_the_link_sends_what_pymavlink_would_send_on_both_paths() -> None:
             link._mav.timesync_encode(0, 123456789))
         link._time_boot_ms = lambda: 4321  # type: ignore[method-assign]
         link.send_velocity_ned(1.0, -0.5, 0.25)
-        sent[fast] = link._transport.frames  # type: ignore[attr-defined]
+        sent[fast] = link._transport.sent  # type: ignore[attr-defined]
     assert len(sent[True]) == 3 and sent[True] == sent[False]
     # and the heartbeat is a GCS's: type GCS (6), autopilot INVALID (8), state ACTIVE (4)
     dec = mavlink2.MAVLink(None)
