@@ -243,6 +243,7 @@ def mission_file() -> Any:
     ["mock-fleet", "{m}", "--gcs-port", "70000"],
     ["mock-fleet", "{m}", "--count", "0"],
     ["mock-fleet", "{m}", "--boot-time-scale", "inf"],
+    ["mock-fleet", "{m}", "--tick-hz", "5"],
     ["sitl-homes", "{m}", "--count=-3"],
 ])
 def test_bad_option_values_are_one_line_errors(argv: list[str], mission_file: Path,

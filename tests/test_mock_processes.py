@@ -174,3 +174,48 @@ def test_mock_fleet_command_leaves_no_orphans(tmp_path: Path, how: str) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_mock_fleet_command_passes_its_tick_rate(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``mock-fleet --tick-hz 50 --processes 2`` reaches the fleet (bench_fleet runs large mock
+    fleets at 50 Hz); without it the mock keeps the 100 Hz its dynamics were fitted at."""
+    import contextlib
+
+    import vtube_fleet.cli.mock_fleet as cmd
+    from vtube_fleet.cli import main
+
+    mission = tmp_path / "m.toml"
+    mission.write_text(grid_mission(4, 20.0, 5.0))
+    seen: list[dict[str, object]] = []
+
+    class Served:
+        endpoints = ("udpin://127.0.0.1:1",)
+
+        async def serve(self, stop: asyncio.Event) -> None:
+            return None
+
+    @contextlib.asynccontextmanager
+    async def fake(mission_, count, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(kwargs)
+        yield Served()
+
+    monkeypatch.setattr(cmd, "mock_fleet", fake)
+    assert main(["mock-fleet", str(mission), "--tick-hz", "50", "--processes", "2"]) == 0
+    assert main(["mock-fleet", str(mission)]) == 0
+    capsys.readouterr()
+    assert [(k["tick_hz"], k["processes"]) for k in seen] == [(50.0, 2), (100.0, 1)]
+
+
+async def test_mock_fleet_ticks_at_the_rate_asked_for(tmp_path: Path) -> None:
+    from fleet_ports import free_ports
+
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.fleet.launch import mock_fleet
+
+    mission = tmp_path / "m.toml"
+    mission.write_text(grid_mission(2, 20.0, 5.0))
+    async with mock_fleet(load_mission(mission), 2, tick_hz=50.0, port_scheme=free_ports(2),
+                          gcs_link="off") as fleet:
+        assert fleet.scheduler.tick_hz == 50.0
+        assert fleet.scheduler.dt == pytest.approx(0.02)

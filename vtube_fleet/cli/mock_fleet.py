@@ -10,10 +10,15 @@ from typing import Any
 
 from vtube_fleet.cli._args import COUNT, PORT, SCALE, SEED, bounded
 from vtube_fleet.cli._signals import interrupt_on_signals
+from vtube_fleet.config.keys import Bound, Key
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import gcs_link_mode, mock_fleet
 
 __all__ = ["register"]
+
+#: The mock's scheduler tick (sim_stub's own range: 20..1000 Hz).
+TICK_HZ = Key("tick_hz", "number", "a tick rate", "Hz",
+              bound=Bound(20.0, 1000.0, low_inclusive=True, interval=True))
 
 
 def _cmd_mock_fleet(args: argparse.Namespace) -> int:
@@ -32,6 +37,7 @@ def _cmd_mock_fleet(args: argparse.Namespace) -> int:
                 boot_time_scale=args.boot_time_scale, profile=args.profile,
                 estimator=args.estimator, estimator_shared=args.estimator_shared,
                 gcs_link=gcs_link, seed=args.seed, processes=args.processes,
+                tick_hz=args.tick_hz,
             ) as fleet:
                 eps = list(fleet.endpoints)
                 print(f"{len(eps)} mock vehicles in the slots of {mission.source}; endpoints:",
@@ -71,6 +77,10 @@ def register(subparsers: Any) -> None:
     m.add_argument("--processes", type=bounded(COUNT), default=1, metavar="N",
                    help="split the vehicles over N OS processes (one scheduler each, same "
                         "ports; about 500 lite vehicles fit one core); default 1")
+    m.add_argument("--tick-hz", type=bounded(TICK_HZ), default=100.0, metavar="HZ",
+                   help="the mock's scheduler tick: dynamics at HZ, each vehicle's PX4 logic "
+                        "at HZ/2 (default 100, what the dynamics were fitted at; 50 takes "
+                        "about a third less CPU for large fleets, docs/sim_stub.md)")
     m.add_argument("--seed", type=bounded(SEED), default=0, help="seed of the estimate errors")
     m.add_argument("--gcs-port", type=bounded(PORT), default=None, metavar="N",
                    help="GCS port of vehicle 0 (vehicle i: N+i; default 14540 as PX4 SITL)")
