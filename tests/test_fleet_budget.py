@@ -13,10 +13,14 @@ from missions import COMPACT_12, write_mission
 from sim_stub.dynamics import QuadState
 from sim_stub.estimator import ESTIMATOR_PROFILES, EstimatorErrors
 from vtube_fleet.fleet.budget import (
+    LOOP_CHECK_S,
     BudgetWatch,
     LinkMeasurement,
+    achieved_rate_hz,
     budget_problems,
+    loop_problem,
     mission_budget,
+    on_time_share,
 )
 from vtube_fleet.fleet.compensation import EstimateCompensator
 
@@ -201,3 +205,45 @@ def test_the_watch_counts_stalls_of_our_own_loop(mission, tmp_path) -> None:
     wf = BudgetWatch(fixed, mission_budget(fixed, LinkMeasurement(0.03, 0.01, 0.29)))
     wf.add_tick_gap(wf.max_tick_gap_s + 0.1)
     assert "control loop stalled" in (wf.check(0.0, 0.01, [0.29])[0] or "")
+
+
+# -- the control loop before arming (loop_problem) ----------------------------------------------
+T = 0.05  # s, the control period of these ticks
+
+
+def every(dt_s: float, n: int) -> list[float]:
+    """The start times of ``n`` ticks ``dt_s`` apart."""
+    return list(dt_s * np.arange(n))
+
+
+def test_on_time_and_rate() -> None:
+    assert on_time_share([], T) is None and math.isnan(achieved_rate_hz([0.0]))
+    assert on_time_share([0.0, 0.025, 0.026, 0.2], T) == 0.5  # within half a period
+    assert achieved_rate_hz(every(T, 21)) == pytest.approx(20.0)
+    assert achieved_rate_hz(every(0.08, 11)) == pytest.approx(12.5)
+
+
+def test_a_healthy_loop_passes_and_short_stretches_are_not_judged() -> None:
+    n = round(LOOP_CHECK_S / T)
+    assert loop_problem(every(T, n), [0.002] * n, [0.01] * n, T, 12) is None
+    assert loop_problem(every(0.2, 19), [0.2] * 19, [0.04] * 19, T, 12) is None  # under 1 s
+    # a stall long ago is forgotten: only the last LOOP_CHECK_S of ticks count
+    starts = every(0.3, 300) + list(90.0 + T * np.arange(n))
+    assert loop_problem(starts, [0.3] * 300 + [0.002] * n, [0.01] * (300 + n), T, 12) is None
+    # one tick in two starts 30 ms late, at the full rate: 50 % on time passes
+    assert loop_problem(every(T, n), [0.0, 0.03] * (n // 2), [0.01] * n, T, 12) is None
+
+
+def test_a_loop_that_cannot_keep_up_is_named_with_its_numbers() -> None:
+    n = round(LOOP_CHECK_S / T)
+    # the telemetry receive fills the gaps: the rate is kept, but no tick starts on time
+    late = [0.002] * 300 + [0.03] * n
+    text = loop_problem(every(T, 300 + n), late, [0.045] * len(late), T, 1000)
+    assert text is not None
+    assert text.startswith("the control loop cannot keep up with 1000 vehicles on this computer")
+    assert f"its last {n} ticks ran at 20.0 Hz of 20 Hz and 0.0% of them started on time" in text
+    assert "tick p50 45.0 ms, p99 45.0 ms" in text and "lower rate_hz" in text
+    # every tick takes 1.6 periods: the clock drops the missed ticks, so one in two starts on
+    # time (the one after the restart of its schedule), at 12.5 of 20 Hz
+    text = loop_problem(every(0.08, n), [0.03, 0.0] * (n // 2), [0.08] * n, T, 3)
+    assert text is not None and f"its last {n} ticks ran at 12.5 Hz of 20 Hz and 50.0%" in text

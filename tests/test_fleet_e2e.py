@@ -287,3 +287,26 @@ async def test_a_150_ms_relay_is_refused_before_arming(tmp_path: Path) -> None:
     assert result.exit_code == 2 and result.outcome == "failed", result.reason
     assert "max_latency_s" in result.reason and "nothing armed" in result.reason
     print(f"\n150 ms relay: {result.reason}")
+
+
+async def test_a_loop_that_cannot_keep_up_is_refused_before_arming(tmp_path: Path) -> None:
+    """Every control tick takes 1.6 periods before take-off (as when a supervisor has more
+    vehicles than its computer can serve): the loop keeps 12.5 of 20 Hz, so nothing arms, and
+    the error says why with the numbers (budget.loop_problem)."""
+    import asyncio
+
+    mission = load_mission(ROOT / "configs" / "mock_fleet.toml").with_vehicles(3)
+
+    def slow(tick: int, sup: Supervisor):  # THE FAULT: 80 ms after every 50 ms tick
+        return asyncio.sleep(0.08) if sup.stage != "takeoff" else None
+
+    async with mock_fleet(mission, **boot(3, seed=6)) as fleet:
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],
+                           out_dir=tmp_path, tick_hook=slow)
+        assert not any(v.armed or any(a for *_, a in v.mode_log) for v in fleet.vehicles)
+    assert result.exit_code == 2 and result.outcome == "failed", result.reason
+    assert "nothing armed" in result.reason, result.reason
+    assert "the control loop cannot keep up with 3 vehicles on this computer" in result.reason
+    assert " Hz of 20 Hz " in result.reason and "fewer vehicles per supervisor" in result.reason
+    assert (tmp_path / "summary.json").is_file()
+    print(f"\nslow loop: {result.reason}")

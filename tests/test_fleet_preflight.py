@@ -123,3 +123,39 @@ async def test_connect_window_and_one_deadline_name_every_vehicle(tmp_path, monk
     assert "no HEARTBEAT within" in r
     assert r.count("not tried: connect_timeout_s = 0.5 s ran out while connecting the "
                    "others (at most 1 at a time)") == 2
+
+
+async def test_a_long_list_of_vehicle_problems_is_cut_in_the_error_kept_in_the_events(
+        tmp_path) -> None:
+    """12 silent endpoints: the one-line error shows PROBLEMS_SHOWN of the 12 and counts the
+    rest; the summary's events keep every vehicle's problem (at 1,000 vehicles such a list was
+    146 kB on one line)."""
+    import json
+
+    from vtube_fleet.errors import PROBLEMS_SHOWN
+
+    text = "\n".join(line for line in COMPACT_12.splitlines()
+                     if not line.startswith("connect_timeout_s"))
+    m = write_mission(tmp_path, text + "\nconnect_timeout_s = 0.5\n")
+    ports = free_ports(12)
+    endpoints = [f"udpin://127.0.0.1:{ports.gcs_base + i}" for i in range(12)]
+    result = await fly(m, endpoints=endpoints, sysids=list(range(1, 13)), out_dir=tmp_path)
+    assert result.exit_code == 2 and result.outcome == "failed"
+    r = result.reason
+    assert "12 of 12 vehicles did not connect within connect_timeout_s = 0.5 s" in r
+    assert r.count("no HEARTBEAT within") == PROBLEMS_SHOWN == 10
+    assert r.endswith("; … and 2 more (every one is in the summary's events)"), r
+    events = json.loads((tmp_path / "summary.json").read_text())["events"]
+    told = [e["text"] for e in events if e["level"] == "error" and "no HEARTBEAT" in e["text"]
+            and "did not connect" not in e["text"]]  # not the final error itself
+    assert len(told) == 12
+    assert all(any(ep in t for t in told) for ep in endpoints)
+
+
+def test_join_problems_counts_what_it_leaves_out() -> None:
+    from vtube_fleet.errors import join_problems
+
+    assert join_problems(["a", "b"]) == "a; b"
+    assert join_problems(list("abcd"), shown=2) == "a; b; … and 2 more (every one is in the " \
+                                                   "summary's events)"
+    assert join_problems(list("abc"), shown=3, rest="x") == "a; b; c"

@@ -7,7 +7,13 @@ as one line (``error: …``) and exits non-zero, never with a traceback.
 
 from __future__ import annotations
 
-__all__ = ["UserError", "ConfigError"]
+from collections.abc import Sequence
+
+__all__ = ["PROBLEMS_SHOWN", "ConfigError", "UserError", "join_problems"]
+
+#: A one-line error shows at most this many per-vehicle problems and counts the rest (at 1,000
+#: vehicles a full list was 146 kB on one line); the caller keeps every one elsewhere.
+PROBLEMS_SHOWN = 10
 
 
 class UserError(Exception):
@@ -22,3 +28,12 @@ class ConfigError(UserError):
     The message names the file and the key, e.g. ``paper.toml: [robots].r_s: expected a
     number, got 'abc'``.
     """
+
+
+def join_problems(problems: Sequence[str], shown: int = PROBLEMS_SHOWN,
+                  rest: str = "every one is in the summary's events") -> str:
+    """The problems ``"; "``-joined, at most ``shown`` of them, then ``… and N more (rest)``."""
+    if len(problems) <= shown:
+        return "; ".join(problems)
+    return ("; ".join(problems[:shown])
+            + f"; … and {len(problems) - shown} more ({rest})")

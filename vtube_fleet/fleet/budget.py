@@ -48,11 +48,17 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "BudgetWatch",
+    "LOOP_CHECK_S",
+    "LOOP_ON_TIME_MIN",
+    "LOOP_RATE_MIN",
     "LinkMeasurement",
     "PX4_SITL_ACCURACY_M",
     "SafetyBudget",
+    "achieved_rate_hz",
     "budget_problems",
+    "loop_problem",
     "mission_budget",
+    "on_time_share",
 ]
 
 #: The σ PX4 SITL (SIH) reports: ESTIMATOR_STATUS ``pos_horiz_accuracy`` 0.29 m in the captures
@@ -235,6 +241,61 @@ def budget_problems(mission: Mission, measured: LinkMeasurement) -> list[str]:
         out.append("no vehicle reports its position accuracy (ESTIMATOR_STATUS or GPS_RAW_INT "
                    "h_acc); set [mission].position_accuracy_m")
     return out
+
+
+#: Before arming, the last :data:`LOOP_CHECK_S` of control ticks must have kept at least this
+#: share of the rate (:func:`loop_problem`): a healthy loop keeps ~100 %, one that takes 1.6
+#: periods a tick keeps 62 % (a tick after falling behind is not made up: Supervisor._clock).
+LOOP_RATE_MIN = 0.8
+#: … and at least this share of them must have started on time. A healthy loop keeps ~99 %; a
+#: loop whose telemetry receive fills the gaps between ticks a few percent (1,000 vehicles on
+#: one 2 GHz core: 0.3 %).
+LOOP_ON_TIME_MIN = 0.5
+#: The stretch of control ticks :func:`loop_problem` judges, in seconds of ticks at the rate.
+LOOP_CHECK_S = 5.0
+
+
+def on_time_share(lateness_s: Sequence[float] | np.ndarray, period_s: float) -> float | None:
+    """The share of ticks that started on time: within half a period of their schedule
+    (``lateness_s``: actual minus scheduled start of each tick); None without ticks."""
+    late = np.asarray(lateness_s, dtype=float)
+    return float(np.mean(late <= period_s / 2)) if late.size else None
+
+
+def achieved_rate_hz(starts_s: Sequence[float] | np.ndarray) -> float:
+    """The tick rate from the ticks' start times (s): ticks per second between the first and
+    the last; NaN under two ticks. (Not from the lateness: a loop that falls more than a
+    period behind drops the ticks it missed and restarts its schedule.)"""
+    if len(starts_s) < 2:
+        return math.nan
+    span = float(starts_s[-1]) - float(starts_s[0])
+    return (len(starts_s) - 1) / span if span > 0 else math.nan
+
+
+def loop_problem(starts_s: Sequence[float], lateness_s: Sequence[float],
+                 durations_s: Sequence[float], period_s: float, vehicles: int) -> str | None:
+    """Why the control loop must not arm its fleet, or None: over its last
+    :data:`LOOP_CHECK_S` of ticks (start times, lateness and durations, s, one per tick) it
+    kept under :data:`LOOP_RATE_MIN` of its rate or started under :data:`LOOP_ON_TIME_MIN` of
+    them on time. Such a loop sends its setpoints late, in bursts or not at all, which the
+    budget's T + L does not cover. Judged on at least one second of ticks (fewer: None)."""
+    n = max(2, round(LOOP_CHECK_S / period_s))
+    late = np.asarray(lateness_s[-n:], dtype=float)
+    if late.size < max(2, round(1.0 / period_s)):
+        return None
+    rate = achieved_rate_hz(starts_s[-late.size:])
+    share = on_time_share(late, period_s)
+    if share is None or (share >= LOOP_ON_TIME_MIN and rate >= LOOP_RATE_MIN / period_s):
+        return None
+    d = np.asarray(durations_s[-late.size:], dtype=float) * 1000.0
+    p50 = float(np.percentile(d, 50)) if d.size else math.nan
+    p99 = float(np.percentile(d, 99)) if d.size else math.nan
+    return (f"the control loop cannot keep up with {vehicles} vehicles on this computer: its "
+            f"last {late.size} ticks ran at {rate:.1f} Hz of {1.0 / period_s:g} Hz and "
+            f"{share:.1%} of them started on time (at least {LOOP_RATE_MIN:.0%} of the rate "
+            f"and {LOOP_ON_TIME_MIN:.0%} on time needed; tick p50 {p50:.1f} ms, p99 "
+            f"{p99:.1f} ms, plus the telemetry received in between): fly fewer vehicles per "
+            f"supervisor or a lower rate_hz")
 
 
 class BudgetWatch:

@@ -24,6 +24,7 @@ import numpy as np
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.fence import FenceGeometry, tube_fence
 from vtube_fleet.core.text import compact_number
+from vtube_fleet.errors import PROBLEMS_SHOWN
 from vtube_fleet.link.base import (
     FenceItem,
     FenceRejected,
@@ -339,8 +340,13 @@ async def audit_fleet(links: Sequence[VehicleLink], mission: Mission, *, fix: bo
         for w in warnings:
             shared.setdefault(w, []).append(link.name)
     for w, names in shared.items():
-        who = (f"all {len(names)} vehicles" if len(names) == len(links) > 1
-               else ", ".join(names))
+        if len(names) == len(links) > 1:
+            who = f"all {len(names)} vehicles"
+        elif len(names) > PROBLEMS_SHOWN:  # each one's values: the summary's px4_params
+            who = (f"{len(names)} of {len(links)} vehicles ("
+                   + ", ".join(names[:PROBLEMS_SHOWN]) + ", …)")
+        else:
+            who = ", ".join(names)
         res.warnings.append(f"{who}: {w}")
     return res
 

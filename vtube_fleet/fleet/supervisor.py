@@ -72,7 +72,7 @@ from vtube_fleet.core.metrics import (
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.core.validation import flown_symbols, validate_scenario
-from vtube_fleet.errors import UserError
+from vtube_fleet.errors import PROBLEMS_SHOWN, UserError, join_problems
 from vtube_fleet.fleet.agent import (
     Agent,
     FlightPlan,
@@ -85,8 +85,11 @@ from vtube_fleet.fleet.budget import (
     BudgetWatch,
     LinkMeasurement,
     SafetyBudget,
+    achieved_rate_hz,
     budget_problems,
+    loop_problem,
     mission_budget,
+    on_time_share,
 )
 from vtube_fleet.fleet.pilot import (
     PilotError,
@@ -293,6 +296,7 @@ class Supervisor:
         self.tick = 0
         self.tick_durations: list[float] = []
         self.tick_lateness: list[float] = []
+        self.tick_starts_s: list[float] = []  # loop time at the start of each tick
         self.latencies: list[float] = []
         self.sample_ages: list[float] = []
         self._sample_ages_window: list[float] = []
@@ -343,6 +347,14 @@ class Supervisor:
                               f"{' ' if level != 'info' else ''}{line}")
         self._progress.set()
 
+    def _listed(self, problems: Sequence[str]) -> str:
+        """The problems for a one-line error (:func:`~vtube_fleet.errors.join_problems`); when
+        some are left out of it, every one is recorded as an event first."""
+        if len(problems) > PROBLEMS_SHOWN:
+            for text in problems:
+                self.event(text, level="error")
+        return join_problems(problems)
+
     def _on_pilot_event(self, text: str, vehicle_id: int | None, level: str) -> None:
         self.event(text, vehicle_id=vehicle_id, level=level)
 
@@ -359,6 +371,7 @@ class Supervisor:
         prev: float | None = None
         while not self._clock_stop.is_set():
             start = loop.time()
+            self.tick_starts_s.append(start)
             self.tick_lateness.append(start - next_t)
             if prev is not None and start - prev > 2.0 * period + 0.1:
                 # our own loop stalled: silence is counted from now on (pilot.check_faults)
@@ -723,9 +736,9 @@ class Supervisor:
         st.tick_p50_ms = math.nan if p50 is None else 1000 * p50
         st.tick_p99_ms = math.nan if p99 is None else 1000 * p99
         st.rate_hz = self._achieved_rate(window=40)
-        late = self.tick_lateness[-400:]
-        if late:
-            st.on_time = float(np.mean(np.asarray(late) <= self.cfg.period_s / 2))
+        on_time = on_time_share(self.tick_lateness[-400:], self.cfg.period_s)
+        if on_time is not None:
+            st.on_time = on_time
         st.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
         if self.view is not None and self.view.tty:  # the per-vehicle table (terminal only)
             sc = self.mission.scenario
@@ -733,16 +746,8 @@ class Supervisor:
         return st
 
     def _achieved_rate(self, window: int | None = None) -> float:
-        n = len(self.tick_lateness)
-        if n < 2:
-            return math.nan
-        lat = np.asarray(self.tick_lateness if window is None else self.tick_lateness[-window:])
-        k = len(lat)
-        if k < 2:
-            return math.nan
-        # scheduled times advance by one period per tick; actual start = scheduled + lateness
-        span = (k - 1) * self.cfg.period_s + (lat[-1] - lat[0])
-        return (k - 1) / span if span > 0 else math.nan
+        starts = self.tick_starts_s if window is None else self.tick_starts_s[-window:]
+        return achieved_rate_hz(starts)
 
     # -- the procedure -------------------------------------------------------------------------
     async def _gather_named(self, what: str, coros: Sequence[Any], limit: int | None = None
@@ -789,7 +794,7 @@ class Supervisor:
         if problems:
             raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles did not connect "
                              f"within connect_timeout_s = {cfg.connect_timeout_s:g} s: "
-                             + "; ".join(problems))
+                             + self._listed(problems))
         self.event(f"connected {len(self.pilots)} vehicles ({self.backend})")
 
     async def _ready(self) -> None:
@@ -797,7 +802,7 @@ class Supervisor:
         problems = await self._gather_named("ready", [p.wait_ready() for p in self.pilots])
         if problems:
             raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles not ready: "
-                             + "; ".join(problems))
+                             + self._listed(problems))
 
     async def _measure_budget(self) -> None:
         """Wait for the estimates to settle, measure the links (:func:`measure_links`: round
@@ -816,7 +821,7 @@ class Supervisor:
         self.measured_latency_s = measured.latency_s
         problems = budget_problems(self.mission, measured)
         if problems:
-            raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
+            raise PreflightError("preflight failed, nothing armed: " + self._listed(problems))
         self.budget = self._make_budget(measured)
         flown = self.budget.inflate(self.physical)
         sc = self.mission.scenario
@@ -844,12 +849,12 @@ class Supervisor:
             raise PreflightError(
                 f"preflight failed, nothing armed ({len(problems)} problem"
                 f"{'s' if len(problems) != 1 else ''}; {acc} → safety budget "
-                f"{self.budget.describe(self.physical)}): " + "; ".join(problems))
+                f"{self.budget.describe(self.physical)}): " + self._listed(problems))
         self.plan = FlightPlan.build(self.mission.scenario.tube, self.mission.scenario.obstacles,
                                      flown, part=part)
         problems = self._lookahead_problems(positions, "on the ground")
         if problems:
-            raise PreflightError("preflight failed, nothing armed: " + "; ".join(problems))
+            raise PreflightError("preflight failed, nothing armed: " + self._listed(problems))
         for p in self.pilots:
             p.agent.root_plan = p.agent.plan = self.plan
         self.recorder.log_scene(self.mission.scenario, self.plan.partition,
@@ -876,7 +881,7 @@ class Supervisor:
         if problems:
             raise PreflightError(f"--truth: {len(problems)} vehicle(s) do not send their "
                                  f"ground truth (HIL_STATE_QUATERNION; PX4 SITL and the mock "
-                                 f"do, real vehicles do not): " + "; ".join(problems))
+                                 f"do, real vehicles do not): " + self._listed(problems))
         self.event(f"ground truth (HIL_STATE_QUATERNION) requested at {TRUTH_RATE_HZ:g} Hz")
 
     async def _audit_params(self) -> None:
@@ -897,7 +902,7 @@ class Supervisor:
             self.event(w, level="info" if "; --fix-params set " in w else "warning")
         if res.problems:
             raise PreflightError("preflight failed, nothing armed: PX4 parameters: "
-                                 + "; ".join(res.problems)
+                                 + self._listed(res.problems)
                                  + " (vtube-fleet run --fix-params sets them for the flight)")
         if not res.unsupported:
             self.event(f"PX4 parameters checked on {len(self.pilots)} vehicles"
@@ -925,7 +930,7 @@ class Supervisor:
         problems = geom.problems(positions, self.names)
         if problems:
             raise PreflightError("preflight failed, nothing armed: the fence would be breached "
-                                 "at once: " + "; ".join(problems))
+                                 "at once: " + self._listed(problems))
         items = fence_items(self.mission, geom)
         action = self.cfg.fence_action
         results = await gather_bounded(
@@ -940,7 +945,7 @@ class Supervisor:
         if problems:
             raise PreflightError(f"preflight failed, nothing armed: {len(problems)} of "
                                  f"{len(self.pilots)} vehicles refused the fence: "
-                                 + "; ".join(problems))
+                                 + self._listed(problems))
         self.onboard.update(fence="uploaded", fence_items=len(items), gf_action=action)
         self.event(f"fence on {len(self.pilots)} vehicles: {len(geom.polygon)}-vertex polygon "
                    f"(legs + {geom.widen_m:.2f} m, {geom.back_m:.2f} m behind the start, "
@@ -961,18 +966,22 @@ class Supervisor:
         self._param_restore = []
 
     async def _takeoff(self) -> None:
+        problem = loop_problem(self.tick_starts_s, self.tick_lateness, self.tick_durations,
+                               self.cfg.period_s, len(self.pilots))
+        if problem:
+            raise PreflightError(f"preflight failed, nothing armed: {problem}")
         self._set_stage("takeoff")
         problems = await self._gather_named("take-off",
                                             [p.arm_and_climb() for p in self.pilots])
         if problems:
             raise MissionAborted(f"take-off failed for {len(problems)} of {len(self.pilots)} "
-                                 f"vehicles: " + "; ".join(problems))
+                                 f"vehicles: " + self._listed(problems))
         positions = np.array([p.xy for p in self.pilots])
         _, problems = preflight_report(self.mission, self.plan.flown, positions, self.names,
                                        where=f"at {self.cfg.altitude_m:g} m")
         problems += self._lookahead_problems(positions, f"at {self.cfg.altitude_m:g} m")
         if problems:
-            raise MissionAborted("Assumption 1 broken at altitude: " + "; ".join(problems))
+            raise MissionAborted("Assumption 1 broken at altitude: " + self._listed(problems))
 
     async def _fly_tube(self) -> None:
         self._set_stage("tube")
@@ -1186,8 +1195,7 @@ class Supervisor:
     def summary(self) -> dict[str, Any]:
         cfg = self.cfg
         dur = np.asarray(self.tick_durations)
-        late = np.asarray(self.tick_lateness)
-        on_time = float(np.mean(late <= cfg.period_s / 2)) if late.size else None
+        on_time = on_time_share(self.tick_lateness, cfg.period_s)
         flown = self.plan.flown
         vehicles = []
         for p in self.pilots:
