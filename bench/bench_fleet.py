@@ -13,7 +13,7 @@
    no GCS link) and reads its endpoints;
 3. runs the :class:`~vtube_fleet.fleet.supervisor.Supervisor` in this process (connect, preflight,
    take-off, tube) and measures, over ``--seconds`` of tube flight: ticks, the share of ticks on
-   time (started less than half a period after schedule), p50/p99/max tick duration, achieved
+   time (started at most half a period after schedule), p50/p99/max tick duration, achieved
    rate, the CPU time of THIS process (user + system) per wall second and per tick, the CPU of
    the mock processes (the mock-fleet process and its children) and of the whole machine
    (/proc/stat) over the same window; ``connect_timeout_s`` is 0.15 s per vehicle (at least

@@ -31,6 +31,7 @@ paper's conditions; the runtime checks that before arming and refuses with the n
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from collections import deque
@@ -49,6 +50,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "BudgetWatch",
     "LOOP_CHECK_S",
+    "LOOP_MIN_S",
     "LOOP_ON_TIME_MIN",
     "LOOP_RATE_MIN",
     "LinkMeasurement",
@@ -243,16 +245,20 @@ def budget_problems(mission: Mission, measured: LinkMeasurement) -> list[str]:
     return out
 
 
-#: Before arming, the last :data:`LOOP_CHECK_S` of control ticks must have kept at least this
-#: share of the rate (:func:`loop_problem`): a healthy loop keeps ~100 %, one that takes 1.6
-#: periods a tick keeps 62 % (a tick after falling behind is not made up: Supervisor._clock).
+#: Before arming, the control ticks of the last :data:`LOOP_CHECK_S` seconds must have kept at
+#: least this share of the rate (:func:`loop_problem`): a healthy loop keeps ~100 %, one that
+#: takes 1.6 periods a tick keeps 62 % (a tick after falling behind is not made up:
+#: Supervisor._clock).
 LOOP_RATE_MIN = 0.8
 #: … and at least this share of them must have started on time. A healthy loop keeps ~99 %; a
 #: loop whose telemetry receive fills the gaps between ticks a few percent (1,000 vehicles on
-#: one 2 GHz core: 0.3 %).
+#: one 2 GHz core: 0 %).
 LOOP_ON_TIME_MIN = 0.5
-#: The stretch of control ticks :func:`loop_problem` judges, in seconds of ticks at the rate.
+#: The stretch of wall time :func:`loop_problem` judges, s (shorter when the clock has run
+#: less, but at least :data:`LOOP_MIN_S`).
 LOOP_CHECK_S = 5.0
+#: The least clock time a judgement covers, s.
+LOOP_MIN_S = 2.0
 
 
 def on_time_share(lateness_s: Sequence[float] | np.ndarray, period_s: float) -> float | None:
@@ -273,29 +279,29 @@ def achieved_rate_hz(starts_s: Sequence[float] | np.ndarray) -> float:
 
 
 def loop_problem(starts_s: Sequence[float], lateness_s: Sequence[float],
-                 durations_s: Sequence[float], period_s: float, vehicles: int) -> str | None:
-    """Why the control loop must not arm its fleet, or None: over its last
-    :data:`LOOP_CHECK_S` of ticks (start times, lateness and durations, s, one per tick) it
-    kept under :data:`LOOP_RATE_MIN` of its rate or started under :data:`LOOP_ON_TIME_MIN` of
-    them on time. Such a loop sends its setpoints late, in bursts or not at all, which the
-    budget's T + L does not cover. Judged on at least one second of ticks (fewer: None)."""
-    n = max(2, round(LOOP_CHECK_S / period_s))
-    late = np.asarray(lateness_s[-n:], dtype=float)
-    if late.size < max(2, round(1.0 / period_s)):
+                 durations_s: Sequence[float], period_s: float, vehicles: int, *,
+                 now_s: float, window_s: float = LOOP_CHECK_S) -> str | None:
+    """Why the control loop must not arm its fleet, or None: the ticks that started in the
+    ``window_s`` up to ``now_s`` (start times, lateness and durations, s, one per tick; the
+    same clock as ``now_s``) were fewer than :data:`LOOP_RATE_MIN` of the rate, or fewer than
+    :data:`LOOP_ON_TIME_MIN` of them started on time. Such a loop sends its setpoints late, in
+    bursts or not at all, which the budget's T + L does not cover. Counted in wall time, so a
+    loop too slow to tick at all is judged too."""
+    k = bisect.bisect_left(starts_s, now_s - window_s)
+    count = len(starts_s) - k
+    rate = count / window_s
+    share = (on_time_share(lateness_s[k:], period_s) or 0.0) if count else 0.0
+    if share >= LOOP_ON_TIME_MIN and rate >= LOOP_RATE_MIN / period_s:
         return None
-    rate = achieved_rate_hz(starts_s[-late.size:])
-    share = on_time_share(late, period_s)
-    if share is None or (share >= LOOP_ON_TIME_MIN and rate >= LOOP_RATE_MIN / period_s):
-        return None
-    d = np.asarray(durations_s[-late.size:], dtype=float) * 1000.0
-    p50 = float(np.percentile(d, 50)) if d.size else math.nan
-    p99 = float(np.percentile(d, 99)) if d.size else math.nan
-    return (f"the control loop cannot keep up with {vehicles} vehicles on this computer: its "
-            f"last {late.size} ticks ran at {rate:.1f} Hz of {1.0 / period_s:g} Hz and "
-            f"{share:.1%} of them started on time (at least {LOOP_RATE_MIN:.0%} of the rate "
-            f"and {LOOP_ON_TIME_MIN:.0%} on time needed; tick p50 {p50:.1f} ms, p99 "
-            f"{p99:.1f} ms, plus the telemetry received in between): fly fewer vehicles per "
-            f"supervisor or a lower rate_hz")
+    d = np.asarray(durations_s[k:], dtype=float) * 1000.0
+    ticks = (f"tick p50 {float(np.percentile(d, 50)):.1f} ms, p99 "
+             f"{float(np.percentile(d, 99)):.1f} ms" if d.size else "no tick finished")
+    return (f"the control loop cannot keep up with {vehicles} vehicles on this computer: over "
+            f"the last {window_s:.1f} s it ticked at {rate:.2f} Hz of {1.0 / period_s:g} Hz "
+            f"(at least {LOOP_RATE_MIN / period_s:g} Hz needed) with {share:.1%} of its "
+            f"ticks started on time (at least {LOOP_ON_TIME_MIN:.0%}; {ticks}, plus the "
+            f"telemetry received in between): fly fewer vehicles per supervisor or a lower "
+            f"rate_hz")
 
 
 class BudgetWatch:

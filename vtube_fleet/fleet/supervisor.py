@@ -82,6 +82,8 @@ from vtube_fleet.fleet.agent import (
     lost_obstacles,
 )
 from vtube_fleet.fleet.budget import (
+    LOOP_CHECK_S,
+    LOOP_MIN_S,
     BudgetWatch,
     LinkMeasurement,
     SafetyBudget,
@@ -965,11 +967,31 @@ class Supervisor:
             self.event("--fix-params: the PX4 parameters are restored")
         self._param_restore = []
 
-    async def _takeoff(self) -> None:
-        problem = loop_problem(self.tick_starts_s, self.tick_lateness, self.tick_durations,
-                               self.cfg.period_s, len(self.pilots))
-        if problem:
+    async def _check_loop(self) -> None:
+        """Before arming: :func:`~vtube_fleet.fleet.budget.loop_problem` over the last
+        LOOP_CHECK_S of clock time (at least LOOP_MIN_S: waits for it); a failure is judged
+        once more on the next LOOP_CHECK_S (one stall, e.g. a GC pause, is not a slow loop),
+        and a second one refuses to arm."""
+        loop = asyncio.get_running_loop()
+        started = self.tick_starts_s[0] if self.tick_starts_s else loop.time()
+        if (wait := started + LOOP_MIN_S - loop.time()) > 0:
+            await asyncio.sleep(wait)  # the clock must have run LOOP_MIN_S to be judged
+
+        def judged() -> str | None:
+            now = loop.time()
+            return loop_problem(self.tick_starts_s, self.tick_lateness, self.tick_durations,
+                                self.cfg.period_s, len(self.pilots), now_s=now,
+                                window_s=min(LOOP_CHECK_S, now - started))
+
+        if (problem := judged()) is None:
+            return
+        self.event(f"{problem}; judging the next {LOOP_CHECK_S:g} s once more", level="warning")
+        await asyncio.sleep(LOOP_CHECK_S)  # a fresh window of ticks, not a synchronisation
+        if (problem := judged()) is not None:
             raise PreflightError(f"preflight failed, nothing armed: {problem}")
+
+    async def _takeoff(self) -> None:
+        await self._check_loop()
         self._set_stage("takeoff")
         problems = await self._gather_named("take-off",
                                             [p.arm_and_climb() for p in self.pilots])
