@@ -207,7 +207,9 @@ def test_mock_fleet_command_passes_its_tick_rate(tmp_path: Path, monkeypatch: py
     assert [(k["tick_hz"], k["processes"]) for k in seen] == [(50.0, 2), (100.0, 1)]
 
 
-async def test_mock_fleet_ticks_at_the_rate_asked_for(tmp_path: Path) -> None:
+async def test_launch_gives_the_mock_scheduler_the_rate_asked_for(tmp_path: Path) -> None:
+    """``launch.mock_fleet(tick_hz=50)`` (what the command calls): the in-process fleet's
+    scheduler steps at 50 Hz (ProcessFleet hands the same keyword to its children)."""
     from fleet_ports import free_ports
 
     from vtube_fleet.config.mission import load_mission
