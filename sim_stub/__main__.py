@@ -16,6 +16,7 @@ from .faults import Faults, parse_fault_spec
 from .fleet import MockFleet, load_homes
 from .ports import PX4, WIDE, PortScheme
 from .processes import ProcessFleet
+from .scheduler import TICK_HZ_MAX, TICK_HZ_MIN
 from .telemetry import GCS_LINK_PROFILES
 from .vehicle import DEFAULT_HOME, validate_home
 
@@ -200,8 +201,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not 1 <= args.processes <= count:
             raise SimStubError(f"--processes must be in 1..{count} (the vehicle count), got "
                                f"{args.processes}")
-        if not 20.0 <= args.tick_hz <= 1000.0:
-            raise SimStubError(f"--tick-hz must be in 20..1000, got {args.tick_hz:g}")
+        if not TICK_HZ_MIN <= args.tick_hz <= TICK_HZ_MAX:
+            raise SimStubError(f"--tick-hz must be in {TICK_HZ_MIN:g}..{TICK_HZ_MAX:g}, got "
+                               f"{args.tick_hz:g}")
         if homes is not None and len(homes) != count:
             raise SimStubError(f"--count {count} but {args.homes} has {len(homes)} homes")
         kwargs = dict(

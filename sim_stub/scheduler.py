@@ -40,7 +40,12 @@ from .estimator import EstimatorErrors
 if TYPE_CHECKING:  # pragma: no cover
     from .vehicle import MockVehicle, StreamState
 
-__all__ = ["Scheduler"]
+__all__ = ["TICK_HZ_MAX", "TICK_HZ_MIN", "Scheduler"]
+
+#: The scheduler ticks the mock supports (Hz): the dynamics step at the tick, the PX4 logic at
+#: half of it, so 20 Hz keeps that at 10 Hz; above 1 kHz a tick is shorter than a wake-up.
+TICK_HZ_MIN = 20.0
+TICK_HZ_MAX = 1000.0
 
 log = logging.getLogger("sim_stub")
 
@@ -66,8 +71,9 @@ class Scheduler:
         their vehicles' errors are independent; shared draws stay common to all)."""
         if capacity < 1:
             raise ValueError(f"scheduler capacity must be >= 1, got {capacity}")
-        if not 20.0 <= tick_hz <= 1000.0:
-            raise ValueError(f"tick_hz must be in [20, 1000], got {tick_hz}")
+        if not TICK_HZ_MIN <= tick_hz <= TICK_HZ_MAX:
+            raise ValueError(f"tick_hz must be in [{TICK_HZ_MIN:g}, {TICK_HZ_MAX:g}], got "
+                             f"{tick_hz}")
         self.capacity = capacity
         self.tick_hz = float(tick_hz)
         self.dt = 1.0 / self.tick_hz

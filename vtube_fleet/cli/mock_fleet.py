@@ -12,13 +12,13 @@ from vtube_fleet.cli._args import COUNT, PORT, SCALE, SEED, bounded
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.keys import Bound, Key
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import gcs_link_mode, mock_fleet
+from vtube_fleet.fleet.launch import TICK_HZ_MAX, TICK_HZ_MIN, gcs_link_mode, mock_fleet
 
 __all__ = ["register"]
 
-#: The mock's scheduler tick (sim_stub's own range: 20..1000 Hz).
+#: The mock's scheduler tick, within the range sim_stub supports.
 TICK_HZ = Key("tick_hz", "number", "a tick rate", "Hz",
-              bound=Bound(20.0, 1000.0, low_inclusive=True, interval=True))
+              bound=Bound(TICK_HZ_MIN, TICK_HZ_MAX, low_inclusive=True, interval=True))
 
 
 def _cmd_mock_fleet(args: argparse.Namespace) -> int:

@@ -290,7 +290,7 @@ def loop_problem(starts_s: Sequence[float], lateness_s: Sequence[float],
     k = bisect.bisect_left(starts_s, now_s - window_s)
     count = len(starts_s) - k
     rate = count / window_s
-    share = (on_time_share(lateness_s[k:], period_s) or 0.0) if count else 0.0
+    share = on_time_share(lateness_s[k:], period_s) or 0.0  # None: no tick in the window
     if share >= LOOP_ON_TIME_MIN and rate >= LOOP_RATE_MIN / period_s:
         return None
     d = np.asarray(durations_s[k:], dtype=float) * 1000.0

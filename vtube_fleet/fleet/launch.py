@@ -14,6 +14,7 @@ from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from sim_stub.scheduler import TICK_HZ_MAX, TICK_HZ_MIN  # the mock's tick range, for the CLI
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.errors import UserError
 
@@ -22,6 +23,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "BACKENDS",
+    "TICK_HZ_MAX",
+    "TICK_HZ_MIN",
     "FleetCliError",
     "UNUSED_STREAMS_OFF",
     "fleet_supervisor",
