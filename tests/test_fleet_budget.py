@@ -207,6 +207,49 @@ def test_the_watch_counts_stalls_of_our_own_loop(mission, tmp_path) -> None:
     assert "control loop stalled" in (wf.check(0.0, 0.01, [0.29])[0] or "")
 
 
+
+def test_a_vehicle_that_falls_silent_is_not_link_latency(mission) -> None:
+    """The sequence of a real CI run: our loop stalls, then one of 4 vehicles falls silent. Its
+    growing age (counted up to neighbour_max_age_s, as the supervisor does) is a fault, not the
+    link's latency: its sample is never superseded, so the ages do not count, and once it is
+    declared lost (lost_after_s) the watch forgets them. Counted at once, the same ages make
+    the whole fleet hold; a slow or a sparse link still does."""
+    cfg = mission.config
+    b = mission_budget(mission, LinkMeasurement(0.03, 0.01, 0.29))
+    stall_s, death_s = 0.30, 1.40
+
+    def run(*, settle: bool = True, link_s: float = 0.03, every_s: float = b.period_s
+            ) -> list[tuple[str | None, str | None]]:
+        w = BudgetWatch(mission, b)
+        arrived = np.zeros(4)  # the arrival time of each vehicle's newest sample
+        out = []
+        for k in range(int(6.0 / b.period_s)):
+            t = k * b.period_s
+            if stall_s <= t < stall_s + 0.1:  # the stall: nothing read, then the backlog
+                pass
+            elif t - arrived[1] >= every_s - 1e-9:  # (vehicle 1 never dies)
+                arrived[:] = t
+            if t >= death_s:
+                arrived[0] = min(arrived[0], death_s)  # vehicle 0: silent
+            ids = np.arange(4)
+            ages = link_s + (t - arrived)
+            used = ages <= cfg.neighbour_max_age_s  # older: handled as a fault
+            if t - arrived[0] > cfg.lost_after_s:
+                w.forget([0])  # declared lost (again and again: harmless)
+            w.add_tick_gap(0.28 + b.period_s if abs(t - stall_s) < 1e-9 else b.period_s)
+            w.add_ages(t, ages[used], ids[used] if settle else None, arrived[used])
+            if w.due(t):
+                out.append(w.check(t, 0.01, [0.29], arrived.copy()))
+        return out
+
+    checks = run()
+    assert "control loop stalled" in (checks[1][0] or "")  # the stall is still reported
+    assert [hold for _, hold in checks] == [None] * len(checks)
+    assert any(hold and "link latency" in hold for _, hold in run(settle=False))
+    # a slow link on every vehicle, or a sparse one (2 Hz), is latency all the same
+    assert any(hold and "link latency" in hold for _, hold in run(link_s=0.25))
+    assert any(hold and "link latency" in hold for _, hold in run(every_s=0.5))
+
 # -- the control loop before arming (loop_problem) ----------------------------------------------
 T = 0.05  # s, the control period of these ticks
 

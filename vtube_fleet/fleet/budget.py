@@ -307,13 +307,21 @@ def loop_problem(starts_s: Sequence[float], lateness_s: Sequence[float],
 class BudgetWatch:
     """The in-flight check of a budget's inputs (supervisor and MQTT agent alike; pure).
 
-    Feed it the position ages as they are used (:meth:`add_ages`); once a second
-    :meth:`check` compares L (p95 of the last ``window_s`` of ages + the worst uplink delay)
+    Feed it the position ages as they are used (:meth:`add_ages`, with the vehicles they
+    belong to); once a second :meth:`check` compares L (p95 of the last ``window_s`` of ages
+    + the worst uplink delay)
     and σ (the worst reported accuracy) with what ``budget`` was built for: L more than one
     control period over, σ more than 25 % (+2 cm) over. It returns ``(warning, hold)``: a
     warning text the first second over, and a hold reason after ``persist_s`` seconds in a row.
     Overridden budgets and the mission's own ``latency_s`` / ``position_accuracy_m`` are not
     second-guessed.
+
+    A vehicle that falls silent is a fault, not a slow link: the lost-vehicle path handles
+    it. So an age counts only once the sample it was measured on has been superseded (the
+    vehicle spoke again: then its silence was the link's), judged from the arrival times of
+    the newest samples given to :meth:`check`; :meth:`forget` drops a lost vehicle's ages.
+    One dying vehicle (plus a stall of our own loop) does not make the whole fleet hold; a
+    slow or sparse link still does, one sample interval later.
 
     The gaps between control ticks are fed too (:meth:`add_tick_gap`): while our own loop
     stalls, the vehicles fly their last setpoint, so a gap longer than the budgeted T + L
@@ -327,18 +335,44 @@ class BudgetWatch:
         self.budget = budget
         self.window_s = window_s
         self.persist_s = persist_s
-        # (time, finite ages) per add_ages call: one array per tick, not one tuple per age
-        # (1,000 vehicles at 20 Hz keep 60,000 ages in a 3 s window)
-        self._ages: deque[tuple[float, np.ndarray]] = deque()
+        # (time, finite ages, [their vehicle ids, their samples' arrival times] or None) per
+        # add_ages call: one array per tick, not one tuple per age (1,000 vehicles at 20 Hz
+        # keep 60,000 ages in 3 s)
+        self._ages: deque[tuple[float, np.ndarray, np.ndarray | None]] = deque()
         self._checked_s = -math.inf
         self._over = 0
         self._worst_gap_s = 0.0  # the longest tick gap since the last check
 
-    def add_ages(self, t_s: float, ages: Sequence[float]) -> None:
+    def add_ages(self, t_s: float, ages: Sequence[float],
+                 vehicle_ids: Sequence[int] | None = None,
+                 sample_s: Sequence[float] | None = None) -> None:
+        """The position ages used at ``t_s`` (s), with the vehicle of each and the arrival
+        time of the sample it was measured on (s, the clock of :meth:`check`'s
+        ``newest_sample_s``). Without them (an agent's own ages) every age counts at once."""
         a = np.asarray(ages, dtype=float)
-        a = a[np.isfinite(a)]
+        ok = np.isfinite(a)
+        who = None
+        if vehicle_ids is not None and sample_s is not None:
+            who = np.stack([np.asarray(vehicle_ids, dtype=float)[ok],
+                            np.asarray(sample_s, dtype=float)[ok]])
+        a = a[ok]
         if a.size:
-            self._ages.append((t_s, a))
+            self._ages.append((t_s, a, who))
+
+    def forget(self, vehicle_ids: Sequence[int]) -> None:
+        """Drop the ages of these vehicles (declared lost: their silence was a fault, handled
+        as one, not the link's latency)."""
+        gone = np.asarray(vehicle_ids, dtype=int)
+        if not gone.size:
+            return
+        kept: deque[tuple[float, np.ndarray, np.ndarray | None]] = deque()
+        for t_s, a, who in self._ages:
+            if who is not None:
+                keep = ~np.isin(who[0], gone)
+                a, who = a[keep], who[:, keep]
+            if a.size:
+                kept.append((t_s, a, who))
+        self._ages = kept
 
     def add_tick_gap(self, gap_s: float) -> None:
         """The time between two control ticks (the period when on time)."""
@@ -355,8 +389,11 @@ class BudgetWatch:
         (None, None) whatever it is given."""
         return t_s - self._checked_s >= 1.0
 
-    def check(self, t_s: float, uplink_s: float, accuracies_m: Sequence[float]
-              ) -> tuple[str | None, str | None]:
+    def check(self, t_s: float, uplink_s: float, accuracies_m: Sequence[float],
+              newest_sample_s: np.ndarray | None = None) -> tuple[str | None, str | None]:
+        """Judge once a second (see the class). ``newest_sample_s``: per vehicle id, the
+        arrival time of its newest sample (NaN: none); an age given with a vehicle counts once
+        its sample is older than that."""
         if not self.due(t_s):
             return None, None
         self._checked_s = t_s
@@ -372,8 +409,8 @@ class BudgetWatch:
         if b.overridden:
             return self._judge(over)
         latency = 0.0
-        if self._ages:
-            ages = np.concatenate([a for _, a in self._ages])
+        ages = self._settled_ages(newest_sample_s)
+        if ages.size:
             k = int(0.95 * (ages.size - 1))  # the element sorted(ages)[k], without the sort
             latency = float(np.partition(ages, k)[k]) + uplink_s
         acc = [a for a in accuracies_m if math.isfinite(a)]
@@ -385,6 +422,20 @@ class BudgetWatch:
             over.append(f"reported position accuracy σ = {sigma:.2f} m > budgeted "
                         f"{b.accuracy_m:.2f} m (+25 %)")
         return self._judge(over)
+
+    def _settled_ages(self, newest_sample_s: np.ndarray | None) -> np.ndarray:
+        """The window's ages whose samples have been superseded (or carry no vehicle)."""
+        parts = []
+        for _, a, who in self._ages:
+            if who is not None:
+                ids = who[0].astype(int)
+                newest = np.full(ids.size, np.nan)
+                if newest_sample_s is not None:
+                    known = ids < newest_sample_s.size
+                    newest[known] = newest_sample_s[ids[known]]
+                a = a[newest > who[1]]  # (NaN: never superseded)
+            parts.append(a)
+        return np.concatenate(parts) if parts else np.empty(0)
 
     def _judge(self, over: list[str]) -> tuple[str | None, str | None]:
         """(warning the first second over, hold reason after ``persist_s`` seconds in a row)."""

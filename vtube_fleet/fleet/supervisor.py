@@ -302,6 +302,8 @@ class Supervisor:
         self.latencies: list[float] = []
         self.sample_ages: list[float] = []
         self._sample_ages_window: list[float] = []
+        self._sample_ids_window: list[int] = []  # the vehicle of each age in the window
+        self._sample_at_window: list[float] = []  # and the arrival time of its sample
         self.measured_speed = [math.inf, -math.inf]
         self.settled_speed = [math.inf, -math.inf]
         self.settle_s = self.cfg.tracking_dead_time_s + 3.0 * self.cfg.tracking_t63_s
@@ -317,7 +319,7 @@ class Supervisor:
         self._clock_stop = asyncio.Event()
         self._main: asyncio.Task[None] | None = None
         self.watch: BudgetWatch | None = None  # the in-flight budget check, once flying
-        self._recent_ages: list[float] = []
+        self._forgotten: set[int] = set()  # lost vehicles whose ages the watch dropped
         self._recent_tick_gap_s = 0.0  # the longest gap between control ticks, for the watch
         self.violations = ViolationLog(self.monitor)
         self.not_landed: list[str] = []
@@ -426,6 +428,8 @@ class Supervisor:
                 age = p.sample_age_s(now)
                 if age <= cfg.neighbour_max_age_s:  # older: a stale vehicle, handled as a fault
                     self._sample_ages_window.append(age)
+                    self._sample_ids_window.append(p.vehicle_id)
+                    self._sample_at_window.append(p.sample_s)
         # in-process, a vehicle is lost when its pilot says so (pilot.check_faults, which knows
         # about stalls of this loop); stale states are static points until then
         view = classify(self.bus.latest().values(), wall, max_age_s=cfg.neighbour_max_age_s,
@@ -627,11 +631,12 @@ class Supervisor:
                 if len(i_idx):
                     d = float(np.hypot(*(q[i_idx] - q[j_idx]).T).min())
                     self.min_pair_airborne = min(self.min_pair_airborne, d)
-            if self._sample_ages_window:
-                self.sample_ages.extend(self._sample_ages_window)
-                self._recent_ages.extend(self._sample_ages_window)
-            self._watch_budget(t)
+            self.sample_ages.extend(self._sample_ages_window)
+            self._watch_budget(t, self._sample_ages_window, self._sample_ids_window,
+                               self._sample_at_window)
         self._sample_ages_window.clear()
+        self._sample_ids_window.clear()
+        self._sample_at_window.clear()
         if self.tick_durations:
             metrics["tick_duration_s"] = self.tick_durations[-1]
         if math.isfinite(latency):
@@ -678,22 +683,34 @@ class Supervisor:
         self.event(f"LIMIT BROKEN ({e['source']}): {e['condition']} {e['value']:.3f} m, limit "
                    f"{e['limit']:.3f} m: {who}", level="error")
 
-    def _watch_budget(self, t: float) -> None:
+    def _watch_budget(self, t: float, ages_s: list[float], vehicle_ids: list[int],
+                      sample_s: list[float]) -> None:
         """Once a second in the tube (:class:`~vtube_fleet.fleet.budget.BudgetWatch`): L and σ
-        over what the budget was built for, for 2 s → every vehicle in the tube holds."""
+        over what the budget was built for, for 2 s → every vehicle in the tube holds. The
+        ages of this tick's positions (``ages_s``, of ``vehicle_ids``, on samples that arrived
+        at ``sample_s``) go in every tick; they count once superseded, and a vehicle declared
+        lost has its ages dropped (its silence is a fault, not latency)."""
         gap, self._recent_tick_gap_s = self._recent_tick_gap_s, 0.0
         if not any(p.phase == Phase.IN_TUBE for p in self.pilots):
             return
         if self.watch is None or self.watch.budget is not self.budget:
             self.watch = BudgetWatch(self.mission, self.budget)
+            self._forgotten = set()
         self.watch.add_tick_gap(gap)
-        self.watch.add_ages(t, self._recent_ages)
-        self._recent_ages = []
+        self.watch.add_ages(t, ages_s, vehicle_ids, sample_s)
+        lost = {p.vehicle_id for p in self.pilots if p.phase == Phase.LOST} - self._forgotten
+        if lost:
+            self.watch.forget(sorted(lost))
+            self._forgotten |= lost
         if not self.watch.due(t):
             return  # (the fleet-wide uplink and accuracy below: once a second, not per tick)
         up = max((p.link.latency_s or 0.0 for p in self.pilots), default=0.0)
         acc = [p.position_accuracy_m() for p in self.pilots if p.phase == Phase.IN_TUBE]
-        warning, hold = self.watch.check(t, up, acc)
+        newest = np.full(max((p.vehicle_id for p in self.pilots), default=-1) + 1, np.nan)
+        for p in self.pilots:
+            if p.sample_s is not None:
+                newest[p.vehicle_id] = p.sample_s
+        warning, hold = self.watch.check(t, up, acc, newest)
         if warning:
             self.event(warning, level="warning")
         if hold:
