@@ -295,7 +295,7 @@ class CommanderMixin:
             self._text(px4.SEV_CRITICAL, "Disarming denied: not landed")
             return MAV_RESULT_TEMPORARILY_REJECTED
         self.armed = False
-        self._text(px4.SEV_INFO, f"Disarmed by {reason}")
+        self._text(px4.SEV_INFO, f"Disarmed by {reason}", now)
         self._event(px4.EVENTS["disarmed"], bytes((px4.ARM_REASON.get(reason, 4),)))
         if self.phase in ("flying", "landed") and self.took_off:
             self._set_home(now)  # capture: home re-set to the landing point at disarm
@@ -567,7 +567,7 @@ class CommanderMixin:
             if el >= TAKEOFF_DETECT_S and self.landed_state == LANDED_ON_GROUND:
                 self.landed_state = LANDED_IN_AIR
                 self.took_off = True
-                self._text(px4.SEV_INFO, "Takeoff detected")
+                self._text(px4.SEV_INFO, "Takeoff detected", now)
                 self._event(px4.EVENTS["takeoff"])
             if el >= LIFTOFF_S:
                 self.phase = phase = "flying"
@@ -588,7 +588,7 @@ class CommanderMixin:
                     sched.airborne[slot] = False
                     sched.u[slot] = 0.0
                     self._offboard_cache = None
-                    self._text(px4.SEV_INFO, "Landing detected")
+                    self._text(px4.SEV_INFO, "Landing detected", now)
                     self._event(px4.EVENTS["landing"])
             else:
                 self.touchdown_t = None
@@ -628,7 +628,7 @@ class CommanderMixin:
         if self.failsafe.name == "AUTO.RTL":
             self.rtl_phase = "climb"
         # the health burst went out when the offboard signal was lost (capture 1c: once)
-        self._text(px4.SEV_CRITICAL, "Failsafe activated")
+        self._text(px4.SEV_CRITICAL, "Failsafe activated", now)
         self._event(px4.EVENTS["failsafe"])
         self._log_mode(now, self.failsafe.name)
 
