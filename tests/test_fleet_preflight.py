@@ -126,11 +126,14 @@ async def test_connect_window_and_one_deadline_name_every_vehicle(tmp_path, monk
 
 
 async def test_a_long_list_of_vehicle_problems_is_cut_in_the_error_kept_in_the_events(
-        tmp_path) -> None:
+        tmp_path, caplog) -> None:
     """12 silent endpoints: the one-line error shows PROBLEMS_SHOWN of the 12 and counts the
     rest; the summary's events keep every vehicle's problem (at 1,000 vehicles such a list was
-    146 kB on one line)."""
+    146 kB on one line), and the terminal is not flooded with one warning per vehicle."""
     import json
+    import logging
+
+    caplog.set_level(logging.DEBUG)
 
     from vtube_fleet.errors import PROBLEMS_SHOWN
 
@@ -150,6 +153,10 @@ async def test_a_long_list_of_vehicle_problems_is_cut_in_the_error_kept_in_the_e
             and "did not connect" not in e["text"]]  # not the final error itself
     assert len(told) == 12
     assert all(any(ep in t for t in told) for ep in endpoints)
+    per_vehicle = [rec for rec in caplog.records if "no HEARTBEAT within" in rec.getMessage()
+                   and "did not connect" not in rec.getMessage()]
+    assert len(per_vehicle) == 12  # every one logged, so the test sees the logger ...
+    assert all(rec.levelno == logging.DEBUG for rec in per_vehicle)  # ... below the terminal
 
 
 def test_join_problems_counts_what_it_leaves_out() -> None:

@@ -336,27 +336,33 @@ class Supervisor:
     def t_s(self) -> float:
         return time.monotonic() - self.t0
 
-    def event(self, text: str, *, vehicle_id: int | None = None, level: str = "info") -> None:
+    def event(self, text: str, *, vehicle_id: int | None = None, level: str = "info",
+              echo: bool = True) -> None:
+        """Record an event (events, recording) and show it; ``echo=False`` keeps it out of the
+        terminal (logged at debug), for long lists whose summary is shown instead."""
         t = self.t_s()
         self.events.append({"t_s": round(t, 3), "vehicle": vehicle_id, "level": level,
                             "text": text})
         self.recorder.log_event(t, text, vehicle_id=vehicle_id, level=level)
         line = text if vehicle_id is None else f"{self.names[vehicle_id]}: {text}"
-        if level in ("warning", "error") and self.view is None:
+        if not echo:
+            log.debug("%s", line)
+        elif level in ("warning", "error") and self.view is None:
             log.warning("%s", line)
         else:
             log.info("%s", line)
-        if self.view is not None and (level != "info" or vehicle_id is None):
+        if echo and self.view is not None and (level != "info" or vehicle_id is None):
             self.view.message(f"[{t:7.1f}s] {level.upper() if level != 'info' else ''}"
                               f"{' ' if level != 'info' else ''}{line}")
         self._progress.set()
 
     def _listed(self, problems: Sequence[str]) -> str:
         """The problems for a one-line error (:func:`~vtube_fleet.errors.join_problems`); when
-        some are left out of it, every one is recorded as an event first."""
+        some are left out of it, every one is recorded as an event first (not echoed: the
+        error line is what the terminal shows)."""
         if len(problems) > PROBLEMS_SHOWN:
             for text in problems:
-                self.event(text, level="error")
+                self.event(text, level="error", echo=False)
         return join_problems(problems)
 
     def _on_pilot_event(self, text: str, vehicle_id: int | None, level: str) -> None:
