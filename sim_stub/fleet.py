@@ -263,7 +263,9 @@ class MockFleet:
         self.vehicles[i].kill(how)
 
     def describe(self) -> list[str]:
-        """One line per vehicle: instance, sysid, bind address, GCS endpoint, home."""
+        """One line per vehicle: instance, sysid, bind address, GCS endpoint, home, estimator,
+        the dynamics' tick rate."""
+        hz = self.scheduler.tick_hz
         lines = []
         for v in self.vehicles:
             lat, lon, alt = v.origin
@@ -273,6 +275,6 @@ class MockFleet:
             lines.append(
                 f"vehicle {v.instance}: sysid {v.sysid} compid 1, binds udp {v.bind_address[0]}:"
                 f"{v.bind_address[1]} -> GCS {v.endpoint}, home {lat:.7f},{lon:.7f},{alt:.2f}"
-                f"{gcs}; estimator {v.estimator.name}"
+                f"{gcs}; estimator {v.estimator.name}; dynamics {hz:g} Hz"
             )
         return lines

@@ -90,6 +90,16 @@ async def test_four_vehicles_over_two_processes_each_answer_on_its_own_link() ->
     assert not any(_alive(pid) for pid in fleet.pids)
 
 
+async def test_the_dynamics_rate_reaches_every_process() -> None:
+    """--tick-hz crosses the process boundary: each child's scheduler ticks at the rate asked
+    (the describe lines come from the children themselves)."""
+    async with ProcessFleet(2, processes=2, tick_hz=50, port_scheme=free_port_scheme(2),
+                            profile="lite", gcs_link="off", boot_time_scale=0.2) as fleet:
+        lines = fleet.describe()
+        assert len(lines) == 2
+        assert all(line.endswith("; dynamics 50 Hz") for line in lines), lines
+
+
 async def test_repeated_sysids_across_processes() -> None:
     async with ProcessFleet(2, processes=2, sysids=[1, 1], port_scheme=free_port_scheme(2),
                             profile="lite", gcs_link="off", boot_time_scale=0.2) as fleet:

@@ -82,7 +82,7 @@ def test_runs_prints_endpoints_streams_and_stops_cleanly(sig: int, tmp_path) -> 
         assert lines[1] == (
             f"vehicle 1: sysid 2 compid 1, binds udp 127.0.0.1:{ports.vehicle_port(1)} -> GCS "
             f"udpin://127.0.0.1:{ports.gcs_port(1)}, home 47.3978420,8.5455940,489.40; "
-            f"estimator px4-sih"
+            f"estimator px4-sih; dynamics 100 Hz"
         )
         # vehicle 1 streams MAVLink to its GCS port
         m = mav.MAVLink(None, 255, 190)
