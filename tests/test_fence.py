@@ -213,15 +213,17 @@ async def test_breach_holds_on_the_estimate_even_with_fresh_setpoints(estimator:
 
 
 async def test_gf_action_land_holds_for_com_fail_act_t_first() -> None:
+    # 3 s of Hold: the link learns the mode from the 1 Hz HEARTBEAT, so a shorter hold can be
+    # missed altogether by a loaded machine's late tick
     async with one_vehicle(estimator="ideal", params={"GF_ACTION": 5,
-                                                      "COM_FAIL_ACT_T": 1.0}) as (v, link):
+                                                      "COM_FAIL_ACT_T": 3.0}) as (v, link):
         await link.upload_fence(square(v, 3e-5))  # ±3.3 m
         streamer = Streamer(link)
         try:
             await _airborne_in_offboard(link, streamer)
             v.push(3.0, 0.0, 3.0)
             await link.wait_until(lambda s: s.px4_mode == "AUTO.LOITER", 15.0, "the hold")
-            assert any(t[2] == "Failsafe activated, entering Hold for 1 seconds\t"
+            assert any(t[2] == "Failsafe activated, entering Hold for 3 seconds\t"
                        for t in v.statustexts)
             await link.wait_until(lambda s: s.px4_mode == "AUTO.LAND", 10.0, "then land")
         finally:

@@ -323,12 +323,17 @@ async def test_one_stall_before_arming_is_judged_again_not_refused() -> None:
                           pilots=[None] * 3,
                           event=lambda text, level="info": events.append(f"{level}: {text}"))
 
-    async def clock() -> None:  # the control clock goes on at 20 Hz (its period, not a sync)
+    async def clock() -> None:
+        # a clock that keeps 20 Hz exactly: each wake-up records every tick due by then, so a
+        # loaded machine's late wake-ups do not make this healthy clock look slow
+        next_t = t0 + T
         while True:
             await asyncio.sleep(T)
-            sup.tick_starts_s.append(loop.time())
-            sup.tick_lateness.append(0.0)
-            sup.tick_durations.append(0.005)
+            while next_t <= loop.time():
+                sup.tick_starts_s.append(next_t)
+                sup.tick_lateness.append(0.0)
+                sup.tick_durations.append(0.005)
+                next_t += T
 
     task = asyncio.create_task(clock())
     try:

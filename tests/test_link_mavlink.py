@@ -279,7 +279,9 @@ def test_setpoint_type_masks() -> None:
 async def pair():
     port = free_udp_port()
     fake = FakeVehicle(sysid=1, gcs_addr=("127.0.0.1", port))
-    link = MavlinkLink(f"udpin://127.0.0.1:{port}", command_timeout_s=0.2)
+    # 1 s per try: an acknowledgement late by a loaded machine's stall must not be a lost one
+    # (the retry counts below are exact)
+    link = MavlinkLink(f"udpin://127.0.0.1:{port}", command_timeout_s=1.0)
     await fake.start()
     try:
         yield link, fake
@@ -373,7 +375,7 @@ async def test_command_timeout_names_vehicle_and_numbers(pair) -> None:
         await link.set_flight_mode("POSCTL")
     msg = str(info.value)
     assert "vehicle 1 (udpin://127.0.0.1:" in msg
-    assert "no COMMAND_ACK for DO_SET_MODE after 3 tries of 0.20 s" in msg
+    assert "no COMMAND_ACK for DO_SET_MODE after 3 tries of 1.00 s" in msg
     assert len(fake.commands(176)) == 3
 
 

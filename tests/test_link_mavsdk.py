@@ -66,12 +66,12 @@ async def test_watchdog_stops_offboard_when_loop_stalls(hub_fake) -> None:
 
 async def test_no_trip_while_the_loop_runs_and_clean_stop(hub_fake) -> None:
     hub, fake, url = hub_fake
-    link = hub.link(url, sysid=3, watchdog_s=0.5)
+    link = hub.link(url, sysid=3, watchdog_s=1.5)  # > a loaded machine's stall of the test
     await link.connect(10.0)
     await link.wait_ready(10.0)
     link.send_velocity_ned(0.0, 0.0, 0.0)
     await link.start_offboard()
-    for _ in range(20):  # a 20 Hz control loop for 1 s: the period is what is tested here
+    for _ in range(40):  # a 20 Hz control loop for 2 s, longer than the watchdog
         link.send_velocity_ned(0.5, 0.0, 0.0)
         await asyncio.sleep(0.05)
     assert link.watchdog_trips == 0 and link.offboard_active

@@ -294,11 +294,14 @@ def test_garbage_datagrams_counted_and_dropped(runs: dict[str, Run]) -> None:
     c = run.vehicle.counters
     assert c.rx_malformed == 3  # the three garbage datagrams, nothing else
     assert c.rx_datagrams == len(run.capture.gcs) + 3
-    # the streams continued around t = 11.05 s (ATTITUDE count within ±1 s: 100 Hz ±25 %)
+    # the streams continued around t = 11.05 s: ATTITUDE on both sides within 1 s (its 100 Hz
+    # rate is test_same_message_types_and_rates'; here a loose count, since a loaded machine's
+    # scheduler drops what falls more than 0.25 s behind, and never more than 100 Hz + 25 %)
     shift = run.anchors["first heartbeat"] - run.capture.event_time("first heartbeat")
     t_garbage = run.capture.garbage[0][0] + shift
     near = [t for t, _ in run.mock.of("ATTITUDE") if abs(t - t_garbage) < 1.0]
-    assert 150 <= len(near) <= 250
+    assert any(t < t_garbage for t in near) and any(t > t_garbage for t in near)
+    assert 50 <= len(near) <= 250
 
 
 def _interp(ts: list[float], xs: list[float], t: float) -> float:
