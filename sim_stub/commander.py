@@ -228,7 +228,7 @@ class CommanderMixin:
         name = _param_name(m.param_id)  # type: ignore[attr-defined]
         p = self.params.get(name)
         if p is None:
-            self._text(px4.SEV_INFO, f"[pm] unknown param: {name}")
+            self._text(px4.SEV_INFO, f"[pm] unknown param: {name}", now)
             return
         value = px4.param_from_wire(m.param_value, p.type)  # type: ignore[attr-defined]
         if not math.isfinite(value):
@@ -264,14 +264,14 @@ class CommanderMixin:
             return self._arm(now, forced)
         if action == 0:
             return self._disarm(now, "external command", forced)
-        self._text(px4.SEV_CRITICAL, f"Unsupported ARM_DISARM param: {p[0]:.3f}")
+        self._text(px4.SEV_CRITICAL, f"Unsupported ARM_DISARM param: {p[0]:.3f}", now)
         return MAV_RESULT_UNSUPPORTED
 
     def _arm(self, now: float, forced: bool) -> int:
         if self.armed:
             return MAV_RESULT_ACCEPTED
         if not forced and not self._prearm_ok():
-            self._text(px4.SEV_CRITICAL, "Arming denied: Resolve system health failures first")
+            self._text(px4.SEV_CRITICAL, "Arming denied: Resolve system health failures first", now)
             self._event(px4.EVENTS["arming_denied"])
             return MAV_RESULT_TEMPORARILY_REJECTED
         self.armed = True
@@ -282,7 +282,7 @@ class CommanderMixin:
         self.phase_t = now
         self.failsafe = None
         self.hold = list(self._pos())
-        self._text(px4.SEV_INFO, "Armed by external command")
+        self._text(px4.SEV_INFO, "Armed by external command", now)
         self._event(px4.EVENTS["armed"])
         self._set_home(now)  # capture: home is re-set at arming
         self._log_mode(now, self.mode_name)
@@ -292,7 +292,7 @@ class CommanderMixin:
         if not self.armed:
             return MAV_RESULT_ACCEPTED  # capture: DISARM while disarmed is ACCEPTED, no text
         if not forced and self.landed_state != LANDED_ON_GROUND and self.phase == "flying":
-            self._text(px4.SEV_CRITICAL, "Disarming denied: not landed")
+            self._text(px4.SEV_CRITICAL, "Disarming denied: not landed", now)
             return MAV_RESULT_TEMPORARILY_REJECTED
         self.armed = False
         self._text(px4.SEV_INFO, f"Disarmed by {reason}", now)
@@ -320,7 +320,7 @@ class CommanderMixin:
         mode = px4.mode_from_set_mode(main, sub)
         if mode is None:
             if main == 4:
-                self._text(px4.SEV_CRITICAL, "Unsupported auto mode")
+                self._text(px4.SEV_CRITICAL, "Unsupported auto mode", now)
                 return MAV_RESULT_TEMPORARILY_REJECTED
             return MAV_RESULT_ACCEPTED  # PX4: an unknown main mode changes nothing
         return self._change_mode(mode, now, scomp)
@@ -330,7 +330,7 @@ class CommanderMixin:
         if self.armed and not self._can_run(mode):
             if scomp == 190:
                 self._text(
-                    px4.SEV_CRITICAL, f"Switching to {mode.label} is currently not available"
+                    px4.SEV_CRITICAL, f"Switching to {mode.label} is currently not available", now
                 )
             return MAV_RESULT_TEMPORARILY_REJECTED
         self._enter_mode(mode, now)
@@ -364,13 +364,13 @@ class CommanderMixin:
     def _c_land(self, p: list[float], ssys: int, scomp: int, now: float, is_int: bool) -> int:
         res = self._change_mode(MODE_BY_NAME["AUTO.LAND"], now, scomp)
         if res == MAV_RESULT_ACCEPTED:
-            self._text(px4.SEV_INFO, "Landing at current position")
+            self._text(px4.SEV_INFO, "Landing at current position", now)
         return res
 
     def _c_rtl(self, p: list[float], ssys: int, scomp: int, now: float, is_int: bool) -> int:
         res = self._change_mode(MODE_BY_NAME["AUTO.RTL"], now, scomp)
         if res == MAV_RESULT_ACCEPTED:
-            self._text(px4.SEV_INFO, "Returning to launch")
+            self._text(px4.SEV_INFO, "Returning to launch", now)
         return res
 
     def _c_reposition(self, p: list[float], ssys: int, scomp: int, now: float, is_int: bool) -> int:
@@ -529,7 +529,7 @@ class CommanderMixin:
                 self._events(px4.HEALTH_BURST_NOT_READY)
             elif key == "logger":
                 stamp = time.strftime("%Y-%m-%d/%H_%M_%S", time.gmtime(self.wall_t0 + 1.3))
-                self._text(px4.SEV_INFO, f"[logger] ./log/{stamp}.ulg")
+                self._text(px4.SEV_INFO, f"[logger] ./log/{stamp}.ulg", now)
             elif key == "ready":
                 self.ready = True
                 self._events(

@@ -239,11 +239,11 @@ class FenceMixin:
                 self._mt_ack(_ERROR, ssys, scomp)
                 return
             if self._mt_seq != 0:
-                self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: Busy")
+                self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: Busy", now)
                 self._mt_ack(_ERROR, ssys, scomp)
                 return
         else:
-            self._text(px4.SEV_CRITICAL, "WPM: IGN MISSION_COUNT: Busy")
+            self._text(px4.SEV_CRITICAL, "WPM: IGN MISSION_COUNT: Busy", now)
             self._mt_ack(_ERROR, ssys, scomp)
             return
         self._mt_request(now)
@@ -253,7 +253,7 @@ class FenceMixin:
             self._rx_ignored += 1
             return
         if (ssys, scomp) != self._mt_partner:
-            self._text(px4.SEV_CRITICAL, "REJ. MIS ITEM: partner id mismatch")
+            self._text(px4.SEV_CRITICAL, "REJ. MIS ITEM: partner id mismatch", now)
             return
         seq = m.seq  # type: ignore[attr-defined]
         if m.mission_type != MAV_MISSION_TYPE_FENCE:  # type: ignore[attr-defined]
@@ -263,11 +263,11 @@ class FenceMixin:
             if self._mt_seq == seq + 1:  # the GCS missed our final ACK
                 self._mt_ack(_ACCEPTED, ssys, scomp)
             else:
-                self._text(px4.SEV_CRITICAL, "IGN MISSION_ITEM: No transfer")
+                self._text(px4.SEV_CRITICAL, "IGN MISSION_ITEM: No transfer", now)
                 self._mt_ack(_ERROR, ssys, scomp)
             return
         if self._mt_state != "getlist":
-            self._text(px4.SEV_CRITICAL, "IGN MISSION_ITEM: Busy")
+            self._text(px4.SEV_CRITICAL, "IGN MISSION_ITEM: Busy", now)
             self._mt_ack(_ERROR, ssys, scomp)
             return
         self._mt_last_recv = now
@@ -280,7 +280,7 @@ class FenceMixin:
         elif cmd not in _FENCE_COMMANDS:
             result = MISSION_RESULT["UNSUPPORTED"]  # mock: only fence items in a fence upload
         if result != _ACCEPTED:
-            self._text(px4.SEV_CRITICAL, "IGN MISSION_ITEM: Invalid item")
+            self._text(px4.SEV_CRITICAL, "IGN MISSION_ITEM: Invalid item", now)
             self._mt_ack(result, ssys, scomp)
             self._mt_state = "idle"
             return
@@ -318,19 +318,19 @@ class FenceMixin:
                 count=self._mt_count, target_system=ssys, target_component=scomp,
                 mission_type=MAV_MISSION_TYPE_FENCE))
         else:
-            self._text(px4.SEV_INFO, "Mission download request ignored, already active")
+            self._text(px4.SEV_INFO, "Mission download request ignored, already active", now)
 
     def _h_mission_request_int(self, m: object, ssys: int, scomp: int, now: float) -> None:
         if not self._mt_for_me(m.target_system, m.target_component):  # type: ignore[attr-defined]
             self._rx_ignored += 1
             return
         if (ssys, scomp) != self._mt_partner:
-            self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: partner id mismatch")
+            self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: partner id mismatch", now)
             return
         if self._mt_state == "idle":
             return  # PX4: silently ignored
         if self._mt_state != "sendlist":
-            self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: Busy")
+            self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: Busy", now)
             return
         if m.mission_type != MAV_MISSION_TYPE_FENCE:  # type: ignore[attr-defined]
             return
@@ -341,7 +341,7 @@ class FenceMixin:
         elif seq != self._mt_seq - 1:
             self._mt_state = "idle"
             self._mt_ack(_ERROR, ssys, scomp)
-            self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: Req. WP was unexpected")
+            self._text(px4.SEV_CRITICAL, "WPM: REJ. CMD: Req. WP was unexpected", now)
             return
         it = self.fence_items[seq]
         self._mt_last_sent = now
@@ -355,7 +355,7 @@ class FenceMixin:
         if not self._mt_for_me(m.target_system, m.target_component):  # type: ignore[attr-defined]
             return
         if (ssys, scomp) != self._mt_partner:
-            self._text(px4.SEV_CRITICAL, "REJ. WP CMD: partner id mismatch")
+            self._text(px4.SEV_CRITICAL, "REJ. WP CMD: partner id mismatch", now)
             return
         if self._mt_state == "sendlist" and m.mission_type == MAV_MISSION_TYPE_FENCE:  # type: ignore[attr-defined]
             self._mt_state = "idle"
@@ -365,7 +365,7 @@ class FenceMixin:
             return
         mtype = m.mission_type  # type: ignore[attr-defined]
         if self._mt_state != "idle":
-            self._text(px4.SEV_CRITICAL, "WPM: IGN CLEAR CMD: Busy")
+            self._text(px4.SEV_CRITICAL, "WPM: IGN CLEAR CMD: Busy", now)
             return
         if mtype in (MAV_MISSION_TYPE_FENCE, MAV_MISSION_TYPE_ALL):
             self._fence_store([], now)
@@ -376,7 +376,7 @@ class FenceMixin:
         """Transfer retries/timeouts and the breach check (called from ``control``)."""
         if self._mt_state != "idle":
             if now - self._mt_last_recv > PROTOCOL_TIMEOUT_S:
-                self._text(px4.SEV_CRITICAL, "Operation timeout")
+                self._text(px4.SEV_CRITICAL, "Operation timeout", now)
                 self._mt_state = "idle"
             elif self._mt_state == "getlist" and now - self._mt_last_sent > RETRY_S:
                 self._mt_request(now)
@@ -419,7 +419,7 @@ class FenceMixin:
         if action == GF_NONE:
             return
         if action == GF_WARN or self.phase != "flying":
-            self._text(px4.SEV_CRITICAL, "Failsafe activated")
+            self._text(px4.SEV_CRITICAL, "Failsafe activated", now)
             return
         self.fence_failsafe = True
         self.failsafe = px4.MODE_BY_NAME["AUTO.LOITER"]
@@ -429,11 +429,11 @@ class FenceMixin:
         if action == GF_HOLD or delay <= 0.1:
             if action != GF_HOLD:
                 self._fence_delayed = (now, "AUTO.RTL" if action == GF_RTL else "AUTO.LAND")
-            self._text(px4.SEV_CRITICAL, "Failsafe activated")
+            self._text(px4.SEV_CRITICAL, "Failsafe activated", now)
             return
         self._fence_delayed = (now + delay, "AUTO.RTL" if action == GF_RTL else "AUTO.LAND")
         self._text(px4.SEV_CRITICAL,
-                   f"Failsafe activated, entering Hold for {int(delay + 0.5)} seconds")
+                   f"Failsafe activated, entering Hold for {int(delay + 0.5)} seconds", now)
 
 
 #: msgid → handler, merged into the commander's table

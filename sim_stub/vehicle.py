@@ -691,13 +691,13 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
     def _send_named(self, name: str, payload: bytes) -> None:
         self._send(SPECS[name], payload)
 
-    def _text(self, severity: int, text: str, now: float | None = None) -> None:
+    def _text(self, severity: int, text: str, now: float) -> None:
         """STATUSTEXT as PX4 formats it: text + TAB, 50-byte chunks sharing an id (capture).
 
-        `now` is the clock reading the decision was taken on; the log keeps it, so two texts
+        ``now`` is the clock reading the decision was taken on; the log keeps it, so two texts
         decided ``COM_DISARM_LAND`` apart are logged that far apart, not a clock read later."""
         text = text + "\t"
-        self.statustexts.append(((self._now() if now is None else now) - self.t0, severity, text))
+        self.statustexts.append((now - self.t0, severity, text))
         msg_id = self._text_id
         self._text_id = (self._text_id + 1) & 0xFFFF
         chunks = px4.statustext_chunks(text)
