@@ -23,6 +23,7 @@ from vtube_fleet.fleet.budget import (
     on_time_share,
 )
 from vtube_fleet.fleet.compensation import EstimateCompensator
+from vtube_fleet.fleet.pilot import MEASURE_TRIES, measure_budget_links
 
 
 @pytest.fixture()
@@ -342,3 +343,47 @@ async def test_one_stall_before_arming_is_judged_again_not_refused() -> None:
         task.cancel()
     assert len(events) == 1 and events[0].startswith("warning: the control loop cannot keep up")
     assert "over the last 4.0 s it ticked at 13." in events[0] and "once more" in events[0]
+
+
+class _SlowThenFastLink:
+    """A link whose round trip is measured once per measurement (the counter)."""
+
+    latency_s = None
+
+    def __init__(self) -> None:
+        self.measurements = 0
+
+    async def measure_round_trip_s(self) -> float:
+        self.measurements += 1
+        return 0.02
+
+
+class _Pilot:
+    """What :func:`measure_links` reads of a pilot: its link, its samples' age, σ."""
+
+    def __init__(self, slow_measurements: int) -> None:
+        self.link = _SlowThenFastLink()
+        self.slow = slow_measurements
+
+    def sample_age_s(self, now_mono: float) -> float:
+        return 0.4 if self.link.measurements <= self.slow else 0.02  # s
+
+    def position_accuracy_m(self) -> float:
+        return 0.29
+
+
+async def test_a_start_up_burst_of_latency_is_measured_again_not_refused(mission) -> None:
+    """A second of load when every process starts at once is not the link: measured again."""
+    pilot = _Pilot(slow_measurements=2)
+    measured, problems = await measure_budget_links([pilot], mission, duration_s=0.05)
+    assert problems == [] and pilot.link.measurements == 3
+    assert measured.position_age_s == pytest.approx(0.02)  # the budget is built on the last
+
+
+async def test_a_latency_that_stays_high_is_refused_naming_every_try(mission) -> None:
+    pilot = _Pilot(slow_measurements=99)
+    measured, problems = await measure_budget_links([pilot], mission, duration_s=0.05)
+    assert pilot.link.measurements == MEASURE_TRIES == 3
+    assert len(problems) == 2 and "max_latency_s = 250 ms" in problems[0]
+    assert "in 3 measurements of 0.05 s" in problems[1] and "(L = 460, 460, 460 ms)" in problems[1]
+    assert measured.position_age_s == pytest.approx(0.4)

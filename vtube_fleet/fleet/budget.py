@@ -57,7 +57,9 @@ __all__ = [
     "PX4_SITL_ACCURACY_M",
     "SafetyBudget",
     "achieved_rate_hz",
+    "budget_latency_s",
     "budget_problems",
+    "latency_over",
     "loop_problem",
     "mission_budget",
     "on_time_share",
@@ -199,6 +201,24 @@ class LinkMeasurement:
         return self.position_age_s + self.setpoint_delay_s
 
 
+def budget_latency_s(mission: Mission, measured: LinkMeasurement | None) -> float:
+    """The L a mission's budget is built on: its ``latency_s``, else the measured position age
+    + setpoint delay + ``latency_headroom_s`` (0 before a measurement)."""
+    cfg = mission.config
+    if cfg.latency_s is not None:
+        return cfg.latency_s
+    if measured is None:
+        return 0.0
+    return measured.latency_s + cfg.latency_headroom_s
+
+
+def latency_over(mission: Mission, measured: LinkMeasurement) -> bool:
+    """The MEASURED L is above ``max_latency_s`` (a fixed ``latency_s`` is not measured: never
+    worth measuring again)."""
+    cfg = mission.config
+    return cfg.latency_s is None and budget_latency_s(mission, measured) > cfg.max_latency_s
+
+
 def mission_budget(mission: Mission, measured: LinkMeasurement | None = None, *,
                    extra_latency_s: float = 0.0) -> SafetyBudget:
     """THE budget of a mission (supervisor and MQTT agents alike): L = the mission's
@@ -207,12 +227,7 @@ def mission_budget(mission: Mission, measured: LinkMeasurement | None = None, *,
     measurement); ``extra_latency_s`` adds what the caller's data path adds (the MQTT agents:
     the neighbour states' allowed age)."""
     cfg = mission.config
-    if cfg.latency_s is not None:
-        latency = cfg.latency_s
-    elif measured is not None:
-        latency = measured.latency_s + cfg.latency_headroom_s
-    else:
-        latency = 0.0
+    latency = budget_latency_s(mission, measured)
     sigma = cfg.position_accuracy_m
     if sigma is None:
         sigma = (measured.accuracy_m if measured is not None
@@ -229,8 +244,7 @@ def budget_problems(mission: Mission, measured: LinkMeasurement) -> list[str]:
     ``max_latency_s``; no accuracy reported and none configured."""
     cfg = mission.config
     out = []
-    latency = (cfg.latency_s if cfg.latency_s is not None
-               else measured.latency_s + cfg.latency_headroom_s)
+    latency = budget_latency_s(mission, measured)
     if latency > cfg.max_latency_s:
         how = ("latency_s from the mission file" if cfg.latency_s is not None else
                f"position age p95 {measured.position_age_s * 1000:.0f} ms + setpoint delay "

@@ -46,7 +46,12 @@ from vtube_fleet.bus.base import NeighbourBus
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
-from vtube_fleet.fleet.budget import LinkMeasurement
+from vtube_fleet.fleet.budget import (
+    LinkMeasurement,
+    budget_latency_s,
+    budget_problems,
+    latency_over,
+)
 from vtube_fleet.fleet.compensation import EstimateCompensator
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState
@@ -55,7 +60,9 @@ from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, 
 __all__ = [
     "EventSink",
     "PilotError",
+    "MEASURE_TRIES",
     "VehiclePilot",
+    "measure_budget_links",
     "measure_links",
     "sense_all",
     "wait_accuracy",
@@ -94,6 +101,40 @@ async def measure_links(pilots: Sequence[VehiclePilot], period_s: float,
     known = [x for x in acc if math.isfinite(x)]
     return LinkMeasurement(float(np.percentile(a, 95)) if a.size else 0.0, one_way,
                            max(known) if known else math.nan, tuple(acc))
+
+
+#: Measurements :func:`measure_budget_links` takes before a measured L above
+#: ``max_latency_s`` refuses the mission.
+MEASURE_TRIES = 3
+
+
+async def measure_budget_links(pilots: Sequence[VehiclePilot], mission: Mission,
+                               duration_s: float = MEASURE_S,
+                               ) -> tuple[LinkMeasurement, list[str]]:
+    """:func:`measure_links`, then :func:`~vtube_fleet.fleet.budget.budget_problems`; while
+    the measured L is above ``max_latency_s``, measured again, up to :data:`MEASURE_TRIES`
+    times. A fleet's processes all start their flight at once (planning, recording, every
+    agent at the same moment), and a second of that load is not the link's latency. The budget
+    is built on the measurement returned (the last), and the in-flight watch
+    (:class:`~vtube_fleet.fleet.budget.BudgetWatch`) judges L against it from then on. A
+    refusal names every try's L."""
+    period_s = mission.config.period_s
+    tries: list[LinkMeasurement] = []
+    while True:
+        measured = await measure_links(pilots, period_s, duration_s)
+        tries.append(measured)
+        if not latency_over(mission, measured) or len(tries) >= MEASURE_TRIES:
+            break
+        log.warning("link latency L = %.0f ms above max_latency_s = %.0f ms: measuring again "
+                    "(%d of %d)", 1000 * budget_latency_s(mission, measured),
+                    1000 * mission.config.max_latency_s, len(tries) + 1, MEASURE_TRIES)
+    problems = budget_problems(mission, measured)
+    if len(tries) > 1 and latency_over(mission, measured):
+        problems.append(
+            f"L stayed above max_latency_s in {len(tries)} measurements of {duration_s:g} s "
+            f"(L = " + ", ".join(f"{1000 * budget_latency_s(mission, m):.0f}" for m in tries)
+            + " ms)")
+    return measured, problems
 
 
 #: Seconds :func:`wait_accuracy` waits for ESTIMATOR_STATUS before it accepts GNSS h_acc.

@@ -88,7 +88,6 @@ from vtube_fleet.fleet.budget import (
     LinkMeasurement,
     SafetyBudget,
     achieved_rate_hz,
-    budget_problems,
     loop_problem,
     mission_budget,
     on_time_share,
@@ -96,7 +95,7 @@ from vtube_fleet.fleet.budget import (
 from vtube_fleet.fleet.pilot import (
     PilotError,
     VehiclePilot,
-    measure_links,
+    measure_budget_links,
     sense_all,
     wait_accuracy,
 )
@@ -830,7 +829,7 @@ class Supervisor:
                              + self._listed(problems))
 
     async def _measure_budget(self) -> None:
-        """Wait for the estimates to settle, measure the links (:func:`measure_links`: round
+        """Wait for the estimates to settle, measure the links (:func:`measure_budget_links`: round
         trip, position age, reported accuracy), fix δ (:func:`mission_budget`), validate the
         inflated scenario with the vehicles' positions, rebuild the plan."""
         self._set_stage("preflight")
@@ -841,10 +840,9 @@ class Supervisor:
                                     cfg.ready_timeout_s, on_wait=self.event)
             except PilotError as exc:
                 raise PreflightError(f"preflight failed, nothing armed: {exc}") from None
-        measured = await measure_links(self.pilots, cfg.period_s)
+        measured, problems = await measure_budget_links(self.pilots, self.mission)
         self.measured = measured
         self.measured_latency_s = measured.latency_s
-        problems = budget_problems(self.mission, measured)
         if problems:
             raise PreflightError("preflight failed, nothing armed: " + self._listed(problems))
         self.budget = self._make_budget(measured)

@@ -26,7 +26,7 @@ from vtube_fleet.core.metrics import finite_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, FlightPlan
-from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget, budget_problems
+from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget
 from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
@@ -37,7 +37,12 @@ from vtube_fleet.fleet.distributed.coordinator import (
     needed_cell_m,
 )
 from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
-from vtube_fleet.fleet.pilot import PilotError, VehiclePilot, measure_links, wait_accuracy
+from vtube_fleet.fleet.pilot import (
+    PilotError,
+    VehiclePilot,
+    measure_budget_links,
+    wait_accuracy,
+)
 from vtube_fleet.link.base import LinkError
 from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
 from vtube_fleet.recording.api import NullRecorder, Recorder
@@ -637,8 +642,7 @@ class AgentProcess:
                 await wait_accuracy([pilot], cfg.max_position_accuracy_m, cfg.ready_timeout_s)
             except PilotError as exc:
                 raise self.refuse(str(exc)) from None
-        measured = await measure_links([pilot], cfg.period_s)
-        problems = budget_problems(self.mission, measured)
+        measured, problems = await measure_budget_links([pilot], self.mission)
         if problems:
             raise self.refuse("; ".join(problems))
         own = bus_safety_budget(self.mission, measured, self.max_age_s)
