@@ -368,7 +368,7 @@ class _Pilot:
     def sample_age_s(self, now_mono: float) -> float:
         return 0.4 if self.link.measurements <= self.slow else 0.02  # s
 
-    def position_accuracy_m(self) -> float:
+    def position_accuracy_m(self, allow_gnss: bool = True) -> float:
         return 0.29
 
 
@@ -385,5 +385,43 @@ async def test_a_latency_that_stays_high_is_refused_naming_every_try(mission) ->
     measured, problems = await measure_budget_links([pilot], mission, duration_s=0.05)
     assert pilot.link.measurements == MEASURE_TRIES == 3
     assert len(problems) == 2 and "max_latency_s = 250 ms" in problems[0]
-    assert "in 3 measurements of 0.05 s" in problems[1] and "(L = 460, 460, 460 ms)" in problems[1]
+    assert "the same in 3 measurements of 0.05 s (L = 460, 460, 460 ms)" in problems[1]
     assert measured.position_age_s == pytest.approx(0.4)
+
+
+@pytest.mark.parametrize(("slow", "refused"), [(1, False), (99, True)])
+async def test_an_agent_measures_again_before_it_refuses_the_runs_delta(slow: int,
+                                                                          refused: bool) -> None:
+    """The MQTT agent: an L the run's δ does not cover (below max_latency_s) is measured
+    again too; the refusal names the run's δ and every try."""
+    from missions import MOCK_FLEET
+
+    from vtube_fleet.bus.codec import MissionConfigMsg
+    from vtube_fleet.fleet.distributed.agent import AgentProcess, AgentRefused
+    from vtube_fleet.fleet.distributed.coordinator import bus_safety_budget
+
+    agent = AgentProcess(MOCK_FLEET, 0)
+    run_delta = bus_safety_budget(agent.mission, None, agent.max_age_s).delta_m
+    agent.run_cfg = MissionConfigMsg("m", "r", agent.hash, 12, 0.0, max_age_s=agent.max_age_s,
+                                     delta_m=run_delta)
+
+    class AgentPilot(_Pilot):
+        def sample_age_s(self, now_mono: float) -> float:  # 150 ms: < max_latency_s, > run's
+            return 0.15 if self.link.measurements <= self.slow else 0.02
+
+        def position_accuracy_m(self, allow_gnss: bool = True) -> float:
+            return 0.35  # the coordinator's assumed σ: then L decides
+
+        agent = type("A", (), {})()  # measure_budget sets its plans
+
+    pilot = AgentPilot(slow)
+    if not refused:
+        await agent.measure_budget(pilot)  # type: ignore[arg-type]
+        assert pilot.link.measurements == 2 and agent.budget.delta_m == pytest.approx(run_delta)
+        return
+    with pytest.raises(AgentRefused) as err:
+        await agent.measure_budget(pilot)  # type: ignore[arg-type]
+    text = str(err.value)
+    assert pilot.link.measurements == MEASURE_TRIES
+    assert f"more than the run's δ = {run_delta:.3f} m" in text
+    assert "the same in 3 measurements of 1 s (L = 210, 210, 210 ms)" in text, text

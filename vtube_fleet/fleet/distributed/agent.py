@@ -26,7 +26,7 @@ from vtube_fleet.core.metrics import finite_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, FlightPlan
-from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget
+from vtube_fleet.fleet.budget import BudgetWatch, LinkMeasurement, SafetyBudget
 from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
@@ -642,20 +642,26 @@ class AgentProcess:
                 await wait_accuracy([pilot], cfg.max_position_accuracy_m, cfg.ready_timeout_s)
             except PilotError as exc:
                 raise self.refuse(str(exc)) from None
-        measured, problems = await measure_budget_links([pilot], self.mission)
-        if problems:
-            raise self.refuse("; ".join(problems))
-        own = bus_safety_budget(self.mission, measured, self.max_age_s)
         run_delta = self.run_cfg.delta_m if self.run_cfg is not None else 0.0
         params = self.mission.scenario.controller
-        if run_delta > 0 and not own.overridden:
-            if own.delta_m > run_delta + 1e-9:
-                raise self.refuse(
-                    f"this vehicle needs the safety budget {own.describe(params)}, more than "
+
+        def too_slow(measured: LinkMeasurement) -> str | None:
+            """The run's δ does not cover what this vehicle was measured to need."""
+            own = bus_safety_budget(self.mission, measured, self.max_age_s)
+            if run_delta <= 0 or own.overridden or own.delta_m <= run_delta + 1e-9:
+                return None
+            return (f"this vehicle needs the safety budget {own.describe(params)}, more than "
                     f"the run's δ = {run_delta:.3f} m (the coordinator assumed L = "
                     f"{1000 * ASSUMED_LINK_LATENCY_S:.0f} ms and σ = "
                     f"{cfg.position_accuracy_m or ASSUMED_ACCURACY_M:.2f} m; measured here: "
                     f"L = {1000 * measured.latency_s:.0f} ms, σ = {measured.accuracy_m:.2f} m)")
+
+        measured, problems = await measure_budget_links([pilot], self.mission,
+                                                        too_slow=too_slow)
+        if problems:
+            raise self.refuse("; ".join(problems))
+        own = bus_safety_budget(self.mission, measured, self.max_age_s)
+        if run_delta > 0 and not own.overridden:
             # its own measured terms, the run's δ (what SafetyBudget.compute's override does)
             self.budget = dataclasses.replace(own, delta_m=float(run_delta), overridden=True,
                                               override_source="the run's announced δ")
