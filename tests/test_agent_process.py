@@ -44,6 +44,22 @@ from vtube_fleet.state import Phase
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "mock_fleet.toml"
 
+
+def short_mock_fleet(tmp_path: Path) -> Path:
+    """``configs/mock_fleet.toml`` with the tube cut from 40 to 28 m and its pole moved from
+    x = 22 to 16 m (the same slots, pole and budget: the run's δ still partitions it, with
+    Assumption 3' met before the pole), written to ``tmp_path``: the 4-agent fault tests fly
+    12 m less than the 8-agent mission test."""
+    text = MISSION.read_text()
+    for old, new in (("p_h1 = [40.0, 10.0]", "p_h1 = [28.0, 10.0]"),
+                     ("p_r1 = [40.0, -10.0]", "p_r1 = [28.0, -10.0]"),
+                     ("center = [22.0, 0.0]", "center = [16.0, 0.0]")):
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "mock_fleet_short.toml"
+    path.write_text(text)
+    return path
+
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 
@@ -354,7 +370,7 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
 
 async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_path: Path) -> None:
     n = 4
-    async with fleet_run(tmp_path, n) as run:
+    async with fleet_run(tmp_path, n, short_mock_fleet(tmp_path)) as run:
         coord = await start_coordinator(run, n)
         await until(lambda: all_in_tube_past(run, n, 5.0), 120, "all vehicles in the tube")
         vehicles = run.fleet.vehicles  # type: ignore[attr-defined]
@@ -402,7 +418,9 @@ async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_
 #: A straight tube without obstacles (a lost vehicle in the mock-fleet mission's tube leaves
 #: no valid partition next to its pole: the others would hold and land, as the fleet does).
 #: Vehicle 0 leads; it is the one whose agent dies.
-STRAIGHT_4 = straight_mission(45.0, [[12.0, 0.0], [2.0, 4.5], [2.0, 0.0], [2.0, -4.5]],
+#: 34 m: the agents' partition around a lost vehicle of radius r_s' = 2.2 m exists for lost
+#: positions up to x = 23 m at least (checked on a 0.5 m grid; 32 m fails from x = 22 m).
+STRAIGHT_4 = straight_mission(34.0, [[12.0, 0.0], [2.0, 4.5], [2.0, 0.0], [2.0, -4.5]],
                               on_complete="land")
 
 

@@ -626,6 +626,7 @@ async def test_bus_attacks_during_a_flight_leave_it_unchanged(tmp_path):
         check_safety,
         finish,
         fleet_run,
+        short_mock_fleet,
         start_coordinator,
         summary,
         until,
@@ -633,7 +634,7 @@ async def test_bus_attacks_during_a_flight_leave_it_unchanged(tmp_path):
 
     n = 4
     sent: dict[str, int] = {}
-    async with fleet_run(tmp_path, n) as run:
+    async with fleet_run(tmp_path, n, short_mock_fleet(tmp_path)) as run:
         coord = await start_coordinator(run, n)
         await until(lambda: all_in_tube_past(run, n, 5.0), 120, "all vehicles in the tube")
         stop = asyncio.Event()
@@ -675,6 +676,7 @@ async def test_a_compromised_agent_account_cannot_steer_the_secured_fleet(tmp_pa
         check_safety,
         finish,
         fleet_run,
+        short_mock_fleet,
         start_coordinator,
         summary,
         until,
@@ -684,7 +686,7 @@ async def test_a_compromised_agent_account_cannot_steer_the_secured_fleet(tmp_pa
     from vtube_fleet.fleet.distributed.coordinator import default_mission_id
 
     n = 4
-    async with fleet_run(tmp_path, n, secured=True) as run:
+    async with fleet_run(tmp_path, n, short_mock_fleet(tmp_path), secured=True) as run:
         three = BusCredentials.load(run.setup.vehicle_credentials(3))
         t = run.observer.topics
         # every agent subscribed and idle, waiting for a run: a rogue run would reach them now

@@ -105,16 +105,21 @@ def mission_file(tmp_path: Path, text: str) -> Mission:
 
 
 
-def truth_and_keep(log: TruthLog, holder: list[Supervisor]):
+def truth_and_keep(log: TruthLog, holder: list[Supervisor], modes: set[str] | None = None):
+    """A tick hook: keep the supervisor, log the truth; ``modes``: collect the flight modes
+    the links report (the vehicles' own HEARTBEAT, through the backend's telemetry)."""
     def hook(tick: int, sup: Supervisor) -> None:
         if not holder:
             holder.append(sup)
         log(tick, sup)
+        if modes is not None:
+            modes.update(p.link.state.flight_mode for p in sup.pilots)
     return hook
 
 
 async def fly_logged(mission: Mission, seed: int, *, backend: str = "mavlink",
-                     estimator: str = "px4-sih", tmp_path: Path, **kw):
+                     estimator: str = "px4-sih", tmp_path: Path,
+                     modes: set[str] | None = None, **kw):
     """Fly ``mission`` on a mock fleet of its own; (result, supervisor, truth log)."""
     n = mission.count
     holder: list[Supervisor] = []
@@ -122,15 +127,19 @@ async def fly_logged(mission: Mission, seed: int, *, backend: str = "mavlink",
         log = TruthLog(fleet, mission)
         result = await fly(mission, backend=backend, endpoints=fleet.endpoints,
                            sysids=[i + 1 for i in range(n)], out_dir=tmp_path, keep_trace=True,
-                           tick_hook=truth_and_keep(log, holder), **kw)
+                           tick_hook=truth_and_keep(log, holder, modes), **kw)
     return result, holder[0], log
 
 
 # ----------------------------------------------------------------------------------------------
 async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
+    """The README's main job, and its recording gives back the fleet's own summary."""
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml")
     assert mission.count == 12
-    result, sup, log = await fly_logged(mission, 1, tmp_path=tmp_path, truth=True)
+    path = tmp_path / "recording.rrd"
+    with open_recorder(path, kind="fleet") as rec:
+        result, sup, log = await fly_logged(mission, 1, tmp_path=tmp_path, truth=True,
+                                            recorder=rec)
     assert result.exit_code == 0, result.reason
     assert result.outcome == "completed"
     assert result.summary["exited"] == 12
@@ -143,26 +152,34 @@ async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) ->
     assert s["truth"] and s["truth_violations"] == 0 and s["violations"] == 0
     assert s["truth_min_pair_distance_m"] > 2 * mission.scenario.robots.r_s
     assert s["estimate_compensation"]["max_correction_m_s"] > 0.1  # px4-sih needs it
-    assert (tmp_path / "summary.json").is_file()
     report("mavlink x12", result, worst, truth)
+    _recording_reviews(path, tmp_path, 12)
 
 
-async def test_mavsdk_4_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
-    text = (ROOT / "configs" / "mock_fleet.toml").read_text().replace(
-        'on_complete = "land"', 'on_complete = "hold"')
-    mission = mission_file(tmp_path, text).with_vehicles(4)
-    result, sup, log = await fly_logged(mission, 2, backend="mavsdk", tmp_path=tmp_path,
-                                        truth=True)
-    assert result.exit_code == 0, result.reason
-    assert result.summary["exited"] == 4
-    assert [v["phase"] for v in result.summary["vehicle_states"]] == ["holding"] * 4
-    # the vehicles themselves report Hold (telemetry), not just our phase
-    assert all(p.link.state.flight_mode == "HOLD" for p in sup.pilots)
-    worst = check_safety(mission, sup.trace)
-    truth = assert_true_clearance(log)
-    assert result.summary["truth_violations"] == 0  # truth through MAVSDK's mavlink_direct
-    assert result.summary["measured"]["accuracy_m"] == pytest.approx(0.29, abs=0.01)
-    report("mavsdk x4", result, worst, truth)
+def _recording_reviews(path: Path, out: Path, robots: int) -> None:
+    """The run's recording: every control tick with every vehicle's phase, the exits as the
+    fleet saw them, and ``review`` recomputes the summary the run wrote."""
+    from test_review import _assert_same_summary, _png_ok
+
+    from vtube_fleet.recording.layout import E_VEHICLES
+    from vtube_fleet.recording.reader import load_recording
+
+    run = json.loads((out / "summary.json").read_text())
+    d = load_recording(path)
+    assert d.kind == "fleet" and d.summary == run
+    assert d.meta["rate_hz"] == 20.0 and d.meta["robots"] == robots
+    assert len(d.tick) == run["ticks"] and d.entity_rows[E_VEHICLES] == run["ticks"]
+    assert d.phases is not None and set(d.phases[-1]) == {"landed"}
+    for v in run["vehicle_states"]:
+        assert d.exits[v["id"]] == pytest.approx(v["exit_s"], abs=1e-9)
+    tick_s = d.metric_series["tick_duration_s"][2]  # each tick logs the previous tick's time
+    assert len(tick_s) >= run["ticks"] - 1
+    assert 0 < np.nanmax(tick_s) <= run["tick_duration_max_s"]
+    res = review(path, out_dir=out)
+    _assert_same_summary(res.summary, run)
+    assert "steps" in res.recomputed_keys and "min_pair_distance_m" in res.recomputed_keys
+    for p in res.plots:
+        _png_ok(p)
 
 
 @pytest.mark.parametrize(("backend", "seed"), [("mavlink", 7), ("mavsdk", 3)],
@@ -170,18 +187,24 @@ async def test_mavsdk_4_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> N
 async def test_the_px4_sitl_mission_flies_on_the_mock(tmp_path: Path, backend: str,
                                                       seed: int) -> None:
     """The shipped real-SITL mission, on mock vehicles with PX4 SITL's estimate errors, on both
-    backends, to touch-down (with MAVSDK, the offboard watchdog must not turn LAND into Hold)."""
+    backends, to touch-down (with MAVSDK, the offboard watchdog must not turn LAND into Hold).
+    Both backends report the vehicles' own modes (OFFBOARD in the tube, then LAND), the
+    accuracy they report (σ = 0.29 m, px4-sih) and the ground truth (with MAVSDK through its
+    mavlink_direct plugin)."""
     mission = load_mission(ROOT / "configs" / "px4_sitl_3.toml")
+    modes: set[str] = set()
     result, sup, log = await fly_logged(mission, seed, backend=backend, tmp_path=tmp_path,
-                                        truth=True)
+                                        truth=True, modes=modes)
     assert result.exit_code == 0, result.reason
     assert result.outcome == "completed"
     assert [v["phase"] for v in result.summary["vehicle_states"]] == ["landed"] * 3
     if backend == "mavsdk":
         assert all(p.link.watchdog_trips == 0 for p in sup.pilots)
+    assert {"OFFBOARD", "LAND"} <= modes, modes
+    assert result.summary["measured"]["accuracy_m"] == pytest.approx(0.29, abs=0.01)
     worst = check_safety(mission, sup.trace)
     truth = assert_true_clearance(log)
-    assert result.summary["truth_violations"] == 0
+    assert result.summary["truth"] and result.summary["truth_violations"] == 0
     report(f"px4_sitl_3 on the mock ({backend})", result, worst, truth)
 
 

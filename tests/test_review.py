@@ -1,8 +1,9 @@
 """``vtube-fleet review``: a run's recording gives back the run's own summary and figures.
 
-End to end with the real simulator and the real mock fleet: the run records, the recording is
-read back, the summary is recomputed with the same metrics code, and compared key by key with
-what the run itself reported.
+End to end with the real simulator (here) and the real mock fleet (the 12-vehicle mission's
+flight in tests/test_fleet_e2e.py reviews its recording with the helpers below): the run
+records, the recording is read back, the summary is recomputed with the same metrics code, and
+compared key by key with what the run itself reported.
 """
 
 from __future__ import annotations
@@ -164,50 +165,3 @@ def test_review_of_a_bad_file_is_a_one_line_error(tmp_path: Path,
     assert main(["review", str(junk), "--json"]) == 2
     cap = capsys.readouterr()
     assert cap.out == "" and cap.err.startswith("error: ") and cap.err.count("\n") == 1
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(240)
-def test_mock_fleet_run_recording_reviews(tmp_path: Path) -> None:
-    """A short flight of 3 built-in mock vehicles over real UDP (configs/mock_fleet.toml, lower
-    altitude, the tube cut to 30 m, land right after the line): the recording gives back the
-    fleet's own summary."""
-    import asyncio
-
-    from fleet_ports import free_ports
-
-    from vtube_fleet.config.mission import load_mission
-    from vtube_fleet.fleet.launch import fly
-
-    text = (ROOT / "configs" / "mock_fleet.toml").read_text()
-    for old, new in (("altitude_m = 3.0", "altitude_m = 1.5"),
-                     ("p_h1 = [40.0, 10.0]", "p_h1 = [30.0, 10.0]"),
-                     ("p_r1 = [40.0, -10.0]", "p_r1 = [30.0, -10.0]"),
-                     ('after_exit = "continue"', 'after_exit = "land"\nexit_clear_m = 0.5')):
-        assert old in text
-        text = text.replace(old, new)
-    (tmp_path / "mission.toml").write_text(text)
-    mission = load_mission(tmp_path / "mission.toml").with_vehicles(3)
-    path = tmp_path / "recording.rrd"
-    with open_recorder(path, kind="fleet") as rec:
-        result = asyncio.run(fly(mission, out_dir=tmp_path, recorder=rec, mock_kwargs={
-            "boot_time_scale": 0.3, "port_scheme": free_ports(3)}))
-    assert result.outcome == "completed", result.reason
-    run = json.loads((tmp_path / "summary.json").read_text())
-    assert run["exited"] == 3
-    d = load_recording(path)
-    assert d.kind == "fleet" and d.summary == run
-    assert d.meta["rate_hz"] == 20.0 and d.meta["robots"] == 3
-    # every control tick recorded, with every vehicle's phase; exits as the fleet saw them
-    assert len(d.tick) == run["ticks"] and d.entity_rows[E_VEHICLES] == run["ticks"]
-    assert d.phases is not None and set(d.phases[-1]) == {"landed"}
-    for v in run["vehicle_states"]:
-        assert d.exits[v["id"]] == pytest.approx(v["exit_s"], abs=1e-9)
-    tick_s = d.metric_series["tick_duration_s"][2]  # each tick logs the previous tick's time
-    assert len(tick_s) >= run["ticks"] - 1
-    assert 0 < np.nanmax(tick_s) <= run["tick_duration_max_s"]
-    res = review(path, out_dir=tmp_path)
-    _assert_same_summary(res.summary, run)
-    assert "steps" in res.recomputed_keys and "min_pair_distance_m" in res.recomputed_keys
-    for p in res.plots:
-        _png_ok(p)
