@@ -202,6 +202,11 @@ async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION, *,
 
 
 async def start_coordinator(run: Run, n: int) -> asyncio.subprocess.Process:
+    """``mission start --wait`` once every agent is up and idle, waiting for a run (as an
+    operator starts a mission: the agents' own start-up, Python and all, is not measured as
+    their links' latency)."""
+    await until(lambda: all("waiting for `vtube-fleet mission start" in run.log_text(i)
+                            for i in range(len(run.agents))), 120, "every agent waiting for a run")
     return await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
@@ -351,6 +356,8 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
         assert lim.v_min - 1e-9 <= a["min_commanded_speed_m_s"] <= a["max_commanded_speed_m_s"]
         assert a["max_commanded_speed_m_s"] <= lim.v_max + 1e-9
         assert a["states_received"] > 0 and a["violations"] == 0
+        # its loop's health: gaps of about the period T = 50 ms (the max is printed below)
+        assert 0.0 < a["tick_gap_p99_s"] <= a["tick_gap_max_s"]
     res = review(tmp_path / "agent-3" / "recording.rrd", plots=False)
     assert res.differences == [], res.differences
     assert res.data.summary["vehicle"] == 3 and res.data.meta["vehicle"] == 3
@@ -364,7 +371,8 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
         f"clearance {worst['obstacle']:.3f} m, legs {worst['leg']:.3f} m, setpoints "
         f"{worst['sp_min']:.3f}..{worst['sp_max']:.3f} m/s; coordinator: state age p50/p99 "
         f"{1000 * s['state_age_p50_s']:.1f}/{1000 * s['state_age_p99_s']:.1f} ms, flight "
-        f"{s['flight_time_s']:.1f} s"
+        f"{s['flight_time_s']:.1f} s; agents' longest tick gap "
+        f"{1000 * max(agent_summary(run, i)['tick_gap_max_s'] for i in range(n)):.0f} ms"
     )
 
 
@@ -391,7 +399,11 @@ async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_
         await run.broker.wait_ready_async()
         code, err = await finish(coord)
         codes = [await p.wait() for p in run.agents]
-    assert code == 0, err
+    gaps = {}
+    for i in range(n):
+        with contextlib.suppress(FileNotFoundError):
+            gaps[i] = agent_summary(run, i).get("tick_gap_max_s")
+    assert code == 0, f"{err}; the agents' longest tick gaps (s): {gaps}"
     assert codes == [0] * n, [run.log_text(i)[-1500:] for i, c in enumerate(codes) if c]
     s = summary(run)
     assert s["outcome"] == "completed" and s["exited"] == n and s["violations"] == 0

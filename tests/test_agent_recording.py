@@ -18,7 +18,8 @@ from vtube_fleet.state import Phase
 
 def _pilot():
     return SimpleNamespace(last_state=None, mqtt=SimpleNamespace(latest=dict), cmd_xy=None,
-                           cmd_in_tube=False, phase=Phase.IN_TUBE, reason="", bus_holds=0)
+                           cmd_in_tube=False, phase=Phase.IN_TUBE, reason="", bus_holds=0,
+                           tick_gaps_s=[])
 
 
 @pytest.fixture()
@@ -126,6 +127,8 @@ def test_the_interim_summary_is_rewritten_during_the_flight_and_the_final_is_com
     assert "without writing its own" in first["reason"]
     assert first["kind"] == "agent" and first["vehicle"] == 0 and first["run_id"] == "r1"
     assert first["states_received"] == 2 and first["wall_s"] == 0.0
+    assert first["tick_gap_max_s"] is None  # no second tick yet
+    pilot.tick_gaps_s.extend([0.05] * 98 + [0.06, 0.4])  # one stall of 400 ms
     for k in range(1, 10):  # not due yet: not rewritten
         hear(k)
         rec.sample(pilot, 100.0 + 0.05 * k)
@@ -139,6 +142,7 @@ def test_the_interim_summary_is_rewritten_during_the_flight_and_the_final_is_com
     final = json.loads(rec.finish(tmp_path, pilot, outcome="completed").read_text())
     assert final["complete"] is True and final["outcome"] == "completed"
     assert final["run_id"] == "r1" and final["states_received"] == 20
+    assert final["tick_gap_max_s"] == 0.4 and 0.05 < final["tick_gap_p99_s"] < 0.4
 
 
 def test_no_interim_summary_without_an_out_folder_and_a_bad_one_never_raises(

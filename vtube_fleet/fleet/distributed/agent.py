@@ -22,7 +22,7 @@ from vtube_fleet.bus.codec import MissionConfigMsg
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.validate import mission_state_limits
 from vtube_fleet.config.keys import POSITIVE
-from vtube_fleet.core.metrics import finite_or_none, verdict
+from vtube_fleet.core.metrics import finite_or_none, percentile_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, FlightPlan
@@ -136,6 +136,7 @@ class BusAwarePilot(VehiclePilot):
         self._healthy_since: float | None = None  # wall time the bus became healthy again
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
         self._last_tick_mono: float | None = None  # for the tick gaps the watch judges
+        self.tick_gaps_s: list[float] = []  # every gap between two control ticks (s)
         self._aborted = False  # _abort_for has run
 
     def stop_for(self, why: str) -> None:
@@ -206,6 +207,8 @@ class BusAwarePilot(VehiclePilot):
 
     def _tick(self, now_mono: float, now_wall: float) -> None:
         gap = now_mono - (self._last_tick_mono or now_mono)  # every tick, holds included
+        if self._last_tick_mono is not None:
+            self.tick_gaps_s.append(gap)
         self._last_tick_mono = now_mono
         if self.phase in (Phase.IN_TUBE, Phase.EXITED):
             problem = self.bus_problem(now_wall)
@@ -292,7 +295,9 @@ class AgentRecording:
     (``exited``) cover only the vehicles it heard; the agent's own figures are
     ``exit_time_s`` (seconds since the start command, like every time in the summary),
     ``min/max_commanded_speed_m_s`` (its tube controller's commands),
-    ``bus_holds`` and ``phase``.
+    ``bus_holds``, ``tick_gap_p99_s`` / ``tick_gap_max_s`` (the time between two of its control
+    ticks: the budget watch holds the vehicle after 2 s in a row of gaps above T + L) and
+    ``phase``.
 
     While flying, ``OUT/summary.json`` is rewritten atomically every
     :data:`~vtube_fleet.artifacts.SUMMARY_EVERY_S` with ``complete: false``
@@ -368,7 +373,10 @@ class AgentRecording:
             "exit_time_s": None if stamp is None else stamp - mon.t0_s,
         }
         if pilot is not None:
-            own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds)
+            own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds,
+                       # its own control loop's health: a stall beyond T + L makes it hold
+                       tick_gap_p99_s=finite_or_none(percentile_or_none(pilot.tick_gaps_s, 99)),
+                       tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)))
         own.update(
             min_commanded_speed_m_s=finite_or_none(self.cmd_speed[0]),
             max_commanded_speed_m_s=finite_or_none(self.cmd_speed[1]),
