@@ -59,8 +59,8 @@ from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, 
 
 __all__ = [
     "EventSink",
-    "PilotError",
     "MEASURE_TRIES",
+    "PilotError",
     "VehiclePilot",
     "measure_budget_links",
     "measure_links",
