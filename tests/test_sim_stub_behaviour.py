@@ -590,11 +590,15 @@ async def test_gcs_link_sends_ground_truth_on_request_beside_the_estimate() -> N
             await api.until(lambda: v.position_ned[2] < -3.0, what="airborne, 3 m up")
             st.kw = {"vx": 1.0}
             await api.until(lambda: math.hypot(*(a - b for a, b in zip(
-                v.position_ned[:2], v.estimated_position_ned[:2], strict=True))) > 0.05,
-                what="estimate 5 cm off the truth")
+                v.position_ned[:2], v.estimated_position_ned[:2], strict=True))) > 0.15,
+                what="estimate 15 cm off the truth")  # so the estimate would fail the 6 cm
             mark_o, mark_a = obs.mark(), api.mark()
             truth = await obs.wait_type("HIL_STATE_QUATERNION", since=mark_o)
-            x, y, z = v.position_ned  # the mock's truth, right now
+            t_recv = next(t for t, m in obs.msgs[mark_o:] if m is truth)
+            # the mock's truth when the sample arrived: read now, taken back to then at its
+            # true velocity (the test may read it a few ticks later on a loaded machine)
+            dt = asyncio.get_running_loop().time() - t_recv
+            x, y, z = (c - vc * dt for c, vc in zip(v.position_ned, v.velocity_ned, strict=True))
             lat, lon = truth.lat / 1e7, truth.lon / 1e7
             n, e = project(v.origin[0], v.origin[1], lat, lon)
             assert math.hypot(n - x, e - y) < 0.06  # 50 Hz: at most one sample behind
