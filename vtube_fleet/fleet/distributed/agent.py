@@ -137,6 +137,7 @@ class BusAwarePilot(VehiclePilot):
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
         self._last_tick_mono: float | None = None  # for the tick gaps the watch judges
         self.tick_gaps_s: list[float] = []  # every gap between two control ticks (s)
+        self.tube_tick_gap_max_s = math.nan  # the longest of them in the tube (the watch's)
         self._aborted = False  # _abort_for has run
 
     def stop_for(self, why: str) -> None:
@@ -229,6 +230,7 @@ class BusAwarePilot(VehiclePilot):
             self.begin_hold(why)
         if self.phase == Phase.IN_TUBE and self.watch is not None:
             self.watch.add_tick_gap(gap)
+            self.tube_tick_gap_max_s = float(np.fmax(self.tube_tick_gap_max_s, gap))
             self.watch.add_ages(now_mono, [self.sample_age_s(now_mono)])
             warning, hold = self.watch.check(now_mono, self.link.latency_s or 0.0,
                                              [self.position_accuracy_m()])
@@ -296,8 +298,8 @@ class AgentRecording:
     ``exit_time_s`` (seconds since the start command, like every time in the summary),
     ``min/max_commanded_speed_m_s`` (its tube controller's commands),
     ``bus_holds``, ``tick_gap_p99_s`` / ``tick_gap_max_s`` (the time between two of its control
-    ticks: the budget watch holds the vehicle after 2 s in a row of gaps above T + L) and
-    ``phase``.
+    ticks; ``tick_gap_max_in_tube_s`` over the ticks in the tube, where the budget watch holds
+    the vehicle after 2 s in a row of gaps above T + L) and ``phase``.
 
     While flying, ``OUT/summary.json`` is rewritten atomically every
     :data:`~vtube_fleet.artifacts.SUMMARY_EVERY_S` with ``complete: false``
@@ -376,7 +378,8 @@ class AgentRecording:
             own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds,
                        # its own control loop's health: a stall beyond T + L makes it hold
                        tick_gap_p99_s=finite_or_none(percentile_or_none(pilot.tick_gaps_s, 99)),
-                       tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)))
+                       tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)),
+                       tick_gap_max_in_tube_s=finite_or_none(pilot.tube_tick_gap_max_s))
         own.update(
             min_commanded_speed_m_s=finite_or_none(self.cmd_speed[0]),
             max_commanded_speed_m_s=finite_or_none(self.cmd_speed[1]),
