@@ -6,7 +6,6 @@ evaluation is not swallowed with the recording's problems (issue #10); the inter
 from __future__ import annotations
 
 import json
-import math
 from types import SimpleNamespace
 
 import pytest
@@ -20,7 +19,7 @@ from vtube_fleet.state import Phase
 def _pilot():
     return SimpleNamespace(last_state=None, mqtt=SimpleNamespace(latest=dict), cmd_xy=None,
                            cmd_in_tube=False, phase=Phase.IN_TUBE, reason="", bus_holds=0,
-                           tick_gaps_s=[], tube_tick_gap_max_s=math.nan)
+                           tick_gaps_s=[], watch=None)
 
 
 @pytest.fixture()
@@ -144,7 +143,7 @@ def test_the_interim_summary_is_rewritten_during_the_flight_and_the_final_is_com
     assert final["complete"] is True and final["outcome"] == "completed"
     assert final["run_id"] == "r1" and final["states_received"] == 20
     assert final["tick_gap_max_s"] == 0.4 and 0.05 < final["tick_gap_p99_s"] < 0.4
-    assert final["tick_gap_max_in_tube_s"] is None  # this fake pilot never ticked in the tube
+    assert final["tick_gap_max_in_tube_s"] is None  # this fake pilot has no budget watch
 
 
 def test_no_interim_summary_without_an_out_folder_and_a_bad_one_never_raises(

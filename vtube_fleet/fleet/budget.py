@@ -356,6 +356,7 @@ class BudgetWatch:
         self._checked_s = -math.inf
         self._over = 0
         self._worst_gap_s = 0.0  # the longest tick gap since the last check
+        self.longest_tick_gap_s = -math.inf  # … and ever (the summaries' loop health)
 
     def add_ages(self, t_s: float, ages: Sequence[float],
                  vehicle_ids: Sequence[int] | None = None,
@@ -392,6 +393,7 @@ class BudgetWatch:
         """The time between two control ticks (the period when on time)."""
         if math.isfinite(gap_s):
             self._worst_gap_s = max(self._worst_gap_s, gap_s)
+            self.longest_tick_gap_s = max(self.longest_tick_gap_s, gap_s)
 
     @property
     def max_tick_gap_s(self) -> float:

@@ -111,6 +111,7 @@ MEASURE_TRIES = 3
 async def measure_budget_links(
     pilots: Sequence[VehiclePilot], mission: Mission, duration_s: float = MEASURE_S, *,
     too_slow: Callable[[LinkMeasurement], str | None] | None = None,
+    on_wait: Callable[[str], None] | None = None,
 ) -> tuple[LinkMeasurement, list[str]]:
     """:func:`measure_links` and :func:`~vtube_fleet.fleet.budget.budget_problems`; while the
     measured L is too large (above ``max_latency_s``, or ``too_slow(measured)`` returns the
@@ -119,7 +120,8 @@ async def measure_budget_links(
     (planning, recordings, every agent at the same moment), and a second of that load is not
     the link's latency. The budget is built on the measurement returned (the last), and the
     in-flight watch (:class:`~vtube_fleet.fleet.budget.BudgetWatch`) judges L against it from
-    then on. A refusal names every try's L."""
+    then on. A refusal names every try's L. ``on_wait``: where the "measuring again" line goes
+    (the supervisor's events; default: the log, as a warning)."""
     period_s = mission.config.period_s
     tries: list[LinkMeasurement] = []
     while True:
@@ -129,10 +131,11 @@ async def measure_budget_links(
         reason = None if too_slow is None else too_slow(measured)
         if not (over or reason) or len(tries) >= MEASURE_TRIES:
             break
-        log.warning("link latency L = %.0f ms %s: measuring again (%d of %d)",
-                    1000 * budget_latency_s(mission, measured),
-                    f"> max_latency_s = {1000 * mission.config.max_latency_s:.0f} ms" if over
-                    else "too large for the run", len(tries) + 1, MEASURE_TRIES)
+        limit = (f"> max_latency_s = {1000 * mission.config.max_latency_s:.0f} ms" if over
+                 else "too large for the run")
+        (on_wait or log.warning)(
+            f"link latency L = {1000 * budget_latency_s(mission, measured):.0f} ms {limit}: "
+            f"measuring again ({len(tries) + 1} of {MEASURE_TRIES})")
     problems = budget_problems(mission, measured)
     if reason:
         problems.append(reason)

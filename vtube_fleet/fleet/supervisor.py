@@ -840,7 +840,8 @@ class Supervisor:
                                     cfg.ready_timeout_s, on_wait=self.event)
             except PilotError as exc:
                 raise PreflightError(f"preflight failed, nothing armed: {exc}") from None
-        measured, problems = await measure_budget_links(self.pilots, self.mission)
+        measured, problems = await measure_budget_links(
+            self.pilots, self.mission, on_wait=lambda text: self.event(text, level="warning"))
         self.measured = measured
         self.measured_latency_s = measured.latency_s
         if problems:

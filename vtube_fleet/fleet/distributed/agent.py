@@ -137,7 +137,6 @@ class BusAwarePilot(VehiclePilot):
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
         self._last_tick_mono: float | None = None  # for the tick gaps the watch judges
         self.tick_gaps_s: list[float] = []  # every gap between two control ticks (s)
-        self.tube_tick_gap_max_s = math.nan  # the longest of them in the tube (the watch's)
         self._aborted = False  # _abort_for has run
 
     def stop_for(self, why: str) -> None:
@@ -230,7 +229,6 @@ class BusAwarePilot(VehiclePilot):
             self.begin_hold(why)
         if self.phase == Phase.IN_TUBE and self.watch is not None:
             self.watch.add_tick_gap(gap)
-            self.tube_tick_gap_max_s = float(np.fmax(self.tube_tick_gap_max_s, gap))
             self.watch.add_ages(now_mono, [self.sample_age_s(now_mono)])
             warning, hold = self.watch.check(now_mono, self.link.latency_s or 0.0,
                                              [self.position_accuracy_m()])
@@ -379,7 +377,8 @@ class AgentRecording:
                        # its own control loop's health: a stall beyond T + L makes it hold
                        tick_gap_p99_s=finite_or_none(percentile_or_none(pilot.tick_gaps_s, 99)),
                        tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)),
-                       tick_gap_max_in_tube_s=finite_or_none(pilot.tube_tick_gap_max_s))
+                       tick_gap_max_in_tube_s=None if pilot.watch is None else finite_or_none(
+                           pilot.watch.longest_tick_gap_s))
         own.update(
             min_commanded_speed_m_s=finite_or_none(self.cmd_speed[0]),
             max_commanded_speed_m_s=finite_or_none(self.cmd_speed[1]),
