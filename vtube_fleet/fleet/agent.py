@@ -61,6 +61,7 @@ __all__ = [
     "NeighbourView",
     "Setpoint",
     "classify",
+    "classify_arrays",
     "exit_velocity",
     "fleet_setpoints",
     "lost_obstacles",
@@ -264,47 +265,57 @@ def classify(
     *lost* by silence before ``lost_after_s`` has passed since then (the backlog of a stalled
     process is not the neighbours' silence); it is still not used as a live position.
     """
-    buckets: dict[str, tuple[list[int], list[tuple[float, float]]]] = {
-        "live": ([], []), "static": ([], []), "lost": ([], [])}
-    live_vel: list[tuple[float, float]] = []
-    for st in states:
-        if st.vehicle_id == exclude:
-            continue
-        if not (math.isfinite(st.x_m) and math.isfinite(st.y_m)):
-            continue
-        age = now_s - st.stamp_s
-        silence = age if heard_since_s is None else min(age, now_s - heard_since_s)
-        if st.phase == Phase.LOST or st.phase in STOPPED_PHASES:
-            which = "lost"
-        elif st.phase not in AIRBORNE_PHASES:
-            continue
-        elif silence > lost_after_s:
-            which = "lost"
-        elif age > max_age_s:
-            which = "static"
-        else:
-            which = "live"
-        ids, pos = buckets[which]
-        ids.append(st.vehicle_id)
-        pos.append((st.x_m, st.y_m))
-        if which == "live":
-            live_vel.append((st.vx_m_s, st.vy_m_s))
+    st = [s for s in states if s.vehicle_id != exclude]
+    n = len(st)
+    return classify_arrays(
+        np.fromiter((s.vehicle_id for s in st), np.int64, n),
+        np.array([(s.x_m, s.y_m) for s in st], dtype=float).reshape(n, 2),
+        np.array([(s.vx_m_s, s.vy_m_s) for s in st], dtype=float).reshape(n, 2),
+        [s.phase for s in st], np.fromiter((s.stamp_s for s in st), float, n), now_s,
+        max_age_s=max_age_s, lost_after_s=lost_after_s, heard_since_s=heard_since_s)
 
-    def arr(which: str) -> tuple[np.ndarray, np.ndarray]:
-        ids, pos = buckets[which]
-        if not ids:
-            return _EMPTY_IDS, _EMPTY_POS
-        order = np.argsort(ids, kind="stable")
-        return (np.asarray(ids, dtype=np.int64)[order],
-                np.asarray(pos, dtype=float).reshape(-1, 2)[order])
 
-    li, lp = arr("live")
-    lv = _EMPTY_POS
-    if live_vel:
-        lv = np.nan_to_num(np.asarray(live_vel, dtype=float).reshape(-1, 2))[
-            np.argsort(buckets["live"][0], kind="stable")]
-    si, sp = arr("static")
-    oi, op = arr("lost")
+#: :func:`classify_arrays`' sorting of a phase: 0 lost (said LOST, or stopped), 1 airborne
+#: (live, static or lost by age), 2 on the ground (ignored).
+_PHASE_CLASS = {ph: 0 if ph == Phase.LOST or ph in STOPPED_PHASES
+                else 1 if ph in AIRBORNE_PHASES else 2 for ph in Phase}
+
+
+def classify_arrays(
+    ids: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    phases: Sequence[Phase],
+    stamps_s: np.ndarray,
+    now_s: float,
+    *,
+    max_age_s: float,
+    lost_after_s: float,
+    heard_since_s: float | None = None,
+) -> NeighbourView:
+    """:func:`classify` on a table of states given as arrays (``ids`` unique (n,), ``pos`` and
+    ``vel`` (n, 2) tube frame, ``phases`` n, ``stamps_s`` (n,) wall clock): the supervisor's
+    whole fleet in one vectorized pass, the same arithmetic as per state."""
+    ok = np.isfinite(pos).all(axis=1)
+    kind = np.fromiter((_PHASE_CLASS[ph] for ph in phases), np.int8, len(phases))
+    age = now_s - stamps_s
+    silence = age if heard_since_s is None else np.minimum(age, now_s - heard_since_s)
+    flying = ok & (kind == 1)
+    lost = (ok & (kind == 0)) | (flying & (silence > lost_after_s))
+    static = flying & ~lost & (age > max_age_s)
+    live = flying & ~lost & ~static
+
+    def arr(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        rows = np.flatnonzero(mask)
+        if not rows.size:
+            return _EMPTY_IDS, _EMPTY_POS, rows
+        rows = rows[np.argsort(ids[rows], kind="stable")]
+        return ids[rows].astype(np.int64, copy=False), pos[rows], rows
+
+    li, lp, lr = arr(live)
+    lv = np.nan_to_num(vel[lr]) if lr.size else _EMPTY_POS
+    si, sp, _ = arr(static)
+    oi, op, _ = arr(lost)
     return NeighbourView(li, lp, lv, si, sp, oi, op)
 
 

@@ -20,7 +20,8 @@ v̂ to v_c + d̂ and p̂ moves at ≈ v_c: the estimated position follows the si
 The residual is the change of d over the compensation delay (W/2 + link latency + control
 period); it is budgeted (``SafetyBudget.disturbance_m_s``) and measured in flight.
 
-Pure and per vehicle: positions and velocities in the tube frame (x, y), times in seconds.
+Pure: :class:`EstimateCompensator` per vehicle, :class:`ResidualTracker` vectorized over
+vehicles; positions and velocities in the tube frame (x, y), times in seconds.
 """
 
 from __future__ import annotations
@@ -28,7 +29,16 @@ from __future__ import annotations
 import math
 from collections import deque
 
-__all__ = ["EstimateCompensator", "DEFAULT_WINDOW_S", "DEFAULT_LIMIT_M_S"]
+import numpy as np
+
+__all__ = [
+    "DEFAULT_LIMIT_M_S",
+    "DEFAULT_WINDOW_S",
+    "RESIDUAL_HISTORY",
+    "RESIDUAL_WINDOW_S",
+    "EstimateCompensator",
+    "ResidualTracker",
+]
 
 #: Averaging window of the disturbance estimate (s): long enough to average the estimate's
 #: sample noise, short against the disturbance's ~2-5 s correlation time.
@@ -114,3 +124,85 @@ class EstimateCompensator:
     def correction(self) -> tuple[float, float]:
         """(d̂_x, d̂_y) in m/s, to be added to the commanded velocity."""
         return self.dx_m_s, self.dy_m_s
+
+
+#: d̂ entries per vehicle the residual looks back in (ticks: 12.8 s at 20 Hz).
+RESIDUAL_HISTORY = 256
+#: Averaging time (s) of the residual compared with the budgeted D in flight.
+RESIDUAL_WINDOW_S = 1.0
+#: Entries :meth:`ResidualTracker.track` looks at first (newest first); older only if needed.
+_NEAR = 16
+
+
+class ResidualTracker:
+    """The compensation's residual of ``m`` vehicles: how much d̂ changed over its own delay
+    Δ = W/2 + T + L (what PX4 cannot have been told yet), one value per tracked tick, and its
+    mean over :data:`RESIDUAL_WINDOW_S` against the budgeted D (the budget integrates D over
+    time, so single-tick spikes are harmless; a residual that stays above D is not).
+
+    Each vehicle keeps its newest :data:`RESIDUAL_HISTORY` (tick time, d̂) entries; Δ is
+    looked back from the newest entry. Vectorized over the vehicles tracked in one call."""
+
+    def __init__(self, m: int, period_s: float, budget_m_s: float,
+                 history: int = RESIDUAL_HISTORY) -> None:
+        self.period_s = float(period_s)
+        self.budget_m_s = float(budget_m_s)
+        self.history = int(history)
+        self._times = np.full((m, self.history), np.nan)
+        self._hist = np.zeros((m, self.history, 2))
+        self._count = np.zeros(m, dtype=np.int64)
+        self.mean_m_s = np.zeros(m)  #: each vehicle's residual averaged over RESIDUAL_WINDOW_S
+        self.warned = np.zeros(m, dtype=bool)  #: its mean has exceeded the budget once
+        self._rows: list[np.ndarray] = []  # per call: the vehicles with a residual …
+        self._values: list[np.ndarray] = []  # … and their residuals
+
+    def track(self, rows: np.ndarray, now_s: float, d_m_s: np.ndarray,
+              lag_s: np.ndarray) -> np.ndarray:
+        """Vehicles ``rows`` (distinct) at tick time ``now_s`` with d̂ ``d_m_s`` (k, 2) and
+        delays Δ ``lag_s`` (k,): store, then the residual |d̂ − d̂(newest entry ≤ now − Δ)|
+        where one exists. Returns the rows whose mean has just exceeded the budget (each once)."""
+        h = self.history
+        n = self._count[rows]
+        slot = n % h
+        self._times[rows, slot] = now_s
+        self._hist[rows, slot] = d_m_s
+        n = n + 1
+        self._count[rows] = n
+        thr = now_s - lag_s
+        avail = np.minimum(n, h)
+        near = min(_NEAR, h)
+        back = np.arange(near)
+        cols = (n[:, None] - 1 - back) % h
+        ok = (self._times[rows[:, None], cols] <= thr[:, None]) & (back < avail[:, None])
+        found = ok.any(axis=1)
+        pick = cols[np.arange(len(rows)), ok.argmax(axis=1)]
+        for k in np.flatnonzero(~found & (avail > near)).tolist():  # Δ beyond the near entries
+            back_all = np.arange(avail[k])
+            c_all = (n[k] - 1 - back_all) % h
+            hit = np.flatnonzero(self._times[rows[k], c_all] <= thr[k])
+            if hit.size:
+                found[k], pick[k] = True, c_all[hit[0]]
+        if not found.any():
+            return rows[:0]
+        r = rows[found]
+        old = self._hist[r, pick[found]]
+        d = d_m_s[found]
+        residual = np.hypot(d[:, 0] - old[:, 0], d[:, 1] - old[:, 1])
+        self._rows.append(r)
+        self._values.append(residual)
+        gain = min(1.0, self.period_s / RESIDUAL_WINDOW_S)
+        mean = self.mean_m_s[r]
+        mean += gain * (residual - mean)
+        self.mean_m_s[r] = mean
+        crossed = r[(mean > self.budget_m_s) & ~self.warned[r]]
+        self.warned[crossed] = True
+        return crossed
+
+    def residuals(self, row: int | None = None) -> np.ndarray:
+        """Every residual so far (m/s): of vehicle ``row``, or of all vehicles."""
+        if not self._values:
+            return np.zeros(0)
+        values = np.concatenate(self._values)
+        if row is None:
+            return values
+        return values[np.concatenate(self._rows) == row]

@@ -36,8 +36,8 @@ import asyncio
 import logging
 import math
 import time
-from bisect import bisect_right
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -52,16 +52,24 @@ from vtube_fleet.fleet.budget import (
     budget_problems,
     latency_over,
 )
-from vtube_fleet.fleet.compensation import EstimateCompensator
+from vtube_fleet.fleet.compensation import (
+    RESIDUAL_WINDOW_S,
+    EstimateCompensator,
+    ResidualTracker,
+)
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState
 from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, Phase
 
 __all__ = [
     "EventSink",
+    "FleetStates",
     "MEASURE_TRIES",
     "PilotError",
     "VehiclePilot",
+    "actuate_all",
+    "check_faults_all",
+    "fleet_states",
     "measure_budget_links",
     "measure_links",
     "sense_all",
@@ -201,8 +209,6 @@ async def wait_accuracy(pilots: Sequence[VehiclePilot], max_m: float, timeout_s:
 #: estimate-disturbance compensation, which cancels most of the take-off drift).
 TAKEOFF_XY_GAIN_1_S = 0.5
 TAKEOFF_XY_MAX_M_S = 0.5
-#: Averaging time (s) of the compensation residual compared with the budgeted D in flight.
-RESIDUAL_WINDOW_S = 1.0
 
 #: ``sink(text, vehicle_id, level)``: where a pilot reports events (phase changes, faults).
 EventSink = Callable[[str, int | None, str], None]
@@ -210,10 +216,6 @@ EventSink = Callable[[str, int | None, str], None]
 
 class PilotError(UserError):
     """A vehicle could not complete a step of its procedure (names the vehicle and why)."""
-
-
-#: d̂ history the compensation residual looks back in (ticks: 12.8 s at 20 Hz)
-_DIST_HISTORY = 256
 
 
 def _clamp(x: float, lo: float, hi: float) -> float:
@@ -289,12 +291,10 @@ class VehiclePilot:
         # the estimate-disturbance compensation (fleet/compensation.py): what is sent is the
         # command plus d̂ while flying offboard; ``sent_xy`` is the horizontal setpoint sent
         self.compensator = EstimateCompensator() if self.cfg.compensate_estimate else None
-        self.sent_xy: np.ndarray | None = None
-        self._dist_times: list[float] = []  # tick times of d̂ (ascending) …
-        self._dist_hist: list[tuple[float, float]] = []  # … and d̂ then
-        self.disturbance_residual_m_s: list[float] = []  #: |d̂(t) − d̂(t − Δ)| per tick
-        self._residual_warned = False  # the residual > D warning is given once per vehicle
-        self._residual_mean_m_s = 0.0
+        self.sent_xy: tuple[float, float] | None = None
+        self._residuals = ResidualTracker(1, self.cfg.period_s,
+                                          self.cfg.disturbance_residual_m_s)
+        self._residual_row = 0
 
     # -- naming / events ---------------------------------------------------------------------
     @property
@@ -532,37 +532,41 @@ class VehiclePilot:
         return (self.link.state.landed_state == "IN_AIR"
                 or (math.isfinite(self.up_m) and self.up_m > 0.5))
 
+    def use_residual_tracker(self, tracker: ResidualTracker, row: int) -> None:
+        """Track this vehicle's compensation residual as row ``row`` of ``tracker`` (the
+        supervisor's, shared by its fleet) instead of a tracker of its own."""
+        self._residuals, self._residual_row = tracker, row
+
+    @property
+    def disturbance_residual_m_s(self) -> np.ndarray:
+        """|d̂(t) − d̂(t − Δ)| per tick in the tube so far (:class:`ResidualTracker`)."""
+        return self._residuals.residuals(self._residual_row)
+
+    def residual_lag_s(self) -> float:
+        """The compensation's delay Δ = W/2 + T + L (what PX4 cannot have been told yet)."""
+        comp = self.compensator
+        window = comp.window_s if comp is not None else 0.0
+        return 0.5 * window + self.cfg.period_s + (self.link.latency_s or 0.0)
+
     def _track_residual(self, now_mono: float) -> None:
-        """The compensation's residual: how much d̂ changed over its own delay Δ = W/2 + T +
-        L (what PX4 cannot have been told yet), one value per tick in the tube."""
+        """This tick's compensation residual (:class:`ResidualTracker`), one value per tick in
+        the tube; warns once if its mean stays above the budgeted D."""
         comp = self.compensator
         if comp is None:
             return
-        dx, dy = comp.correction
-        times, hist = self._dist_times, self._dist_hist
-        times.append(now_mono)
-        hist.append((dx, dy))
-        if len(times) >= 2 * _DIST_HISTORY:  # keep the newest _DIST_HISTORY .. 2× entries
-            del times[:-_DIST_HISTORY], hist[:-_DIST_HISTORY]
-        lag = 0.5 * comp.window_s + self.cfg.period_s + (self.link.latency_s or 0.0)
-        # the newest entry at least Δ old, among the newest _DIST_HISTORY (times ascend)
-        k = bisect_right(times, now_mono - lag, max(0, len(times) - _DIST_HISTORY)) - 1
-        if k >= 0 and k >= len(times) - _DIST_HISTORY:
-            old = hist[k]
-            residual = math.hypot(dx - old[0], dy - old[1])
-            self.disturbance_residual_m_s.append(residual)
-            # the budget integrates D over time, so single-tick spikes are harmless; what it
-            # cannot cover is a residual that stays above D: its mean over RESIDUAL_WINDOW_S
-            gain = min(1.0, self.cfg.period_s / RESIDUAL_WINDOW_S)
-            self._residual_mean_m_s += gain * (residual - self._residual_mean_m_s)
-            budget = self.cfg.disturbance_residual_m_s
-            if self._residual_mean_m_s > budget and not self._residual_warned:
-                # WARN: a limit crossed — the safety budget's D no longer covers the estimate
-                self._residual_warned = True
-                self.event(f"estimate compensation residual {self._residual_mean_m_s:.2f} m/s "
-                           f"(mean over {RESIDUAL_WINDOW_S:g} s) > the budgeted D = "
-                           f"{budget:.2f} m/s: the flown radii may not cover the estimate error "
-                           f"(mission key disturbance_residual_m_s)", "warning")
+        row = np.array([self._residual_row])
+        if self._residuals.track(row, now_mono, np.array([comp.correction], dtype=float),
+                                 np.array([self.residual_lag_s()])).size:
+            self.warn_residual()
+
+    def warn_residual(self) -> None:
+        """WARN: a limit crossed — the safety budget's D no longer covers the estimate."""
+        mean = float(self._residuals.mean_m_s[self._residual_row])
+        budget = self.cfg.disturbance_residual_m_s
+        self.event(f"estimate compensation residual {mean:.2f} m/s "
+                   f"(mean over {RESIDUAL_WINDOW_S:g} s) > the budgeted D = "
+                   f"{budget:.2f} m/s: the flown radii may not cover the estimate error "
+                   f"(mission key disturbance_residual_m_s)", "warning")
 
     def send_tube_velocity(self, vx: float, vy: float, down: float,
                            compensate: bool = False) -> None:
@@ -572,9 +576,14 @@ class VehiclePilot:
         if compensate and comp is not None:
             dx, dy = comp.correction
             vx, vy = vx + dx, vy + dy
-        self.sent_xy = np.array([vx, vy])
         a, b, c, d = self._to_ned
-        self.link.send_velocity_ned(a * vx + b * vy, c * vx + d * vy, float(down))
+        self._send_ned(vx, vy, a * vx + b * vy, c * vx + d * vy, float(down))
+
+    def _send_ned(self, vx: float, vy: float, north_m_s: float, east_m_s: float,
+                  down_m_s: float) -> None:
+        """Send the setpoint: tube-frame (vx, vy) as (north, east) in the vehicle's LOCAL_NED."""
+        self.sent_xy = (vx, vy)
+        self.link.send_velocity_ned(north_m_s, east_m_s, down_m_s)
         self.setpoints_sent += 1
         if not self.sent_setpoint.is_set():
             self.sent_setpoint.set()
@@ -612,19 +621,35 @@ class VehiclePilot:
                 self.send_tube_velocity(vx, vy, self.vertical_down_m_s(climb=True),
                                         compensate=self.airborne())
             elif phase == Phase.IN_TUBE:
-                if cmd_xy is None:
-                    cmd_xy = np.zeros(2)
-                self.cmd_xy = np.asarray(cmd_xy, dtype=float)
-                self.cmd_in_tube = True
-                self.send_tube_velocity(float(cmd_xy[0]), float(cmd_xy[1]),
-                                        self.vertical_down_m_s(), compensate=True)
+                cmd = np.zeros(2) if cmd_xy is None else np.asarray(cmd_xy, dtype=float)
+                vx, vy = float(cmd[0]), float(cmd[1])
+                if self.compensator is not None:
+                    dx, dy = self.compensator.correction
+                    vx, vy = vx + dx, vy + dy
+                a, b, c, d = self._to_ned
+                self._send_in_tube(cmd, vx, vy, a * vx + b * vy, c * vx + d * vy,
+                                   self.vertical_down_m_s())
                 self._track_residual(now_mono)
             elif phase == Phase.EXITED:
                 self._actuate_exited(now_mono, view)
             else:
                 self.cmd_xy = None
         except LinkError as exc:
-            self.event(f"setpoint not sent: {exc}", "warning")
+            self.setpoint_failed(exc)
+
+    def setpoint_failed(self, exc: LinkError) -> None:
+        """A setpoint could not be sent (the link says why): a warning, the next tick tries
+        again."""
+        self.event(f"setpoint not sent: {exc}", "warning")
+
+    def _send_in_tube(self, cmd_xy: np.ndarray, vx: float, vy: float, north_m_s: float,
+                      east_m_s: float, down_m_s: float) -> None:
+        """The IN_TUBE send of :meth:`actuate` once its arithmetic is done (here, or for the
+        whole fleet in :func:`actuate_all`): ``cmd_xy`` the controller's command, (vx, vy) it
+        plus d̂, (north, east, down) what is sent."""
+        self.cmd_xy = cmd_xy
+        self.cmd_in_tube = True
+        self._send_ned(vx, vy, north_m_s, east_m_s, down_m_s)
 
     def _actuate_exited(self, now_mono: float, view: NeighbourView | None) -> None:
         cfg = self.cfg
@@ -945,3 +970,143 @@ def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
                                 np.atleast_1d(up).tolist(), strict=True):
         p._take(s, xi, yi, ui)
     return len(todo)
+
+
+_ZERO2 = (0.0, 0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class FleetStates:
+    """:meth:`VehiclePilot.state` of many pilots at once, as arrays: the pilots that have a
+    position sample, in their order (``ids`` (n,), ``pos``/``vel`` (n, 2) tube frame, ``phases``
+    n, ``stamps_s`` wall clock, ``sample_s`` monotonic arrival, ``ages_s`` =
+    :meth:`VehiclePilot.sample_age_s`)."""
+
+    ids: np.ndarray
+    pos: np.ndarray
+    vel: np.ndarray
+    phases: list[Phase]
+    stamps_s: np.ndarray
+    sample_s: np.ndarray
+    ages_s: np.ndarray
+
+
+def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: float
+                 ) -> FleetStates:
+    """What each pilot's :meth:`VehiclePilot.state` would say now (the same arithmetic),
+    gathered once for the whole fleet: a LOST vehicle at its frozen position with zero
+    velocity, the stamp the wall-clock time its position was measured."""
+    have = [p for p in pilots if p.sample_s is not None]
+    n = len(have)
+    lost = [p.lost_xy for p in have]
+    pos = np.array([p.xy if q is None else q for p, q in zip(have, lost, strict=True)],
+                   dtype=float).reshape(n, 2)
+    vel = np.array([p.vel_xy if q is None else _ZERO2 for p, q in zip(have, lost, strict=True)],
+                   dtype=float).reshape(n, 2)
+    sample = np.fromiter((p.sample_s for p in have), float, n)
+    latency = np.fromiter((p.link.latency_s or 0.0 for p in have), float, n)
+    ages = (now_mono - sample) + latency
+    return FleetStates(np.fromiter((p.vehicle_id for p in have), np.int64, n), pos, vel,
+                       [p.phase for p in have], now_wall - ages, sample, ages)
+
+
+def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequence[VehiclePilot],
+                cmds: np.ndarray, view: NeighbourView | None) -> None:
+    """:meth:`VehiclePilot.actuate` for the whole fleet, in the pilots' order: ``commanded``
+    (IN_TUBE) get the rows of ``cmds`` (K, 2), the others no command. The in-tube pilots'
+    arithmetic (command + d̂, the altitude hold, the rotation to NED) is done for all of them
+    at once with the same operations as :meth:`VehiclePilot.actuate` (the same bits); each
+    pilot then only sends (:meth:`VehiclePilot.fly_in_tube`). The pilots share one mission and
+    frame (the supervisor's)."""
+    fast: dict[int, int] = {}
+    rows: list[tuple[np.ndarray, float, float, float, float, float]] = []
+    slow: dict[int, np.ndarray] = {}
+    batch = [k for k, p in enumerate(commanded)
+             if p.phase == Phase.IN_TUBE and p._transition is None and not p.link.closed]
+    corr: np.ndarray | None = None
+    if batch:
+        first = commanded[batch[0]]
+        cfg = first.cfg
+        cmd = cmds[batch]
+        v = cmd
+        if cfg.compensate_estimate:
+            corr = np.array([commanded[k].compensator.correction  # type: ignore[union-attr]
+                             for k in batch], dtype=float).reshape(-1, 2)
+            v = cmd + corr
+        vx, vy = v[:, 0], v[:, 1]
+        a, b, c, d = first._to_ned
+        up = np.fromiter((commanded[k].up_m for k in batch), float, len(batch))
+        u = cfg.altitude_gain_1_s * (cfg.altitude_m - up)  # vertical_down_m_s, vectorized
+        lo = -cfg.max_vertical_speed_m_s
+        hi = cfg.max_vertical_speed_m_s
+        down = np.where(np.isfinite(up), -np.where(u < lo, lo, np.where(u > hi, hi, u)), 0.0)
+        rows = list(zip(cmd, vx.tolist(), vy.tolist(), (a * vx + b * vy).tolist(),
+                        (c * vx + d * vy).tolist(), down.tolist(), strict=True))
+        fast = {commanded[k].vehicle_id: j for j, k in enumerate(batch)}
+    if len(batch) < len(commanded):
+        taken = set(batch)
+        slow = {p.vehicle_id: cmds[k] for k, p in enumerate(commanded) if k not in taken}
+    sent: list[int] = []  # rows of ``batch`` sent, for the residual
+    for p in pilots:
+        j = fast.get(p.vehicle_id)
+        if j is None:
+            p.actuate(now_mono, slow.get(p.vehicle_id), view)
+            continue
+        p.cmd_in_tube = False
+        try:
+            p._send_in_tube(*rows[j])
+        except LinkError as exc:
+            p.setpoint_failed(exc)
+            continue
+        sent.append(j)
+    if corr is None or not sent:
+        return
+    tracked = [commanded[batch[j]] for j in sent]
+    tracker = tracked[0]._residuals
+    if any(p._residuals is not tracker for p in tracked):
+        for p in tracked:  # trackers of their own (not the supervisor's fleet)
+            p._track_residual(now_mono)
+        return
+    ids = np.fromiter((p._residual_row for p in tracked), np.int64, len(tracked))
+    lag = np.fromiter((p.residual_lag_s() for p in tracked), float, len(tracked))
+    crossed = tracker.track(ids, now_mono, corr[sent], lag)
+    if crossed.size:
+        by_row = {p._residual_row: p for p in tracked}
+        for r in crossed.tolist():
+            by_row[r].warn_residual()
+
+
+def check_faults_all(pilots: Sequence[VehiclePilot], now_mono: float,
+                     listening_since: float | None = None) -> None:
+    """:meth:`VehiclePilot.check_faults` for the whole fleet. One vectorized pass first finds
+    the pilots for which it can neither find a fault nor change anything (flying offboard and
+    confirmed so, armed, heard within ``lost_after_s``, and in the tube not slow, or not
+    commanded, with no slow spell being timed); only the others are checked one by one. The
+    pass is conservative: a speed within 1 ppm of the threshold is checked. The pilots share
+    one mission (the supervisor's)."""
+    n = len(pilots)
+    if not n:
+        return
+    cfg = pilots[0].cfg
+    phases = [p.phase for p in pilots]
+    states = [p.link.state for p in pilots]
+    last = np.fromiter((math.nan if s.last_position_s is None else s.last_position_s
+                        for s in states), float, n)
+    heard = last if listening_since is None else np.maximum(last, listening_since)
+    quiet = np.fromiter((ph in OFFBOARD_PHASES for ph in phases), bool, n)
+    quiet &= np.fromiter((p._offboard_seen for p in pilots), bool, n)
+    quiet &= np.fromiter((s.flight_mode == "OFFBOARD" and s.armed is True for s in states),
+                         bool, n)
+    quiet &= now_mono - heard <= cfg.lost_after_s  # NaN (never heard): not quiet
+    first = pilots[0]
+    if listening_since is None or now_mono - listening_since > first.unresponsive_s:
+        tube = np.fromiter((ph == Phase.IN_TUBE for ph in phases), bool, n)
+        timing = np.fromiter((p._still_since is not None for p in pilots), bool, n)
+        vel = np.array([p.vel_xy for p in pilots], dtype=float).reshape(n, 2)
+        cmd = np.array([_ZERO2 if p.cmd_xy is None else p.cmd_xy for p in pilots],
+                       dtype=float).reshape(n, 2)
+        idle = (cmd[:, 0] == 0.0) & (cmd[:, 1] == 0.0)  # not commanded (NaN: maybe)
+        fast = vel[:, 0] ** 2 + vel[:, 1] ** 2 >= (first.slow_m_s * (1.0 + 1e-6)) ** 2
+        quiet &= ~tube | (~timing & (idle | fast))
+    for i in np.flatnonzero(~quiet).tolist():
+        pilots[i].check_faults(now_mono, listening_since)

@@ -77,7 +77,7 @@ from vtube_fleet.fleet.agent import (
     Agent,
     FlightPlan,
     NeighbourView,
-    classify,
+    classify_arrays,
     fleet_setpoints,
     lost_obstacles,
 )
@@ -92,9 +92,13 @@ from vtube_fleet.fleet.budget import (
     mission_budget,
     on_time_share,
 )
+from vtube_fleet.fleet.compensation import ResidualTracker
 from vtube_fleet.fleet.pilot import (
     PilotError,
     VehiclePilot,
+    actuate_all,
+    check_faults_all,
+    fleet_states,
     measure_budget_links,
     sense_all,
     wait_accuracy,
@@ -117,6 +121,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 _NAN2 = (math.nan, math.nan)  # a vehicle without a command yet
+_NO_CMDS = np.zeros((0, 2))
 
 
 #: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
@@ -288,6 +293,11 @@ class Supervisor:
             self.pilots.append(VehiclePilot(link, agent, self.bus, mission, frame=self.frame,
                                             on_event=self._on_pilot_event))
         self.names = [p.name for p in self.pilots]
+        # the compensation residuals of the whole fleet, tracked in one vectorized call a tick
+        self.residuals = ResidualTracker(len(self.pilots), self.cfg.period_s,
+                                         self.cfg.disturbance_residual_m_s)
+        for i, p in enumerate(self.pilots):
+            p.use_residual_tracker(self.residuals, i)
         # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' + 1 m
         self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, self.physical, flown)
         self.acc = SummaryAccumulator(len(self.pilots))
@@ -426,19 +436,19 @@ class Supervisor:
         pilots = self.pilots
         cfg = self.cfg
         sense_all(pilots, self.frame)
-        for p in pilots:
-            p.check_faults(now, self.listening_since)
-            p.publish(now, wall)
-            if p.sample_s is not None and p.phase in AIRBORNE_PHASES:
-                age = p.sample_age_s(now)
-                if age <= cfg.neighbour_max_age_s:  # older: a stale vehicle, handled as a fault
-                    self._sample_ages_window.append(age)
-                    self._sample_ids_window.append(p.vehicle_id)
-                    self._sample_at_window.append(p.sample_s)
+        check_faults_all(pilots, now, self.listening_since)
+        # every pilot's state (what each would publish) as one table: the budget's sample
+        # ages (airborne; older: a stale vehicle, handled as a fault) and the neighbour view
+        fs = fleet_states(pilots, now, wall)
+        keep = np.fromiter((ph in AIRBORNE_PHASES for ph in fs.phases), bool, len(fs.phases))
+        keep &= fs.ages_s <= cfg.neighbour_max_age_s
+        self._sample_ages_window.extend(fs.ages_s[keep].tolist())
+        self._sample_ids_window.extend(fs.ids[keep].tolist())
+        self._sample_at_window.extend(fs.sample_s[keep].tolist())
         # in-process, a vehicle is lost when its pilot says so (pilot.check_faults, which knows
         # about stalls of this loop); stale states are static points until then
-        view = classify(self.bus.latest().values(), wall, max_age_s=cfg.neighbour_max_age_s,
-                        lost_after_s=math.inf)
+        view = classify_arrays(fs.ids, fs.pos, fs.vel, fs.phases, fs.stamps_s, wall,
+                               max_age_s=cfg.neighbour_max_age_s, lost_after_s=math.inf)
         self._update_partition(view, t)
         in_tube = self.tube_start_s is not None
         # exits (TraCondition), then the controller for everyone still in the tube
@@ -460,13 +470,8 @@ class Supervisor:
                     if k is not None:
                         rows.append(k)
                         row_pilots.append(p)
-        cmds: dict[int, np.ndarray] = {}
-        if rows:
-            out = fleet_setpoints(self.plan, view.points(), rows)
-            for p, c in zip(row_pilots, out, strict=True):
-                cmds[p.vehicle_id] = c
-        for p in pilots:
-            p.actuate(now, cmds.get(p.vehicle_id), view)
+        out = fleet_setpoints(self.plan, view.points(), rows) if rows else _NO_CMDS
+        actuate_all(pilots, now, row_pilots, out, view)
         self._measure(t, now, view)
 
     def _unreachable(self, now: float) -> str | None:
@@ -1311,7 +1316,7 @@ class Supervisor:
                 "accuracies_m": [finite_or_none(a) for a in self.measured.accuracies_m]}
         comp = [p.compensator for p in self.pilots if p.compensator is not None]
         if comp:
-            res = [r for p in self.pilots for r in p.disturbance_residual_m_s]
+            res = self.residuals.residuals().tolist()
             extra["estimate_compensation"] = {
                 "max_correction_m_s": max(c.max_m_s for c in comp),
                 "clipped": sum(c.clipped for c in comp),
