@@ -250,6 +250,52 @@ async def test_datagram_socket_drains_in_bursts_and_sends() -> None:
         peer.close()
 
 
+async def test_the_loops_sockets_share_one_epoll_read_in_rounds() -> None:
+    """Every socket of a loop sits behind one hub: one wake-up reads one datagram per ready
+    socket per round, each socket in order, at most HUB_ROUNDS each (the loop gets its turn);
+    a socket closed by its own callback is read no more; the last one closed gives the
+    epoll back."""
+    import asyncio
+    import socket
+
+    from vtube_fleet.link.udp import HUB_ROUNDS, DatagramHub, DatagramSocket
+
+    loop = asyncio.get_running_loop()
+    got: dict[int, list[int]] = {k: [] for k in range(3)}
+    socks: list[DatagramSocket] = []
+
+    def on(k: int):
+        def handle(d: bytes, a: object) -> None:
+            got[k].append(int.from_bytes(d, "little"))
+            if k == 2 and len(got[2]) == 2:
+                socks[2].close()  # closed by its own callback, mid-wake-up
+        return handle
+
+    for k in range(3):
+        socks.append(await DatagramSocket.open("127.0.0.1", 0, listens=True,
+                                               on_datagram=on(k), on_error=print))
+    hub = DatagramHub.of(loop)
+    assert hub is not None and all(ds._hub is hub for ds in socks)
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for k, ds in enumerate(socks):
+            for i in range(HUB_ROUNDS + 3 if k == 0 else 2 if k == 1 else 5):
+                peer.sendto(i.to_bytes(2, "little"), ds.get_extra_info("sockname"))
+        hub._ready()
+        assert got[0] == list(range(HUB_ROUNDS))  # the rest waits for the next wake-up
+        assert got[1] == [0, 1] and got[2] == [0, 1]
+        hub._ready()
+        assert got[0] == list(range(HUB_ROUNDS + 3)) and got[2] == [0, 1]
+        hub._ready()  # nothing left: returns at once
+        socks[0].close()
+        socks[1].close()
+        assert hub._epoll.closed and loop not in DatagramHub._hubs  # the last one closed
+    finally:
+        for ds in socks:
+            ds.close()
+        peer.close()
+
+
 async def test_datagram_socket_counts_sends_the_kernel_refuses() -> None:
     """A full send buffer (EAGAIN) drops that datagram and counts it (the event loop never
     blocks); other socket errors go to ``on_error``."""

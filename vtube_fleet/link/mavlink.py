@@ -1,9 +1,10 @@
 """``mavlink`` backend: pymavlink's MAVLink 2 codec on an asyncio UDP socket, one per vehicle.
 
-* One UDP socket per endpoint (:class:`~vtube_fleet.link.udp.DatagramSocket`: read by the
-  event loop in bursts of up to 64 datagrams per wake-up). ``udpin://HOST:PORT`` binds locally and
-  learns the vehicle's address from its first valid packet (PX4 SITL's API link sends from
-  14580+i to 14540+i); ``udpout://HOST:PORT`` sends to the vehicle from an ephemeral port.
+* One UDP socket per endpoint (:class:`~vtube_fleet.link.udp.DatagramSocket`; the loop's
+  sockets share one ``epoll``, read in rounds of one datagram per ready socket).
+  ``udpin://HOST:PORT`` binds locally and learns the vehicle's address from its first valid
+  packet (PX4 SITL's API link sends from 14580+i to 14540+i); ``udpout://HOST:PORT`` sends to
+  the vehicle from an ephemeral port.
 * Decoding: a pymavlink ``MAVLink`` object (``robust_parsing``) fed one datagram at a time with
   ``parse_buffer``; leftovers of a datagram are discarded (a datagram never continues in the next
   one). Cheap path for 200 vehicles in one process: once the vehicle is known, a datagram that is

@@ -11,19 +11,90 @@ with the transport methods the link uses (``sendto``, ``is_closing``, ``close``,
 connected ``udpout`` socket while the vehicle is not up yet) go to ``on_error``; a send the
 kernel refuses for lack of buffer space is dropped and counted (``tx_dropped``): a setpoint
 stream and retried commands tolerate a lost datagram, a blocked event loop would not.
+
+**One wake-up for all sockets** (Linux, issue 16). A fleet's links are not registered with the
+event loop one by one: they share a :class:`DatagramHub`, one ``epoll`` of their own whose file
+descriptor is the only one the loop watches. When it is readable, the hub asks it which sockets
+have data and reads ONE datagram from each, in rounds, until none is left or
+:data:`HUB_ROUNDS` rounds have passed (the loop then calls it again: the fleet's other work
+gets its turn between). So a datagram costs one ``recvfrom`` and no callback of the loop of its
+own, and a socket whose queue is empty is never read in vain (with a reader per socket, the
+read that finds the queue empty costs as much as the one that found a datagram). Each socket
+is drained in order; the sockets take turns, as in bursts. Elsewhere (no ``epoll``) each socket
+has its own reader and reads up to ``burst`` datagrams per wake-up.
 """
 
 from __future__ import annotations
 
 import asyncio
+import select
 import socket
+import weakref
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["DatagramSocket", "DEFAULT_BURST"]
+__all__ = ["DEFAULT_BURST", "HUB_ROUNDS", "DatagramHub", "DatagramSocket"]
 
 #: datagrams read per wake-up at most (then the other sockets get their turn)
 DEFAULT_BURST = 64
+#: rounds of one datagram per ready socket that :class:`DatagramHub` reads per wake-up
+HUB_ROUNDS = 8
+
+
+class DatagramHub:
+    """The datagram sockets of one event loop behind one ``epoll`` (module docstring)."""
+
+    _hubs: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, DatagramHub] = (
+        weakref.WeakKeyDictionary())
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._epoll = select.epoll()
+        self._sockets: dict[int, DatagramSocket] = {}
+        loop.add_reader(self._epoll.fileno(), self._ready)
+
+    @classmethod
+    def of(cls, loop: asyncio.AbstractEventLoop) -> DatagramHub | None:
+        """The loop's hub (made on first use); None where there is no ``epoll``."""
+        if not hasattr(select, "epoll"):  # pragma: no cover - Linux has it
+            return None
+        hub = cls._hubs.get(loop)
+        if hub is None or hub._epoll.closed:
+            hub = cls._hubs[loop] = cls(loop)
+        return hub
+
+    def add(self, ds: DatagramSocket, fd: int) -> None:
+        self._epoll.register(fd, select.EPOLLIN)
+        self._sockets[fd] = ds
+
+    def remove(self, fd: int) -> None:
+        if self._sockets.pop(fd, None) is None:
+            return
+        try:
+            self._epoll.unregister(fd)
+        except (OSError, ValueError):  # already closed
+            pass
+        if not self._sockets:  # the last one: give the loop its descriptor back
+            try:
+                self._loop.remove_reader(self._epoll.fileno())
+            except (ValueError, RuntimeError):  # loop already closed
+                pass
+            self._epoll.close()
+            if self._hubs.get(self._loop) is self:
+                del self._hubs[self._loop]
+
+    def _ready(self) -> None:
+        poll, sockets = self._epoll.poll, self._sockets
+        for _ in range(HUB_ROUNDS):
+            events = poll(0)
+            if not events:
+                return
+            for fd, _mask in events:
+                ds = sockets.get(fd)
+                if ds is not None:
+                    ds._read_one()
+            if not sockets:  # the last socket closed meanwhile (and with it the epoll)
+                return
 
 
 class DatagramSocket:
@@ -39,7 +110,12 @@ class DatagramSocket:
         self.burst = burst
         self.tx_dropped = 0
         self._closed = False
-        loop.add_reader(sock.fileno(), self._readable)
+        self._fd = sock.fileno()
+        self._hub = DatagramHub.of(loop)
+        if self._hub is not None:
+            self._hub.add(self, self._fd)
+        else:  # pragma: no cover - Linux has epoll
+            loop.add_reader(self._fd, self._readable)
 
     @classmethod
     async def open(cls, host: str, port: int, *, listens: bool,
@@ -64,7 +140,19 @@ class DatagramSocket:
             raise
         return cls(loop, sock, on_datagram, on_error, burst)
 
+    def _read_one(self) -> None:
+        """One datagram, if one is queued (the hub knows it is)."""
+        try:
+            data, addr = self._sock.recvfrom(65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._on_error(exc)
+            return
+        self._on_datagram(data, addr)
+
     def _readable(self) -> None:
+        """Up to ``burst`` queued datagrams, in order."""
         recvfrom, handle = self._sock.recvfrom, self._on_datagram
         for _ in range(self.burst):
             try:
@@ -98,10 +186,13 @@ class DatagramSocket:
         if self._closed:
             return
         self._closed = True
-        try:
-            self._loop.remove_reader(self._sock.fileno())
-        except (ValueError, RuntimeError):  # loop already closed
-            pass
+        if self._hub is not None:
+            self._hub.remove(self._fd)
+        else:  # pragma: no cover - Linux has epoll
+            try:
+                self._loop.remove_reader(self._fd)
+            except (ValueError, RuntimeError):  # loop already closed
+                pass
         self._sock.close()
 
     def get_extra_info(self, name: str, default: Any = None) -> Any:
