@@ -1,9 +1,11 @@
 """The supervisor's vectorized tick does what each pilot's own steps do, vehicle by vehicle.
 
 The supervisor runs its fleet's per-tick steps for all vehicles at once (issue 16):
-:func:`~vtube_fleet.fleet.pilot.check_faults_all`, :func:`~vtube_fleet.fleet.pilot.fleet_states`
-with :func:`~vtube_fleet.fleet.agent.classify_arrays`, :func:`~vtube_fleet.fleet.pilot.actuate_all`
-and the fleet's :class:`~vtube_fleet.fleet.compensation.ResidualTracker`. The standalone agent
+:func:`~vtube_fleet.fleet.pilot.sense_all`, :func:`~vtube_fleet.fleet.pilot.check_faults_all`,
+:func:`~vtube_fleet.fleet.pilot.fleet_states` with :func:`~vtube_fleet.fleet.agent.classify_arrays`,
+:func:`~vtube_fleet.fleet.pilot.actuate_all`, and the fleet's
+:class:`~vtube_fleet.fleet.compensation.CompensatorBank` and
+:class:`~vtube_fleet.fleet.compensation.ResidualTracker`. The standalone agent
 runs the same steps per vehicle (:meth:`VehiclePilot.tick`). Here two identical in-memory
 fleets fly the same ticks with faults injected (a silent vehicle, one that does not follow,
 one that leaves OFFBOARD, one disarmed, a stopped one), one through the fleet functions, one
@@ -16,13 +18,20 @@ from __future__ import annotations
 import asyncio
 import math
 from bisect import bisect_right
+from collections import deque
+from itertools import pairwise
 
 import numpy as np
 import pytest
 from memory_fleet import fly_telemetry, memory_fleet
 
 from vtube_fleet.fleet.agent import classify, classify_arrays, fleet_setpoints
-from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S, ResidualTracker
+from vtube_fleet.fleet.compensation import (
+    RESIDUAL_WINDOW_S,
+    CompensatorBank,
+    EstimateCompensator,
+    ResidualTracker,
+)
 from vtube_fleet.fleet.pilot import (
     actuate_all,
     check_faults_all,
@@ -120,6 +129,69 @@ def test_residual_tracker_matches_a_lookup_per_vehicle() -> None:
     assert tracker.residuals().size == sum(len(w) for w in want)
 
 
+def _deque_compensator(window_s: float, limit_m_s: float):
+    """d̂ of one vehicle written straightforwardly (a deque of samples, the module docstring's
+    formula): the reference for :class:`CompensatorBank`."""
+    q: deque[tuple[float, float, float, float, float]] = deque()
+    out = {"d": (0.0, 0.0), "clipped": 0, "max": 0.0}
+
+    def add(t: float, x: float, y: float, vx: float, vy: float) -> None:
+        if not all(math.isfinite(v) for v in (t, x, y, vx, vy)) or (q and t <= q[-1][0]):
+            return
+        q.append((t, x, y, vx, vy))
+        while len(q) > 2 and t - q[1][0] >= window_s:
+            q.popleft()
+        span = q[-1][0] - q[0][0]
+        if len(q) < 2 or span < 0.5 * window_s:
+            return
+        s = list(q)
+        ix = sum(0.5 * (b[3] + a[3]) * (b[0] - a[0]) for a, b in pairwise(s))
+        iy = sum(0.5 * (b[4] + a[4]) * (b[0] - a[0]) for a, b in pairwise(s))
+        dx, dy = (ix - (s[-1][1] - s[0][1])) / span, (iy - (s[-1][2] - s[0][2])) / span
+        n = math.hypot(dx, dy)
+        out["max"] = max(out["max"], n)
+        if n > limit_m_s:
+            out["clipped"] += 1
+            dx, dy = dx * limit_m_s / n, dy * limit_m_s / n
+        out["d"] = (dx, dy)
+
+    return add, out
+
+
+def test_compensator_bank_matches_one_deque_per_vehicle() -> None:
+    """Vehicles with samples on different ticks, some late or not finite (ignored), and
+    estimates large enough to be clipped: each row of the bank, and a vehicle's own
+    EstimateCompensator, follow the straightforward formula."""
+    rng = np.random.default_rng(4)
+    m = 12
+    bank = CompensatorBank(m, window_s=0.4, limit_m_s=1.0)
+    alone = [EstimateCompensator(window_s=0.4, limit_m_s=1.0) for _ in range(m)]
+    refs = [_deque_compensator(0.4, 1.0) for _ in range(m)]
+    t = np.zeros(m)
+    for k in range(600):
+        rows = np.flatnonzero(rng.random(m) < 0.8)
+        t[rows] += rng.uniform(0.01, 0.12, rows.size)
+        tt = t[rows].copy()
+        x, y = rng.normal(size=rows.size), rng.normal(size=rows.size)
+        vx, vy = rng.normal(size=rows.size) * 2.0, rng.normal(size=rows.size)
+        if k % 37 == 0 and rows.size:
+            tt[0] -= 0.5  # older than that vehicle's last sample
+            x[-1] = np.nan
+        bank.add(rows, tt, x, y, vx, vy)
+        for j, r in enumerate(rows.tolist()):
+            sample = (float(tt[j]), float(x[j]), float(y[j]), float(vx[j]), float(vy[j]))
+            refs[r][0](*sample)
+            alone[r].add(*sample)
+        for r in range(m):
+            want = refs[r][1]
+            got = (float(bank.dx_m_s[r]), float(bank.dy_m_s[r]))
+            assert alone[r].correction == got
+            assert got == pytest.approx(want["d"], rel=1e-9, abs=1e-12), (k, r)
+            assert int(bank.clipped[r]) == want["clipped"]
+    assert bank.clipped.sum() > 100 and (bank.max_m_s > 1.0).all()
+    assert bank.max_m_s == pytest.approx([r[1]["max"] for r in refs], rel=1e-12)
+
+
 def _inject(k: int, links, rng) -> None:
     """Faults on tick ``k``: vehicle 3 falls silent, 7 stops following, 11 leaves OFFBOARD,
     13 disarms; telemetry noise on everyone."""
@@ -157,7 +229,11 @@ async def test_the_fleet_functions_fly_like_each_pilot_alone(count: int) -> None
                 fly_telemetry([lk for i, lk in enumerate(links) if not (i == 3 and k > 20)],
                               2 * period, now)
             _inject(k, links, rng)
-            sense_all(pilots, sup.frame)
+            if f == 0:
+                sense_all(pilots, sup.frame)
+            else:
+                for p in pilots:
+                    p.sense()
             if f == 0:
                 check_faults_all(pilots, now, listening)
                 fs = fleet_states(pilots, now, now + WALL)

@@ -20,22 +20,24 @@ v̂ to v_c + d̂ and p̂ moves at ≈ v_c: the estimated position follows the si
 The residual is the change of d over the compensation delay (W/2 + link latency + control
 period); it is budgeted (``SafetyBudget.disturbance_m_s``) and measured in flight.
 
-Pure: :class:`EstimateCompensator` per vehicle, :class:`ResidualTracker` vectorized over
-vehicles; positions and velocities in the tube frame (x, y), times in seconds.
+Pure and vectorized over vehicles (:class:`CompensatorBank`, :class:`ResidualTracker`;
+:class:`EstimateCompensator` is one vehicle's row); positions and velocities in the tube frame
+(x, y), times in seconds.
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
 
 __all__ = [
+    "BANK_CAPACITY",
     "DEFAULT_LIMIT_M_S",
     "DEFAULT_WINDOW_S",
     "RESIDUAL_HISTORY",
     "RESIDUAL_WINDOW_S",
+    "CompensatorBank",
     "EstimateCompensator",
     "ResidualTracker",
 ]
@@ -47,83 +49,170 @@ DEFAULT_WINDOW_S = 0.4
 DEFAULT_LIMIT_M_S = 1.0
 
 
-class EstimateCompensator:
-    """d̂ of one vehicle from its telemetry samples (module docstring).
+#: Samples a :class:`CompensatorBank` keeps per vehicle at most (the window holds a few: the
+#: pilots add at most one per control tick); beyond it the oldest is dropped.
+BANK_CAPACITY = 64
 
-    The samples are kept as (t, x, y) with each one's trapezoid increments of ∫ v̂ dt towards
-    its predecessor computed once on arrival, so an update sums a window of increments instead
-    of redoing the products (the same operations in the same order: the same bits)."""
 
-    def __init__(self, window_s: float = DEFAULT_WINDOW_S,
-                 limit_m_s: float = DEFAULT_LIMIT_M_S) -> None:
+class CompensatorBank:
+    """d̂ of ``m`` vehicles from their telemetry samples (module docstring), vectorized over
+    the vehicles given to one :meth:`add`.
+
+    Each vehicle keeps its samples (t, x, y) of the last ``window_s`` (at least two) with each
+    one's trapezoid increments of ∫ v̂ dt towards its predecessor, computed once on arrival; an
+    update sums the window's increments oldest first (the same operations in the same order as
+    for one vehicle alone; |d̂| is ``np.hypot``)."""
+
+    def __init__(self, m: int, window_s: float = DEFAULT_WINDOW_S,
+                 limit_m_s: float = DEFAULT_LIMIT_M_S, capacity: int = BANK_CAPACITY) -> None:
         if not (math.isfinite(window_s) and window_s > 0):
             raise ValueError(f"compensation window must be > 0 s, got {window_s}")
         if not (math.isfinite(limit_m_s) and limit_m_s >= 0):
             raise ValueError(f"compensation limit must be >= 0 m/s, got {limit_m_s}")
         self.window_s = float(window_s)
         self.limit_m_s = float(limit_m_s)
-        #: (t_s, x_m, y_m, ∫v̂x dt, ∫v̂y dt since the previous sample, vx, vy) per sample
-        self._samples: deque[tuple[float, float, float, float, float, float, float]] = deque()
-        self.dx_m_s = 0.0
-        self.dy_m_s = 0.0
-        self.clipped = 0  #: estimates larger than ``limit_m_s`` (clipped)
-        self.max_m_s = 0.0  #: the largest |d̂| seen
+        self.capacity = int(capacity)
+        shape = (m, self.capacity)
+        #: per sample: time, position, the increments of ∫v̂ dt since the previous one, v̂
+        self._t, self._x, self._y = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+        self._ix, self._iy = np.zeros(shape), np.zeros(shape)
+        self._vx, self._vy = np.zeros(shape), np.zeros(shape)
+        self._head = np.zeros(m, dtype=np.int64)  # slot of each vehicle's oldest sample
+        self._count = np.zeros(m, dtype=np.int64)
+        self.dx_m_s = np.zeros(m)  #: d̂ (m/s), to be added to the commanded velocity
+        self.dy_m_s = np.zeros(m)
+        self.clipped = np.zeros(m, dtype=np.int64)  #: estimates larger than ``limit_m_s``
+        self.max_m_s = np.zeros(m)  #: the largest |d̂| seen
+
+    def reset(self, rows: np.ndarray) -> None:
+        """Forget the history of ``rows`` (after a jump of the estimate, a mode change, …)."""
+        self._count[rows] = 0
+        self.dx_m_s[rows] = 0.0
+        self.dy_m_s[rows] = 0.0
+
+    def add(self, rows: np.ndarray, t_s: np.ndarray, x_m: np.ndarray, y_m: np.ndarray,
+            vx_m_s: np.ndarray, vy_m_s: np.ndarray) -> None:
+        """A new telemetry sample (estimated position and velocity at time ``t_s``) for each
+        of ``rows`` (distinct); samples with a non-finite value or not newer than the
+        vehicle's last are ignored. Then each vehicle's d̂ is updated."""
+        cap = self.capacity
+        rows = np.asarray(rows, dtype=np.int64)
+        ok = (np.isfinite(t_s) & np.isfinite(x_m) & np.isfinite(y_m) & np.isfinite(vx_m_s)
+              & np.isfinite(vy_m_s))
+        cnt = self._count[rows]
+        last = (self._head[rows] + cnt - 1) % cap
+        prev_t = self._t[rows, last]
+        had = cnt > 0
+        ok &= ~had | (t_s > prev_t)
+        if not ok.all():
+            rows, t_s, x_m, y_m, vx_m_s, vy_m_s = (a[ok] for a in (rows, t_s, x_m, y_m, vx_m_s,
+                                                                    vy_m_s))
+            cnt, last, prev_t, had = cnt[ok], last[ok], prev_t[ok], had[ok]
+        if not rows.size:
+            return
+        dt = t_s - prev_t
+        ix = np.where(had, 0.5 * (vx_m_s + self._vx[rows, last]) * dt, 0.0)
+        iy = np.where(had, 0.5 * (vy_m_s + self._vy[rows, last]) * dt, 0.0)
+        head = self._head[rows]
+        full = cnt >= cap  # (a vehicle adds one sample per tick: never in practice)
+        head = np.where(full, (head + 1) % cap, head)
+        cnt = np.where(full, cnt, cnt + 1)
+        slot = (head + cnt - 1) % cap
+        for arr, val in ((self._t, t_s), (self._x, x_m), (self._y, y_m), (self._ix, ix),
+                         (self._iy, iy), (self._vx, vx_m_s), (self._vy, vy_m_s)):
+            arr[rows, slot] = val
+        window = self.window_s
+        while True:  # drop samples older than the window, keeping two
+            drop = (cnt > 2) & (t_s - self._t[rows, (head + 1) % cap] >= window)
+            if not drop.any():
+                break
+            head = np.where(drop, (head + 1) % cap, head)
+            cnt = cnt - drop
+        self._head[rows] = head
+        self._count[rows] = cnt
+        self._update(rows, head, cnt)
+
+    def _update(self, rows: np.ndarray, head: np.ndarray, cnt: np.ndarray) -> None:
+        cap = self.capacity
+        first = head
+        last = (head + cnt - 1) % cap
+        span = self._t[rows, last] - self._t[rows, first]
+        use = (cnt >= 2) & ~(span < 0.5 * self.window_s)
+        if not use.any():
+            return
+        rows, first, last, cnt, span = rows[use], first[use], last[use], cnt[use], span[use]
+        ix = np.zeros(rows.size)
+        iy = np.zeros(rows.size)
+        for j in range(1, int(cnt.max())):  # the first sample's increments reach back before
+            slot = (first + j) % cap
+            inside = j < cnt
+            ix += np.where(inside, self._ix[rows, slot], 0.0)
+            iy += np.where(inside, self._iy[rows, slot], 0.0)
+        dx = (ix - (self._x[rows, last] - self._x[rows, first])) / span
+        dy = (iy - (self._y[rows, last] - self._y[rows, first])) / span
+        n = np.hypot(dx, dy)
+        self.max_m_s[rows] = np.fmax(self.max_m_s[rows], n)
+        over = n > self.limit_m_s  # (> 0)
+        if over.any():
+            self.clipped[rows[over]] += 1
+            scale = self.limit_m_s / n[over]
+            dx[over] *= scale
+            dy[over] *= scale
+        self.dx_m_s[rows] = dx
+        self.dy_m_s[rows] = dy
+
+
+class EstimateCompensator:
+    """d̂ of one vehicle: row ``row`` of a :class:`CompensatorBank` (its own bank of one by
+    default; the supervisor's fleet shares one, updated for all vehicles at once)."""
+
+    def __init__(self, window_s: float = DEFAULT_WINDOW_S,
+                 limit_m_s: float = DEFAULT_LIMIT_M_S, *, bank: CompensatorBank | None = None,
+                 row: int = 0) -> None:
+        self.bank = bank if bank is not None else CompensatorBank(1, window_s, limit_m_s)
+        self.row = row
+        self._rows = np.array([row])
+
+    @property
+    def window_s(self) -> float:
+        return self.bank.window_s
+
+    @property
+    def limit_m_s(self) -> float:
+        return self.bank.limit_m_s
 
     def reset(self) -> None:
         """Forget the history (after a jump of the estimate, a mode change, …)."""
-        self._samples.clear()
-        self.dx_m_s = self.dy_m_s = 0.0
+        self.bank.reset(self._rows)
 
     def add(self, t_s: float, x_m: float, y_m: float, vx_m_s: float, vy_m_s: float) -> None:
         """A new telemetry sample (estimated position and velocity at time ``t_s``)."""
-        isfinite = math.isfinite
-        if not (isfinite(t_s) and isfinite(x_m) and isfinite(y_m) and isfinite(vx_m_s)
-                and isfinite(vy_m_s)):
-            return
-        q = self._samples
-        if q:
-            prev = q[-1]
-            if t_s <= prev[0]:
-                return
-            dt = t_s - prev[0]
-            q.append((t_s, x_m, y_m, 0.5 * (vx_m_s + prev[5]) * dt,
-                      0.5 * (vy_m_s + prev[6]) * dt, vx_m_s, vy_m_s))
-        else:
-            q.append((t_s, x_m, y_m, 0.0, 0.0, vx_m_s, vy_m_s))
-        window = self.window_s
-        while len(q) > 2 and t_s - q[1][0] >= window:
-            q.popleft()
-        self._update()
-
-    def _update(self) -> None:
-        q = self._samples
-        if len(q) < 2:
-            return
-        first, last = q[0], q[-1]
-        span = last[0] - first[0]
-        if span < 0.5 * self.window_s:
-            return
-        ix = iy = 0.0
-        it = iter(q)
-        next(it)  # the first sample's increments reach back before the window
-        for s in it:
-            ix += s[3]
-            iy += s[4]
-        dx = (ix - (last[1] - first[1])) / span
-        dy = (iy - (last[2] - first[2])) / span
-        n = math.hypot(dx, dy)
-        if n > self.max_m_s:
-            self.max_m_s = n
-        if n > self.limit_m_s:
-            self.clipped += 1
-            scale = self.limit_m_s / n if n > 0 else 0.0
-            dx, dy = dx * scale, dy * scale
-        self.dx_m_s, self.dy_m_s = dx, dy
+        self.bank.add(self._rows, np.array([t_s], dtype=float), np.array([x_m], dtype=float),
+                      np.array([y_m], dtype=float), np.array([vx_m_s], dtype=float),
+                      np.array([vy_m_s], dtype=float))
 
     @property
     def correction(self) -> tuple[float, float]:
         """(d̂_x, d̂_y) in m/s, to be added to the commanded velocity."""
-        return self.dx_m_s, self.dy_m_s
+        return float(self.bank.dx_m_s[self.row]), float(self.bank.dy_m_s[self.row])
+
+    @property
+    def dx_m_s(self) -> float:
+        return float(self.bank.dx_m_s[self.row])
+
+    @property
+    def dy_m_s(self) -> float:
+        return float(self.bank.dy_m_s[self.row])
+
+    @property
+    def clipped(self) -> int:
+        """Estimates larger than ``limit_m_s`` (clipped)."""
+        return int(self.bank.clipped[self.row])
+
+    @property
+    def max_m_s(self) -> float:
+        """The largest |d̂| seen."""
+        return float(self.bank.max_m_s[self.row])
 
 
 #: d̂ entries per vehicle the residual looks back in (ticks: 12.8 s at 20 Hz).

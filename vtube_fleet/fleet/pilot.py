@@ -54,6 +54,7 @@ from vtube_fleet.fleet.budget import (
 )
 from vtube_fleet.fleet.compensation import (
     RESIDUAL_WINDOW_S,
+    CompensatorBank,
     EstimateCompensator,
     ResidualTracker,
 )
@@ -360,8 +361,10 @@ class VehiclePilot:
         self._take(s, xyz[0], xyz[1], xyz[2])
         return True
 
-    def _take(self, s: VehicleState, x: float, y: float, up: float) -> None:
-        """Use the sample of ``s`` (a pending one) at tube position (x, y, up)."""
+    def _take(self, s: VehicleState, x: float, y: float, up: float,
+              compensate: bool = True) -> None:
+        """Use the sample of ``s`` (a pending one) at tube position (x, y, up); ``compensate``
+        False: the caller gives it to the compensator (:func:`sense_all`, for all at once)."""
         a, b, c, d = self._to_tube
         vn, ve = s.vn_m_s, s.ve_m_s
         vx, vy = a * vn + b * ve, c * vn + d * ve
@@ -370,7 +373,7 @@ class VehiclePilot:
         self.vel_xy = np.array((vx, vy))
         t = self.sample_s = self._sample_seen = s.last_position_s
         has = self._has_pos = math.isfinite(x) and math.isfinite(y)
-        if self.compensator is not None and has and t is not None:
+        if compensate and self.compensator is not None and has and t is not None:
             self.compensator.add(t, x, y, vx, vy)
         if (self.agent.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
                 and abs(up - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
@@ -532,10 +535,13 @@ class VehiclePilot:
         return (self.link.state.landed_state == "IN_AIR"
                 or (math.isfinite(self.up_m) and self.up_m > 0.5))
 
-    def use_residual_tracker(self, tracker: ResidualTracker, row: int) -> None:
-        """Track this vehicle's compensation residual as row ``row`` of ``tracker`` (the
-        supervisor's, shared by its fleet) instead of a tracker of its own."""
-        self._residuals, self._residual_row = tracker, row
+    def join_fleet(self, row: int, compensators: CompensatorBank,
+                   residuals: ResidualTracker) -> None:
+        """Be row ``row`` of a fleet's compensator bank and residual tracker (the
+        supervisor's, updated for all its vehicles at once) instead of ones of its own."""
+        if self.compensator is not None:
+            self.compensator = EstimateCompensator(bank=compensators, row=row)
+        self._residuals, self._residual_row = residuals, row
 
     @property
     def disturbance_residual_m_s(self) -> np.ndarray:
@@ -957,7 +963,8 @@ class VehiclePilot:
 
 def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
     """:meth:`VehiclePilot.sense` for many vehicles with ONE vectorized frame conversion
-    (pymap3d on arrays); returns how many had a new sample."""
+    (pymap3d on arrays) and, for the pilots of one compensator bank (a supervisor's fleet),
+    one compensator update for all; returns how many had a new sample."""
     todo = [p for p in pilots if p.pending_sample()]
     if not todo:
         return 0
@@ -966,9 +973,18 @@ def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
                       s.origin.lon_deg, s.origin.alt_m) for s in st],  # type: ignore[union-attr]
                     dtype=float).T
     x, y, up = frame.local_ned_to_tube(*cols)
+    comps = [p.compensator for p in todo]
+    bank = comps[0].bank if comps[0] is not None else None
+    batch = bank is not None and all(c is not None and c.bank is bank for c in comps)
     for p, s, xi, yi, ui in zip(todo, st, np.atleast_1d(x).tolist(), np.atleast_1d(y).tolist(),
                                 np.atleast_1d(up).tolist(), strict=True):
-        p._take(s, xi, yi, ui)
+        p._take(s, xi, yi, ui, compensate=not batch)
+    if batch:
+        n = len(todo)
+        v = np.array([p.vel_xy for p in todo], dtype=float).reshape(n, 2)
+        bank.add(np.fromiter((c.row for c in comps), np.int64, n),  # type: ignore[union-attr]
+                 np.fromiter((p.sample_s for p in todo), float, n),
+                 np.atleast_1d(x).astype(float), np.atleast_1d(y).astype(float), v[:, 0], v[:, 1])
     return len(todo)
 
 
@@ -1007,7 +1023,7 @@ def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: floa
     latency = np.fromiter((p.link.latency_s or 0.0 for p in have), float, n)
     ages = (now_mono - sample) + latency
     return FleetStates(np.fromiter((p.vehicle_id for p in have), np.int64, n), pos, vel,
-                       [p.phase for p in have], now_wall - ages, sample, ages)
+                       [p.agent.phase for p in have], now_wall - ages, sample, ages)
 
 
 def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequence[VehiclePilot],
@@ -1022,16 +1038,24 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
     rows: list[tuple[np.ndarray, float, float, float, float, float]] = []
     slow: dict[int, np.ndarray] = {}
     batch = [k for k, p in enumerate(commanded)
-             if p.phase == Phase.IN_TUBE and p._transition is None and not p.link.closed]
+             if p.agent.phase == Phase.IN_TUBE and p._transition is None and not p.link.closed]
     corr: np.ndarray | None = None
+    bank: CompensatorBank | None = None  # the batch's one bank, if they share one
     if batch:
         first = commanded[batch[0]]
         cfg = first.cfg
         cmd = cmds[batch]
         v = cmd
         if cfg.compensate_estimate:
-            corr = np.array([commanded[k].compensator.correction  # type: ignore[union-attr]
-                             for k in batch], dtype=float).reshape(-1, 2)
+            comps = [commanded[k].compensator for k in batch]
+            bank = comps[0].bank  # type: ignore[union-attr]
+            if all(c.bank is bank for c in comps):  # type: ignore[union-attr]
+                at = np.fromiter((c.row for c in comps), np.int64, len(comps))  # type: ignore
+                corr = np.stack((bank.dx_m_s[at], bank.dy_m_s[at]), axis=1)
+            else:
+                bank = None
+                corr = np.array([c.correction for c in comps],  # type: ignore[union-attr]
+                                dtype=float).reshape(-1, 2)
             v = cmd + corr
         vx, vy = v[:, 0], v[:, 1]
         a, b, c, d = first._to_ned
@@ -1063,12 +1087,14 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
         return
     tracked = [commanded[batch[j]] for j in sent]
     tracker = tracked[0]._residuals
-    if any(p._residuals is not tracker for p in tracked):
-        for p in tracked:  # trackers of their own (not the supervisor's fleet)
+    if bank is None or any(p._residuals is not tracker for p in tracked):
+        for p in tracked:  # not one fleet's bank and tracker: each pilot on its own
             p._track_residual(now_mono)
         return
     ids = np.fromiter((p._residual_row for p in tracked), np.int64, len(tracked))
-    lag = np.fromiter((p.residual_lag_s() for p in tracked), float, len(tracked))
+    # residual_lag_s, vectorized: (W/2 + T) + L, W the shared bank's
+    lag = ((0.5 * bank.window_s + first.cfg.period_s)
+           + np.fromiter((p.link.latency_s or 0.0 for p in tracked), float, len(tracked)))
     crossed = tracker.track(ids, now_mono, corr[sent], lag)
     if crossed.size:
         by_row = {p._residual_row: p for p in tracked}
@@ -1088,7 +1114,7 @@ def check_faults_all(pilots: Sequence[VehiclePilot], now_mono: float,
     if not n:
         return
     cfg = pilots[0].cfg
-    phases = [p.phase for p in pilots]
+    phases = [p.agent.phase for p in pilots]
     states = [p.link.state for p in pilots]
     last = np.fromiter((math.nan if s.last_position_s is None else s.last_position_s
                         for s in states), float, n)

@@ -92,7 +92,7 @@ from vtube_fleet.fleet.budget import (
     mission_budget,
     on_time_share,
 )
-from vtube_fleet.fleet.compensation import ResidualTracker
+from vtube_fleet.fleet.compensation import CompensatorBank, ResidualTracker
 from vtube_fleet.fleet.pilot import (
     PilotError,
     VehiclePilot,
@@ -293,11 +293,12 @@ class Supervisor:
             self.pilots.append(VehiclePilot(link, agent, self.bus, mission, frame=self.frame,
                                             on_event=self._on_pilot_event))
         self.names = [p.name for p in self.pilots]
-        # the compensation residuals of the whole fleet, tracked in one vectorized call a tick
+        # the fleet's estimate compensation and its residuals: one vectorized update a tick
+        self.compensators = CompensatorBank(len(self.pilots))
         self.residuals = ResidualTracker(len(self.pilots), self.cfg.period_s,
                                          self.cfg.disturbance_residual_m_s)
         for i, p in enumerate(self.pilots):
-            p.use_residual_tracker(self.residuals, i)
+            p.join_fleet(i, self.compensators, self.residuals)
         # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' + 1 m
         self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, self.physical, flown)
         self.acc = SummaryAccumulator(len(self.pilots))
@@ -457,7 +458,7 @@ class Supervisor:
         if in_tube:
             ids = view.ids()
             index = {int(v): k for k, v in enumerate(ids)}
-            flying = [p for p in pilots if p.phase == Phase.IN_TUBE and p.has_position()]
+            flying = [p for p in pilots if p.agent.phase == Phase.IN_TUBE and p.has_position()]
             if flying:
                 done = self.plan.exited(np.array([p.xy for p in flying]))
                 for p, gone in zip(flying, done.tolist(), strict=True):
@@ -566,21 +567,21 @@ class Supervisor:
         vel[~has] = np.nan
         cmd = np.array([_NAN2 if p.cmd_xy is None else p.cmd_xy for p in pilots],
                        dtype=float).reshape(m, 2)
-        phases = [p.phase for p in pilots]
+        phases = [p.agent.phase for p in pilots]
         inside = np.fromiter((p.cmd_in_tube for p in pilots), bool, m)
         # judged in the tube: flying the controller, or stopped inside it (lost at its last
         # position, holding, landing while still in the air)
         tube_rows = inside.copy()
         if self.tube_start_s is not None:
             tube = self.mission.scenario.tube
-            for i, ph in enumerate(phases):
-                if (not inside[i] and has[i] and (ph == Phase.LOST or (
-                        ph in STOPPED_PHASES and pilots[i].airborne()))
+            for i in np.flatnonzero(~inside & has).tolist():
+                ph = phases[i]
+                if ((ph == Phase.LOST or (ph in STOPPED_PHASES and pilots[i].airborne()))
                         and bool(tube.contains(pos[i]))):
                     tube_rows[i] = True
         # the mission monitor's rule too
         airborne = np.fromiter((ph in COUNTED_AIRBORNE_PHASES for ph in phases), bool, m)
-        lat = [p.link.latency_s for p in pilots if p.link.latency_s is not None]
+        lat = [x for p in pilots if (x := p.link.latency_s) is not None]
         latency = float(np.median(lat)) if lat else math.nan
         if lat:
             self.latencies.append(latency)
@@ -652,7 +653,7 @@ class Supervisor:
         if math.isfinite(latency):
             metrics["link_latency_s"] = latency
         # the phases as logged: after the budget watch, which may have made them hold
-        logged = [p.phase.value for p in pilots]
+        logged = [p.agent.phase.value for p in pilots]
         self.recorder.log_tick(
             t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
             phases=logged, cmd=cmd, metrics=metrics,
