@@ -141,13 +141,14 @@ class CompensatorBank:
         if not use.any():
             return
         rows, first, last, cnt, span = rows[use], first[use], last[use], cnt[use], span[use]
-        ix = np.zeros(rows.size)
-        iy = np.zeros(rows.size)
-        for j in range(1, int(cnt.max())):  # the first sample's increments reach back before
-            slot = (first + j) % cap
-            inside = j < cnt
-            ix += np.where(inside, self._ix[rows, slot], 0.0)
-            iy += np.where(inside, self._iy[rows, slot], 0.0)
+        # the window's increments after its first sample (whose reach back before it), oldest
+        # first, summed in that order: the last column of a running sum (np.cumsum adds
+        # strictly left to right) over the (vehicles, samples) table padded with zeros
+        j = np.arange(1, max(int(cnt.max()), 2))
+        slots = (first[:, None] + j) % cap
+        inside = j < cnt[:, None]
+        ix = np.cumsum(np.where(inside, self._ix[rows[:, None], slots], 0.0), axis=1)[:, -1]
+        iy = np.cumsum(np.where(inside, self._iy[rows[:, None], slots], 0.0), axis=1)[:, -1]
         dx = (ix - (self._x[rows, last] - self._x[rows, first])) / span
         dy = (iy - (self._y[rows, last] - self._y[rows, first])) / span
         n = np.hypot(dx, dy)
