@@ -278,3 +278,29 @@ async def test_the_fleet_functions_fly_like_each_pilot_alone(count: int) -> None
     # the pilots of fleet 0 share the supervisor's tracker, those of fleet 1 each used
     # their own calls into it: every residual was tracked once
     assert sup_a.residuals.residuals().size == sup_b.residuals.residuals().size > 0
+
+
+async def test_sense_all_feeds_compensators_of_their_own_like_each_pilot() -> None:
+    """Pilots that are not one fleet's (each its own compensator): sense_all gives each its
+    sample as its own sense() would."""
+    fleets = [memory_fleet(6, now_s=100.0) for _ in range(2)]
+    for sup, links in fleets:
+        for k, (p, link) in enumerate(zip(sup.pilots, links, strict=True)):
+            p.compensator = EstimateCompensator()
+            link.v_ned = (1.0, 0.1 * k, 0.0)
+    now = 100.0
+    for _ in range(30):
+        now += 0.05
+        for f, (sup, links) in enumerate(fleets):
+            fly_telemetry(links, 0.05, now)
+            for link in links:
+                link.state.vn_m_s += 0.3  # the estimate's velocity is off: d̂ ≈ 0.3 m/s
+            if f == 0:
+                assert sense_all(sup.pilots, sup.frame) == 6
+            else:
+                assert all(p.sense() for p in sup.pilots)
+    got = [[p.compensator.correction for p in sup.pilots] for sup, _ in fleets]
+    assert got[0] == got[1]
+    assert all(abs(math.hypot(*d) - 0.3) < 0.05 for d in got[0])
+    assert [p.xy.tolist() for p in fleets[0][0].pilots] == [p.xy.tolist()
+                                                              for p in fleets[1][0].pilots]

@@ -368,13 +368,21 @@ class VehiclePilot:
         a, b, c, d = self._to_tube
         vn, ve = s.vn_m_s, s.ve_m_s
         vx, vy = a * vn + b * ve, c * vn + d * ve
-        self.xy = np.array((x, y))
-        self.up_m = up
-        self.vel_xy = np.array((vx, vy))
-        t = self.sample_s = self._sample_seen = s.last_position_s
-        has = self._has_pos = math.isfinite(x) and math.isfinite(y)
+        t = s.last_position_s
+        has = math.isfinite(x) and math.isfinite(y)
+        self._use(t, np.array((x, y)), up, np.array((vx, vy)), has)
         if compensate and self.compensator is not None and has and t is not None:
             self.compensator.add(t, x, y, vx, vy)
+
+    def _use(self, t: float | None, xy: np.ndarray, up: float, vel_xy: np.ndarray,
+             has: bool) -> None:
+        """Take a converted sample: arrived at ``t``, tube position ``xy`` (finite: ``has``)
+        and height ``up``, tube-frame velocity ``vel_xy``."""
+        self.xy = xy
+        self.up_m = up
+        self.vel_xy = vel_xy
+        self.sample_s = self._sample_seen = t
+        self._has_pos = has
         if (self.agent.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
                 and abs(up - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
             self.at_altitude.set()
@@ -962,30 +970,47 @@ class VehiclePilot:
 
 
 def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
-    """:meth:`VehiclePilot.sense` for many vehicles with ONE vectorized frame conversion
-    (pymap3d on arrays) and, for the pilots of one compensator bank (a supervisor's fleet),
-    one compensator update for all; returns how many had a new sample."""
+    """:meth:`VehiclePilot.sense` for many vehicles: ONE vectorized frame conversion of the
+    positions (pymap3d on arrays) and of the velocities, and, for the pilots of one
+    compensator bank (a supervisor's fleet), one compensator update for all; the same
+    arithmetic as one by one. Returns how many had a new sample."""
     todo = [p for p in pilots if p.pending_sample()]
     if not todo:
         return 0
+    n = len(todo)
     st = [p.link.state for p in todo]
     cols = np.array([(s.north_m, s.east_m, s.down_m, s.origin.lat_deg,  # type: ignore[union-attr]
-                      s.origin.lon_deg, s.origin.alt_m) for s in st],  # type: ignore[union-attr]
-                    dtype=float).T
-    x, y, up = frame.local_ned_to_tube(*cols)
+                      s.origin.lon_deg, s.origin.alt_m,  # type: ignore[union-attr]
+                      s.vn_m_s, s.ve_m_s, s.last_position_s) for s in st],
+                    dtype=float).reshape(n, 9).T
+    x, y, up = (np.atleast_1d(v).astype(float) for v in frame.local_ned_to_tube(*cols[:6]))
+    rot = todo[0]._to_tube
+    if any(p._to_tube != rot for p in todo):  # not one frame: each pilot rotates its own
+        for p, s, xi, yi, ui in zip(todo, st, x.tolist(), y.tolist(), up.tolist(),
+                                    strict=True):
+            p._take(s, xi, yi, ui)
+        return n
+    a, b, c, d = rot
+    vn, ve, t = cols[6], cols[7], cols[8]
+    vx, vy = a * vn + b * ve, c * vn + d * ve  # VehiclePilot._take's rotation
+    xy = np.stack((x, y), axis=1)
+    vel = np.stack((vx, vy), axis=1)
+    has = np.isfinite(x) & np.isfinite(y)
+    for p, ti, xyi, ui, vi, hi in zip(todo, t.tolist(), xy, up.tolist(), vel, has.tolist(),
+                                      strict=True):
+        p._use(ti, xyi, ui, vi, hi)
     comps = [p.compensator for p in todo]
     bank = comps[0].bank if comps[0] is not None else None
-    batch = bank is not None and all(c is not None and c.bank is bank for c in comps)
-    for p, s, xi, yi, ui in zip(todo, st, np.atleast_1d(x).tolist(), np.atleast_1d(y).tolist(),
-                                np.atleast_1d(up).tolist(), strict=True):
-        p._take(s, xi, yi, ui, compensate=not batch)
-    if batch:
-        n = len(todo)
-        v = np.array([p.vel_xy for p in todo], dtype=float).reshape(n, 2)
-        bank.add(np.fromiter((c.row for c in comps), np.int64, n),  # type: ignore[union-attr]
-                 np.fromiter((p.sample_s for p in todo), float, n),
-                 np.atleast_1d(x).astype(float), np.atleast_1d(y).astype(float), v[:, 0], v[:, 1])
-    return len(todo)
+    if bank is not None and all(cp is not None and cp.bank is bank for cp in comps):
+        bank.add(np.fromiter((cp.row for cp in comps), np.int64, n),  # type: ignore[union-attr]
+                 t, x, y, vx, vy)
+    else:
+        for cp, ti, xi, yi, vxi, vyi, hi in zip(comps, t.tolist(), x.tolist(), y.tolist(),
+                                                vx.tolist(), vy.tolist(), has.tolist(),
+                                                strict=True):
+            if cp is not None and hi:
+                cp.add(ti, xi, yi, vxi, vyi)
+    return n
 
 
 _ZERO2 = (0.0, 0.0)
