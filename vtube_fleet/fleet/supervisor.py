@@ -122,6 +122,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 _NAN2 = (math.nan, math.nan)  # a vehicle without a command yet
 _NO_CMDS = np.zeros((0, 2))
+_PHASE_VALUE = {ph: ph.value for ph in Phase}  # (an Enum's .value is a slow descriptor)
 
 
 #: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
@@ -653,7 +654,7 @@ class Supervisor:
         if math.isfinite(latency):
             metrics["link_latency_s"] = latency
         # the phases as logged: after the budget watch, which may have made them hold
-        logged = [p.agent.phase.value for p in pilots]
+        logged = [_PHASE_VALUE[p.agent.phase] for p in pilots]
         self.recorder.log_tick(
             t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
             phases=logged, cmd=cmd, metrics=metrics,
@@ -731,7 +732,8 @@ class Supervisor:
         st = FleetStatus(t_s=self.t_s(), stage=self.stage, vehicles=len(self.pilots))
         counts: dict[str, int] = {}
         for p in self.pilots:
-            counts[p.phase.value] = counts.get(p.phase.value, 0) + 1
+            value = _PHASE_VALUE[p.agent.phase]
+            counts[value] = counts.get(value, 0) + 1
             s = p.link.state
             if s.last_heartbeat_s is not None and not p.link.closed:
                 st.connected += 1
