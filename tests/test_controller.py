@@ -18,7 +18,7 @@ from vtube_fleet.core.controller import (
     u5,
     velocity_command,
 )
-from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.neighbours import VerletPairs, pairs_within
 from vtube_fleet.core.params import ControllerParams, ParameterError
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.errors import UserError
@@ -584,3 +584,56 @@ def test_command_evaluator_element_subset_is_bitwise_the_full_evaluation(kind, m
         assert ev.min_pair_distance == (d.min() if d.size else math.inf), step
         p = p + dt * want
     assert fast > 300  # the subset served most steps
+
+
+def test_element_subset_takes_the_general_formula_when_a_margin_comes_near(monkeypatch):
+    """The element subset skips the test ĝ ≥ 1 of the band formula (BarrierBank) while the
+    smallest pair distance and a bound on the leg distances show it holds (_band_floor); a
+    robot driven through a leg and a pair driven into each other must still get the general
+    formula at the steps where they need it, bitwise as velocity_command."""
+    from vtube_fleet.core import controller as ctl
+    from vtube_fleet.core.barrier import BarrierBank
+
+    for E1, D1 in ((3.9, 0.97), (1.0 + 1e-6, 1.0), (7.3e-3, 2.5e-3)):
+        x0 = ctl._band_floor(E1, D1)
+        assert x0 * E1 - D1 >= 1.0 and math.nextafter(x0, 0.0) * E1 - D1 < 1.0 + 1e-12
+    ta = TubeArrays.from_tubes([make_tube(a_h=0.1, a_r=0.05, length=12.0, w0=6.0)])
+    ev = CommandEvaluator(ta, PAPER, "new", track_min_pair=True)
+    general = {"n": 0}
+    evaluate = BarrierBank.evaluate
+
+    def counted(self, x, out=None):
+        general["n"] += int(not np.min(x * self._E1[: x.shape[0]] - self._D1[: x.shape[0]])
+                            >= 1.0)
+        return evaluate(self, x, out)
+
+    monkeypatch.setattr(BarrierBank, "evaluate", counted)
+    real_core = ctl._Active.core
+    fast = {"n": 0}
+
+    def counting_core(self, z):
+        fast["n"] += 1
+        return real_core(self, z)
+
+    monkeypatch.setattr(ctl._Active, "core", counting_core)
+    verlet = VerletPairs(PAPER.r_s + PAPER.r_a, 0.375)
+    grid = np.column_stack([1.0 + np.arange(20) % 5, -1.2 + 0.8 * (np.arange(20) // 5)])
+    k = np.zeros(24, np.intp)
+    k.setflags(write=False)
+    dt = 1e-3
+    move = 3.5 * dt * (1 + 1e-6)
+    for step in range(700):
+        s = step * dt * 3.5
+        extra = np.array([[8.0, 1.5 + s],  # through the left leg (d_Th from 0.7 to < 0)
+                          [8.0, -2.0 - 0.5 * s],  # through the right leg (from 0.6)
+                          [10.0, 0.0 + 0.5 * s], [10.0, 1.2 - 0.5 * s]])  # into each other
+        p = np.ascontiguousarray(np.vstack([grid + [s, 0.0], extra]))
+        pairs = verlet.candidates(p)
+        n0 = general["n"]
+        want = velocity_command(p, k, ta, PAPER, pairs=pairs)
+        need = general["n"] > n0
+        got = ev.step(p.view(np.complex128).ravel(), k, pairs, move=move)
+        assert got.view(np.float64).reshape(-1, 2).tobytes() == want.tobytes(), step
+        if need:  # the subset needed the general formula too
+            assert general["n"] == n0 + 2, step
+    assert general["n"] > 200 and fast["n"] > 600  # (subset and full evaluation alike)

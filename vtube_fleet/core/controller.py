@@ -527,6 +527,25 @@ _ZPAD.setflags(write=False)
 _PAD = np.array([[0.0], [-_FAR], [0.0], [0.0]], np.complex128)
 
 
+#: np.bincount without the __array_function__ dispatch (a third of the call on ~1,000 weights)
+_bincount = getattr(np.bincount, "_implementation", np.bincount)
+#: the clip ufunc (min(max(x, lo), hi) in one call, NaN propagated as by np.maximum/minimum;
+#: np.clip itself is a Python wrapper around it); None: np.maximum, then np.minimum
+_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None)
+if not isinstance(_clip, np.ufunc):  # pragma: no cover - another numpy
+    _clip = None
+
+
+def _band_floor(E1: float, D1: float) -> float:
+    """A distance x0 with ĝ(x) = x·E1 − D1 ≥ 1 (rounded as numpy rounds it, two operations)
+    for every x ≥ x0: the band formula of :class:`BarrierBank` then holds (E1 > 0, so ĝ is
+    monotone in x, also after rounding)."""
+    x = (1.0 + D1) / E1
+    while not x * E1 - D1 >= 1.0:
+        x = math.nextafter(x, math.inf)
+    return x
+
+
 def _finite(x: np.ndarray) -> bool:
     """All of the non-empty ``x`` finite (argmin/argmax return the first NaN)."""
     return bool(-math.inf < x[x.argmin()] and x[x.argmax()] < math.inf)
@@ -543,17 +562,27 @@ class _Active:
     (a sum that starts at +0 is unchanged by ±0 terms), so B is bitwise the same. The leg block
     is padded to a multiple of 16 (padding at distance ``_FAR``, weights 0) so that a few banks
     serve every subset.
+
+    Whether some element needs the general formula
+    (ĝ < 1, :class:`BarrierBank`) is known without looking at ĝ while the smallest pair
+    distance is at least :attr:`pair_ok` and no leg distance can have come below
+    :attr:`leg_ok` since the legs were chosen (:attr:`leg_floor` of the slack).
     """
 
     __slots__ = ("g", "pa", "slack", "P", "Lc", "n", "M", "idx", "G01a", "G23a", "GAa",
-                 "slots", "bank", "X", "X2", "xp", "W", "Wf", "Wl", "Wi", "Wif", "Wjf", "tmpc",
+                 "slots", "bank", "X", "X2", "xp", "W", "Wf", "tmpc", "Gd",
                  "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "tail_slots",
-                 "fslots", "tmpr", "zz", "zI", "dz", "zL", "Y", "Yc", "Ylc", "Ypc", "Yp", "gb",
-                 "ab", "nm", "bound", "pos", "free", "fs3")
+                 "fslots", "tmpr", "zz", "dz", "zL", "Y", "Yc", "Yp", "gb",
+                 "ab", "nm", "bound", "pos", "free", "fs3", "pair_ok", "leg_ok",
+                 "leg_floor")
 
     def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
-        legs, sig, _ = prep.blocks(16, 16)
+        legs, sig, pair = prep.blocks(16, 16)
         self.cut = max(float(legs.d2[0]), float(sig.d2[0]))
+        # (legs and pairs: one E1, D1 per kind; σ elements have ĝ ≡ 2)
+        self.pair_ok = _band_floor(float(pair._E1[0]), float(pair._D1[0]))
+        self.leg_ok = _band_floor(float(legs._E1[0]), float(legs._D1[0])) + 1e-9
+        self.leg_floor = math.inf
         self.prep, self.n, self.M, self.track = prep, M, M, track
         self.r_pair, self.pmin, self.slack = prep.r_pair, math.inf, -math.inf
         self.g = self.pa = None
@@ -620,9 +649,11 @@ class _Active:
         # 2 Lc: conj(n) and nᵀp_1 twice, the points gathered twice (1-D calls, no broadcast)
         G2 = np.concatenate([la[:2], la[:2]], axis=1)
         self.G01a, self.G23a = G2[0], G2[1].real
-        self.GAa = la[2:].reshape(2 * Lc)
         er = ep % n
         self.idx = np.concatenate([self.pair_idx, er, er])
+        # ĝ ≥ 1 for every leg element while the points moved less than this below the slack
+        dmin = float(d[d.argmin()]) if d.shape[0] else math.inf
+        self.leg_floor = self.slack - (dmin - self.leg_ok)
         # legs | σ slots of the kept elements (the pads': robot 0's, with ±0 weights: harmless)
         fs3 = self.fs3 = self.fslots[: 8 * n].reshape(2, 2 * n, 2)
         self.slots = np.concatenate([fs3.take(ep, axis=1).reshape(4 * Lc), self.tail_slots])
@@ -646,30 +677,33 @@ class _Active:
             self.xp = self.X[2 * Lc:]
             self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
             self.Wf = self.W.view(np.float64)
-            self.Wl = self.W[: 2 * Lc]
-            self.Wi = self.W[2 * Lc: 2 * Lc + P]
-            self.Wif = self.Wf[4 * Lc: 4 * Lc + 2 * P]
-            self.Wjf = self.Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P]
             self.tmpc = np.empty(2 * Lc, np.complex128)
             self.tmpr = self.tmpc.real
             self.zz = np.empty(2 * P + 2 * Lc, np.complex128)  # [p_I | p_J | leg points × 2]
-            self.zI, self.dz, self.zL = self.zz[:P], self.zz[P: 2 * P], self.zz[2 * P:]
+            self.zL = self.zz[2 * P:]
+            # the second factors of the weights: [E_h, E_r of the legs, A of the σ's (GAa) |
+            # p_j − p_i of the pairs (dz)], one product with Yc for all
+            self.Gd = np.empty(nx, np.complex128)
+            self.GAa, self.dz = self.Gd[: 2 * Lc], self.Gd[2 * Lc:]
             # the bank's values (legs, σ | pairs) as the real parts of complex numbers with
             # imaginary parts 0: the weights are then complex × complex products (what numpy
             # computes for complex × float, after casting the float through a buffer)
             self.Yc = np.zeros(nx, np.complex128)
             self.Y = self.Yc.real
-            self.Ylc, self.Ypc, self.Yp = self.Yc[: 2 * Lc], self.Yc[2 * Lc:], self.Y[2 * Lc:]
+            self.Yp = self.Y[2 * Lc:]
             self.gb, self.ab, self.nm = np.empty(nx), np.empty(nx), np.empty(nx)
+        self.GAa[:] = la[2:].reshape(2 * Lc)
         if fresh or g is not self.g:
             self.W[2 * Lc + 2 * P:] = g.n_c
         self.g = g
         bk = self.bank
         sl = bk.prefix(nx)
-        self.bound = (self.idx, self.zz, self.dz, self.zI, self.xp, self.G01a, self.zL,
-                      self.tmpc, self.tmpr, self.G23a, self.X2, self.X, self.Y, self.Ylc,
-                      self.GAa, self.Wl, self.Yp, self.Ypc, self.Wi, self.Wif, self.Wjf,
-                      self.slots, self.Wf, 4 * self.M, self.gb, self.ab, self.nm, *sl,
+        Wf = self.Wf
+        self.bound = (self.idx, self.zz, self.zz[P: 2 * P], self.zz[:P], self.dz, self.xp,
+                      self.G01a, self.zL, self.tmpc, self.tmpr, self.G23a, self.X2, self.X,
+                      self.Y, self.Yc, self.Gd, self.W[: nx], self.Yp,
+                      Wf[4 * Lc: 4 * Lc + 2 * P], Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P],
+                      self.slots, Wf, 4 * self.M, self.gb, self.ab, self.nm, *sl,
                       bk._zero, bk._one)
 
     def _legs_update(self, g: _Gathered, z: np.ndarray, ch: list[int]) -> bool:
@@ -696,9 +730,11 @@ class _Active:
                 if not -math.inf < d < math.inf:
                     return False
                 if d < thr:
-                    adds.append((e, r, c01, c23.real, cE, cA))
+                    adds.append((e, r, c01, c23.real, cE, cA, d))
         if len(adds) > len(free) + gone:
             return False
+        for a in adds:
+            self.leg_floor = max(self.leg_floor, self.slack - (a[6] - self.leg_ok))
         G01a, G23a, GAa, idx, slots, fs3 = (self.G01a, self.G23a, self.GAa, self.idx,
                                            self.slots, self.fs3)
         for r in ch:
@@ -709,7 +745,7 @@ class _Active:
                     G23a[j] = G23a[Lc + j] = -_FAR
                     free.append(j)
         o = 2 * P
-        for e, r, c01, c23, cE, cA in adds:
+        for e, r, c01, c23, cE, cA, _ in adds:
             j = free.pop()
             pos[e] = j
             G01a[j] = G01a[Lc + j] = c01
@@ -729,35 +765,38 @@ class _Active:
         """:func:`_core` on the subset (the same operations per element, the band formula of
         :meth:`BarrierBank.evaluate` inlined, into buffers kept between calls); sets
         :attr:`pmin`."""
-        (idx, zz, dz, zI, xp, G01a, zL, tmpc, tmpr, G23a, X2, X, Y, Ylc, GAa, Wl, Yp, Ypc, Wi,
-         Wif, Wjf, slots, Wf, M4, gb, ab, nm, d2, Bw, E1, D1, Q0, R1, R2, zero,
-         one) = self.bound
+        (idx, zz, zJ, zI, dz, xp, G01a, zL, tmpc, tmpr, G23a, X2, X, Y, Yc, Gd, Wd, Yp, Wif,
+         Wjf, slots, Wf, M4, gb, ab, nm, d2, Bw, E1, D1, Q0, R1, R2, zero, one) = self.bound
         # (outputs passed by position: numpy then parses no keywords, ~10 % of a small call)
         mul, sub = np.multiply, np.subtract
         z.take(idx, None, zz, "clip")  # [p_I | p_J | leg points] (valid indices)
-        sub(dz, zI, dz)  # p_j − p_i
+        sub(zJ, zI, dz)  # p_j − p_i
         np.abs(dz, xp)
+        pm = float(xp[xp.argmin()]) if self.P else math.inf
         if self.track:
-            pm = float(xp[xp.argmin()]) if self.P else math.inf
+            pt = pm
             # a pair left out is farther than r_pair + 2·slack; else take all candidates
-            if not pm < self.r_pair + 2.0 * self.slack and self.IJ.shape[0]:
+            if not pt < self.r_pair + 2.0 * self.slack and self.IJ.shape[0]:
                 Pa = self.IJ.shape[0] >> 1
                 za = z.take(self.IJ)
                 da = za[Pa:]
                 da -= za[:Pa]
                 da = np.abs(da)
-                pm = float(da[da.argmin()])
-            self.pmin = pm
+                pt = float(da[da.argmin()])
+            self.pmin = pt
         mul(G01a, zL, tmpc)
         sub(tmpr, G23a, X2)  # (dtl)/(dtr): Re(conj(n)·z) − nᵀp_1
         # BarrierBank.evaluate(X, Y), its common path inlined (the same operations)
         mul(X, E1, gb)
         sub(gb, D1, gb)  # ĝ
-        if gb[gb.argmin()] >= 1.0:
+        if (pm >= self.pair_ok and self.slack > self.leg_floor) or gb[gb.argmin()] >= 1.0:
             sub(d2, X, ab)
             mul(ab, Bw, ab)
-            np.maximum(ab, zero, out=ab)
-            np.minimum(ab, one, out=ab)
+            if _clip is not None:  # (a = −0 cannot occur: d2 − x ≠ −0)
+                _clip(ab, zero, one, ab)
+            else:  # pragma: no cover
+                np.maximum(ab, zero, out=ab)
+                np.minimum(ab, one, out=ab)
             mul(ab, R2, nm)
             np.add(nm, R1, nm)
             mul(nm, ab, nm)
@@ -767,11 +806,12 @@ class _Active:
             np.divide(nm, gb, Y)
         else:  # some element below d1·x2 (or NaN): the general formula
             self.bank.evaluate(X, Y)
-        mul(Ylc, GAa, Wl)  # u3', u4'; σ·A
         np.divide(Yp, xp, Yp)
-        mul(dz, Ypc, Wi)
+        # u3', u4'; σ·A; u2: (p_j − p_i)·y/‖p_ij‖ for i (y·(p_j − p_i): the same products, as
+        # y has imaginary part 0), the negation for j
+        mul(Yc, Gd, Wd)
         np.negative(Wif, Wjf)  # on the floats: numpy's complex negative is slow
-        return np.bincount(slots, Wf, M4).view(np.complex128)
+        return _bincount(slots, Wf, M4).view(np.complex128)
 
 
 class CommandEvaluator:
