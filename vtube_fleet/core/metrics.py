@@ -350,7 +350,15 @@ class SafetyMonitor:
         k, m = z.shape
         g = self._geom
         z0 = z[0]
-        disp = np.abs(z - z0).max(axis=0) if k > 1 else np.zeros(m)  # D_i
+        # D_i, bounded from above by the box of robot i's positions (2 reductions instead of
+        # |z − z0| of every step): a larger D_i only adds candidates, the minima are the same
+        if k > 1:
+            zf, z0f = z.view(np.float64), z0.view(np.float64)
+            ext = np.maximum(np.maximum.reduce(zf, axis=0) - z0f,
+                             z0f - np.minimum.reduce(zf, axis=0))
+            disp = np.abs(ext.view(np.complex128)) * (1.0 + 1e-12)
+        else:
+            disp = np.zeros(m)
         zt = np.ascontiguousarray(z.T)  # (M, K)
         minimum = np.minimum.reduce
 
@@ -393,9 +401,10 @@ class SafetyMonitor:
             if vel.shape != (k, m, 2):
                 raise ValueError(f"vel shape {vel.shape} differs from pos shape {(k, m, 2)}")
             zv = _as_complex(vel)  # (K, M): the minima over the robots, along the last axis
-            sp2 = (zv * zv.conj()).real
-            vmin = np.sqrt(minimum(sp2, axis=1))
-            vmax = np.sqrt(np.maximum.reduce(sp2, axis=1))
+            # ‖v‖², reduced along the robots as the contiguous columns of its transpose
+            sp2 = np.ascontiguousarray((zv * zv.conj()).real.T)
+            vmin = np.sqrt(minimum(sp2, axis=0))
+            vmax = np.sqrt(np.maximum.reduce(sp2, axis=0))
             speed_bad = self._speed_bad(vmin, vmax)
         else:
             vmin, vmax, speed_bad = self._no_speeds(k)
