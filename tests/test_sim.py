@@ -475,9 +475,9 @@ def test_element_subset_changes_no_bit(paper, monkeypatch) -> None:
     calls = {"subset": 0}
     core = ctl._Active.core
 
-    def counted(self, z):
+    def counted(self, z, *args):
         calls["subset"] += 1
-        return core(self, z)
+        return core(self, z, *args)
 
     monkeypatch.setattr(ctl._Active, "core", counted)
     fast = _pinned_run("perturbed_adaptive_6s", paper)

@@ -573,7 +573,7 @@ class _Active:
                  "slots", "bank", "X", "X2", "xp", "W", "Wf", "tmpc", "Gd",
                  "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "tail_slots",
                  "fslots", "tmpr", "zz", "dz", "zL", "Y", "Yc", "Yp", "gb",
-                 "ab", "nm", "bound", "pos", "free", "fs3", "pair_ok", "leg_ok",
+                 "ab", "nm", "bound", "pos", "free", "fs3", "pair_ok", "leg_ok", "U", "V", "T",
                  "leg_floor")
 
     def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
@@ -672,7 +672,13 @@ class _Active:
                     [(legs, Lc), (sig, Lc), (pair, len(pair))])
             self.bank = bank
             self.Lc = Lc
-            self.X = np.empty(nx)
+            # the band formula's first steps on two elements per element (one call each):
+            # V = [x | D1], U = [d2 | x·E1] → U − V = [d2 − x | ĝ] in T (and T[:nx]·(1/w) → a)
+            sl = bank.prefix(nx)
+            self.V, self.U, self.T = np.empty(2 * nx), np.empty(2 * nx), np.empty(2 * nx)
+            self.V[nx:] = sl[3]
+            self.U[:nx] = sl[0]
+            self.X = self.V[:nx]
             self.X2 = self.X[: 2 * Lc]
             self.xp = self.X[2 * Lc:]
             self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
@@ -691,7 +697,7 @@ class _Active:
             self.Yc = np.zeros(nx, np.complex128)
             self.Y = self.Yc.real
             self.Yp = self.Y[2 * Lc:]
-            self.gb, self.ab, self.nm = np.empty(nx), np.empty(nx), np.empty(nx)
+            self.gb, self.ab, self.nm = self.T[nx:], np.empty(nx), np.empty(nx)
         self.GAa[:] = la[2:].reshape(2 * Lc)
         if fresh or g is not self.g:
             self.W[2 * Lc + 2 * P:] = g.n_c
@@ -699,12 +705,14 @@ class _Active:
         bk = self.bank
         sl = bk.prefix(nx)
         Wf = self.Wf
+        lay, w = self.pa[3], self.pa[6]
         self.bound = (self.idx, self.zz, self.zz[P: 2 * P], self.zz[:P], self.dz, self.xp,
                       self.G01a, self.zL, self.tmpc, self.tmpr, self.G23a, self.X2, self.X,
                       self.Y, self.Yc, self.Gd, self.W[: nx], self.Yp,
                       Wf[4 * Lc: 4 * Lc + 2 * P], Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P],
-                      self.slots, Wf, 4 * self.M, self.gb, self.ab, self.nm, *sl,
-                      bk._zero, bk._one)
+                      self.slots, Wf, 4 * self.M, self.gb, self.ab, self.nm, self.U, self.V,
+                      self.T, self.U[nx:], self.T[:nx], sl[1], sl[2], sl[4], sl[5], sl[6],
+                      bk._zero, bk._one, w.nb, lay.mv, lay.cv, w.NBr, w.NB, self.M)
 
     def _legs_update(self, g: _Gathered, z: np.ndarray, ch: list[int]) -> bool:
         """The robots ``ch`` changed sub-tube (``g``: the new ones; pairs and slack as
@@ -761,12 +769,15 @@ class _Active:
         self.g = g
         return True
 
-    def core(self, z: np.ndarray) -> np.ndarray:
+    def core(self, z: np.ndarray, out: np.ndarray | None = None, new: bool = False
+             ) -> np.ndarray:
         """:func:`_core` on the subset (the same operations per element, the band formula of
         :meth:`BarrierBank.evaluate` inlined, into buffers kept between calls); sets
-        :attr:`pmin`."""
+        :attr:`pmin`. ``new``: also :func:`_finish` of (ModifiedVectorField), inlined (the
+        same operations), returning v_c (written to ``out`` if given)."""
         (idx, zz, zJ, zI, dz, xp, G01a, zL, tmpc, tmpr, G23a, X2, X, Y, Yc, Gd, Wd, Yp, Wif,
-         Wjf, slots, Wf, M4, gb, ab, nm, d2, Bw, E1, D1, Q0, R1, R2, zero, one) = self.bound
+         Wjf, slots, Wf, M4, gb, ab, nm, U, V, T, Ug, Ta, Bw, E1, Q0, R1, R2, zero, one, fnb,
+         fmv, fcv, fNBr, fNB, M) = self.bound
         # (outputs passed by position: numpy then parses no keywords, ~10 % of a small call)
         mul, sub = np.multiply, np.subtract
         z.take(idx, None, zz, "clip")  # [p_I | p_J | leg points] (valid indices)
@@ -787,11 +798,10 @@ class _Active:
         mul(G01a, zL, tmpc)
         sub(tmpr, G23a, X2)  # (dtl)/(dtr): Re(conj(n)·z) − nᵀp_1
         # BarrierBank.evaluate(X, Y), its common path inlined (the same operations)
-        mul(X, E1, gb)
-        sub(gb, D1, gb)  # ĝ
+        mul(X, E1, Ug)
+        sub(U, V, T)  # [d2 − x | ĝ = x·E1 − D1]
         if (pm >= self.pair_ok and self.slack > self.leg_floor) or gb[gb.argmin()] >= 1.0:
-            sub(d2, X, ab)
-            mul(ab, Bw, ab)
+            mul(Ta, Bw, ab)
             if _clip is not None:  # (a = −0 cannot occur: d2 − x ≠ −0)
                 _clip(ab, zero, one, ab)
             else:  # pragma: no cover
@@ -811,7 +821,15 @@ class _Active:
         # y has imaginary part 0), the negation for j
         mul(Yc, Gd, Wd)
         np.negative(Wif, Wjf)  # on the floats: numpy's complex negative is slow
-        return _bincount(slots, Wf, M4).view(np.complex128)
+        B = _bincount(slots, Wf, M4).view(np.complex128)
+        if not new:
+            return B
+        # [v q/‖q‖ | sat(u_rep, v'_max)], then u1'' + sat(...) (ModifiedVectorField)
+        nb = np.abs(B, fnb)
+        np.maximum(nb, fmv, out=nb)
+        np.divide(fcv, nb, fNBr)
+        mul(B, fNB, B)
+        return np.add(B[:M], B[M:], out)
 
 
 class CommandEvaluator:
@@ -886,15 +904,10 @@ class CommandEvaluator:
             slack = act.slack - (move * (1.0 + 1e-9) + 1e-9)
             if slack > 0.0:  # (else the general path below counts the move down itself)
                 act.slack = slack
-                B = act.core(z)
+                v = act.core(z, out, True)
                 if fs[5]:
                     self.min_pair_distance = act.pmin
-                nb = np.abs(B, fs[6])
-                np.maximum(nb, fs[7], out=nb)
-                np.divide(fs[8], nb, fs[9])
-                np.multiply(B, fs[10], B)
-                M = fs[3]
-                return np.add(B[:M], B[M:], out)
+                return v
         self._fast = None
         M = z.shape[0]
         f = self._same
@@ -923,18 +936,16 @@ class CommandEvaluator:
                 act = self._act = _Active(self._prep, M, w.track)
             act.slack -= move * (1.0 + 1e-9) + 1e-9
             if (act.slack > 0.0 and act.g is g and act.pa is pa) or act.refresh(g, pa, z):
+                if self.kind == "new":  # _finish inlined (the same operations)
+                    v = act.core(z, out, True)
+                    if w.track:
+                        self.min_pair_distance = act.pmin
+                    if self._same is not None:  # the next call may take the short path
+                        self._fast = (k, pairs[0], pairs[1], M, act, w.track)
+                    return v
                 B = act.core(z)
                 if w.track:
                     self.min_pair_distance = act.pmin
-                if self.kind == "new":  # _finish inlined (the same operations)
-                    if self._same is not None:  # the next call may take the short path
-                        self._fast = (k, pairs[0], pairs[1], M, act, w.track, w.nb, lay.mv,
-                                      lay.cv, w.NBr, w.NB)
-                    nb = np.abs(B, out=w.nb)
-                    np.maximum(nb, lay.mv, out=nb)
-                    np.divide(lay.cv, nb, out=w.NBr)
-                    np.multiply(B, w.NB, out=B)
-                    return np.add(B[:M], B[M:], out=out)
                 p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
                 return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
         self._act = None  # (how far the points move until the next call is unknown)

@@ -59,7 +59,7 @@ from vtube_fleet.fleet.compensation import (
     ResidualTracker,
 )
 from vtube_fleet.frames import TubeFrame
-from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState
+from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_velocities_ned
 from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, Phase
 
 __all__ = [
@@ -1095,19 +1095,32 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
     if len(batch) < len(commanded):
         taken = set(batch)
         slow = {p.vehicle_id: cmds[k] for k, p in enumerate(commanded) if k not in taken}
-    sent: list[int] = []  # rows of ``batch`` sent, for the residual
+    order: list[VehiclePilot] = []  # the batch, in the pilots' order
     for p in pilots:
         j = fast.get(p.vehicle_id)
         if j is None:
             p.actuate(now_mono, slow.get(p.vehicle_id), view)
-            continue
-        p.cmd_in_tube = False
-        try:
-            p._send_in_tube(*rows[j])
-        except LinkError as exc:
-            p.setpoint_failed(exc)
-            continue
-        sent.append(j)
+        else:
+            order.append(p)
+    sent: list[int] = []  # rows of ``batch`` sent, for the residual
+    if order:
+        # what _send_in_tube does per pilot, the sends for all at once (one link class each)
+        js = [fast[p.vehicle_id] for p in order]
+        for p, j in zip(order, js, strict=True):
+            cmd_xy, vx, vy, _, _, _ = rows[j]
+            p.cmd_xy, p.cmd_in_tube, p.sent_xy = cmd_xy, True, (vx, vy)
+        failed = send_velocities_ned([p.link for p in order],
+                                     np.array([rows[j][3] for j in js]),
+                                     np.array([rows[j][4] for j in js]),
+                                     np.array([rows[j][5] for j in js]))
+        for p, j, exc in zip(order, js, failed, strict=True):
+            if exc is not None:
+                p.setpoint_failed(exc)
+                continue
+            p.setpoints_sent += 1
+            if not p.sent_setpoint.is_set():
+                p.sent_setpoint.set()
+            sent.append(j)
     if corr is None or not sent:
         return
     tracked = [commanded[batch[j]] for j in sent]

@@ -19,9 +19,11 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
+
+import numpy as np
 
 from vtube_fleet.errors import UserError
 from vtube_fleet.link.endpoints import Endpoint, parse_endpoint
@@ -39,6 +41,8 @@ __all__ = [
     "VehicleLink",
     "READY_MAX_AGE_S",
     "cancel_tasks",
+    "send_velocities_ned",
+    "setpoint_arrays",
 ]
 
 #: A heartbeat / position older than this does not count for :meth:`VehicleLink.wait_ready`.
@@ -195,6 +199,38 @@ class VehicleState:
     @property
     def has_global_position(self) -> bool:
         return self.last_global_s is not None
+
+
+def setpoint_arrays(links: Sequence[VehicleLink], north_m_s: np.ndarray, east_m_s: np.ndarray,
+                    down_m_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows of a batch of setpoints as float arrays; :class:`ValueError` (the one
+    :meth:`VehicleLink.send_velocity_ned` raises) naming the first link with a non-finite one."""
+    north, east, down = (np.asarray(a, dtype=float) for a in (north_m_s, east_m_s, down_m_s))
+    bad = np.flatnonzero(~(np.isfinite(north) & np.isfinite(east) & np.isfinite(down)))
+    if bad.size:
+        k = int(bad[0])
+        links[k]._check_setpoint(float(north[k]), float(east[k]), float(down[k]))
+    return north, east, down
+
+
+def send_velocities_ned(links: Sequence[VehicleLink], north_m_s: np.ndarray,
+                        east_m_s: np.ndarray, down_m_s: np.ndarray) -> list[LinkError | None]:
+    """One velocity setpoint per link (row k to ``links[k]``), each link class's
+    :meth:`VehicleLink.send_velocities_ned` for its own links (a fleet's setpoints in a tick).
+    Returns per link None (sent) or the :class:`LinkError` its send raised; a non-finite
+    setpoint raises :class:`ValueError` before anything is sent."""
+    north, east, down = setpoint_arrays(links, north_m_s, east_m_s, down_m_s)
+    groups: dict[type[VehicleLink], list[int]] = {}
+    for k, link in enumerate(links):
+        groups.setdefault(type(link), []).append(k)
+    if len(groups) == 1:
+        return type(links[0]).send_velocities_ned(links, north, east, down)
+    out: list[LinkError | None] = [None] * len(links)
+    for cls, ks in groups.items():
+        for k, exc in zip(ks, cls.send_velocities_ned([links[k] for k in ks], north[ks],
+                                                      east[ks], down[ks]), strict=True):
+            out[k] = exc
+    return out
 
 
 class VehicleLink(abc.ABC):
@@ -452,6 +488,26 @@ class VehicleLink(abc.ABC):
         yaw_deg: float | None = None,
     ) -> None:
         """Send one velocity setpoint in the vehicle's LOCAL_NED frame now (non-blocking)."""
+
+    @classmethod
+    def send_velocities_ned(cls, links: Sequence[VehicleLink], north_m_s: np.ndarray,
+                            east_m_s: np.ndarray, down_m_s: np.ndarray
+                            ) -> list[LinkError | None]:
+        """:meth:`send_velocity_ned` for many links of this class (velocity only), in order:
+        row k to ``links[k]``. Returns, per link, None (sent) or the :class:`LinkError` that
+        one send raised; a non-finite setpoint raises :class:`ValueError` before anything is
+        sent. Backends may send the whole batch at once (``mavlink``)."""
+        north, east, down = setpoint_arrays(links, north_m_s, east_m_s, down_m_s)
+        out: list[LinkError | None] = []
+        for link, n, e, d in zip(links, north.tolist(), east.tolist(), down.tolist(),
+                                 strict=True):
+            try:
+                link.send_velocity_ned(n, e, d)
+            except LinkError as exc:
+                out.append(exc)
+            else:
+                out.append(None)
+        return out
 
     @property
     @abc.abstractmethod
