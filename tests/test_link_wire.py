@@ -8,13 +8,15 @@ from __future__ import annotations
 import math
 import random
 import struct
+import time
 
+import numpy as np
 import pytest
 from link_fake_vehicle import RecordingTransport
 from pymavlink.dialects.v20 import common as mavlink2
 from pymavlink.generator.mavcrc import x25crc_slow
 
-from vtube_fleet.link import MavlinkLink
+from vtube_fleet.link import LinkError, MavlinkLink
 from vtube_fleet.link.wire import WireCodec, _mcrf4xx_hqx, mcrf4xx
 
 PX4_ADDR = ("127.0.0.1", 14580)
@@ -125,6 +127,73 @@ def test_the_link_sends_what_pymavlink_would_send_on_both_paths() -> None:
     assert (hb.type, hb.autopilot, hb.system_status, hb.get_srcSystem()) == (6, 8, 4, 255)
 
 
+def _batch_links(fast_codec: list[bool]) -> list[MavlinkLink]:
+    rng = random.Random(5)
+    links = []
+    for k, fast in enumerate(fast_codec):
+        link = MavlinkLink(f"udpin://127.0.0.1:{20000 + k}", sysid=k % 255 + 1,
+                           fast_codec=fast, gcs_compid=190 + k % 2)
+        link._transport = RecordingTransport()  # type: ignore[assignment]
+        link._remote = PX4_ADDR
+        link._t0 = 0.0
+        link._mav.seq = rng.randrange(256)
+        links.append(link)
+    return links
+
+
+def test_a_fleets_setpoints_sent_at_once_are_the_bytes_each_link_sends(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """:meth:`MavlinkLink.send_velocities_ned` (frames built together, one CRC table lookup
+    per byte) against :meth:`MavlinkLink.send_velocity_ned` link by link: the same datagrams,
+    sequence numbers and counters; links off the fast path (pymavlink codec), not connected
+    or closed are handled one by one, with their errors returned in place."""
+    from vtube_fleet.link.base import send_velocities_ned
+
+    rng = random.Random(9)
+    n = 300
+    modes = [k % 7 != 3 for k in range(n)]  # every 7th from 3 on through pymavlink
+    north = [_f32(rng.uniform(-5, 5)) for _ in range(n)]
+    east = [rng.uniform(-5, 5) for _ in range(n)]  # (rounded to float32 on both paths)
+    down = [rng.choice([0.0, -0.0, rng.uniform(-2, 2)]) for _ in range(n)]
+    sent = []
+    monkeypatch.setattr(time, "monotonic", lambda: 1000.0)  # time_boot_ms: one clock for both
+    for batch in (True, False):
+        links = _batch_links(modes)
+        links[10]._remote = None  # not connected yet
+        links[11]._closed = True
+        for k, link in enumerate(links):
+            link._t0 = 12.345 + 0.01 * k
+        if batch:
+            errors = send_velocities_ned(links, np.array(north), np.array(east),
+                                         np.array(down))
+        else:
+            errors = []
+            for link, *v in zip(links, north, east, down, strict=True):
+                try:
+                    link.send_velocity_ned(*v)
+                except LinkError as exc:
+                    errors.append(exc)
+                else:
+                    errors.append(None)
+        assert [k for k, e in enumerate(errors) if e is not None] == [10, 11]
+        assert all(isinstance(e, LinkError) for e in errors if e is not None)
+        assert "not seen yet" in str(errors[10]) and "closed" in str(errors[11])
+        sent.append([(lk._transport.sent, lk._mav.seq, lk._setpoints_sent, lk.tx_packets)
+                     for lk in links])
+    assert sent[0] == sent[1]
+    assert sum(len(x[0]) for x in sent[0]) == n - 2
+
+
+def test_a_fleets_setpoints_with_a_non_finite_value_send_nothing() -> None:
+    from vtube_fleet.link.base import send_velocities_ned
+
+    links = _batch_links([True] * 4)
+    with pytest.raises(ValueError, match="must be finite"):
+        send_velocities_ned(links, np.zeros(4), np.array([0.0, 0.0, math.nan, 0.0]),
+                            np.zeros(4))
+    assert all(not lk._transport.sent for lk in links)
+
+
 @pytest.mark.parametrize("fast", [True, False], ids=["fast_codec", "pymavlink"])
 def test_link_counts_bad_frames_and_decodes_good_ones_alike(fast: bool) -> None:
     v = mavlink2.MAVLink(None, 3, 1)
@@ -223,7 +292,7 @@ async def test_datagram_socket_drains_in_bursts_and_sends() -> None:
     got: list[tuple[bytes, object]] = []
     errors: list[OSError] = []
     ds = await DatagramSocket.open("127.0.0.1", 0, listens=True,
-                                   on_datagram=lambda d, a: got.append((d, a)),
+                                   on_datagram=lambda d, a, t: got.append((d, a)),
                                    on_error=errors.append, burst=64)
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", 0))
@@ -265,7 +334,7 @@ async def test_the_loops_sockets_share_one_epoll_read_in_rounds() -> None:
     socks: list[DatagramSocket] = []
 
     def on(k: int):
-        def handle(d: bytes, a: object) -> None:
+        def handle(d: bytes, a: object, t: float) -> None:
             got[k].append(int.from_bytes(d, "little"))
             if k == 2 and len(got[2]) == 2:
                 socks[2].close()  # closed by its own callback, mid-wake-up
@@ -316,6 +385,9 @@ async def test_datagram_socket_counts_sends_the_kernel_refuses() -> None:
         def sendto(self, data: bytes, addr: object) -> int:
             raise self.refusal
 
+        def recvfrom(self, size: int) -> tuple[bytes, object]:
+            return self.real.recvfrom(size)
+
         def fileno(self) -> int:
             return self.real.fileno()
 
@@ -324,7 +396,7 @@ async def test_datagram_socket_counts_sends_the_kernel_refuses() -> None:
 
     errors: list[OSError] = []
     sock = FullSocket()
-    ds = DatagramSocket(asyncio.get_running_loop(), sock, lambda d, a: None, errors.append)
+    ds = DatagramSocket(asyncio.get_running_loop(), sock, lambda d, a, t: None, errors.append)
     ds.sendto(b"a", ("127.0.0.1", 9))
     ds.sendto(b"b", ("127.0.0.1", 9))
     assert ds.tx_dropped == 2 and not errors

@@ -69,11 +69,12 @@ from vtube_fleet.link.base import (
     StatusText,
     VehicleLink,
     cancel_tasks,
+    setpoint_arrays,
 )
 from vtube_fleet.link.endpoints import Endpoint
 from vtube_fleet.link.signing import LINK_UNSIGNED_ALLOWED, LinkSigning, SigningError
 from vtube_fleet.link.udp import DatagramSocket
-from vtube_fleet.link.wire import WireCodec
+from vtube_fleet.link.wire import WireCodec, mcrf4xx
 
 __all__ = [
     "MavlinkLink",
@@ -614,6 +615,55 @@ class MavlinkLink(VehicleLink):
         self._last_setpoint_s = time.monotonic()
         self._setpoints_sent += 1
         self._stall_warned = False
+
+    @classmethod
+    def send_velocities_ned(cls, links: Sequence[VehicleLink], north_m_s: np.ndarray,
+                            east_m_s: np.ndarray, down_m_s: np.ndarray
+                            ) -> list[LinkError | None]:
+        """:meth:`VehicleLink.send_velocities_ned`: the links on the struct fast path get their
+        SET_POSITION_TARGET_LOCAL_NED frames built together (:meth:`WireCodec.pack_many`, the
+        bytes :meth:`send_velocity_ned` sends) and then one ``sendto`` each; the others (signed,
+        ``fast_codec`` off, not connected, closed) go one by one."""
+        north, east, down = setpoint_arrays(links, north_m_s, east_m_s, down_m_s)
+        out: list[LinkError | None] = [None] * len(links)
+        fast: list[MavlinkLink] = []
+        rows: list[int] = []
+        for k, link in enumerate(links):
+            tr = link._transport  # type: ignore[attr-defined]
+            if (isinstance(link, MavlinkLink) and not link._closed and link.fast_codec
+                    and link.signing is None and tr is not None and link._remote is not None
+                    and not tr.is_closing()):
+                fast.append(link)
+                rows.append(k)
+                continue
+            try:
+                link.send_velocity_ned(float(north[k]), float(east[k]), float(down[k]))
+            except LinkError as exc:
+                out[k] = exc
+        if not fast:
+            return out
+        now = time.monotonic()
+        n = len(fast)
+        boot_ms = ((now - np.fromiter((lk._t0 for lk in fast), float, n)) * 1000.0
+                   ).astype(np.int64) & 0xFFFFFFFF  # _time_boot_ms, for all
+        frames = _WIRE.pack_many(
+            MSG_SET_POSITION_TARGET_LOCAL_NED,
+            np.fromiter((lk._mav.seq for lk in fast), np.int64, n),
+            np.fromiter((lk.gcs_sysid for lk in fast), np.int64, n),
+            np.fromiter((lk.gcs_compid for lk in fast), np.int64, n),
+            {"time_boot_ms": boot_ms, "vx": north[rows], "vy": east[rows], "vz": down[rows],
+             "type_mask": TYPE_MASK_VELOCITY,
+             "target_system": np.fromiter((lk._sysid or 0 for lk in fast), np.int64, n),
+             "target_component": np.fromiter((lk.target_compid for lk in fast), np.int64, n),
+             "coordinate_frame": mavlink2.MAV_FRAME_LOCAL_NED})
+        for link, buf in zip(fast, frames, strict=True):
+            link._send_bytes(link._transport, buf)  # type: ignore[arg-type]
+            mav = link._mav
+            mav.seq = (mav.seq + 1) & 0xFF
+            link._last_setpoint_s = now
+            link._setpoints_sent += 1
+            link._stall_warned = False
+        return out
 
     def _send_fast(self, msgid: int, *values: Any) -> bool:
         """Send ``msgid`` with ``values`` (wire order) as the frame pymavlink would build, byte

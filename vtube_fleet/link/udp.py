@@ -7,7 +7,9 @@ off: ~210 per second) fills its kernel buffer: the kernel then drops whatever co
 COMMAND_ACKs and HEARTBEATs included. :class:`DatagramSocket` is a non-blocking socket read by
 ``loop.add_reader`` that takes up to ``burst`` datagrams per wake-up (one callback for all),
 with the transport methods the link uses (``sendto``, ``is_closing``, ``close``,
-``get_extra_info``). Errors the kernel reports on the socket (ICMP port unreachable on a
+``get_extra_info``). ``on_datagram(data, addr, now)`` gets each datagram with the
+``time.monotonic()`` of its reading (one clock reading per round of the hub: every datagram of
+the round was queued by then). Errors the kernel reports on the socket (ICMP port unreachable on a
 connected ``udpout`` socket while the vehicle is not up yet) go to ``on_error``; a send the
 kernel refuses for lack of buffer space is dropped and counted (``tx_dropped``): a setpoint
 stream and retried commands tolerate a lost datagram, a blocked event loop would not.
@@ -29,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import select
 import socket
+import time
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -84,15 +87,24 @@ class DatagramHub:
                 del self._hubs[self._loop]
 
     def _ready(self) -> None:
-        poll, sockets = self._epoll.poll, self._sockets
+        poll, sockets, clock = self._epoll.poll, self._sockets, time.monotonic
         for _ in range(HUB_ROUNDS):
             events = poll(0)
             if not events:
                 return
+            now = clock()  # every datagram of the round was queued by now
             for fd, _mask in events:
                 ds = sockets.get(fd)
-                if ds is not None:
-                    ds._read_one()
+                if ds is None:
+                    continue
+                try:
+                    data, addr = ds._recvfrom(65536)
+                except (BlockingIOError, InterruptedError):
+                    continue
+                except OSError as exc:
+                    ds._on_error(exc)
+                    continue
+                ds._on_datagram(data, addr, now)
             if not sockets:  # the last socket closed meanwhile (and with it the epoll)
                 return
 
@@ -101,7 +113,7 @@ class DatagramSocket:
     """One bound (``listens``) or connected UDP socket; see the module docstring."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop, sock: socket.socket,
-                 on_datagram: Callable[[bytes, Any], None],
+                 on_datagram: Callable[[bytes, Any, float], None],
                  on_error: Callable[[OSError], None], burst: int = DEFAULT_BURST) -> None:
         self._loop = loop
         self._sock = sock
@@ -111,6 +123,7 @@ class DatagramSocket:
         self.tx_dropped = 0
         self._closed = False
         self._fd = sock.fileno()
+        self._recvfrom = sock.recvfrom
         self._hub = DatagramHub.of(loop)
         if self._hub is not None:
             self._hub.add(self, self._fd)
@@ -119,7 +132,7 @@ class DatagramSocket:
 
     @classmethod
     async def open(cls, host: str, port: int, *, listens: bool,
-                   on_datagram: Callable[[bytes, Any], None],
+                   on_datagram: Callable[[bytes, Any, float], None],
                    on_error: Callable[[OSError], None],
                    burst: int = DEFAULT_BURST) -> DatagramSocket:
         """Bind to (``listens``) or connect to ``host:port``; :class:`OSError` if impossible."""
@@ -140,20 +153,9 @@ class DatagramSocket:
             raise
         return cls(loop, sock, on_datagram, on_error, burst)
 
-    def _read_one(self) -> None:
-        """One datagram, if one is queued (the hub knows it is)."""
-        try:
-            data, addr = self._sock.recvfrom(65536)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as exc:
-            self._on_error(exc)
-            return
-        self._on_datagram(data, addr)
-
     def _readable(self) -> None:
         """Up to ``burst`` queued datagrams, in order."""
-        recvfrom, handle = self._sock.recvfrom, self._on_datagram
+        recvfrom, handle = self._recvfrom, self._on_datagram
         for _ in range(self.burst):
             try:
                 data, addr = recvfrom(65536)
@@ -162,7 +164,7 @@ class DatagramSocket:
             except OSError as exc:
                 self._on_error(exc)
                 return
-            handle(data, addr)
+            handle(data, addr, time.monotonic())
             if self._closed:
                 return
 
