@@ -584,6 +584,8 @@ class _Run:
                 return command(qq, kk, prs)
             return rhs
 
+        quiet = not unicycle and not rk4  # (the loop's short form, below)
+        cstep, mul, add = command.step, np.multiply, np.add
         start = time.perf_counter()
         step = 0
         try:
@@ -707,6 +709,30 @@ class _Run:
                 if step >= next_progress and progress is not None:
                     progress(step * dt, n_steps * dt, n, self.m - n)
                     next_progress = step + progress_every
+                if not quiet:
+                    continue
+                # the steps before the next event (exit check, neighbour list, metric chunk,
+                # frame, last step, leg/obstacle margin check, progress): the same steps as
+                # above with nothing else to do (single integrator, euler or adaptive)
+                end = min(next_exit_check, next_verlet, step + chunk - nc, next_rec,
+                          last_step, next_single if adaptive else n_steps,
+                          n_steps if progress is None else next_progress)
+                while step < end:
+                    if tracker is not None:
+                        k = tracker.update(pos, track_move)
+                    zc = ZR[nc]
+                    vz = cstep(zc, k, pairs, VR[nc], track_move)
+                    cpm[nc] = min_pair = command.min_pair_distance
+                    nc += 1
+                    if adaptive and (near_single or min_pair < thr_pair):
+                        adaptive_step(zc, vz, dt, rhs_of(k, pairs), guard, pairs, istats,
+                                      out=ZR[nc])
+                    else:  # (Single), as above
+                        zn = ZR[nc]
+                        mul(vz, dt_z, zn)
+                        add(zc, zn, zn)
+                    pos = PR[nc]
+                    step += 1
         except KeyboardInterrupt:
             self.interrupted = True
         self.wall_s = time.perf_counter() - start
