@@ -41,6 +41,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.params import ControllerParams
     from vtube_fleet.core.plan import ApexPlan
 
+_F64 = np.dtype(np.float64)  # (dtypes of the built-in types are singletons: tested by identity)
+
 __all__ = [
     "ApexZone",
     "DEFAULT_APEX_FACTOR",
@@ -463,6 +465,7 @@ class SubTubeTracker:
         self._slack = -math.inf
         self._M = -1
         self._shape: tuple = ()  # (M, 2) once the rows are set
+        self._check: tuple | None = None  # update()'s 1-D row check (set by _full)
         self._tables = self._build_tables(partition)
         self._one = self._one_point_tables() if self._tables is not None else None
 
@@ -595,15 +598,20 @@ class SubTubeTracker:
             k = self._loc(p)
             self._M = M
         else:
+            R = self._tables[0].shape[0]
             if M != self._M:
                 K = self._loc.A.shape[2]
                 self._rowoff = (np.arange(M) * K)[:, None]
-                R = self._tables[0].shape[0]
-                self._v = np.empty((R, M), np.complex128)
+                self._v = np.empty(R * M, np.complex128)
                 self._vr = np.empty((R, M))
-                self._vrf = self._vr.reshape(R * M)
+                self._zt = np.empty(R * M, np.complex128)
+                self._tile = np.tile(np.arange(M), R)  # row r, point i → element r·M + i
                 self._M = M
             k, self._C, self._B = self._locate_rows(p, self._rowoff)
+            # update()'s row check as 1-D calls: the points gathered once per row
+            self._check = (self._zt, self._tile, self._C.reshape(R * M), self._v,
+                           self._v.real, self._B.reshape(R * M), self._vr.reshape(R * M)
+                           ) if M else None
         self._shape = (M, 2)
         if self._k.shape != k.shape or (self._k != k).any():
             k.setflags(write=False)
@@ -685,6 +693,20 @@ class SubTubeTracker:
             self._slack -= max_move * (1.0 + 1e-9) + 1e-9
             if self._slack > 0.0:
                 return self._k
+            ck = self._check
+            if ck is not None and p.dtype is _F64 and p.flags.c_contiguous:
+                # the rows at the same points as at the last locate (the common call)
+                self.checks += 1
+                zt, tile, Cf, v, vre, Bf, vrf = ck
+                p.view(np.complex128).take(tile, None, zt, "clip")
+                np.multiply(Cf, zt, v)
+                np.add(vre, Bf, vrf)
+                vmin = float(vrf[vrf.argmin()])  # (NaN if any: argmin returns the first NaN)
+                if vmin > 0.0:
+                    self._slack = vmin
+                else:
+                    self._partial(p, self._vr)
+                return self._k
         if not (type(p) is np.ndarray and p.dtype == np.float64 and p.ndim == 2
                 and p.shape[1] == 2 and p.flags.c_contiguous):
             p = np.ascontiguousarray(p, dtype=np.float64)
@@ -695,10 +717,12 @@ class SubTubeTracker:
             self._full(p)
             return self._k
         self.checks += 1
+        vr = self._vr
         if M:
-            v = np.multiply(self._C, p.view(np.complex128).reshape(M), self._v)
-            vr = np.add(v.real, self._B, self._vr)
-            vf = self._vrf  # min(vr) (NaN if any, as argmin returns the first NaN)
+            v = np.multiply(self._C, p.view(np.complex128).reshape(M),
+                            self._v.reshape(vr.shape))
+            np.add(v.real, self._B, vr)
+            vf = vr.reshape(-1)  # min(vr) (NaN if any, as argmin returns the first NaN)
             vmin = float(vf[vf.argmin()])
         else:
             vmin = math.inf
