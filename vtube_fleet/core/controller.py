@@ -266,20 +266,35 @@ class _Gathered:
     instead of a new one: a fresh multi-megabyte array on every call makes the allocator unmap
     and re-fault memory (10,000 robots: 2.1 instead of 1.3 ms per call)."""
 
-    __slots__ = ("k", "writeable", "G01", "G23", "GA", "n_c", "G8")
+    __slots__ = ("k", "writeable", "G", "G01", "G23", "GA", "n_c", "G8")
 
-    def __init__(self, prep: _Prepared, k: np.ndarray, buf: np.ndarray | None = None) -> None:
+    def __init__(self, prep: _Prepared, k: np.ndarray, buf: np.ndarray | None = None,
+                 G: np.ndarray | None = None) -> None:
         n = k.shape[0]
-        if n and (k[k.argmin()] < 0 or k[k.argmax()] >= prep.K):  # (argmin: no reduction)
-            bad = k.min() if k.min() < 0 else k.max()
-            raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {bad}")
-        # k is checked above, so mode="clip" (with "raise", take buffers its output)
-        G = np.take(prep.table, k, axis=1, out=buf, mode="clip")
+        if G is None:
+            _check_k(prep, k)
+            # k is checked, so mode="clip" (with "raise", take buffers its output)
+            G = prep.table.take(k, 1, buf, "clip")
+        self.G = G
         self.G01, self.G23, self.GA, self.n_c = G[0:2], G[2:4].real, G[4:8].reshape(4 * n), G[8]
         # the four per-element rows of the leg/σ elements (side·n + robot): conj(n), nᵀp_1, E, A
         self.G8 = G[:8].reshape(4, 2 * n)
         self.k = k
         self.writeable = k.flags.writeable  # (then it may change in place: gather every time)
+
+    def replaced(self, prep: _Prepared, k: np.ndarray, ch: np.ndarray) -> _Gathered:
+        """The constants of ``k``, which equals this one's k but in the columns ``ch``."""
+        kc = k.take(ch)
+        _check_k(prep, kc)
+        G = self.G.copy()
+        G[:, ch] = prep.table.take(kc, 1, None, "clip")
+        return _Gathered(prep, k, G=G)
+
+
+def _check_k(prep: _Prepared, k: np.ndarray) -> None:
+    if k.shape[0] and (k[k.argmin()] < 0 or k[k.argmax()] >= prep.K):  # (no reduction)
+        bad = k.min() if k.min() < 0 else k.max()
+        raise ValueError(f"k must be in [0, {prep.K}) (sub-tube indices), got {bad}")
 
 
 def reuse_heap(nbytes: int) -> None:
@@ -570,11 +585,11 @@ class _Active:
     """
 
     __slots__ = ("g", "pa", "slack", "P", "Lc", "n", "M", "idx", "G01a", "G23a", "GAa",
-                 "slots", "bank", "X", "X2", "xp", "W", "Wf", "tmpc", "Gd",
-                 "pmin", "track", "r_pair", "IJ", "cut", "prep", "pair_idx", "tail_slots",
-                 "fslots", "tmpr", "zz", "dz", "zL", "Y", "Yc", "Yp", "gb",
-                 "ab", "nm", "bound", "pos", "free", "fs3", "pair_ok", "leg_ok", "U", "V", "T",
-                 "leg_floor")
+                 "slots", "bank", "X", "X2", "xp", "W", "Wf", "tmpc", "Gd", "LA", "G2",
+                 "pmin", "track", "r_pair", "IJ", "cut", "prep", "sel", "TA", "q_slot",
+                 "tmpr", "zz", "dz", "zL", "Y", "Yc", "Yp", "gb", "ab", "nm", "bound", "pos",
+                 "free", "fs3", "pair_ok", "leg_ok", "U", "V", "T", "leg_floor", "mv", "cv",
+                 "nb", "NB")
 
     def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
         legs, sig, pair = prep.blocks(16, 16)
@@ -586,13 +601,30 @@ class _Active:
         self.prep, self.n, self.M, self.track = prep, M, M, track
         self.r_pair, self.pmin, self.slack = prep.r_pair, math.inf, -math.inf
         self.g = self.pa = None
-        self.Lc, self.X = 0, np.empty(0)
+        self.Lc, self.P, self.X = 0, -1, np.empty(0)
+        # the float slots of _Layout: q of robot r at 2r, 2r + 1; u_rep at 2M + 2r, 2M + 2r + 1;
+        # fs3[0, e], fs3[1, e]: those of leg/σ element e = side·M + r (u_rep and q of r)
+        q_slot = (2 * np.arange(M)[:, None] + np.array([0, 1])).ravel()
+        self.q_slot = q_slot
+        self.fs3 = np.concatenate([q_slot + 2 * M, q_slot + 2 * M, q_slot, q_slot]).reshape(
+            2, 2 * M, 2)
+        # _finish of (ModifiedVectorField), as _Layout's: × cv/max(|.|, mv), then the halves
+        p = prep.params
+        self.cv = np.repeat([p.v, p.v_max_prime], M)
+        self.mv = np.repeat([1e-300, p.v_max_prime], M)
+        self.nb = np.empty(2 * M)
+        self.NB = np.zeros(2 * M, np.complex128)
 
     def refresh(self, g: _Gathered, pa: tuple, z: np.ndarray) -> bool:
         """Choose the elements at the points ``z`` for the sub-tubes of ``g`` and the pairs of
         ``pa`` (the evaluator's pair entry); False if a distance is not finite (then the caller
         evaluates everything). New sub-tubes only (same pairs, slack left): the pairs are kept
-        and the leg elements are chosen with the slack that is left."""
+        and the leg elements are chosen with the slack that is left.
+
+        The kept pairs are padded with further candidates up to a multiple of 32 (or all of
+        them): those are farther than r_pair + 2 skin, their terms exactly 0 as the pairs
+        left out; with the leg block's multiple of 16, the work arrays of one subset then
+        serve the next and are filled in place."""
         M = self.M
         og = self.g
         if (pa is self.pa and self.slack > 0.0 and og is not None and not g.writeable
@@ -602,39 +634,42 @@ class _Active:
             if ch.shape[0] <= 4 and self._legs_update(g, z, ch.tolist()):
                 return True
         d = np.subtract((g.G01 * z).real, g.G23).reshape(2 * M)  # (dtl)/(dtr), as _core
-        if not _finite(d):
+        # (every d finite: every point is, so are the pair distances)
+        dmin = d[d.argmin()] if M else 0.0
+        if not (-math.inf < dmin and d[d.argmax()] < math.inf):
             return False
         if pa is self.pa and self.slack > 0.0:
-            self._legs(g, d, self.cut + self.slack)
+            self._legs(g, d, float(dmin), self.cut + self.slack, False)
             return True
         skin = ACTIVE_SKIN
         IJ = pa[4]
         P0 = IJ.shape[0] >> 1
+        if pa is not self.pa:
+            # the float slots of every candidate's weights (as _Layout.pair_arrays: u_rep of
+            # I, then of J, real and imaginary part)
+            TA = self.TA = np.empty((2 * P0, 2), np.intp)
+            np.multiply(IJ, 2, out=TA[:, 0])
+            TA[:, 0] += 2 * M
+            np.add(TA[:, 0], 1, out=TA[:, 1])
         zz = z.take(IJ)
         dp = np.abs(zz[P0:] - zz[:P0])
-        if P0 and not _finite(dp):
-            return False
         self.pa, self.IJ, self.slack = pa, IJ, skin
-        sel = (dp < self.r_pair + 2.0 * skin).nonzero()[0]
-        P = self.P = sel.shape[0]
-        pi = self.pair_idx = IJ.reshape(2, P0).take(sel, axis=1).reshape(2 * P)  # [I | J] kept
-        lay = pa[3]
-        self.fslots = lay.slot_ls  # the full layout's float slots of the legs | σ elements
-        # the float slots of the kept pairs' weights (as _Layout.pair_arrays: u_rep of I,
-        # then of J, real and imaginary part), then those of n_c (q)
-        ts = self.tail_slots = np.empty(4 * P + 2 * M, np.intp)
-        s = ts[: 4 * P].reshape(2 * P, 2)
-        np.multiply(pi, 2, out=s[:, 0])
-        s[:, 0] += 2 * M
-        np.add(s[:, 0], 1, out=s[:, 1])
-        ts[4 * P:] = lay.q_slot
-        self._legs(g, d, self.cut + skin)
+        near = dp < self.r_pair + 2.0 * skin
+        sel = near.nonzero()[0]
+        P = sel.shape[0]
+        Pc = min(P0, -(-P // 32) * 32)
+        if Pc > P:  # (pads: the first farther candidates)
+            sel = np.concatenate([sel, np.logical_not(near, out=near).nonzero()[0][: Pc - P]])
+        self.sel = sel
+        self._legs(g, d, float(dmin), self.cut + skin, True)
         return True
 
-    def _legs(self, g: _Gathered, d: np.ndarray, thr: float) -> None:
-        """The leg/σ elements closer than ``thr`` (``d``: their distances, side·n + robot),
-        padded to Lc (elements of robot 0 with distance ``_FAR`` and weights 0)."""
-        n, P = self.n, self.P
+    def _legs(self, g: _Gathered, d: np.ndarray, dmin: float, thr: float, new_pairs: bool
+              ) -> None:
+        """The leg/σ elements closer than ``thr`` (``d``: their distances, side·n + robot,
+        ``dmin`` the smallest), padded to Lc (elements of robot 0 with distance ``_FAR`` and
+        weights 0); with ``new_pairs``, also the pairs :attr:`sel` of the candidates."""
+        n = self.n
         e = (d < thr).nonzero()[0]  # side·n + robot
         L = e.shape[0]
         Lc = max(16, -(-L // 16) * 16)
@@ -642,77 +677,91 @@ class _Active:
         self.pos = {e: j for j, e in enumerate(el)}  # element → its column (_legs_update)
         self.free = list(range(Lc - 1, L - 1, -1))  # the pads' columns
         ep = np.concatenate([e, _ZPAD[: Lc - L]])  # (< 16 pads)
-        la = g.G8.take(ep, axis=1)  # (4, Lc): conj(n), nᵀp_1, E, A of the kept elements
+        sel = self.sel
+        P = sel.shape[0]
+        fresh = self.Lc != Lc or self.P != P  # else the work arrays of the last subset
+        if fresh:
+            self._alloc(Lc, P)
+        if fresh or new_pairs:  # [I | J] of the kept pairs, their weights' float slots
+            IJ, TA, idx = self.IJ, self.TA, self.idx
+            IJ.reshape(2, IJ.shape[0] >> 1).take(sel, 1, idx[: 2 * P].reshape(2, P), "clip")
+            TA.reshape(2, TA.shape[0] >> 1, 2).take(
+                sel, 1, self.slots[4 * Lc: 4 * Lc + 4 * P].reshape(2, P, 2), "clip")
+        # conj(n), nᵀp_1, E, A of the kept elements, (4, Lc)
+        la = g.G8.take(ep, 1, self.LA, "clip")
         if L < Lc:
             la[:, L:] = _PAD
         # both leg rows (the barrier and the σ element of one leg distance) as one block of
         # 2 Lc: conj(n) and nᵀp_1 twice, the points gathered twice (1-D calls, no broadcast)
-        G2 = np.concatenate([la[:2], la[:2]], axis=1)
-        self.G01a, self.G23a = G2[0], G2[1].real
-        er = ep % n
-        self.idx = np.concatenate([self.pair_idx, er, er])
+        np.concatenate([la[:2], la[:2]], axis=1, out=self.G2)
+        self.GAa[:] = la[2:].reshape(2 * Lc)
+        idx = self.idx
+        np.remainder(ep, n, out=idx[2 * P: 2 * P + Lc])
+        idx[2 * P + Lc:] = idx[2 * P: 2 * P + Lc]
         # ĝ ≥ 1 for every leg element while the points moved less than this below the slack
-        dmin = float(d[d.argmin()]) if d.shape[0] else math.inf
         self.leg_floor = self.slack - (dmin - self.leg_ok)
         # legs | σ slots of the kept elements (the pads': robot 0's, with ±0 weights: harmless)
-        fs3 = self.fs3 = self.fslots[: 8 * n].reshape(2, 2 * n, 2)
-        self.slots = np.concatenate([fs3.take(ep, axis=1).reshape(4 * Lc), self.tail_slots])
-        nx = 2 * Lc + P
-        fresh = self.Lc != Lc or self.X.shape[0] != nx  # else the buffers of the last call
-        if fresh:  # (and the bank)
-            _, _, pair = self.prep.blocks(Lc, P)
-            key = (Lc, len(pair))
-            banks = self.prep.active_banks
-            bank = banks.get(key)
-            if bank is None:
-                if len(banks) > 32:
-                    banks.clear()
-                legs, sig, pair = self.prep.blocks(Lc, P)
-                bank = banks[key] = BarrierBank.concatenate_prefixes(
-                    [(legs, Lc), (sig, Lc), (pair, len(pair))])
-            self.bank = bank
-            self.Lc = Lc
-            # the band formula's first steps on two elements per element (one call each):
-            # V = [x | D1], U = [d2 | x·E1] → U − V = [d2 − x | ĝ] in T (and T[:nx]·(1/w) → a)
-            sl = bank.prefix(nx)
-            self.V, self.U, self.T = np.empty(2 * nx), np.empty(2 * nx), np.empty(2 * nx)
-            self.V[nx:] = sl[3]
-            self.U[:nx] = sl[0]
-            self.X = self.V[:nx]
-            self.X2 = self.X[: 2 * Lc]
-            self.xp = self.X[2 * Lc:]
-            self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
-            self.Wf = self.W.view(np.float64)
-            self.tmpc = np.empty(2 * Lc, np.complex128)
-            self.tmpr = self.tmpc.real
-            self.zz = np.empty(2 * P + 2 * Lc, np.complex128)  # [p_I | p_J | leg points × 2]
-            self.zL = self.zz[2 * P:]
-            # the second factors of the weights: [E_h, E_r of the legs, A of the σ's (GAa) |
-            # p_j − p_i of the pairs (dz)], one product with Yc for all
-            self.Gd = np.empty(nx, np.complex128)
-            self.GAa, self.dz = self.Gd[: 2 * Lc], self.Gd[2 * Lc:]
-            # the bank's values (legs, σ | pairs) as the real parts of complex numbers with
-            # imaginary parts 0: the weights are then complex × complex products (what numpy
-            # computes for complex × float, after casting the float through a buffer)
-            self.Yc = np.zeros(nx, np.complex128)
-            self.Y = self.Yc.real
-            self.Yp = self.Y[2 * Lc:]
-            self.gb, self.ab, self.nm = self.T[nx:], np.empty(nx), np.empty(nx)
-        self.GAa[:] = la[2:].reshape(2 * Lc)
+        self.fs3.take(ep, 1, self.slots[: 4 * Lc].reshape(2, Lc, 2), "clip")
         if fresh or g is not self.g:
             self.W[2 * Lc + 2 * P:] = g.n_c
         self.g = g
-        bk = self.bank
-        sl = bk.prefix(nx)
-        Wf = self.Wf
-        lay, w = self.pa[3], self.pa[6]
+
+    def _alloc(self, Lc: int, P: int) -> None:
+        """The work arrays of a subset of 2 Lc leg/σ elements and P pairs (and the bank)."""
+        n, M = self.n, self.M
+        nx = 2 * Lc + P
+        _, _, pair = self.prep.blocks(Lc, P)
+        key = (Lc, len(pair))
+        banks = self.prep.active_banks
+        bank = banks.get(key)
+        if bank is None:
+            if len(banks) > 32:
+                banks.clear()
+            legs, sig, pair = self.prep.blocks(Lc, P)
+            bank = banks[key] = BarrierBank.concatenate_prefixes(
+                [(legs, Lc), (sig, Lc), (pair, len(pair))])
+        self.bank = bank
+        self.Lc, self.P = Lc, P
+        self.idx = np.empty(2 * P + 2 * Lc, np.intp)  # [I | J | leg robots × 2]
+        self.slots = np.empty(4 * Lc + 4 * P + 2 * M, np.intp)  # [legs, σ | pairs | n_c]
+        self.slots[4 * Lc + 4 * P:] = self.q_slot
+        self.LA = np.empty((4, Lc), np.complex128)
+        self.G2 = np.empty((2, 2 * Lc), np.complex128)
+        self.G01a, self.G23a = self.G2[0], self.G2[1].real
+        # the band formula's first steps on two elements per element (one call each):
+        # V = [x | D1], U = [d2 | x·E1] → U − V = [d2 − x | ĝ] in T (and T[:nx]·(1/w) → a)
+        sl = bank.prefix(nx)
+        self.V, self.U, self.T = np.empty(2 * nx), np.empty(2 * nx), np.empty(2 * nx)
+        self.V[nx:] = sl[3]
+        self.U[:nx] = sl[0]
+        self.X = self.V[:nx]
+        self.X2 = self.X[: 2 * Lc]
+        self.xp = self.X[2 * Lc:]
+        self.W = np.empty(2 * Lc + 2 * P + n, np.complex128)
+        self.Wf = Wf = self.W.view(np.float64)
+        self.tmpc = np.empty(2 * Lc, np.complex128)
+        self.tmpr = self.tmpc.real
+        self.zz = np.empty(2 * P + 2 * Lc, np.complex128)  # [p_I | p_J | leg points × 2]
+        self.zL = self.zz[2 * P:]
+        # the second factors of the weights: [E_h, E_r of the legs, A of the σ's (GAa) |
+        # p_j − p_i of the pairs (dz)], one product with Yc for all
+        self.Gd = np.empty(nx, np.complex128)
+        self.GAa, self.dz = self.Gd[: 2 * Lc], self.Gd[2 * Lc:]
+        # the bank's values (legs, σ | pairs) as the real parts of complex numbers with
+        # imaginary parts 0: the weights are then complex × complex products (what numpy
+        # computes for complex × float, after casting the float through a buffer)
+        self.Yc = np.zeros(nx, np.complex128)
+        self.Y = self.Yc.real
+        self.Yp = self.Y[2 * Lc:]
+        self.gb, self.ab, self.nm = self.T[nx:], np.empty(nx), np.empty(nx)
         self.bound = (self.idx, self.zz, self.zz[P: 2 * P], self.zz[:P], self.dz, self.xp,
                       self.G01a, self.zL, self.tmpc, self.tmpr, self.G23a, self.X2, self.X,
                       self.Y, self.Yc, self.Gd, self.W[: nx], self.Yp,
                       Wf[4 * Lc: 4 * Lc + 2 * P], Wf[4 * Lc + 2 * P: 4 * Lc + 4 * P],
-                      self.slots, Wf, 4 * self.M, self.gb, self.ab, self.nm, self.U, self.V,
+                      self.slots, Wf, 4 * M, self.gb, self.ab, self.nm, self.U, self.V,
                       self.T, self.U[nx:], self.T[:nx], sl[1], sl[2], sl[4], sl[5], sl[6],
-                      bk._zero, bk._one, w.nb, lay.mv, lay.cv, w.NBr, w.NB, self.M)
+                      bank._zero, bank._one, self.nb, self.mv, self.cv, self.NB.real, self.NB,
+                      M)
 
     def _legs_update(self, g: _Gathered, z: np.ndarray, ch: list[int]) -> bool:
         """The robots ``ch`` changed sub-tube (``g``: the new ones; pairs and slack as
@@ -896,18 +945,22 @@ class CommandEvaluator:
         moved :data:`ACTIVE_SKIN` since the subset was chosen (:class:`_Active`); the result is
         bitwise the same (a sum that starts at +0 is unchanged by adding ±0)."""
         fs = self._fast
-        if (fs is not None and move is not None and fs[0] is k and fs[1] is pairs[0]
-                and fs[2] is pairs[1] and fs[3] == z.shape[0]):
+        if (fs is not None and move is not None and fs[1] is pairs[0] and fs[2] is pairs[1]
+                and fs[3] == z.shape[0]):
             # the common call of a simulator loop: the read-only k and pairs of the last call,
             # law "new", the element subset still valid: core and _finish, nothing else
             act = fs[4]
             slack = act.slack - (move * (1.0 + 1e-9) + 1e-9)
             if slack > 0.0:  # (else the general path below counts the move down itself)
-                act.slack = slack
-                v = act.core(z, out, True)
-                if fs[5]:
-                    self.min_pair_distance = act.pmin
-                return v
+                if fs[0] is k:
+                    act.slack = slack
+                    v = act.core(z, out, True)
+                    if fs[5]:
+                        self.min_pair_distance = act.pmin
+                    return v
+                v = self._new_k(z, k, out, act, slack)
+                if v is not None:
+                    return v
         self._fast = None
         M = z.shape[0]
         f = self._same
@@ -956,6 +1009,34 @@ class CommandEvaluator:
             self.min_pair_distance = w.pmin
         p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
         return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
+
+    def _new_k(self, z: np.ndarray, k: np.ndarray, out: np.ndarray | None, act: _Active,
+               slack: float) -> np.ndarray | None:
+        """:meth:`step`'s short path for a read-only ``k`` that differs from the last call's
+        in a few robots (the sub-tube tracker's changes), the pairs and the element subset as
+        before: those robots' constants are gathered and their leg/σ elements patched
+        (:meth:`_Active._legs_update`), then the subset is evaluated as on the short path.
+        None (nothing changed but the slack) when that does not apply."""
+        og, M = self._g, z.shape[0]
+        if (type(k) is not np.ndarray or k.dtype != np.intp or k.shape != (M,)
+                or k.flags.writeable or og is None or og.writeable or act.g is not og):
+            return None
+        ch = (k != og.k).nonzero()[0]
+        if not 0 < ch.shape[0] <= 4:
+            return None
+        g = og.replaced(self._prep, k, ch)
+        act.slack = slack
+        if not act._legs_update(g, z, ch.tolist()):
+            return None
+        self._g = g
+        self._pairs[6].Wnc[ch] = g.n_c[ch]  # (the full evaluation's n_c, as g's)
+        fs = self._fast
+        self._fast = (k, *fs[1:])
+        self._same = (k, fs[1], fs[2], M)
+        v = act.core(z, out, True)
+        if fs[5]:
+            self.min_pair_distance = act.pmin
+        return v
 
     def _new_pairs(self, I, J, M: int, g: _Gathered) -> tuple:
         I, J = _check_pairs((I, J))
