@@ -344,8 +344,9 @@ class SafetyMonitor:
     ) -> StepMetrics:
         """:meth:`evaluate` for NaN-free chunks, evaluating only candidates (see there).
 
-        Gathered candidates are laid out (C, K), robots first, so that every minimum over
-        them is a reduction along axis 0 (fast in numpy; along a short last axis it is not).
+        The few candidates are gathered from the chunk's columns and laid out (C, K), so that
+        every minimum over them is a reduction along axis 0 (fast in numpy; along a short last
+        axis it is not); the squared speeds of all robots likewise as their transpose (M, K).
         """
         k, m = z.shape
         g = self._geom
@@ -359,13 +360,15 @@ class SafetyMonitor:
             disp = np.abs(ext.view(np.complex128)) * (1.0 + 1e-12)
         else:
             disp = np.zeros(m)
-        zt = np.ascontiguousarray(z.T)  # (M, K)
         minimum = np.minimum.reduce
+
+        def rows(c: np.ndarray) -> np.ndarray:  # (C, K): the candidates' positions
+            return np.ascontiguousarray(z.take(c, axis=1).T)
 
         def leg(n: complex, off: float) -> np.ndarray:
             d0 = (z0 * n).real
             cand = np.flatnonzero(d0 - disp <= (d0 + disp).min())
-            return minimum((zt.take(cand, axis=0) * n).real, axis=0) - off
+            return minimum((rows(cand) * n).real, axis=0) - off
 
         left = leg(g["nh"], g["off_h"])
         right = leg(g["nr"], g["off_r"])
@@ -379,7 +382,7 @@ class SafetyMonitor:
             r = radii[:, None]
             cand = (lo <= hi.min()) | (lo - r <= (hi - r).min())
             pi, mi = np.nonzero(cand)
-            dd = np.abs(zt.take(mi, axis=0) - oc.take(pi, axis=0))  # (C, K)
+            dd = np.abs(rows(mi) - oc.take(pi, axis=0))  # (C, K)
             min_center = minimum(dd, axis=0)
             min_clear = minimum(dd - r.take(pi, axis=0), axis=0)
         else:
@@ -393,7 +396,7 @@ class SafetyMonitor:
                 slack = disp.take(i_idx) + disp.take(j_idx)
                 cand = np.flatnonzero(d0 - slack <= (d0 + slack).min())
                 ci, cj = i_idx.take(cand), j_idx.take(cand)
-                min_pair = minimum(np.abs(zt.take(ci, axis=0) - zt.take(cj, axis=0)), axis=0)
+                min_pair = minimum(np.abs(rows(ci) - rows(cj)), axis=0)
             else:
                 min_pair = np.full(k, np.inf)
 
