@@ -220,8 +220,6 @@ class EstimateCompensator:
 RESIDUAL_HISTORY = 256
 #: Averaging time (s) of the residual compared with the budgeted D in flight.
 RESIDUAL_WINDOW_S = 1.0
-#: Entries :meth:`ResidualTracker.track` looks at first (newest first); older only if needed.
-_NEAR = 16
 
 
 class ResidualTracker:
@@ -260,18 +258,20 @@ class ResidualTracker:
         self._count[rows] = n
         thr = now_s - lag_s
         avail = np.minimum(n, h)
-        near = min(_NEAR, h)
-        back = np.arange(near)
-        cols = (n[:, None] - 1 - back) % h
-        ok = (self._times[rows[:, None], cols] <= thr[:, None]) & (back < avail[:, None])
-        found = ok.any(axis=1)
-        pick = cols[np.arange(len(rows)), ok.argmax(axis=1)]
-        for k in np.flatnonzero(~found & (avail > near)).tolist():  # Δ beyond the near entries
-            back_all = np.arange(avail[k])
-            c_all = (n[k] - 1 - back_all) % h
-            hit = np.flatnonzero(self._times[rows[k], c_all] <= thr[k])
-            if hit.size:
-                found[k], pick[k] = True, c_all[hit[0]]
+        # the newest entry <= thr: entries j back from the newest have decreasing times (one
+        # per call, at increasing now_s), so "<= thr" holds from some j on: bisect for it
+        lo = np.zeros(len(rows), np.int64)
+        hi = avail.copy()
+        while True:
+            active = lo < hi
+            if not active.any():
+                break
+            mid = (lo + hi) // 2
+            left = self._times[rows, (n - 1 - mid) % h] <= thr
+            hi = np.where(active & left, mid, hi)
+            lo = np.where(active & ~left, mid + 1, lo)
+        found = lo < avail
+        pick = (n - 1 - lo) % h
         if not found.any():
             return rows[:0]
         r = rows[found]

@@ -58,6 +58,7 @@ from vtube_fleet.fleet.compensation import (
     EstimateCompensator,
     ResidualTracker,
 )
+from vtube_fleet.fleet.table import PHASE_CODE, PHASES, PilotTable, phase_mask
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_velocities_ned
 from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, NeighbourState, Phase
@@ -71,6 +72,8 @@ __all__ = [
     "actuate_all",
     "check_faults_all",
     "fleet_states",
+    "fleet_table",
+    "link_latencies_s",
     "measure_budget_links",
     "measure_links",
     "sense_all",
@@ -251,24 +254,19 @@ class VehiclePilot:
         self.on_event = on_event
         self.wall_clock = wall_clock
         self.vehicle_id = agent.vehicle_id
-        # tube-frame telemetry
-        self.xy = np.full(2, np.nan)
-        self.up_m = math.nan
-        self.vel_xy = np.full(2, np.nan)
-        self.sample_s: float | None = None  # monotonic time of the position sample in use
-        self._has_pos = False
+        # the tick state (tube-frame telemetry, command, phase …) is row ``_r`` of a table
+        # (fleet/table.py): its own one-row table until it joins a fleet's (join_fleet)
+        self._t = PilotTable(1)
+        self._r = 0
+        self._t.phase[0] = PHASE_CODE[agent.phase]
         # the frame's (linear) horizontal rotations as 2×2 matrices, evaluated once on the
         # basis vectors, so a tick costs float arithmetic instead of numpy calls per vehicle
         n, e = self.frame.tube_velocity_to_ned(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
         self._to_ned = (float(n[0]), float(n[1]), float(e[0]), float(e[1]))
         x, y = self.frame.ned_velocity_to_tube(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
         self._to_tube = (float(x[0]), float(x[1]), float(y[0]), float(y[1]))
-        self._sample_seen: float | None = None
         self._seq = 0
         self.last_state: NeighbourState | None = None  # the last one published
-        # what we command
-        self.cmd_xy: np.ndarray | None = None  # last horizontal tube-frame command (m/s)
-        self.cmd_in_tube = False
         self.takeoff_xy: np.ndarray | None = None
         #: :meth:`fly` audits the PX4 parameters and uploads the tube fence first
         #: (fleet/onboard.py; the supervisor does it for all its pilots at once)
@@ -276,26 +274,110 @@ class VehiclePilot:
         self.at_altitude = asyncio.Event()
         self.landed = asyncio.Event()
         self.sent_setpoint = asyncio.Event()
-        self.lost_xy: np.ndarray | None = None
         self.reason: str | None = None
         self.exit_time_s: float | None = None
         self._clock_start_s: float | None = None  # monotonic time of the first tick()
-        self._offboard_seen = False
-        self._still_since: float | None = None
         self._still_xy = np.full(2, np.nan)  # the position when it was first measured slow
         self._last_tick_s: float | None = None
         self._listening_since: float | None = None
         self._phase_waiters: list[asyncio.Future[None]] = []
         self._transition: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
-        self.setpoints_sent = 0
         # the estimate-disturbance compensation (fleet/compensation.py): what is sent is the
-        # command plus d̂ while flying offboard; ``sent_xy`` is the horizontal setpoint sent
+        # command plus d̂ while flying offboard
         self.compensator = EstimateCompensator() if self.cfg.compensate_estimate else None
-        self.sent_xy: tuple[float, float] | None = None
         self._residuals = ResidualTracker(1, self.cfg.period_s,
                                           self.cfg.disturbance_residual_m_s)
         self._residual_row = 0
+
+    # -- the tick state: this pilot's row of its table ----------------------------------------
+    @property
+    def xy(self) -> np.ndarray:
+        """Tube-frame position of the sample in use (NaN before one; a copy)."""
+        return self._t.xy[self._r].copy()
+
+    @xy.setter
+    def xy(self, value: np.ndarray) -> None:
+        self._t.xy[self._r] = value
+
+    @property
+    def vel_xy(self) -> np.ndarray:
+        """Tube-frame velocity of the sample in use (a copy)."""
+        return self._t.vel[self._r].copy()
+
+    @vel_xy.setter
+    def vel_xy(self, value: np.ndarray) -> None:
+        self._t.vel[self._r] = value
+
+    @property
+    def up_m(self) -> float:
+        """Height of the sample in use (m above the tube frame's origin)."""
+        return float(self._t.up[self._r])
+
+    @property
+    def sample_s(self) -> float | None:
+        """Monotonic arrival time of the position sample in use; None before one."""
+        t = float(self._t.sample_s[self._r])
+        return None if math.isnan(t) else t
+
+    @property
+    def _has_pos(self) -> bool:
+        return bool(self._t.has[self._r])
+
+    @_has_pos.setter
+    def _has_pos(self, value: bool) -> None:
+        self._t.has[self._r] = value
+
+    @property
+    def cmd_xy(self) -> np.ndarray | None:
+        """The last horizontal tube-frame command (m/s), None if none (a copy)."""
+        return self._t.cmd[self._r].copy() if self._t.cmd_set[self._r] else None
+
+    @cmd_xy.setter
+    def cmd_xy(self, value: np.ndarray | None) -> None:
+        t, r = self._t, self._r
+        if value is None:
+            t.cmd_set[r] = False
+            t.cmd[r] = np.nan
+        else:
+            t.cmd_set[r] = True
+            t.cmd[r] = value
+
+    @property
+    def cmd_in_tube(self) -> bool:
+        """This tick's command is the controller's (IN_TUBE)."""
+        return bool(self._t.cmd_in_tube[self._r])
+
+    @cmd_in_tube.setter
+    def cmd_in_tube(self, value: bool) -> None:
+        self._t.cmd_in_tube[self._r] = value
+
+    @property
+    def lost_xy(self) -> np.ndarray | None:
+        """The position frozen when the vehicle was declared LOST (a copy), else None."""
+        return self._t.lost[self._r].copy() if self._t.lost_set[self._r] else None
+
+    @property
+    def _offboard_seen(self) -> bool:
+        return bool(self._t.offboard_seen[self._r])
+
+    @_offboard_seen.setter
+    def _offboard_seen(self, value: bool) -> None:
+        self._t.offboard_seen[self._r] = value
+
+    @property
+    def _still_since(self) -> float | None:
+        t = float(self._t.still_since_s[self._r])
+        return None if math.isnan(t) else t
+
+    @_still_since.setter
+    def _still_since(self, value: float | None) -> None:
+        self._t.still_since_s[self._r] = math.nan if value is None else value
+
+    @property
+    def setpoints_sent(self) -> int:
+        """Setpoints sent so far."""
+        return int(self._t.setpoints_sent[self._r])
 
     # -- naming / events ---------------------------------------------------------------------
     @property
@@ -319,6 +401,7 @@ class VehiclePilot:
         old = self.agent.phase
         if not self.agent.set_phase(phase):
             return False
+        self._t.phase[self._r] = PHASE_CODE[self.agent.phase]
         waiters, self._phase_waiters = self._phase_waiters, []
         for fut in waiters:
             if not fut.done():
@@ -341,7 +424,7 @@ class VehiclePilot:
         """A local position newer than the one in use has arrived (and the origin is known)."""
         s = self.link.state
         return (s.last_position_s is not None and s.origin is not None
-                and s.last_position_s != self._sample_seen)
+                and s.last_position_s != self.sample_s)
 
     def sense(self, xyz: tuple[float, float, float] | None = None) -> bool:
         """Take the link's latest local position into the tube frame; True if it was new.
@@ -378,11 +461,12 @@ class VehiclePilot:
              has: bool) -> None:
         """Take a converted sample: arrived at ``t``, tube position ``xy`` (finite: ``has``)
         and height ``up``, tube-frame velocity ``vel_xy``."""
-        self.xy = xy
-        self.up_m = up
-        self.vel_xy = vel_xy
-        self.sample_s = self._sample_seen = t
-        self._has_pos = has
+        tab, r = self._t, self._r
+        tab.xy[r] = xy
+        tab.up[r] = up
+        tab.vel[r] = vel_xy
+        tab.sample_s[r] = math.nan if t is None else t
+        tab.has[r] = has
         if (self.agent.phase == Phase.TAKEOFF and not self.at_altitude.is_set()
                 and abs(up - self.cfg.altitude_m) <= self.cfg.altitude_tolerance_m):
             self.at_altitude.set()
@@ -521,7 +605,9 @@ class VehiclePilot:
         if self.phase == Phase.LOST:
             return
         self.reason = reason
-        self.lost_xy = self.xy.copy() if self.has_position() else None
+        tab, r = self._t, self._r
+        if self.has_position():
+            tab.lost[r], tab.lost_set[r] = tab.xy[r], True
         self.cmd_xy = None
         self.cmd_in_tube = False
         where = ("" if self.lost_xy is None else
@@ -544,9 +630,12 @@ class VehiclePilot:
                 or (math.isfinite(self.up_m) and self.up_m > 0.5))
 
     def join_fleet(self, row: int, compensators: CompensatorBank,
-                   residuals: ResidualTracker) -> None:
-        """Be row ``row`` of a fleet's compensator bank and residual tracker (the
-        supervisor's, updated for all its vehicles at once) instead of ones of its own."""
+                   residuals: ResidualTracker, table: PilotTable) -> None:
+        """Be row ``row`` of a fleet's tick-state table, compensator bank and residual
+        tracker (the supervisor's, updated for all its vehicles at once) instead of ones of its
+        own; the state so far comes along."""
+        table.take_row(row, self._t, self._r)
+        self._t, self._r = table, row
         if self.compensator is not None:
             self.compensator = EstimateCompensator(bank=compensators, row=row)
         self._residuals, self._residual_row = residuals, row
@@ -591,15 +680,15 @@ class VehiclePilot:
             dx, dy = comp.correction
             vx, vy = vx + dx, vy + dy
         a, b, c, d = self._to_ned
-        self._send_ned(vx, vy, a * vx + b * vy, c * vx + d * vy, float(down))
+        self._send_ned(a * vx + b * vy, c * vx + d * vy, float(down))
 
-    def _send_ned(self, vx: float, vy: float, north_m_s: float, east_m_s: float,
-                  down_m_s: float) -> None:
-        """Send the setpoint: tube-frame (vx, vy) as (north, east) in the vehicle's LOCAL_NED."""
-        self.sent_xy = (vx, vy)
+    def _send_ned(self, north_m_s: float, east_m_s: float, down_m_s: float) -> None:
+        """Send the setpoint (the vehicle's LOCAL_NED) and count it."""
         self.link.send_velocity_ned(north_m_s, east_m_s, down_m_s)
-        self.setpoints_sent += 1
-        if not self.sent_setpoint.is_set():
+        tab, r = self._t, self._r
+        tab.setpoints_sent[r] += 1
+        if not tab.ever_sent[r]:
+            tab.ever_sent[r] = True
             self.sent_setpoint.set()
 
     def actuate(
@@ -641,8 +730,9 @@ class VehiclePilot:
                     dx, dy = self.compensator.correction
                     vx, vy = vx + dx, vy + dy
                 a, b, c, d = self._to_ned
-                self._send_in_tube(cmd, vx, vy, a * vx + b * vy, c * vx + d * vy,
-                                   self.vertical_down_m_s())
+                self.cmd_xy = cmd
+                self.cmd_in_tube = True
+                self._send_ned(a * vx + b * vy, c * vx + d * vy, self.vertical_down_m_s())
                 self._track_residual(now_mono)
             elif phase == Phase.EXITED:
                 self._actuate_exited(now_mono, view)
@@ -655,15 +745,6 @@ class VehiclePilot:
         """A setpoint could not be sent (the link says why): a warning, the next tick tries
         again."""
         self.event(f"setpoint not sent: {exc}", "warning")
-
-    def _send_in_tube(self, cmd_xy: np.ndarray, vx: float, vy: float, north_m_s: float,
-                      east_m_s: float, down_m_s: float) -> None:
-        """The IN_TUBE send of :meth:`actuate` once its arithmetic is done (here, or for the
-        whole fleet in :func:`actuate_all`): ``cmd_xy`` the controller's command, (vx, vy) it
-        plus d̂, (north, east, down) what is sent."""
-        self.cmd_xy = cmd_xy
-        self.cmd_in_tube = True
-        self._send_ned(vx, vy, north_m_s, east_m_s, down_m_s)
 
     def _actuate_exited(self, now_mono: float, view: NeighbourView | None) -> None:
         cfg = self.cfg
@@ -702,8 +783,10 @@ class VehiclePilot:
                 self.event(f"{what} failed: {exc}", "warning")
             finally:
                 self._transition = None
+                self._t.in_transition[self._r] = False
 
         self._transition = self.spawn(run())
+        self._t.in_transition[self._r] = True
 
     def begin_hold(self, why: str) -> None:
         """Leave OFFBOARD into Hold (keeps streaming zero velocity until PX4 confirms)."""
@@ -969,40 +1052,71 @@ class VehiclePilot:
             await clock
 
 
+def fleet_table(pilots: Sequence[VehiclePilot]) -> PilotTable:
+    """The table whose rows ``pilots`` are, in order (a supervisor's fleet: ``join_fleet``);
+    :class:`ValueError` otherwise (the fleet steps below read and write whole columns)."""
+    t = pilots[0]._t if pilots else PilotTable(0)
+    if t.n != len(pilots) or pilots[0]._r != 0 or pilots[-1]._t is not t or (
+            pilots[-1]._r != t.n - 1):
+        raise ValueError("the fleet steps need the pilots of one table, in its row order "
+                         "(VehiclePilot.join_fleet)")
+    return t
+
+
+_TAKEOFF = PHASE_CODE[Phase.TAKEOFF]
+_IN_TUBE = PHASE_CODE[Phase.IN_TUBE]
+_OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
+
+
 def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
-    """:meth:`VehiclePilot.sense` for many vehicles: ONE vectorized frame conversion of the
-    positions (pymap3d on arrays) and of the velocities, and, for the pilots of one
-    compensator bank (a supervisor's fleet), one compensator update for all; the same
+    """:meth:`VehiclePilot.sense` for a fleet (:func:`fleet_table`): the new samples found in
+    one pass over the links, ONE vectorized frame conversion of the positions (pymap3d on
+    arrays) and of the velocities, written into the table's columns, and, for the pilots of
+    one compensator bank (a supervisor's fleet), one compensator update for all; the same
     arithmetic as one by one. Returns how many had a new sample."""
-    todo = [p for p in pilots if p.pending_sample()]
-    if not todo:
+    if not pilots:
         return 0
-    n = len(todo)
-    st = [p.link.state for p in todo]
+    tab = fleet_table(pilots)
+    n = len(pilots)
+    states = [p.link.state for p in pilots]
+    last = np.fromiter((math.nan if s.last_position_s is None or s.origin is None
+                        else s.last_position_s for s in states), float, n)
+    rows = np.flatnonzero(np.isfinite(last) & (last != tab.sample_s))  # pending_sample
+    if not rows.size:
+        return 0
+    todo_rows = rows.tolist()
+    st = [states[i] for i in todo_rows]
+    k = len(st)
     cols = np.array([(s.north_m, s.east_m, s.down_m, s.origin.lat_deg,  # type: ignore[union-attr]
                       s.origin.lon_deg, s.origin.alt_m,  # type: ignore[union-attr]
-                      s.vn_m_s, s.ve_m_s, s.last_position_s) for s in st],
-                    dtype=float).reshape(n, 9).T
+                      s.vn_m_s, s.ve_m_s) for s in st], dtype=float).reshape(k, 8).T
     x, y, up = (np.atleast_1d(v).astype(float) for v in frame.local_ned_to_tube(*cols[:6]))
+    todo = [pilots[i] for i in todo_rows]
     rot = todo[0]._to_tube
     if any(p._to_tube != rot for p in todo):  # not one frame: each pilot rotates its own
         for p, s, xi, yi, ui in zip(todo, st, x.tolist(), y.tolist(), up.tolist(),
                                     strict=True):
             p._take(s, xi, yi, ui)
-        return n
+        return k
     a, b, c, d = rot
-    vn, ve, t = cols[6], cols[7], cols[8]
+    vn, ve, t = cols[6], cols[7], last[rows]
     vx, vy = a * vn + b * ve, c * vn + d * ve  # VehiclePilot._take's rotation
-    xy = np.stack((x, y), axis=1)
-    vel = np.stack((vx, vy), axis=1)
     has = np.isfinite(x) & np.isfinite(y)
-    for p, ti, xyi, ui, vi, hi in zip(todo, t.tolist(), xy, up.tolist(), vel, has.tolist(),
-                                      strict=True):
-        p._use(ti, xyi, ui, vi, hi)
+    tab.xy[rows, 0], tab.xy[rows, 1] = x, y  # VehiclePilot._use, for all
+    tab.vel[rows, 0], tab.vel[rows, 1] = vx, vy
+    tab.up[rows] = up
+    tab.sample_s[rows] = t
+    tab.has[rows] = has
+    cfg = todo[0].cfg
+    climbing = (tab.phase[rows] == _TAKEOFF) & (
+        np.abs(up - cfg.altitude_m) <= cfg.altitude_tolerance_m)
+    for j in np.flatnonzero(climbing).tolist():
+        if not todo[j].at_altitude.is_set():
+            todo[j].at_altitude.set()
     comps = [p.compensator for p in todo]
     bank = comps[0].bank if comps[0] is not None else None
     if bank is not None and all(cp is not None and cp.bank is bank for cp in comps):
-        bank.add(np.fromiter((cp.row for cp in comps), np.int64, n),  # type: ignore[union-attr]
+        bank.add(np.fromiter((cp.row for cp in comps), np.int64, k),  # type: ignore[union-attr]
                  t, x, y, vx, vy)
     else:
         for cp, ti, xi, yi, vxi, vyi, hi in zip(comps, t.tolist(), x.tolist(), y.tolist(),
@@ -1010,10 +1124,7 @@ def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
                                                 strict=True):
             if cp is not None and hi:
                 cp.add(ti, xi, yi, vxi, vyi)
-    return n
-
-
-_ZERO2 = (0.0, 0.0)
+    return k
 
 
 @dataclass(frozen=True, slots=True)
@@ -1032,108 +1143,113 @@ class FleetStates:
     ages_s: np.ndarray
 
 
-def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: float
-                 ) -> FleetStates:
+def link_latencies_s(pilots: Sequence[VehiclePilot]) -> np.ndarray:
+    """Each pilot's one-way link latency (NaN where none is known yet), as an array."""
+    return np.fromiter((math.nan if (x := p.link.latency_s) is None else x for p in pilots),
+                       float, len(pilots))
+
+
+def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: float,
+                 latencies_s: np.ndarray | None = None) -> FleetStates:
     """What each pilot's :meth:`VehiclePilot.state` would say now (the same arithmetic),
-    gathered once for the whole fleet: a LOST vehicle at its frozen position with zero
-    velocity, the stamp the wall-clock time its position was measured."""
-    have = [p for p in pilots if p.sample_s is not None]
-    n = len(have)
-    lost = [p.lost_xy for p in have]
-    pos = np.array([p.xy if q is None else q for p, q in zip(have, lost, strict=True)],
-                   dtype=float).reshape(n, 2)
-    vel = np.array([p.vel_xy if q is None else _ZERO2 for p, q in zip(have, lost, strict=True)],
-                   dtype=float).reshape(n, 2)
-    sample = np.fromiter((p.sample_s for p in have), float, n)
-    latency = np.fromiter((p.link.latency_s or 0.0 for p in have), float, n)
-    ages = (now_mono - sample) + latency
-    return FleetStates(np.fromiter((p.vehicle_id for p in have), np.int64, n), pos, vel,
-                       [p.agent.phase for p in have], now_wall - ages, sample, ages)
+    from the fleet's table (:func:`fleet_table`): a LOST vehicle at its frozen position with
+    zero velocity, the stamp the wall-clock time its position was measured. ``latencies_s``:
+    :func:`link_latencies_s` if the caller has it already."""
+    tab = fleet_table(pilots) if pilots else PilotTable(0)
+    have = np.flatnonzero(np.isfinite(tab.sample_s))
+    lost = tab.lost_set[have, None]
+    pos = np.where(lost, tab.lost[have], tab.xy[have])
+    vel = np.where(lost, 0.0, tab.vel[have])
+    sample = tab.sample_s[have]
+    if latencies_s is None:
+        latencies_s = link_latencies_s(pilots)
+    ages = (now_mono - sample) + np.nan_to_num(latencies_s[have], nan=0.0)  # sample_age_s
+    return FleetStates(np.fromiter((pilots[i].vehicle_id for i in have.tolist()), np.int64,
+                                   have.size),
+                       pos, vel, [PHASES[c] for c in tab.phase[have].tolist()],
+                       now_wall - ages, sample, ages)
 
 
 def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequence[VehiclePilot],
-                cmds: np.ndarray, view: NeighbourView | None) -> None:
-    """:meth:`VehiclePilot.actuate` for the whole fleet, in the pilots' order: ``commanded``
-    (IN_TUBE) get the rows of ``cmds`` (K, 2), the others no command. The in-tube pilots'
-    arithmetic (command + d̂, the altitude hold, the rotation to NED) is done for all of them
-    at once with the same operations as :meth:`VehiclePilot.actuate` (the same bits); each
-    pilot then only sends (:meth:`VehiclePilot.fly_in_tube`). The pilots share one mission and
-    frame (the supervisor's)."""
-    fast: dict[int, int] = {}
-    rows: list[tuple[np.ndarray, float, float, float, float, float]] = []
-    slow: dict[int, np.ndarray] = {}
-    batch = [k for k, p in enumerate(commanded)
-             if p.agent.phase == Phase.IN_TUBE and p._transition is None and not p.link.closed]
+                cmds: np.ndarray, view: NeighbourView | None,
+                latencies_s: np.ndarray | None = None) -> None:
+    """:meth:`VehiclePilot.actuate` for a fleet (:func:`fleet_table`): ``commanded`` (IN_TUBE)
+    get the rows of ``cmds`` (K, 2), the others no command. The in-tube pilots' arithmetic
+    (command + d̂, the altitude hold, the rotation to NED) is done for all of them at once with
+    the same operations as :meth:`VehiclePilot.actuate` (the same bits), their commands written
+    into the table and their setpoints sent together
+    (:func:`~vtube_fleet.link.base.send_velocities_ned`); the other pilots take
+    :meth:`VehiclePilot.actuate` one by one, in order. The pilots share one mission and frame
+    (the supervisor's). ``latencies_s``: :func:`link_latencies_s`, if the caller has it."""
+    if not pilots:
+        return
+    tab = fleet_table(pilots)
+    crow = np.fromiter((p._r for p in commanded), np.int64, len(commanded))
+    ok = (tab.phase[crow] == _IN_TUBE) & ~tab.in_transition[crow]
+    if ok.any():
+        ok &= np.fromiter((not p.link.closed for p in commanded), bool, len(commanded))
+    batch = np.flatnonzero(ok)
+    brows = crow[batch]
+    in_batch = np.zeros(len(pilots), bool)
+    in_batch[brows] = True
+    slow = {int(crow[k]): cmds[k] for k in np.flatnonzero(~ok).tolist()}
+    for r in np.flatnonzero(~in_batch).tolist():
+        pilots[r].actuate(now_mono, slow.get(r), view)
+    if not batch.size:
+        return
+    bp = [pilots[r] for r in brows.tolist()]
+    first = bp[0]
+    cfg = first.cfg
+    cmd = cmds[batch]
+    v = cmd
     corr: np.ndarray | None = None
     bank: CompensatorBank | None = None  # the batch's one bank, if they share one
-    if batch:
-        first = commanded[batch[0]]
-        cfg = first.cfg
-        cmd = cmds[batch]
-        v = cmd
-        if cfg.compensate_estimate:
-            comps = [commanded[k].compensator for k in batch]
-            bank = comps[0].bank  # type: ignore[union-attr]
-            if all(c.bank is bank for c in comps):  # type: ignore[union-attr]
-                at = np.fromiter((c.row for c in comps), np.int64, len(comps))  # type: ignore
-                corr = np.stack((bank.dx_m_s[at], bank.dy_m_s[at]), axis=1)
-            else:
-                bank = None
-                corr = np.array([c.correction for c in comps],  # type: ignore[union-attr]
-                                dtype=float).reshape(-1, 2)
-            v = cmd + corr
-        vx, vy = v[:, 0], v[:, 1]
-        a, b, c, d = first._to_ned
-        up = np.fromiter((commanded[k].up_m for k in batch), float, len(batch))
-        u = cfg.altitude_gain_1_s * (cfg.altitude_m - up)  # vertical_down_m_s, vectorized
-        lo = -cfg.max_vertical_speed_m_s
-        hi = cfg.max_vertical_speed_m_s
-        down = np.where(np.isfinite(up), -np.where(u < lo, lo, np.where(u > hi, hi, u)), 0.0)
-        rows = list(zip(cmd, vx.tolist(), vy.tolist(), (a * vx + b * vy).tolist(),
-                        (c * vx + d * vy).tolist(), down.tolist(), strict=True))
-        fast = {commanded[k].vehicle_id: j for j, k in enumerate(batch)}
-    if len(batch) < len(commanded):
-        taken = set(batch)
-        slow = {p.vehicle_id: cmds[k] for k, p in enumerate(commanded) if k not in taken}
-    order: list[VehiclePilot] = []  # the batch, in the pilots' order
-    for p in pilots:
-        j = fast.get(p.vehicle_id)
-        if j is None:
-            p.actuate(now_mono, slow.get(p.vehicle_id), view)
+    if cfg.compensate_estimate:
+        comps = [p.compensator for p in bp]
+        bank = comps[0].bank  # type: ignore[union-attr]
+        if all(c.bank is bank for c in comps):  # type: ignore[union-attr]
+            at = np.fromiter((c.row for c in comps), np.int64, len(comps))  # type: ignore
+            corr = np.stack((bank.dx_m_s[at], bank.dy_m_s[at]), axis=1)
         else:
-            order.append(p)
-    sent: list[int] = []  # rows of ``batch`` sent, for the residual
-    if order:
-        # what _send_in_tube does per pilot, the sends for all at once (one link class each)
-        js = [fast[p.vehicle_id] for p in order]
-        for p, j in zip(order, js, strict=True):
-            cmd_xy, vx, vy, _, _, _ = rows[j]
-            p.cmd_xy, p.cmd_in_tube, p.sent_xy = cmd_xy, True, (vx, vy)
-        failed = send_velocities_ned([p.link for p in order],
-                                     np.array([rows[j][3] for j in js]),
-                                     np.array([rows[j][4] for j in js]),
-                                     np.array([rows[j][5] for j in js]))
-        for p, j, exc in zip(order, js, failed, strict=True):
-            if exc is not None:
-                p.setpoint_failed(exc)
-                continue
-            p.setpoints_sent += 1
-            if not p.sent_setpoint.is_set():
-                p.sent_setpoint.set()
-            sent.append(j)
-    if corr is None or not sent:
+            bank = None
+            corr = np.array([c.correction for c in comps],  # type: ignore[union-attr]
+                            dtype=float).reshape(-1, 2)
+        v = cmd + corr
+    vx, vy = v[:, 0], v[:, 1]
+    a, b, c, d = first._to_ned
+    up = tab.up[brows]
+    u = cfg.altitude_gain_1_s * (cfg.altitude_m - up)  # vertical_down_m_s, vectorized
+    lo = -cfg.max_vertical_speed_m_s
+    hi = cfg.max_vertical_speed_m_s
+    down = np.where(np.isfinite(up), -np.where(u < lo, lo, np.where(u > hi, hi, u)), 0.0)
+    # the IN_TUBE branch of VehiclePilot.actuate: the command, then the send
+    tab.cmd[brows] = cmd
+    tab.cmd_set[brows] = True
+    tab.cmd_in_tube[brows] = True
+    failed = send_velocities_ned([p.link for p in bp], a * vx + b * vy, c * vx + d * vy, down)
+    sent = np.fromiter((e is None for e in failed), bool, len(failed))
+    tab.setpoints_sent[brows[sent]] += 1
+    for j in np.flatnonzero(sent & ~tab.ever_sent[brows]).tolist():
+        tab.ever_sent[brows[j]] = True
+        bp[j].sent_setpoint.set()
+    for j in np.flatnonzero(~sent).tolist():
+        bp[j].setpoint_failed(failed[j])  # type: ignore[arg-type]
+    if corr is None or not sent.any():
         return
-    tracked = [commanded[batch[j]] for j in sent]
+    sent_at = np.flatnonzero(sent)
+    tracked = [bp[j] for j in sent_at.tolist()]
     tracker = tracked[0]._residuals
     if bank is None or any(p._residuals is not tracker for p in tracked):
         for p in tracked:  # not one fleet's bank and tracker: each pilot on its own
             p._track_residual(now_mono)
         return
     ids = np.fromiter((p._residual_row for p in tracked), np.int64, len(tracked))
+    if latencies_s is None:
+        latencies_s = link_latencies_s(pilots)
     # residual_lag_s, vectorized: (W/2 + T) + L, W the shared bank's
-    lag = ((0.5 * bank.window_s + first.cfg.period_s)
-           + np.fromiter((p.link.latency_s or 0.0 for p in tracked), float, len(tracked)))
-    crossed = tracker.track(ids, now_mono, corr[sent], lag)
+    lag = (0.5 * bank.window_s + cfg.period_s) + np.nan_to_num(latencies_s[brows[sent_at]],
+                                                               nan=0.0)
+    crossed = tracker.track(ids, now_mono, corr[sent_at], lag)
     if crossed.size:
         by_row = {p._residual_row: p for p in tracked}
         for r in crossed.tolist():
@@ -1142,33 +1258,30 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
 
 def check_faults_all(pilots: Sequence[VehiclePilot], now_mono: float,
                      listening_since: float | None = None) -> None:
-    """:meth:`VehiclePilot.check_faults` for the whole fleet. One vectorized pass first finds
-    the pilots for which it can neither find a fault nor change anything (flying offboard and
-    confirmed so, armed, heard within ``lost_after_s``, and in the tube not slow, or not
-    commanded, with no slow spell being timed); only the others are checked one by one. The
-    pass is conservative: a speed within 1 ppm of the threshold is checked. The pilots share
-    one mission (the supervisor's)."""
+    """:meth:`VehiclePilot.check_faults` for a fleet (:func:`fleet_table`). One vectorized
+    pass first finds the pilots for which it can neither find a fault nor change anything
+    (flying offboard and confirmed so, armed, heard within ``lost_after_s``, and in the tube
+    not slow, or not commanded, with no slow spell being timed); only the others are checked
+    one by one. The pass is conservative: a speed within 1 ppm of the threshold is checked.
+    The pilots share one mission (the supervisor's)."""
     n = len(pilots)
     if not n:
         return
+    tab = fleet_table(pilots)
     cfg = pilots[0].cfg
-    phases = [p.agent.phase for p in pilots]
-    states = [p.link.state for p in pilots]
-    last = np.fromiter((math.nan if s.last_position_s is None else s.last_position_s
-                        for s in states), float, n)
+    link = np.array([(math.nan if s.last_position_s is None else s.last_position_s,
+                      s.flight_mode == "OFFBOARD" and s.armed is True)
+                     for s in (p.link.state for p in pilots)], dtype=float).reshape(n, 2)
+    last = link[:, 0]
     heard = last if listening_since is None else np.maximum(last, listening_since)
-    quiet = np.fromiter((ph in OFFBOARD_PHASES for ph in phases), bool, n)
-    quiet &= np.fromiter((p._offboard_seen for p in pilots), bool, n)
-    quiet &= np.fromiter((s.flight_mode == "OFFBOARD" and s.armed is True for s in states),
-                         bool, n)
+    quiet = _OFFBOARD_MASK[tab.phase] & tab.offboard_seen & (link[:, 1] == 1.0)
     quiet &= now_mono - heard <= cfg.lost_after_s  # NaN (never heard): not quiet
     first = pilots[0]
     if listening_since is None or now_mono - listening_since > first.unresponsive_s:
-        tube = np.fromiter((ph == Phase.IN_TUBE for ph in phases), bool, n)
-        timing = np.fromiter((p._still_since is not None for p in pilots), bool, n)
-        vel = np.array([p.vel_xy for p in pilots], dtype=float).reshape(n, 2)
-        cmd = np.array([_ZERO2 if p.cmd_xy is None else p.cmd_xy for p in pilots],
-                       dtype=float).reshape(n, 2)
+        tube = tab.phase == _IN_TUBE
+        timing = np.isfinite(tab.still_since_s)
+        vel = tab.vel
+        cmd = np.where(tab.cmd_set[:, None], tab.cmd, 0.0)
         idle = (cmd[:, 0] == 0.0) & (cmd[:, 1] == 0.0)  # not commanded (NaN: maybe)
         fast = vel[:, 0] ** 2 + vel[:, 1] ** 2 >= (first.slow_m_s * (1.0 + 1e-6)) ** 2
         quiet &= ~tube | (~timing & (idle | fast))

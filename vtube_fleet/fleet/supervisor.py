@@ -99,10 +99,12 @@ from vtube_fleet.fleet.pilot import (
     actuate_all,
     check_faults_all,
     fleet_states,
+    link_latencies_s,
     measure_budget_links,
     sense_all,
     wait_accuracy,
 )
+from vtube_fleet.fleet.table import PHASE_CODE, PHASES, PilotTable, phase_mask
 from vtube_fleet.fleet.view import FleetStatus, FleetView, vehicle_rows
 from vtube_fleet.link.base import LinkTimeout, VehicleLink
 from vtube_fleet.outcome import EXIT_INCOMPLETE, exit_code
@@ -120,9 +122,14 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-_NAN2 = (math.nan, math.nan)  # a vehicle without a command yet
 _NO_CMDS = np.zeros((0, 2))
 _PHASE_VALUE = {ph: ph.value for ph in Phase}  # (an Enum's .value is a slow descriptor)
+_PHASE_VALUES = tuple(ph.value for ph in PHASES)  # by phase code (fleet/table.py)
+_IN_TUBE = PHASE_CODE[Phase.IN_TUBE]
+_LOST = PHASE_CODE[Phase.LOST]
+_AIRBORNE_MASK = phase_mask(AIRBORNE_PHASES)
+_COUNTED_AIRBORNE_MASK = phase_mask(COUNTED_AIRBORNE_PHASES)
+_STOPPED_OR_LOST_MASK = phase_mask(STOPPED_PHASES | {Phase.LOST})
 
 
 #: Rate of the ground-truth stream asked for with ``truth=True`` (HIL_STATE_QUATERNION).
@@ -298,8 +305,10 @@ class Supervisor:
         self.compensators = CompensatorBank(len(self.pilots))
         self.residuals = ResidualTracker(len(self.pilots), self.cfg.period_s,
                                          self.cfg.disturbance_residual_m_s)
+        #: the pilots' tick state as columns, pilot i in row i (fleet/table.py)
+        self.table = PilotTable(len(self.pilots))
         for i, p in enumerate(self.pilots):
-            p.join_fleet(i, self.compensators, self.residuals)
+            p.join_fleet(i, self.compensators, self.residuals, self.table)
         # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' + 1 m
         self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, self.physical, flown)
         self.acc = SummaryAccumulator(len(self.pilots))
@@ -436,13 +445,16 @@ class Supervisor:
         wall = time.time()
         t = now - self.t0
         pilots = self.pilots
+        tab = self.table
         cfg = self.cfg
         sense_all(pilots, self.frame)
         check_faults_all(pilots, now, self.listening_since)
+        latencies = link_latencies_s(pilots)
         # every pilot's state (what each would publish) as one table: the budget's sample
         # ages (airborne; older: a stale vehicle, handled as a fault) and the neighbour view
-        fs = fleet_states(pilots, now, wall)
-        keep = np.fromiter((ph in AIRBORNE_PHASES for ph in fs.phases), bool, len(fs.phases))
+        fs = fleet_states(pilots, now, wall, latencies)
+        have = np.isfinite(tab.sample_s)
+        keep = _AIRBORNE_MASK[tab.phase[have]]
         keep &= fs.ages_s <= cfg.neighbour_max_age_s
         self._sample_ages_window.extend(fs.ages_s[keep].tolist())
         self._sample_ids_window.extend(fs.ids[keep].tolist())
@@ -457,24 +469,25 @@ class Supervisor:
         rows: list[int] = []
         row_pilots: list[VehiclePilot] = []
         if in_tube:
-            ids = view.ids()
-            index = {int(v): k for k, v in enumerate(ids)}
-            flying = [p for p in pilots if p.agent.phase == Phase.IN_TUBE and p.has_position()]
-            if flying:
-                done = self.plan.exited(np.array([p.xy for p in flying]))
-                for p, gone in zip(flying, done.tolist(), strict=True):
-                    if gone:
-                        p.mark_exit(t)
-                        self.acc.add_exits(t, [p.vehicle_id])
-                        self.recorder.log_exits(t, self.tick, [p.vehicle_id])
-                        continue
-                    k = index.get(p.vehicle_id)
-                    if k is not None:
-                        rows.append(k)
-                        row_pilots.append(p)
+            flying = np.flatnonzero((tab.phase == _IN_TUBE) & tab.has)
+            if flying.size:
+                done = self.plan.exited(tab.xy[flying])
+                for i in flying[done].tolist():
+                    p = pilots[i]
+                    p.mark_exit(t)
+                    self.acc.add_exits(t, [p.vehicle_id])
+                    self.recorder.log_exits(t, self.tick, [p.vehicle_id])
+                # each flying vehicle's row of the view (pilot i is vehicle i), -1: not in it
+                at = np.full(len(pilots), -1, np.int64)
+                ids = view.ids()
+                at[ids] = np.arange(ids.size)
+                left = flying[~done]
+                seen = at[left] >= 0
+                rows = at[left[seen]].tolist()
+                row_pilots = [pilots[i] for i in left[seen].tolist()]
         out = fleet_setpoints(self.plan, view.points(), rows) if rows else _NO_CMDS
-        actuate_all(pilots, now, row_pilots, out, view)
-        self._measure(t, now, view)
+        actuate_all(pilots, now, row_pilots, out, view, latencies)
+        self._measure(t, now, view, latencies)
 
     def _unreachable(self, now: float) -> str | None:
         """Link loss, told apart from a lost vehicle: once a vehicle is LOST for silence during
@@ -557,34 +570,34 @@ class Supervisor:
         self._progress.set()
 
     # -- per-tick measurements -----------------------------------------------------------------
-    def _measure(self, t: float, now: float, view: NeighbourView) -> None:
+    def _measure(self, t: float, now: float, view: NeighbourView,
+                 latencies_s: np.ndarray | None = None) -> None:
         pilots = self.pilots
+        tab = self.table
         m = len(pilots)
-        # one list per quantity, one array each (not a numpy row write per vehicle)
-        has = np.fromiter((p.has_position() for p in pilots), bool, m)
-        pos = np.array([p.position() for p in pilots], dtype=float).reshape(m, 2)
-        vel = np.array([p.vel_xy for p in pilots], dtype=float).reshape(m, 2)
+        has = tab.has.copy()
+        pos = np.where(tab.lost_set[:, None], tab.lost, tab.xy)  # VehiclePilot.position
+        vel = tab.vel.copy()
         pos[~has] = np.nan
         vel[~has] = np.nan
-        cmd = np.array([_NAN2 if p.cmd_xy is None else p.cmd_xy for p in pilots],
-                       dtype=float).reshape(m, 2)
-        phases = [p.agent.phase for p in pilots]
-        inside = np.fromiter((p.cmd_in_tube for p in pilots), bool, m)
+        cmd = np.where(tab.cmd_set[:, None], tab.cmd, np.nan)
+        codes = tab.phase
+        inside = tab.cmd_in_tube.copy()
         # judged in the tube: flying the controller, or stopped inside it (lost at its last
         # position, holding, landing while still in the air)
         tube_rows = inside.copy()
         if self.tube_start_s is not None:
             tube = self.mission.scenario.tube
-            for i in np.flatnonzero(~inside & has).tolist():
-                ph = phases[i]
-                if ((ph == Phase.LOST or (ph in STOPPED_PHASES and pilots[i].airborne()))
+            for i in np.flatnonzero(~inside & has & _STOPPED_OR_LOST_MASK[codes]).tolist():
+                if ((codes[i] == _LOST or pilots[i].airborne())
                         and bool(tube.contains(pos[i]))):
                     tube_rows[i] = True
         # the mission monitor's rule too
-        airborne = np.fromiter((ph in COUNTED_AIRBORNE_PHASES for ph in phases), bool, m)
-        lat = [x for p in pilots if (x := p.link.latency_s) is not None]
-        latency = float(np.median(lat)) if lat else math.nan
-        if lat:
+        airborne = _COUNTED_AIRBORNE_MASK[codes]
+        lat = link_latencies_s(pilots) if latencies_s is None else latencies_s
+        lat = lat[np.isfinite(lat)]
+        latency = float(np.median(lat)) if lat.size else math.nan
+        if lat.size:
             self.latencies.append(latency)
         truth = self._truth_positions() if self.truth else None
         metrics: dict[str, float] = {}
@@ -654,7 +667,7 @@ class Supervisor:
         if math.isfinite(latency):
             metrics["link_latency_s"] = latency
         # the phases as logged: after the budget watch, which may have made them hold
-        logged = [_PHASE_VALUE[p.agent.phase] for p in pilots]
+        logged = [_PHASE_VALUES[c] for c in codes.tolist()]
         self.recorder.log_tick(
             t_s=t, tick=self.tick, ids=np.arange(m), pos=pos, vel=vel,
             phases=logged, cmd=cmd, metrics=metrics,
@@ -703,25 +716,24 @@ class Supervisor:
         at ``sample_s``) go in every tick; they count once superseded, and a vehicle declared
         lost has its ages dropped (its silence is a fault, not latency)."""
         gap, self._recent_tick_gap_s = self._recent_tick_gap_s, 0.0
-        if not any(p.phase == Phase.IN_TUBE for p in self.pilots):
+        codes = self.table.phase
+        if not (codes == _IN_TUBE).any():
             return
         if self.watch is None or self.watch.budget is not self.budget:
             self.watch = BudgetWatch(self.mission, self.budget)
             self._forgotten = set()
         self.watch.add_tick_gap(gap)
         self.watch.add_ages(t, ages_s, vehicle_ids, sample_s)
-        lost = {p.vehicle_id for p in self.pilots if p.phase == Phase.LOST} - self._forgotten
+        lost = set(np.flatnonzero(codes == _LOST).tolist()) - self._forgotten  # (vehicle i: row i)
         if lost:
             self.watch.forget(sorted(lost))
             self._forgotten |= lost
         if not self.watch.due(t):
             return  # (the fleet-wide uplink and accuracy below: once a second, not per tick)
         up = max((p.link.latency_s or 0.0 for p in self.pilots), default=0.0)
-        acc = [p.position_accuracy_m() for p in self.pilots if p.phase == Phase.IN_TUBE]
-        newest = np.full(max((p.vehicle_id for p in self.pilots), default=-1) + 1, np.nan)
-        for p in self.pilots:
-            if p.sample_s is not None:
-                newest[p.vehicle_id] = p.sample_s
+        acc = [self.pilots[i].position_accuracy_m()
+               for i in np.flatnonzero(codes == _IN_TUBE).tolist()]
+        newest = self.table.sample_s.copy()  # NaN: none yet (vehicle i: row i)
         warning, hold = self.watch.check(t, up, acc, newest)
         if warning:
             self.event(warning, level="warning")
