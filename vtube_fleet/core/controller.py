@@ -282,12 +282,16 @@ class _Gathered:
         self.k = k
         self.writeable = k.flags.writeable  # (then it may change in place: gather every time)
 
-    def replaced(self, prep: _Prepared, k: np.ndarray, ch: np.ndarray) -> _Gathered:
-        """The constants of ``k``, which equals this one's k but in the columns ``ch``."""
-        kc = k.take(ch)
-        _check_k(prep, kc)
+    def replaced(self, prep: _Prepared, k: np.ndarray, ch: list[int]) -> _Gathered:
+        """The constants of ``k``, which equals this one's k but in the columns ``ch`` (a
+        few)."""
         G = self.G.copy()
-        G[:, ch] = prep.table.take(kc, 1, None, "clip")
+        table, K = prep.table, prep.K
+        for c in ch:
+            kc = int(k[c])
+            if not 0 <= kc < K:
+                raise ValueError(f"k must be in [0, {K}) (sub-tube indices), got {kc}")
+            G[:, c] = table[:, kc]
         return _Gathered(prep, k, G=G)
 
 
@@ -318,7 +322,7 @@ class _Scratch:
     """
 
     __slots__ = ("n", "P", "X", "X4", "xp", "W", "Wf", "Wl", "Wi", "Wj", "Wnc", "NB", "NBr",
-                 "nb", "track", "pmin", "_g")
+                 "nb", "track", "pmin", "_g", "ncg")
 
     def __init__(self, n: int, P: int, track: bool = False) -> None:
         self.n, self.P = n, P
@@ -338,6 +342,7 @@ class _Scratch:
         # track: keep min ‖p_i − p_j‖ over the pairs (before the barriers clamp it) in pmin
         self.track, self.pmin = track, math.inf
         self._g: np.ndarray | None = None
+        self.ncg: _Gathered | None = None  # (CommandEvaluator: whose n_c is in Wnc)
         reuse_heap(64 * (5 * n + 2 * P))  # > every temporary of a call (the largest: 32 P)
 
     def gbuf(self) -> np.ndarray:
@@ -775,14 +780,17 @@ class _Active:
         n, Lc, P = self.n, self.Lc, self.P
         thr = self.cut + self.slack + 1e-9  # (a hair more: the scalars may round otherwise)
         pos, free = self.pos, self.free
-        G8 = g.G8
+        G = g.G
         adds = []
         gone = 0
+        ncs = []
         for r in ch:
             zr = complex(z[r])
-            for e in (r, n + r):
+            col = G[:, r].tolist()  # rows of _Prepared.table: h and r side, n_c last
+            ncs.append(col[8])
+            for side, e in ((0, r), (1, n + r)):
                 gone += e in pos
-                c01, c23, cE, cA = G8[:, e].tolist()
+                c01, c23, cE, cA = col[side], col[2 + side], col[4 + side], col[6 + side]
                 d = (c01 * zr).real - c23.real
                 if not -math.inf < d < math.inf:
                     return False
@@ -792,8 +800,7 @@ class _Active:
             return False
         for a in adds:
             self.leg_floor = max(self.leg_floor, self.slack - (a[6] - self.leg_ok))
-        G01a, G23a, GAa, idx, slots, fs3 = (self.G01a, self.G23a, self.GAa, self.idx,
-                                           self.slots, self.fs3)
+        G01a, G23a, GAa, idx, slots = self.G01a, self.G23a, self.GAa, self.idx, self.slots
         for r in ch:
             for e in (r, n + r):
                 j = pos.pop(e, None)
@@ -801,7 +808,7 @@ class _Active:
                     G01a[j] = G01a[Lc + j] = 0.0
                     G23a[j] = G23a[Lc + j] = -_FAR
                     free.append(j)
-        o = 2 * P
+        o, su = 2 * P, 2 * self.M  # (float slots of r: q at 2r, 2r + 1, u_rep at su + 2r, …)
         for e, r, c01, c23, cE, cA, _ in adds:
             j = free.pop()
             pos[e] = j
@@ -810,11 +817,13 @@ class _Active:
             GAa[j] = cE
             GAa[Lc + j] = cA
             idx[o + j] = idx[o + Lc + j] = r
-            slots[2 * j: 2 * j + 2] = fs3[0, e]
-            slots[2 * Lc + 2 * j: 2 * Lc + 2 * j + 2] = fs3[1, e]
-        W, nc = self.W, g.n_c
-        for r in ch:
-            W[2 * Lc + 2 * P + r] = nc[r]
+            slots[2 * j] = su + 2 * r  # (as fs3[0, e], fs3[1, e])
+            slots[2 * j + 1] = su + 2 * r + 1
+            slots[2 * Lc + 2 * j] = 2 * r
+            slots[2 * Lc + 2 * j + 1] = 2 * r + 1
+        W = self.W
+        for r, nc in zip(ch, ncs, strict=True):
+            W[2 * Lc + 2 * P + r] = nc
         self.g = g
         return True
 
@@ -973,8 +982,6 @@ class CommandEvaluator:
                 if type(k) is not np.ndarray or k.dtype != np.intp or k.shape != (M,):
                     raise ValueError(f"k must be an intp array of shape ({M},)")
                 g = self._g = _Gathered(self._prep, k)
-                if pa is not None and pa[2] == M:
-                    pa[6].Wnc[:] = g.n_c
             I, J = pairs
             if pa is None or pa[0] is not I or pa[1] is not J or pa[2] != M or pa[7]:
                 pa = self._pairs = self._new_pairs(I, J, M, g)
@@ -1004,6 +1011,9 @@ class CommandEvaluator:
         self._act = None  # (how far the points move until the next call is unknown)
         if pa[5] is None:
             pa = self._pairs = (*pa[:5], lay.pair_arrays(pa[0], pa[1], cache=False)[1], *pa[6:])
+        if w.ncg is not g:  # (the n_c block of the weights, as _core expects)
+            w.Wnc[:] = g.n_c
+            w.ncg = g
         B = _core(z, z, g, lay.bank, pa[4], pa[5], w, M)
         if w.track:
             self.min_pair_distance = w.pmin
@@ -1024,12 +1034,12 @@ class CommandEvaluator:
         ch = (k != og.k).nonzero()[0]
         if not 0 < ch.shape[0] <= 4:
             return None
+        ch = ch.tolist()
         g = og.replaced(self._prep, k, ch)
         act.slack = slack
-        if not act._legs_update(g, z, ch.tolist()):
+        if not act._legs_update(g, z, ch):
             return None
         self._g = g
-        self._pairs[6].Wnc[ch] = g.n_c[ch]  # (the full evaluation's n_c, as g's)
         fs = self._fast
         self._fast = (k, *fs[1:])
         self._same = (k, fs[1], fs[2], M)
@@ -1043,8 +1053,7 @@ class CommandEvaluator:
         _check_pair_range(I, J, M)
         P = I.shape[0]
         lay = self._prep.layout(M, P)
-        w = _Scratch(M, P, self.track_min_pair)
-        w.Wnc[:] = g.n_c
+        w = _Scratch(M, P, self.track_min_pair)  # (its n_c block is filled before use)
         # (the float slots of the full layout, entry 5, are made by the first call that
         # evaluates all elements; the element subset does not need them)
         return (I, J, M, lay, np.concatenate([I, J]), None, w,

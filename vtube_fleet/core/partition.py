@@ -466,6 +466,7 @@ class SubTubeTracker:
         self._M = -1
         self._shape: tuple = ()  # (M, 2) once the rows are set
         self._check: tuple | None = None  # update()'s 1-D row check (set by _full)
+        self._rows: dict = {}  # row code → its rows as Python numbers (_partial_few)
         self._tables = self._build_tables(partition)
         self._one = self._one_point_tables() if self._tables is not None else None
 
@@ -626,13 +627,18 @@ class SubTubeTracker:
         point itself (it lies within the rows' tolerance of a boundary), the full locate
         decides instead, so that the result always equals ``locate`` of all points.
         """
+        M = vr.shape[1]
+        fail = np.greater(vr, 0.0)
+        fail = np.logical_not(fail, out=fail).reshape(-1).nonzero()[0]  # (NaN rows too)
+        if fail.shape[0] <= 16 and self._one is not None:  # the common case: a point or two
+            bad = sorted({i % M for i in fail.tolist()})
+            if len(bad) <= 4:
+                self._partial_few(p, bad)
+                return
         ok = np.minimum.reduce(vr, axis=0) > 0.0
-        bad = np.logical_not(ok, out=ok).nonzero()[0]  # (NaN rows too)
+        bad = np.logical_not(ok, out=ok).nonzero()[0]
         if 4 * bad.shape[0] > p.shape[0]:  # many: the full locate costs about the same
             self._full(p)
-            return
-        if bad.shape[0] <= 4 and self._one is not None:  # the common case: a point or two
-            self._partial_few(p, bad.tolist())
             return
         ps = p.take(bad, axis=0)
         k, C, B = self._locate_rows(ps, self._rowoff[: bad.shape[0]])
@@ -654,7 +660,7 @@ class SubTubeTracker:
     def _partial_few(self, p: np.ndarray, bad: list[int]) -> None:
         """:meth:`_partial` for the few points ``bad``, in Python floats (microseconds instead
         of ~30 numpy calls): their new rows must hold at the points, else :meth:`_full`."""
-        Ctab, Btab = self._tables[0], self._tables[1]
+        rows = self._rows
         new = []
         for i in bad:
             x, y = p[i].tolist()
@@ -663,9 +669,15 @@ class SubTubeTracker:
                 self._full(p)
                 return
             k, code = got
-            C, B = Ctab[:, code], Btab[:, code]
-            for c, b in zip(C.tolist(), B.tolist(), strict=True):
-                if not c.real * x - c.imag * y + b > 0.0:  # Re(C z) + B, as update's rows
+            row = rows.get(code)
+            if row is None:  # (the table's column as numbers: (Re C, Im C, B) per row)
+                Ctab, Btab = self._tables[0], self._tables[1]
+                row = rows[code] = (Ctab[:, code], Btab[:, code], [
+                    (c.real, c.imag, b) for c, b in zip(Ctab[:, code].tolist(),
+                                                       Btab[:, code].tolist(), strict=True)])
+            C, B, cb = row
+            for cr, ci, b in cb:
+                if not cr * x - ci * y + b > 0.0:  # Re(C z) + B, as update's rows
                     self._full(p)
                     return
             new.append((i, k, C, B))
