@@ -12,6 +12,7 @@ vehicles boot with ``boot_time_scale`` 0.3 (armable after ~1.2 s instead of ~4 s
 
 from __future__ import annotations
 
+import gc
 import json
 from pathlib import Path
 
@@ -105,21 +106,25 @@ def mission_file(tmp_path: Path, text: str) -> Mission:
 
 
 
-def truth_and_keep(log: TruthLog, holder: list[Supervisor], modes: set[str] | None = None):
+def truth_and_keep(log: TruthLog, holder: list[Supervisor], modes: set[str] | None = None,
+                   frozen: list[int] | None = None):
     """A tick hook: keep the supervisor, log the truth; ``modes``: collect the flight modes
-    the links report (the vehicles' own HEARTBEAT, through the backend's telemetry)."""
+    the links report (the vehicles' own HEARTBEAT, through the backend's telemetry);
+    ``frozen``: the cyclic collector's frozen objects at each tick in the tube."""
     def hook(tick: int, sup: Supervisor) -> None:
         if not holder:
             holder.append(sup)
         log(tick, sup)
         if modes is not None:
             modes.update(p.link.state.flight_mode for p in sup.pilots)
+        if frozen is not None and sup.tube_start_s is not None:
+            frozen.append(gc.get_freeze_count())
     return hook
 
 
 async def fly_logged(mission: Mission, seed: int, *, backend: str = "mavlink",
                      estimator: str = "px4-sih", tmp_path: Path,
-                     modes: set[str] | None = None, **kw):
+                     modes: set[str] | None = None, frozen: list[int] | None = None, **kw):
     """Fly ``mission`` on a mock fleet of its own; (result, supervisor, truth log)."""
     n = mission.count
     holder: list[Supervisor] = []
@@ -127,7 +132,7 @@ async def fly_logged(mission: Mission, seed: int, *, backend: str = "mavlink",
         log = TruthLog(fleet, mission)
         result = await fly(mission, backend=backend, endpoints=fleet.endpoints,
                            sysids=[i + 1 for i in range(n)], out_dir=tmp_path, keep_trace=True,
-                           tick_hook=truth_and_keep(log, holder, modes), **kw)
+                           tick_hook=truth_and_keep(log, holder, modes, frozen), **kw)
     return result, holder[0], log
 
 
@@ -137,10 +142,14 @@ async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) ->
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml")
     assert mission.count == 12
     path = tmp_path / "recording.rrd"
+    frozen: list[int] = []
     with open_recorder(path, kind="fleet") as rec:
         result, sup, log = await fly_logged(mission, 1, tmp_path=tmp_path, truth=True,
-                                            recorder=rec)
+                                            recorder=rec, frozen=frozen)
     assert result.exit_code == 0, result.reason
+    # the set-up's objects sat out of the cyclic collector's way in the tube, and were given
+    # back at the end (Supervisor._freeze_heap)
+    assert frozen and min(frozen) > 0 and gc.get_freeze_count() == 0
     assert result.outcome == "completed"
     assert result.summary["exited"] == 12
     assert all(p.exit_time_s is not None for p in sup.pilots)
