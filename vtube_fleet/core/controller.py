@@ -594,7 +594,7 @@ class _Active:
                  "pmin", "track", "r_pair", "IJ", "cut", "prep", "sel", "TA", "q_slot",
                  "tmpr", "zz", "dz", "zL", "Y", "Yc", "Yp", "gb", "ab", "nm", "bound", "pos",
                  "free", "fs3", "pair_ok", "leg_ok", "U", "V", "T", "leg_floor", "mv", "cv",
-                 "nb", "NB")
+                 "nb", "NB", "z2")
 
     def __init__(self, prep: _Prepared, M: int, track: bool) -> None:
         legs, sig, pair = prep.blocks(16, 16)
@@ -619,6 +619,7 @@ class _Active:
         self.mv = np.repeat([1e-300, p.v_max_prime], M)
         self.nb = np.empty(2 * M)
         self.NB = np.zeros(2 * M, np.complex128)
+        self.z2 = np.empty(2 * M, np.complex128)
 
     def refresh(self, g: _Gathered, pa: tuple, z: np.ndarray) -> bool:
         """Choose the elements at the points ``z`` for the sub-tubes of ``g`` and the pairs of
@@ -638,7 +639,11 @@ class _Active:
             ch = (g.k != og.k).nonzero()[0]
             if ch.shape[0] <= 4 and self._legs_update(g, z, ch.tolist()):
                 return True
-        d = np.subtract((g.G01 * z).real, g.G23).reshape(2 * M)  # (dtl)/(dtr), as _core
+        # (dtl)/(dtr) of every robot, as _core, as 1-D calls: [conj(n_h) | conj(n_r)]·[z | z]
+        z2 = np.concatenate((z, z), out=self.z2)
+        G = g.G
+        d = np.subtract(np.multiply(G[0:2].reshape(2 * M), z2, out=z2).real,
+                        G[2:4].real.reshape(2 * M))
         # (every d finite: every point is, so are the pair distances)
         dmin = d[d.argmin()] if M else 0.0
         if not (-math.inf < dmin and d[d.argmax()] < math.inf):
