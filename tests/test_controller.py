@@ -637,3 +637,46 @@ def test_element_subset_takes_the_general_formula_when_a_margin_comes_near(monke
         if need:  # the subset needed the general formula too
             assert general["n"] == n0 + 2, step
     assert general["n"] > 200 and fast["n"] > 600  # (subset and full evaluation alike)
+
+
+def test_new_sub_tubes_of_a_few_robots_take_the_short_path(monkeypatch):
+    """CommandEvaluator.step: when the read-only k differs from the last call's in a few
+    robots (the sub-tube tracker's changes) and the pairs are the same, those robots'
+    constants and leg/σ elements are patched on the short path (_new_k); the commands are
+    bitwise velocity_command's at every step."""
+    from vtube_fleet.core import controller as ctl
+
+    tubes = [make_tube(a_h=0.25, a_r=0.2, length=10.0, w0=7.0),
+             make_tube(phi=0.4, origin=(10.0, 0.0), a_h=-0.1, a_r=0.3, w0=4.0, length=5.0)]
+    ta = TubeArrays.from_tubes(tubes)
+    ev = CommandEvaluator(ta, PAPER, "new", track_min_pair=True)
+    served = {"n": 0}
+    new_k = ctl.CommandEvaluator._new_k
+
+    def counted(self, *args):
+        v = new_k(self, *args)
+        served["n"] += v is not None
+        return v
+
+    monkeypatch.setattr(ctl.CommandEvaluator, "_new_k", counted)
+    M = 30
+    # a slanted line of robots 0.9 m apart moving downstream: they cross x = 8 one by one
+    p0 = np.column_stack([np.linspace(5.5, 8.4, M), np.linspace(-2.6, 2.6, M)])
+    I, J = np.triu_indices(M, 1)
+    pairs = (I.astype(np.int64), J.astype(np.int64))
+    for a in pairs:
+        a.setflags(write=False)
+    k = np.zeros(M, np.intp)
+    k.setflags(write=False)
+    dt, v = 1e-3, 2.0
+    move = dt * v * (1 + 1e-6)
+    for step in range(1500):
+        p = p0 + [v * dt * step, 0.0]
+        knew = (p[:, 0] > 8.0).astype(np.intp)
+        if not np.array_equal(knew, k):
+            k = knew
+            k.setflags(write=False)
+        want = velocity_command(p, k, ta, PAPER, pairs=pairs)
+        got = ev.step(np.ascontiguousarray(p).view(np.complex128).ravel(), k, pairs, move=move)
+        assert got.view(np.float64).reshape(-1, 2).tobytes() == want.tobytes(), step
+    assert served["n"] >= 20
