@@ -73,7 +73,8 @@ __all__ = [
     "check_faults_all",
     "fleet_states",
     "fleet_table",
-    "link_latencies_s",
+    "LinkColumns",
+    "link_columns",
     "measure_budget_links",
     "measure_links",
     "sense_all",
@@ -1068,20 +1069,56 @@ _IN_TUBE = PHASE_CODE[Phase.IN_TUBE]
 _OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
 
 
-def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame) -> int:
+@dataclass(frozen=True, slots=True)
+class LinkColumns:
+    """What a fleet's steps read from the links in a tick, gathered in ONE pass over them
+    (:func:`link_columns`): each link's ``states`` (its :class:`VehicleState`), the arrival of
+    its latest local position ``position_s`` (NaN: none), whether its GPS origin is known
+    (``origin_known``), whether it reports OFFBOARD and armed (``offboard_armed``), its one-way
+    latency ``latency_s`` (NaN: not measured yet) and whether it is ``closed``. The links only
+    change between ticks (their telemetry arrives in the event loop), so one snapshot serves
+    every step of a tick."""
+
+    states: list[VehicleState]
+    position_s: np.ndarray
+    origin_known: np.ndarray
+    offboard_armed: np.ndarray
+    latency_s: np.ndarray
+    closed: np.ndarray
+
+
+def link_columns(pilots: Sequence[VehiclePilot]) -> LinkColumns:
+    """The pilots' links as :class:`LinkColumns`, in the pilots' order."""
+    n = len(pilots)
+    links = [p.link for p in pilots]
+    states = [lk.state for lk in links]
+    nan = math.nan
+    cols = np.array([(nan if (t := s.last_position_s) is None else t, s.origin is not None,
+                      s.flight_mode == "OFFBOARD" and s.armed is True,
+                      nan if (x := lk.latency_s) is None else x, lk.closed)
+                     for lk, s in zip(links, states, strict=True)],
+                    dtype=float).reshape(n, 5)
+    return LinkColumns(states, cols[:, 0], cols[:, 1] == 1.0, cols[:, 2] == 1.0, cols[:, 3],
+                       cols[:, 4] == 1.0)
+
+
+def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame,
+              links: LinkColumns | None = None) -> int:
     """:meth:`VehiclePilot.sense` for a fleet (:func:`fleet_table`): the new samples found in
     one pass over the links, ONE vectorized frame conversion of the positions (pymap3d on
     arrays) and of the velocities, written into the table's columns, and, for the pilots of
     one compensator bank (a supervisor's fleet), one compensator update for all; the same
-    arithmetic as one by one. Returns how many had a new sample."""
+    arithmetic as one by one. Returns how many had a new sample. ``links``:
+    :func:`link_columns` of this tick, if the caller has it."""
     if not pilots:
         return 0
     tab = fleet_table(pilots)
-    n = len(pilots)
-    states = [p.link.state for p in pilots]
-    last = np.fromiter((math.nan if s.last_position_s is None or s.origin is None
-                        else s.last_position_s for s in states), float, n)
-    rows = np.flatnonzero(np.isfinite(last) & (last != tab.sample_s))  # pending_sample
+    if links is None:
+        links = link_columns(pilots)
+    states = links.states
+    last = links.position_s
+    rows = np.flatnonzero(np.isfinite(last) & links.origin_known
+                          & (last != tab.sample_s))  # pending_sample
     if not rows.size:
         return 0
     todo_rows = rows.tolist()
@@ -1143,27 +1180,20 @@ class FleetStates:
     ages_s: np.ndarray
 
 
-def link_latencies_s(pilots: Sequence[VehiclePilot]) -> np.ndarray:
-    """Each pilot's one-way link latency (NaN where none is known yet), as an array."""
-    return np.fromiter((math.nan if (x := p.link.latency_s) is None else x for p in pilots),
-                       float, len(pilots))
-
-
 def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: float,
-                 latencies_s: np.ndarray | None = None) -> FleetStates:
+                 links: LinkColumns | None = None) -> FleetStates:
     """What each pilot's :meth:`VehiclePilot.state` would say now (the same arithmetic),
     from the fleet's table (:func:`fleet_table`): a LOST vehicle at its frozen position with
-    zero velocity, the stamp the wall-clock time its position was measured. ``latencies_s``:
-    :func:`link_latencies_s` if the caller has it already."""
+    zero velocity, the stamp the wall-clock time its position was measured. ``links``:
+    :func:`link_columns` of this tick, if the caller has it."""
     tab = fleet_table(pilots) if pilots else PilotTable(0)
     have = np.flatnonzero(np.isfinite(tab.sample_s))
     lost = tab.lost_set[have, None]
     pos = np.where(lost, tab.lost[have], tab.xy[have])
     vel = np.where(lost, 0.0, tab.vel[have])
     sample = tab.sample_s[have]
-    if latencies_s is None:
-        latencies_s = link_latencies_s(pilots)
-    ages = (now_mono - sample) + np.nan_to_num(latencies_s[have], nan=0.0)  # sample_age_s
+    latency = (link_columns(pilots) if links is None else links).latency_s
+    ages = (now_mono - sample) + np.nan_to_num(latency[have], nan=0.0)  # sample_age_s
     return FleetStates(np.fromiter((pilots[i].vehicle_id for i in have.tolist()), np.int64,
                                    have.size),
                        pos, vel, [PHASES[c] for c in tab.phase[have].tolist()],
@@ -1172,7 +1202,7 @@ def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: floa
 
 def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequence[VehiclePilot],
                 cmds: np.ndarray, view: NeighbourView | None,
-                latencies_s: np.ndarray | None = None) -> None:
+                links: LinkColumns | None = None) -> None:
     """:meth:`VehiclePilot.actuate` for a fleet (:func:`fleet_table`): ``commanded`` (IN_TUBE)
     get the rows of ``cmds`` (K, 2), the others no command. The in-tube pilots' arithmetic
     (command + d̂, the altitude hold, the rotation to NED) is done for all of them at once with
@@ -1180,14 +1210,14 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
     into the table and their setpoints sent together
     (:func:`~vtube_fleet.link.base.send_velocities_ned`); the other pilots take
     :meth:`VehiclePilot.actuate` one by one, in order. The pilots share one mission and frame
-    (the supervisor's). ``latencies_s``: :func:`link_latencies_s`, if the caller has it."""
+    (the supervisor's). ``links``: :func:`link_columns` of this tick, if the caller has it."""
     if not pilots:
         return
     tab = fleet_table(pilots)
+    if links is None:
+        links = link_columns(pilots)
     crow = np.fromiter((p._r for p in commanded), np.int64, len(commanded))
-    ok = (tab.phase[crow] == _IN_TUBE) & ~tab.in_transition[crow]
-    if ok.any():
-        ok &= np.fromiter((not p.link.closed for p in commanded), bool, len(commanded))
+    ok = (tab.phase[crow] == _IN_TUBE) & ~tab.in_transition[crow] & ~links.closed[crow]
     batch = np.flatnonzero(ok)
     brows = crow[batch]
     in_batch = np.zeros(len(pilots), bool)
@@ -1244,10 +1274,8 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
             p._track_residual(now_mono)
         return
     ids = np.fromiter((p._residual_row for p in tracked), np.int64, len(tracked))
-    if latencies_s is None:
-        latencies_s = link_latencies_s(pilots)
     # residual_lag_s, vectorized: (W/2 + T) + L, W the shared bank's
-    lag = (0.5 * bank.window_s + cfg.period_s) + np.nan_to_num(latencies_s[brows[sent_at]],
+    lag = (0.5 * bank.window_s + cfg.period_s) + np.nan_to_num(links.latency_s[brows[sent_at]],
                                                                nan=0.0)
     crossed = tracker.track(ids, now_mono, corr[sent_at], lag)
     if crossed.size:
@@ -1257,24 +1285,24 @@ def actuate_all(pilots: Sequence[VehiclePilot], now_mono: float, commanded: Sequ
 
 
 def check_faults_all(pilots: Sequence[VehiclePilot], now_mono: float,
-                     listening_since: float | None = None) -> None:
+                     listening_since: float | None = None,
+                     links: LinkColumns | None = None) -> None:
     """:meth:`VehiclePilot.check_faults` for a fleet (:func:`fleet_table`). One vectorized
     pass first finds the pilots for which it can neither find a fault nor change anything
     (flying offboard and confirmed so, armed, heard within ``lost_after_s``, and in the tube
     not slow, or not commanded, with no slow spell being timed); only the others are checked
     one by one. The pass is conservative: a speed within 1 ppm of the threshold is checked.
-    The pilots share one mission (the supervisor's)."""
-    n = len(pilots)
-    if not n:
+    The pilots share one mission (the supervisor's). ``links``: :func:`link_columns` of this
+    tick, if the caller has it."""
+    if not pilots:
         return
     tab = fleet_table(pilots)
+    if links is None:
+        links = link_columns(pilots)
     cfg = pilots[0].cfg
-    link = np.array([(math.nan if s.last_position_s is None else s.last_position_s,
-                      s.flight_mode == "OFFBOARD" and s.armed is True)
-                     for s in (p.link.state for p in pilots)], dtype=float).reshape(n, 2)
-    last = link[:, 0]
+    last = links.position_s
     heard = last if listening_since is None else np.maximum(last, listening_since)
-    quiet = _OFFBOARD_MASK[tab.phase] & tab.offboard_seen & (link[:, 1] == 1.0)
+    quiet = _OFFBOARD_MASK[tab.phase] & tab.offboard_seen & links.offboard_armed
     quiet &= now_mono - heard <= cfg.lost_after_s  # NaN (never heard): not quiet
     first = pilots[0]
     if listening_since is None or now_mono - listening_since > first.unresponsive_s:

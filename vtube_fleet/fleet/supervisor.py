@@ -100,7 +100,7 @@ from vtube_fleet.fleet.pilot import (
     actuate_all,
     check_faults_all,
     fleet_states,
-    link_latencies_s,
+    link_columns,
     measure_budget_links,
     sense_all,
     wait_accuracy,
@@ -449,12 +449,12 @@ class Supervisor:
         pilots = self.pilots
         tab = self.table
         cfg = self.cfg
-        sense_all(pilots, self.frame)
-        check_faults_all(pilots, now, self.listening_since)
-        latencies = link_latencies_s(pilots)
+        links = link_columns(pilots)  # (the links change only between ticks)
+        sense_all(pilots, self.frame, links)
+        check_faults_all(pilots, now, self.listening_since, links)
         # every pilot's state (what each would publish) as one table: the budget's sample
         # ages (airborne; older: a stale vehicle, handled as a fault) and the neighbour view
-        fs = fleet_states(pilots, now, wall, latencies)
+        fs = fleet_states(pilots, now, wall, links)
         have = np.isfinite(tab.sample_s)
         keep = _AIRBORNE_MASK[tab.phase[have]]
         keep &= fs.ages_s <= cfg.neighbour_max_age_s
@@ -488,8 +488,8 @@ class Supervisor:
                 rows = at[left[seen]].tolist()
                 row_pilots = [pilots[i] for i in left[seen].tolist()]
         out = fleet_setpoints(self.plan, view.points(), rows) if rows else _NO_CMDS
-        actuate_all(pilots, now, row_pilots, out, view, latencies)
-        self._measure(t, now, view, latencies)
+        actuate_all(pilots, now, row_pilots, out, view, links)
+        self._measure(t, now, view, links.latency_s)
 
     def _unreachable(self, now: float) -> str | None:
         """Link loss, told apart from a lost vehicle: once a vehicle is LOST for silence during
@@ -596,7 +596,7 @@ class Supervisor:
                     tube_rows[i] = True
         # the mission monitor's rule too
         airborne = _COUNTED_AIRBORNE_MASK[codes]
-        lat = link_latencies_s(pilots) if latencies_s is None else latencies_s
+        lat = link_columns(pilots).latency_s if latencies_s is None else latencies_s
         lat = lat[np.isfinite(lat)]
         latency = float(np.median(lat)) if lat.size else math.nan
         if lat.size:
