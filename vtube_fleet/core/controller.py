@@ -929,7 +929,7 @@ class CommandEvaluator:
         self.track_min_pair = bool(track_min_pair)
         self._prep = tubes._prepared(params)
         self._g: _Gathered | None = None
-        self._pairs: tuple | None = None  # (I, J, M, lay, IJ, slots, scratch, writeable)
+        self._pairs: tuple | None = None  # (I, J, M, lay, IJ, slots, [scratch], writeable)
         self._act: _Active | None = None  # the non-zero elements (step(move=...))
         self._same: tuple | None = None  # (k, I, J, M) of g and the pair entry, if read-only
         self._fast: tuple | None = None  # what step's short path needs (set by the long one)
@@ -994,26 +994,28 @@ class CommandEvaluator:
                 self.min_pair_distance = math.inf
                 return np.zeros(0, np.complex128)
             self._same = None if g.writeable or pa[7] else (k, I, J, M)
-        lay, w = pa[3], pa[6]
+        lay, track = pa[3], self.track_min_pair
         if move is not None:  # the elements that can be non-zero only (_Active)
             act = self._act
             if act is None or act.M != M:
-                act = self._act = _Active(self._prep, M, w.track)
+                act = self._act = _Active(self._prep, M, track)
             act.slack -= move * (1.0 + 1e-9) + 1e-9
             if (act.slack > 0.0 and act.g is g and act.pa is pa) or act.refresh(g, pa, z):
                 if self.kind == "new":  # _finish inlined (the same operations)
                     v = act.core(z, out, True)
-                    if w.track:
+                    if track:
                         self.min_pair_distance = act.pmin
                     if self._same is not None:  # the next call may take the short path
-                        self._fast = (k, pairs[0], pairs[1], M, act, w.track)
+                        self._fast = (k, pairs[0], pairs[1], M, act, track)
                     return v
                 B = act.core(z)
-                if w.track:
+                if track:
                     self.min_pair_distance = act.pmin
                 p = z.view(np.float64).reshape(M, 2) if self.kind == "apf" else None
-                return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out, w)
+                return _finish(B, lay, self.kind, self.params, p, None, self.obstacles, out,
+                               self._work(pa))
         self._act = None  # (how far the points move until the next call is unknown)
+        w = self._work(pa)
         if pa[5] is None:
             pa = self._pairs = (*pa[:5], lay.pair_arrays(pa[0], pa[1], cache=False)[1], *pa[6:])
         if w.ncg is not g:  # (the n_c block of the weights, as _core expects)
@@ -1058,11 +1060,19 @@ class CommandEvaluator:
         _check_pair_range(I, J, M)
         P = I.shape[0]
         lay = self._prep.layout(M, P)
-        w = _Scratch(M, P, self.track_min_pair)  # (its n_c block is filled before use)
         # (the float slots of the full layout, entry 5, are made by the first call that
-        # evaluates all elements; the element subset does not need them)
-        return (I, J, M, lay, np.concatenate([I, J]), None, w,
+        # evaluates all elements, the scratch arrays, entry 6, by the first that needs them
+        # (_work); the element subset of the law "new" needs neither)
+        return (I, J, M, lay, np.concatenate([I, J]), None, [None],
                 I.flags.writeable or J.flags.writeable)
+
+    def _work(self, pa: tuple) -> _Scratch:
+        """The scratch arrays of the pair entry ``pa`` (made on first use; their n_c block is
+        filled before a full evaluation)."""
+        w = pa[6][0]
+        if w is None:
+            w = pa[6][0] = _Scratch(pa[2], pa[0].shape[0], self.track_min_pair)
+        return w
 
 
 # ----------------------------------------------------------------------------------------------
