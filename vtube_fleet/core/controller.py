@@ -547,6 +547,9 @@ _ZPAD.setflags(write=False)
 _PAD = np.array([[0.0], [-_FAR], [0.0], [0.0]], np.complex128)
 
 
+# the ufuncs of the hot path as module globals (one lookup instead of two per call)
+_mul, _sub, _add, _div, _abs, _neg = (np.multiply, np.subtract, np.add, np.divide, np.abs,
+                                      np.negative)
 #: np.bincount without the __array_function__ dispatch (a third of the call on ~1,000 weights)
 _bincount = getattr(np.bincount, "_implementation", np.bincount)
 #: the clip ufunc (min(max(x, lo), hi) in one call, NaN propagated as by np.maximum/minimum;
@@ -771,7 +774,7 @@ class _Active:
                       self.slots, Wf, 4 * M, self.gb, self.ab, self.nm, self.U, self.V,
                       self.T, self.U[nx:], self.T[:nx], sl[1], sl[2], sl[4], sl[5], sl[6],
                       bank._zero, bank._one, self.nb, self.mv, self.cv, self.NB.real, self.NB,
-                      M)
+                      M, P, self.track, self.r_pair, self.pair_ok)
 
     def _legs_update(self, g: _Gathered, z: np.ndarray, ch: list[int]) -> bool:
         """The robots ``ch`` changed sub-tube (``g``: the new ones; pairs and slack as
@@ -840,17 +843,18 @@ class _Active:
         same operations), returning v_c (written to ``out`` if given)."""
         (idx, zz, zJ, zI, dz, xp, G01a, zL, tmpc, tmpr, G23a, X2, X, Y, Yc, Gd, Wd, Yp, Wif,
          Wjf, slots, Wf, M4, gb, ab, nm, U, V, T, Ug, Ta, Bw, E1, Q0, R1, R2, zero, one, fnb,
-         fmv, fcv, fNBr, fNB, M) = self.bound
+         fmv, fcv, fNBr, fNB, M, P, track, r_pair, pair_ok) = self.bound
         # (outputs passed by position: numpy then parses no keywords, ~10 % of a small call)
-        mul, sub = np.multiply, np.subtract
+        mul, sub = _mul, _sub
         z.take(idx, None, zz, "clip")  # [p_I | p_J | leg points] (valid indices)
         sub(zJ, zI, dz)  # p_j − p_i
-        np.abs(dz, xp)
-        pm = float(xp[xp.argmin()]) if self.P else math.inf
-        if self.track:
+        _abs(dz, xp)
+        pm = float(xp[xp.argmin()]) if P else math.inf
+        slack = self.slack
+        if track:
             pt = pm
             # a pair left out is farther than r_pair + 2·slack; else take all candidates
-            if not pt < self.r_pair + 2.0 * self.slack and self.IJ.shape[0]:
+            if not pt < r_pair + 2.0 * slack and self.IJ.shape[0]:
                 Pa = self.IJ.shape[0] >> 1
                 za = z.take(self.IJ)
                 da = za[Pa:]
@@ -863,7 +867,7 @@ class _Active:
         # BarrierBank.evaluate(X, Y), its common path inlined (the same operations)
         mul(X, E1, Ug)
         sub(U, V, T)  # [d2 − x | ĝ = x·E1 − D1]
-        if (pm >= self.pair_ok and self.slack > self.leg_floor) or gb[gb.argmin()] >= 1.0:
+        if (pm >= pair_ok and slack > self.leg_floor) or gb[gb.argmin()] >= 1.0:
             mul(Ta, Bw, ab)
             if _clip is not None:  # (a = −0 cannot occur: d2 − x ≠ −0)
                 _clip(ab, zero, one, ab)
@@ -871,28 +875,28 @@ class _Active:
                 np.maximum(ab, zero, out=ab)
                 np.minimum(ab, one, out=ab)
             mul(ab, R2, nm)
-            np.add(nm, R1, nm)
+            _add(nm, R1, nm)
             mul(nm, ab, nm)
-            np.add(nm, Q0, nm)
+            _add(nm, Q0, nm)
             mul(nm, ab, nm)
             mul(gb, gb, gb)
-            np.divide(nm, gb, Y)
+            _div(nm, gb, Y)
         else:  # some element below d1·x2 (or NaN): the general formula
             self.bank.evaluate(X, Y)
-        np.divide(Yp, xp, Yp)
+        _div(Yp, xp, Yp)
         # u3', u4'; σ·A; u2: (p_j − p_i)·y/‖p_ij‖ for i (y·(p_j − p_i): the same products, as
         # y has imaginary part 0), the negation for j
         mul(Yc, Gd, Wd)
-        np.negative(Wif, Wjf)  # on the floats: numpy's complex negative is slow
+        _neg(Wif, Wjf)  # on the floats: numpy's complex negative is slow
         B = _bincount(slots, Wf, M4).view(np.complex128)
         if not new:
             return B
         # [v q/‖q‖ | sat(u_rep, v'_max)], then u1'' + sat(...) (ModifiedVectorField)
-        nb = np.abs(B, fnb)
+        nb = _abs(B, fnb)
         np.maximum(nb, fmv, out=nb)
-        np.divide(fcv, nb, fNBr)
+        _div(fcv, nb, fNBr)
         mul(B, fNB, B)
-        return np.add(B[:M], B[M:], out)
+        return _add(B[:M], B[M:], out)
 
 
 class CommandEvaluator:

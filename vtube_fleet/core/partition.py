@@ -42,6 +42,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.plan import ApexPlan
 
 _F64 = np.dtype(np.float64)  # (dtypes of the built-in types are singletons: tested by identity)
+_C128, _mul, _add = np.complex128, np.multiply, np.add  # (update's check: one lookup each)
 
 __all__ = [
     "ApexZone",
@@ -710,9 +711,9 @@ class SubTubeTracker:
                 # the rows at the same points as at the last locate (the common call)
                 self.checks += 1
                 zt, tile, Cf, v, vre, Bf, vrf = ck
-                p.view(np.complex128).take(tile, None, zt, "clip")
-                np.multiply(Cf, zt, v)
-                np.add(vre, Bf, vrf)
+                p.view(_C128).take(tile, None, zt, "clip")
+                _mul(Cf, zt, v)
+                _add(vre, Bf, vrf)
                 vmin = float(vrf[vrf.argmin()])  # (NaN if any: argmin returns the first NaN)
                 if vmin > 0.0:
                     self._slack = vmin
