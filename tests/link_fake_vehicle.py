@@ -220,3 +220,6 @@ class RecordingTransport:
 
     def is_closing(self) -> bool:
         return False
+
+    def get_extra_info(self, name: str, default: Any = None) -> Any:
+        return default  # no socket: the link sends through sendto above

@@ -403,4 +403,66 @@ async def test_datagram_socket_counts_sends_the_kernel_refuses() -> None:
     sock.refusal = ConnectionRefusedError(errno.ECONNREFUSED, "refused")
     ds.sendto(b"c", ("127.0.0.1", 9))
     assert ds.tx_dropped == 2 and [e.errno for e in errors] == [errno.ECONNREFUSED]
+    # a fleet's batch of setpoints sends through the socket itself, by the same rules
+    from vtube_fleet.link.base import send_velocities_ned
+
+    link = MavlinkLink("udpin://127.0.0.1:14540", sysid=1)
+    link._transport, link._remote = ds, ("127.0.0.1", 9)  # type: ignore[assignment]
+    sock.refusal = BlockingIOError(errno.EAGAIN, "full")
+    assert send_velocities_ned([link], np.zeros(1), np.zeros(1), np.zeros(1)) == [None]
+    sock.refusal = ConnectionRefusedError(errno.ECONNREFUSED, "refused")
+    assert send_velocities_ned([link], np.zeros(1), np.zeros(1), np.zeros(1)) == [None]
+    assert ds.tx_dropped == 3 and len(errors) == 2 and link.tx_packets == 2
     ds.close()
+
+
+async def test_a_fleets_setpoints_reach_real_sockets_as_each_link_sends_them() -> None:
+    """Over loopback UDP (a udpout and two udpin links): a batch delivers to each vehicle the
+    setpoint its own send_velocity_ned delivers, the sequence numbers running on across both
+    (the bytes themselves: test_a_fleets_setpoints_sent_at_once_are_the_bytes_each_link_sends)."""
+    import asyncio
+    import socket
+
+    from link_fake_vehicle import free_udp_port
+
+    from vtube_fleet.link.base import send_velocities_ned
+
+    vehicles = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+    links: list[MavlinkLink] = []
+    try:
+        for v in vehicles:
+            v.bind(("127.0.0.1", 0))
+            v.settimeout(5.0)
+        links.append(MavlinkLink(f"udpout://127.0.0.1:{vehicles[0].getsockname()[1]}",
+                                 sysid=1, heartbeat_period_s=3600.0))
+        for k in (2, 3):
+            links.append(MavlinkLink(f"udpin://127.0.0.1:{free_udp_port()}", sysid=k,
+                                     heartbeat_period_s=3600.0))
+        for link in links:
+            await link.open()
+        for link, v in zip(links[1:], vehicles[1:], strict=True):
+            link._remote = v.getsockname()  # (learned from its first packet in flight)
+        north, east = np.array([1.0, -2.0, 0.5]), np.array([0.25, 0.0, -1.0])
+        down = np.array([0.0, 0.1, -0.1])
+        await asyncio.sleep(0)  # the heartbeat tasks' first step (what they send: skipped)
+        dec = mavlink2.MAVLink(None)
+        seq0 = [link._mav.seq for link in links]
+        for round_no, batch in enumerate((True, False, True)):
+            if batch:
+                assert send_velocities_ned(links, north, east, down) == [None] * 3
+            else:
+                for link, *v in zip(links, north.tolist(), east.tolist(), down.tolist(),
+                                    strict=True):
+                    link.send_velocity_ned(*v)
+            for k, v in enumerate(vehicles):
+                (m,) = dec.parse_buffer(v.recvfrom(256)[0])
+                while m.get_type() != "SET_POSITION_TARGET_LOCAL_NED":  # a heartbeat
+                    (m,) = dec.parse_buffer(v.recvfrom(256)[0])
+                assert m.get_seq() == seq0[k] + round_no and m.target_system == k + 1
+                assert (m.vx, m.vy, m.vz) == (_f32(north[k]), _f32(east[k]), _f32(down[k]))
+                assert m.type_mask == 3527 and m.coordinate_frame == 1
+    finally:
+        for link in links:
+            await link.close()
+        for v in vehicles:
+            v.close()

@@ -205,7 +205,10 @@ class MavlinkLink(VehicleLink):
         self.command_timeout_s = command_timeout_s
         self.heartbeat_period_s = heartbeat_period_s
         self.decode_all = decode_all
-        self.fast_codec = fast_codec
+        self._fast_codec = fast_codec
+        #: what a batch of setpoints needs of this link (_tx_slot): None = not worked out yet,
+        #: False = the batch path does not apply; cleared wherever any of it changes
+        self._tx: tuple[Any, ...] | bool | None = None
 
         mav = mavlink2.MAVLink(None, srcSystem=gcs_sysid, srcComponent=gcs_compid)
         mav.robust_parsing = True
@@ -256,6 +259,16 @@ class MavlinkLink(VehicleLink):
 
     # -- properties ----------------------------------------------------------------------------
     @property
+    def fast_codec(self) -> bool:
+        """The struct fast path (:mod:`vtube_fleet.link.wire`) is on; False: pymavlink only."""
+        return self._fast_codec
+
+    @fast_codec.setter
+    def fast_codec(self, value: bool) -> None:
+        self._fast_codec = bool(value)
+        self._tx = None
+
+    @property
     def latency_s(self) -> float | None:
         """Half the smoothed round trip (TIMESYNC, else first-try COMMAND_ACK); None if none."""
         return None if self._rtt_s is None else self._rtt_s / 2.0
@@ -301,7 +314,7 @@ class MavlinkLink(VehicleLink):
         if (len(data) == _LPN_FRAME_LEN and data[7] == MSG_LOCAL_POSITION_NED
                 and data[:4] == _LPN_HEAD and not data[8] and not data[9]
                 and data[5] == self._sysid and addr == self._remote and self.signing is None
-                and self.fast_codec
+                and self._fast_codec
                 and mcrf4xx(_LPN_EXTRA, mcrf4xx(data[1:38])) == _CRC16.unpack_from(data, 38)[0]):
             (st.time_boot_ms, st.north_m, st.east_m, st.down_m, st.vn_m_s, st.ve_m_s,
              st.vd_m_s) = _LPN.unpack_from(data, 10)
@@ -385,6 +398,7 @@ class MavlinkLink(VehicleLink):
                     ):
                         self._sysid = sysid
                         st.sysid = sysid
+                        self._tx = None
                     else:
                         st.foreign_packets += 1
                         continue
@@ -397,6 +411,7 @@ class MavlinkLink(VehicleLink):
                             log.info("%s: vehicle address changed %s -> %s", self.name,
                                      self._remote, addr)
                         self._remote = addr
+                        self._tx = None
                     else:
                         st.foreign_packets += 1
                         continue
@@ -626,44 +641,67 @@ class MavlinkLink(VehicleLink):
         ``fast_codec`` off, not connected, closed) go one by one."""
         north, east, down = setpoint_arrays(links, north_m_s, east_m_s, down_m_s)
         out: list[LinkError | None] = [None] * len(links)
-        fast: list[MavlinkLink] = []
-        rows: list[int] = []
-        for k, link in enumerate(links):
-            tr = link._transport  # type: ignore[attr-defined]
-            if (isinstance(link, MavlinkLink) and not link._closed and link.fast_codec
-                    and link.signing is None and tr is not None and link._remote is not None
-                    and not tr.is_closing()):
-                fast.append(link)
-                rows.append(k)
-                continue
-            try:
-                link.send_velocity_ned(float(north[k]), float(east[k]), float(down[k]))
-            except LinkError as exc:
-                out[k] = exc
-        if not fast:
-            return out
         now = time.monotonic()
-        n = len(fast)
-        boot_ms = ((now - np.fromiter((lk._t0 for lk in fast), float, n)) * 1000.0
-                   ).astype(np.int64) & 0xFFFFFFFF  # _time_boot_ms, for all
-        frames = _WIRE.pack_many(
-            MSG_SET_POSITION_TARGET_LOCAL_NED,
-            np.fromiter((lk._mav.seq for lk in fast), np.int64, n),
-            np.fromiter((lk.gcs_sysid for lk in fast), np.int64, n),
-            np.fromiter((lk.gcs_compid for lk in fast), np.int64, n),
-            {"time_boot_ms": boot_ms, "vx": north[rows], "vy": east[rows], "vz": down[rows],
-             "type_mask": TYPE_MASK_VELOCITY,
-             "target_system": np.fromiter((lk._sysid or 0 for lk in fast), np.int64, n),
-             "target_component": np.fromiter((lk.target_compid for lk in fast), np.int64, n),
-             "coordinate_frame": mavlink2.MAV_FRAME_LOCAL_NED})
-        for link, buf in zip(fast, frames, strict=True):
-            link._send_bytes(link._transport, buf)  # type: ignore[arg-type]
-            mav = link._mav
-            mav.seq = (mav.seq + 1) & 0xFF
+        rows: list[int] = []
+        slots: list[tuple[Any, ...]] = []
+        seqs: list[int] = []
+        # every Python object a link's send touches, touched here, before the sendto loop (a
+        # send's kernel work evicts them from the caches: interleaved, each costs a miss)
+        for k, link in enumerate(links):
+            tx = link._tx if link._tx is not None else link._tx_slot()  # type: ignore
+            if not tx:
+                try:
+                    link.send_velocity_ned(float(north[k]), float(east[k]), float(down[k]))
+                except LinkError as exc:
+                    out[k] = exc
+                continue
+            mav = tx[2]
+            seq = mav.seq
+            mav.seq = (seq + 1) & 0xFF  # as _send_fast: counted whatever the kernel says
+            link.tx_packets += 1  # type: ignore[attr-defined]
             link._last_setpoint_s = now
             link._setpoints_sent += 1
-            link._stall_warned = False
+            link._stall_warned = False  # type: ignore[attr-defined]
+            rows.append(k)
+            slots.append(tx)
+            seqs.append(seq)
+        if not rows:
+            return out
+        meta = np.array([tx[3:8] for tx in slots], dtype=float).reshape(len(rows), 5)
+        frames = _WIRE.pack_many(
+            MSG_SET_POSITION_TARGET_LOCAL_NED, np.array(seqs, dtype=np.int64),
+            meta[:, 1].astype(np.int64), meta[:, 2].astype(np.int64),
+            {"time_boot_ms": ((now - meta[:, 0]) * 1000.0).astype(np.int64) & 0xFFFFFFFF,
+             "vx": north[rows], "vy": east[rows], "vz": down[rows],
+             "type_mask": TYPE_MASK_VELOCITY, "target_system": meta[:, 3].astype(np.int64),
+             "target_component": meta[:, 4].astype(np.int64),
+             "coordinate_frame": mavlink2.MAV_FRAME_LOCAL_NED})  # _time_boot_ms, for all
+        for tx, buf in zip(slots, frames, strict=True):
+            try:
+                tx[0](buf, tx[1])  # the socket's own sendto (DatagramSocket.sendto's rules)
+            except (BlockingIOError, InterruptedError):
+                tx[8].tx_dropped += 1
+            except OSError as exc:
+                tx[8]._on_error(exc)
         return out
+
+    def _tx_slot(self) -> tuple[Any, ...] | bool:
+        """What :meth:`send_velocities_ned` needs of this link, kept in ``_tx`` until any of
+        it changes: (the socket's ``sendto``, the vehicle's address, the codec object with the
+        sequence number, time_boot_ms's zero, GCS system and component id, target system and
+        component id, the :class:`DatagramSocket`); False where the batch path does not apply
+        (closed, signing, ``fast_codec`` off, no socket or vehicle yet)."""
+        tr = self._transport
+        tx: tuple[Any, ...] | bool = False
+        if (not self._closed and self._fast_codec and self.signing is None and tr is not None
+                and self._remote is not None and not tr.is_closing()):
+            sock = tr.get_extra_info("socket")
+            send, addr = ((sock.sendto, self._remote) if sock is not None
+                          else (tr.sendto, self._remote if self.endpoint.listens else None))
+            tx = (send, addr, self._mav, self._t0, self.gcs_sysid, self.gcs_compid,
+                  self._sysid or 0, self.target_compid, tr)
+        self._tx = tx
+        return tx
 
     def _send_fast(self, msgid: int, *values: Any) -> bool:
         """Send ``msgid`` with ``values`` (wire order) as the frame pymavlink would build, byte
@@ -708,6 +746,7 @@ class MavlinkLink(VehicleLink):
         if not ep.listens:  # compare received addresses with the resolved peer
             self._remote = transport.get_extra_info("peername") or self._remote
         self._t0 = time.monotonic()
+        self._tx = None
         self._tasks.append(loop.create_task(self._heartbeat_loop(), name=f"gcs-hb {ep.url}"))
 
     def _socket_error(self, exc: OSError) -> None:
@@ -859,6 +898,7 @@ class MavlinkLink(VehicleLink):
         if self._closed:
             return
         self._closed = True
+        self._tx = None
         await cancel_tasks(self._tasks)
         for fut in self._pending.values():
             if not fut.done():
@@ -1047,6 +1087,7 @@ class MavlinkLink(VehicleLink):
         signing.store.ensure(sg.timestamp)
         self._mav = mav
         self.signing = signing
+        self._tx = None
 
     def _signing_tick(self) -> None:
         """Before each signed packet: timestamp = max(last + 1, the wall clock), below the
