@@ -19,7 +19,8 @@ event loop one by one: they share a :class:`DatagramHub`, one ``epoll`` of their
 descriptor is the only one the loop watches. When it is readable, the hub asks it which sockets
 have data and reads ONE datagram from each, in rounds, until none is left or
 :data:`HUB_ROUNDS` rounds have passed (the loop then calls it again: the fleet's other work
-gets its turn between). So a datagram costs one ``recvfrom`` and no callback of the loop of its
+gets its turn between). A round reads all its datagrams first and then hands them to their
+sockets' handlers (a read's kernel work evicts the handlers' objects from the caches). So a datagram costs one ``recvfrom`` and no callback of the loop of its
 own, and a socket whose queue is empty is never read in vain (with a reader per socket, the
 read that finds the queue empty costs as much as the one that found a datagram). Each socket
 is drained in order; the sockets take turns, as in bursts. Elsewhere (no ``epoll``) each socket
@@ -93,18 +94,22 @@ class DatagramHub:
             if not events:
                 return
             now = clock()  # every datagram of the round was queued by now
+            # the round's reads first, then its handlers: a read's kernel work evicts the
+            # handlers' objects from the caches, so interleaved each handler starts cold
+            got = []
             for fd, _mask in events:
                 ds = sockets.get(fd)
                 if ds is None:
                     continue
                 try:
-                    data, addr = ds._recvfrom(65536)
+                    got.append((ds, *ds._recvfrom(65536)))
                 except (BlockingIOError, InterruptedError):
                     continue
                 except OSError as exc:
                     ds._on_error(exc)
-                    continue
-                ds._on_datagram(data, addr, now)
+            for ds, data, addr in got:
+                if not ds._closed:  # (not closed by a handler before it)
+                    ds._on_datagram(data, addr, now)
             if not sockets:  # the last socket closed meanwhile (and with it the epoll)
                 return
 
