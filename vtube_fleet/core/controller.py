@@ -912,7 +912,7 @@ class CommandEvaluator:
     when they change, not at every call (read-only arrays must not be made writeable and
     changed in between). ``p``: (M, 2) float64 C-contiguous; ``out``: an
     optional (M, 2) float64 C-contiguous array receiving the result (else a new array).
-    About 25 numpy calls per step in the common case, whatever M. Not thread-safe (scratch
+    26 numpy calls per step in the common case (law "new"), whatever M. Not thread-safe (scratch
     buffers); one evaluator per loop.
 
     ``track_min_pair=True``: after each call, :attr:`min_pair_distance` is the smallest

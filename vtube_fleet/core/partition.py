@@ -417,7 +417,7 @@ class SubTubeTracker:
     ``partition.locate(p)``, but runs the full locate only when a point may have changed its
     sub-tube. At each full locate, every point i gets a few half-planes ("rows") on whose
     intersection locate provably returns the same k_i; each later call evaluates the rows
-    (3 numpy calls for all points, with 2-D points as complex numbers z = x + iy)::
+    (4 one-dimensional numpy calls for all points, with 2-D points as complex numbers z = x + iy)::
 
         Re(C_ri z_i) + B_ri > 0 for every row r        (C_ri: unit normal, B_ri: offset)
 
