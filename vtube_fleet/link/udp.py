@@ -20,10 +20,11 @@ descriptor is the only one the loop watches. When it is readable, the hub asks i
 have data and reads ONE datagram from each, in rounds, until none is left or
 :data:`HUB_ROUNDS` rounds have passed (the loop then calls it again: the fleet's other work
 gets its turn between). A round reads all its datagrams first and then hands them to their
-sockets' handlers (a read's kernel work evicts the handlers' objects from the caches). So a datagram costs one ``recvfrom`` and no callback of the loop of its
-own, and a socket whose queue is empty is never read in vain (with a reader per socket, the
-read that finds the queue empty costs as much as the one that found a datagram). Each socket
-is drained in order; the sockets take turns, as in bursts. Elsewhere (no ``epoll``) each socket
+sockets' handlers (a read's kernel work evicts the handlers' objects from the caches). So a
+datagram costs one ``recvfrom`` and no callback of the loop of its own, and a socket whose
+queue is empty is never read in vain (with a reader per socket, the read that finds the queue
+empty costs as much as the one that found a datagram). Each socket is drained in order; the
+sockets take turns, as in bursts. Elsewhere (no ``epoll``) each socket
 has its own reader and reads up to ``burst`` datagrams per wake-up.
 """
 
