@@ -266,6 +266,7 @@ class VehiclePilot:
         self._to_ned = (float(n[0]), float(n[1]), float(e[0]), float(e[1]))
         x, y = self.frame.ned_velocity_to_tube(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
         self._to_tube = (float(x[0]), float(x[1]), float(y[0]), float(y[1]))
+        self._t.note_rotation(self._to_tube)
         self._seq = 0
         self.last_state: NeighbourState | None = None  # the last one published
         self.takeoff_xy: np.ndarray | None = None
@@ -636,6 +637,7 @@ class VehiclePilot:
         tracker (the supervisor's, updated for all its vehicles at once) instead of ones of its
         own; the state so far comes along."""
         table.take_row(row, self._t, self._r)
+        table.note_rotation(self._to_tube)
         self._t, self._r = table, row
         if self.compensator is not None:
             self.compensator = EstimateCompensator(bank=compensators, row=row)
@@ -1129,8 +1131,8 @@ def sense_all(pilots: Sequence[VehiclePilot], frame: TubeFrame,
                       s.vn_m_s, s.ve_m_s) for s in st], dtype=float).reshape(k, 8).T
     x, y, up = (np.atleast_1d(v).astype(float) for v in frame.local_ned_to_tube(*cols[:6]))
     todo = [pilots[i] for i in todo_rows]
-    rot = todo[0]._to_tube
-    if any(p._to_tube != rot for p in todo):  # not one frame: each pilot rotates its own
+    rot = tab.to_tube
+    if rot is None:  # not one frame: each pilot rotates its own
         for p, s, xi, yi, ui in zip(todo, st, x.tolist(), y.tolist(), up.tolist(),
                                     strict=True):
             p._take(s, xi, yi, ui)

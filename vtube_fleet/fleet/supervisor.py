@@ -413,11 +413,16 @@ class Supervisor:
                 self._recent_tick_gap_s = max(self._recent_tick_gap_s, start - prev)
             prev = start
             t0 = time.perf_counter()
+            collecting = gc.isenabled()
+            gc.disable()  # the cyclic collector waits until the setpoints are out
             try:
                 self._tick()
             except Exception as exc:  # a bug must not leave vehicles without setpoints silently
                 log.exception("control tick failed")
                 self.request_abort(f"control tick failed: {type(exc).__name__}: {exc}")
+            finally:
+                if collecting:
+                    gc.enable()
             self.tick_durations.append(time.perf_counter() - t0)
             if self.tick_hook is not None:
                 stall = self.tick_hook(self.tick, self)

@@ -63,6 +63,15 @@ class PilotTable:
         self.in_transition = np.zeros(n, bool)
         self.setpoints_sent = np.zeros(n, np.int64)
         self.ever_sent = np.zeros(n, bool)
+        #: the pilots' NED → tube velocity rotation (2×2, row-major) while they all share one
+        #: (one mission frame: a supervisor's fleet); None with none yet or several
+        self.to_tube: tuple[float, float, float, float] | None = None
+        self._rotations: set[tuple[float, float, float, float]] = set()
+
+    def note_rotation(self, to_tube: tuple[float, float, float, float]) -> None:
+        """A pilot with this NED → tube rotation takes a row (:attr:`to_tube`)."""
+        self._rotations.add(to_tube)
+        self.to_tube = to_tube if len(self._rotations) == 1 else None
 
     _COLUMNS = ("xy", "vel", "up", "sample_s", "has", "cmd", "cmd_set", "cmd_in_tube", "lost",
                 "lost_set", "phase", "offboard_seen", "still_since_s", "in_transition",
