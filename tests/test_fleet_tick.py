@@ -304,3 +304,18 @@ async def test_sense_all_feeds_compensators_of_their_own_like_each_pilot() -> No
     assert all(abs(math.hypot(*d) - 0.3) < 0.05 for d in got[0])
     assert [p.xy.tolist() for p in fleets[0][0].pilots] == [p.xy.tolist()
                                                               for p in fleets[1][0].pilots]
+
+
+def test_the_tables_phase_column_follows_the_agent_however_its_phase_is_set() -> None:
+    """The fleet steps read phases from the table: a phase set on the agent directly (its
+    public API) reaches the column as one set through the pilot does."""
+    from vtube_fleet.fleet.table import PHASE_CODE
+
+    sup, _ = memory_fleet(3, now_s=10.0)
+    p0, p1, p2 = sup.pilots
+    p0.set_phase(Phase.HOLDING, "through the pilot")
+    p1.agent.set_phase(Phase.LOST)
+    p2.agent.phase = Phase.EXITED
+    assert sup.table.phase.tolist() == [PHASE_CODE[Phase.HOLDING], PHASE_CODE[Phase.LOST],
+                                        PHASE_CODE[Phase.EXITED]]
+    assert [p.phase for p in sup.pilots] == [Phase.HOLDING, Phase.LOST, Phase.EXITED]

@@ -188,10 +188,15 @@ def test_a_fleets_setpoints_with_a_non_finite_value_send_nothing() -> None:
     from vtube_fleet.link.base import send_velocities_ned
 
     links = _batch_links([True] * 4)
-    with pytest.raises(ValueError, match="must be finite"):
+    seqs = [lk._mav.seq for lk in links]
+    with pytest.raises(ValueError, match=r"vehicle 3 .*must be finite"):
         send_velocities_ned(links, np.zeros(4), np.array([0.0, 0.0, math.nan, 0.0]),
                             np.zeros(4))
+    # finite, but not in the float32 of the wire (send_velocity_ned refuses it too)
+    with pytest.raises(ValueError, match=r"vehicle 2 .*must be finite"):
+        send_velocities_ned(links, np.array([0.0, 1e39, 0.0, 0.0]), np.zeros(4), np.zeros(4))
     assert all(not lk._transport.sent for lk in links)
+    assert [lk._mav.seq for lk in links] == seqs and all(lk.tx_packets == 0 for lk in links)
 
 
 @pytest.mark.parametrize("fast", [True, False], ids=["fast_codec", "pymavlink"])
@@ -356,6 +361,17 @@ async def test_the_loops_sockets_share_one_epoll_read_in_rounds() -> None:
         hub._ready()
         assert got[0] == list(range(HUB_ROUNDS + 3)) and got[2] == [0, 1]
         hub._ready()  # nothing left: returns at once
+        # a handler that raises loses only its own datagram, not the rest of the round
+        # (each of the two broken in turn: one of the rounds hands it its datagram first)
+        for bad, good in ((1, 0), (0, 1)):
+            before = list(got[bad])
+            handler = socks[bad]._on_datagram
+            socks[bad]._on_datagram = lambda d, a, t: 1 / 0  # type: ignore[method-assign]
+            for ds in socks[:2]:
+                peer.sendto((7 + bad).to_bytes(2, "little"), ds.get_extra_info("sockname"))
+            hub._ready()
+            assert got[good][-1] == 7 + bad and got[bad] == before
+            socks[bad]._on_datagram = handler  # type: ignore[method-assign]
         socks[0].close()
         socks[1].close()
         assert hub._epoll.closed and loop not in DatagramHub._hubs  # the last one closed

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -384,14 +384,26 @@ class Agent:
         self.max_age_s = float(max_age_s)
         self.lost_after_s = float(lost_after_s)
         self.lost_radius_m = float(plan.flown.r_s if lost_radius_m is None else lost_radius_m)
-        self.phase = Phase.CONNECTING
+        #: called with every new phase (the pilot keeps its fleet table's phase column so)
+        self.on_phase: Callable[[Phase], None] | None = None
+        self._phase = Phase.CONNECTING
         self.table: dict[int, NeighbourState] = {}
 
     # -- phase ---------------------------------------------------------------------------
+    @property
+    def phase(self) -> Phase:
+        return self._phase
+
+    @phase.setter
+    def phase(self, phase: Phase) -> None:
+        self._phase = Phase(phase)
+        if self.on_phase is not None:
+            self.on_phase(self._phase)
+
     def set_phase(self, phase: Phase) -> bool:
         """Set the phase; True if it changed."""
         phase = Phase(phase)
-        if phase == self.phase:
+        if phase == self._phase:
             return False
         self.phase = phase
         return True

@@ -259,7 +259,7 @@ class ResidualTracker:
         thr = now_s - lag_s
         avail = np.minimum(n, h)
         # the newest entry <= thr: entries j back from the newest have decreasing times (one
-        # per call, at increasing now_s), so "<= thr" holds from some j on: bisect for it
+        # per call; callers pass a monotonic now_s), so "<= thr" holds from some j on: bisect
         lo = np.zeros(len(rows), np.int64)
         hi = avail.copy()
         while True:

@@ -260,6 +260,7 @@ class VehiclePilot:
         self._t = PilotTable(1)
         self._r = 0
         self._t.phase[0] = PHASE_CODE[agent.phase]
+        agent.on_phase = self._phase_changed  # the table's phase column follows the agent's
         # the frame's (linear) horizontal rotations as 2×2 matrices, evaluated once on the
         # basis vectors, so a tick costs float arithmetic instead of numpy calls per vehicle
         n, e = self.frame.tube_velocity_to_ned(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
@@ -403,7 +404,6 @@ class VehiclePilot:
         old = self.agent.phase
         if not self.agent.set_phase(phase):
             return False
-        self._t.phase[self._r] = PHASE_CODE[self.agent.phase]
         waiters, self._phase_waiters = self._phase_waiters, []
         for fut in waiters:
             if not fut.done():
@@ -411,6 +411,9 @@ class VehiclePilot:
         self.event(f"{old.value} → {phase.value}" + (f" ({why})" if why else ""),
                    "warning" if phase in (Phase.LOST, Phase.FAILED) else "info")
         return True
+
+    def _phase_changed(self, phase: Phase) -> None:
+        self._t.phase[self._r] = PHASE_CODE[phase]
 
     def spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
         task = asyncio.get_running_loop().create_task(coro)
@@ -1058,7 +1061,9 @@ class VehiclePilot:
 def fleet_table(pilots: Sequence[VehiclePilot]) -> PilotTable:
     """The table whose rows ``pilots`` are, in order (a supervisor's fleet: ``join_fleet``);
     :class:`ValueError` otherwise (the fleet steps below read and write whole columns)."""
-    t = pilots[0]._t if pilots else PilotTable(0)
+    if not pilots:
+        return PilotTable(0)
+    t = pilots[0]._t
     if t.n != len(pilots) or pilots[0]._r != 0 or pilots[-1]._t is not t or (
             pilots[-1]._r != t.n - 1):
         raise ValueError("the fleet steps need the pilots of one table, in its row order "
@@ -1188,7 +1193,7 @@ def fleet_states(pilots: Sequence[VehiclePilot], now_mono: float, now_wall: floa
     from the fleet's table (:func:`fleet_table`): a LOST vehicle at its frozen position with
     zero velocity, the stamp the wall-clock time its position was measured. ``links``:
     :func:`link_columns` of this tick, if the caller has it."""
-    tab = fleet_table(pilots) if pilots else PilotTable(0)
+    tab = fleet_table(pilots)
     have = np.flatnonzero(np.isfinite(tab.sample_s))
     lost = tab.lost_set[have, None]
     pos = np.where(lost, tab.lost[have], tab.xy[have])

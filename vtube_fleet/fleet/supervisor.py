@@ -124,7 +124,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 _NO_CMDS = np.zeros((0, 2))
-_PHASE_VALUE = {ph: ph.value for ph in Phase}  # (an Enum's .value is a slow descriptor)
 _PHASE_VALUES = tuple(ph.value for ph in PHASES)  # by phase code (fleet/table.py)
 _IN_TUBE = PHASE_CODE[Phase.IN_TUBE]
 _LOST = PHASE_CODE[Phase.LOST]
@@ -751,7 +750,7 @@ class Supervisor:
         st = FleetStatus(t_s=self.t_s(), stage=self.stage, vehicles=len(self.pilots))
         counts: dict[str, int] = {}
         for p in self.pilots:
-            value = _PHASE_VALUE[p.agent.phase]
+            value = _PHASE_VALUES[PHASE_CODE[p.agent.phase]]
             counts[value] = counts.get(value, 0) + 1
             s = p.link.state
             if s.last_heartbeat_s is not None and not p.link.closed:
@@ -1135,8 +1134,9 @@ class Supervisor:
         1,000 vehicles) goes to the cyclic collector's permanent generation (``gc.freeze``):
         a full collection over them took ~70 ms, longer than the slack of a 50 ms tick, and
         ran a few times a minute. Reference counting still frees them; :meth:`run` gives them
-        back to the collector at its end."""
-        if not self._heap_frozen:
+        back to the collector at its end. A heap someone else froze (another supervisor in
+        this process, the embedding program) is left as it is, and not given back here."""
+        if not self._heap_frozen and gc.get_freeze_count() == 0:
             gc.freeze()
             self._heap_frozen = True
 

@@ -203,13 +203,16 @@ class VehicleState:
 
 def setpoint_arrays(links: Sequence[VehicleLink], north_m_s: np.ndarray, east_m_s: np.ndarray,
                     down_m_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rows of a batch of setpoints as float arrays; :class:`ValueError` (the one
-    :meth:`VehicleLink.send_velocity_ned` raises) naming the first link with a non-finite one."""
+    """The rows of a batch of setpoints as float arrays; :class:`ValueError` naming the first
+    link whose setpoint is not finite, or not finite in the float32 of the wire."""
     north, east, down = (np.asarray(a, dtype=float) for a in (north_m_s, east_m_s, down_m_s))
-    bad = np.flatnonzero(~(np.isfinite(north) & np.isfinite(east) & np.isfinite(down)))
+    with np.errstate(over="ignore"):
+        wire = np.stack((north, east, down)).astype(np.float32)
+    bad = np.flatnonzero(~np.isfinite(wire).all(axis=0))
     if bad.size:
         k = int(bad[0])
-        links[k]._check_setpoint(float(north[k]), float(east[k]), float(down[k]))
+        raise ValueError(f"{links[k].name}: velocity setpoint must be finite, got "
+                         f"({north[k]}, {east[k]}, {down[k]}) m/s")
     return north, east, down
 
 

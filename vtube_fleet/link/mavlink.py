@@ -195,9 +195,7 @@ class MavlinkLink(VehicleLink):
                 f"{self.name}: command_tries must be >= 1 and command_timeout_s > 0, got "
                 f"{command_tries} and {command_timeout_s}"
             )
-        self.gcs_sysid = gcs_sysid
-        self.gcs_compid = gcs_compid
-        self.target_compid = target_compid
+        self._gcs_ids = (gcs_sysid, gcs_compid, target_compid)  # fixed: _tx_slot keeps them
         rates = dict(DEFAULT_MESSAGE_RATES_HZ)
         rates.update(message_rates_hz or {})
         self.message_rates_hz = rates
@@ -258,6 +256,21 @@ class MavlinkLink(VehicleLink):
             self._install_signing(signing)
 
     # -- properties ----------------------------------------------------------------------------
+    @property
+    def gcs_sysid(self) -> int:
+        """Our system id (the GCS's), fixed at construction."""
+        return self._gcs_ids[0]
+
+    @property
+    def gcs_compid(self) -> int:
+        """Our component id, fixed at construction."""
+        return self._gcs_ids[1]
+
+    @property
+    def target_compid(self) -> int:
+        """The vehicle's component our commands and setpoints address, fixed at construction."""
+        return self._gcs_ids[2]
+
     @property
     def fast_codec(self) -> bool:
         """The struct fast path (:mod:`vtube_fleet.link.wire`) is on; False: pymavlink only."""
@@ -655,16 +668,9 @@ class MavlinkLink(VehicleLink):
                 except LinkError as exc:
                     out[k] = exc
                 continue
-            mav = tx[2]
-            seq = mav.seq
-            mav.seq = (seq + 1) & 0xFF  # as _send_fast: counted whatever the kernel says
-            link.tx_packets += 1  # type: ignore[attr-defined]
-            link._last_setpoint_s = now
-            link._setpoints_sent += 1
-            link._stall_warned = False  # type: ignore[attr-defined]
             rows.append(k)
             slots.append(tx)
-            seqs.append(seq)
+            seqs.append(tx[2].seq)
         if not rows:
             return out
         meta = np.array([tx[3:8] for tx in slots], dtype=float).reshape(len(rows), 5)
@@ -676,9 +682,18 @@ class MavlinkLink(VehicleLink):
              "type_mask": TYPE_MASK_VELOCITY, "target_system": meta[:, 3].astype(np.int64),
              "target_component": meta[:, 4].astype(np.int64),
              "coordinate_frame": mavlink2.MAV_FRAME_LOCAL_NED})  # _time_boot_ms, for all
+        for k, tx, seq in zip(rows, slots, seqs, strict=True):  # (objects still warm)
+            tx[2].seq = (seq + 1) & 0xFF  # as _send_fast: counted whatever the kernel says
+            link = links[k]
+            link.tx_packets += 1  # type: ignore[attr-defined]
+            link._last_setpoint_s = now
+            link._setpoints_sent += 1
+            link._stall_warned = False  # type: ignore[attr-defined]
         for tx, buf in zip(slots, frames, strict=True):
             try:
-                tx[0](buf, tx[1])  # the socket's own sendto (DatagramSocket.sendto's rules)
+                # the socket's own sendto, with DatagramSocket.sendto's error rules; a udpout
+                # socket gets its own peer as the address; a closed link has no _tx
+                tx[0](buf, tx[1])
             except (BlockingIOError, InterruptedError):
                 tx[8].tx_dropped += 1
             except OSError as exc:

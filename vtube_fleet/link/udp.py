@@ -7,12 +7,13 @@ off: ~210 per second) fills its kernel buffer: the kernel then drops whatever co
 COMMAND_ACKs and HEARTBEATs included. :class:`DatagramSocket` is a non-blocking socket read by
 ``loop.add_reader`` that takes up to ``burst`` datagrams per wake-up (one callback for all),
 with the transport methods the link uses (``sendto``, ``is_closing``, ``close``,
-``get_extra_info``). ``on_datagram(data, addr, now)`` gets each datagram with the
-``time.monotonic()`` of its reading (one clock reading per round of the hub: every datagram of
-the round was queued by then). Errors the kernel reports on the socket (ICMP port unreachable on a
-connected ``udpout`` socket while the vehicle is not up yet) go to ``on_error``; a send the
-kernel refuses for lack of buffer space is dropped and counted (``tx_dropped``): a setpoint
-stream and retried commands tolerate a lost datagram, a blocked event loop would not.
+``get_extra_info``). ``on_datagram(data, addr, now)`` gets each datagram with a
+``time.monotonic()`` reading taken when the hub's round began (every datagram of the round was
+queued by then: an upper bound on its arrival). Errors the kernel reports on the socket
+(ICMP port unreachable on a connected ``udpout`` socket while the vehicle is not up yet) go to
+``on_error``; a send the kernel refuses for lack of buffer space is dropped and counted
+(``tx_dropped``): a setpoint stream and retried commands tolerate a lost datagram, a blocked
+event loop would not.
 
 **One wake-up for all sockets** (Linux, issue 16). A fleet's links are not registered with the
 event loop one by one: they share a :class:`DatagramHub`, one ``epoll`` of their own whose file
@@ -31,6 +32,7 @@ has its own reader and reads up to ``burst`` datagrams per wake-up.
 from __future__ import annotations
 
 import asyncio
+import logging
 import select
 import socket
 import time
@@ -39,6 +41,8 @@ from collections.abc import Callable
 from typing import Any
 
 __all__ = ["DEFAULT_BURST", "HUB_ROUNDS", "DatagramHub", "DatagramSocket"]
+
+log = logging.getLogger(__name__)
 
 #: datagrams read per wake-up at most (then the other sockets get their turn)
 DEFAULT_BURST = 64
@@ -109,8 +113,12 @@ class DatagramHub:
                 except OSError as exc:
                     ds._on_error(exc)
             for ds, data, addr in got:
-                if not ds._closed:  # (not closed by a handler before it)
+                if ds._closed:  # (closed by a handler before it)
+                    continue
+                try:
                     ds._on_datagram(data, addr, now)
+                except Exception:  # a handler's bug must not lose the rest of the round
+                    log.exception("datagram handler failed")
             if not sockets:  # the last socket closed meanwhile (and with it the epoll)
                 return
 
