@@ -227,10 +227,10 @@ def send_velocities_ned(links: Sequence[VehicleLink], north_m_s: np.ndarray,
     for k, link in enumerate(links):
         groups.setdefault(type(link), []).append(k)
     if len(groups) == 1:
-        return type(links[0]).send_velocities_ned(links, north, east, down)
+        return type(links[0])._send_velocities(links, north, east, down)
     out: list[LinkError | None] = [None] * len(links)
     for cls, ks in groups.items():
-        for k, exc in zip(ks, cls.send_velocities_ned([links[k] for k in ks], north[ks],
+        for k, exc in zip(ks, cls._send_velocities([links[k] for k in ks], north[ks],
                                                       east[ks], down[ks]), strict=True):
             out[k] = exc
     return out
@@ -499,8 +499,15 @@ class VehicleLink(abc.ABC):
         """:meth:`send_velocity_ned` for many links of this class (velocity only), in order:
         row k to ``links[k]``. Returns, per link, None (sent) or the :class:`LinkError` that
         one send raised; a non-finite setpoint raises :class:`ValueError` before anything is
-        sent. Backends may send the whole batch at once (``mavlink``)."""
-        north, east, down = setpoint_arrays(links, north_m_s, east_m_s, down_m_s)
+        sent. Backends may send the whole batch at once (``mavlink``: their
+        :meth:`_send_velocities`)."""
+        return cls._send_velocities(links, *setpoint_arrays(links, north_m_s, east_m_s,
+                                                            down_m_s))
+
+    @classmethod
+    def _send_velocities(cls, links: Sequence[VehicleLink], north: np.ndarray,
+                         east: np.ndarray, down: np.ndarray) -> list[LinkError | None]:
+        """:meth:`send_velocities_ned` once the setpoints are checked (:func:`setpoint_arrays`)."""
         out: list[LinkError | None] = []
         for link, n, e, d in zip(links, north.tolist(), east.tolist(), down.tolist(),
                                  strict=True):

@@ -69,7 +69,6 @@ from vtube_fleet.link.base import (
     StatusText,
     VehicleLink,
     cancel_tasks,
-    setpoint_arrays,
 )
 from vtube_fleet.link.endpoints import Endpoint
 from vtube_fleet.link.signing import LINK_UNSIGNED_ALLOWED, LinkSigning, SigningError
@@ -645,14 +644,13 @@ class MavlinkLink(VehicleLink):
         self._stall_warned = False
 
     @classmethod
-    def send_velocities_ned(cls, links: Sequence[VehicleLink], north_m_s: np.ndarray,
-                            east_m_s: np.ndarray, down_m_s: np.ndarray
-                            ) -> list[LinkError | None]:
-        """:meth:`VehicleLink.send_velocities_ned`: the links on the struct fast path get their
-        SET_POSITION_TARGET_LOCAL_NED frames built together (:meth:`WireCodec.pack_many`, the
-        bytes :meth:`send_velocity_ned` sends) and then one ``sendto`` each; the others (signed,
-        ``fast_codec`` off, not connected, closed) go one by one."""
-        north, east, down = setpoint_arrays(links, north_m_s, east_m_s, down_m_s)
+    def _send_velocities(cls, links: Sequence[VehicleLink], north: np.ndarray,
+                         east: np.ndarray, down: np.ndarray) -> list[LinkError | None]:
+        """:meth:`VehicleLink.send_velocities_ned` (checked setpoints): the links on the struct
+        fast path get their SET_POSITION_TARGET_LOCAL_NED frames built together
+        (:meth:`WireCodec.pack_many`, the bytes :meth:`send_velocity_ned` sends) and then one
+        ``sendto`` each; the others (signed, ``fast_codec`` off, not connected, closed) go one
+        by one."""
         out: list[LinkError | None] = [None] * len(links)
         now = time.monotonic()
         rows: list[int] = []
