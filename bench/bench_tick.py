@@ -54,7 +54,6 @@ def fly(sup: Supervisor, links: list[MemoryLink], ticks: int, prof: cProfile.Pro
         out.append(time.perf_counter() - t0)
         if prof is not None:
             prof.disable()
-        sup.tick += 1
     return np.asarray(out)
 
 

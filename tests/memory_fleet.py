@@ -78,7 +78,7 @@ def memory_fleet(count: int, phase: str = "tube", spacing_m: float = 5.0,
     sup = Supervisor(mission, links, fence=False)
     for p in sup.pilots:
         p.set_phase(Phase.TAKEOFF if phase == "takeoff" else Phase.IN_TUBE)
-        p.takeoff_xy = np.array(slots[p.vehicle_id], dtype=float)
+    sup.table.takeoff_xy[:] = slots[: count]
     sup.stage = phase
     if phase == "tube":
         sup.tube_start_s = sup.t_s()

@@ -1,4 +1,4 @@
-"""The standalone agent's broker-loss rule (``BusAwarePilot.bus_problem``), without processes.
+"""The standalone agent's broker-loss rule (``BusNeighbours.problem``), without processes.
 
 The rule: while the broker is away, and after it is back until every airborne neighbour is
 fresh again, the vehicle stands still; a neighbour still silent after ``rejoin_grace_s`` is
@@ -8,11 +8,13 @@ which ends at a different moment for each of them.
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import pytest
 
-from vtube_fleet.fleet.distributed.agent import BACKOFF_JITTER, BusAwarePilot, rejoin_grace_s
+from vtube_fleet.fleet.distributed.vehicle_agent import (
+    BACKOFF_JITTER,
+    BusNeighbours,
+    rejoin_grace_s,
+)
 from vtube_fleet.state import NeighbourState, Phase
 
 
@@ -30,23 +32,16 @@ class FakeMqtt:
         return self.states
 
 
-def pilot(mqtt: FakeMqtt, lost_after_s: float = 1.0) -> SimpleNamespace:
-    """The attributes ``bus_problem`` reads, as a plain namespace."""
-    return SimpleNamespace(
-        mqtt=mqtt,
-        agent=SimpleNamespace(max_age_s=0.15, lost_after_s=lost_after_s),
-        cfg=SimpleNamespace(period_s=0.05),
-        bus_hold=None,
-        _healthy_since=None,
-    )
+def pilot(mqtt: FakeMqtt, lost_after_s: float = 1.0) -> BusNeighbours:
+    return BusNeighbours(mqtt, max_age_s=0.15, lost_after_s=lost_after_s, period_s=0.05)
 
 
 def state(vid: int, stamp_s: float, phase: Phase = Phase.IN_TUBE) -> NeighbourState:
     return NeighbourState(vid, 1.0, 0.0, 1.0, 0.0, phase, stamp_s, 1)
 
 
-def problem(p: SimpleNamespace, now: float) -> str | None:
-    return BusAwarePilot.bus_problem(p, now)  # type: ignore[arg-type]
+def problem(p: BusNeighbours, now: float) -> str | None:
+    return p.problem(now)
 
 
 def test_grace_covers_one_back_off_of_the_slowest_agent() -> None:
@@ -74,7 +69,7 @@ def test_after_the_outage_a_reconnecting_teammate_is_waited_for_then_given_up() 
     two teammates did. It must still be standing still for them at 2.1 s (> lost_after_s)."""
     mq = FakeMqtt()
     p = pilot(mq)
-    p.bus_hold = "MQTT broker unreachable"  # standing still since the outage
+    p.holding = "MQTT broker unreachable"  # standing still since the outage
     t_back = 100.0
     mq.states = {1: state(1, t_back - 3.0), 2: state(2, t_back + 0.0)}  # 1 is still away
     assert problem(p, t_back) is not None  # healthy since now
@@ -85,7 +80,7 @@ def test_after_the_outage_a_reconnecting_teammate_is_waited_for_then_given_up() 
     mq.states[2] = state(2, t_back + 2.1)
     assert problem(p, t_back + 2.15) is None
     # a teammate that never comes back: after the grace the agent's lost rule takes over
-    p.bus_hold, p._healthy_since = "MQTT broker unreachable", None
+    p.holding, p._healthy_since = "MQTT broker unreachable", None
     mq.states[1] = state(1, t_back - 3.0)
     assert problem(p, t_back) is not None
     grace = rejoin_grace_s(1.0, 2.0, 0.05)
@@ -96,7 +91,7 @@ def test_after_the_outage_a_reconnecting_teammate_is_waited_for_then_given_up() 
 def test_ground_and_lost_neighbours_are_not_waited_for() -> None:
     mq = FakeMqtt()
     p = pilot(mq)
-    p.bus_hold = "MQTT broker unreachable"
+    p.holding = "MQTT broker unreachable"
     mq.states = {1: state(1, 0.0, Phase.LANDED), 2: state(2, 0.0)}
     mq.lost = {2}  # its last will arrived
     assert problem(p, 100.0) is None

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import pytest
 from missions import compact_12
 
-from vtube_fleet.fleet.distributed.agent import AgentRecording, BusAwarePilot
+from vtube_fleet.fleet.distributed.vehicle_agent import AgentControl, AgentRecording
 from vtube_fleet.recording.api import NullRecorder
 from vtube_fleet.state import Phase
 
@@ -46,28 +46,35 @@ def test_a_failing_safety_evaluation_propagates_and_marks_the_summary(rec, tmp_p
     assert summary["reason"] == rec.failure
 
 
-def test_the_pilot_aborts_its_tube_run_when_the_evaluation_fails() -> None:
+def test_the_agent_aborts_its_tube_run_when_the_evaluation_fails() -> None:
     calls: list[str] = []
     recording = SimpleNamespace(failure="safety monitor failed: X: y")
 
-    def sample(_pilot, _now):
+    def sample(_control, _now):
         raise RuntimeError("y")
 
     recording.sample = sample
-    recording.after_tick = lambda _pilot, mono, wall: calls.append(f"after_tick {mono:g}")
-    fake = SimpleNamespace(_tick=lambda *_: None, recording=recording,
-                           _abort_for=calls.append)
-    BusAwarePilot.tick(fake, 0.0, 0.0)  # type: ignore[arg-type]
+    recording.after_tick = lambda _control, mono, wall: calls.append(f"after_tick {mono:g}")
+
+    def tick(*_a):
+        raise RuntimeError("the tick itself")
+
+    fake = SimpleNamespace(tick=tick, recording=recording, abort_for=calls.append)
+    try:
+        AgentControl.step(fake, 0.0, 0.0, None)  # type: ignore[arg-type]
+    except RuntimeError:
+        pass  # the clock's guard takes a failed tick
     assert calls == ["safety monitor failed: X: y", "after_tick 0"]  # the checkpoint too
 
     events: list[tuple[str, str]] = []
     holds: list[str] = []
-    pilot = SimpleNamespace(_aborted=False, reason="", phase=Phase.IN_TUBE,
+    pilot = SimpleNamespace(reason="", phase=Phase.IN_TUBE,
                             event=lambda text, level="info": events.append((text, level)),
                             begin_hold=holds.append)
-    pilot.stop_for = lambda why: BusAwarePilot.stop_for(pilot, why)  # type: ignore[arg-type]
+    control = SimpleNamespace(_aborted=False, pilot=pilot)
+    control.stop_for = lambda why: AgentControl.stop_for(control, why)  # type: ignore
     for _ in range(3):
-        BusAwarePilot._abort_for(pilot, "safety monitor failed: X: y")  # type: ignore[arg-type]
+        AgentControl.abort_for(control, "safety monitor failed: X: y")  # type: ignore[arg-type]
     assert events == [("ABORT: safety monitor failed: X: y", "error")]
     assert pilot.reason == "safety monitor failed: X: y"
     assert holds == ["mission aborted"] * 3
@@ -77,7 +84,7 @@ def test_the_teammate_wait_returns_who_is_missing() -> None:
     """The altitude and exit barriers' one wait (AgentProcess._wait_teammates)."""
     import asyncio
 
-    from vtube_fleet.fleet.distributed.agent import AgentProcess
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentProcess
 
     def status(stage, run="r1"):
         return SimpleNamespace(run_id=run, stage=stage)
@@ -101,7 +108,7 @@ def test_the_teammate_wait_returns_who_is_missing() -> None:
 def test_the_interim_summary_is_rewritten_during_the_flight_and_the_final_is_complete(
         tmp_path) -> None:
     """Issue #12: a SIGKILLed agent leaves its last summary. After a tick (``after_tick``, as
-    :meth:`BusAwarePilot.tick` calls it) the summary is written at once, then again only once
+    :meth:`AgentControl.step` calls it) the summary is written at once, then again only once
     ``SUMMARY_EVERY_S`` passed, atomically, ``complete: false``; ``finish`` writes
     ``complete: true``."""
     from vtube_fleet.artifacts import SUMMARY_EVERY_S

@@ -346,28 +346,27 @@ async def test_pushed_out_while_our_process_is_stopped_the_fence_holds_it(
 
 
 async def test_one_agent_audits_and_fences_its_vehicle(tmp_path: Path) -> None:
-    """One-agent-per-process operation: ``VehiclePilot.prepare_onboard`` (run by
-    :meth:`VehiclePilot.fly` before arming) audits the parameters and installs the fence."""
-    from vtube_fleet.bus.base import InProcessBus
-    from vtube_fleet.fleet.agent import Agent, FlightPlan
-    from vtube_fleet.fleet.pilot import PilotError, VehiclePilot
+    """One-agent-per-process operation: the preflight's parameter audit and fence
+    (:func:`~vtube_fleet.fleet.preflight.audit_and_fence`, run by :meth:`VehiclePilot.fly`
+    before arming) for one pilot on a table of one row."""
+    from vtube_fleet.fleet.pilot import VehiclePilot
+    from vtube_fleet.fleet.preflight import PreflightError, audit_and_fence
+    from vtube_fleet.fleet.table import FleetTable
 
     m = _mission(tmp_path).with_vehicles(1)
-    sc = m.scenario
-    plan = FlightPlan.build(sc.tube, sc.obstacles, sc.controller)
     async with mock_fleet(m, boot_time_scale=0.3, port_scheme=free_ports(1), seed=5,
                           params={"GF_ACTION": 0}) as fleet:
         link = MavlinkLink(fleet.endpoints[0], sysid=1)
         try:
             await link.connect(10.0)
-            pilot = VehiclePilot(link, Agent(0, plan), InProcessBus(), m)
-            await pilot.wait_ready()
-            await pilot.prepare_onboard()
+            pilot = VehiclePilot(link, FleetTable([0], m), 0, m)
+            pilot.table.xy[0] = m.slots[0]  # where the tick would have sensed it
+            await audit_and_fence([pilot], m)
             v = fleet.vehicles[0]
             assert len(v.fence_items) == len(fence_items(m)) and v.params["GF_ACTION"].value == 2
             v.params["MPC_XY_VEL_MAX"] = Param("MPC_XY_VEL_MAX", 1.0, 9)  # changed since
-            with pytest.raises(PilotError, match=r"MPC_XY_VEL_MAX = 1.0 m/s < v_max = 1.6"):
-                await pilot.prepare_onboard()
+            with pytest.raises(PreflightError, match=r"MPC_XY_VEL_MAX = 1.0 m/s < v_max = 1.6"):
+                await audit_and_fence([pilot], m)
             assert not v.armed
         finally:
             await link.close()

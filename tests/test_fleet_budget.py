@@ -22,8 +22,8 @@ from vtube_fleet.fleet.budget import (
     mission_budget,
     on_time_share,
 )
-from vtube_fleet.fleet.compensation import EstimateCompensator
-from vtube_fleet.fleet.pilot import MEASURE_TRIES, measure_budget_links
+from vtube_fleet.fleet.compensation import CompensatorBank
+from vtube_fleet.fleet.preflight import MEASURE_TRIES, measure_budget_links
 
 
 @pytest.fixture()
@@ -91,7 +91,8 @@ def _fly(compensate: bool, seed: int, seconds: float = 40.0) -> float:
         est = EstimatorErrors(1, seed)
         est.configure(0, ESTIMATOR_PROFILES["px4-sih" if errors else "ideal"])
         est.start(0)
-        comp = EstimateCompensator()
+        comp = CompensatorBank(1)
+        row = np.zeros(1, np.int64)
         air, frozen = np.ones(1, bool), np.zeros(1, bool)
         u = np.zeros((1, 3))
         out = []
@@ -102,8 +103,9 @@ def _fly(compensate: bool, seed: int, seconds: float = 40.0) -> float:
             p = q.p[0, :2] + est.e_p[0, :2]
             v = q.v[0, :2] + est.e_v[0, :2]
             if k % 5 == 0:  # the fleet's control tick (20 Hz) sees a fresh sample
-                comp.add(k * dt, p[0], p[1], v[0], v[1])
-                dx, dy = comp.correction if (compensate and errors) else (0.0, 0.0)
+                comp.add(row, np.array([k * dt]), p[:1], p[1:2], v[:1], v[1:2])
+                dx, dy = ((float(comp.dx_m_s[0]), float(comp.dy_m_s[0]))
+                          if (compensate and errors) else (0.0, 0.0))
                 u[0] = (1.0 + dx, dy, 0.0)
             out.append(p.copy())
         runs.append(np.array(out))
@@ -124,58 +126,73 @@ def test_compensation_makes_the_estimate_follow_the_command() -> None:
 
 
 def test_compensator_window_and_clip() -> None:
-    c = EstimateCompensator(window_s=0.4, limit_m_s=1.0)
+    c = CompensatorBank(1, window_s=0.4, limit_m_s=1.0)
+    row, zero = np.zeros(1, np.int64), np.zeros(1)
     # the estimate says 2 m/s east while the estimated position does not move: d = 2, clipped
     for k in range(20):
-        c.add(0.05 * k, 0.0, 0.0, 0.0, 2.0)
-    assert c.correction == pytest.approx((0.0, 1.0)) and c.clipped > 0
-    assert c.max_m_s == pytest.approx(2.0)
+        c.add(row, np.array([0.05 * k]), zero, zero, zero, np.array([2.0]))
+    assert (c.dx_m_s[0], c.dy_m_s[0]) == pytest.approx((0.0, 1.0)) and c.clipped[0] > 0
+    assert c.max_m_s[0] == pytest.approx(2.0)
     with pytest.raises(ValueError):
-        EstimateCompensator(window_s=0.0)
+        CompensatorBank(1, window_s=0.0)
 
 
-class _Correction:
-    """A compensator whose correction d̂ the test sets (window as the real one)."""
+class _Link:
+    """A link that takes every setpoint (what :func:`actuate` needs of one)."""
 
-    window_s = 0.4
+    closed = False
+    latency_s = None
 
     def __init__(self) -> None:
-        self.correction = (0.0, 0.0)
+        from vtube_fleet.link.base import VehicleState
 
+        self.state = VehicleState(endpoint="udpin://127.0.0.1:24999")
+        self.sent = 0
 
-def _pilot_with(mission):
-    from vtube_fleet.bus import InProcessBus
-    from vtube_fleet.fleet.agent import Agent, FlightPlan
-    from vtube_fleet.fleet.pilot import VehiclePilot
-    from vtube_fleet.link import MavlinkLink
+    def send_velocity_ned(self, north_m_s: float, east_m_s: float, down_m_s: float,
+                          yaw_deg: float | None = None) -> None:
+        self.sent += 1
 
-    sc = mission.scenario
-    plan = FlightPlan.build(sc.tube, sc.obstacles, sc.controller)
-    events: list[tuple[str, str]] = []
-    pilot = VehiclePilot(MavlinkLink("udpin://127.0.0.1:24999"), Agent(0, plan), InProcessBus(),
-                         mission, on_event=lambda text, vid, level: events.append((level, text)))
-    pilot.compensator = _Correction()  # type: ignore[assignment]
-    return pilot, events
+    @classmethod
+    def _send_velocities(cls, links, north, east, down):
+        for lk in links:
+            lk.send_velocity_ned(0.0, 0.0, 0.0)
+        return [None] * len(links)
 
 
 def test_a_lasting_residual_above_d_warns_once_a_spike_does_not(mission) -> None:
     """The budget covers D integrated over time: one tick's jump of d̂ is not a warning, a
-    residual that stays above D is, once per vehicle, naming the numbers."""
-    pilot, events = _pilot_with(mission)
+    residual that stays above D is, once per vehicle (the tick's actuation tracks it)."""
+    from vtube_fleet.fleet.plan import FlightPlan
+    from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
+    from vtube_fleet.fleet.tick import actuate, read_links
+    from vtube_fleet.state import Phase
+
+    sc = mission.scenario
+    plan = FlightPlan.build(sc.tube, sc.obstacles, sc.controller)
+    tab = FleetTable([0], mission)
+    tab.phase[0] = PHASE_CODE[Phase.IN_TUBE]
+    link = _Link()
     period, d = mission.config.period_s, mission.config.disturbance_residual_m_s
-    comp = pilot.compensator
+    bank = tab.compensator
+    assert bank is not None
+
+    def tick(t: float, dx: float) -> list[int]:
+        bank.dx_m_s[0] = dx
+        act = actuate(tab, read_links([link]), [link], mission, plan, t,
+                      np.zeros(1, np.int64), np.array([[1.0, 0.0]]), None)
+        return act.residual_over.tolist()
+
     t = 0.0
+    warned: list[int] = []
     for k in range(200):  # a single spike of 3 D, then calm
-        comp.correction = (3 * d, 0.0) if k == 100 else (0.0, 0.0)
-        pilot._track_residual(t)
+        warned += tick(t, 3 * d if k == 100 else 0.0)
         t += period
-    assert max(pilot.disturbance_residual_m_s) > d and not events
+    assert tab.residuals.residuals(0).max() > d and not warned
     for k in range(200):  # d̂ drifting at 2 D per compensation delay: the residual stays > D
-        comp.correction = (2 * d * k * period / (0.5 * comp.window_s + period), 0.0)
-        pilot._track_residual(t)
+        warned += tick(t, 2 * d * k * period / (0.5 * bank.window_s + period))
         t += period
-    warnings = [text for level, text in events if level == "warning"]
-    assert len(warnings) == 1 and "budgeted D" in warnings[0]
+    assert warned == [0] and link.sent == 400
 
 
 def test_the_watch_counts_stalls_of_our_own_loop(mission, tmp_path) -> None:
@@ -308,37 +325,38 @@ def test_a_loop_that_cannot_keep_up_is_named_with_its_numbers() -> None:
 
 
 async def test_one_stall_before_arming_is_judged_again_not_refused() -> None:
-    """Supervisor._check_loop: a 1.3 s stall in the judged window fails the first judgement
+    """Preflight.check_loop: a 1.3 s stall in the judged window fails the first judgement
     (13.5 Hz); the next LOOP_CHECK_S of a 20 Hz clock pass, so the fleet may arm."""
     import asyncio
     from types import SimpleNamespace
 
-    from vtube_fleet.fleet.supervisor import Supervisor
+    from vtube_fleet.fleet.preflight import Preflight
 
     loop = asyncio.get_running_loop()
     t0 = loop.time()
     starts = [t for t in (t0 - 4.0 + T * k for k in range(80)) if not t0 - 2.3 < t < t0 - 1.0]
     events: list[str] = []
-    sup = SimpleNamespace(tick_starts_s=starts, tick_lateness=[0.0] * len(starts),
-                          tick_durations=[0.005] * len(starts), cfg=SimpleNamespace(period_s=T),
-                          pilots=[None] * 3,
-                          event=lambda text, level="info": events.append(f"{level}: {text}"))
+    clock = SimpleNamespace(starts_s=starts, lateness_s=[0.0] * len(starts),
+                            durations_s=[0.005] * len(starts))
+    pre = Preflight([SimpleNamespace(name=f"slot {i}") for i in range(3)],
+                    SimpleNamespace(config=SimpleNamespace(period_s=T)),  # type: ignore[arg-type]
+                    event=lambda text, level="info": events.append(f"{level}: {text}"))
 
-    async def clock() -> None:
+    async def ticking() -> None:
         # a clock that keeps 20 Hz exactly: each wake-up records every tick due by then, so a
         # loaded machine's late wake-ups do not make this healthy clock look slow
         next_t = t0 + T
         while True:
             await asyncio.sleep(T)
             while next_t <= loop.time():
-                sup.tick_starts_s.append(next_t)
-                sup.tick_lateness.append(0.0)
-                sup.tick_durations.append(0.005)
+                clock.starts_s.append(next_t)
+                clock.lateness_s.append(0.0)
+                clock.durations_s.append(0.005)
                 next_t += T
 
-    task = asyncio.create_task(clock())
+    task = asyncio.create_task(ticking())
     try:
-        await Supervisor._check_loop(sup)  # raises PreflightError if the second judgement fails
+        await pre.check_loop(clock)  # type: ignore[arg-type]  # raises if judged twice slow
     finally:
         task.cancel()
     assert len(events) == 1 and events[0].startswith("warning: the control loop cannot keep up")
@@ -397,8 +415,8 @@ async def test_an_agent_measures_again_before_it_refuses_the_runs_delta(slow: in
     from missions import MOCK_FLEET
 
     from vtube_fleet.bus.codec import MissionConfigMsg
-    from vtube_fleet.fleet.distributed.agent import AgentProcess, AgentRefused
     from vtube_fleet.fleet.distributed.coordinator import bus_safety_budget
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentProcess, AgentRefused
 
     agent = AgentProcess(MOCK_FLEET, 0)
     run_delta = bus_safety_budget(agent.mission, None, agent.max_age_s).delta_m
@@ -412,15 +430,16 @@ async def test_an_agent_measures_again_before_it_refuses_the_runs_delta(slow: in
         def position_accuracy_m(self, allow_gnss: bool = True) -> float:
             return 0.35  # the coordinator's assumed σ: then L decides
 
-        agent = type("A", (), {})()  # measure_budget sets its plans
+    from types import SimpleNamespace
 
     pilot = AgentPilot(slow)
+    control = SimpleNamespace(pilot=pilot, set_plan=lambda plan: None, watch=None)
     if not refused:
-        await agent.measure_budget(pilot)  # type: ignore[arg-type]
+        await agent.measure_budget(control)  # type: ignore[arg-type]
         assert pilot.link.measurements == 2 and agent.budget.delta_m == pytest.approx(run_delta)
         return
     with pytest.raises(AgentRefused) as err:
-        await agent.measure_budget(pilot)  # type: ignore[arg-type]
+        await agent.measure_budget(control)  # type: ignore[arg-type]
     text = str(err.value)
     assert pilot.link.measurements == MEASURE_TRIES
     assert f"more than the run's δ = {run_delta:.3f} m" in text

@@ -12,7 +12,8 @@ from missions import COMPACT_12, compact_12, write_mission
 
 from vtube_fleet.fleet.budget import SafetyBudget
 from vtube_fleet.fleet.launch import fly, mock_fleet
-from vtube_fleet.fleet.supervisor import PreflightError, Supervisor, preflight_report
+from vtube_fleet.fleet.preflight import PreflightError, preflight_report
+from vtube_fleet.fleet.supervisor import Supervisor
 from vtube_fleet.link.mavlink import MavlinkLink
 
 
@@ -108,9 +109,9 @@ async def test_the_measured_accuracy_refuses_a_tight_mission_before_arming(tmp_p
 async def test_connect_window_and_one_deadline_name_every_vehicle(tmp_path, monkeypatch) -> None:
     """Links connect at most CONNECT_WINDOW at a time, all within connect_timeout_s: silent
     endpoints end the run with one error naming each (waited for, or never reached)."""
-    import vtube_fleet.fleet.supervisor as supervisor_module
+    import vtube_fleet.fleet.preflight as preflight_module
 
-    monkeypatch.setattr(supervisor_module, "CONNECT_WINDOW", 1)
+    monkeypatch.setattr(preflight_module, "CONNECT_WINDOW", 1)
     text = "\n".join(line for line in COMPACT_12.splitlines()
                      if not line.startswith("connect_timeout_s"))
     m = write_mission(tmp_path, text + "\nconnect_timeout_s = 0.5\n").with_vehicles(3)

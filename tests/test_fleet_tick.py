@@ -1,16 +1,13 @@
-"""The supervisor's vectorized tick does what each pilot's own steps do, vehicle by vehicle.
+"""The control tick (fleet/tick.py): ONE implementation for one vehicle and for a thousand.
 
-The supervisor runs its fleet's per-tick steps for all vehicles at once (issue 16):
-:func:`~vtube_fleet.fleet.pilot.sense_all`, :func:`~vtube_fleet.fleet.pilot.check_faults_all`,
-:func:`~vtube_fleet.fleet.pilot.fleet_states` with :func:`~vtube_fleet.fleet.agent.classify_arrays`,
-:func:`~vtube_fleet.fleet.pilot.actuate_all`, and the fleet's
-:class:`~vtube_fleet.fleet.compensation.CompensatorBank` and
-:class:`~vtube_fleet.fleet.compensation.ResidualTracker`. The standalone agent
-runs the same steps per vehicle (:meth:`VehiclePilot.tick`). Here two identical in-memory
-fleets fly the same ticks with faults injected (a silent vehicle, one that does not follow,
-one that leaves OFFBOARD, one disarmed, a stopped one), one through the fleet functions, one
-pilot by pilot, and everything they send, decide and report must agree: bit for bit, except
-the residuals, which are ``np.hypot`` against ``math.hypot`` (last bit).
+* the neighbour classification by its rule, on random tables;
+* the fleet's compensation bank and residual tracker against straightforward per-vehicle
+  references;
+* an MQTT agent's tick (a table of one row, its neighbours from a bus) and the supervisor's
+  (the whole fleet's table) send the same setpoints, bit for bit, through 160 ticks with faults
+  (a vehicle that does not follow, one that leaves OFFBOARD, one disarmed, a stopped one, a
+  stall of our own loop);
+* a fault rule added in one place acts for every vehicle, of the fleet and of an agent.
 """
 
 from __future__ import annotations
@@ -23,36 +20,25 @@ from itertools import pairwise
 
 import numpy as np
 import pytest
-from memory_fleet import fly_telemetry, memory_fleet
+from memory_fleet import MemoryLink, fly_telemetry, memory_fleet
 
-from vtube_fleet.fleet.agent import classify, classify_arrays, fleet_setpoints
 from vtube_fleet.fleet.compensation import (
     RESIDUAL_WINDOW_S,
     CompensatorBank,
-    EstimateCompensator,
     ResidualTracker,
 )
-from vtube_fleet.fleet.pilot import (
-    actuate_all,
-    check_faults_all,
-    fleet_states,
-    sense_all,
-)
+from vtube_fleet.fleet.neighbours import States, classify, states_of
+from vtube_fleet.fleet.pilot import VehiclePilot
+from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
+from vtube_fleet.fleet.tick import FAULT_RULES, FaultRule, Tick
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, NeighbourState, Phase
 
 WALL = 1.7e9  # wall clock = monotonic + WALL
 
 
-def _view_equal(a, b) -> None:
-    for name in ("live_ids", "live_pos", "live_vel", "static_ids", "static_pos", "lost_ids",
-                 "lost_pos"):
-        x, y = getattr(a, name), getattr(b, name)
-        assert x.shape == y.shape and np.array_equal(x, y), name
-
-
 def test_classify_sorts_every_state_by_the_rule() -> None:
-    """Random tables (phases, ages, NaN positions, a stall): each id lands in the bucket the
-    rule names, at its own position, sorted by id."""
+    """Random tables (phases, ages, NaN positions, a stall, per-state silence limits): each id
+    lands in the bucket the rule names, at its own position, sorted by id."""
     rng = np.random.default_rng(1)
     phases = list(Phase)
     for _ in range(50):
@@ -64,19 +50,19 @@ def test_classify_sorts_every_state_by_the_rule() -> None:
                                            else (math.nan, 1.0, 0.5, 0.5)),
                                  phases[int(rng.integers(len(phases)))],
                                  now - rng.uniform(0.0, 3.0), 1) for i in ids]
-        exclude = int(ids[0]) if n and rng.random() < 0.5 else None
-        view = classify(states, now, max_age_s=0.5, lost_after_s=1.5, exclude=exclude,
+        limit = np.where(rng.random(n) < 0.3, math.inf, 1.5)
+        view = classify(states_of(states), now, max_age_s=0.5, lost_after_s=limit,
                         heard_since_s=heard)
         want: dict[str, list[NeighbourState]] = {"live": [], "static": [], "lost": []}
-        for st in states:
-            if st.vehicle_id == exclude or not math.isfinite(st.x_m):
+        for st, lim in zip(states, limit.tolist(), strict=True):
+            if not math.isfinite(st.x_m):
                 continue
             age = now - st.stamp_s
             silence = age if heard is None else min(age, now - heard)
             if st.phase == Phase.LOST or st.phase in STOPPED_PHASES:
                 want["lost"].append(st)
             elif st.phase in AIRBORNE_PHASES:
-                which = "lost" if silence > 1.5 else "static" if age > 0.5 else "live"
+                which = "lost" if silence > lim else "static" if age > 0.5 else "live"
                 want[which].append(st)
         for which, ids_got, pos_got in (("live", view.live_ids, view.live_pos),
                                         ("static", view.static_ids, view.static_pos),
@@ -160,12 +146,13 @@ def _deque_compensator(window_s: float, limit_m_s: float):
 
 def test_compensator_bank_matches_one_deque_per_vehicle() -> None:
     """Vehicles with samples on different ticks, some late or not finite (ignored), and
-    estimates large enough to be clipped: each row of the bank, and a vehicle's own
-    EstimateCompensator, follow the straightforward formula."""
+    estimates large enough to be clipped: each row of the bank, and a vehicle's own bank of one
+    row, follow the straightforward formula."""
     rng = np.random.default_rng(4)
     m = 12
     bank = CompensatorBank(m, window_s=0.4, limit_m_s=1.0)
-    alone = [EstimateCompensator(window_s=0.4, limit_m_s=1.0) for _ in range(m)]
+    alone = [CompensatorBank(1, window_s=0.4, limit_m_s=1.0) for _ in range(m)]
+    zero = np.zeros(1, np.int64)
     refs = [_deque_compensator(0.4, 1.0) for _ in range(m)]
     t = np.zeros(m)
     for k in range(600):
@@ -181,141 +168,179 @@ def test_compensator_bank_matches_one_deque_per_vehicle() -> None:
         for j, r in enumerate(rows.tolist()):
             sample = (float(tt[j]), float(x[j]), float(y[j]), float(vx[j]), float(vy[j]))
             refs[r][0](*sample)
-            alone[r].add(*sample)
+            alone[r].add(zero, *(np.array([v]) for v in sample))
         for r in range(m):
             want = refs[r][1]
             got = (float(bank.dx_m_s[r]), float(bank.dy_m_s[r]))
-            assert alone[r].correction == got
+            assert (float(alone[r].dx_m_s[0]), float(alone[r].dy_m_s[0])) == got
             assert got == pytest.approx(want["d"], rel=1e-9, abs=1e-12), (k, r)
             assert int(bank.clipped[r]) == want["clipped"]
     assert bank.clipped.sum() > 100 and (bank.max_m_s > 1.0).all()
     assert bank.max_m_s == pytest.approx([r[1]["max"] for r in refs], rel=1e-12)
 
 
-def _inject(k: int, links, rng) -> None:
-    """Faults on tick ``k``: vehicle 3 falls silent, 7 stops following, 11 leaves OFFBOARD,
-    13 disarms; telemetry noise on everyone."""
+class _Bus:
+    """A perfect bus for the agents: the other vehicles' states as the fleet's tick computed
+    them this tick (what each agent would have published)."""
+
+    def __init__(self, own: int) -> None:
+        self.own = own
+        self.fleet: States = States.empty()
+
+    def states(self, now_wall: float) -> States:
+        keep = self.fleet.ids != self.own
+        f = self.fleet
+        return States(f.ids[keep], f.pos[keep], f.vel[keep], f.phase[keep], f.stamps_s[keep])
+
+    def problem(self, now_wall: float) -> str | None:
+        return None
+
+
+def _agents(sup, count: int, t0: float):
+    """One agent per vehicle: a one-row table, a pilot, a tick with the bus; their links are
+    in-memory copies of the fleet's (same state, their own setpoints)."""
+    agents = []
+    for i, fleet_link in enumerate(sup.pilots):
+        link = MemoryLink(fleet_link.link.endpoint.url, i % 255 + 1)
+        link.state = fleet_link.link.state.copy()
+        tab = FleetTable([i], sup.mission)
+        tab.takeoff_xy[0] = sup.table.takeoff_xy[i]
+        pilot = VehiclePilot(link, tab, 0, sup.mission)
+        pilot.set_phase(sup.pilots[i].phase)
+        bus = _Bus(i)
+
+        def hold(exc, view, pilot=pilot) -> None:  # as the supervisor's abort does
+            if pilot.phase in (Phase.IN_TUBE, Phase.EXITED):
+                pilot.reason = pilot.reason or f"mission aborted: {exc}"
+                pilot.begin_hold("mission aborted")
+
+        tick = Tick(tab, [pilot], sup.mission, sup.plan, neighbours=bus, publish=lambda m: None,
+                    on_replan_failed=hold, t0_s=sup.t0)
+        agents.append((tick, pilot, link, bus))
+    return agents
+
+
+def _why(reason: str | None) -> str | None:
+    """A reason to compare: the supervisor's abort names the other vehicles' reasons too."""
+    return "mission aborted" if reason and reason.startswith("mission aborted") else reason
+
+
+def _inject(k: int, links) -> None:
+    """Faults on tick ``k``: 39 disarms, 31 leaves OFFBOARD; 37 no longer follows (below)."""
     for i, link in enumerate(links):
         s = link.state
-        if i == 11 and k == 30:
-            s.flight_mode = "POSCTL"
-        if i == 13 and k == 45:
+        if i == 39 and k == 20:
             s.armed = False
-        s.vn_m_s += 0.01 * rng.standard_normal()
+        if i == 31 and k == 140:
+            s.flight_mode = "POSCTL"
 
 
-@pytest.mark.parametrize("count", [40])
-async def test_the_fleet_functions_fly_like_each_pilot_alone(count: int) -> None:
-    t0 = 5000.0
-    fleets = [memory_fleet(count, now_s=t0) for _ in range(2)]
-    events: list[list[tuple[str, int | None, str]]] = [[], []]
-    for (sup, _), ev in zip(fleets, events, strict=True):
-        for p in sup.pilots:
-            p.on_event = lambda text, vid, level, ev=ev: ev.append((text, vid, level))
-        sup.pilots[20].begin_hold("a test")  # a stopped vehicle: an obstacle, a transition
-    rngs = [np.random.default_rng(5), np.random.default_rng(5)]
-    period = fleets[0][0].cfg.period_s
+async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
+    """The same vehicles, the same telemetry: the supervisor's tick over its fleet table, and
+    one agent per vehicle running the same tick over a table of one row with the others'
+    states from a bus: the same setpoints, commands, phases and reasons, bit for bit. (The
+    second loss cannot be re-partitioned around: the supervisor aborts, every agent holds.)"""
+    count, t0 = 40, 5000.0
+    sup, links = memory_fleet(count, now_s=t0)
+    agents = _agents(sup, count, t0)
+    sup.pilots[34].begin_hold("a test")  # a stopped vehicle: an obstacle, a transition
+    agents[34][1].begin_hold("a test")
+    a_links = [a[2] for a in agents]
+    period = sup.cfg.period_s
     now = t0
     jitter = np.random.default_rng(6)
     for k in range(160):
         now += period * (1.0 + 0.3 * jitter.random())
         listening = now - 1.0 if k == 60 else None  # a stall of our own loop once
-        out = []
-        for f, ((sup, links), rng) in enumerate(zip(fleets, rngs, strict=True)):
-            pilots = sup.pilots
-            if k > 10:  # vehicle 7 no longer follows its setpoints
-                links[7].v_ned = (0.0, 0.0, links[7].v_ned[2])
+        for world in (links, a_links):
+            if k > 10:  # vehicle 37 no longer follows its setpoints
+                world[37].v_ned = (0.0, 0.0, world[37].v_ned[2])
             if k % 2 == 0:
-                fly_telemetry([lk for i, lk in enumerate(links) if not (i == 3 and k > 20)],
-                              2 * period, now)
-            _inject(k, links, rng)
-            if f == 0:
-                sense_all(pilots, sup.frame)
-            else:
-                for p in pilots:
-                    p.sense()
-            if f == 0:
-                check_faults_all(pilots, now, listening)
-                fs = fleet_states(pilots, now, now + WALL)
-                view = classify_arrays(fs.ids, fs.pos, fs.vel, fs.phases, fs.stamps_s,
-                                       now + WALL, max_age_s=sup.cfg.neighbour_max_age_s,
-                                       lost_after_s=math.inf)
-            else:
-                for p in pilots:
-                    p.check_faults(now, listening)
-                states = [s for p in pilots if (s := p.state(now, now + WALL)) is not None]
-                view = classify(states, now + WALL, max_age_s=sup.cfg.neighbour_max_age_s,
-                                lost_after_s=math.inf)
-            flying = [p for p in pilots if p.phase == Phase.IN_TUBE and p.has_position()]
-            index = {int(v): j for j, v in enumerate(view.ids())}
-            cmd_pilots = [p for p in flying if p.vehicle_id in index]
-            rows = [index[p.vehicle_id] for p in cmd_pilots]
-            cmds = (fleet_setpoints(sup.plan, view.points(), rows) if rows
-                    else np.zeros((0, 2)))
-            if f == 0:
-                actuate_all(pilots, now, cmd_pilots, cmds, view)
-            else:
-                by_id = dict(zip((p.vehicle_id for p in cmd_pilots), cmds, strict=True))
-                for p in pilots:
-                    p.actuate(now, by_id.get(p.vehicle_id), view)
-            out.append((view, [lk.v_ned for lk in links], [p.phase for p in pilots],
-                        [p.reason for p in pilots], [p._still_since for p in pilots],
-                        [None if p.cmd_xy is None else tuple(p.cmd_xy) for p in pilots],
-                        [p.cmd_in_tube for p in pilots], [p.setpoints_sent for p in pilots]))
+                fly_telemetry(world, 2 * period, now)
+            _inject(k, world)
+        fleet = sup.ticker(now, now + WALL, listening)
+        for tick, _pilot, _link, bus in agents:
+            bus.fleet = fleet.states
+            tick(now, now + WALL, listening)
         await asyncio.sleep(0)  # the hold's transition task
-        a, b = out
-        _view_equal(a[0], b[0])
-        assert a[1:] == b[1:], f"tick {k}"
-    assert events[0] == events[1]
-    phases = out[0][2]
-    assert phases[3] == phases[7] == phases[11] == phases[13] == Phase.LOST
-    assert phases[20] == Phase.HOLDING
-    assert sum(ph == Phase.IN_TUBE for ph in phases) == count - 5
-    sup_a, sup_b = fleets[0][0], fleets[1][0]
-    for pa, pb in zip(sup_a.pilots, sup_b.pilots, strict=True):
-        np.testing.assert_allclose(pa.disturbance_residual_m_s, pb.disturbance_residual_m_s,
-                                   rtol=1e-15, atol=1e-16)
-    # the pilots of fleet 0 share the supervisor's tracker, those of fleet 1 each used
-    # their own calls into it: every residual was tracked once
-    assert sup_a.residuals.residuals().size == sup_b.residuals.residuals().size > 0
+        assert [lk.v_ned for lk in links] == [lk.v_ned for lk in a_links], f"tick {k}"
+        assert [p.phase for p in sup.pilots] == [a[1].phase for a in agents], k
+        assert [_why(p.reason) for p in sup.pilots] == [_why(a[1].reason) for a in agents], k
+        got = [None if p.cmd_xy is None else p.cmd_xy.tobytes() for p in sup.pilots]
+        assert got == [None if a[1].cmd_xy is None else a[1].cmd_xy.tobytes()
+                       for a in agents], k
+    phases = [p.phase for p in sup.pilots]
+    assert phases[39] == Phase.LOST and "disarmed in the air" in (sup.pilots[39].reason or "")
+    assert phases[34] == Phase.HOLDING and sup.partitions == 2  # re-planned around 34 once
+    assert all(ph == Phase.HOLDING for i, ph in enumerate(phases) if i != 39)  # then aborted
+    res = sup.table.residuals.residuals()
+    assert res.size == sum(a[1].table.residuals.residuals().size for a in agents) > 0
 
 
-async def test_sense_all_feeds_compensators_of_their_own_like_each_pilot() -> None:
-    """Pilots that are not one fleet's (each its own compensator): sense_all gives each its
-    sample as its own sense() would."""
-    fleets = [memory_fleet(6, now_s=100.0) for _ in range(2)]
-    for sup, links in fleets:
-        for k, (p, link) in enumerate(zip(sup.pilots, links, strict=True)):
-            p.compensator = EstimateCompensator()
-            link.v_ned = (1.0, 0.1 * k, 0.0)
-    now = 100.0
-    for _ in range(30):
-        now += 0.05
-        for f, (sup, links) in enumerate(fleets):
-            fly_telemetry(links, 0.05, now)
-            for link in links:
-                link.state.vn_m_s += 0.3  # the estimate's velocity is off: d̂ ≈ 0.3 m/s
-            if f == 0:
-                assert sense_all(sup.pilots, sup.frame) == 6
-            else:
-                assert all(p.sense() for p in sup.pilots)
-    got = [[p.compensator.correction for p in sup.pilots] for sup, _ in fleets]
-    assert got[0] == got[1]
-    assert all(abs(math.hypot(*d) - 0.3) < 0.05 for d in got[0])
-    assert [p.xy.tolist() for p in fleets[0][0].pilots] == [p.xy.tolist()
-                                                              for p in fleets[1][0].pilots]
+async def test_each_fault_rule_finds_its_vehicle() -> None:
+    """One tick, many faults at once: every rule finds its vehicle, each takes the first rule
+    it hits; a vehicle arming FAILS instead; holding vehicles on the ground are LANDED."""
+    sup, links = memory_fleet(12, now_s=100.0)
+    p = sup.pilots
+    for i in (6, 7, 8, 9):
+        sup.table.offboard_seen[i] = True  # confirmed once, as in flight
+    p[1].set_phase(Phase.ARMING)
+    p[2].set_phase(Phase.HOLDING)
+    s = [lk.state for lk in links]
+    s[0].last_position_s = 98.0  # silent for 2 s > lost_after_s
+    s[1].last_position_s = 98.0  # … while arming: failed
+    s[2].landed_state, s[2].armed = "ON_GROUND", False  # holding, touched down
+    s[6].flight_mode = "POSCTL"  # left OFFBOARD
+    s[7].armed = False  # disarmed in the air
+    s[8].flight_mode, s[8].armed = "POSCTL", False  # both: the first rule wins
+    now = 100.05
+    sup.ticker(now, now + WALL)
+    phases = [x.phase for x in p]
+    assert phases[:3] == [Phase.LOST, Phase.FAILED, Phase.LANDED]
+    assert [phases[i] for i in (6, 7, 8)] == [Phase.LOST] * 3
+    assert p[0].reason.startswith("no telemetry for more than lost_after_s = 1 s")
+    assert p[1].reason.startswith("no telemetry")
+    assert p[6].reason.startswith("left OFFBOARD unexpectedly (mode POSCTL")
+    assert p[7].reason == "disarmed in the air"
+    assert p[8].reason.startswith("left OFFBOARD")
+    # no rule for the others (they hold: the losses near the start cannot be re-planned)
+    assert not any(x.phase in (Phase.LOST, Phase.FAILED, Phase.LANDED)
+                   for x in [p[3], p[4], p[5], *p[9:]])
 
 
-def test_the_tables_phase_column_follows_the_agent_however_its_phase_is_set() -> None:
-    """The fleet steps read phases from the table: a phase set on the agent directly (its
-    public API) reaches the column as one set through the pilot does."""
-    from vtube_fleet.fleet.table import PHASE_CODE
+def _battery_rule(level: float) -> FaultRule:
+    def find(ctx):
+        rem = np.array([getattr(s, "battery_remaining", math.nan) for s in ctx.links.states])
+        return rem < level, lambda r: f"battery {rem[r]:.0%} < {level:.0%}"
 
-    sup, _ = memory_fleet(3, now_s=10.0)
-    p0, p1, p2 = sup.pilots
-    p0.set_phase(Phase.HOLDING, "through the pilot")
-    p1.agent.set_phase(Phase.LOST)
-    p2.agent.phase = Phase.EXITED
-    assert sup.table.phase.tolist() == [PHASE_CODE[Phase.HOLDING], PHASE_CODE[Phase.LOST],
-                                        PHASE_CODE[Phase.EXITED]]
-    assert [p.phase for p in sup.pilots] == [Phase.HOLDING, Phase.LOST, Phase.EXITED]
+    return FaultRule("test_battery", find, action="land")
+
+
+async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
+    """One rule appended to the tick's rules: every vehicle of a 12-vehicle fleet that hits it
+    and an agent's one vehicle act on it alike (here: land, an obstacle for the others)."""
+    sup, links = memory_fleet(12, now_s=100.0)
+    rules = (*FAULT_RULES, _battery_rule(0.2))
+    sup.ticker.rules = rules
+    agents = _agents(sup, 12, 100.0)
+    for tick, *_ in agents:
+        tick.rules = rules
+    low = {2, 5, 6, 11}
+    for world in (links, [a[2] for a in agents]):
+        for i, link in enumerate(world):
+            link.state.battery_remaining = 0.1 if i in low else 0.9
+    now = 100.05
+    fleet = sup.ticker(now, now + WALL)
+    for tick, _pilot, _link, bus in agents:
+        bus.fleet = fleet.states
+        tick(now, now + WALL)
+    for group in (sup.pilots, [a[1] for a in agents]):
+        landing = {p.vehicle_id for p in group if p.phase == Phase.LANDING}
+        assert landing == low
+        assert all(p.reason == "battery 10% < 20%" for p in group if p.vehicle_id in low)
+    await asyncio.sleep(0)
+    # the next tick: the landing vehicles are obstacles (stopped) for the others
+    now += 0.05
+    fleet = sup.ticker(now, now + WALL)
+    assert fleet.view is not None and low <= set(fleet.view.lost_ids.tolist())
+    assert (sup.table.phase == PHASE_CODE[Phase.LANDING]).sum() == len(low)

@@ -472,8 +472,8 @@ def test_the_library_refuses_the_same_durations(mission_file: Path) -> None:
     """Called as a library (tests, benchmarks), the agent and the coordinator refuse NaN and
     negative durations as the command line does."""
     from vtube_fleet.errors import UserError
-    from vtube_fleet.fleet.distributed.agent import AgentProcess
     from vtube_fleet.fleet.distributed.coordinator import Coordinator
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentProcess
 
     for kw in ({"join_timeout_s": math.nan}, {"broker_hold_limit_s": -5.0}):
         with pytest.raises(UserError, match=r"must be > 0|finite") as info:

@@ -15,8 +15,8 @@ from missions import COMPACT_12_PATH
 
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.distributed.agent import AgentProcess, AgentRefused
 from vtube_fleet.fleet.distributed.coordinator import default_mission_id
+from vtube_fleet.fleet.distributed.vehicle_agent import AgentProcess, AgentRefused
 from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]

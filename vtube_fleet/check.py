@@ -221,7 +221,7 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
                       for v in violations]
     violations = list(extra or []) + violations
     if kind == "mission" and part is not None:
-        from vtube_fleet.fleet.agent import FlightPlan
+        from vtube_fleet.fleet.plan import FlightPlan
 
         plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
         for i, k, d in plan.lookahead_conflicts(positions):

@@ -8,7 +8,7 @@ MQTT bus (``vtube_fleet.bus.mqtt``, one agent process per vehicle).
 
 Time stamps are wall-clock seconds (``time.time()``) so that states from other processes or
 machines can be aged; an agent never uses a state older than its configured maximum age as if it
-were fresh (see ``vtube_fleet.fleet.agent``).
+were fresh (see ``vtube_fleet.fleet.neighbours``).
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ A vehicle whose last will arrives (and which publishes no newer state within
 ``lost_confirm_s``: a ``lost`` status is a claim, see :meth:`MqttBus._on_status`) stays in
 :meth:`latest` at its last known position with phase ``LOST``: the agent treats it as a static
 obstacle (same rule as a silent one). States carry the sender's wall-clock stamp; ageing them
-is the agent's job (``vtube_fleet.fleet.agent``).
+is the tick's job (``vtube_fleet.fleet.neighbours``).
 
 Security (``docs/security.md``): ``mqtts://`` URLs connect with TLS and verify the broker's
 certificate; ``credentials`` name the account (a file from ``vtube-fleet bus-setup``); a

@@ -18,10 +18,10 @@ from vtube_fleet.cli._args import (
     recorder_from_args,
 )
 from vtube_fleet.cli._signals import interrupt_on_signals
-from vtube_fleet.fleet.distributed.agent import AgentInterrupted, AgentProcess
 from vtube_fleet.fleet.distributed.coordinator import (
     default_mission_id,
 )
+from vtube_fleet.fleet.distributed.vehicle_agent import AgentInterrupted, AgentProcess
 from vtube_fleet.outcome import EXIT_INTERRUPTED
 
 __all__ = [

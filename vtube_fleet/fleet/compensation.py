@@ -10,7 +10,7 @@ disturbance
 
 as large as the avoidance authority v'_max or larger (the real SITL flights crossed a leg while
 commanded the full lateral push away from it). ``d`` is observable from what PX4 reports: its
-velocity estimate and its position estimate. :class:`EstimateCompensator` measures it over a
+velocity estimate and its position estimate. :class:`CompensatorBank` measures it over a
 short window ``W`` of telemetry samples,
 
     d̂ = (∫ v̂ dt − (p̂(t) − p̂(t − W))) / W       (trapezoid rule over the samples),
@@ -20,8 +20,8 @@ v̂ to v_c + d̂ and p̂ moves at ≈ v_c: the estimated position follows the si
 The residual is the change of d over the compensation delay (W/2 + link latency + control
 period); it is budgeted (``SafetyBudget.disturbance_m_s``) and measured in flight.
 
-Pure and vectorized over vehicles (:class:`CompensatorBank`, :class:`ResidualTracker`;
-:class:`EstimateCompensator` is one vehicle's row); positions and velocities in the tube frame
+Pure and vectorized over vehicles (:class:`CompensatorBank`, :class:`ResidualTracker`: one
+vehicle is a bank of one row); positions and velocities in the tube frame
 (x, y), times in seconds.
 """
 
@@ -38,7 +38,6 @@ __all__ = [
     "RESIDUAL_HISTORY",
     "RESIDUAL_WINDOW_S",
     "CompensatorBank",
-    "EstimateCompensator",
     "ResidualTracker",
 ]
 
@@ -161,59 +160,6 @@ class CompensatorBank:
             dy[over] *= scale
         self.dx_m_s[rows] = dx
         self.dy_m_s[rows] = dy
-
-
-class EstimateCompensator:
-    """d̂ of one vehicle: row ``row`` of a :class:`CompensatorBank` (its own bank of one by
-    default; the supervisor's fleet shares one, updated for all vehicles at once)."""
-
-    def __init__(self, window_s: float = DEFAULT_WINDOW_S,
-                 limit_m_s: float = DEFAULT_LIMIT_M_S, *, bank: CompensatorBank | None = None,
-                 row: int = 0) -> None:
-        self.bank = bank if bank is not None else CompensatorBank(1, window_s, limit_m_s)
-        self.row = row
-        self._rows = np.array([row])
-
-    @property
-    def window_s(self) -> float:
-        return self.bank.window_s
-
-    @property
-    def limit_m_s(self) -> float:
-        return self.bank.limit_m_s
-
-    def reset(self) -> None:
-        """Forget the history (after a jump of the estimate, a mode change, …)."""
-        self.bank.reset(self._rows)
-
-    def add(self, t_s: float, x_m: float, y_m: float, vx_m_s: float, vy_m_s: float) -> None:
-        """A new telemetry sample (estimated position and velocity at time ``t_s``)."""
-        self.bank.add(self._rows, np.array([t_s], dtype=float), np.array([x_m], dtype=float),
-                      np.array([y_m], dtype=float), np.array([vx_m_s], dtype=float),
-                      np.array([vy_m_s], dtype=float))
-
-    @property
-    def correction(self) -> tuple[float, float]:
-        """(d̂_x, d̂_y) in m/s, to be added to the commanded velocity."""
-        return float(self.bank.dx_m_s[self.row]), float(self.bank.dy_m_s[self.row])
-
-    @property
-    def dx_m_s(self) -> float:
-        return float(self.bank.dx_m_s[self.row])
-
-    @property
-    def dy_m_s(self) -> float:
-        return float(self.bank.dy_m_s[self.row])
-
-    @property
-    def clipped(self) -> int:
-        """Estimates larger than ``limit_m_s`` (clipped)."""
-        return int(self.bank.clipped[self.row])
-
-    @property
-    def max_m_s(self) -> float:
-        """The largest |d̂| seen."""
-        return float(self.bank.max_m_s[self.row])
 
 
 #: d̂ entries per vehicle the residual looks back in (ticks: 12.8 s at 20 Hz).

@@ -1,32 +1,41 @@
-"""The per-tick state of a fleet's pilots as arrays, one row per vehicle (issue 16).
+"""The tick state of the vehicles one process flies, as a table: one row per vehicle.
 
-A supervisor ticks a thousand :class:`~vtube_fleet.fleet.pilot.VehiclePilot` objects 20 times
-a second. Gathering their positions, commands and phases from a thousand Python objects on
-every step of every tick cost more than the steps themselves, so the state those steps read
-lives here, in arrays: each pilot is a row, reads and writes its own row through properties
-(:attr:`VehiclePilot.xy`, :attr:`~VehiclePilot.cmd_xy`, its phase …), and the supervisor's
-fleet steps (:func:`~vtube_fleet.fleet.pilot.sense_all` and the others) read and write whole
-columns. A pilot on its own (one agent process per vehicle) has a table of one row.
+A supervisor flies a thousand vehicles 20 times a second, an MQTT agent one. Both keep the state
+the control tick reads and writes here, in numpy columns, and the tick's steps
+(:mod:`vtube_fleet.fleet.tick`) work on whole columns: one implementation for one vehicle and for
+a thousand (a one-row table is still a table). A :class:`~vtube_fleet.fleet.pilot.VehiclePilot`
+(the flight procedure: arm, climb, hold, land) reads and writes its own row.
 
-"Not set" is NaN for the float columns (``sample_s``, ``still_since_s``; ``cmd`` and ``lost``
-have a mask of their own). Phases are stored as their index in :data:`PHASES`;
+"Not set" is NaN for the float columns (``sample_s``, ``still_since_s``, ``exit_s``; ``cmd``
+and ``lost`` have a mask of their own). Phases are stored as their index in :data:`PHASES`;
 :func:`phase_mask` turns a set of phases into a lookup over those codes.
+
+The table also owns what the tick keeps per vehicle beyond one row of numbers: the estimate
+compensation's history (:class:`~vtube_fleet.fleet.compensation.CompensatorBank`, ``None`` when
+the mission does not compensate) and the compensation residuals
+(:class:`~vtube_fleet.fleet.compensation.ResidualTracker`), and the mission frame's horizontal
+rotations between a vehicle's local NED and the tube frame (the same for every vehicle).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from vtube_fleet.config.mission import Mission
+from vtube_fleet.fleet.compensation import CompensatorBank, ResidualTracker
+from vtube_fleet.frames import TubeFrame
 from vtube_fleet.state import Phase
 
-__all__ = ["PHASES", "PHASE_CODE", "PilotTable", "phase_mask"]
+__all__ = ["PHASES", "PHASE_CODE", "FleetTable", "phase_mask"]
 
-#: every phase, in the order of their codes in :attr:`PilotTable.phase`
+#: every phase, in the order of their codes in :attr:`FleetTable.phase`
 PHASES: tuple[Phase, ...] = tuple(Phase)
 #: phase → its code
 PHASE_CODE: dict[Phase, int] = {ph: k for k, ph in enumerate(PHASES)}
+#: phase code → the phase's value (an Enum's ``.value`` is a slow descriptor)
+PHASE_VALUES: tuple[str, ...] = tuple(ph.value for ph in PHASES)
 
 
 def phase_mask(phases: Iterable[Phase]) -> np.ndarray:
@@ -37,16 +46,44 @@ def phase_mask(phases: Iterable[Phase]) -> np.ndarray:
     return mask
 
 
-class PilotTable:
-    """``n`` pilots' tick state (module docstring). Columns: tube-frame position ``xy`` and
-    velocity ``vel`` (n, 2), height ``up`` and ``sample_s`` (the monotonic arrival of the
-    sample in use) (n,), ``has`` (a finite position), the controller's command ``cmd`` (n, 2)
-    with ``cmd_set``, ``cmd_in_tube``, the frozen position of a LOST vehicle ``lost`` with
-    ``lost_set``, ``phase`` codes, ``offboard_seen``, ``still_since_s`` (a slow spell being
-    timed), ``in_transition`` (a mode change in flight), ``setpoints_sent`` and ``ever_sent``."""
+def _rotations(frame: TubeFrame) -> tuple[tuple[float, float, float, float],
+                                          tuple[float, float, float, float]]:
+    """The frame's (linear) horizontal rotations as 2×2 matrices (row-major): tube → NED
+    velocity and NED → tube velocity, evaluated once on the basis vectors."""
+    n, e = frame.tube_velocity_to_ned(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
+    x, y = frame.ned_velocity_to_tube(np.array([1.0, 0.0]), np.array([0.0, 1.0]))
+    return ((float(n[0]), float(n[1]), float(e[0]), float(e[1])),
+            (float(x[0]), float(x[1]), float(y[0]), float(y[1])))
 
-    def __init__(self, n: int) -> None:
+
+class FleetTable:
+    """The tick state of ``len(ids)`` vehicles of one mission (module docstring).
+
+    Columns: the vehicle ``ids`` (the mission slot each row flies), tube-frame position ``xy``
+    and velocity ``vel`` (n, 2), height ``up`` and ``sample_s`` (the monotonic arrival of the
+    sample in use) (n,), ``has`` (a finite position), the controller's command ``cmd`` (n, 2)
+    with ``cmd_set`` and ``cmd_in_tube`` (this tick's command is the tube controller's), the
+    frozen position of a LOST vehicle ``lost`` with ``lost_set``, ``phase`` codes,
+    ``offboard_seen`` (OFFBOARD confirmed once), ``still_since_s`` / ``still_xy`` (a slow spell
+    being timed, and where it began), ``in_transition`` (a mode change in flight),
+    ``standstill`` (stand still in the tube: zero velocity, no controller; the MQTT agent's
+    broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none), ``exit_s``
+    (mission time of the exit), ``setpoints_sent``, ``ever_sent`` and the published state's
+    ``seq``."""
+
+    _COLUMNS = ("xy", "vel", "up", "sample_s", "has", "cmd", "cmd_set", "cmd_in_tube", "lost",
+                "lost_set", "phase", "offboard_seen", "still_since_s", "still_xy",
+                "in_transition", "standstill", "takeoff_xy", "exit_s", "setpoints_sent",
+                "ever_sent", "seq")
+
+    def __init__(self, ids: Sequence[int], mission: Mission, frame: TubeFrame | None = None
+                 ) -> None:
+        n = len(ids)
         self.n = n
+        self.ids = np.asarray(ids, dtype=np.int64).reshape(n)
+        if len(set(self.ids.tolist())) != n:
+            raise ValueError(f"a fleet table needs distinct vehicle ids, got {self.ids.tolist()}")
+        cfg = mission.config
         self.xy = np.full((n, 2), np.nan)
         self.vel = np.full((n, 2), np.nan)
         self.up = np.full(n, np.nan)
@@ -60,25 +97,27 @@ class PilotTable:
         self.phase = np.full(n, PHASE_CODE[Phase.CONNECTING], np.int8)
         self.offboard_seen = np.zeros(n, bool)
         self.still_since_s = np.full(n, np.nan)
+        self.still_xy = np.full((n, 2), np.nan)
         self.in_transition = np.zeros(n, bool)
+        self.standstill = np.zeros(n, bool)
+        self.takeoff_xy = np.full((n, 2), np.nan)
+        self.exit_s = np.full(n, np.nan)
         self.setpoints_sent = np.zeros(n, np.int64)
         self.ever_sent = np.zeros(n, bool)
-        #: the pilots' NED → tube velocity rotation (2×2, row-major) while they all share one
-        #: (one mission frame: a supervisor's fleet); None with none yet or several
-        self.to_tube: tuple[float, float, float, float] | None = None
-        self._rotations: set[tuple[float, float, float, float]] = set()
+        self.seq = np.zeros(n, np.int64)
+        self.to_ned, self.to_tube = _rotations(mission.frame if frame is None else frame)
+        #: the estimate compensation (fleet/compensation.py); None: not compensated
+        self.compensator = CompensatorBank(n) if cfg.compensate_estimate else None
+        self.residuals = ResidualTracker(n, cfg.period_s, cfg.disturbance_residual_m_s)
 
-    def note_rotation(self, to_tube: tuple[float, float, float, float]) -> None:
-        """A pilot with this NED → tube rotation takes a row (:attr:`to_tube`)."""
-        self._rotations.add(to_tube)
-        self.to_tube = to_tube if len(self._rotations) == 1 else None
+    def row_of(self, vehicle_id: int) -> int:
+        """The row that flies ``vehicle_id`` (:class:`KeyError` if none)."""
+        hit = np.flatnonzero(self.ids == int(vehicle_id))
+        if not hit.size:
+            raise KeyError(vehicle_id)
+        return int(hit[0])
 
-    _COLUMNS = ("xy", "vel", "up", "sample_s", "has", "cmd", "cmd_set", "cmd_in_tube", "lost",
-                "lost_set", "phase", "offboard_seen", "still_since_s", "in_transition",
-                "setpoints_sent", "ever_sent")
-
-    def take_row(self, row: int, other: PilotTable, other_row: int) -> None:
-        """Row ``row`` becomes a copy of ``other``'s row ``other_row`` (a pilot joining a
-        fleet brings its state along)."""
-        for name in self._COLUMNS:
-            getattr(self, name)[row] = getattr(other, name)[other_row]
+    def positions(self) -> np.ndarray:
+        """(n, 2): where the others must see each vehicle: the frozen last position once LOST,
+        else the position in use (NaN: none yet)."""
+        return np.where(self.lost_set[:, None], self.lost, self.xy)

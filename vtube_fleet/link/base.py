@@ -186,6 +186,13 @@ class VehicleState:
     bad_packets: int = 0  #: datagrams (or parts) that failed to parse: garbage, bad CRC, cut off
     foreign_packets: int = 0  #: valid packets from another system id / a GCS, ignored
 
+    def accuracy_m(self, allow_gnss: bool = True) -> float:
+        """The reported horizontal position accuracy (1 σ): the estimator's (ESTIMATOR_STATUS)
+        or, if it sends none and ``allow_gnss``, the GNSS receiver's (GPS_RAW_INT h_acc);
+        NaN if neither."""
+        a = self.pos_accuracy_m
+        return a if math.isfinite(a) or not allow_gnss else self.gnss_h_acc_m
+
     def copy(self) -> VehicleState:
         """An independent copy (the link keeps updating the original)."""
         new = dataclasses.replace(self)

@@ -1,7 +1,9 @@
 """One vehicle flown by its own process (``vtube-fleet agent``).
 
-Its pilot reads the neighbours' states from an MQTT broker, stands still when that information
-cannot be trusted, and records its own view of the flight.
+Its control loop (:class:`AgentControl`: the fleet's control tick over a table of one row) reads
+the neighbours' states from an MQTT broker (:class:`BusNeighbours`), stands still when that
+information cannot be trusted, and records its own view of the flight (:class:`AgentRecording`);
+:class:`AgentProcess` joins a run, measures, checks and flies it.
 """
 
 from __future__ import annotations
@@ -25,7 +27,6 @@ from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import finite_or_none, percentile_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
-from vtube_fleet.fleet.agent import Agent, FlightPlan
 from vtube_fleet.fleet.budget import BudgetWatch, LinkMeasurement, SafetyBudget
 from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
@@ -36,14 +37,18 @@ from vtube_fleet.fleet.distributed.coordinator import (
     default_mission_id,
     needed_cell_m,
 )
+from vtube_fleet.fleet.neighbours import States, states_of
 from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
-from vtube_fleet.fleet.pilot import (
-    PilotError,
-    VehiclePilot,
+from vtube_fleet.fleet.pilot import VehiclePilot
+from vtube_fleet.fleet.plan import FlightPlan
+from vtube_fleet.fleet.preflight import (
+    PreflightError,
     measure_budget_links,
+    preflight_report,
     wait_accuracy,
 )
-from vtube_fleet.link.base import LinkError
+from vtube_fleet.fleet.table import FleetTable
+from vtube_fleet.fleet.tick import ControlClock, Tick, watch_budget
 from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
 from vtube_fleet.recording.api import NullRecorder, Recorder
 from vtube_fleet.state import AIRBORNE_PHASES, NeighbourState, Phase
@@ -54,7 +59,8 @@ __all__ = [
     "AgentRecording",
     "AgentRefused",
     "BACKOFF_JITTER",
-    "BusAwarePilot",
+    "AgentControl",
+    "BusNeighbours",
     "rejoin_grace_s",
 ]
 
@@ -93,7 +99,7 @@ class AgentInterrupted(Exception):
 
 
 # ----------------------------------------------------------------------------------------------
-# the pilot with the bus-health rule
+# the neighbours over the bus, and the vehicle's control loop
 # ----------------------------------------------------------------------------------------------
 #: The reconnect back-off's jitter (:class:`~vtube_fleet.bus.mqtt.MqttBus`: ±20 %).
 BACKOFF_JITTER = 1.2
@@ -110,173 +116,208 @@ def rejoin_grace_s(lost_after_s: float, backoff_max_s: float, period_s: float) -
     return lost_after_s + BACKOFF_JITTER * backoff_max_s + 2.0 * period_s
 
 
-class BusAwarePilot(VehiclePilot):
-    """A :class:`VehiclePilot` that stops in the tube while its neighbour information is not
-    trustworthy (module docstring, "Broker loss").
+class BusNeighbours:
+    """The other vehicles as an agent hears them on the bus
+    (:class:`~vtube_fleet.fleet.tick.NeighbourSource`), and when not to trust them ("Broker
+    loss"): disconnected, silent (our own state does not come back), or healthy again for less
+    than :func:`rejoin_grace_s` with an airborne neighbour whose state is older than
+    ``max_age_s``. While :meth:`problem` says why, the tick stands the vehicle still in the
+    tube (zero horizontal velocity of the estimated position, altitude hold) and leaves the
+    plan alone."""
 
-    In the tube (IN_TUBE / EXITED) each tick checks the bus: disconnected, silent (our own state
-    does not come back), or healthy again for less than :func:`rejoin_grace_s` with an airborne
-    neighbour whose state is older than ``agent.max_age_s`` → zero horizontal velocity with
-    altitude hold (the pilot's own vertical term), no controller, no exit behaviour; the
-    neighbour table is not touched. A
-    :class:`~vtube_fleet.core.partition.PartitionError` while re-partitioning around lost vehicles
-    makes the vehicle hold (PX4 Hold), as the supervisor does.
-    """
-
-    def __init__(
-        self, *args: Any, mqtt: MqttBus, broker_hold_limit_s: float = 30.0, **kwargs: Any
-    ) -> None:
-        super().__init__(*args, **kwargs)
+    def __init__(self, mqtt: Any, *, max_age_s: float, lost_after_s: float,
+                 period_s: float) -> None:
         self.mqtt = mqtt
-        self.broker_hold_limit_s = broker_hold_limit_s
-        self.bus_hold: str | None = None  # why the vehicle stands still for the bus
-        self.bus_hold_since: float | None = None  # monotonic
-        self.bus_holds = 0  # how many times it stood still for the bus
-        self.recording: AgentRecording | None = None  # fed after every tick once flying
+        self.max_age_s = float(max_age_s)
+        self.lost_after_s = float(lost_after_s)
+        self.period_s = float(period_s)
+        self.holding: str | None = None  # why the vehicle stands still now (None: it flies)
         self._healthy_since: float | None = None  # wall time the bus became healthy again
-        self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
-        self._last_tick_mono: float | None = None  # for the tick gaps the watch judges
-        self.tick_gaps_s: list[float] = []  # every gap between two control ticks (s)
-        self._aborted = False  # _abort_for has run
 
-    def stop_for(self, why: str) -> None:
-        """Keep the first reason this vehicle stopped flying the tube (its summary's and its
-        state's ``reason``): a hold or landing is never left unexplained."""
-        if not self.reason:
-            self.reason = why
+    def states(self, now_wall: float) -> States:
+        return states_of(self.mqtt.latest().values())
 
-    def set_phase(self, phase: Phase, why: str = "") -> bool:
-        changed = super().set_phase(phase, why)
-        if changed and phase == Phase.EXITED:
-            self.mqtt.announce("online", stage="exited")  # every teammate hears it
-        return changed
-
-    def bus_problem(self, now_wall: float) -> str | None:
+    def problem(self, now_wall: float) -> str | None:
         """Why neighbour information cannot be trusted now (None: it can)."""
-        if not self.mqtt.connected:
+        why = self._problem(now_wall)
+        self.holding = why
+        return why
+
+    def _problem(self, now_wall: float) -> str | None:
+        mqtt = self.mqtt
+        if not mqtt.connected:
             self._healthy_since = None
-            return f"MQTT broker {self.mqtt.host}:{self.mqtt.port} unreachable"
-        silence = self.mqtt.echo_silence_s
-        if silence > self.agent.max_age_s + 2.0 * self.cfg.period_s:
+            return f"MQTT broker {mqtt.host}:{mqtt.port} unreachable"
+        silence = mqtt.echo_silence_s
+        if silence > self.max_age_s + 2.0 * self.period_s:
             self._healthy_since = None
-            return (
-                f"MQTT broker {self.mqtt.host}:{self.mqtt.port} silent (our own state has not "
-                f"come back for {silence:.2f} s)"
-            )
+            return (f"MQTT broker {mqtt.host}:{mqtt.port} silent (our own state has not "
+                    f"come back for {silence:.2f} s)")
         if self._healthy_since is None:
             self._healthy_since = now_wall
-        if self.bus_hold is None:
+        if self.holding is None:
             return None
-        grace = rejoin_grace_s(self.agent.lost_after_s, self.mqtt.backoff_max_s,
-                               self.cfg.period_s)
+        grace = rejoin_grace_s(self.lost_after_s, mqtt.backoff_max_s, self.period_s)
         if now_wall - self._healthy_since > grace:
-            return None  # the still silent ones are lost now (the agent's rule)
-        lost = self.mqtt.lost
-        stale = sorted(
-            vid
-            for vid, st in self.mqtt.latest().items()
-            if st.phase in AIRBORNE_PHASES
-            and vid not in lost
-            and now_wall - st.stamp_s > self.agent.max_age_s
-        )
+            return None  # the still silent ones are lost now (the tick's classification)
+        lost = mqtt.lost
+        stale = sorted(vid for vid, st in mqtt.latest().items()
+                       if st.phase in AIRBORNE_PHASES and vid not in lost
+                       and now_wall - st.stamp_s > self.max_age_s)
         if stale:
             return f"waiting for fresh states of vehicle(s) {', '.join(map(str, stale))}"
         return None
 
-    def tick(self, now_mono: float, now_wall: float) -> None:
+
+class AgentControl:
+    """One vehicle's control loop in its agent process: the control tick
+    (:class:`~vtube_fleet.fleet.tick.Tick`) over a one-row table, with the neighbours from the
+    bus (:class:`BusNeighbours`), run by a :class:`~vtube_fleet.fleet.tick.ControlClock` from
+    connect to the end; after each tick the agent's own rules: standing still for the bus (told
+    once, and landing after ``broker_hold_limit_s`` without a broker), the budget watch
+    (``watch``, set once the budget is measured), and the recording (``recording``, from the
+    start command on). A failed re-partition makes the vehicle hold, as the supervisor does."""
+
+    def __init__(self, pilot: VehiclePilot, mqtt: MqttBus, mission: Any, plan: FlightPlan, *,
+                 max_age_s: float, broker_hold_limit_s: float = 30.0) -> None:
+        cfg = mission.config
+        self.pilot = pilot
+        self.mqtt = mqtt
+        self.cfg = cfg
+        self.broker_hold_limit_s = broker_hold_limit_s
+        self.neighbours = BusNeighbours(mqtt, max_age_s=max_age_s,
+                                        lost_after_s=cfg.lost_after_s, period_s=cfg.period_s)
+        self.tick = Tick(pilot.table, [pilot], mission, plan, frame=pilot.frame,
+                         neighbours=self.neighbours, publish=mqtt.publish,
+                         on_exit=self._exited, on_replan_failed=self._replan_failed)
+        self.clock = ControlClock(cfg.period_s, self.step, guard=self._tick_failed)
+        self.bus_hold: str | None = None  # why the vehicle stands still for the bus
+        self.bus_hold_since: float | None = None  # monotonic
+        self.bus_holds = 0  # how many times it stood still for the bus
+        self.recording: AgentRecording | None = None  # fed after every tick once flying
+        self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
+        self._forgotten: set[int] = set()
+        self._aborted = False  # abort_for has run
+        self._clock_task: asyncio.Task[None] | None = None
+        self._stop = asyncio.Event()
+
+    # -- what the recording and the summary read ------------------------------------------------
+    @property
+    def phase(self) -> Phase:
+        return self.pilot.phase
+
+    @property
+    def reason(self) -> str | None:
+        return self.pilot.reason
+
+    @property
+    def last_state(self) -> NeighbourState | None:
+        return self.tick.last_states.get(self.pilot.vehicle_id)
+
+    @property
+    def cmd_xy(self) -> np.ndarray | None:
+        return self.pilot.cmd_xy
+
+    @property
+    def cmd_in_tube(self) -> bool:
+        return self.pilot.cmd_in_tube
+
+    @property
+    def tick_gaps_s(self) -> list[float]:
+        """Every gap between two control ticks (s)."""
+        return self.clock.gaps_s
+
+    # -- the clock -------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Run the control clock (until :meth:`stop`)."""
+        if self._clock_task is None:
+            self._clock_task = asyncio.get_running_loop().create_task(
+                self.clock.run(self._stop))
+
+    async def stop(self) -> None:
+        self._stop.set()
+        if self._clock_task is not None:
+            await self._clock_task
+            self._clock_task = None
+
+    def set_plan(self, plan: FlightPlan) -> None:
+        self.tick.set_plan(plan)
+
+    # -- one tick and the agent's rules after it --------------------------------------------------
+    def step(self, now_mono: float, now_wall: float, listening_since: float | None) -> None:
         try:
-            self._tick(now_mono, now_wall)
+            result = self.tick(now_mono, now_wall, listening_since)
+            self._bus_rule(now_mono, result.untrusted)
+            if result.untrusted is None and self.watch is not None:
+                warning, hold = watch_budget(
+                    self.watch, self.pilot.table, result, self.clock.take_recent_gap(),
+                    lambda rows: [self.pilot.position_accuracy_m() for _ in rows.tolist()],
+                    forgotten=self._forgotten)
+                if warning:
+                    self.pilot.event(warning, "warning")
+                if hold:  # holding, this vehicle becomes an obstacle for every other agent
+                    self.stop_for(hold)
+                    self.pilot.begin_hold(hold)
         finally:
             rec = self.recording
             if rec is not None:
                 try:
                     rec.sample(self, now_wall)
                 except Exception:  # noqa: BLE001 - the safety evaluation failed (noted there)
-                    self._abort_for(rec.failure or "safety monitor failed")
+                    self.abort_for(rec.failure or "safety monitor failed")
                 rec.after_tick(self, now_mono, now_wall)  # the interim summary, when due
 
-    def _abort_for(self, why: str) -> None:
-        """What the supervisor's ``request_abort`` does for one vehicle: keep the reason, hold
-        while in the tube (every tick: a vehicle still taking off holds once it is in)."""
-        if not self._aborted:
-            self._aborted = True
-            self.event(f"ABORT: {why}", "error")
-        self.stop_for(why)
-        if self.phase in (Phase.IN_TUBE, Phase.EXITED):
-            self.begin_hold("mission aborted")
-
-    def _tick(self, now_mono: float, now_wall: float) -> None:
-        gap = now_mono - (self._last_tick_mono or now_mono)  # every tick, holds included
-        if self._last_tick_mono is not None:
-            self.tick_gaps_s.append(gap)
-        self._last_tick_mono = now_mono
-        if self.phase in (Phase.IN_TUBE, Phase.EXITED):
-            problem = self.bus_problem(now_wall)
-            if problem is not None:
-                self._hold_for_bus(now_mono, now_wall, problem)
-                return
+    def _bus_rule(self, now_mono: float, problem: str | None) -> None:
+        """Standing still while the neighbours cannot be trusted: told once; landing after
+        ``broker_hold_limit_s`` without a broker; told again when it resumes."""
+        pilot = self.pilot
+        if problem is None:
             if self.bus_hold is not None:
                 held = now_mono - (self.bus_hold_since or now_mono)
-                self.event(f"resuming after {held:.1f} s: broker back, neighbour states fresh")
+                pilot.event(f"resuming after {held:.1f} s: broker back, neighbour states fresh")
                 self.bus_hold = self.bus_hold_since = None
-        self._forget_out_of_range()
-        try:
-            super().tick(now_mono, now_wall)
-        except PartitionError as exc:
-            self.cmd_xy = None
-            why = f"cannot re-partition the tube around the lost vehicles: {exc}"
-            self.stop_for(why)
-            self.begin_hold(why)
-        if self.phase == Phase.IN_TUBE and self.watch is not None:
-            self.watch.add_tick_gap(gap)
-            self.watch.add_ages(now_mono, [self.sample_age_s(now_mono)])
-            warning, hold = self.watch.check(now_mono, self.link.latency_s or 0.0,
-                                             [self.position_accuracy_m()])
-            if warning:
-                self.event(warning, "warning")
-            if hold:  # holding, this vehicle becomes an obstacle for every other agent
-                self.stop_for(hold)
-                self.begin_hold(hold)
-
-    def _forget_out_of_range(self) -> None:
-        """Drop from the agent's table the vehicles the bus no longer shows: they left our
-        spatial cells (farther than a neighbour can matter), so they are not silent; kept,
-        they would age into "lost" obstacles."""
-        latest = self.mqtt.latest()
-        table = self.agent.table
-        gone = [v for v in table if v not in latest]
-        for v in gone:
-            del table[v]
-
-    def _hold_for_bus(self, now_mono: float, now_wall: float, problem: str) -> None:
+            return
         if self.bus_hold is None:
             self.bus_hold_since = now_mono
             self.bus_holds += 1
-            self.event(
-                f"{problem}: standing still in the tube (zero horizontal velocity of the "
-                f"estimated position, altitude hold) until the broker is back and neighbour "
-                f"states are fresh",
-                "warning",
-            )
+            pilot.event(f"{problem}: standing still in the tube (zero horizontal velocity of "
+                        f"the estimated position, altitude hold) until the broker is back and "
+                        f"neighbour states are fresh", "warning")
         self.bus_hold = problem
-        self.sense()
-        self.check_faults(now_mono)
-        self.publish(now_mono, now_wall)  # dropped by the bus while disconnected
-        if self.phase not in (Phase.IN_TUBE, Phase.EXITED):
-            return  # check_faults declared it lost
         held = now_mono - (self.bus_hold_since or now_mono)
         if held > self.broker_hold_limit_s and not self.mqtt.connected:
             why = (f"no MQTT broker for {held:.0f} s > --broker-hold-limit "
                    f"{self.broker_hold_limit_s:g} s")
             self.stop_for(why)
-            self.begin_land(why)
-            return
-        self.cmd_xy = np.zeros(2)
-        self.cmd_in_tube = False
-        try:  # zero velocity for the ESTIMATED position: plus the estimate compensation d̂
-            self.send_tube_velocity(0.0, 0.0, self.vertical_down_m_s(), compensate=True)
-        except LinkError as exc:
-            self.event(f"setpoint not sent: {exc}", "warning")
+            pilot.begin_land(why)
+
+    def _exited(self, rows: np.ndarray, t_s: float) -> None:
+        self.mqtt.announce("online", stage="exited")  # every teammate hears it
+
+    def _replan_failed(self, exc: Exception, view: Any) -> None:
+        why = f"cannot re-partition the tube around the lost vehicles: {exc}"
+        self.stop_for(why)
+        self.pilot.begin_hold(why)
+
+    def _tick_failed(self, exc: Exception) -> None:
+        log.exception("agent %d: control tick failed", self.pilot.vehicle_id, exc_info=exc)
+        self.abort_for(f"control tick failed: {type(exc).__name__}: {exc}")
+
+    def stop_for(self, why: str) -> None:
+        """Keep the first reason this vehicle stopped flying the tube (its summary's and its
+        state's ``reason``): a hold or landing is never left unexplained."""
+        if not self.pilot.reason:
+            self.pilot.reason = why
+
+    def abort_for(self, why: str) -> None:
+        """What the supervisor's ``request_abort`` does for one vehicle: keep the reason, hold
+        while in the tube (every tick: a vehicle still taking off holds once it is in)."""
+        if not self._aborted:
+            self._aborted = True
+            self.pilot.event(f"ABORT: {why}", "error")
+        self.stop_for(why)
+        if self.pilot.phase in (Phase.IN_TUBE, Phase.EXITED):
+            self.pilot.begin_hold("mission aborted")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -330,13 +371,13 @@ class AgentRecording:
         if state.vehicle_id != self.vehicle:
             self.monitor.on_state(state, received_s)
 
-    def sample(self, pilot: BusAwarePilot, now_wall: float) -> None:
+    def sample(self, pilot: AgentControl, now_wall: float) -> None:
         """After each control tick: this vehicle's state and command, the latest neighbours.
 
         The recorder never raises (:class:`~vtube_fleet.recording.api.Recorder`: it logs its own
         problems), so an error here is the safety evaluation's: it is noted in
         :attr:`failure` (logged once) and raised again; the pilot aborts its tube run on it
-        (:meth:`BusAwarePilot.tick`), as the supervisor does for a failed control tick."""
+        (:meth:`AgentControl.step`), as the supervisor does for a failed control tick."""
         try:
             own = pilot.last_state
             states = dict(pilot.mqtt.latest())
@@ -358,7 +399,7 @@ class AgentRecording:
                 log.exception("agent %d: %s", self.vehicle, self.failure)
             raise
 
-    def summary(self, pilot: BusAwarePilot | None, now_wall: float | None = None,
+    def summary(self, pilot: AgentControl | None, now_wall: float | None = None,
                 **extra: Any) -> dict[str, Any]:
         """The summary so far: the monitor's keys, this vehicle's own, :attr:`meta`, ``wall_s``
         (seconds since the start command) and ``extra``; THE verdict applied (``unsafe``), or
@@ -397,7 +438,7 @@ class AgentRecording:
             summary["reason"] = self.failure
         return summary
 
-    def after_tick(self, pilot: BusAwarePilot, now_mono: float, now_wall: float) -> None:
+    def after_tick(self, pilot: AgentControl, now_mono: float, now_wall: float) -> None:
         """After each control tick (its setpoint sent): when due (at the first tick, then every
         :data:`~vtube_fleet.artifacts.SUMMARY_EVERY_S`, :class:`~vtube_fleet.artifacts.
         SummaryPacer`, as ``run`` and the coordinator do), rewrite ``OUT/summary.json``
@@ -409,7 +450,7 @@ class AgentRecording:
         self.write_interim(pilot, now_wall)
         self.pacer.written(now_mono, now_mono + time.perf_counter() - t_c)
 
-    def write_interim(self, pilot: BusAwarePilot | None, now_wall: float | None = None) -> None:
+    def write_interim(self, pilot: AgentControl | None, now_wall: float | None = None) -> None:
         """The interim summary (``complete: false``, ``outcome: running``) to :attr:`out`."""
         from vtube_fleet.artifacts import write_interim_summary
 
@@ -424,7 +465,7 @@ class AgentRecording:
                                                  f"{summary.get('phase', '?')}, "
                                                  f"{summary.get('wall_s', 0.0):.1f} s after start)")
 
-    def finish(self, out: Path, pilot: BusAwarePilot | None, **extra: Any) -> Path:
+    def finish(self, out: Path, pilot: AgentControl | None, **extra: Any) -> Path:
         """Write ``OUT/summary.json`` (``complete: true``), store it in the recording and close
         it (every exit path); returns the summary's path."""
         from vtube_fleet.artifacts import write_summary
@@ -503,7 +544,8 @@ class AgentProcess:
                            credentials=credentials, insecure=insecure,
                            limits=mission_state_limits(self.mission))
         self.run_cfg: MissionConfigMsg | None = None
-        self.pilot: BusAwarePilot | None = None
+        self.pilot: VehiclePilot | None = None
+        self.control: AgentControl | None = None
         self.budget: SafetyBudget | None = None
         self.fence = fence
         self._interrupt = asyncio.Event()
@@ -643,14 +685,15 @@ class AgentProcess:
                 f"partitioned: {exc}"
             ) from None
 
-    async def measure_budget(self, pilot: BusAwarePilot) -> None:
+    async def measure_budget(self, control: AgentControl) -> None:
         """Measure this vehicle's link and estimate, compute what it needs; fly the run's
         announced δ (every agent the same partition) and refuse if it needs more."""
         cfg = self.cfg
+        pilot = control.pilot
         if cfg.position_accuracy_m is None:
             try:
                 await wait_accuracy([pilot], cfg.max_position_accuracy_m, cfg.ready_timeout_s)
-            except PilotError as exc:
+            except PreflightError as exc:
                 raise self.refuse(str(exc)) from None
         run_delta = self.run_cfg.delta_m if self.run_cfg is not None else 0.0
         params = self.mission.scenario.controller
@@ -677,9 +720,8 @@ class AgentProcess:
                                               override_source="the run's announced δ")
         else:
             self.budget = own
-        plan = self._plan(self.budget)
-        pilot.agent.root_plan = pilot.agent.plan = plan
-        pilot.watch = BudgetWatch(self.mission, own)  # what THIS vehicle was measured to need
+        control.set_plan(self._plan(self.budget))
+        control.watch = BudgetWatch(self.mission, own)  # what THIS vehicle was measured to need
         self.say(
             f"safety budget: needs {own.describe(params)} (L = link {measured.latency_s * 1000:.1f}"
             f" ms + headroom + neighbour max age {self.max_age_s * 1000:.0f} ms; σ "
@@ -693,10 +735,8 @@ class AgentProcess:
                 f"(r_s + r_a + 2δ + v_max·(T + max age)); start the run with --no-cells"
             )
 
-    def preflight(self, pilot: BusAwarePilot) -> None:
+    def preflight(self, pilot: VehiclePilot) -> None:
         """The paper's conditions with the READY positions of every vehicle of the run."""
-        from vtube_fleet.fleet.supervisor import preflight_report
-
         assert self.budget is not None and self.run_cfg is not None
         n = self.run_cfg.vehicles
         mission = self.mission.with_vehicles(n)
@@ -750,66 +790,45 @@ class AgentProcess:
         so: statuses reach everyone, states only the vehicles in our cells) or gone."""
         await self._wait_teammates(_OUT_STAGES, self.cfg.mission_timeout_s)
 
-    async def _land_now(self, pilot: BusAwarePilot, why: str) -> None:
-        """Hold, then land, with our own control clock; until touch-down (or timeout)."""
-        stop = asyncio.Event()
-        clock = asyncio.get_running_loop().create_task(pilot.run_clock(stop))
-        try:
-            if pilot.exit_time_s is None:
-                pilot.stop_for(why)
-            pilot.event(f"{why}: hold, then land", "warning")
-            with contextlib.suppress(UserError):
-                await pilot.hold()
-            with contextlib.suppress(UserError):
-                await pilot.land()
-            with contextlib.suppress(UserError):
-                await pilot.wait_phase(
-                    lambda ph: (
-                        ph
-                        in (Phase.LANDED, Phase.LOST, Phase.FAILED, Phase.READY, Phase.CONNECTING)
-                    ),
-                    self.cfg.land_timeout_s,
-                    "touch-down",
-                )
-        finally:
-            stop.set()
-            await clock
+    async def _land_now(self, control: AgentControl, why: str) -> None:
+        """Hold, then land (the control clock keeps running); until touch-down (or timeout)."""
+        pilot = control.pilot
+        if pilot.exit_time_s is None:
+            control.stop_for(why)
+        pilot.event(f"{why}: hold, then land", "warning")
+        with contextlib.suppress(UserError):
+            await pilot.hold()
+        with contextlib.suppress(UserError):
+            await pilot.land()
+        with contextlib.suppress(UserError):
+            await pilot.wait_phase(
+                lambda ph: ph in (Phase.LANDED, Phase.LOST, Phase.FAILED, Phase.READY,
+                                  Phase.CONNECTING),
+                self.cfg.land_timeout_s, "touch-down")
 
     async def fly(self, link: Any) -> int:
         from vtube_fleet.link.base import VehicleLink
 
         assert isinstance(link, VehicleLink)
         cfg = self.cfg
-        sc = self.mission.scenario
         budget = bus_safety_budget(self.mission, None, self.max_age_s)  # until measured
-        agent = Agent(
-            self.vehicle,
-            self._plan(budget),
-            max_age_s=self.max_age_s,
-            lost_after_s=cfg.lost_after_s,
-            lost_radius_m=sc.controller.r_s + cfg.lost_obstacle_margin_m,
-        )
-        pilot = BusAwarePilot(
-            link,
-            agent,
-            self.bus,
-            self.mission,
-            mqtt=self.bus,
-            broker_hold_limit_s=self.broker_hold_limit_s,
-        )
+        table = FleetTable([self.vehicle], self.mission)
+        pilot = VehiclePilot(link, table, 0, self.mission)
         pilot.fence = self.fence
+        control = AgentControl(pilot, self.bus, self.mission, self._plan(budget),
+                               max_age_s=self.max_age_s,
+                               broker_hold_limit_s=self.broker_hold_limit_s)
         if not self.fence:
             self.say(NO_FENCE_WARNING)
         self.pilot = pilot
+        self.control = control
         await self._unless_interrupted(link.connect(cfg.connect_timeout_s),
                                        "connecting to the vehicle")
-        stop_pre = asyncio.Event()
-        pre_clock = asyncio.get_running_loop().create_task(pilot.run_clock(stop_pre))
+        control.start()  # the control tick runs from here to the end (sensing at first)
         try:
             await self._unless_interrupted(pilot.wait_ready(), "waiting for the vehicle")
             self.bus.announce("online", stage="ready")
-            await self._unless_interrupted(self.measure_budget(pilot),
-                                           "measuring the link")
+            await self._unless_interrupted(self.measure_budget(control), "measuring the link")
             self.say("vehicle READY; waiting for the start command")
 
             def started() -> bool:
@@ -818,30 +837,29 @@ class AgentProcess:
 
             await self._wait(started, math.inf)
             self.preflight(pilot)
+            self.say("start: arming")
+            self._open_recording(control)
+            outcome = "failed"
+            rec = self.recording
+            try:
+                code = await self._fly_started(control)
+                outcome = "completed" if code == EXIT_OK else "incomplete"
+            except AgentInterrupted:
+                outcome = "interrupted"
+                raise
+            except AgentAborted:
+                outcome = "aborted"
+                raise
+            finally:  # the summary and the recording on every exit path
+                self._close_recording(control, outcome)
         finally:
-            stop_pre.set()
-            await pre_clock
-        self.say("start: arming")
-        self._open_recording(pilot)
-        outcome = "failed"
-        rec = self.recording
-        try:
-            code = await self._fly_started(pilot)
-            outcome = "completed" if code == EXIT_OK else "incomplete"
-        except AgentInterrupted:
-            outcome = "interrupted"
-            raise
-        except AgentAborted:
-            outcome = "aborted"
-            raise
-        finally:  # the summary and the recording on every exit path
-            self._close_recording(pilot, outcome)
+            await control.stop()
         if rec is not None and rec.unsafe:
             self.say("UNSAFE: a limit was broken in what this agent heard (summary.json)")
             return EXIT_UNSAFE
         return code
 
-    def _open_recording(self, pilot: BusAwarePilot) -> None:
+    def _open_recording(self, control: AgentControl) -> None:
         """Start :class:`AgentRecording` (at the start command; nothing before it is written)."""
         if self.out is None or self.run_cfg is None:
             return
@@ -859,22 +877,23 @@ class AgentProcess:
         )
         self.bus.add_state_listener(rec.on_neighbour)
         self.recording = rec
-        pilot.recording = rec
+        control.recording = rec
 
-    def _close_recording(self, pilot: BusAwarePilot, outcome: str) -> None:
+    def _close_recording(self, control: AgentControl, outcome: str) -> None:
         rec, self.recording = self.recording, None
         if rec is None or self.out is None:
             return
-        pilot.recording = None
+        control.recording = None
         try:
-            self.summary_path = rec.finish(self.out, pilot, outcome=outcome)
+            self.summary_path = rec.finish(self.out, control, outcome=outcome)
             self.say(f"summary {self.summary_path}")
         except OSError as exc:
             log.error("agent %d: cannot write the summary to %s: %s", self.vehicle, self.out,
                       exc.strerror or exc)
 
-    async def _fly_started(self, pilot: BusAwarePilot) -> int:
+    async def _fly_started(self, control: AgentControl) -> int:
         """From the start command to the end: fly, or hold and land on abort / a signal."""
+        pilot = control.pilot
         fly_task = asyncio.ensure_future(
             pilot.fly(start=self._altitude_barrier, finish=self._exit_barrier)
         )
@@ -887,12 +906,12 @@ class AgentProcess:
             try:
                 phase = fly_task.result()
             except UserError as exc:  # take-off failed, timeouts ...
-                await self._land_now(pilot, str(exc))
+                await self._land_now(control, str(exc))
                 raise AgentAborted(f"vehicle {self.vehicle}: {exc}") from None
             ok = phase in (Phase.LANDED, Phase.HOLDING) and pilot.exit_time_s is not None
             why = "" if ok else (pilot.reason or f"did not exit (final phase {phase.value})")
             if why:
-                pilot.stop_for(why)
+                control.stop_for(why)
             self.bus.announce("online", why, stage="done")  # the coordinator's reason hears it
             self.say(f"finished: {phase.value}" + ("" if ok else f" ({why})"))
             return EXIT_OK if ok else EXIT_INCOMPLETE
@@ -900,7 +919,7 @@ class AgentProcess:
         with contextlib.suppress(asyncio.CancelledError, UserError):
             await fly_task
         why = "interrupted" if self._interrupt.is_set() else "run aborted by the coordinator"
-        await self._land_now(pilot, why)
+        await self._land_now(control, why)
         self.bus.announce("online", pilot.reason or why, stage="done")
         if self._interrupt.is_set():
             raise AgentInterrupted(f"interrupted: vehicle held, then landed (final phase "

@@ -1,5 +1,6 @@
-"""The per-vehicle Agent: neighbour table and staleness, setpoint = the core controller,
-speed bounds, exits, lost vehicles → obstacles and re-partition, the safety budget."""
+"""The flight plan and the neighbour view: staleness, the controller's commands for any rows,
+speed bounds, exits, lost vehicles → obstacles and re-partition, the exit behaviour, the
+safety budget, and the "not following its setpoints" fault rule."""
 
 from __future__ import annotations
 
@@ -12,14 +13,9 @@ from missions import compact_12
 
 from vtube_fleet.core.controller import velocity_command
 from vtube_fleet.core.partition import PartitionError
-from vtube_fleet.fleet.agent import (
-    Agent,
-    FlightPlan,
-    classify,
-    exit_velocity,
-    fleet_setpoints,
-)
 from vtube_fleet.fleet.budget import SafetyBudget
+from vtube_fleet.fleet.neighbours import classify, states_of
+from vtube_fleet.fleet.plan import FlightPlan, exit_velocities, lost_obstacles
 from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,6 +41,11 @@ def plan(mission, budget):
 
 def st(i, x, y, phase=Phase.IN_TUBE, age=0.0, seq=1, vx=1.0, vy=0.0):
     return NeighbourState(i, x, y, vx, vy, phase, NOW - age, seq)
+
+
+def view_of(states, *, exclude=(), max_age_s=0.5, lost_after_s=1.0):
+    return classify(states_of(states, exclude), NOW, max_age_s=max_age_s,
+                    lost_after_s=lost_after_s)
 
 
 def test_budget_formula(mission, budget) -> None:
@@ -85,70 +86,57 @@ def test_classify_staleness() -> None:
         st(7, float("nan"), 0.0),                     # no position → ignored
         st(8, 8.0, 0.0, phase=Phase.EXITED, age=0.2),  # exited, still flying → live
     ]
-    v = classify(states, NOW, max_age_s=0.5, lost_after_s=1.0, exclude=0)
+    v = view_of(states, exclude=[0])
     assert v.live_ids.tolist() == [1, 8]
     assert v.static_ids.tolist() == [2]
     assert v.lost_ids.tolist() == [3, 4]
     np.testing.assert_allclose(v.live_vel, [[1.0, 0.0], [1.0, 0.0]])
     assert v.points().shape == (5, 2)
+    # per-state silence limits: a process's own vehicles are lost by its fault rules (inf)
+    lim = np.array([math.inf if s.vehicle_id == 3 else 1.0 for s in states if s.vehicle_id])
+    v = classify(states_of(states, [0]), NOW, max_age_s=0.5, lost_after_s=lim)
+    assert v.static_ids.tolist() == [2, 3] and v.lost_ids.tolist() == [4]
 
 
-def test_agent_table_keeps_newest(plan) -> None:
-    a = Agent(0, plan, max_age_s=0.5, lost_after_s=1.0)
-    a.observe({1: st(1, 2.0, 0.0, seq=5), 0: st(0, 9.0, 9.0)})
-    a.observe([st(1, 7.0, 0.0, seq=4)])  # older seq: ignored
-    assert set(a.table) == {1}
-    assert a.table[1].x_m == 2.0
-    a.observe([st(1, 3.0, 0.0, seq=6)])
-    assert a.table[1].x_m == 3.0
-    assert a.set_phase(Phase.READY) and not a.set_phase(Phase.READY)
-    with pytest.raises(ValueError):
-        Agent(0, plan, max_age_s=2.0, lost_after_s=1.0)
-
-
-def test_setpoint_is_the_controller_output(plan) -> None:
+def test_commands_are_the_controller_output(plan) -> None:
     own = np.array([4.0, 0.3])
-    a = Agent(0, plan)
-    a.observe([st(1, 5.2, 0.6), st(2, 30.0, 0.0), st(3, 4.5, -1.2, age=0.7)])
-    view = a.view(NOW)
-    sp = a.setpoint(own, view)
-    # neighbours within r_s' + r_a': 1 (live) and 3 (static); 2 is far away
-    assert sp.neighbours == 2
-    p = np.array([own, [5.2, 0.6], [4.5, -1.2]])
+    states = [st(0, *own), st(1, 5.2, 0.6), st(2, 30.0, 0.0), st(3, 4.5, -1.2, age=0.7)]
+    view = view_of(states)
+    p = view.points()
+    row = int(np.flatnonzero(view.ids() == 0)[0])
+    got = plan.commands(p, [row])[0]
     k = plan.locate(p)  # the flown switching rule: §5 with the apex look-ahead
-    ref = velocity_command(p, k, plan.arrays, plan.flown, rows=[0])[0]
-    np.testing.assert_allclose([sp.vx_m_s, sp.vy_m_s], ref, rtol=0, atol=1e-12)
-    assert sp.sub_tube == int(k[0])
+    ref = velocity_command(p, k, plan.arrays, plan.flown, rows=[row])[0]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
     # the barrier acts: the command differs from the one without neighbours
-    alone = a.setpoint(own, classify([], NOW, max_age_s=0.5, lost_after_s=1.0))
-    assert not np.allclose([alone.vx_m_s, alone.vy_m_s], [sp.vx_m_s, sp.vy_m_s])
+    alone = plan.commands(own[None], [0])[0]
+    assert not np.allclose(alone, got)
 
 
-def test_batched_equals_per_agent(plan) -> None:
+def test_one_row_equals_the_same_row_of_many(plan) -> None:
+    """A vehicle's command does not depend on which other rows are asked for: an MQTT agent
+    (its own row) and the supervisor (every row) get the same bits."""
     rng = np.random.default_rng(7)
     tube = plan.tube
-    pts = []
+    pts: list[np.ndarray] = []
     while len(pts) < 25:
         q = rng.uniform([0.5, -4.5], [18.5, 4.5])
         if tube.contains(q, tol=-1.0) and all(np.hypot(*(q - r)) > 1.0 for r in pts):
             if not any(t.contains(q[None], tol=0.0)[0] for t in plan.partition.triangles):
                 pts.append(q)
     p = np.array(pts)
-    states = [st(i, *p[i]) for i in range(len(p))]
-    view = classify(states, NOW, max_age_s=0.5, lost_after_s=1.0)
-    batch = fleet_setpoints(plan, view.points(), np.arange(len(p)))
+    view = view_of([st(i, *p[i]) for i in range(len(p))])
+    batch = plan.commands(view.points(), np.arange(len(p)))
     for i in range(len(p)):
-        a = Agent(i, plan)
-        a.observe(states)
-        sp = a.setpoint(p[i], a.view(NOW))
-        np.testing.assert_allclose([sp.vx_m_s, sp.vy_m_s], batch[i], rtol=1e-9, atol=1e-9)
+        one = plan.commands(view.points(), [i])[0]
+        assert one.tobytes() == batch[i].tobytes()
 
 
 def test_speed_bounds(plan) -> None:
     rng = np.random.default_rng(3)
     params = plan.flown
     p = rng.uniform([0.0, -5.0], [19.0, 5.0], size=(300, 2))
-    cmd = fleet_setpoints(plan, p, np.arange(len(p)))
+    cmd = plan.commands(p, np.arange(len(p)))
     speed = np.hypot(*cmd.T)
     assert np.all(np.isfinite(speed))
     assert speed.min() >= params.v_min - 1e-9
@@ -156,60 +144,57 @@ def test_speed_bounds(plan) -> None:
 
 
 def test_exit_condition(plan) -> None:
-    a = Agent(0, plan)
     L = plan.tube.length
     eps = plan.flown.eps_0
     x_finish = float(plan.tube.p_r1[0])
-    assert a.has_exited([x_finish - eps / 2, 0.0])
-    assert not a.has_exited([x_finish - 2 * eps, 0.0])
+    assert bool(plan.exited(np.array([x_finish - eps / 2, 0.0])))
+    assert not bool(plan.exited(np.array([x_finish - 2 * eps, 0.0])))
     assert L == pytest.approx(x_finish)
 
 
 def test_lost_neighbour_becomes_obstacle_and_repartitions(mission, budget) -> None:
     sc = mission.scenario
     plan = FlightPlan.build(sc.tube, (), budget.inflate(sc.controller))
-    a = Agent(0, plan, lost_radius_m=0.8)
-    a.observe([st(5, 9.0, 1.0, age=2.0)])  # silent for 2 s > lost_after_s
-    view = a.view(NOW)
+    view = view_of([st(5, 9.0, 1.0, age=2.0)])  # silent for 2 s > lost_after_s
     assert view.lost_ids.tolist() == [5]
-    assert a.update_plan(view)
-    assert len(a.plan.lost) == 1 and a.plan.lost[0].radius == 0.8
-    np.testing.assert_allclose(a.plan.lost[0].center, [9.0, 1.0])
-    assert a.plan.partition.K > plan.partition.K
-    # the same loss seen by another agent: the cached plan, partitioned once
-    b = Agent(1, plan, lost_radius_m=0.8)
-    b.observe([st(5, 9.0, 1.0, phase=Phase.LOST)])
-    b.update_plan(b.view(NOW))
-    assert b.plan is a.plan
-    assert not a.update_plan(view)
+    new = plan.with_lost(lost_obstacles(view, plan.tube, 0.8, plan.flown))
+    assert new is not plan
+    assert len(new.lost) == 1 and new.lost[0].radius == 0.8
+    np.testing.assert_allclose(new.lost[0].center, [9.0, 1.0])
+    assert new.partition.K > plan.partition.K
+    # the same loss seen by another process: the cached plan, partitioned once
+    said = view_of([st(5, 9.0, 1.0, phase=Phase.LOST)])
+    assert plan.with_lost(lost_obstacles(said, plan.tube, 0.8, plan.flown)) is new
     # lost outside the tube (past the finishing line): no obstacle, no new partition
-    c = Agent(2, plan)
-    c.observe([st(6, 25.0, 0.0, phase=Phase.LOST)])
-    assert not c.update_plan(c.view(NOW))
+    out = view_of([st(6, 25.0, 0.0, phase=Phase.LOST)])
+    assert lost_obstacles(out, plan.tube, 0.8, plan.flown) == ()
+    assert plan.with_lost(()) is plan
 
 
 def test_no_valid_partition_raises(plan) -> None:
-    a = Agent(0, plan, lost_radius_m=0.8)
-    a.observe([st(5, 0.5, 0.0, phase=Phase.LOST)])  # at the start base: no room for a triangle
+    view = view_of([st(5, 0.5, 0.0, phase=Phase.LOST)])  # at the start base: no room
     with pytest.raises(PartitionError):
-        a.update_plan(a.view(NOW))
+        plan.with_lost(lost_obstacles(view, plan.tube, 0.8, plan.flown))
 
 
 def test_exit_velocity_guard(plan) -> None:
-    own = np.array([20.0, 0.0])
+    own = np.array([[20.0, 0.0]])
     v = plan.flown.v
-    free = exit_velocity(plan, own, classify([], NOW, max_age_s=0.5, lost_after_s=1.0),
-                         stop_distance_m=3.0)
-    np.testing.assert_allclose(free, v * plan.tube.n_c)
+    free, blocked = exit_velocities(plan, own, view_of([]), stop_distance_m=3.0)
+    np.testing.assert_allclose(free[0], v * plan.tube.n_c)
+    assert not blocked[0]
     # a hovering vehicle 2 m ahead in the corridor → stop
-    view = classify([st(1, 22.0, 0.5, phase=Phase.HOLDING, vx=0.0)], NOW, max_age_s=0.5,
-                    lost_after_s=1.0)
-    assert exit_velocity(plan, own, view, stop_distance_m=3.0) is None
+    view = view_of([st(1, 22.0, 0.5, phase=Phase.HOLDING, vx=0.0)])
+    assert exit_velocities(plan, own, view, stop_distance_m=3.0)[1].tolist() == [True]
     # one flying on at v ahead, or a hovering one far to the side → keep going
-    view = classify([st(1, 22.0, 0.5, phase=Phase.EXITED, vx=v),
-                     st(2, 22.0, 4.0, phase=Phase.HOLDING, vx=0.0)], NOW, max_age_s=0.5,
-                    lost_after_s=1.0)
-    assert exit_velocity(plan, own, view, stop_distance_m=3.0) is not None
+    view = view_of([st(1, 22.0, 0.5, phase=Phase.EXITED, vx=v),
+                    st(2, 22.0, 4.0, phase=Phase.HOLDING, vx=0.0)])
+    assert exit_velocities(plan, own, view, stop_distance_m=3.0)[1].tolist() == [False]
+    # many at once: each its own answer
+    many = np.array([[20.0, 0.0], [20.0, 4.0], [30.0, 0.0]])
+    view = view_of([st(1, 22.0, 0.5, phase=Phase.HOLDING, vx=0.0)])
+    assert exit_velocities(plan, many, view, stop_distance_m=3.0)[1].tolist() == [
+        True, False, False]
 
 
 def test_apex_look_ahead_switches_before_the_barrier(plan) -> None:
@@ -240,38 +225,49 @@ def test_apex_look_ahead_switches_before_the_barrier(plan) -> None:
 
 
 # -- a vehicle in offboard that slows below v_min in the tube: lost (an obstacle) ------------------
-def _pilot_in_tube(mission):
-    from vtube_fleet.bus import InProcessBus
-    from vtube_fleet.fleet.pilot import VehiclePilot
-    from vtube_fleet.link import MavlinkLink
+class _Link:
+    """What the fault rules read of a link: its state."""
 
-    sc = mission.scenario
-    plan = FlightPlan.build(sc.tube, sc.obstacles, sc.controller)
-    pilot = VehiclePilot(MavlinkLink("udpin://127.0.0.1:24998"), Agent(0, plan), InProcessBus(),
-                         mission, on_event=lambda text, vid, level: None)
-    pilot.set_phase(Phase.IN_TUBE)
-    pilot.xy, pilot._has_pos = np.array([5.0, 0.0]), True
-    s = pilot.link.state
+    closed = False
+    latency_s = None
+
+    def __init__(self) -> None:
+        from vtube_fleet.link.base import VehicleState
+
+        self.state = VehicleState(endpoint="udpin://127.0.0.1:24998")
+
+
+def _in_tube(mission):
+    from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
+
+    tab = FleetTable([0], mission)
+    tab.phase[0] = PHASE_CODE[Phase.IN_TUBE]
+    tab.xy[0], tab.has[0] = (5.0, 0.0), True
+    tab.offboard_seen[0] = True
+    link = _Link()
+    s = link.state
     s.armed, s.flight_mode, s.landed_state = True, "OFFBOARD", "IN_AIR"
-    pilot._offboard_seen = True
-    return pilot
+    return tab, link
 
 
-def _fly_at(pilot, speeds, dt: float = 0.05, t0: float = 100.0, moving: float | None = None
-            ) -> list[str | None]:
-    """``check_faults`` every ``dt`` while the vehicle is commanded v (the mission's nominal
+def _fly_at(mission, tab, link, speeds, dt: float = 0.05, t0: float = 100.0,
+            moving: float | None = None) -> list[str | None]:
+    """The fault rules every ``dt`` while the vehicle is commanded v (the mission's nominal
     speed) along the tube and measured at ``speeds[k]``, its estimated position moving at
-    that speed (or at ``moving``); the reason given at each tick."""
-    v = pilot.mission.scenario.controller.v
-    out = []
+    that speed (or at ``moving``); the reason found at each tick."""
+    from vtube_fleet.fleet.tick import find_faults, read_links
+
+    v = mission.scenario.controller.v
+    out: list[str | None] = []
     for k, speed in enumerate(speeds):
         now = t0 + k * dt
-        pilot.link.state.last_position_s = now
-        pilot.cmd_xy = np.array([v, 0.0])
-        pilot.vel_xy = np.array([speed, 0.0])
-        pilot.xy = pilot.xy + [(speed if moving is None else moving) * dt, 0.0]
-        out.append(pilot.check_faults(now))
-        if pilot.phase == Phase.LOST:
+        link.state.last_position_s = now
+        tab.cmd[0], tab.cmd_set[0] = (v, 0.0), True
+        tab.vel[0] = (speed, 0.0)
+        tab.xy[0] = tab.xy[0] + [(speed if moving is None else moving) * dt, 0.0]
+        faults, _ = find_faults(tab, read_links([link]), mission, now)
+        out.append(faults[0].reason if faults else None)
+        if faults:
             break
     return out
 
@@ -280,32 +276,31 @@ def test_a_vehicle_slower_than_v_min_in_the_tube_becomes_an_obstacle(mission) ->
     """Commanded ≥ v_min in the tube, PX4 falls 10–20 % short at most: a vehicle measured below
     max(v_min / 2, 0.05 m/s) for the whole ``unresponsive_s`` window is LOST (an obstacle for
     everyone, issue 9: "slows below v_min in the tube"); 0.8 v_min or a shorter dip is not."""
+    from vtube_fleet.fleet.tick import slow_m_s, unresponsive_s
+
     v_min = mission.scenario.robots.v_min
-    probe = _pilot_in_tube(mission)
-    window, dt = probe.unresponsive_s, 0.05
-    assert probe.slow_m_s == pytest.approx(max(0.5 * v_min, 0.05))
+    window, dt = unresponsive_s(mission), 0.05
+    slow = slow_m_s(mission)
+    assert slow == pytest.approx(max(0.5 * v_min, 0.05))
     n = int(window / dt) + 20  # the window and 1 s more
 
     for speed in (0.0, 0.4 * v_min):  # stopped, crawling at 0.4 v_min
-        pilot = _pilot_in_tube(mission)
-        reasons = _fly_at(pilot, [speed] * n, dt)
-        assert pilot.phase == Phase.LOST, (speed, reasons[-1])
+        tab, link = _in_tube(mission)
+        reasons = _fly_at(mission, tab, link, [speed] * n, dt)
         first = next(k for k, r in enumerate(reasons) if r is not None)
         assert window <= first * dt <= window + 2 * dt, first * dt  # after the window
         assert reasons[first].startswith(
-            f"not following its setpoints: measured speed < {pilot.slow_m_s:g} m/s (v_min / 2)")
-        assert pilot.lost_xy is not None and pilot.cmd_xy is None
+            f"not following its setpoints: measured speed < {slow:g} m/s (v_min / 2)")
 
-    pilot = _pilot_in_tube(mission)  # 0.8 v_min: PX4 falling short, still following
-    assert not any(_fly_at(pilot, [0.8 * v_min] * n, dt)) and pilot.phase == Phase.IN_TUBE
+    tab, link = _in_tube(mission)  # 0.8 v_min: PX4 falling short, still following
+    assert not any(_fly_at(mission, tab, link, [0.8 * v_min] * n, dt))
 
-    pilot = _pilot_in_tube(mission)  # a dip to 0 shorter than the window, twice, then normal
+    tab, link = _in_tube(mission)  # a dip to 0 shorter than the window, twice, then normal
     dip = [0.0] * int(0.8 * window / dt)
     fine = [mission.scenario.controller.v] * 5
-    assert not any(_fly_at(pilot, dip + fine + dip + fine, dt)) and pilot.phase == Phase.IN_TUBE
+    assert not any(_fly_at(mission, tab, link, dip + fine + dip + fine, dt))
 
     # the velocity estimate says "slow" but the estimated position moves at v_min (PX4 flies
     # v_c + d̂ under the compensation): not lost
-    pilot = _pilot_in_tube(mission)
-    assert not any(_fly_at(pilot, [0.0] * (3 * n), dt, moving=v_min))
-    assert pilot.phase == Phase.IN_TUBE
+    tab, link = _in_tube(mission)
+    assert not any(_fly_at(mission, tab, link, [0.0] * (3 * n), dt, moving=v_min))

@@ -1,0 +1,856 @@
+"""The control tick: one implementation for one vehicle and for a thousand.
+
+Every process that flies vehicles — the supervisor (its whole fleet) and an MQTT agent (its one
+vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable` and runs the same
+:class:`Tick` over it at the mission's rate (:class:`ControlClock`). A tick, in this order
+(:meth:`Tick.__call__`):
+
+1. **links** (:func:`read_links`): every link read ONCE; telemetry only arrives between ticks;
+2. **sense** (:func:`sense`): new local positions into the tube frame (one vectorized frame
+   conversion), the estimate compensator fed;
+3. **faults** (:func:`find_faults` over :data:`FAULT_RULES`): every rule evaluated for every
+   vehicle; a vehicle that hits one is LOST (a static obstacle at its last position) or FAILED
+   while arming; touch-downs of holding/landing vehicles are noticed;
+4. **states** (:func:`own_states`): what each vehicle tells the others (published on the bus
+   by an agent);
+5. **classify** (:func:`~vtube_fleet.fleet.neighbours.classify`): the own states plus those
+   heard from others (an agent's bus) sorted into live / static / lost;
+6. **plan**: re-partition around lost and stopped vehicles
+   (:meth:`~vtube_fleet.fleet.plan.FlightPlan.with_lost`), exits (TraCondition), then the
+   controller's commands for every vehicle still in the tube in ONE call
+   (:meth:`~vtube_fleet.fleet.plan.FlightPlan.commands`, ModifiedVectorField);
+7. **actuate** (:func:`actuate`): each vehicle's setpoint for its phase (arming, the climb, the
+   tube plus the estimate compensation d̂, the exit behaviour, standing still), all sent in one
+   batch (:func:`~vtube_fleet.link.base.send_velocities_ned`);
+8. **measure** is the caller's: the supervisor judges the fleet
+   (:mod:`vtube_fleet.fleet.measure`), an agent records what it heard; both feed the budget
+   watch with :func:`watch_budget`.
+
+Transitions a tick decides (lost, exited, hold, land, failed, landed) go through the vehicles'
+:class:`~vtube_fleet.fleet.pilot.VehiclePilot` (its events and waiters); the pilot keeps the
+flight procedure (arm, climb, hold, land) and no tick step of its own.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import inspect
+import math
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from vtube_fleet.config.mission import Mission
+from vtube_fleet.core.partition import PartitionError
+from vtube_fleet.fleet.budget import BudgetWatch
+from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S
+from vtube_fleet.fleet.neighbours import NeighbourView, States, classify
+from vtube_fleet.fleet.plan import FlightPlan, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.table import PHASE_CODE, FleetTable, phase_mask
+from vtube_fleet.frames import TubeFrame
+from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_velocities_ned
+from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, Phase
+
+if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.fleet.pilot import VehiclePilot
+
+__all__ = [
+    "FAULT_RULES",
+    "ControlClock",
+    "Fault",
+    "FaultContext",
+    "FaultRule",
+    "LinkColumns",
+    "NeighbourSource",
+    "Tick",
+    "TickResult",
+    "actuate",
+    "find_faults",
+    "own_states",
+    "read_links",
+    "sense",
+    "slow_m_s",
+    "unresponsive_s",
+    "used_ages",
+    "vertical_down_m_s",
+    "watch_budget",
+]
+
+_ARMING = PHASE_CODE[Phase.ARMING]
+_TAKEOFF = PHASE_CODE[Phase.TAKEOFF]
+_IN_TUBE = PHASE_CODE[Phase.IN_TUBE]
+_EXITED = PHASE_CODE[Phase.EXITED]
+_HOLDING = PHASE_CODE[Phase.HOLDING]
+_LANDING = PHASE_CODE[Phase.LANDING]
+_LOST = PHASE_CODE[Phase.LOST]
+_OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
+_CHECKED_MASK = phase_mask(AIRBORNE_PHASES | {Phase.ARMING})
+_FLYING_TUBE_MASK = phase_mask({Phase.IN_TUBE, Phase.TAKEOFF})
+
+#: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
+#: estimate-disturbance compensation, which cancels most of the take-off drift).
+TAKEOFF_XY_GAIN_1_S = 0.5
+TAKEOFF_XY_MAX_M_S = 0.5
+#: Height (m) above which a climbing vehicle counts as airborne without PX4 saying IN_AIR.
+AIRBORNE_UP_M = 0.5
+#: The floor of :func:`slow_m_s`: below this a vehicle is still whatever v_min is.
+STILL_M_S = 0.05
+
+
+# ----------------------------------------------------------------------------------------------
+# 1. the links, read once a tick
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class LinkColumns:
+    """What a tick reads from the links, gathered in ONE pass (:func:`read_links`), row k from
+    ``links[k]``: each link's ``states`` (its :class:`VehicleState`), the arrival of its latest
+    local position ``position_s`` (NaN: none), whether its GPS origin is known
+    (``origin_known``), whether it reports OFFBOARD (``offboard``), armed (``armed``: True) and
+    disarmed (``disarmed``: False; unknown is neither), on the ground (``on_ground``) or in the
+    air (``in_air``), its one-way latency ``latency_s`` (NaN: not measured yet) and whether it
+    is ``closed``. The links only change between ticks (their telemetry arrives in the event
+    loop), so one snapshot serves every step of a tick."""
+
+    states: list[VehicleState]
+    position_s: np.ndarray
+    origin_known: np.ndarray
+    offboard: np.ndarray
+    armed: np.ndarray
+    disarmed: np.ndarray
+    on_ground: np.ndarray
+    in_air: np.ndarray
+    latency_s: np.ndarray
+    closed: np.ndarray
+
+
+def read_links(links: Sequence[VehicleLink]) -> LinkColumns:
+    """The links as :class:`LinkColumns`, in their order."""
+    n = len(links)
+    states = [lk.state for lk in links]
+    nan = math.nan
+    cols = np.array([(nan if (t := s.last_position_s) is None else t, s.origin is not None,
+                      s.flight_mode == "OFFBOARD", s.armed is True, s.armed is False,
+                      s.landed_state == "ON_GROUND", s.landed_state == "IN_AIR",
+                      nan if (x := lk.latency_s) is None else x, lk.closed)
+                     for lk, s in zip(links, states, strict=True)], dtype=float).reshape(n, 9)
+    flag = cols[:, 1:7] == 1.0
+    return LinkColumns(states, cols[:, 0], flag[:, 0], flag[:, 1], flag[:, 2], flag[:, 3],
+                       flag[:, 4], flag[:, 5], cols[:, 7], cols[:, 8] == 1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# 2. sense
+# ----------------------------------------------------------------------------------------------
+def sense(tab: FleetTable, links: LinkColumns, frame: TubeFrame, mission: Mission
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Take every link's latest local position, if newer than the one in use (and its origin
+    known), into the tube frame: one vectorized conversion of positions (pymap3d on arrays) and
+    velocities (the frame's rotation), written into the table's columns, and one compensator
+    update for them all. Returns the rows with a new sample and the climbing rows that reached
+    the mission altitude (± tolerance) with it."""
+    last = links.position_s
+    rows = np.flatnonzero(np.isfinite(last) & links.origin_known & (last != tab.sample_s))
+    if not rows.size:
+        return rows, rows
+    st = [links.states[i] for i in rows.tolist()]
+    k = len(st)
+    cols = np.array([(s.north_m, s.east_m, s.down_m, s.origin.lat_deg,  # type: ignore[union-attr]
+                      s.origin.lon_deg, s.origin.alt_m,  # type: ignore[union-attr]
+                      s.vn_m_s, s.ve_m_s) for s in st], dtype=float).reshape(k, 8).T
+    x, y, up = (np.atleast_1d(v).astype(float) for v in frame.local_ned_to_tube(*cols[:6]))
+    a, b, c, d = tab.to_tube
+    vn, ve, t = cols[6], cols[7], last[rows]
+    vx, vy = a * vn + b * ve, c * vn + d * ve
+    tab.xy[rows, 0], tab.xy[rows, 1] = x, y
+    tab.vel[rows, 0], tab.vel[rows, 1] = vx, vy
+    tab.up[rows] = up
+    tab.sample_s[rows] = t
+    tab.has[rows] = np.isfinite(x) & np.isfinite(y)
+    cfg = mission.config
+    up_ok = np.abs(up - cfg.altitude_m) <= cfg.altitude_tolerance_m
+    if tab.compensator is not None:
+        tab.compensator.add(rows, t, x, y, vx, vy)
+    return rows, rows[(tab.phase[rows] == _TAKEOFF) & up_ok]
+
+
+# ----------------------------------------------------------------------------------------------
+# 3. faults
+# ----------------------------------------------------------------------------------------------
+def slow_m_s(mission: Mission) -> float:
+    """max(v_min / 2, :data:`STILL_M_S`): a vehicle in the tube is always commanded at least
+    v_min (> 0, paper note 9) and PX4's steady shortfall is 10–20 %, so one whose measured
+    speed stays below half of v_min for :func:`unresponsive_s` has slowed below v_min in the
+    tube (issue 9): it is declared lost, an obstacle for everyone."""
+    return max(0.5 * mission.scenario.robots.v_min, STILL_M_S)
+
+
+def unresponsive_s(mission: Mission) -> float:
+    """τ_d + 3 t63 + 1 s: longer than PX4 needs to follow any command change."""
+    cfg = mission.config
+    return cfg.tracking_dead_time_s + 3.0 * cfg.tracking_t63_s + 1.0
+
+
+@dataclass(frozen=True)
+class FaultContext:
+    """What a fault rule reads: the table, this tick's links, the mission, the monotonic time
+    ``now_s``, ``listening_since_s`` (our own loop resumed after a stall then: silence counts
+    from then on; None: no stall) and ``checked`` (the rows under watch: airborne or arming)."""
+
+    tab: FleetTable
+    links: LinkColumns
+    mission: Mission
+    now_s: float
+    listening_since_s: float | None
+    checked: np.ndarray
+
+
+#: A fault rule: ``find(ctx)`` → (rows hit (bool, n), the reason of one row).
+FaultFind = Callable[[FaultContext], tuple[np.ndarray, Callable[[int], str]]]
+
+
+@dataclass(frozen=True)
+class FaultRule:
+    """One in-flight fault rule, evaluated every tick for every vehicle (:func:`find_faults`):
+    ``name``, ``find`` and the ``action`` on a vehicle that hits it: ``"lost"`` (stop commanding
+    it; a static obstacle for everyone at its last position) or ``"land"`` (it lands in place
+    and, stopped, becomes an obstacle)."""
+
+    name: str
+    find: FaultFind
+    action: str = "lost"
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A vehicle (table ``row``) that hit ``rule`` this tick, and why (``reason``)."""
+
+    row: int
+    rule: FaultRule
+    reason: str
+
+
+def _no_telemetry(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
+    last = ctx.links.position_s
+    cfg = ctx.mission.config
+    since = ctx.listening_since_s
+    heard = last if since is None else np.maximum(last, since)
+    hit = ~np.isfinite(last) | (ctx.now_s - heard > cfg.lost_after_s)
+
+    def why(r: int) -> str:
+        t = float(last[r])
+        age = "never" if math.isnan(t) else f"{ctx.now_s - t:.2f} s ago"
+        return (f"no telemetry for more than lost_after_s = {cfg.lost_after_s:g} s (last "
+                f"position {age})")
+
+    return hit, why
+
+
+def _left_offboard(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
+    tab = ctx.tab
+    hit = (_OFFBOARD_MASK[tab.phase] & tab.offboard_seen & ~tab.in_transition
+           & ~ctx.links.offboard)
+
+    def why(r: int) -> str:
+        s = ctx.links.states[r]
+        reason = f"left OFFBOARD unexpectedly (mode {s.flight_mode}, status {s.system_status})"
+        texts = [t.text for t in s.statustexts
+                 if 0 <= t.severity <= 2 and ctx.now_s - t.time_s <= 3.0]
+        if texts:  # e.g. PX4's geofence or offboard-loss failsafe: "Failsafe activated"
+            reason += f"; vehicle says \"{texts[-1]}\""
+        return reason
+
+    return hit, why
+
+
+def _disarmed_in_air(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
+    ph = ctx.tab.phase
+    return ((ph == _IN_TUBE) | (ph == _EXITED)) & ctx.links.disarmed, \
+        lambda r: "disarmed in the air"
+
+
+def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
+    """In the tube, commanded, and slower than :func:`slow_m_s` for :func:`unresponsive_s`
+    while its estimated position did not move either (then the velocity estimate is off, not
+    the vehicle): not following its setpoints. Keeps the slow spells in the table
+    (``still_since_s``, ``still_xy``)."""
+    tab, now = ctx.tab, ctx.now_s
+    wait_s = unresponsive_s(ctx.mission)
+    slow = slow_m_s(ctx.mission)
+    since = ctx.listening_since_s
+    hit = np.zeros(tab.n, bool)
+    if since is not None and now - since <= wait_s:
+        return hit, str
+    watched = ctx.checked & (tab.phase == _IN_TUBE)
+    speed = np.hypot(tab.vel[:, 0], tab.vel[:, 1])
+    cmd_speed = np.where(tab.cmd_set, np.hypot(tab.cmd[:, 0], tab.cmd[:, 1]), 0.0)
+    slow_now = watched & (cmd_speed > 0.0) & (speed < slow)
+    tab.still_since_s[watched & ~slow_now] = np.nan
+    start = slow_now & np.isnan(tab.still_since_s)
+    tab.still_since_s[start] = now
+    tab.still_xy[start] = tab.xy[start]
+    timing = slow_now & ~start
+    still = now - tab.still_since_s
+    timing &= still >= wait_s
+    moved = np.hypot(tab.xy[:, 0] - tab.still_xy[:, 0], tab.xy[:, 1] - tab.still_xy[:, 1])
+    # the estimated position kept moving: the velocity estimate is off (with the compensation
+    # PX4 flies v_c + d̂, not v_c), not the vehicle; count afresh
+    again = timing & (moved >= slow * still)
+    tab.still_since_s[again] = now
+    tab.still_xy[again] = tab.xy[again]
+    hit = timing & ~again
+    what = "v_min / 2" if slow > STILL_M_S else "still"
+
+    def why(r: int) -> str:
+        return (f"not following its setpoints: measured speed < {slow:g} m/s ({what}) for "
+                f"{float(still[r]):.1f} s, moved {float(moved[r]):.2f} m, while commanded "
+                f"{float(cmd_speed[r]):.2f} m/s")
+
+    return hit, why
+
+
+#: The in-flight fault rules, in order of precedence (a vehicle takes the first it hits). A
+#: rule added here acts for every vehicle of every process (supervisor and agents alike).
+FAULT_RULES: tuple[FaultRule, ...] = (
+    FaultRule("no_telemetry", _no_telemetry),
+    FaultRule("left_offboard", _left_offboard),
+    FaultRule("disarmed_in_air", _disarmed_in_air),
+    FaultRule("unresponsive", _unresponsive),
+)
+
+
+def find_faults(tab: FleetTable, links: LinkColumns, mission: Mission, now_s: float,
+                listening_since_s: float | None = None,
+                rules: Sequence[FaultRule] = FAULT_RULES) -> tuple[list[Fault], np.ndarray]:
+    """Evaluate ``rules`` for every vehicle under watch (airborne or arming) at monotonic time
+    ``now_s``. Returns the faults (one per vehicle: the first rule it hits) and the rows that
+    touched down while holding or landing (on the ground and disarmed). Notes OFFBOARD as
+    confirmed (``offboard_seen``) for the vehicles that fly offboard and report it."""
+    ph = tab.phase
+    down = ((ph == _LANDING) | (ph == _HOLDING)) & links.on_ground & links.disarmed
+    checked = _CHECKED_MASK[ph] & ~down
+    tab.offboard_seen |= checked & _OFFBOARD_MASK[ph] & links.offboard
+    ctx = FaultContext(tab, links, mission, now_s, listening_since_s, checked)
+    free = checked.copy()
+    faults: list[Fault] = []
+    for rule in rules:
+        if not free.any():
+            break
+        hit, why = rule.find(ctx)
+        hit = hit & free
+        for r in np.flatnonzero(hit).tolist():
+            faults.append(Fault(r, rule, why(r)))
+        free &= ~hit
+    return faults, np.flatnonzero(down)
+
+
+# ----------------------------------------------------------------------------------------------
+# 4. states
+# ----------------------------------------------------------------------------------------------
+def own_states(tab: FleetTable, links: LinkColumns, now_mono: float, now_wall: float
+               ) -> tuple[States, np.ndarray, np.ndarray]:
+    """What each vehicle with a position sample tells the others now: a LOST vehicle at its
+    frozen position with zero velocity, the stamp the wall-clock time its position was measured
+    (its age: since it arrived plus the one-way link latency). Returns the states, their table
+    rows and their ages (s)."""
+    rows = np.flatnonzero(np.isfinite(tab.sample_s))
+    lost = tab.lost_set[rows, None]
+    pos = np.where(lost, tab.lost[rows], tab.xy[rows])
+    vel = np.where(lost, 0.0, tab.vel[rows])
+    ages = (now_mono - tab.sample_s[rows]) + np.nan_to_num(links.latency_s[rows], nan=0.0)
+    return States(tab.ids[rows], pos, vel, tab.phase[rows], now_wall - ages), rows, ages
+
+
+# ----------------------------------------------------------------------------------------------
+# 7. actuate
+# ----------------------------------------------------------------------------------------------
+def vertical_down_m_s(tab: FleetTable, mission: Mission, rows: np.ndarray,
+                      climb: np.ndarray) -> np.ndarray:
+    """The altitude hold of ``rows`` (NED down velocity): v_up = clamp(k_z (altitude − up),
+    ±max_vertical_speed), capped at ``climb_speed_m_s`` upwards where ``climb``; 0 without a
+    height."""
+    cfg = mission.config
+    up = tab.up[rows]
+    u = cfg.altitude_gain_1_s * (cfg.altitude_m - up)
+    lo = -cfg.max_vertical_speed_m_s
+    hi = np.where(climb, cfg.climb_speed_m_s, cfg.max_vertical_speed_m_s)
+    return np.where(np.isfinite(up), -np.where(u < lo, lo, np.where(u > hi, hi, u)), 0.0)
+
+
+@dataclass
+class Actuation:
+    """What :func:`actuate` decided beyond the setpoints: the rows whose setpoint failed (with
+    the link's error), the rows that start sending, the exited rows that hold or land now
+    (with why) and the rows whose compensation residual just exceeded the budget."""
+
+    failed: list[tuple[int, LinkError]]
+    first_sent: np.ndarray
+    hold: list[tuple[int, str]]
+    land: list[tuple[int, str]]
+    residual_over: np.ndarray
+
+
+def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink],
+            mission: Mission, plan: FlightPlan, now_mono: float, cmd_rows: np.ndarray,
+            cmds: np.ndarray, view: NeighbourView | None) -> Actuation:
+    """Every vehicle's setpoint for its phase, sent in one batch:
+
+    * a mode change in flight, or arming: zero horizontal velocity (altitude hold; none while
+      arming) — streaming before OFFBOARD / until PX4 confirms;
+    * the climb: a weak hold of the take-off spot, the climb-capped altitude hold, plus d̂
+      once airborne;
+    * in the tube: the controller's command (rows ``cmd_rows`` get ``cmds``; the others zero)
+      plus d̂, the altitude hold; a vehicle standing still (``standstill``) zero plus d̂;
+    * past the finishing line: :func:`~vtube_fleet.fleet.plan.exit_velocities` plus d̂, or
+      zero and hold when blocked, or hold / land once ``exit_clear_m`` past it
+      (``after_exit``);
+    * otherwise nothing (the command column cleared).
+
+    Vehicles behind a closed link are skipped. The setpoints go to the links together
+    (:func:`~vtube_fleet.link.base.send_velocities_ned`); the compensation residual of the
+    in-tube commands is tracked (:class:`~vtube_fleet.fleet.compensation.ResidualTracker`)."""
+    cfg = mission.config
+    n = tab.n
+    ph = tab.phase
+    tab.cmd_in_tube[:] = False
+    open_ = ~links.closed
+    zero = open_ & (tab.in_transition | (ph == _ARMING))
+    climb = open_ & ~zero & (ph == _TAKEOFF)
+    tube = open_ & ~zero & (ph == _IN_TUBE)
+    exited = open_ & ~zero & (ph == _EXITED)
+    idle = open_ & ~(zero | climb | tube | exited)
+    tab.cmd_set[idle] = False
+    tab.cmd[idle] = np.nan
+    vx = np.zeros(n)
+    vy = np.zeros(n)
+    comp = np.zeros(n, bool)  # add d̂
+    send = zero | climb | tube | exited
+    hold: list[tuple[int, str]] = []
+    land: list[tuple[int, str]] = []
+    # the climb: hold the take-off spot
+    if climb.any():
+        r = np.flatnonzero(climb)
+        d = TAKEOFF_XY_GAIN_1_S * (tab.takeoff_xy[r] - tab.xy[r])
+        d = np.where((np.isfinite(d).all(axis=1) & tab.has[r])[:, None], d, 0.0)
+        norm = np.hypot(d[:, 0], d[:, 1])
+        d *= np.where(norm > TAKEOFF_XY_MAX_M_S, TAKEOFF_XY_MAX_M_S / np.where(norm > 0, norm, 1),
+                      1.0)[:, None]
+        vx[r], vy[r] = d[:, 0], d[:, 1]
+        comp[r] = links.in_air[r] | (np.nan_to_num(tab.up[r], nan=-math.inf) > AIRBORNE_UP_M)
+    # the tube: the controller's commands
+    cmd_at = np.full(n, -1, np.int64)
+    cmd_at[cmd_rows] = np.arange(cmd_rows.size)
+    controlled = tube & ~tab.standstill
+    if tube.any():
+        r = np.flatnonzero(tube)
+        k = cmd_at[r]
+        got = (k >= 0) & controlled[r]
+        c = np.zeros((r.size, 2))
+        c[got] = cmds[k[got]]
+        vx[r], vy[r] = c[:, 0], c[:, 1]
+        comp[r] = True
+        tab.cmd_in_tube[r] = controlled[r]
+    # past the finishing line
+    if exited.any():
+        r = np.flatnonzero(exited)
+        still = tab.standstill[r]
+        tube_geom = plan.tube
+        past = np.where(tab.has[r], np.asarray(tube_geom.xi(tab.xy[r]), float) - tube_geom.length,
+                        0.0)
+        stop = 2.0 * plan.flown.r_s + plan.flown.v * (
+            cfg.tracking_dead_time_s + cfg.tracking_t63_s + cfg.period_s)
+        v, blocked = exit_velocities(plan, tab.xy[r], view, stop_distance_m=stop)
+        blocked &= tab.has[r]
+        clear = (cfg.after_exit in ("hold", "land")) & (past >= cfg.exit_clear_m)
+        v[clear | blocked | still] = 0.0
+        vx[r], vy[r] = v[:, 0], v[:, 1]
+        comp[r] = still | ~(clear | blocked)  # standing still: zero for the ESTIMATED position
+        for j in np.flatnonzero(clear & ~still).tolist():
+            why = f"{float(past[j]):.1f} m past the finishing line"
+            (hold if cfg.after_exit == "hold" else land).append((int(r[j]), why))
+        for j in np.flatnonzero(blocked & ~clear & ~still).tolist():
+            hold.append((int(r[j]), "a stopped vehicle ahead past the finishing line"))
+    rows = np.flatnonzero(send)
+    tab.cmd[rows, 0], tab.cmd[rows, 1] = vx[rows], vy[rows]
+    tab.cmd_set[rows] = True
+    if not rows.size:
+        return Actuation([], rows, hold, land, rows)
+    # the estimate compensation d̂ (the command stays as the controller's in the table)
+    bank = tab.compensator
+    sx, sy = vx[rows], vy[rows]
+    corr = None
+    if bank is not None:
+        c_rows = comp[rows]
+        corr = np.stack((bank.dx_m_s[rows], bank.dy_m_s[rows]), axis=1)
+        sx = np.where(c_rows, sx + corr[:, 0], sx)
+        sy = np.where(c_rows, sy + corr[:, 1], sy)
+    down = vertical_down_m_s(tab, mission, rows, climb[rows])
+    down[ph[rows] == _ARMING] = 0.0
+    a, b, c, d = tab.to_ned
+    result = send_velocities_ned([link_list[i] for i in rows.tolist()], a * sx + b * sy,
+                                 c * sx + d * sy, down)
+    sent = np.fromiter((e is None for e in result), bool, len(result))
+    tab.setpoints_sent[rows[sent]] += 1
+    first = rows[sent & ~tab.ever_sent[rows]]
+    tab.ever_sent[first] = True
+    failed = [(int(rows[j]), result[j]) for j in np.flatnonzero(~sent).tolist()]
+    over = rows[:0]
+    tracked = sent & controlled[rows]
+    if corr is not None and tracked.any():
+        at = np.flatnonzero(tracked)
+        lag = (0.5 * bank.window_s + cfg.period_s) + np.nan_to_num(  # type: ignore[union-attr]
+            links.latency_s[rows[at]], nan=0.0)
+        over = tab.residuals.track(rows[at], now_mono, corr[at], lag)
+    return Actuation(failed, first, hold, land, over)  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------------------------
+# the tick
+# ----------------------------------------------------------------------------------------------
+class NeighbourSource(Protocol):
+    """Where a process hears the vehicles it does not fly (an MQTT agent's bus)."""
+
+    def states(self, now_wall: float) -> States:
+        """The latest state of every other vehicle."""
+
+    def problem(self, now_wall: float) -> str | None:
+        """Why those states cannot be trusted now (None: they can)."""
+
+
+@dataclass
+class TickResult:
+    """What one tick saw and did, for the caller's measurement: the links, the own ``states``
+    with their table ``rows`` and ``ages_s``, the neighbour ``view`` (None while the
+    neighbours cannot be trusted: ``untrusted`` says why), the mission time ``t_s`` and the
+    age ``max_age_s`` above which a position is stale."""
+
+    links: LinkColumns
+    states: States
+    rows: np.ndarray
+    ages_s: np.ndarray
+    view: NeighbourView | None
+    untrusted: str | None
+    t_s: float
+    max_age_s: float
+
+
+class Tick:
+    """The control tick of the vehicles of one table (module docstring): ``pilots[k]`` flies
+    table row k.
+
+    ``plan``: the flight plan (the root of the re-plans around lost vehicles; :meth:`set_plan`
+    replaces it); ``neighbours``: the other vehicles' states (None: the table is the whole
+    fleet); ``publish``: where each vehicle's own state goes every tick (an agent's bus);
+    ``on_exit(rows, t_s)``, ``on_replan(plan, t_s)``, ``on_replan_failed(error, view)``: the
+    owner's part (the supervisor records exits and new partitions, and decides what a failed
+    re-plan means); ``rules``: the fault rules; ``t0_s``: the monotonic time mission time counts
+    from (default: the first tick)."""
+
+    def __init__(
+        self,
+        table: FleetTable,
+        pilots: Sequence[VehiclePilot],
+        mission: Mission,
+        plan: FlightPlan,
+        *,
+        frame: TubeFrame | None = None,
+        neighbours: NeighbourSource | None = None,
+        publish: Callable[[Any], None] | None = None,
+        on_exit: Callable[[np.ndarray, float], None] | None = None,
+        on_replan: Callable[[FlightPlan, float], None] | None = None,
+        on_replan_failed: Callable[[PartitionError, NeighbourView], None] | None = None,
+        rules: Sequence[FaultRule] = FAULT_RULES,
+        t0_s: float | None = None,
+    ) -> None:
+        if len(pilots) != table.n:
+            raise ValueError(f"{len(pilots)} pilots for a table of {table.n} rows")
+        self.table = table
+        self.pilots = list(pilots)
+        self.links = [p.link for p in self.pilots]
+        self.mission = mission
+        self.cfg = mission.config
+        self.frame = mission.frame if frame is None else frame
+        self.root = self.plan = plan
+        self.neighbours = neighbours
+        self.publish = publish
+        self.on_exit = on_exit
+        self.on_replan = on_replan
+        self.on_replan_failed = on_replan_failed
+        self.rules = tuple(rules)
+        self.t0_s = t0_s
+        #: the radius of the obstacle a lost vehicle becomes: physical r_s + margin
+        self.lost_radius_m = (mission.scenario.controller.r_s
+                              + self.cfg.lost_obstacle_margin_m)
+        #: what the own vehicles published last (one message per row with a position)
+        self.last_states: dict[int, Any] = {}
+
+    def set_plan(self, plan: FlightPlan) -> None:
+        """Fly ``plan`` from now on (the root of later re-plans)."""
+        self.root = self.plan = plan
+
+    def t_s(self, now_mono: float) -> float:
+        """Mission time: seconds since :attr:`t0_s`."""
+        if self.t0_s is None:
+            self.t0_s = now_mono
+        return now_mono - self.t0_s
+
+    def __call__(self, now_mono: float, now_wall: float,
+                 listening_since: float | None = None) -> TickResult:
+        """One tick at monotonic ``now_mono`` / wall-clock ``now_wall`` (the module docstring's
+        order). ``listening_since``: when our own loop resumed after its last stall."""
+        tab, pilots, mission = self.table, self.pilots, self.mission
+        t = self.t_s(now_mono)
+        # 1. links, 2. sense
+        links = read_links(self.links)
+        _, up = sense(tab, links, self.frame, mission)
+        for r in up.tolist():
+            if not pilots[r].at_altitude.is_set():
+                pilots[r].at_altitude.set()
+        for r in np.flatnonzero(tab.has).tolist():
+            if not pilots[r].sensed.is_set():
+                pilots[r].sensed.set()
+        # 3. faults
+        faults, down = find_faults(tab, links, mission, now_mono, listening_since, self.rules)
+        for r in down.tolist():
+            pilots[r].touched_down()
+        for f in faults:
+            pilots[f.row].fault(f.rule.action, f.reason)
+        # 4. states
+        states, rows, ages = own_states(tab, links, now_mono, now_wall)
+        if self.publish is not None and len(states):
+            tab.seq[rows] += 1
+            for msg in states.messages(tab.seq[rows]):
+                self.last_states[msg.vehicle_id] = msg
+                self.publish(msg)
+        # 5. classify (the neighbours heard, when they can be trusted)
+        ph = tab.phase
+        untrusted = None
+        view: NeighbourView | None = None
+        tab.standstill[:] = False
+        if self.neighbours is not None and bool(((ph == _IN_TUBE) | (ph == _EXITED)).any()):
+            untrusted = self.neighbours.problem(now_wall)
+        if untrusted is not None:
+            tab.standstill[(ph == _IN_TUBE) | (ph == _EXITED)] = True
+        else:
+            everyone = states
+            lost_after: float | np.ndarray = math.inf  # own vehicles: lost by the fault rules
+            heard = None
+            if self.neighbours is not None:
+                others = self.neighbours.states(now_wall)
+                everyone = states.concat(others)
+                lost_after = np.concatenate([np.full(len(states), math.inf),
+                                             np.full(len(others), self.cfg.lost_after_s)])
+                heard = (None if listening_since is None
+                         else now_wall - (now_mono - listening_since))
+            view = classify(everyone, now_wall, max_age_s=self.cfg.neighbour_max_age_s,
+                            lost_after_s=lost_after, heard_since_s=heard)
+            # 6. plan: re-partition around lost and stopped vehicles
+            self._replan(view, t)
+        cmd_rows, cmds = self._commands(view, t)
+        # 7. actuate
+        act = actuate(tab, links, self.links, mission, self.plan, now_mono, cmd_rows, cmds, view)
+        for r in act.first_sent.tolist():
+            pilots[r].sent_setpoint.set()
+        for r, exc in act.failed:
+            pilots[r].event(f"setpoint not sent: {exc}", "warning")
+        for r, why in act.hold:
+            pilots[r].begin_hold(why)
+        for r, why in act.land:
+            pilots[r].begin_land(why)
+        for r in act.residual_over.tolist():
+            self._warn_residual(r)
+        return TickResult(links, states, rows, ages, view, untrusted, t,
+                          self.cfg.neighbour_max_age_s)
+
+    def _replan(self, view: NeighbourView, t: float) -> None:
+        """Re-partition if the set of lost-vehicle obstacles inside the tube changed, while a
+        vehicle here still flies (the climb or the tube)."""
+        if not view.lost_ids.size and not self.plan.lost:
+            return
+        if not _FLYING_TUBE_MASK[self.table.phase].any():
+            return  # nobody here left to fly the tube
+        root = self.root
+        lost = lost_obstacles(view, root.tube, self.lost_radius_m, root.flown)
+        try:
+            new = root.with_lost(lost)
+        except PartitionError as exc:
+            if self.on_replan_failed is not None:
+                self.on_replan_failed(exc, view)
+            return
+        if new is not self.plan:
+            self.plan = new
+            if self.on_replan is not None:
+                self.on_replan(new, t)
+
+    def _commands(self, view: NeighbourView | None, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Exits (TraCondition), then the controller's commands of every vehicle still in the
+        tube that the view holds: (rows, commands (k, 2))."""
+        tab = self.table
+        none = np.zeros(0, np.int64), np.zeros((0, 2))
+        flying = np.flatnonzero((tab.phase == _IN_TUBE) & tab.has & ~tab.standstill)
+        if not flying.size or view is None:
+            return none
+        done = np.asarray(self.plan.exited(tab.xy[flying]), bool).reshape(-1)
+        if done.any():
+            out = flying[done]
+            for r in out.tolist():
+                self.pilots[r].mark_exit(t)
+            if self.on_exit is not None:
+                self.on_exit(out, t)
+        left = flying[~done]
+        ids = view.ids()
+        if not left.size or not ids.size:
+            return none
+        # each vehicle's index among the view's points (-1: not in it)
+        order = np.argsort(ids, kind="stable")
+        at = np.searchsorted(ids[order], tab.ids[left])
+        at = np.minimum(at, ids.size - 1)
+        seen = ids[order][at] == tab.ids[left]
+        rows = left[seen]
+        if not rows.size:
+            return none
+        return rows, self.plan.commands(view.points(), order[at[seen]])
+
+    def _warn_residual(self, r: int) -> None:
+        """WARN: a limit crossed — the safety budget's D no longer covers the estimate."""
+        mean = float(self.table.residuals.mean_m_s[r])
+        budget = self.cfg.disturbance_residual_m_s
+        self.pilots[r].event(f"estimate compensation residual {mean:.2f} m/s (mean over "
+                             f"{RESIDUAL_WINDOW_S:g} s) > the budgeted D = {budget:.2f} m/s: the "
+                             f"flown radii may not cover the estimate error (mission key "
+                             f"disturbance_residual_m_s)", "warning")
+
+
+# ----------------------------------------------------------------------------------------------
+# 8. the budget watch (supervisor and agents alike)
+# ----------------------------------------------------------------------------------------------
+_AIRBORNE_MASK = phase_mask(AIRBORNE_PHASES)
+
+
+def used_ages(tab: FleetTable, result: TickResult) -> tuple[np.ndarray, np.ndarray]:
+    """The table rows and ages (s) of the positions the tick used as live: airborne vehicles'
+    samples younger than ``neighbour_max_age_s`` (older: a stale vehicle, handled as a
+    fault, not as the link's latency)."""
+    keep = (_AIRBORNE_MASK[tab.phase[result.rows]]
+            & (result.ages_s <= result.max_age_s))
+    return result.rows[keep], result.ages_s[keep]
+
+
+def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_gap_s: float,
+                 accuracy_m: Callable[[np.ndarray], Sequence[float]], *,
+                 forgotten: set[int]) -> tuple[str | None, str | None]:
+    """Feed the budget watch one tick (:class:`~vtube_fleet.fleet.budget.BudgetWatch`): the
+    gap since the previous tick, the ages of the positions used (:func:`used_ages`), lost
+    vehicles' ages dropped
+    (``forgotten``: the rows already dropped); once a second judge L (worst uplink latency) and
+    σ (``accuracy_m(rows in the tube)``). Does nothing while no vehicle is in the tube.
+    Returns ``(warning, hold)``."""
+    ph = tab.phase
+    if not (ph == _IN_TUBE).any():
+        return None, None
+    rows, ages = used_ages(tab, result)
+    watch.add_tick_gap(tick_gap_s)
+    watch.add_ages(result.t_s, ages, rows, tab.sample_s[rows])
+    lost = set(np.flatnonzero(ph == _LOST).tolist()) - forgotten
+    if lost:
+        watch.forget(sorted(lost))
+        forgotten |= lost
+    if not watch.due(result.t_s):
+        return None, None
+    lat = result.links.latency_s
+    up = float(np.nanmax(lat)) if np.isfinite(lat).any() else 0.0
+    acc = accuracy_m(np.flatnonzero(ph == _IN_TUBE))
+    return watch.check(result.t_s, max(up, 0.0), acc, tab.sample_s.copy())
+
+
+# ----------------------------------------------------------------------------------------------
+# the control clock
+# ----------------------------------------------------------------------------------------------
+class ControlClock:
+    """Calls ``step(now_mono, now_wall, listening_since)`` every ``period_s`` until stopped
+    (supervisor and agents alike). A tick more than a period late is not caught up.
+
+    A gap of more than 2 T + 0.1 s between two ticks is a stall of our own loop:
+    :attr:`listening_since` becomes the time it resumed (the links' backlog is not the vehicles'
+    silence) and ``on_stall(gap_s)`` is told. The cyclic garbage collector waits while a tick
+    runs (the setpoints go out first). ``guard(exc)``: a tick that raised (a bug must not leave
+    vehicles without setpoints silently); ``after()``: called after each tick (it may return an
+    awaitable, which the clock awaits: fault injection in tests). Keeps every tick's start
+    (loop time), lateness, duration and the gap to the previous one."""
+
+    def __init__(self, period_s: float, step: Callable[[float, float, float | None], Any], *,
+                 wall_clock: Callable[[], float] = time.time,
+                 on_stall: Callable[[float], None] | None = None,
+                 guard: Callable[[Exception], None] | None = None,
+                 after: Callable[[], Awaitable[None] | None] | None = None) -> None:
+        self.period_s = float(period_s)
+        self.step = step
+        self.wall_clock = wall_clock
+        self.on_stall = on_stall
+        self.guard = guard
+        self.after = after
+        self.listening_since: float | None = None
+        self.ticks = 0
+        self.starts_s: list[float] = []
+        self.lateness_s: list[float] = []
+        self.durations_s: list[float] = []
+        self.gaps_s: list[float] = []
+        self.recent_gap_s = 0.0  # the longest gap since :meth:`take_recent_gap`
+
+    def take_recent_gap(self) -> float:
+        """The longest gap between two ticks since the last call (the budget watch's)."""
+        gap, self.recent_gap_s = self.recent_gap_s, 0.0
+        return gap
+
+    async def run(self, stop: asyncio.Event) -> None:
+        loop = asyncio.get_running_loop()
+        period = self.period_s
+        next_t = loop.time()
+        prev: float | None = None
+        while not stop.is_set():
+            start = loop.time()
+            self.starts_s.append(start)
+            self.lateness_s.append(start - next_t)
+            if prev is not None:
+                gap = start - prev
+                self.gaps_s.append(gap)
+                self.recent_gap_s = max(self.recent_gap_s, gap)
+                if gap > 2.0 * period + 0.1:
+                    self.listening_since = time.monotonic()
+                    if self.on_stall is not None:
+                        self.on_stall(gap)
+            prev = start
+            t0 = time.perf_counter()
+            collecting = gc.isenabled()
+            gc.disable()  # the cyclic collector waits until the setpoints are out
+            try:
+                self.step(time.monotonic(), self.wall_clock(), self.listening_since)
+            except Exception as exc:
+                if self.guard is None:
+                    raise
+                self.guard(exc)
+            finally:
+                if collecting:
+                    gc.enable()
+            self.durations_s.append(time.perf_counter() - t0)
+            if self.after is not None:
+                pending = self.after()
+                if inspect.isawaitable(pending):
+                    await pending
+            self.ticks += 1
+            next_t += period
+            now = loop.time()
+            if next_t < now - period:  # more than a period behind: do not try to catch up
+                next_t = now
+            delay = next_t - now
+            if delay > 0:
+                try:
+                    async with asyncio.timeout(delay):
+                        await stop.wait()
+                except TimeoutError:
+                    pass
+            else:
+                await asyncio.sleep(0)
