@@ -53,7 +53,7 @@ ROBOTARIUM = ROOT / "configs" / "robotarium.toml"
 #: (and create its output folder), never fly the built-in mock
 DEAD_ENDPOINT = "udpin://127.0.0.1:9"
 #: the commands of this issue (check / sim have their own tests)
-COMMANDS = ("run", "mock-fleet", "sitl-homes", "review", "agent", "mission")
+COMMANDS = ("run", "mock-fleet", "sitl-homes", "sitl", "review", "agent", "mission")
 
 
 # ----------------------------------------------------------------------------------------------
