@@ -419,6 +419,7 @@ def test_scenario_apex_distance_keys(tmp_path):
 def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
     """`check MISSION` (issue 11 item 3): the budget's r_s', r_a', the fleet's partition."""
     from missions import MOCK_FLEET
+
     from vtube_fleet.check import check_file
     from vtube_fleet.cli import main
     from vtube_fleet.config.mission import load_mission
@@ -457,6 +458,7 @@ def test_check_mission_with_auto_apex_flies_the_fleet_partition(tmp_path):
     """A mission with "auto" apex distances: check prints the partition the fleet builds
     (the same planner input in every process: the start slots)."""
     from missions import MISSION_TABLE, NARROWING, write_mission
+
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.agent import FlightPlan
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
@@ -537,6 +539,7 @@ def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
     before) puts the middle slot 1.4 m from the side tube it would fly, and the mission was
     refused; the plan must keep every slot flyable."""
     from missions import MISSION_TABLE, write_mission
+
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.agent import FlightPlan
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
