@@ -304,6 +304,10 @@ def test_options_that_do_not_go_together(tmp_path: Path,
         assert main([*argv, "--out", str(tmp_path / "o"), "-q"] if argv[0] == "run"
                     else [*argv, "--out", str(tmp_path / "o")]) == 2
         assert want in one_error_line(capsys.readouterr().err)
+    assert main(["sitl", str(mission), "--command", STUB, "--api-port", "20000",
+                 "--vehicle-port", "20002", "--out", str(tmp_path / "o")]) == 2
+    assert ("--command: instances 0 and 2 would both use port 20002" in
+            one_error_line(capsys.readouterr().err))
     with pytest.raises(SystemExit) as info:  # sitl needs a simulator
         main(["sitl", str(mission)])
     assert info.value.code == 2

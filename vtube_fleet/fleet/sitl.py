@@ -262,10 +262,6 @@ class SitlInstance:
     def pid(self) -> int | None:
         return None if self.process is None else self.process.pid
 
-    @property
-    def running(self) -> bool:
-        return self.process is not None and self.process.returncode is None
-
     def endpoint(self, host: str) -> str:
         return f"udpin://{host}:{self.api_port}"
 
@@ -295,6 +291,16 @@ class SitlFleet:
         if top > 65535:
             raise SitlError(f"{self.count} instances from port {command.api_port_base}: "
                             f"instance {self.count - 1} would need port {top} > 65535")
+        seen: dict[int, int] = {}
+        for i in range(self.count):
+            for port in command.ports(i):
+                if port in seen:
+                    raise SitlError(f"{command.option}: instances {seen[port]} and {i} would "
+                                    f"both use port {port} (API ports from "
+                                    f"{command.api_port_base}, bound ports from "
+                                    f"{', '.join(map(str, command.bind_ports))}: keep them "
+                                    f"{self.count} apart)")
+                seen[port] = i
         self.out_dir = Path(out_dir)
         self.host = host
         self.answer_timeout_s = answer_timeout_s
