@@ -42,6 +42,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--count", type=int, default=None, help="number of vehicles (default 1)")
     ap.add_argument(
+        "--first",
+        type=int,
+        default=0,
+        metavar="I",
+        help="the first PX4 instance: vehicle k is instance I+k, with that instance's ports "
+        "and sysid I+k+1, as `px4 -i I+k` (default 0; one process per instance: --first I "
+        "alone)",
+    )
+    ap.add_argument(
         "--home",
         default=None,
         help="LAT,LON,ALT start point of every vehicle "
@@ -198,6 +207,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             count = len(homes) if homes is not None else 1
         if count < 1:
             raise SimStubError(f"--count must be >= 1, got {count}")
+        if args.first < 0:
+            raise SimStubError(f"--first must be >= 0, got {args.first}")
+        if args.first and args.processes > 1:
+            raise SimStubError("--first with --processes > 1: the processes number their "
+                               "vehicles from 0; start one process per --first instead")
         if not 1 <= args.processes <= count:
             raise SimStubError(f"--processes must be in 1..{count} (the vehicle count), got "
                                f"{args.processes}")
@@ -220,7 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             tick_hz=args.tick_hz,
         )
         fleet = (ProcessFleet(count, processes=args.processes, **kwargs) if args.processes > 1
-                 else MockFleet(count, **kwargs))
+                 else MockFleet(count, first=args.first, **kwargs))
         asyncio.run(_run(fleet, args.profile, args.estimator))
     except SimStubError as exc:
         print(f"error: {exc}", file=sys.stderr)

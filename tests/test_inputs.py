@@ -53,7 +53,7 @@ ROBOTARIUM = ROOT / "configs" / "robotarium.toml"
 #: (and create its output folder), never fly the built-in mock
 DEAD_ENDPOINT = "udpin://127.0.0.1:9"
 #: the commands of this issue (check / sim have their own tests)
-COMMANDS = ("run", "mock-fleet", "sitl-homes", "review", "agent", "mission")
+COMMANDS = ("run", "mock-fleet", "sitl-homes", "sitl", "review", "agent", "mission")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -637,7 +637,7 @@ def test_the_scenario_bounds_themselves_are_accepted() -> None:
 def test_check_and_sim_help_show_the_bounds(capsys: pytest.CaptureFixture[str]) -> None:
     for cmd, want in (("sim", "time step in seconds (default: [sim].dt of the config) "
                               "[s, [1e-06, 1]]"),
-                      ("check", "(default 0.29: what PX4 SITL reports; RTK: ~0.02) [m, [0, 100]]")):
+                      ("check", "(default 0.3: what PX4 SITL reports; RTK: ~0.02) [m, [0, 100]]")):
         with pytest.raises(SystemExit):
             main([cmd, "--help"])
         assert want in " ".join(capsys.readouterr().out.split())

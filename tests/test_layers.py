@@ -2,8 +2,11 @@
 
 * ``vtube_fleet.core`` is the paper's math: pure numpy, no I/O, no concurrency, no transports;
 * nothing outside ``vtube_fleet.cli`` imports from ``vtube_fleet.cli``;
-* ``sim_stub`` (the mock PX4) does not import ``vtube_fleet``, and ``vtube_fleet`` imports
-  ``sim_stub`` only where it starts the built-in mock fleet (``fleet/launch.py``).
+* ``sim_stub`` (the mock PX4) does not import ``vtube_fleet``, and ``vtube_fleet`` starts
+  ``sim_stub`` only where it starts the built-in mock fleet (``fleet/launch.py``): neither by
+  importing it nor by running it as a process (``python -m sim_stub``: a string naming the
+  module to run). The SITL launcher (``fleet/sitl.py``) starts whatever command it is given;
+  the tests give it ``python -m sim_stub``, the library never does.
 
 Every import statement counts, also those inside functions and ``TYPE_CHECKING`` blocks.
 """
@@ -11,6 +14,7 @@ Every import statement counts, also those inside functions and ``TYPE_CHECKING``
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -150,6 +154,39 @@ def test_only_the_launcher_starts_the_mock() -> None:
         bad += [f"{_rel(path)}:{line} imports {mod}" for line, mod in _imports(path)
                 if mod.split(".")[0] == "sim_stub"]
     assert not bad, "\n".join(bad)
+
+
+def _runs_sim_stub(path: Path) -> list[tuple[int, str]]:
+    """(line, text) of every string in ``path`` that names sim_stub as a module to run
+    (``"sim_stub"`` alone, as an argv item, or ``-m sim_stub`` in a command line); docstrings
+    do not count."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    docs = set()
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(body, list) and body and isinstance(body[0], ast.Expr) \
+                and isinstance(body[0].value, ast.Constant):
+            docs.add(id(body[0].value))
+    return [(node.lineno, node.value) for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str)
+            and id(node) not in docs
+            and (node.value.strip() == "sim_stub"
+                 or re.search(r"-m\s+sim_stub\b", node.value))]
+
+
+def test_only_the_launcher_runs_the_mock_as_a_process() -> None:
+    bad = [f"{_rel(path)}:{line} runs {text!r}" for path in _files(PACKAGE)
+           if _rel(path) not in SIM_STUB_IMPORTERS for line, text in _runs_sim_stub(path)]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_process_rule_sees_a_command_line(tmp_path: Path) -> None:
+    f = tmp_path / "probe.py"
+    f.write_text('"""Starts python -m sim_stub (a docstring: fine)."""\n'
+                 'ARGV = [sys.executable, "-m", "sim_stub", "--count", "2"]\n'
+                 'CMD = f"{sys.executable} -m sim_stub --first {i}"\n'
+                 'HELP = "the sim_stub mock"\n')
+    assert [line for line, _ in _runs_sim_stub(f)] == [2, 3]
 
 
 def test_the_checker_sees_a_violation(tmp_path: Path) -> None:

@@ -418,7 +418,8 @@ def test_scenario_apex_distance_keys(tmp_path):
 
 def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
     """`check MISSION` (issue 11 item 3): the budget's r_s', r_a', the fleet's partition."""
-    from tests.missions import MOCK_FLEET
+    from missions import MOCK_FLEET
+
     from vtube_fleet.check import check_file
     from vtube_fleet.cli import main
     from vtube_fleet.config.mission import load_mission
@@ -440,9 +441,10 @@ def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
     assert main(["check", str(MOCK_FLEET)]) == 0
     out = capsys.readouterr().out
     assert "mission: 12 vehicles at 20 Hz; safety budget δ = " in out
-    assert "flown: r_s' = " in out and out.rstrip().endswith("valid")
-    # by default σ is what PX4 SITL (and the built-in mock) report, so check predicts run
-    assert "σ = 0.29 m (default: what PX4 SITL reports" in out
+    assert "flown: r_s' = " in out and "\nvalid\nmargin: valid up to L ≤ " in out
+    # by default L and σ are what real PX4 SITL measured, so check predicts run
+    assert "σ = 0.3 m (default: what PX4 SITL reports" in out
+    assert "measured latency 0.124 s (default: what PX4 SITL measures" in out
     # a link the budget refuses (L > max_latency_s)
     assert main(["check", str(MOCK_FLEET), "--latency-s", "0.5"]) == 2
     out = capsys.readouterr().out
@@ -455,7 +457,8 @@ def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
 def test_check_mission_with_auto_apex_flies_the_fleet_partition(tmp_path):
     """A mission with "auto" apex distances: check prints the partition the fleet builds
     (the same planner input in every process: the start slots)."""
-    from tests.missions import MISSION_TABLE, NARROWING, write_mission
+    from missions import MISSION_TABLE, NARROWING, write_mission
+
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
     from vtube_fleet.fleet.plan import FlightPlan
@@ -465,7 +468,7 @@ def test_check_mission_with_auto_apex_flies_the_fleet_partition(tmp_path):
     text = text.replace("positions = [[2.0, 0.0], [2.0, 2.5]]",
                         "positions = [[2.0, -2.5], [2.0, 2.5]]")
     mission = write_mission(tmp_path, text + MISSION_TABLE)
-    rep = check_file(tmp_path / "mission.toml", accuracy_m=0.0)  # (RTK-like: this small tube)
+    rep = check_file(tmp_path / "mission.toml", latency_s=0.0, accuracy_m=0.0)  # (RTK-like)
     assert rep.partition is not None and rep.partition.apex is not None, rep.violations
     flown = mission_budget(mission, LinkMeasurement(0.0, 0.0, 0.0)).inflate(
         mission.scenario.controller)
@@ -535,7 +538,8 @@ def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
     (r_s' ≈ 2 m) the longest triangle for obstacle #1 (h ≈ 12.7 m, what the planner chose
     before) puts the middle slot 1.4 m from the side tube it would fly, and the mission was
     refused; the plan must keep every slot flyable."""
-    from tests.missions import MISSION_TABLE, write_mission
+    from missions import MISSION_TABLE, write_mission
+
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
     from vtube_fleet.fleet.plan import FlightPlan

@@ -8,12 +8,16 @@ the partition it would fly, or why there is none and what would fix it.
   safety budget (:func:`vtube_fleet.fleet.budget.mission_budget`, the one home of δ) and the
   start slots as positions. The budget needs the link latency and the position accuracy the
   vehicles will report; before any vehicle is connected they are the mission's ``latency_s`` /
-  ``position_accuracy_m`` if set, else ``latency_s`` / ``accuracy_m`` given here (defaults: a
-  measured latency of 0 s, to which the mission's ``latency_headroom_s`` is added as in
-  flight, and σ = :data:`~vtube_fleet.fleet.budget.PX4_SITL_ACCURACY_M`, what PX4 SITL and the
-  built-in mock report, so that ``check`` predicts what ``run`` will accept). The
-  partition printed is the one the fleet builds from those radii (the
-  same planner input: the slots); the fleet re-checks with what it measures before arming.
+  ``position_accuracy_m`` if set, else ``latency_s`` / ``accuracy_m`` given here (defaults:
+  what ``run`` measured on real PX4 SITL, :func:`~vtube_fleet.fleet.margin.
+  assumed_measurement`: L = 0.124 s, to which the mission's ``latency_headroom_s`` is added as
+  in flight, and σ = 0.30 m; so that ``check`` predicts what ``run`` will accept there). The
+  verdict is :func:`~vtube_fleet.fleet.margin.slot_violations`, the conditions of the
+  fleet's preflight on the slots. The partition printed is the one the fleet builds from
+  those radii (the same planner input: the slots); the fleet re-checks with what it measures
+  before arming.
+* A mission's **margin** (:func:`~vtube_fleet.fleet.margin.mission_margin`): the largest L and
+  σ with which it still validates, printed after the verdict.
 * When the partition is infeasible, the report names what binds (:func:`~vtube_fleet.core.
   validation.binding_constraints`) and the nearest single changes that fix it
   (:func:`~vtube_fleet.core.validation.nearest_fixes`).
@@ -21,7 +25,6 @@ the partition it would fly, or why there is none and what would fix it.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -66,6 +69,8 @@ class CheckReport:
     #: the obstacles that fail after the first one (:func:`~vtube_fleet.core.validation.
     #: further_failures`), one line each
     further: tuple[str, ...] = ()
+    #: a mission's :class:`~vtube_fleet.fleet.margin.BudgetMargin` (None for a scenario)
+    margin: Any = None
 
     @property
     def ok(self) -> bool:
@@ -74,8 +79,9 @@ class CheckReport:
     def verdict_lines(self) -> list[str]:
         """The verdict: ``valid``, or ``INVALID: …`` with every violation, what binds and the
         fixes."""
+        margin = [] if self.margin is None else self.margin.lines()
         if self.ok:
-            return ["valid"]
+            return ["valid", *margin]
         n = len(self.violations)
         out = [f"INVALID: {n} violation{'s' if n != 1 else ''}:"]
         out += [f"  [{v.condition}] {v.message}" for v in self.violations]
@@ -94,7 +100,7 @@ class CheckReport:
         elif self.fixes_searched:
             out.append("nearest fixes: none found by changing k_t, r_a, the apex distances or "
                        "the binding obstacle's position alone")
-        return out
+        return out + margin
 
 
 def _pt(p: np.ndarray) -> str:
@@ -174,26 +180,19 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
         return _check(sc, "scenario", sc.controller, sc.robots.control_points(), None, [],
                       fixes, 0.0)
     from vtube_fleet.config.mission import load_mission
-    from vtube_fleet.fleet.budget import (
-        PX4_SITL_ACCURACY_M,
-        LinkMeasurement,
-        budget_problems,
-        mission_budget,
-    )
+    from vtube_fleet.fleet.margin import assumed_measurement, mission_margin, slot_violations
 
     mission = load_mission(path)
     sc = mission.scenario
-    measured = LinkMeasurement(
-        position_age_s=0.0 if latency_s is None else float(latency_s), setpoint_delay_s=0.0,
-        accuracy_m=PX4_SITL_ACCURACY_M if accuracy_m is None else float(accuracy_m))
-    budget = mission_budget(mission, measured)
-    flown = budget.inflate(sc.controller)
+    measured = assumed_measurement(latency_s, accuracy_m)
+    budget, flown, part, violations = slot_violations(mission, measured)
     cfg = mission.config
     assumed = []
     if cfg.latency_s is None:
         assumed.append(f"measured latency {measured.latency_s:g} s"
-                       + (" (--latency-s)" if latency_s is not None else " (default; "
-                          "--latency-s)") + f" + latency_headroom_s {cfg.latency_headroom_s:g} s")
+                       + (" (--latency-s)" if latency_s is not None else " (default: what "
+                          "PX4 SITL measures; --latency-s)")
+                       + f" + latency_headroom_s {cfg.latency_headroom_s:g} s")
     if cfg.position_accuracy_m is None:
         assumed.append(f"σ = {measured.accuracy_m:g} m"
                        + (" (--accuracy-m)" if accuracy_m is not None else
@@ -204,32 +203,21 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
            + (f"; assumed {', '.join(assumed)}" if assumed else ""),
            f"flown: r_s' = {flown.r_s:.3f} m, r_a' = {flown.r_a:.3f} m (the partition below "
            f"is built with these, as the fleet builds it)"]
-    extra = [Violation("Budget", f"Budget refused: {p}")
-             for p in budget_problems(mission, measured)]
     return _check(sc, "mission", flown, mission.slots, budget, pre, fixes, budget.delta_m,
-                  extra)
+                  found=(part, violations), margin=mission_margin(mission, measured))
 
 
 def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarray,
-           budget: Any, pre: list[str], want_fixes: bool, delta_m: float,
-           extra: list[Violation] | None = None) -> CheckReport:
+           budget: Any, pre: list[str], want_fixes: bool, delta_m: float, *,
+           found: tuple[Partition | None, list[Violation]] | None = None,
+           margin: Any = None) -> CheckReport:
     """``flown``: the parameters the checks use, with the flown radii r_s', r_a' (a mission's
-    inflated by the safety budget; a scenario's are its own)."""
-    part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions)
-    if kind == "mission":  # checked with the flown radii: say r_s', r_a' (r_s is physical)
-        violations = [dataclasses.replace(v, message=flown_symbols(v.message))
-                      for v in violations]
-    violations = list(extra or []) + violations
-    if kind == "mission" and part is not None:
-        from vtube_fleet.fleet.plan import FlightPlan
-
-        plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
-        for i, k, d in plan.lookahead_conflicts(positions):
-            violations.append(Violation("Assumption1", (
-                f"Assumption1 violated: slot {i} at {_pt(positions[i])} is in the look-ahead "
-                f"zone of an apex: it would fly {part.sub_tubes[k].name} with {d:.2f} m to its "
-                f"legs ≤ r_s' = {flown.r_s:.2f} m (move the slot upstream or the obstacle "
-                f"downstream)")))
+    inflated by the safety budget; a scenario's are its own); ``found``: a mission's
+    (partition, violations) from :func:`~vtube_fleet.fleet.margin.slot_violations`."""
+    if found is None:
+        part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions)
+    else:
+        part, violations = found[0], list(found[1])
     lines = [f"{sc.source}:"] + [f"  {x}" for x in _header(sc, sc.controller) + pre]
     if part is not None:
         lines += [f"  {x}" for x in describe_partition(sc, part)]
@@ -249,4 +237,4 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
             fixes = nearest_fixes(sc.tube, sc.obstacles, flown, positions, r_offset_m=delta_m)
     return CheckReport(sc.source, kind, sc, flown, part, tuple(violations), tuple(lines),
                        budget, tuple(binding), tuple(fixes), partition_bad and want_fixes,
-                       tuple(further))
+                       tuple(further), margin)

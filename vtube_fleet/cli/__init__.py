@@ -26,6 +26,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "vtube_fleet.cli.run",
     "vtube_fleet.cli.mock_fleet",
     "vtube_fleet.cli.sitl_homes",
+    "vtube_fleet.cli.sitl",
     "vtube_fleet.cli.review",
     "vtube_fleet.cli.agent",
     "vtube_fleet.cli.mission",

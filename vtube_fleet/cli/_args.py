@@ -14,6 +14,14 @@ from typing import Any, NoReturn
 
 from vtube_fleet.config.keys import POSITIVE, Bound, Key
 from vtube_fleet.fleet.distributed.coordinator import DEFAULT_BROKER
+from vtube_fleet.fleet.sitl import (
+    DEFAULT_ANSWER_TIMEOUT_S,
+    DEFAULT_PX4_MODEL,
+    InstanceCommand,
+    SitlError,
+    command_template,
+    px4_command,
+)
 from vtube_fleet.recording.api import Recorder, RecordingError
 from vtube_fleet.recording.layout import (
     DEFAULT_CONNECT_URL,
@@ -33,6 +41,8 @@ __all__ = [
     "OptionType",
     "add_bus_args",
     "add_fence_arg",
+    "add_sitl_args",
+    "sitl_command_from_args",
     "annotate_help",
     "declared_options",
     "options_table",
@@ -174,6 +184,65 @@ def add_fence_arg(parser: argparse.ArgumentParser) -> None:
         help="do not upload the tube as the vehicles' PX4 geofence (for setups that forbid "
         "it; a warning says so; docs/fleet.md)",
     )
+
+
+def add_sitl_args(parser: argparse.ArgumentParser, *, binary: str, prefix: str,
+                  required: bool) -> None:
+    """The options that start a SITL fleet (``fleet/sitl.py``): ``binary`` (``--px4`` for
+    ``sitl``, ``--sitl`` for ``run``) or ``--{prefix}command``, and ``--{prefix}model``,
+    ``--{prefix}api-port``, ``--{prefix}vehicle-port``, ``--{prefix}timeout``."""
+    g = parser.add_argument_group("SITL fleet (docs/sitl.md)")
+    which = g.add_mutually_exclusive_group(required=required)
+    which.add_argument(
+        binary, dest="sitl_px4", type=Path, default=None, metavar="PATH/TO/px4",
+        help="start one PX4 SITL instance per slot with this binary (PX4-Autopilot/build/"
+        "px4_sitl_default/bin/px4): instance i in slot i, API port 14540+i")
+    which.add_argument(
+        f"--{prefix}command", dest="sitl_command", default=None, metavar="'PROG ARGS…'",
+        help="start instance i with this command instead of PX4 (split like a shell would; "
+        "placeholders {instance}, {sysid}, {home_lat}, {home_lon}, {home_alt}, {api_port}, "
+        "{api_port_base}, {vehicle_port}, {vehicle_port_base}, {workdir}; PX4_HOME_* are set "
+        "too)")
+    g.add_argument(f"--{prefix}model", dest="sitl_model", default=None, metavar="NAME",
+                   help=f"PX4_SIM_MODEL of the PX4 instances (default {DEFAULT_PX4_MODEL}: the "
+                        f"SIH quadrotor, no Gazebo)")
+    g.add_argument(f"--{prefix}api-port", dest="sitl_api_port", type=bounded(PORT),
+                   default=None, metavar="N",
+                   help="with the command: instance i's API link is N+i on our side (default "
+                        "14540, PX4's)")
+    g.add_argument(f"--{prefix}vehicle-port", dest="sitl_vehicle_port", type=bounded(PORT),
+                   default=None, metavar="N",
+                   help="with the command: instance i binds N+i itself (default 14580, PX4's)")
+    g.add_argument(f"--{prefix}timeout", dest="sitl_timeout_s", type=bounded(DURATION),
+                   default=DEFAULT_ANSWER_TIMEOUT_S, metavar="S",
+                   help="every instance must answer (a MAVLink HEARTBEAT on its API port) "
+                        f"within S seconds of its start (default {DEFAULT_ANSWER_TIMEOUT_S:g})")
+    parser.set_defaults(sitl_options=(binary, f"--{prefix}"))
+
+
+def sitl_command_from_args(args: argparse.Namespace) -> InstanceCommand | None:
+    """The instance command the options of :func:`add_sitl_args` ask for, or None."""
+    binary, pre = getattr(args, "sitl_options", ("--px4", "--"))
+    if args.sitl_px4 is not None:
+        for opt, value in (("api-port", args.sitl_api_port),
+                           ("vehicle-port", args.sitl_vehicle_port)):
+            if value is not None:
+                raise SitlError(f"{pre}{opt} goes with {pre}command: PX4 SITL instance i "
+                                f"always uses 14540+i and 14580+i")
+        return px4_command(args.sitl_px4, args.sitl_model or DEFAULT_PX4_MODEL)
+    if args.sitl_command is not None:
+        if args.sitl_model is not None:
+            raise SitlError(f"{pre}model goes with {binary} (PX4_SIM_MODEL); give the command "
+                            f"its model itself")
+        return command_template(args.sitl_command, api_port_base=args.sitl_api_port,
+                                vehicle_port_base=args.sitl_vehicle_port,
+                                option=f"{pre}command")
+    for opt, value in (("model", args.sitl_model), ("api-port", args.sitl_api_port),
+                       ("vehicle-port", args.sitl_vehicle_port)):
+        if value is not None:
+            raise SitlError(f"{pre}{opt} without {binary} or {pre}command: no SITL fleet to "
+                            f"start")
+    return None
 
 
 def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int | None = None

@@ -8,7 +8,7 @@ from typing import Any
 
 from vtube_fleet.cli._args import bounded
 from vtube_fleet.config.keys import Bound, Key
-from vtube_fleet.fleet.budget import PX4_SITL_ACCURACY_M
+from vtube_fleet.fleet.budget import PX4_SITL_ACCURACY_M, PX4_SITL_LATENCY_S
 
 __all__ = [
     "ACCURACY_M",
@@ -49,14 +49,17 @@ def register(subparsers: Any) -> None:
         help="validate a scenario or a mission and print its partition",
         description="Validate a scenario or mission TOML against the paper's conditions and "
         "print the partition into sub-tubes (exit 0 if valid, 2 otherwise). A mission is "
-        "checked with the flown radii r_s', r_a' of its safety budget. When no partition "
+        "checked with the flown radii r_s', r_a' of its safety budget, and its margin is "
+        "printed: the largest link latency L and accuracy σ it still validates with. When no "
+        "partition "
         "exists, the binding constraints and the nearest single changes that fix it are "
         "printed.",
     )
     p.add_argument("config", help="scenario or mission TOML file (docs/config.md)")
     p.add_argument("--latency-s", type=bounded(LATENCY_S), default=None, metavar="S",
                    help="missions: the link latency the vehicles would measure (position age "
-                        "+ setpoint delay; default 0, plus the mission's latency_headroom_s)")
+                        f"+ setpoint delay; default {PX4_SITL_LATENCY_S:g}: what PX4 SITL "
+                        "measures; the mission's latency_headroom_s is added)")
     p.add_argument("--accuracy-m", type=bounded(ACCURACY_M), default=None, metavar="M",
                    help="missions: the position accuracy σ the vehicles would report "
                         f"(default {PX4_SITL_ACCURACY_M:g}: what PX4 SITL reports; RTK: ~0.02)")

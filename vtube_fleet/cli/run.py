@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -13,12 +14,20 @@ from vtube_fleet.cli._args import (
     SEED,
     add_fence_arg,
     add_recording_args,
+    add_sitl_args,
     bounded,
     recorder_from_args,
+    sitl_command_from_args,
 )
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
-from vtube_fleet.fleet.launch import BACKENDS, fleet_supervisor, parse_endpoint_list
+from vtube_fleet.fleet.launch import (
+    BACKENDS,
+    FleetCliError,
+    fleet_supervisor,
+    parse_endpoint_list,
+)
+from vtube_fleet.fleet.sitl import SitlFleet, instance_lines, sitl_fleet
 from vtube_fleet.fleet.supervisor import FleetResult
 
 __all__ = ["register"]
@@ -28,6 +37,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from vtube_fleet.fleet.view import FleetView
 
     mission = load_mission(args.mission)
+    sitl = sitl_command_from_args(args)
+    if sitl is not None and args.endpoints is not None:
+        raise FleetCliError(f"{args.sitl_options[0] if args.sitl_px4 else '--sitl-command'} "
+                            f"and --endpoints: give one (the SITL fleet's endpoints are its "
+                            f"own)")
     endpoints = None
     if args.endpoints is not None:  # only its absence means "the built-in mock fleet"
         endpoints = parse_endpoint_list(args.endpoints, mission.count)
@@ -40,22 +54,40 @@ def _cmd_run(args: argparse.Namespace) -> int:
     view = FleetView(enabled=not args.quiet)
     mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale,
                    "estimator": args.mock_estimator, "seed": args.mock_seed}
-    # the built-in mock always has its ground truth: judge by it too
-    truth = args.truth or endpoints is None
+    # the built-in mock and SITL always have their ground truth: judge by it too
+    truth = args.truth or endpoints is None or sitl is not None
+    holder: list[SitlFleet] = []
+
+    def started(fleet: SitlFleet) -> None:
+        print(f"sitl: {fleet.count} {fleet.command.name} instances under {fleet.out_dir}:",
+              file=sys.stderr, flush=True)
+        for line in instance_lines(fleet):
+            print(line, file=sys.stderr, flush=True)
 
     async def main() -> FleetResult:
-        async with fleet_supervisor(mission, backend=args.backend, endpoints=endpoints,
-                                    out_dir=out, recorder=recorder, view=view,
-                                    mock_kwargs=mock_kwargs, truth=truth,
-                                    fence=not args.no_fence,
-                                    fix_params=args.fix_params) as sup:
+        async with contextlib.AsyncExitStack() as stack:
+            links, sysids = endpoints, None
+            if sitl is not None:  # stopped when the stack closes, on every exit path
+                fleet = await stack.enter_async_context(sitl_fleet(
+                    mission, sitl, out / "sitl", answer_timeout_s=args.sitl_timeout_s,
+                    on_start=started, holder=holder))
+                links, sysids = fleet.endpoints, fleet.sysids
+                print(f"sitl: every instance answers: {','.join(links)}", file=sys.stderr,
+                      flush=True)
+            sup = await stack.enter_async_context(fleet_supervisor(
+                mission, backend=args.backend, endpoints=links, sysids=sysids, out_dir=out,
+                recorder=recorder, view=view, mock_kwargs=mock_kwargs, truth=truth,
+                fence=not args.no_fence, fix_params=args.fix_params))
             with interrupt_on_signals(sup.interrupt):
                 return await sup.run()
+        raise AssertionError("unreachable")  # (the stack does not swallow exceptions)
 
     try:
         result = asyncio.run(main())
     finally:
         recorder.close()
+        for fleet in holder:  # the last resort if the event loop died before the stop
+            fleet.kill_now()
     print(_closing_line(result, out), file=sys.stderr)
     if result.exit_code not in (0, 130) and result.reason:
         red = "\x1b[31m" if sys.stderr.isatty() else ""
@@ -98,7 +130,9 @@ def register(subparsers: Any) -> None:
         "run", help="fly a mission with PX4 vehicles (or the built-in mock fleet)",
         description="Fly MISSION.toml: connect, preflight, arm, take off, fly the tube in "
                     "offboard, land. Endpoint i flies slot i. Without --endpoints a sim_stub "
-                    "mock fleet is started in-process in the mission's slots.")
+                    "mock fleet is started in-process in the mission's slots; with --sitl "
+                    "PATH/TO/px4 one PX4 SITL instance per slot is started first (as `vtube-"
+                    "fleet sitl` does) and stopped afterwards.")
     p.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
     p.add_argument("--backend", choices=BACKENDS, default="mavlink",
                    help="vehicle link backend (default: mavlink)")
@@ -122,6 +156,7 @@ def register(subparsers: Any) -> None:
                    help="ask every vehicle for its SITL ground truth (HIL_STATE_QUATERNION; "
                         "PX4 SITL and the mock send it) and judge the clearance truly flown "
                         "too (truth_* summary keys); always on for the built-in mock")
+    add_sitl_args(p, binary="--sitl", prefix="sitl-", required=False)
     add_fence_arg(p)
     p.add_argument("--fix-params", action="store_true",
                    help="set the PX4 parameters the audit finds off (MPC_XY_VEL_MAX, "

@@ -33,6 +33,7 @@ __all__ = [
     "mock_fleet",
     "parse_endpoint_list",
     "sitl_home_lines",
+    "sitl_homes",
     "slot_count",
 ]
 
@@ -66,13 +67,20 @@ def slot_count(mission: Mission, count: int | None) -> int:
     return n
 
 
-def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
-    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1
-    (:func:`slot_count`)."""
+def sitl_homes(mission: Mission, count: int | None = None) -> list[dict[str, str]]:
+    """The ``PX4_HOME_LAT`` / ``_LON`` / ``_ALT`` environment of PX4 SITL instances
+    0..count-1 (:func:`slot_count`), so that instance i starts in slot i."""
     n = slot_count(mission, count)
     geo = mission.slot_geodetic()
-    return [f"{i} PX4_HOME_LAT={geo[i, 0]:.7f} PX4_HOME_LON={geo[i, 1]:.7f} "
-            f"PX4_HOME_ALT={geo[i, 2]:.2f}" for i in range(n)]
+    return [{"PX4_HOME_LAT": f"{geo[i, 0]:.7f}", "PX4_HOME_LON": f"{geo[i, 1]:.7f}",
+             "PX4_HOME_ALT": f"{geo[i, 2]:.2f}"} for i in range(n)]
+
+
+def sitl_home_lines(mission: Mission, count: int | None = None) -> list[str]:
+    """``I PX4_HOME_LAT=… PX4_HOME_LON=… PX4_HOME_ALT=…`` for slots 0..count-1
+    (:func:`sitl_homes`)."""
+    return [f"{i} " + " ".join(f"{k}={v}" for k, v in env.items())
+            for i, env in enumerate(sitl_homes(mission, count))]
 
 
 def _homes(mission: Mission, count: int) -> list[tuple[float, float, float]]:

@@ -450,7 +450,8 @@ class Supervisor:
             self.pilots, self.mission, on_wait=lambda text: self.event(text, level="warning"))
         self.measured = measured
         if problems:
-            raise PreflightError("preflight failed, nothing armed: " + pre.listed(problems))
+            raise PreflightError("preflight failed, nothing armed: " + pre.listed(problems)
+                                 + await self._margin_note(measured))
         self.budget = mission_budget(self.mission, measured)
         flown = self.budget.inflate(self.physical)
         sc = self.mission.scenario
@@ -478,17 +479,31 @@ class Supervisor:
             raise PreflightError(
                 f"preflight failed, nothing armed ({len(problems)} problem"
                 f"{'s' if len(problems) != 1 else ''}; {acc} → safety budget "
-                f"{self.budget.describe(self.physical)}): " + pre.listed(problems))
+                f"{self.budget.describe(self.physical)}): " + pre.listed(problems)
+                + await self._margin_note(measured))
         plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
         problems = pre.lookahead_problems(plan, positions, "on the ground")
         if problems:
-            raise PreflightError("preflight failed, nothing armed: " + pre.listed(problems))
+            raise PreflightError("preflight failed, nothing armed: " + pre.listed(problems)
+                                 + await self._margin_note(measured))
         self.ticker.set_plan(plan)
         self.recorder.log_scene(self.mission.scenario, plan.partition,
                                 mission=self.mission.config, meta={
             "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
             "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
             "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
+
+    async def _margin_note(self, measured: LinkMeasurement) -> str:
+        """"; " and which measured figure went past the margin ``check`` prints
+        (:func:`~vtube_fleet.fleet.margin.refusal_note`: dozens of validations, so in a worker
+        thread; nothing is armed at this point)."""
+        from vtube_fleet.fleet.margin import refusal_note
+
+        try:
+            return "; " + await asyncio.to_thread(refusal_note, self.mission, measured)
+        except Exception as exc:  # noqa: BLE001 - the refusal itself must not be lost
+            log.warning("cannot compute check's margin: %s", exc)
+            return ""
 
     def _freeze_heap(self) -> None:
         """Before take-off, every object the set-up made (links, pilots, plans: millions at
