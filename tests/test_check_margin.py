@@ -21,7 +21,6 @@ import pytest
 from fleet_ports import free_ports
 from missions import COMPACT_12_PATH, MISSION_TABLE, PX4_SITL_3, write_mission
 from udp_relay import UdpRelay
-from vtube_fleet.fleet.plan import FlightPlan
 
 from vtube_fleet.cli import main
 from vtube_fleet.config.mission import Mission, load_mission
@@ -34,6 +33,7 @@ from vtube_fleet.fleet.budget import (
 )
 from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.margin import margin_note, mission_margin, refusal_note
+from vtube_fleet.fleet.plan import FlightPlan
 from vtube_fleet.fleet.preflight import preflight_report
 
 
