@@ -116,6 +116,15 @@ class CommanderMixin:
         cmd = m.command  # type: ignore[attr-defined]
         handler = _COMMANDS.get(cmd)
         self.commands[cmd] += 1
+        fault = self.faults.mode_fault
+        if fault and cmd == CMD_DO_SET_MODE and px4.mode_from_set_mode(
+                int(p[1]) if math.isfinite(p[1]) else 0,
+                int(p[2]) if math.isfinite(p[2]) else 0) is not _OFFBOARD:
+            self.command_log.append((now - self.t0, cmd, tuple(p), -1 if fault == "drop"
+                                     else MAV_RESULT_DENIED))
+            if fault == "deny":
+                self._ack(cmd, MAV_RESULT_DENIED, ssys, scomp)
+            return  # "drop": no COMMAND_ACK (Faults.mode_fault)
         if handler is None:
             result = MAV_RESULT_UNSUPPORTED
         else:

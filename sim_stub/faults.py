@@ -13,6 +13,8 @@ from .errors import SimStubError
 __all__ = ["Faults", "parse_fault_spec"]
 
 DIE_HOWS = ("silent", "freeze")
+#: ``Faults.mode_fault``: what the vehicle does with a DO_SET_MODE to any mode but OFFBOARD
+MODE_FAULTS = ("", "drop", "deny")
 
 
 @dataclass(frozen=True)
@@ -34,6 +36,10 @@ class Faults:
     the vehicle's start): the vehicle is carried along at that velocity whatever it is told (a
     gust its controller cannot hold against); its estimate moves with it, so nothing on the link
     says why. :meth:`MockVehicle.push` does the same on demand.
+    ``mode_fault``: a DO_SET_MODE to any mode but OFFBOARD (Hold, Position …) is ``"drop"``-ped
+    (no COMMAND_ACK: the link retries, then gives up) or ``"deny"``-ed (COMMAND_ACK DENIED);
+    NAV_LAND and everything else still work (the vehicle that would not hold, seen on real PX4
+    SITL when its acks were lost).
     """
 
     loss_pct: float = 0.0
@@ -45,6 +51,7 @@ class Faults:
     push_east_m_s: float = 0.0
     push_at_s: float | None = None
     push_for_s: float = 1.0
+    mode_fault: str = ""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.loss_pct <= 100.0:
@@ -55,6 +62,9 @@ class Faults:
             raise SimStubError(f"fault gps_noise_m must be >= 0 m, got {self.gps_noise_m}")
         if self.die_at_s is not None and self.die_at_s < 0.0:
             raise SimStubError(f"fault die_at_s must be >= 0 s, got {self.die_at_s}")
+        if self.mode_fault not in MODE_FAULTS:
+            raise SimStubError(f"fault mode_fault must be one of {MODE_FAULTS[1:]}, got "
+                               f"{self.mode_fault!r}")
         if self.die_how not in DIE_HOWS:
             raise SimStubError(f"fault die_how must be one of {DIE_HOWS}, got {self.die_how!r}")
         for name in ("push_north_m_s", "push_east_m_s"):
@@ -86,6 +96,7 @@ _KEYS = {
     "push_east": ("push_east_m_s", float),
     "push_at": ("push_at_s", float),
     "push_for": ("push_for_s", float),
+    "mode_fault": ("mode_fault", str),
 }
 
 
@@ -94,7 +105,7 @@ def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
 
     Example: ``"2:loss=5,latency=0.05,die_at=30,die_how=freeze"``; without ``I:`` it applies to
     every vehicle. Keys: loss (percent), latency (s), gps_noise (m), die_at (s), die_how,
-    push_north / push_east (m/s), push_at (s), push_for (s).
+    push_north / push_east (m/s), push_at (s), push_for (s), mode_fault (drop / deny).
     """
     index: int | None = None
     body = spec.strip()
@@ -115,7 +126,8 @@ def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
         if not eq or key.strip() not in _KEYS:
             raise SimStubError(
                 f"fault spec {spec!r}: expected key=value with key in "
-                f"{sorted(set(k for k in _KEYS if '_' not in k or k == 'die_how'))}, got {item!r}"
+                f"{sorted(set(k for k in _KEYS if '_' not in k or k in ('die_how', 'mode_fault')))}"
+                f", got {item!r}"
             )
         field, conv = _KEYS[key.strip()]
         try:

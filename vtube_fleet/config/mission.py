@@ -71,6 +71,7 @@ class MissionConfig:
     rate_hz: float = 20.0
     after_exit: str = "continue"
     on_complete: str = "land"
+    on_abort: str = "land"
     exit_clear_m: float = 3.0
     climb_speed_m_s: float = 1.0
     max_vertical_speed_m_s: float = 1.0
@@ -161,6 +162,10 @@ MISSION_KEYS: tuple[Key, ...] = (
         "until everyone has exited), `hold` or `land` once `exit_clear_m` past the line",
         default="continue", choices=AFTER_EXIT),
     Key("on_complete", "choice", "when every vehicle has exited: `land` or `hold`",
+        default="land", choices=ON_COMPLETE),
+    Key("on_abort", "choice", "after an abort in the air (budget exceeded, no partition, "
+        "timeout, lost vehicles): `land` (every vehicle holds, then lands in place; the run "
+        "waits for touch-down) or `hold` (left holding for an operator, said in red)",
         default="land", choices=ON_COMPLETE),
     Key("exit_clear_m", "number", "distance flown past the finishing line before `hold` / "
         "`land`", "m", 3.0, bound=NON_NEGATIVE),

@@ -253,29 +253,32 @@ def validate_scenario(
     params: ControllerParams,
     positions: np.ndarray | None = None,
     keep_out: np.ndarray | None = None,
+    part: Partition | None = None,
 ) -> tuple[Partition | None, list[Violation]]:
     """Check a scenario against the paper's conditions (module docstring) before anything
     moves. Returns (the partition, or ``None`` if it could not be built or the parameters are
     unusable; every violation found). ``positions`` (M, 2) are the robots' initial positions
     (``None``: Assumption 1 is not checked). ``keep_out``: the points the planner of
     ``"auto"`` apex distances keeps out of the triangles (default: ``positions``; the fleet
-    passes its start slots so that every process plans the same partition)."""
+    passes its start slots so that every process plans the same partition). ``part``: the
+    partition already built for these parameters (not planned again: the fleet at altitude
+    checks the flown positions against the partition it planned on the ground)."""
     violations = _check_parameters(params)
     sane = not violations
     if all(math.isfinite(float(x)) for x in (params.v, params.v_max_prime, params.v_min,
                                             params.v_max)):
         violations += _check_constraint1(params)
-    part: Partition | None = None
     if sane:
         violations += check_constraint2(tube, params, "Constraint2")
         violations += check_assumption3(tube, params, "Assumption3")
         violations += _check_pothk(obstacles, params)
-        try:
-            part = partition(tube, obstacles, params, strict=False,
-                             keep_out=positions if keep_out is None else keep_out)
-        except PartitionError as e:
-            violations.append(Violation("Partition", f"Partition failed: {e}"))
-        else:
+        if part is None:
+            try:
+                part = partition(tube, obstacles, params, strict=False,
+                                 keep_out=positions if keep_out is None else keep_out)
+            except PartitionError as e:
+                violations.append(Violation("Partition", f"Partition failed: {e}"))
+        if part is not None:
             violations += list(part.warnings)
     if positions is not None:
         p = np.asarray(positions, dtype=float)

@@ -88,6 +88,8 @@ class VehiclePilot:
         self.sent_setpoint = asyncio.Event()
         self.sensed = asyncio.Event()  # the tick has taken a position of this vehicle
         self.reason: str | None = None
+        #: why the last LAND went unanswered (None: acknowledged, or none sent)
+        self.unanswered: str | None = None
         self._phase_waiters: list[asyncio.Future[None]] = []
         self._transition: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -274,19 +276,52 @@ class VehiclePilot:
         self.table.in_transition[self.row] = True
 
     def begin_hold(self, why: str) -> None:
-        """Leave OFFBOARD into Hold (keeps streaming zero velocity until PX4 confirms)."""
+        """Leave OFFBOARD into Hold (keeps streaming zero velocity until PX4 confirms); a Hold
+        that is not acknowledged (after the link's tries) is followed by LAND."""
         if self.phase in (Phase.HOLDING, Phase.LANDING, Phase.LANDED, Phase.LOST):
             return
         self.set_phase(Phase.HOLDING, why)
         self.table.offboard_seen[self.row] = False
-        self._run_transition(self.link.stop_offboard(), "hold")
+        self._run_transition(self._hold_or_land(), "hold")
 
     def begin_land(self, why: str) -> None:
+        """LAND in place (:meth:`land_command`: retried, reported by name if unanswered)."""
         if self.phase in (Phase.LANDING, Phase.LANDED, Phase.LOST):
             return
         self.set_phase(Phase.LANDING, why)
         self.table.offboard_seen[self.row] = False
-        self._run_transition(self.link.land(), "land")
+        self._run_transition(self.land_command(), "land")
+
+    async def _hold_or_land(self) -> None:
+        try:
+            await self.link.stop_offboard()
+        except LinkError as exc:
+            self.event(f"Hold not acknowledged ({exc}): LAND instead", "warning")
+            self.set_phase(Phase.LANDING, "Hold was not acknowledged")
+            await self.land_command()
+
+    #: Rounds of the link's command tries for LAND before the vehicle is reported by name.
+    LAND_ROUNDS = 3
+
+    async def land_command(self) -> bool:
+        """NAV_LAND, up to :attr:`LAND_ROUNDS` rounds of the link's own tries; True once
+        acknowledged. Unanswered, the vehicle is reported by name (an error event) and
+        :attr:`unanswered` says why."""
+        last: Exception | None = None
+        for _ in range(self.LAND_ROUNDS):
+            if self.link.closed:
+                break
+            try:
+                await self.link.land()
+            except LinkError as exc:
+                last = exc
+                continue
+            self.unanswered = None
+            return True
+        self.unanswered = (f"LAND not acknowledged after {self.LAND_ROUNDS} rounds"
+                           + (f" ({last})" if last is not None else " (link closed)"))
+        self.event(self.unanswered, "error")
+        return False
 
     # -- the procedure -------------------------------------------------------------------------
     async def wait_ready(self) -> None:
@@ -363,8 +398,11 @@ class VehiclePilot:
                     self.event(f"hold not confirmed: {exc}", "warning")
 
     async def land(self) -> None:
-        """Land now; waits for the LAND command's acknowledgement (not for touch-down)."""
-        if self.phase in AIRBORNE_PHASES and self.phase != Phase.LANDING:
+        """Land now; waits for the LAND command's acknowledgement (not for touch-down); a
+        landing vehicle whose LAND went unanswered is sent LAND again."""
+        if self.phase == Phase.LANDING and self.unanswered and self._transition is None:
+            await self.land_command()
+        elif self.phase in AIRBORNE_PHASES and self.phase != Phase.LANDING:
             t = self._transition
             if t is not None:
                 await asyncio.shield(t)

@@ -219,9 +219,12 @@ def preflight_report(
     names: Sequence[str],
     *,
     where: str = "on the ground",
+    part: Any = None,
 ) -> tuple[Any, list[str]]:
     """Validate the (inflated) scenario with the vehicles' actual positions; ``flown``: the
-    parameters with the flown radii r_s', r_a' (the plan's ``flown``).
+    parameters with the flown radii r_s', r_a' (the plan's ``flown``); ``part``: the partition
+    planned before (at altitude: only the positions are checked against it, nothing is
+    planned while the vehicles fly).
 
     Returns (partition or None, problems). Each problem is one line naming the vehicles
     (``robot i`` of :func:`vtube_fleet.core.validation.validate_scenario` becomes ``vehicle i
@@ -229,7 +232,8 @@ def preflight_report(
     """
     sc = mission.scenario
     part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions,
-                                         keep_out=mission.slots)  # "auto": plan on the slots
+                                         keep_out=mission.slots,  # "auto": plan on the slots
+                                         part=part)
 
     def one(text: str) -> str:
         i = int(text)
@@ -287,10 +291,11 @@ class Preflight:
                 self.event(text, level="error", echo=False)
         return join_problems(problems)
 
-    async def gather_named(self, what: str, coros: Sequence[Any], limit: int | None = None
-                           ) -> list[str]:
-        """One problem line per pilot whose coroutine failed; ``limit``: at most that many
-        running at once (:func:`~vtube_fleet.fleet.onboard.gather_bounded`)."""
+    async def gather_named(self, what: str, coros: Sequence[Any], limit: int | None = None,
+                           pilots: Sequence[VehiclePilot] | None = None) -> list[str]:
+        """One problem line per pilot whose coroutine failed (``coros[k]`` is ``pilots[k]``'s,
+        default: every pilot's); ``limit``: at most that many running at once
+        (:func:`~vtube_fleet.fleet.onboard.gather_bounded`)."""
         if limit is None:
             results = await asyncio.gather(*coros, return_exceptions=True)
         else:
@@ -298,7 +303,7 @@ class Preflight:
 
             results = await gather_bounded(coros, limit)
         problems = []
-        for p, r in zip(self.pilots, results, strict=True):
+        for p, r in zip(self.pilots if pilots is None else pilots, results, strict=True):
             if isinstance(r, asyncio.CancelledError):
                 raise r
             if isinstance(r, BaseException):

@@ -195,6 +195,11 @@ class Supervisor:
         self.events: list[dict[str, Any]] = []
         self.partitions = 1
         self.not_landed: list[str] = []
+        #: with ``on_abort = "hold"``: the vehicles left holding in the air for an operator
+        self.held_for_operator: list[str] = []
+        #: lost vehicles silent at the end: nothing can be sent to them (PX4's failsafe decides)
+        self.unreachable: list[str] = []
+        self._landing_all = False  # _bring_down runs (a first interrupt does not cancel it)
         self.outcome = "failed"
         self.reason = ""
         self._abort_reason: str | None = None
@@ -465,7 +470,10 @@ class Supervisor:
         if self.truth:
             await pre.request_truth()
         positions = np.array([p.xy for p in self.pilots])
-        part, problems = preflight_report(self.mission, flown, positions, self.names)
+        # the partition is planned here, before the climb ("auto" apex distances: a few
+        # hundred ms), in a worker thread: the control clock keeps ticking meanwhile
+        part, problems = await asyncio.to_thread(preflight_report, self.mission, flown,
+                                                 positions, self.names)
         for i, p in enumerate(self.pilots):
             slot = self.mission.slots[i]
             off = float(np.hypot(*(p.xy - slot)))
@@ -526,8 +534,10 @@ class Supervisor:
                                  f"vehicles: " + self.preflight.listed(problems))
         positions = np.array([p.xy for p in self.pilots])
         where = f"at {self.cfg.altitude_m:g} m"
+        # the positions against the partition planned on the ground: nothing is planned
+        # while the vehicles fly (a plan would stall the loop at the worst moment)
         _, problems = preflight_report(self.mission, self.plan.flown, positions, self.names,
-                                       where=where)
+                                       where=where, part=self.ticker.root.partition)
         problems += self.preflight.lookahead_problems(self.plan, positions, where)
         if problems:
             raise MissionAborted("Assumption 1 broken at altitude: "
@@ -586,15 +596,70 @@ class Supervisor:
 
     async def _emergency(self, why: str) -> None:
         """Everyone holds, then lands (Ctrl-C / SIGTERM)."""
-        self.event(f"{why}: every vehicle holds, then lands", level="warning")
+        self._set_stage("interrupted")
+        await self._bring_down(why)
+
+    async def _bring_down(self, why: str) -> None:
+        """Every airborne vehicle holds (its Hold not acknowledged: LAND at once), then lands
+        in place, and the run waits for touch-down (``land_timeout_s``); a vehicle whose LAND
+        is not acknowledged is sent LAND again (:meth:`VehiclePilot.land`) and reported by
+        name. Holding positions keep the separation the tube flight had (≥ 2 r_s' apart by the
+        controller, minus PX4's braking) and a vertical descent keeps it: all land at once."""
+        self._landing_all = True
+        airborne = [p for p in self.pilots if p.phase in AIRBORNE_PHASES]
+        self.event(f"{why}: every vehicle holds, then lands in place"
+                   + (f" ({len(airborne)} airborne)" if airborne else ""), level="warning")
         for p in self.pilots:
             if p.exit_time_s is None and p.phase in AIRBORNE_PHASES:
                 p.reason = p.reason or f"{why}: held, then landed"
-        self._set_stage("interrupted")
         gather = self.preflight.gather_named
         await gather("hold", [p.hold() for p in self.pilots])
         await gather("land", [p.land() for p in self.pilots])
         await self._wait_landed()
+        await self._land_again()
+
+    async def _land_again(self) -> None:
+        """After the wait for touch-down: a vehicle still in OFFBOARD and airborne, or still
+        landing with its LAND unanswered, is sent LAND again until ``land_timeout_s``; the
+        ones left are reported by name (:attr:`not_landed`). A second interrupt stops this."""
+        cfg = self.cfg
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + cfg.land_timeout_s
+
+        def heard(p: VehiclePilot) -> bool:
+            last = p.link.state.last_packet_s
+            return (not p.link.closed and last is not None
+                    and time.monotonic() - last <= cfg.lost_after_s)
+
+        def stuck() -> list[VehiclePilot]:
+            return [p for p in self.pilots if heard(p) and (
+                _offboard_airborne(p) or (p.phase == Phase.LANDING and p.unanswered))]
+
+        silent = [p.name for p in self.pilots if not heard(p) and p.phase == Phase.LOST
+                  and p.link.state.landed_state != "ON_GROUND"]
+        if silent:
+            self.unreachable = silent
+            self.event(f"{len(silent)} lost vehicle(s) cannot be reached (silent for more than "
+                       f"lost_after_s): PX4's own failsafe decides what they do (COM_OF_LOSS_T, "
+                       f"NAV_DLL_ACT): " + ", ".join(silent), level="error")
+        left = stuck()
+        while left and loop.time() < deadline:
+            self.event(f"{len(left)} vehicle(s) still airborne in OFFBOARD or without an "
+                       f"acknowledged LAND: LAND again: "
+                       + ", ".join(p.name for p in left), level="warning")
+            await self.preflight.gather_named("land", [p.land_command() for p in left],
+                                              pilots=left)
+            # PX4 reports its mode once a second (HEARTBEAT): wait for the reports
+            await asyncio.gather(*(p.link.wait_until(
+                lambda st: not (st.flight_mode == "OFFBOARD" and st.armed is True), 1.5,
+                "a mode other than OFFBOARD") for p in left), return_exceptions=True)
+            left = stuck()
+        if left:
+            names = [p.name + (f" ({p.unanswered})" if p.unanswered else "") for p in left]
+            self.not_landed = sorted(set(self.not_landed) | {p.name for p in left})
+            self.event(f"NOT BROUGHT DOWN: {len(left)} vehicle(s) still airborne after "
+                       f"land_timeout_s = {cfg.land_timeout_s:g} s of LAND: "
+                       + "; ".join(names), level="error")
 
     # -- run -------------------------------------------------------------------------------------
     def interrupt(self, name: str) -> None:
@@ -602,6 +667,10 @@ class Supervisor:
         the outcome is ``interrupted``. A second call stops waiting for touch-down."""
         if self._interrupted is None:
             self._interrupted = name
+            if self._landing_all:  # already bringing every vehicle down: go on
+                self.event(f"{name} received: every vehicle is already being landed; a second "
+                           f"{name} stops waiting for touch-down", level="warning")
+                return
             self.event(f"{name} received", level="warning")
             if self._main is not None:
                 self._main.cancel()
@@ -644,16 +713,17 @@ class Supervisor:
                     await self._main
                 except asyncio.CancelledError:
                     pass
-            except MissionAborted as exc:
-                self.outcome = "aborted"
+                self._say_not_down()
+            except (MissionAborted, UserError) as exc:
+                self.outcome = "aborted" if isinstance(exc, MissionAborted) else "failed"
                 self.reason = str(exc)
                 error = exc
-                await self._after_abort(exc)
-            except UserError as exc:
-                self.outcome = "failed"
-                self.reason = str(exc)
-                error = exc
-                await self._after_abort(exc)
+                self._main = loop.create_task(self._after_abort(exc))
+                try:
+                    await self._main  # a second interrupt stops waiting for touch-down
+                except asyncio.CancelledError:
+                    pass
+                self._say_not_down()
         finally:
             if self._heap_frozen:
                 gc.unfreeze()
@@ -663,6 +733,15 @@ class Supervisor:
         if error is not None or self.outcome == "unsafe":
             self.event(f"{self.outcome}: {self.reason}", level="error")
         return FleetResult(self.outcome, self.reason, summary, path)
+
+    def _say_not_down(self) -> None:
+        """The run's reason names the vehicles not brought down (or left holding)."""
+        if self.not_landed:
+            self.reason += (f"; NOT on the ground: {len(self.not_landed)} vehicle(s): "
+                            + ", ".join(self.not_landed))
+        if self.held_for_operator:
+            self.reason += ("; left holding in the air (on_abort = hold): "
+                            + ", ".join(self.held_for_operator))
 
     def _judge(self) -> None:
         """The verdict (:func:`vtube_fleet.core.metrics.verdict`, the one place that decides):
@@ -676,21 +755,27 @@ class Supervisor:
         self.reason = f"{v.summary_line} (the mission itself ended {before})"
 
     async def _after_abort(self, exc: BaseException) -> None:
-        """After an abort: in-tube vehicles already hold; vehicles still climbing or hovering
-        over their slots (take-off phase) land; a partition failure leaves the others holding.
-        """
+        """After an abort: every vehicle in the air comes down (``on_abort = "land"``, the
+        default: :meth:`_bring_down`), or, with ``on_abort = "hold"``, vehicles still climbing
+        land and the others hold for an operator — said in red, naming them."""
         if self._abort_reason is None:
             self.request_abort(str(exc))
-        try:
-            climbing = [p for p in self.pilots if p.phase in (Phase.ARMING, Phase.TAKEOFF)]
-            if climbing:
-                await asyncio.gather(*(p.land() for p in climbing), return_exceptions=True)
-                await self._wait_landed()
-            holding = [p for p in self.pilots if p.phase == Phase.HOLDING]
-            if holding:
-                await asyncio.gather(*(p.hold() for p in holding), return_exceptions=True)
-        except asyncio.CancelledError:
-            pass
+        if self.cfg.on_abort == "land":
+            await self._bring_down("mission aborted")
+            return
+        climbing = [p for p in self.pilots if p.phase in (Phase.ARMING, Phase.TAKEOFF)]
+        if climbing:
+            await asyncio.gather(*(p.land() for p in climbing), return_exceptions=True)
+            await self._wait_landed()
+        holding = [p for p in self.pilots if p.phase == Phase.HOLDING]
+        if holding:
+            await asyncio.gather(*(p.hold() for p in holding), return_exceptions=True)
+        left = [p.name for p in self.pilots if p.phase in AIRBORNE_PHASES]
+        if left:
+            self.held_for_operator = left
+            self.event(f"on_abort = hold: {len(left)} vehicle(s) LEFT HOLDING IN THE AIR for an "
+                       f"operator (PX4 Hold; land them yourself): " + ", ".join(left),
+                       level="error")
 
     def _checkpoint(self) -> None:
         """The summary so far, written atomically (``complete: false``): a run killed without
@@ -743,3 +828,9 @@ class Supervisor:
                 first_violation=self.measurement.violations.first)
         except Exception:  # pragma: no cover - never block the verdict
             return {"violations": 0}
+
+
+def _offboard_airborne(p: VehiclePilot) -> bool:
+    """PX4 reports OFFBOARD, armed, and not on the ground: flying on our setpoints."""
+    s = p.link.state
+    return s.flight_mode == "OFFBOARD" and s.armed is True and s.landed_state != "ON_GROUND"
