@@ -2,10 +2,14 @@
 
     python bench/bench_mqtt.py [--agents 100] [--procs 4] [--rate 20] [--seconds 20]
                                [--warmup 5] [--cell M] [--across K] [--broker mosquitto|amqtt]
-                               [--secured] [--profile FILE] [--json]
+                               [--client own|gmqtt] [--secured] [--profile FILE] [--json]
 
 ``--secured``: the broker ``vtube-fleet bus-setup`` configures (TLS listener, a password per
 agent, the ACL), every agent with its own credentials, as a secured fleet flies.
+
+``--client gmqtt``: the same :class:`MqttBus` on gmqtt (``pip install gmqtt``) instead of our
+:class:`~vtube_fleet.bus.client.MqttClient`, through the adapter ``bench/gmqtt_client.py`` (the
+same interface): both clients measured by the same runs of the same bench.
 
 Each agent is one :class:`~vtube_fleet.bus.mqtt.MqttBus` (its own MQTT connection, last will,
 subscriptions to every other vehicle's state, exactly what ``vtube-fleet agent`` uses),
@@ -43,6 +47,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from vtube_fleet.bus.client import MqttClient  # noqa: E402
 from vtube_fleet.bus.mqtt import MqttBus  # noqa: E402
 from vtube_fleet.state import NeighbourState, Phase  # noqa: E402
 
@@ -91,6 +96,7 @@ async def _worker(
     across: int,
     setup: str | None = None,
     profile: str | None = None,
+    client: str = "own",
 ) -> dict:
     ages = array("d")
     window = [math.inf, -math.inf]  # the measurement window, once the parent has sent it
@@ -102,8 +108,9 @@ async def _worker(
     def creds(vid: int) -> Path | None:
         return None if setup is None else Path(setup) / "credentials" / f"vehicle-{vid}.toml"
 
-    buses = [MqttBus(url, MISSION_ID, vid, keepalive_s=5, cell_m=cell_m, credentials=creds(vid))
-             for vid in ids]
+    bus_class = MqttBus if client == "own" else _gmqtt_bus_class()
+    buses = [bus_class(url, MISSION_ID, vid, keepalive_s=5, cell_m=cell_m,
+                       credentials=creds(vid)) for vid in ids]
     for b in buses:
         b.add_state_listener(on_state)
         b.start()
@@ -146,11 +153,22 @@ async def _worker(
     }
 
 
+def _gmqtt_bus_class() -> type[MqttBus]:
+    """:class:`MqttBus` with the gmqtt adapter as its client (everything else the same)."""
+    from gmqtt_client import GmqttClient  # bench/gmqtt_client.py (needs `pip install gmqtt`)
+
+    class GmqttBus(MqttBus):
+        def _make_client(self) -> MqttClient:
+            return GmqttClient.like(super()._make_client())  # type: ignore[return-value]
+
+    return GmqttBus
+
+
 def worker_main(args: argparse.Namespace) -> int:
     ids = [int(i) for i in args.ids.split(",")]
     out = asyncio.run(
         _worker(args.url, ids, args.rate, args.cell, args.across, args.setup,
-                args.worker_profile)
+                args.worker_profile, args.client)
     )
     Path(args.result).write_text(json.dumps(out))
     return 0
@@ -225,6 +243,8 @@ def run(args: argparse.Namespace) -> dict:
                         str(args.across),
                         "--result",
                         str(tmp / f"w{k}.json"),
+                        "--client",
+                        args.client,
                         *(["--setup", str(setup.out)] if setup is not None else []),
                         *(["--worker-profile", args.profile]
                           if args.profile is not None and k == 0 else []),
@@ -271,6 +291,7 @@ def run(args: argparse.Namespace) -> dict:
         "rate_hz": args.rate,
         "seconds": args.seconds,
         "broker": args.broker,
+        "client": args.client,
         "secured": bool(args.secured),
         "cell_m": args.cell,
         "across": args.across,
@@ -304,6 +325,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--warmup", type=float, default=5.0)
     p.add_argument("--broker", choices=("mosquitto", "amqtt"), default="mosquitto")
+    p.add_argument("--client", choices=("own", "gmqtt"), default="own",
+                   help="the bus's MQTT client: ours (vtube_fleet.bus.client) or gmqtt "
+                        "(through bench/gmqtt_client.py; pip install gmqtt)")
     p.add_argument(
         "--cell",
         type=float,
@@ -337,7 +361,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(
         f"{r['agents']} agents in {r['procs']} processes at {r['rate_hz']:g} Hz through "
-        f"{r['broker']}{' (secured: TLS, passwords, ACL)' if r['secured'] else ''} "
+        f"{r['broker']}{' (secured: TLS, passwords, ACL)' if r['secured'] else ''}, client "
+        f"{r['client']} "
         f"({r['seconds']:g} s measured, {r['cores']} cores); cells "
         f"{r['cell_m']:g} m, {r['across']} across: each agent hears "
         f"{r['heard_per_agent']:.1f} others:\n"

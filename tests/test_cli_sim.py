@@ -83,10 +83,18 @@ def test_check_invalid_scenario_lists_violations(
     cfg = tmp_path / "bad.toml"
     cfg.write_text(_toml(paper_data))
     assert main(["check", str(cfg)]) == 2
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert "INVALID" in out
     assert "[Constraint1]" in out and "4" in out
     assert "[Assumption1]" in out
+    # the report, and one line on stderr as every user error ends (README), with the numbers
+    n = out.count("\n  [")
+    assert n >= 2
+    assert cap.err == (f"error: {cfg}: invalid scenario: [Constraint1] Constraint1 violated: "
+                       f"v + v'_max = 4.0 > v_max = 3.5 (v = 2.5, v'_max = 1.5) (and {n - 1} "
+                       f"more violation"
+                       f"{'s' if n > 2 else ''} above)\n")
 
 
 def test_user_errors_are_one_line(tmp_path: Path, paper_data: dict,
@@ -244,8 +252,14 @@ AUTHORS = ROOT / "configs" / "paper_authors.toml"
 
 def test_authors_geometry_is_refused_by_check(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["check", str(AUTHORS)]) == 2
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert "INVALID" in out and "Assumption 3'" in out and "obstacle #3" in out
+    # issue 31: the report on stdout, then the one error line (cause and numbers) on stderr
+    assert cap.err.count("\n") == 1 and cap.err.startswith(
+        f"error: {AUTHORS}: invalid scenario: [Partition] Partition failed: obstacle #3 at "
+        "(20.0, -2.0) r_o=0.9: ")
+    assert "ξ = 17.843 < ξ_s + 2 r_a = 20.65" in cap.err
 
 
 def test_authors_geometry_sim_needs_uncertified(tmp_path: Path,
