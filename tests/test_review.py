@@ -212,3 +212,36 @@ def test_review_of_a_bad_file_is_a_one_line_error(tmp_path: Path,
     assert main(["review", str(junk), "--json"]) == 2
     cap = capsys.readouterr()
     assert cap.out == "" and cap.err.startswith("error: ") and cap.err.count("\n") == 1
+
+
+def test_a_run_that_failed_at_connect_reviews_as_no_flight(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 31: ``run`` against an endpoint that never answers wrote a recording that
+    ``review`` rejected as "not a vtube_fleet recording" (the scene is logged only once the
+    fleet is ready to arm). It reviews as ``no flight: failed at connect (…)``."""
+    import socket
+
+    mission = tmp_path / "mission.toml"
+    text = (ROOT / "configs" / "mock_fleet.toml").read_text()
+    assert "connect_timeout_s = 15.0" in text
+    mission.write_text(text.replace("connect_timeout_s = 15.0", "connect_timeout_s = 0.5"))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nobody sends to
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "run"
+    assert main(["run", str(mission), "--endpoints", f"udpin://127.0.0.1:{port}", "--out",
+                 str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "did not connect within connect_timeout_s = 0.5 s" in err
+    rrd = out / "recording.rrd"
+    assert main(["review", str(rrd)]) == 0
+    text_out = capsys.readouterr().out
+    reason = json.loads((out / "summary.json").read_text())["reason"]
+    assert f"no flight: failed at connect ({reason})\n" in text_out
+    assert "did not connect within connect_timeout_s = 0.5 s" in reason
+    assert main(["review", str(rrd), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["no_flight"] == f"failed at connect ({reason})" and doc["outcome"] == "failed"
+    assert not list(out.glob("*.png"))  # nothing flown, nothing drawn
+    d = load_recording(rrd)
+    assert not d.scene and d.last_stage == "connecting" and d.kind == "fleet"

@@ -92,9 +92,21 @@ def _print_text(res: ReviewResult) -> None:
         print(f"wrote {p}")
 
 
+def _print_no_flight(res: ReviewResult) -> None:
+    d = res.data
+    print(f"recording  {d.path}")
+    print(f"run        {d.kind}, {len(d.events)} events, no scene recorded")
+    print(f"no flight: {res.no_flight}")
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
     res = review(args.recording, out_dir=args.out, plots=not args.no_plots)
-    if args.json:
+    if args.json and res.no_flight is not None:
+        json.dump({**res.summary, "no_flight": res.no_flight}, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    elif res.no_flight is not None:
+        _print_no_flight(res)
+    elif args.json:
         json.dump({**res.summary, "from_frames": res.from_frames}, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:

@@ -54,6 +54,12 @@ class ReviewResult:
     run_keys: tuple[str, ...] = ()
 
     @property
+    def no_flight(self) -> str | None:
+        """Why there is no flight to review (a run that ended before its scene: e.g.
+        ``failed at connect (…)``), else None (:meth:`RecordingData.no_flight`)."""
+        return self.data.no_flight()
+
+    @property
     def verdict(self) -> Any:
         """:func:`vtube_fleet.core.metrics.verdict` of the recomputed summary (every recorded
         stream but unicycle centres, which the simulator reports beside the control points)."""
@@ -362,6 +368,9 @@ def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True)
     if plots and out_dir is not None:
         _require_dir(Path(out_dir))
     data = load_recording(path)
+    if not data.scene:  # nothing flown (failed at connect, in the preflight …): nothing to judge
+        return ReviewResult(data=data, summary=dict(data.summary or {}), recomputed_keys=(),
+                            differences=[])
     for key in ("tube", "r_s", "r_a", "v_min", "v_max"):
         if key not in data.meta:
             raise RecordingError(f"{data.path}: scenario metadata lacks {key!r} "
