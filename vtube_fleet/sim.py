@@ -385,7 +385,7 @@ class _Run:
 
     # ----- recording ------------------------------------------------------------------------
     def _alloc_records(self) -> None:
-        frames = self.n_steps // self.record_every + 2  # + the last step
+        frames = self.n_steps // self.record_every + 2  # + the final state
         m = self.m
         self.rec_t = np.full(frames, np.nan)
         self.rec_pos = np.full((frames, m, 2), np.nan)
