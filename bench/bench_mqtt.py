@@ -2,10 +2,21 @@
 
     python bench/bench_mqtt.py [--agents 100] [--procs 4] [--rate 20] [--seconds 20]
                                [--warmup 5] [--cell M] [--across K] [--broker mosquitto|amqtt]
-                               [--secured] [--profile FILE] [--json]
+                               [--client own|gmqtt] [--secured] [--profile FILE] [--json]
 
 ``--secured``: the broker ``vtube-fleet bus-setup`` configures (TLS listener, a password per
 agent, the ACL), every agent with its own credentials, as a secured fleet flies.
+
+``--client gmqtt``: the same :class:`MqttBus` on gmqtt (``pip install gmqtt``) instead of our
+:class:`~vtube_fleet.bus.client.MqttClient`, through the adapter ``bench/gmqtt_client.py`` (the
+same interface): both clients measured by the same runs of the same bench.
+
+``--parse N``: instead of the fleet, the chosen client's receive path alone, in this process:
+N PUBLISH packets of an agent's state (the bus's topic and codec), ``--parse-chunk`` packets
+per chunk as the socket hands them over, through the client's parser to an ``on_message``
+that does nothing; process time per message (the best of 5 rounds), which the load of other
+work hardly changes. The fleet's numbers include the bus's own work per state; this is the
+client's part of it.
 
 Each agent is one :class:`~vtube_fleet.bus.mqtt.MqttBus` (its own MQTT connection, last will,
 subscriptions to every other vehicle's state, exactly what ``vtube-fleet agent`` uses),
@@ -43,6 +54,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from vtube_fleet.bus.client import MqttClient  # noqa: E402
 from vtube_fleet.bus.mqtt import MqttBus  # noqa: E402
 from vtube_fleet.state import NeighbourState, Phase  # noqa: E402
 
@@ -91,6 +103,7 @@ async def _worker(
     across: int,
     setup: str | None = None,
     profile: str | None = None,
+    client: str = "own",
 ) -> dict:
     ages = array("d")
     window = [math.inf, -math.inf]  # the measurement window, once the parent has sent it
@@ -102,8 +115,9 @@ async def _worker(
     def creds(vid: int) -> Path | None:
         return None if setup is None else Path(setup) / "credentials" / f"vehicle-{vid}.toml"
 
-    buses = [MqttBus(url, MISSION_ID, vid, keepalive_s=5, cell_m=cell_m, credentials=creds(vid))
-             for vid in ids]
+    bus_class = MqttBus if client == "own" else _gmqtt_bus_class()
+    buses = [bus_class(url, MISSION_ID, vid, keepalive_s=5, cell_m=cell_m,
+                       credentials=creds(vid)) for vid in ids]
     for b in buses:
         b.add_state_listener(on_state)
         b.start()
@@ -146,11 +160,22 @@ async def _worker(
     }
 
 
+def _gmqtt_bus_class() -> type[MqttBus]:
+    """:class:`MqttBus` with the gmqtt adapter as its client (everything else the same)."""
+    from gmqtt_client import GmqttClient  # bench/gmqtt_client.py (needs `pip install gmqtt`)
+
+    class GmqttBus(MqttBus):
+        def _make_client(self) -> MqttClient:
+            return GmqttClient.like(super()._make_client())  # type: ignore[return-value]
+
+    return GmqttBus
+
+
 def worker_main(args: argparse.Namespace) -> int:
     ids = [int(i) for i in args.ids.split(",")]
     out = asyncio.run(
         _worker(args.url, ids, args.rate, args.cell, args.across, args.setup,
-                args.worker_profile)
+                args.worker_profile, args.client)
     )
     Path(args.result).write_text(json.dumps(out))
     return 0
@@ -225,6 +250,8 @@ def run(args: argparse.Namespace) -> dict:
                         str(args.across),
                         "--result",
                         str(tmp / f"w{k}.json"),
+                        "--client",
+                        args.client,
                         *(["--setup", str(setup.out)] if setup is not None else []),
                         *(["--worker-profile", args.profile]
                           if args.profile is not None and k == 0 else []),
@@ -271,6 +298,7 @@ def run(args: argparse.Namespace) -> dict:
         "rate_hz": args.rate,
         "seconds": args.seconds,
         "broker": args.broker,
+        "client": args.client,
         "secured": bool(args.secured),
         "cell_m": args.cell,
         "across": args.across,
@@ -296,6 +324,71 @@ def run(args: argparse.Namespace) -> dict:
     }
 
 
+def parse_only(client: str, n: int, per_chunk: int) -> dict:
+    """``--parse``: µs of process time per PUBLISH through the client's receive path."""
+    from vtube_fleet.bus.codec import encode_state
+    from vtube_fleet.bus.topics import MissionTopics
+
+    topics = MissionTopics(MISSION_ID)
+    packets = []
+    for k in range(n):
+        vid = k % 100
+        body = (len(t := topics.state(vid, (k % 7, -(k % 3))).encode()).to_bytes(2, "big") + t
+                + encode_state(NeighbourState(vid, 1.0 * k, 2.0, 1.0, 0.0, Phase.IN_TUBE,
+                                              time.time(), k)))
+        packets.append(bytes((0x30, len(body))) + body)
+    chunks = [b"".join(packets[i:i + per_chunk]) for i in range(0, n, per_chunk)]
+    got = [0]
+
+    def sink(topic: str, payload: bytes) -> None:
+        got[0] += 1
+
+    if client == "own":
+        c = MqttClient("127.0.0.1", 1, client_id="parse", on_message=sink)
+        feed = c._feed
+    else:
+        feed = _gmqtt_parser(sink)
+    best = math.inf
+    for _ in range(5):
+        got[0] = 0
+        t0 = time.process_time()
+        for ch in chunks:
+            feed(ch)
+        best = min(best, time.process_time() - t0)
+        assert got[0] == n, (got[0], n)
+    return {"client": client, "messages": n, "per_chunk": per_chunk,
+            "us_per_message": 1e6 * best / n, "load_average_1min": os.getloadavg()[0]}
+
+
+def _gmqtt_parser(sink):  # noqa: ANN001, ANN202 - bench only
+    """gmqtt's receive path after the socket read: its protocol's packet splitter, a real
+    MQTTConnection and package handler (MQTT 3.1.1), the adapter's on_message."""
+    from gmqtt.mqtt.connection import MQTTConnection
+    from gmqtt.mqtt.constants import MQTTv311
+    from gmqtt.mqtt.protocol import MQTTProtocol
+    from gmqtt_client import GmqttClient
+
+    asyncio.set_event_loop(loop := asyncio.new_event_loop())
+    g = GmqttClient("127.0.0.1", 1, client_id="parse", on_message=sink)
+    c = g._c
+    c._connection_state.protocol_version = MQTTv311
+
+    class _Transport:  # nothing is written while parsing QoS-0 messages
+        def is_closing(self) -> bool:
+            return False
+
+    proto = MQTTProtocol(connection_state=c._connection_state,
+                         id_generator=c._package_handler.id_generator, loop=loop)
+    MQTTConnection(_Transport(), proto, True, 60, package_handler=c._package_handler)
+    buf = [b""]
+
+    def feed(data: bytes) -> None:  # what its read loop does with each chunk read
+        b = buf[0] + data
+        buf[0] = b[proto._read_packet(b):]
+
+    return feed
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--agents", type=int, default=100)
@@ -304,6 +397,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--warmup", type=float, default=5.0)
     p.add_argument("--broker", choices=("mosquitto", "amqtt"), default="mosquitto")
+    p.add_argument("--client", choices=("own", "gmqtt"), default="own",
+                   help="the bus's MQTT client: ours (vtube_fleet.bus.client) or gmqtt "
+                        "(through bench/gmqtt_client.py; pip install gmqtt)")
     p.add_argument(
         "--cell",
         type=float,
@@ -322,6 +418,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile", metavar="FILE",
                    help="cProfile the first worker process over the measured seconds into FILE "
                         "(pstats format)")
+    p.add_argument("--parse", type=int, metavar="N", default=None,
+                   help="measure only the client's receive path: N packets (see above)")
+    p.add_argument("--parse-chunk", type=int, metavar="K", default=4,
+                   help="--parse: packets per chunk read from the socket (default 4)")
     p.add_argument("--setup", help=argparse.SUPPRESS)
     p.add_argument("--worker-profile", help=argparse.SUPPRESS)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -331,13 +431,21 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.worker:
         return worker_main(args)
+    if args.parse is not None:
+        r = parse_only(args.client, args.parse, max(1, args.parse_chunk))
+        print(json.dumps(r, indent=2) if args.json else
+              f"client {r['client']}: {r['us_per_message']:.2f} µs of process time per "
+              f"PUBLISH received ({r['messages']} messages, {r['per_chunk']} per chunk; "
+              f"load average {r['load_average_1min']:.2f})")
+        return 0
     r = run(args)
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
     print(
         f"{r['agents']} agents in {r['procs']} processes at {r['rate_hz']:g} Hz through "
-        f"{r['broker']}{' (secured: TLS, passwords, ACL)' if r['secured'] else ''} "
+        f"{r['broker']}{' (secured: TLS, passwords, ACL)' if r['secured'] else ''}, client "
+        f"{r['client']} "
         f"({r['seconds']:g} s measured, {r['cores']} cores); cells "
         f"{r['cell_m']:g} m, {r['across']} across: each agent hears "
         f"{r['heard_per_agent']:.1f} others:\n"

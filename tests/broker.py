@@ -21,6 +21,11 @@ would otherwise switch to the ``mosquitto`` user, who cannot read the 0600 key f
 readiness probe is a TLS handshake verified with the setup's CA and an (anonymous, refused)
 CONNECT: any CONNACK means the broker answers.
 
+Under ``CI=true`` (``.ci/run``, which installs mosquitto) the fallback is refused: a missing
+mosquitto makes ``LocalBroker()`` and every test that needs mosquitto (:func:`require_tool`)
+FAIL with a message saying so, instead of running on amqtt or being skipped — a CI without
+mosquitto must not pass without the secured-bus and mission tests.
+
 Test and benchmark infrastructure (not part of the package): production fleets use their own
 broker (``--broker mqtt://HOST:PORT``).
 """
@@ -50,8 +55,12 @@ __all__ = [
     "BrokerError",
     "LocalBroker",
     "find_mosquitto",
+    "find_tool",
     "free_port",
     "mqtt_handshake",
+    "require_kind",
+    "require_tool",
+    "under_ci",
 ]
 
 log = logging.getLogger(__name__)
@@ -59,20 +68,60 @@ log = logging.getLogger(__name__)
 BrokerKind = Literal["auto", "mosquitto", "amqtt"]
 
 
+def require_kind(kind: str) -> None:
+    """For a test parametrized over the broker kinds (both, always): ``"mosquitto"`` needs it
+    installed (:func:`require_tool`: skipped, FAILED under CI=true)."""
+    if kind == "mosquitto":
+        require_tool("mosquitto", "the test with the mosquitto broker")
+
+
 class BrokerError(UserError):
     """A local broker could not be started (or did not become ready in time)."""
 
 
-def find_mosquitto() -> str | None:
-    """Path of the mosquitto binary: ``PATH`` first, then ``/usr/sbin`` and ``/usr/local/sbin``."""
-    found = shutil.which("mosquitto")
+def find_tool(name: str) -> str | None:
+    """Path of an executable: ``PATH`` first, then ``/usr/sbin``, ``/usr/local/sbin`` and
+    ``/usr/bin`` (Debian puts mosquitto in /usr/sbin, mosquitto_passwd in /usr/bin)."""
+    found = shutil.which(name)
     if found:
         return found
-    for d in ("/usr/sbin", "/usr/local/sbin"):
-        p = Path(d) / "mosquitto"
+    for d in ("/usr/sbin", "/usr/local/sbin", "/usr/bin"):
+        p = Path(d) / name
         if p.is_file() and os.access(p, os.X_OK):
             return str(p)
     return None
+
+
+def find_mosquitto() -> str | None:
+    """Path of the mosquitto binary (:func:`find_tool`)."""
+    return find_tool("mosquitto")
+
+
+def under_ci() -> bool:
+    """``CI`` is set to true (``.ci/run``; GitHub Actions and most CIs set ``CI=true``)."""
+    return os.environ.get("CI", "").strip().lower() in ("true", "1", "yes")
+
+
+#: What to install for a tool the tests need (Debian package names).
+INSTALL = {"mosquitto": "apt-get install -y mosquitto",
+           "mosquitto_passwd": "apt-get install -y mosquitto"}
+
+
+def require_tool(name: str, what: str) -> str:
+    """The path of ``name`` for a test (``what`` says which) that needs it. Missing: the test
+    is skipped, but under ``CI=true`` it FAILS, saying what to install (a CI that skipped it
+    would pass without testing it)."""
+    path = find_tool(name)
+    if path is not None:
+        return path
+    import pytest
+
+    msg = (f"{what} needs {name}, which is not installed "
+           f"({INSTALL.get(name, 'install it')})")
+    if under_ci():
+        pytest.fail(f"CI=true: {msg}; .ci/run installs it, a CI run must not skip these "
+                    "tests", pytrace=False)
+    pytest.skip(msg)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -158,6 +207,11 @@ class LocalBroker:
         if kind == "mosquitto" and mosquitto is None:
             raise BrokerError(
                 "mosquitto not found on PATH or in /usr/sbin (apt-get install mosquitto)"
+            )
+        if kind == "auto" and mosquitto is None and under_ci():
+            raise BrokerError(
+                "CI=true: mosquitto not found on PATH or in /usr/sbin (apt-get install -y "
+                "mosquitto; .ci/run installs it): the tests do not fall back to amqtt in CI"
             )
         self.kind: Literal["mosquitto", "amqtt"] = (
             "mosquitto" if kind != "amqtt" and mosquitto is not None else "amqtt"

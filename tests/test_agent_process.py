@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from broker import LocalBroker, find_mosquitto, free_port
+from broker import LocalBroker, free_port, require_tool
 from fleet_ports import free_ports
 from missions import straight_mission
 
@@ -139,9 +139,9 @@ async def fleet_run(tmp_path: Path, n: int, mission_path: Path = MISSION, *,
     """``secured``: the broker ``vtube-fleet bus-setup`` configures (TLS, a password per
     agent and the coordinator, the ACL); the observer reads with the coordinator's account.
     The secured broker is mosquitto's configuration (TLS listener, password file, ACL): without
-    mosquitto installed, a secured run is skipped, not failed."""
-    if secured and find_mosquitto() is None:
-        pytest.skip("the secured broker needs mosquitto (apt-get install -y mosquitto)")
+    mosquitto installed, a secured run is skipped, but FAILS under CI=true (require_tool)."""
+    if secured:
+        require_tool("mosquitto", "the secured agents' flight (mosquitto's TLS, passwords, ACL)")
     mission = load_mission(mission_path).with_vehicles(n)
     setup = (bus_setup(tmp_path / "bus", default_mission_id(mission_path), n, port=free_port(),
                        bind="127.0.0.1") if secured else None)

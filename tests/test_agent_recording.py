@@ -1,4 +1,4 @@
-"""The agent's recording (fleet/distributed/agent.AgentRecording): a failure of the safety
+"""The agent's recording (fleet/distributed/vehicle_agent.AgentRecording): a failure of the safety
 evaluation is not swallowed with the recording's problems (issue #10); the interim summary
 (``complete: false``, every ``SUMMARY_EVERY_S`` during the flight) and the final one
 (``complete: true``) (issue #12)."""

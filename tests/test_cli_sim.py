@@ -83,10 +83,18 @@ def test_check_invalid_scenario_lists_violations(
     cfg = tmp_path / "bad.toml"
     cfg.write_text(_toml(paper_data))
     assert main(["check", str(cfg)]) == 2
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert "INVALID" in out
     assert "[Constraint1]" in out and "4" in out
     assert "[Assumption1]" in out
+    # the report, and one line on stderr as every user error ends (README), with the numbers
+    n = out.count("\n  [")
+    assert n >= 2
+    assert cap.err == (f"error: {cfg}: invalid scenario: [Constraint1] Constraint1 violated: "
+                       f"v + v'_max = 4.0 > v_max = 3.5 (v = 2.5, v'_max = 1.5) (and {n - 1} "
+                       f"more violation"
+                       f"{'s' if n > 2 else ''} above)\n")
 
 
 def test_user_errors_are_one_line(tmp_path: Path, paper_data: dict,
@@ -125,8 +133,8 @@ def test_sim_writes_all_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[st
     with np.load(out / "trajectory.npz") as z:
         t, pos, vel = z["t"], z["pos"], z["vel"]
         assert pos.shape == (t.size, 12, 2) and vel.shape == pos.shape
-        np.testing.assert_allclose(np.diff(t)[:-1], 0.01)  # + the last step
-        assert t[-1] == pytest.approx(s["t_end_s"] - 0.002) and 0 < t[-1] - t[-2] <= 0.01
+        np.testing.assert_allclose(np.diff(t)[:-1], 0.01)  # + the final state
+        assert t[-1] == pytest.approx(s["t_end_s"]) and 0 < t[-1] - t[-2] <= 0.01
         assert np.isnan(pos[-1]).sum() > 0  # exited robots are NaN
         grid = np.array([[0.5, -4.4 + 0.8 * j] for j in range(12)])
         np.testing.assert_allclose(pos[0], grid)
@@ -134,6 +142,56 @@ def test_sim_writes_all_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[st
         assert z["t"].size == s["steps"] and z["violation"].sum() == 0
     for png in ("safety.png", "snapshots.png"):
         assert (out / png).read_bytes()[:8] == PNG_MAGIC
+
+
+def _outsider_exit_check(out: Path, config: Path) -> tuple[int, int]:
+    """Judge the exits as someone without vtube_fleet would: from the TOML's tube, the
+    summary.json and the raw trajectory.npz → (robots absent or past the line in the last
+    frame, robots past it at their recorded exit point)."""
+    with config.open("rb") as fh:
+        doc = tomllib.load(fh)
+    ph0, ph1, pr1 = (np.array(doc["tube"][k], dtype=float) for k in ("p_h0", "p_h1", "p_r1"))
+    eps_0 = doc["controller"]["eps_0"]
+    along = pr1 - ph1
+    normal = np.array([along[1], -along[0]]) / np.hypot(*along)
+    if normal @ (ph1 - ph0) < 0:  # pointing out of the tube, through the finishing line
+        normal = -normal
+    s = json.loads((out / "summary.json").read_text())
+    with np.load(out / "trajectory.npz") as z:
+        t, pos, exit_t, exit_pos = z["t"], z["pos"], z["exit_time_s"], z["exit_pos"]
+    assert t[-1] == pytest.approx(s["t_end_s"])  # the last frame is the final state
+    last = pos[-1]
+    absent = np.isnan(last[:, 0])
+    past = (last - pr1) @ normal >= -eps_0  # (TraCondition): within eps_0 of the line or past
+    exited = ~np.isnan(exit_t)
+    assert exited.sum() == s["exited"]
+    # every robot the summary counts as exited left before (absent) or is past the line now;
+    # every other robot is still in the tube, before the line
+    assert np.all((absent | past)[exited]) and not np.any((absent | past)[~exited])
+    assert np.all(exit_t[absent & exited] < t[-1]) and np.all(exit_t[past & ~absent] == t[-1])
+    crossed = (exit_pos[exited] - pr1) @ normal >= -eps_0
+    return int((absent | past).sum()), int(crossed.sum())
+
+
+@pytest.mark.parametrize("duration", [None, 16.24])
+def test_trajectory_npz_shows_every_exit_the_summary_counts(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], duration: float | None) -> None:
+    """Issue 31: the trajectory stopped one step before the end, so an outside checker found
+    119/120 robots out of the tube where the summary said 120. The last frame is now the final
+    state: the run that ends with the last exit, and one that ends by its duration at the very
+    step a robot reaches the line (16.24 s: it counts, and is past the line)."""
+    out = tmp_path / "run"
+    argv = ["sim", str(PAPER), "--out", str(out), "--robots", "12", "--dt", "0.002",
+            "--no-plots", "--no-rerun", "--quiet"]
+    if duration is not None:
+        argv += ["--duration", str(duration)]
+    code = main(argv)
+    capsys.readouterr()
+    s = json.loads((out / "summary.json").read_text())
+    assert code == (0 if duration is None else 1)
+    assert s["exited"] == (12 if duration is None else 4)
+    assert s["last_exit_s"] == pytest.approx(s["t_end_s"])  # someone exits in the last step
+    assert _outsider_exit_check(out, PAPER) == (s["exited"], s["exited"])
 
 
 def test_sim_not_finished_exits_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -194,8 +252,14 @@ AUTHORS = ROOT / "configs" / "paper_authors.toml"
 
 def test_authors_geometry_is_refused_by_check(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["check", str(AUTHORS)]) == 2
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert "INVALID" in out and "Assumption 3'" in out and "obstacle #3" in out
+    # issue 31: the report on stdout, then the one error line (cause and numbers) on stderr
+    assert cap.err.count("\n") == 1 and cap.err.startswith(
+        f"error: {AUTHORS}: invalid scenario: [Partition] Partition failed: obstacle #3 at "
+        "(20.0, -2.0) r_o=0.9: ")
+    assert "ξ = 17.843 < ξ_s + 2 r_a = 20.65" in cap.err
 
 
 def test_authors_geometry_sim_needs_uncertified(tmp_path: Path,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -124,9 +125,14 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
     assert s["kind"] == "mqtt" and s["outcome"] == "completed"
     assert s["robots"] == 3 and s["exited"] == 3 and s["violations"] == 0
     # Parallel straight lines 2.5 m apart; the pole at (12, 0) passed 1.25 m off centre.
-    # (the metric searches pairs within r_s + r_a = 1.3 m: none; the airborne figure is exact)
-    assert s["min_pair_distance_m"] is None
+    # Issue 31: the in-tube pair distance was null (pairs searched within the physical
+    # r_s + r_a = 1.3 m only); it is searched as `run` searches it, within the flown
+    # r_s' + r_a' + 1 m, and printed
     assert s["min_pair_distance_airborne_m"] == pytest.approx(2.5, abs=1e-3)
+    assert s["r_s_flown"] + s["r_a_flown"] + 1.0 > 2.6
+    assert s["min_pair_distance_airborne_m"] - 1e-9 <= s["min_pair_distance_m"] <= 2.55
+    assert re.search(r"completed: 3/3 exited; min pair distance 2\.5\d m \(2 r_s = 0\.60 m\)",
+                     err), err
     assert 1.25 - 1e-3 <= s["min_obstacle_center_distance_m"] <= 1.25 + 0.1
     assert s["max_measured_speed_m_s"] == pytest.approx(6.0)
     assert s["state_age_p99_s"] is not None and s["state_age_p99_s"] >= 0
@@ -138,6 +144,7 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
     assert code == 0, err
     r = json.loads(out)
     assert (r["robots"], r["exited"], r["violations"], r["steps"]) == (3, 3, 0, s["steps"])
+    assert r["min_pair_distance_m"] == pytest.approx(s["min_pair_distance_m"], abs=1e-9)
     assert r["min_obstacle_center_distance_m"] == pytest.approx(
         s["min_obstacle_center_distance_m"]
     )

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from vtube_fleet.cli import main
+from vtube_fleet.core.metrics import METRIC_KEYS
 from vtube_fleet.recording.layout import E_VEHICLES
 from vtube_fleet.recording.reader import load_recording
 from vtube_fleet.recording.review import compare_summaries, review
@@ -109,6 +110,9 @@ def test_review_json_is_exactly_the_run_summary(sim_run: tuple[Any, Path],
     out = capsys.readouterr().out
     recomputed = json.loads(out)  # stdout is exactly one JSON document
     run = json.loads(json.dumps(result.summary))
+    # every step is a frame here: the frames alone give the run's figures too
+    from_frames = recomputed.pop("from_frames")
+    assert from_frames == {k: recomputed[k] for k in from_frames} and "steps" in from_frames
     _assert_same_summary(recomputed, run)
     # the recomputed keys really were recomputed (not copied): change the stored summary's
     # copy in memory and the recomputation still gives the run's numbers
@@ -140,20 +144,63 @@ def test_decimated_recording_reports_its_limits(tmp_path: Path,
     assert len(d.tick) == result.summary["frames"] == result.t.size
     # the per-step series still hold every step's extremes: their minimum is the run's
     t_m, k_m, logged = d.metric_series["min_pair_distance_m"]
-    np.testing.assert_array_equal(k_m, d.tick)  # one value per recorded frame ...
+    # one value per recorded frame (but the final state, after the last step: none) ...
+    np.testing.assert_array_equal(k_m, d.tick[:-1])
     assert np.nanmin(logged) == result.summary["min_pair_distance_m"]  # ... keeping the minimum
     assert np.nanmax(d.metric_series["max_speed_m_s"][2]) == result.summary["max_speed_m_s"]
     assert d.exits == pytest.approx(
         {i: float(t) for i, t in enumerate(result.exit_time_s) if math.isfinite(t)})
     assert main(["review", str(tmp_path / "r.rrd"), "--no-plots"]) == 0
     out = capsys.readouterr().out
-    assert "steps" in out and "differ from the run's own summary" in out
+    assert "from the 145 recorded frames alone (one every 7 steps" in out
+    assert "the recomputed summary matches the run's own summary" in out
     res = review(tmp_path / "r.rrd", plots=False)
-    assert res.summary["steps"] == result.summary["frames"]
-    assert res.summary["exited"] == result.summary["exited"]
-    assert res.summary["median_exit_s"] == result.summary["median_exit_s"]
-    # minima over fewer samples can only be larger
-    assert res.summary["min_pair_distance_m"] >= result.summary["min_pair_distance_m"] - 1e-12
+    # issue 31: the headline figures are the best the recording knows, the run's (the per-step
+    # extremes; the counts as the run made them, confirmed by the per-step series) ...
+    assert not res.differences
+    _assert_same_summary({k: v for k, v in res.summary.items()}, json.loads(json.dumps(
+        result.summary)))
+    assert set(res.per_step_keys) == set(METRIC_KEYS)
+    assert set(res.run_keys) == {"steps", "violations", "violations_by_condition",
+                                 "first_violation_s"}
+    # ... and the frames' own figures are kept apart: the judged frames (all but the final
+    # state), minima over fewer samples can only be larger
+    f = res.from_frames
+    assert f["steps"] == result.summary["frames"] - 1 < res.summary["steps"]
+    assert f["exited"] == result.summary["exited"]
+    assert f["median_exit_s"] == result.summary["median_exit_s"]
+    assert f["min_pair_distance_m"] >= result.summary["min_pair_distance_m"] - 1e-12
+
+
+@pytest.mark.parametrize("controller", ["new", "old"])
+def test_review_json_of_a_sim_agrees_with_the_run(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], controller: str) -> None:
+    """Issue 31: ``sim configs/paper.toml --robots 30 --duration 6`` said min speed 0.6227 m/s,
+    ``review --json`` 0.7099 m/s (the recorded frames, 1 in 40 steps). The JSON's headline
+    figures are now the recording's per-step extremes, the run's; the frames' own figures are
+    under ``from_frames``. (Oldcontroller) breaks v_min: the violations are the run's count,
+    which its per-step series confirm, not the one frame that caught it."""
+    out = tmp_path / "x"
+    code = main(["sim", str(ROOT / "configs" / "paper.toml"), "--robots", "30", "--duration",
+                 "6", "--out", str(out), "--controller", controller, "--no-plots", "--quiet"])
+    assert code == 1  # robots left in the tube after 6 s (and, for "old", v_min broken)
+    run = json.loads((out / "summary.json").read_text())
+    capsys.readouterr()
+    assert main(["review", str(out / "recording.rrd"), "--json", "--no-plots"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    frames = doc.pop("from_frames")
+    _assert_same_summary(doc, run)  # every headline figure is the run's
+    for key in ("min_speed_m_s", "min_pair_distance_m", "violations", "steps"):
+        assert doc[key] == run[key], key
+    assert frames["steps"] == 150 < run["steps"] == 6000  # 1 frame in 40 steps
+    assert frames["min_speed_m_s"] > run["min_speed_m_s"]  # the frames missed the slowest step
+    if controller == "new":
+        assert run["min_speed_m_s"] == pytest.approx(0.6227, abs=1e-4)
+        assert frames["min_speed_m_s"] == pytest.approx(0.7099, abs=1e-4)
+        assert run["violations"] == frames["violations"] == 0
+    else:
+        assert run["violations"] > frames["violations"] > 0
+        assert doc["violations_by_condition"] == run["violations_by_condition"]
 
 
 def test_review_of_a_bad_file_is_a_one_line_error(tmp_path: Path,
@@ -165,3 +212,36 @@ def test_review_of_a_bad_file_is_a_one_line_error(tmp_path: Path,
     assert main(["review", str(junk), "--json"]) == 2
     cap = capsys.readouterr()
     assert cap.out == "" and cap.err.startswith("error: ") and cap.err.count("\n") == 1
+
+
+def test_a_run_that_failed_at_connect_reviews_as_no_flight(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 31: ``run`` against an endpoint that never answers wrote a recording that
+    ``review`` rejected as "not a vtube_fleet recording" (the scene is logged only once the
+    fleet is ready to arm). It reviews as ``no flight: failed at connect (…)``."""
+    import socket
+
+    mission = tmp_path / "mission.toml"
+    text = (ROOT / "configs" / "mock_fleet.toml").read_text()
+    assert "connect_timeout_s = 15.0" in text
+    mission.write_text(text.replace("connect_timeout_s = 15.0", "connect_timeout_s = 0.5"))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nobody sends to
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "run"
+    assert main(["run", str(mission), "--endpoints", f"udpin://127.0.0.1:{port}", "--out",
+                 str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "did not connect within connect_timeout_s = 0.5 s" in err
+    rrd = out / "recording.rrd"
+    assert main(["review", str(rrd)]) == 0
+    text_out = capsys.readouterr().out
+    reason = json.loads((out / "summary.json").read_text())["reason"]
+    assert f"no flight: failed at connect ({reason})\n" in text_out
+    assert "did not connect within connect_timeout_s = 0.5 s" in reason
+    assert main(["review", str(rrd), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["no_flight"] == f"failed at connect ({reason})" and doc["outcome"] == "failed"
+    assert not list(out.glob("*.png"))  # nothing flown, nothing drawn
+    d = load_recording(rrd)
+    assert not d.scene and d.last_stage == "connecting" and d.kind == "fleet"

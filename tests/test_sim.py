@@ -52,26 +52,32 @@ def test_trajectory_layout(reduced, paper) -> None:
     assert pos.shape == (t.size, m, 2) and vel.shape == pos.shape
     np.testing.assert_array_equal(pos[0], paper.robots.positions[:m])  # config order
     assert t[0] == 0.0
-    # every record_every-th step, and the last step (just before the last exit)
+    # every record_every-th step, and the final state (the last exit)
     np.testing.assert_allclose(np.diff(t)[:-1], res.record_every * res.dt)
     assert 0 < t[-1] - t[-2] <= res.record_every * res.dt + 1e-12
     t_end = res.summary["t_end_s"]
-    assert t[-1] == pytest.approx(t_end - res.dt) and res.summary["last_exit_s"] == t_end
+    assert t[-1] == pytest.approx(t_end) and res.summary["last_exit_s"] == t_end
     tube = paper.tube
     line = float(tube.n_c @ tube.p_r1) - paper.controller.eps_0
+    final = np.arange(t.size) == t.size - 1
     for i in range(m):
         te = res.exit_time_s[i]
         assert math.isfinite(te)
         present = ~np.isnan(pos[:, i, 0])
-        # present exactly until the exit time, NaN afterwards (and velocities too)
-        np.testing.assert_array_equal(present, t < te - 1e-12)
+        # present exactly until the exit time, NaN afterwards (and velocities too); the final
+        # state also holds the robots that exit there
+        np.testing.assert_array_equal(present, (t < te - 1e-12) | (final & (te == t_end)))
         np.testing.assert_array_equal(present, ~np.isnan(vel[:, i, 0]))
-        assert np.all(pos[present, i] @ tube.n_c < line)
+        before = present & ~final
+        assert np.all(pos[before, i] @ tube.n_c < line)
+        assert res.exit_pos[i] @ tube.n_c >= line
+        if te == t_end:
+            np.testing.assert_array_equal(pos[-1, i], res.exit_pos[i])
     speeds = np.linalg.norm(vel, axis=-1)
     ok = ~np.isnan(speeds)
     assert np.all(speeds[ok] >= 0.5 - 1e-9) and np.all(speeds[ok] <= 3.5 + 1e-9)
     arrays = res.trajectory_arrays()
-    assert set(arrays) == {"t", "pos", "vel", "exit_time_s"}
+    assert set(arrays) == {"t", "pos", "vel", "exit_time_s", "exit_pos"}
 
 
 def test_metrics_series_match_recorded_frames(reduced, paper) -> None:
@@ -80,9 +86,11 @@ def test_metrics_series_match_recorded_frames(reduced, paper) -> None:
 
     res = reduced
     mon = SafetyMonitor.from_params(paper.tube, paper.obstacles, paper.controller)
-    idx = np.searchsorted(res.step_t, res.t)
-    np.testing.assert_allclose(res.step_t[idx], res.t)  # every frame is a step
-    again = mon.evaluate(res.pos, res.vel)
+    t = res.t[:-1]  # (the final state, after the last step, is not a metrics step)
+    assert res.t[-1] == pytest.approx(res.step_t[-1] + res.dt)
+    idx = np.searchsorted(res.step_t, t)
+    np.testing.assert_allclose(res.step_t[idx], t)  # every other frame is a step
+    again = mon.evaluate(res.pos[:-1], res.vel[:-1])
     for key in METRIC_KEYS:
         a = getattr(res.metrics, key)[idx]
         b = getattr(again, key)
@@ -156,9 +164,9 @@ def test_apf_uses_the_main_tube_only(paper) -> None:
 
 def test_overrides_and_errors(paper) -> None:
     res = simulate(paper, robots=3, dt=0.004, duration=0.4, record_every=5)
-    # steps 0, 5, ..., 95 and the last step, 99
+    # steps 0, 5, ..., 95 and the final state, after step 99
     assert res.summary["steps"] == 100 and res.pos.shape == (21, 3, 2)
-    np.testing.assert_allclose(res.t[-2:], [0.38, 0.396])
+    np.testing.assert_allclose(res.t[-2:], [0.38, 0.4])
     assert res.summary["exited"] == 0 and not res.summary["all_exited"]
     with pytest.raises(SimError, match="unknown controller"):
         simulate(paper, controller="fast")
@@ -228,38 +236,43 @@ def test_progress_bar_output() -> None:
 # ----------------------------------------------------------------------------------------------
 # the final step of a decimated trajectory (issue 11, item 6)
 # ----------------------------------------------------------------------------------------------
-def test_decimated_trajectory_ends_with_the_last_step(paper) -> None:
-    """A decimated trajectory's last frame is the run's last step, bitwise the same as the
-    last frame of the undecimated run."""
+def test_decimated_trajectory_ends_with_the_final_state(paper) -> None:
+    """A decimated trajectory's last frame is the run's final state (after its last step),
+    bitwise the same as the last frame of the undecimated run."""
     kw = dict(robots=24, dt=0.002, duration=1.0)
     coarse = simulate(paper, record_every=7, **kw)
     fine = simulate(paper, record_every=1, **kw)
     assert coarse.summary["steps"] == fine.summary["steps"] == 500
-    assert coarse.t[-1] == fine.t[-1] == pytest.approx(499 * 0.002)
-    assert coarse.t[-2] == pytest.approx(497 * 0.002)  # 499 is no multiple of 7
+    assert coarse.t[-1] == fine.t[-1] == pytest.approx(500 * 0.002)
+    assert coarse.t[-2] == pytest.approx(497 * 0.002)  # 500 is no multiple of 7
     np.testing.assert_array_equal(coarse.pos[-1], fine.pos[-1])
     np.testing.assert_array_equal(coarse.vel[-1], fine.vel[-1])
     assert not np.isnan(coarse.pos[-1]).any()
-    assert fine.t.size == 500 and coarse.summary["frames"] == coarse.t.size == 73
+    # the final state's velocity is the last step's command: it moved the robots there
+    np.testing.assert_allclose(fine.pos[-1], fine.pos[-2] + 0.002 * fine.vel[-2], atol=1e-12)
+    np.testing.assert_array_equal(fine.vel[-1], fine.vel[-2])
+    assert fine.t.size == 501 and coarse.summary["frames"] == coarse.t.size == 73
 
 
 def test_last_frame_holds_the_last_exit(reduced, paper) -> None:
-    """The run ends when the last robot exits: the last frame is the step before, with that
-    robot less than one step before the line (issue 11: it was missing when decimated)."""
+    """The run ends when the last robot exits: the last frame is that final state, with that
+    robot at its exit point, past the line, reached within one step (issue 11: it was missing
+    when decimated; issue 31: the frame stopped one step before it)."""
     res = reduced
     assert res.record_every > 1
     t_end = res.summary["t_end_s"]
     last = int(np.nanargmax(res.exit_time_s))
-    assert res.exit_time_s[last] == t_end and res.t[-1] == pytest.approx(t_end - res.dt)
+    assert res.exit_time_s[last] == t_end and res.t[-1] == pytest.approx(t_end)
     line = paper.tube.finish_threshold(paper.controller.eps_0)
-    gap = line - res.pos[-1, last] @ paper.tube.n_c
-    assert 0 < gap <= np.linalg.norm(res.vel[-1, last]) * res.dt + 1e-12
+    past = res.pos[-1, last] @ paper.tube.n_c - line
+    assert 0 <= past <= np.linalg.norm(res.vel[-1, last]) * res.dt + 1e-12
+    np.testing.assert_array_equal(res.pos[-1, last], res.exit_pos[last])
 
 
 def test_unicycle_final_frame() -> None:
     sc = load_scenario(ROBOTARIUM)
     res = simulate(sc, duration=0.55, record_every=7)  # 55 steps of 10 ms
-    assert res.t[-1] == pytest.approx(0.54) and res.t[-2] == pytest.approx(0.49)
+    assert res.t[-1] == pytest.approx(0.55) and res.t[-2] == pytest.approx(0.49)
     for arr in (res.pos, res.vel, res.control_pos, res.control_vel):
         assert not np.isnan(arr[-1]).any()
     assert not np.isnan(res.heading[-1]).any()
@@ -406,7 +419,10 @@ def test_adaptive_unicycles_guard_their_control_points() -> None:
 #: The trajectories of three short runs as the simulator computed them before the speed-up of
 #: issue 16 (numpy 2.4.6, x86_64): sha256 (first 16 hex digits) of the float64 bytes of
 #: ``pos``, ``vel`` and the per-step minimum pair distance, with a few plain values. A change
-#: that reassociates a sum (or reorders any float operation) changes the bytes.
+#: that reassociates a sum (or reorders any float operation) changes the bytes. ``pos`` and
+#: ``vel`` are the frames before the final state (issue 31 made the last frame the state after
+#: the last step instead of the last step, an off-grid frame for the perturbed run, whose pins
+#: were taken from the code before that change without its last frame; robot7 is frame −2).
 PINNED_NUMPY = "2.4.6"
 PINNED = {
     "paper_adaptive_2s": {
@@ -414,9 +430,9 @@ PINNED = {
         "split_steps": 0, "min_pair_m": 0.6744157726189018,
         "robot7": (4.489359294748476, 1.1999999953965035, 8.659683082347771e-07)},
     "perturbed_adaptive_6s": {
-        "pos": "1742c8c429fc0bf5", "vel": "44196ad3f4276433", "min_pair": "ea8dc06404538c4c",
+        "pos": "b2c929b92c9e321e", "vel": "c469a75249e30d5d", "min_pair": "ea8dc06404538c4c",
         "split_steps": 142, "min_pair_m": 0.500163355074004,
-        "robot7": (11.377714728721806, 2.4331689018431524, 0.9864693176175037)},
+        "robot7": (11.363581494044585, 2.4243595080128673, 0.9719371516902385)},
     "paper_rk4_0.5s": {
         "pos": "e9b3917dd497bcf0", "vel": "0bd322944cd0a128", "min_pair": "aa6fd8f94d7b0742",
         "split_steps": 0, "min_pair_m": 0.692188284056291,
@@ -455,12 +471,12 @@ def test_trajectory_is_pinned_bit_for_bit(name, paper) -> None:
     res = _pinned_run(name, paper)
     pin = PINNED[name]
     assert res.summary["integrator_stats"]["split_steps"] == pin["split_steps"]
-    last = (res.pos[-1, 7, 0], res.pos[-1, 7, 1], res.vel[-1, 7, 1])
+    last = (res.pos[-2, 7, 0], res.pos[-2, 7, 1], res.vel[-2, 7, 1])
     np.testing.assert_allclose(last, pin["robot7"], rtol=0, atol=1e-9)
     assert res.summary["min_pair_distance_m"] == pytest.approx(pin["min_pair_m"], abs=1e-9)
     if np.__version__ != PINNED_NUMPY:
         pytest.skip(f"bytes pinned with numpy {PINNED_NUMPY}, this is {np.__version__}")
-    got = {"pos": _sha(res.pos), "vel": _sha(res.vel),
+    got = {"pos": _sha(res.pos[:-1]), "vel": _sha(res.vel[:-1]),
            "min_pair": _sha(res.metrics.min_pair_distance_m)}
     assert got == {k: pin[k] for k in got}
     assert last == pin["robot7"]

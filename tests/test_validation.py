@@ -447,8 +447,10 @@ def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
     assert "measured latency 0.124 s (default: what PX4 SITL measures" in out
     # a link the budget refuses (L > max_latency_s)
     assert main(["check", str(MOCK_FLEET), "--latency-s", "0.5"]) == 2
-    out = capsys.readouterr().out
-    assert "[Budget] Budget refused: link latency L = 550 ms" in out
+    cap = capsys.readouterr()
+    assert "[Budget] Budget refused: link latency L = 550 ms" in cap.out
+    assert cap.err.startswith(f"error: {MOCK_FLEET}: invalid mission: [Budget] Budget refused: "
+                              "link latency L = 550 ms") and cap.err.count("\n") == 1
     # the options are for missions only
     assert main(["check", str(MOCK_FLEET.parent / "paper.toml"), "--latency-s", "0.1"]) == 2
     assert "apply to mission files" in capsys.readouterr().err

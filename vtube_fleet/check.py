@@ -76,6 +76,17 @@ class CheckReport:
     def ok(self) -> bool:
         return not self.violations
 
+    def error_line(self) -> str | None:
+        """One line for ``error: …`` (None when valid): the source, the first violation with
+        its numbers, and how many more the report lists."""
+        if self.ok:
+            return None
+        v = self.violations[0]
+        more = len(self.violations) - 1
+        return (f"{self.source}: invalid {self.kind}: [{v.condition}] {v.message}"
+                + (f" (and {more} more violation{'s' if more != 1 else ''} above)"
+                   if more else ""))
+
     def verdict_lines(self) -> list[str]:
         """The verdict: ``valid``, or ``INVALID: …`` with every violation, what binds and the
         fixes."""

@@ -17,7 +17,8 @@ outcome         code  meaning
 
 A :class:`~vtube_fleet.errors.UserError` carries its own code (2 by default) for ``failed``.
 The offline simulator (``vtube-fleet sim``) has no vehicles to land and keeps its own code for
-a run that ended with robots left in the tube or with a violation: :data:`EXIT_SIM_UNFINISHED`.
+a run that ended with robots left in the tube or with a violation: :data:`EXIT_SIM_UNFINISHED`
+(1; the README lists it with the others).
 """
 
 from __future__ import annotations

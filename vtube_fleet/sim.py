@@ -27,7 +27,10 @@ condition of the paper holds). ``uncertified=True`` flies a scenario that is not
 triangles circumscribed about O instead of O' as the authors' published code does; the summary
 then says ``certified: false`` and lists the failed conditions.
 
-The trajectory holds every ``record_every``-th step and always the last step (at t_end − dt).
+The trajectory holds every ``record_every``-th step and always the final state (at t_end, after
+the last step): every robot still present then, the ones that meet (TraCondition) at that
+instant included (they exit at t_end; a robot that exited earlier is NaN from its exit step on).
+``exit_pos`` holds where each robot met (TraCondition).
 
 Safety metrics (:mod:`vtube_fleet.core.metrics`) are taken at every step, in chunks: positions and
 commands are kept in a buffer and evaluated in one vectorized call per chunk (a chunk ends when
@@ -106,8 +109,11 @@ class SimResult:
     ``t`` (T,), ``pos`` and ``vel`` (T, M, 2) in the tube frame, NaN after a robot exits
     (robot centres and their velocities; for the unicycle also ``control_pos``/``control_vel``
     (T, M, 2) and ``heading`` (T, M)). ``exit_time_s`` (M,) is NaN for robots still in the
-    tube. Every step: ``step_t`` (S,) and ``metrics`` (S,) (control points for the unicycle),
-    ``metrics_center`` for unicycle centres. ``summary`` is the ``summary.json`` dict.
+    tube; ``exit_pos`` (M, 2) where it met (TraCondition) (its control point for the unicycle),
+    NaN if it did not. The last frame is the final state (module docstring). Every step:
+    ``step_t`` (S,) and ``metrics`` (S,) (control points for the unicycle), ``metrics_center``
+    for unicycle centres (the final state has none: no command is evaluated there).
+    ``summary`` is the ``summary.json`` dict.
     """
 
     scenario: Scenario
@@ -127,11 +133,12 @@ class SimResult:
     control_vel: np.ndarray | None = None
     heading: np.ndarray | None = None
     interrupted: bool = False
+    exit_pos: np.ndarray | None = None
 
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The arrays of ``trajectory.npz``."""
         out = {"t": self.t, "pos": self.pos, "vel": self.vel, "exit_time_s": self.exit_time_s}
-        for name in ("control_pos", "control_vel", "heading"):
+        for name in ("exit_pos", "control_pos", "control_vel", "heading"):
             val = getattr(self, name)
             if val is not None:
                 out[name] = val
@@ -366,6 +373,8 @@ class _Run:
         self.m = r.count
         self.monitor = SafetyMonitor.from_params(scenario.tube, scenario.obstacles, p)
         self.acc = SummaryAccumulator(self.m)
+        # where each robot met (TraCondition): the robot, or a unicycle's control point
+        self.exit_pos = np.full((self.m, 2), np.nan)
         self.parts: list[StepMetrics] = []
         self.parts_center: list[StepMetrics] = []
         self.step_t_parts: list[np.ndarray] = []
@@ -376,7 +385,7 @@ class _Run:
 
     # ----- recording ------------------------------------------------------------------------
     def _alloc_records(self) -> None:
-        frames = self.n_steps // self.record_every + 2  # + the last step
+        frames = self.n_steps // self.record_every + 2  # + the final state
         m = self.m
         self.rec_t = np.full(frames, np.nan)
         self.rec_pos = np.full((frames, m, 2), np.nan)
@@ -483,16 +492,14 @@ class _Run:
                     series.update({f"{key}_center": getattr(metc, key) for key in METRIC_KEYS})
                 rec_metrics.append((tt, step - nc + np.arange(nc), series))
                 if sum(len(b[0]) for b in rec_metrics) >= REC_METRIC_BLOCK:
-                    send_metrics(final=False)
+                    send_metrics()
             nc = 0
 
         rec_metrics: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]] = []
 
-        def send_metrics(final: bool) -> None:
-            """Hand the buffered metric series to the recorder, grouped by frame. The last
-            step may become an extra frame (the run ends there): it is kept back until the
-            end and then, if it is a frame off the record_every grid, logged as its own group
-            so that every recorded frame has its metrics row."""
+        def send_metrics() -> None:
+            """Hand the buffered metric series to the recorder, grouped by frame (the final
+            state, a frame of its own, has no metrics: no command is evaluated there)."""
             if not rec_metrics:
                 return
             blocks = rec_metrics[:]
@@ -500,18 +507,7 @@ class _Run:
             tt = np.concatenate([b[0] for b in blocks])
             kk = np.concatenate([b[1] for b in blocks])
             ser = {key: np.concatenate([b[2][key] for b in blocks]) for key in blocks[0][2]}
-            last = kk.size - 1
-            if not final:  # keep the last step back
-                rec_metrics.append((tt[last:], kk[last:], {k: v[last:] for k, v in ser.items()}))
-            elif not (rec_every > 1 and int(kk[last]) == last_rec
-                      and last_rec % rec_every != 0):
-                last = kk.size
-            if last:
-                rec.log_metrics(tt[:last], kk[:last], {k: v[:last] for k, v in ser.items()},
-                                every=rec_every)
-            if final and last < kk.size:  # the extra last frame: its own group
-                rec.log_metrics(tt[last:], kk[last:], {k: v[last:] for k, v in ser.items()},
-                                every=1)
+            rec.log_metrics(tt, kk, ser, every=rec_every)
 
         self._alloc_records()
         rec = self.recorder
@@ -535,9 +531,12 @@ class _Run:
             pos = P2[0]  # the state: row nc of the buffer
         # the rows as lists of views (a list item costs less than indexing an array per step)
         PR, ZR, VR = list(P2), list(Z2), list(V2)
-        last_step = n_steps - 1
         last_rec = -1
-        theta_prev = theta
+
+        def last_command(buf: np.ndarray) -> np.ndarray:
+            """The rows of the last step taken (nc − 1) of a command buffer: the velocities
+            that brought the robots to the current state."""
+            return buf[nc - 1, :n].copy() if nc else np.full((n, 2), np.nan)
 
         def record_frame(st: int, ids_: np.ndarray, pos_: np.ndarray, vel_: np.ndarray,
                          q_: np.ndarray | None = None, vc_: np.ndarray | None = None,
@@ -597,18 +596,16 @@ class _Run:
                     xmax = xi.max()
                     if xmax >= thresh:
                         gone = xi >= thresh
-                        if step and last_rec != step - 1 and gone.all():
-                            # the run ends here: the last step (step − 1, in the buffer's row
-                            # nc − 1) is always a frame
-                            r = nc - 1
+                        if gone.all():  # the run ends here: the final state is a frame
                             if unicycle:
-                                record_frame(step - 1, ids, ccen[r, :n], ccvel[r, :n],
-                                             cpos[r, :n], cvel[r, :n], theta_prev)
+                                record_frame(step, ids, pos, last_command(ccvel), q,
+                                             last_command(cvel), theta)
                             else:
-                                record_frame(step - 1, ids, cpos[r, :n], cvel[r, :n])
+                                record_frame(step, ids, q, last_command(cvel))
                         flush(n, step)
                         t = step * dt
                         acc.add_exits(t, ids[gone])
+                        self.exit_pos[ids[gone]] = q[gone]
                         if rec is not None:
                             rec.log_exits(t, step, ids[gone])
                         keep = ~gone
@@ -666,15 +663,14 @@ class _Run:
                     ccen[nc, :n] = pos
                     ccvel[nc, :n] = vcen
                 cpm[nc] = min_pair = command.min_pair_distance
-                # recording (decimated; the last step always)
-                if step == next_rec or step == last_step:
+                # recording (decimated; the final state after the loop)
+                if step == next_rec:
                     if unicycle:
                         vc = cvel[nc, :n]
                         record_frame(step, ids, pos, vcen, q, vc, theta)
                     else:
                         record_frame(step, ids, pos, cvel[nc, :n])
-                    if step == next_rec:
-                        next_rec += rec_every
+                    next_rec += rec_every
                 # 5. one step of the model (core/integrate.py); "adaptive" is Euler unless a
                 # margin is within what one step can consume (then the guarded sub-steps)
                 guarded = False
@@ -686,7 +682,6 @@ class _Run:
                                               max(1, int((ms - thr_single) / max_move)))
                     guarded = near_single or min_pair < thr_pair
                 if unicycle:
-                    theta_prev = theta
                     if guarded:
                         (pos, theta), _ = adaptive_state_step(
                             (pos, theta), _cz(q), vc, dt, uni_move, uni_rhs(k, pairs), guard,
@@ -715,7 +710,7 @@ class _Run:
                 # frame, last step, leg/obstacle margin check, progress): the same steps as
                 # above with nothing else to do (single integrator, euler or adaptive)
                 end = min(next_exit_check, next_verlet, step + chunk - nc, next_rec,
-                          last_step, next_single if adaptive else n_steps,
+                          n_steps, next_single if adaptive else n_steps,
                           n_steps if progress is None else next_progress)
                 while step < end:
                     if tracker is not None:
@@ -736,9 +731,23 @@ class _Run:
         except KeyboardInterrupt:
             self.interrupted = True
         self.wall_s = time.perf_counter() - start
+        if not self.interrupted and n and last_rec != step:
+            # the final state (t_end, after the last step): its exits (TraCondition), then its
+            # frame with every robot still present, those just exited included
+            q = models.nid_control_point(pos, theta, s_nid) if unicycle else pos
+            gone = q @ n_c >= thresh
+            if gone.any():
+                acc.add_exits(step * dt, ids[gone])
+                self.exit_pos[ids[gone]] = q[gone]
+                if rec is not None:
+                    rec.log_exits(step * dt, step, ids[gone])
+            if unicycle:
+                record_frame(step, ids, pos, last_command(ccvel), q, last_command(cvel), theta)
+            else:
+                record_frame(step, ids, pos, last_command(cvel))
         flush(n, step)
         if rec is not None:
-            send_metrics(final=True)
+            send_metrics()
         self.steps_done = step
         self.t_end = step * dt
         if progress is not None and not self.interrupted:
@@ -796,4 +805,5 @@ class _Run:
             control_vel=self.rec_cvel[:f] if self.unicycle else None,
             heading=self.rec_head[:f] if self.unicycle else None,
             interrupted=self.interrupted,
+            exit_pos=self.exit_pos.copy(),
         )

@@ -4,11 +4,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 from vtube_fleet.cli._args import bounded
 from vtube_fleet.config.keys import Bound, Key
 from vtube_fleet.fleet.budget import PX4_SITL_ACCURACY_M, PX4_SITL_LATENCY_S
+from vtube_fleet.outcome import EXIT_ERROR
 
 __all__ = [
     "ACCURACY_M",
@@ -39,7 +41,11 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(line)
     for line in report.verdict_lines():
         print(line)
-    return 0 if report.ok else 2
+    if report.ok:
+        return 0
+    sys.stdout.flush()  # the report first, then the one error line (README: user errors)
+    print(f"error: {report.error_line()}", file=sys.stderr)
+    return EXIT_ERROR
 
 
 def register(subparsers: Any) -> None:
@@ -48,7 +54,8 @@ def register(subparsers: Any) -> None:
         "check",
         help="validate a scenario or a mission and print its partition",
         description="Validate a scenario or mission TOML against the paper's conditions and "
-        "print the partition into sub-tubes (exit 0 if valid, 2 otherwise). A mission is "
+        "print the partition into sub-tubes (exit 0 if valid; otherwise the report, then one "
+        "line 'error: …' on stderr naming the first violation, and exit 2). A mission is "
         "checked with the flown radii r_s', r_a' of its safety budget, and its margin is "
         "printed: the largest link latency L and accuracy σ it still validates with. When no "
         "partition "

@@ -9,9 +9,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from vtube_fleet.recording.review import ReviewResult, recorded_every, review
+from vtube_fleet.recording.review import (
+    ReviewResult,
+    compare_summaries,
+    recorded_every,
+    review,
+)
 
 __all__ = [
     "register",
@@ -60,20 +63,28 @@ def _print_text(res: ReviewResult) -> None:
         print("not recomputable from the recording, as the run reported them:")
         for k in copied:
             print(f"{k:<{width}}  {_fmt(res.summary[k], 60)}")
-    recorded = {k: v[2] for k, v in d.metric_series.items() if np.any(np.isfinite(v[2]))}
-    if recorded:
+    if res.per_step_keys or res.run_keys:
         print()
-        print("per-step metrics as the run logged them (their extrema cover every step, also "
-              "the ones between recorded frames):")
-        for k, v in recorded.items():
-            f = v[np.isfinite(v)]
-            print(f"  {k:<34} min {f.min():.6g}  max {f.max():.6g}")
+        print("review = the best the recording knows: "
+              + "; ".join(part for part in (
+                  f"{len(res.per_step_keys)} extreme(s) from the per-step series the run logged "
+                  "(every step, also between the recorded frames)" if res.per_step_keys else "",
+                  f"{', '.join(res.run_keys)} as the run counted them (confirmed by those "
+                  "series)" if res.run_keys else "") if part))
+    frame_diffs = [k for k, v in res.from_frames.items()
+                   if compare_summaries({k: v}, {k: res.summary.get(k)})]
+    if frame_diffs:
+        print()
+        unit = "tick" if d.kind == "fleet" else "step"
+        print(f"from the {len(d.t_s)} recorded frames alone (one every {every} "
+              f"{unit}{'s' if every > 1 else ''}; `steps` = frames judged), --json key "
+              "from_frames:")
+        for k in frame_diffs:
+            print(f"{k:<{width}}  {_fmt(res.from_frames[k], 60):>14}")
     print()
     if res.differences:
         print(f"{len(res.differences)} key(s) differ from the run's own summary: "
-              + ", ".join(k for k, _, _ in res.differences)
-              + (f": extremes over the recorded 1/{every} of the steps only; the per-step series "
-                 "above hold every step's extremes" if every > 1 else ""))
+              + ", ".join(k for k, _, _ in res.differences))
     elif stored:
         print("the recomputed summary matches the run's own summary")
     print(f"verdict: {res.verdict.summary_line}")
@@ -81,10 +92,22 @@ def _print_text(res: ReviewResult) -> None:
         print(f"wrote {p}")
 
 
+def _print_no_flight(res: ReviewResult) -> None:
+    d = res.data
+    print(f"recording  {d.path}")
+    print(f"run        {d.kind}, {len(d.events)} events, no scene recorded")
+    print(f"no flight: {res.no_flight}")
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
     res = review(args.recording, out_dir=args.out, plots=not args.no_plots)
-    if args.json:
-        json.dump(res.summary, sys.stdout, indent=2)
+    if args.json and res.no_flight is not None:
+        json.dump({**res.summary, "no_flight": res.no_flight}, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    elif res.no_flight is not None:
+        _print_no_flight(res)
+    elif args.json:
+        json.dump({**res.summary, "from_frames": res.from_frames}, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         _print_text(res)
@@ -101,7 +124,10 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("recording", type=Path, metavar="RUN.rrd", help="the recording to review")
     p.add_argument("--json", action="store_true",
-                   help="print only the summary JSON (the keys of summary.json) on stdout")
+                   help="print only the summary JSON on stdout: the keys of summary.json with "
+                   "the best figures the recording holds (extremes over every step from its "
+                   "per-step series), and under from_frames the figures recomputed from the "
+                   "recorded frames alone")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="write the PNGs here (default: next to the recording)")
     p.add_argument("--no-plots", action="store_true", help="do not write PNGs")

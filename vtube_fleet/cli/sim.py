@@ -27,7 +27,9 @@ def register(subparsers: Any) -> None:
         "sim",
         help="run the offline simulator",
         description="Simulate the swarm and write summary.json, trajectory.npz, metrics.npz "
-        "and PNG plots.",
+        "and PNG plots. Exit code 0 when every robot exited with every limit kept, 1 when "
+        "robots were left in the tube or a limit was broken, 2 for a user error, 130 for "
+        "Ctrl-C.",
     )
     s.add_argument("config", help="scenario TOML file (see docs/config.md)")
     s.add_argument("--out", metavar="DIR", default=None,

@@ -454,9 +454,33 @@ class SafetyMonitor:
                                 "robots": [int(ok[k])]})
         return out
 
+    def breaks(self, metric_key: str, values: np.ndarray) -> tuple[str, np.ndarray] | None:
+        """(condition of :data:`CONDITIONS`, (K,) bool) for a per-step series of a
+        :data:`METRIC_KEYS` entry (any stream suffix, or ``truth_`` prefix): the values that
+        break the limit, by the rule of the violation flags (``min_speed`` below v_min,
+        ``max_speed`` above v_max, within ``speed_tol``; distances at or below their limit).
+        None for the obstacle-centre distance (its limit depends on the obstacle: the
+        clearance carries the condition) and for keys without a limit."""
+        base = metric_key.removeprefix("truth_").removesuffix("_truth").removesuffix("_center")
+        v = np.asarray(values, dtype=float)
+        lim = self.limits
+        if base == "min_pair_distance_m":
+            return "pair", v <= lim.pair_m
+        if base == "min_obstacle_clearance_m":
+            return "obstacle", v <= lim.leg_m
+        if base == "min_left_leg_distance_m":
+            return "left_leg", v <= lim.leg_m
+        if base == "min_right_leg_distance_m":
+            return "right_leg", v <= lim.leg_m
+        if base == "min_speed_m_s":
+            return "speed", v < self.v_min - self.speed_tol
+        if base == "max_speed_m_s":
+            return "speed", v > self.v_max + self.speed_tol
+        return None
+
     def _speed_bad(self, vmin: np.ndarray, vmax: np.ndarray) -> np.ndarray:
         """Steps whose slowest or fastest robot leaves [v_min, v_max] (within the tolerance)."""
-        return (vmin < self.v_min - self.speed_tol) | (vmax > self.v_max + self.speed_tol)
+        return self.breaks("min_speed_m_s", vmin)[1] | self.breaks("max_speed_m_s", vmax)[1]
 
     @staticmethod
     def _no_speeds(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -466,7 +490,9 @@ class SafetyMonitor:
     def _result(self, min_pair: np.ndarray, min_center: np.ndarray, min_clear: np.ndarray,
                 left: np.ndarray, right: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
                 robots: np.ndarray, speed_bad: np.ndarray) -> StepMetrics:
-        r_s = self.limits.leg_m
+        def bad(key: str, v: np.ndarray) -> np.ndarray:
+            return self.breaks(key, v)[1]  # type: ignore[index]
+
         return StepMetrics(
             min_pair_distance_m=min_pair,
             min_obstacle_center_distance_m=min_center,
@@ -476,10 +502,10 @@ class SafetyMonitor:
             min_speed_m_s=vmin,
             max_speed_m_s=vmax,
             robots=robots,
-            pair_violation=min_pair <= self.limits.pair_m,
-            obstacle_violation=min_clear <= r_s,
-            left_leg_violation=left <= r_s,
-            right_leg_violation=right <= r_s,
+            pair_violation=bad("min_pair_distance_m", min_pair),
+            obstacle_violation=bad("min_obstacle_clearance_m", min_clear),
+            left_leg_violation=bad("min_left_leg_distance_m", left),
+            right_leg_violation=bad("min_right_leg_distance_m", right),
             speed_violation=speed_bad,
         )
 

@@ -38,9 +38,15 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
+    "STAGE_EVENT",
     "RecordingData",
     "load_recording",
 ]
+
+#: How a run announces its stages in the recording's events (``stage: connecting``).
+STAGE_EVENT = "stage: "
+#: A stage as a place in the run ("failed at connect").
+_STAGE_NAMES = {"connecting": "connect"}
 
 # ----------------------------------------------------------------------------------------------
 # reading back
@@ -60,6 +66,9 @@ class RecordingData:
     metrics, reduced per recorded frame); ``exits`` vehicle id → exit time;
     ``events`` (t_s, entity path, level, text); ``entity_rows`` entity path → temporal row count
     (static rows counted under ``static_rows``); ``meta`` / ``summary`` the two JSON documents.
+    ``scene`` is False for a run that ended before it logged its scene (failed at connect or in
+    the preflight, killed before arming): ``meta`` then holds only its ``kind`` (from the
+    summary), there is nothing flown to review, :meth:`no_flight` says why.
     """
 
     path: Path
@@ -84,10 +93,33 @@ class RecordingData:
     recording_id: str = ""
     partitions: list[tuple[float, list[np.ndarray], list[np.ndarray]]] = field(
         default_factory=list)
+    scene: bool = True
 
     @property
     def kind(self) -> str:
         return str(self.meta.get("kind", "?"))
+
+    @property
+    def last_stage(self) -> str | None:
+        """The last stage the run announced (its ``stage: …`` events), if any."""
+        stages = [text[len(STAGE_EVENT):] for _, ent, _, text in self.events
+                  if ent == E_EVENTS and text.startswith(STAGE_EVENT)]
+        return stages[-1] if stages else None
+
+    def no_flight(self) -> str | None:
+        """Why a recording without a scene holds no flight, e.g. ``failed at connect (1 of 1
+        vehicles did not connect within …)``: the run's outcome, the stage it ended in and its
+        reason; None for a recording with a scene."""
+        if self.scene:
+            return None
+        s = self.summary or {}
+        stage = self.last_stage
+        where = f" at {_STAGE_NAMES.get(stage, stage)}" if stage else ""
+        if not s:
+            return f"the recording ends{where or ' before the first stage'} without a summary " \
+                   "(the run was killed?)"
+        reason = s.get("reason")
+        return f"{s.get('outcome') or 'ended'}{where}" + (f" ({reason})" if reason else "")
 
     def tube(self) -> Trapezoid:
         from vtube_fleet.core.tube import Trapezoid
@@ -266,16 +298,24 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
             for i, strips in enumerate(strips_of(rb)):
                 target[int(k[i])] = (float(t[i]), strips)
 
+    summary = _json_object(summary_text)
+    scene = meta_text is not None
     if meta_text is None:
-        raise RecordingError(f"{p}: not a vtube_fleet recording (no {E_META} document)")
-    try:
-        meta = json.loads(meta_text)
-    except json.JSONDecodeError as exc:
-        raise RecordingError(f"{p}: {E_META} is not valid JSON ({exc})") from None
-    if meta.get("format") != META_FORMAT:
-        raise RecordingError(f"{p}: {E_META} has format {meta.get('format')!r}, "
-                             f"expected {META_FORMAT!r}")
-    summary = json.loads(summary_text) if summary_text else None
+        # a run that ended before its scene (failed at connect, refused in the preflight):
+        # ours when it left its summary (an outcome) or announced a stage, with no flight in it
+        staged = any(ent == E_EVENTS and text.startswith(STAGE_EVENT)
+                     for _, ent, _, text in events)
+        if not (staged or (summary is not None and "outcome" in summary)):
+            raise RecordingError(f"{p}: not a vtube_fleet recording (no {E_META} document)")
+        meta = {"kind": str((summary or {}).get("kind", "?"))}
+    else:
+        try:
+            meta = json.loads(meta_text)
+        except json.JSONDecodeError as exc:
+            raise RecordingError(f"{p}: {E_META} is not valid JSON ({exc})") from None
+        if meta.get("format") != META_FORMAT:
+            raise RecordingError(f"{p}: {E_META} has format {meta.get('format')!r}, "
+                                 f"expected {META_FORMAT!r}")
 
     # ---- vehicles: one row per tick ----
     all_k = np.concatenate([k for _, k, _ in veh]) if veh else np.zeros(0, np.int64)
@@ -363,5 +403,16 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         exits=exits, events=events,
         entity_rows=entity_rows, static_rows=static_rows,
         application_id=str(stores[0].application_id), recording_id=str(stores[0].recording_id),
-        partitions=partitions,
+        partitions=partitions, scene=scene,
     )
+
+
+def _json_object(text: str | None) -> dict[str, Any] | None:
+    """A JSON document that is an object, else None."""
+    if not text:
+        return None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError:
+        return None
+    return doc if isinstance(doc, dict) else None

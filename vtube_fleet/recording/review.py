@@ -21,6 +21,7 @@ from vtube_fleet.recording.reader import RecordingData, load_recording
 
 __all__ = [
     "ReviewResult",
+    "best_known",
     "compare_summaries",
     "full_pair_curve",
     "recorded_every",
@@ -36,13 +37,27 @@ _CHUNK_STEPS = 256
 
 @dataclass
 class ReviewResult:
-    """What :func:`review` produced."""
+    """What :func:`review` produced: ``summary`` holds the best figures the recording knows
+    (:func:`best_known`), ``from_frames`` the recomputed keys from the recorded frames alone
+    (:func:`summary_from_recording`; its ``steps`` are the frames judged), ``per_step_keys``
+    the keys taken from the per-step series, ``run_keys`` the counts taken from the run's own
+    summary because the per-step series confirm them; ``differences`` compares ``summary``
+    with the run's own over ``recomputed_keys``."""
 
     data: RecordingData
     summary: dict[str, Any]
     recomputed_keys: tuple[str, ...]
     differences: list[tuple[str, Any, Any]]
     plots: list[Path] = field(default_factory=list)
+    from_frames: dict[str, Any] = field(default_factory=dict)
+    per_step_keys: tuple[str, ...] = ()
+    run_keys: tuple[str, ...] = ()
+
+    @property
+    def no_flight(self) -> str | None:
+        """Why there is no flight to review (a run that ended before its scene: e.g.
+        ``failed at connect (…)``), else None (:meth:`RecordingData.no_flight`)."""
+        return self.data.no_flight()
 
     @property
     def verdict(self) -> Any:
@@ -71,28 +86,40 @@ def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any
     (positions, velocities) the run said its metrics used (``data.safety``, at the ticks where
     it gave them — e.g. the fleet only once in the tube; a fleet recording without them judged
     no tick, so none is recomputed), else the recorded vehicle positions and velocities at every
-    recorded tick."""
+    recorded tick. A simulation is judged at the frames of the steps it judged, those with a
+    per-step metrics row: not its final state (the last frame, after the last step, where the
+    robots reaching the line exit and no command is evaluated)."""
     from vtube_fleet.core.metrics import StepMetrics
 
-    if suffix in data.safety:
-        pos, vel = data.safety[suffix]
-        rows = np.flatnonzero(data.safety_ticks[suffix])
-        pos, vel, t = pos[rows], vel[rows], data.t_s[rows]
-    elif suffix == "" and data.kind in ("fleet", "mqtt", "agent"):
-        # the fleet (run, coordinator, agents) gives its metrics' inputs at every tick it
-        # judged (in the tube); none given = no tick judged (e.g. interrupted in the take-off),
-        # so none is recomputed either: review judges the same phases the run judged
-        pos, vel, t = data.pos[:0], data.vel[:0], data.t_s[:0]
-    elif suffix == "":
-        pos, vel, t = data.pos, data.vel, data.t_s
-    else:
-        raise KeyError(suffix)
+    pos, vel, rows = _judged(data, suffix)
+    pos, vel, t = pos[rows], vel[rows], data.t_s[rows]
     mon = _monitor(data)
     parts = [mon.evaluate(pos, vel)] if not len(t) else []
     for s in range(0, len(t), _CHUNK_STEPS):
         sl = slice(s, s + _CHUNK_STEPS)
         parts.append(mon.evaluate(pos[sl], vel[sl]))
     return t, StepMetrics.concatenate(parts)
+
+
+def _judged(data: RecordingData, suffix: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pos, vel) (T, M, 2) of a stream and the rows (recorded ticks) it is judged at
+    (:func:`step_metrics`)."""
+    if suffix in data.safety:
+        pos, vel = data.safety[suffix]
+        rows = np.flatnonzero(data.safety_ticks[suffix])
+    elif suffix == "" and data.kind in ("fleet", "mqtt", "agent"):
+        # the fleet (run, coordinator, agents) gives its metrics' inputs at every tick it
+        # judged (in the tube); none given = no tick judged (e.g. interrupted in the take-off),
+        # so none is recomputed either: review judges the same phases the run judged
+        pos, vel, rows = data.pos, data.vel, np.zeros(0, dtype=np.int64)
+    elif suffix == "":
+        pos, vel, rows = data.pos, data.vel, np.arange(len(data.t_s))
+    else:
+        raise KeyError(suffix)
+    if data.kind == "sim" and data.metric_series:
+        logged = np.unique(np.concatenate([v[1] for v in data.metric_series.values()]))
+        rows = rows[np.isin(data.tick[rows], logged)]
+    return pos, vel, rows
 
 
 def summary_from_recording(data: RecordingData, metrics: Any | None = None
@@ -131,6 +158,82 @@ def summary_from_recording(data: RecordingData, metrics: Any | None = None
     else:
         out = fresh
     return out, recomputed
+
+
+def _stream_key(suffix: str) -> Any:
+    """Summary key naming of a stream (``"_truth"`` keys are ``truth_…``, as the fleet's)."""
+    if suffix == "_truth":
+        return lambda key: f"truth_{key}"
+    return lambda key: f"{key}{suffix}"
+
+
+def best_known(data: RecordingData, frames: Mapping[str, Any], keys: tuple[str, ...]
+               ) -> tuple[dict[str, Any], tuple[str, ...], tuple[str, ...]]:
+    """The best figures the recording knows → (summary, per-step keys, run keys).
+
+    ``frames``/``keys``: :func:`summary_from_recording`. Every extreme of
+    :data:`~vtube_fleet.core.metrics.METRIC_KEYS` that the run also logged as a per-step
+    series (the simulator: every step, reduced per recorded frame to its extreme; the fleet:
+    every tick) becomes the extreme of that series (or of the frames, if more extreme). The
+    counts are the frames' unless the frames are fewer than the run's steps (a decimated
+    recording): then ``steps`` and each stream's ``violations``, ``violations_by_condition``
+    and ``first_violation_s`` are the run's own summary's when the per-step series confirm
+    them (a condition counted > 0 exactly where a series breaks its limit), else the frames'
+    raised to what the series show (at least one step per condition broken, the first
+    broken series value's time if earlier)."""
+    from vtube_fleet.core.metrics import METRIC_KEYS
+
+    out = dict(frames)
+    stored = data.summary or {}
+    mon = _monitor(data)
+    per_step: list[str] = []
+    run: list[str] = []
+    fs, rs = frames.get("steps"), stored.get("steps")
+    decimated = isinstance(fs, int) and isinstance(rs, int) and fs < rs
+    for suffix in ["", *sorted(sfx for sfx in data.safety if sfx)]:
+        name = _stream_key(suffix)
+        broken: dict[str, bool] = {}
+        first = math.inf
+        for key in METRIC_KEYS:
+            k = name(key)
+            series = data.metric_series.get(k)
+            if k not in keys or series is None:
+                continue
+            t, _, v = series
+            fin = np.isfinite(v)
+            if fin.any():
+                ext = float(v[fin].min() if key.startswith("min_") else v[fin].max())
+                cur = out.get(k)
+                out[k] = ext if cur is None else (min(cur, ext) if key.startswith("min_")
+                                                  else max(cur, ext))
+                per_step.append(k)
+            rule = mon.breaks(key, v)
+            if rule is not None:
+                cond, bad = rule
+                broken[cond] = broken.get(cond, False) or bool(bad.any())
+                if bad.any():
+                    first = min(first, float(t[np.argmax(bad)]))
+        vk, bk, fk = name("violations"), name("violations_by_condition"), name("first_violation_s")
+        if not (decimated and broken and vk in keys and isinstance(out.get(bk), dict)):
+            continue
+        by_run = stored.get(bk)
+        if isinstance(by_run, dict) and vk in stored and all(
+                (int(by_run.get(c) or 0) > 0) == b for c, b in broken.items()):
+            out[vk], out[bk], out[fk] = stored[vk], dict(by_run), stored.get(fk)
+            run += [vk, bk, fk]
+            continue
+        by = dict(out[bk])
+        for c, b in broken.items():
+            if b and not by.get(c):
+                by[c] = 1
+        out[bk] = by
+        out[vk] = max(int(out[vk] or 0), 1 if any(broken.values()) else 0)
+        if math.isfinite(first) and (out.get(fk) is None or first < out[fk]):
+            out[fk] = first
+    if decimated:
+        out["steps"] = rs
+        run.append("steps")
+    return out, tuple(per_step), tuple(run)
 
 
 def _close(a: Any, b: Any, rel: float, abs_: float) -> bool:
@@ -232,10 +335,8 @@ def full_pair_curve(data: RecordingData, suffix: str = "") -> np.ndarray:
     empty (NaN) wherever nobody came that close — a curve clipped at that radius."""
     import dataclasses
 
-    if suffix in data.safety:
-        pos = data.safety[suffix][0][np.flatnonzero(data.safety_ticks[suffix])]
-    else:
-        pos = data.pos
+    pos, _, rows = _judged(data, suffix)
+    pos = pos[rows]
     finite = pos[np.isfinite(pos).all(axis=-1)]
     if finite.shape[0] < 2:
         return np.full(pos.shape[0], np.nan)
@@ -261,23 +362,29 @@ def _require_dir(out_dir: Path) -> None:
 
 
 def review(path: str | Path, *, out_dir: Path | None = None, plots: bool = True) -> ReviewResult:
-    """Load a recording, recompute its summary, compare with the run's own, draw the plots.
-    A bad ``out_dir`` is refused before the recording is read."""
+    """Load a recording, recompute its summary (from the frames, then the best the recording
+    knows: :func:`best_known`), compare with the run's own, draw the plots. A bad ``out_dir``
+    is refused before the recording is read."""
     if plots and out_dir is not None:
         _require_dir(Path(out_dir))
     data = load_recording(path)
+    if not data.scene:  # nothing flown (failed at connect, in the preflight …): nothing to judge
+        return ReviewResult(data=data, summary=dict(data.summary or {}), recomputed_keys=(),
+                            differences=[])
     for key in ("tube", "r_s", "r_a", "v_min", "v_max"):
         if key not in data.meta:
             raise RecordingError(f"{data.path}: scenario metadata lacks {key!r} "
                                  "(recorded without log_scene?)")
     sm = step_metrics(data)
-    summary, keys = summary_from_recording(data, sm)
+    frames, keys = summary_from_recording(data, sm)
+    summary, per_step, run = best_known(data, frames, keys)
     diffs = compare_summaries(summary, data.summary or {}, keys, rel=1e-9, abs_=1e-9)
     written: list[Path] = []
     if plots:
         written = write_review_plots(data, out_dir or data.path.parent, sm)
     return ReviewResult(data=data, summary=summary, recomputed_keys=keys, differences=diffs,
-                        plots=written)
+                        plots=written, from_frames={k: frames[k] for k in keys},
+                        per_step_keys=per_step, run_keys=run)
 
 
 def recorded_every(d: RecordingData) -> int:

@@ -430,12 +430,17 @@ class Coordinator:
         timeout = (cfg.arm_timeout_s + cfg.takeoff_timeout_s + cfg.mission_timeout_s
                    + cfg.land_timeout_s) if timeout_s is None else timeout_s
         recorder = recorder if recorder is not None else NullRecorder()
+        # the radii the agents fly (the run's δ, announced): pairs are searched as `run`
+        # searches them, and review of the recording searches the same (r_s_flown, r_a_flown)
+        radii = bus_safety_budget(self.mission, None, self.max_age_s).inflate(
+            self.mission.scenario.controller)
         mon = RunMonitor(self.mission, self.vehicles, recorder=recorder,
-                         t0_s=self.t_start_wall or time.time())
-        flown = self.mission.with_vehicles(self.vehicles)
-        recorder.log_scene(flown.scenario, None, mission=flown.config, meta={
+                         t0_s=self.t_start_wall or time.time(), flown=radii)
+        fleet = self.mission.with_vehicles(self.vehicles)
+        recorder.log_scene(fleet.scenario, None, mission=fleet.config, meta={
             "kind": "mqtt", "rate_hz": cfg.rate_hz, "run_id": self.run_id,
-            "broker": self.broker, "vehicles": self.vehicles})
+            "broker": self.broker, "vehicles": self.vehicles, "r_s_flown": radii.r_s,
+            "r_a_flown": radii.r_a})
         outcome, reason = "failed", ""
 
         def summary(**extra: Any) -> dict[str, Any]:

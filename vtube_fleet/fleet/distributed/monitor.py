@@ -39,6 +39,12 @@ class RunMonitor:
     vehicle's first state past the finishing line; times (``*_exit_s``, metric steps, the
     recording's mission time) count from ``t0_s``, the start command, as the supervisor's count
     from its own start; ``flight_time_s`` from the fleet's first IN_TUBE state.
+
+    ``flown``: the radii the fleet flies (r_s', r_a' of its safety budget). The ``""`` stream
+    then searches pairs as the supervisor's does (:meth:`SafetyMonitor.for_run`: within
+    r_s' + r_a' + 1 m), so ``min_pair_distance_m`` is reported although a fleet flying r_s'
+    keeps its vehicles farther apart than the physical r_s + r_a (without ``flown`` only pairs
+    within r_s + r_a are searched: none, ``null``). The limits stay the physical ones.
     """
 
     mission: Any
@@ -56,12 +62,13 @@ class RunMonitor:
     recorder: Any = None
     t0_s: float = 0.0  # wall time the run started: the recording's mission time 0
     ticks: int = 0
+    flown: Any = None  # r_s', r_a' flown (a ControllerParams), or None: see the docstring
 
     def __post_init__(self) -> None:
         from vtube_fleet.core.metrics import SafetyMonitor, SummaryAccumulator, ViolationLog
 
         sc = self.mission.scenario
-        self.monitor = SafetyMonitor.from_params(sc.tube, sc.obstacles, sc.controller)
+        self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, sc.controller, self.flown)
         self.acc = SummaryAccumulator(self.vehicles)
         self.violations = ViolationLog(self.monitor)
 
@@ -194,6 +201,8 @@ class RunMonitor:
             "r_s": params.r_s,
             "r_a": params.r_a,
             "pair_limit_m": self.monitor.limits.pair_m,
+            **({"r_s_flown": self.flown.r_s, "r_a_flown": self.flown.r_a}
+               if self.flown is not None else {}),
             "min_pair_distance_airborne_m": finite_or_none(self.min_pair_airborne),
             "min_commanded_speed_m_s": None,
             "max_commanded_speed_m_s": None,

@@ -347,15 +347,16 @@ class AgentRecording:
 
     def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
                  t0_s: float, out: Path | None = None,
-                 meta: dict[str, Any] | None = None) -> None:
+                 meta: dict[str, Any] | None = None, flown: Any = None) -> None:
         """``out``: where the interim summaries go (:meth:`after_tick`; None: none);
-        ``meta``: keys every summary carries (mission and run id, config hash, broker)."""
+        ``meta``: keys every summary carries (mission and run id, config hash, broker);
+        ``flown``: the radii the run flies (r_s', r_a'), where the monitor looks for pairs."""
         from vtube_fleet.artifacts import SummaryPacer
         from vtube_fleet.fleet.distributed.monitor import RunMonitor
 
         self.vehicle = vehicle
         self.recorder = recorder
-        self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s)
+        self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s, flown=flown)
         self.out = out
         self.meta = dict(meta or {})
         self.pacer = SummaryPacer(-math.inf)  # the first interim summary at the first tick
@@ -867,10 +868,13 @@ class AgentProcess:
         cmd = self.bus.command
         t0 = cmd.stamp_s if cmd is not None else time.time()  # the coordinator's time base
         mission = self.mission.with_vehicles(cfg.vehicles)
+        flown = (None if self.budget is None
+                 else self.budget.inflate(mission.scenario.controller))
         rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0,
                              out=self.out, meta={
                                  "mission_id": self.mission_id, "run_id": cfg.run_id,
-                                 "config_hash": self.hash, "broker": self.bus.url})
+                                 "config_hash": self.hash, "broker": self.bus.url},
+                             flown=flown)
         self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
                   "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles},
