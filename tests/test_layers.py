@@ -238,3 +238,42 @@ def test_the_import_check_sees_a_missing_name(tmp_path: Path) -> None:
     f.write_text("def g():\n    from vtube_fleet.core.metrics import no_such_helper\n")
     bad = _unresolved(f)
     assert len(bad) == 1 and "no_such_helper" in bad[0]
+
+
+#: The control tick's home (issue 31): what only it may call in the fleet layer, and the
+#: per-vehicle tick steps no pilot may define again.
+TICK_HOME = "vtube_fleet/fleet/tick.py"
+TICK_ONLY_CALLS = {"send_velocities_ned", "send_velocity_ned", "local_ned_to_tube",
+                   "velocity_command", "classify"}
+NO_PILOT_TICK_STEPS = {"sense", "check_faults", "actuate", "tick", "state", "publish",
+                       "run_clock", "setpoint", "view", "observe"}
+
+
+def _calls(path: Path) -> list[tuple[int, str]]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", "")
+            out.append((node.lineno, name))
+    return out
+
+
+def test_the_tick_has_one_home() -> None:
+    """Sending setpoints, turning telemetry into the tube frame and sorting the neighbours
+    happen in fleet/tick.py only (the controller itself in fleet/plan.py); the pilot keeps the
+    flight procedure and defines no tick step of its own."""
+    bad = []
+    for path in _files(PACKAGE / "fleet"):
+        rel = _rel(path)
+        allowed = {TICK_HOME: TICK_ONLY_CALLS,
+                   "vtube_fleet/fleet/plan.py": {"velocity_command"}}.get(rel, set())
+        bad += [f"{rel}:{line} calls {name}" for line, name in _calls(path)
+                if name in TICK_ONLY_CALLS - allowed]
+    tree = ast.parse((PACKAGE / "fleet" / "pilot.py").read_text())
+    pilot = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "VehiclePilot")
+    bad += [f"VehiclePilot.{n.name} is a tick step" for n in pilot.body
+            if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)
+            and n.name in NO_PILOT_TICK_STEPS]
+    assert not bad, "\n".join(bad)
