@@ -41,7 +41,7 @@ from vtube_fleet.core.partition import (
 from vtube_fleet.core.plan import plan_partition  # noqa: E402
 from vtube_fleet.core.tube import Obstacle, Trapezoid  # noqa: E402
 from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget  # noqa: E402
-from vtube_fleet.fleet.plan import LOST_APEX_FACTOR, FlightPlan  # noqa: E402
+from vtube_fleet.fleet.flight_plan import LOST_APEX_FACTOR, FlightPlan  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

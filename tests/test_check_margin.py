@@ -31,9 +31,9 @@ from vtube_fleet.fleet.budget import (
     budget_problems,
     mission_budget,
 )
+from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.margin import margin_note, mission_margin, refusal_note
-from vtube_fleet.fleet.plan import FlightPlan
 from vtube_fleet.fleet.preflight import preflight_report
 
 

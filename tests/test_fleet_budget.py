@@ -163,7 +163,7 @@ class _Link:
 def test_a_lasting_residual_above_d_warns_once_a_spike_does_not(mission) -> None:
     """The budget covers D integrated over time: one tick's jump of d̂ is not a warning, a
     residual that stays above D is, once per vehicle (the tick's actuation tracks it)."""
-    from vtube_fleet.fleet.plan import FlightPlan
+    from vtube_fleet.fleet.flight_plan import FlightPlan
     from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
     from vtube_fleet.fleet.tick import actuate, read_links
     from vtube_fleet.state import Phase

@@ -14,8 +14,8 @@ from missions import compact_12
 from vtube_fleet.core.controller import velocity_command
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.fleet.budget import SafetyBudget
-from vtube_fleet.fleet.neighbours import classify, states_of
-from vtube_fleet.fleet.plan import FlightPlan, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.flight_plan import FlightPlan, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.neighbour_view import classify, states_of
 from vtube_fleet.state import NeighbourState, Phase
 
 ROOT = Path(__file__).resolve().parents[1]

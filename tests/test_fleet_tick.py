@@ -27,7 +27,7 @@ from vtube_fleet.fleet.compensation import (
     CompensatorBank,
     ResidualTracker,
 )
-from vtube_fleet.fleet.neighbours import States, classify, states_of
+from vtube_fleet.fleet.neighbour_view import States, classify, states_of
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
 from vtube_fleet.fleet.tick import FAULT_RULES, FaultRule, Tick

@@ -262,13 +262,13 @@ def _calls(path: Path) -> list[tuple[int, str]]:
 
 def test_the_tick_has_one_home() -> None:
     """Sending setpoints, turning telemetry into the tube frame and sorting the neighbours
-    happen in fleet/tick.py only (the controller itself in fleet/plan.py); the pilot keeps the
-    flight procedure and defines no tick step of its own."""
+    happen in fleet/tick.py only (the controller itself in fleet/flight_plan.py); the pilot
+    keeps the flight procedure and defines no tick step of its own."""
     bad = []
     for path in _files(PACKAGE / "fleet"):
         rel = _rel(path)
         allowed = {TICK_HOME: TICK_ONLY_CALLS,
-                   "vtube_fleet/fleet/plan.py": {"velocity_command"}}.get(rel, set())
+                   "vtube_fleet/fleet/flight_plan.py": {"velocity_command"}}.get(rel, set())
         bad += [f"{rel}:{line} calls {name}" for line, name in _calls(path)
                 if name in TICK_ONLY_CALLS - allowed]
     tree = ast.parse((PACKAGE / "fleet" / "pilot.py").read_text())

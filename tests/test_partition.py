@@ -699,7 +699,7 @@ def test_lost_vehicle_repartition_uses_the_planner():
     from tests.missions import MOCK_FLEET
     from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
-    from vtube_fleet.fleet.plan import LOST_APEX_FACTOR, FlightPlan
+    from vtube_fleet.fleet.flight_plan import LOST_APEX_FACTOR, FlightPlan
 
     mission = load_mission(MOCK_FLEET)
     sc = mission.scenario

@@ -424,7 +424,7 @@ def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
     from vtube_fleet.cli import main
     from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
-    from vtube_fleet.fleet.plan import FlightPlan
+    from vtube_fleet.fleet.flight_plan import FlightPlan
 
     rep = check_file(MOCK_FLEET, latency_s=0.03, accuracy_m=0.1)
     mission = load_mission(MOCK_FLEET)
@@ -463,7 +463,7 @@ def test_check_mission_with_auto_apex_flies_the_fleet_partition(tmp_path):
 
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
-    from vtube_fleet.fleet.plan import FlightPlan
+    from vtube_fleet.fleet.flight_plan import FlightPlan
 
     text = NARROWING.replace("[robots]", "[partition]\napex_distance = \"auto\"\n\n"
                              "[[obstacles]]\ncenter = [13.0, 0.5]\nradius = 0.3\n\n[robots]")
@@ -544,7 +544,7 @@ def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
 
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
-    from vtube_fleet.fleet.plan import FlightPlan
+    from vtube_fleet.fleet.flight_plan import FlightPlan
 
     mission = write_mission(tmp_path, TAPERED_TWO_OBSTACLES + MISSION_TABLE)
     rep = check_file(tmp_path / "mission.toml", latency_s=0.1, accuracy_m=0.31)

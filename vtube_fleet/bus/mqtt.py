@@ -1,6 +1,6 @@
 """The neighbour bus over an MQTT broker: one agent process per vehicle.
 
-:class:`MqttBus` implements :class:`~vtube_fleet.bus.base.NeighbourBus` (``publish`` /
+:class:`MqttBus` publishes this vehicle's state and keeps the others' latest (``publish`` /
 ``latest``) on top of one MQTT connection (:class:`~vtube_fleet.bus.client.MqttClient`, an
 asyncio protocol that parses every chunk read from the socket in one go) owned by a background
 task, which:
@@ -24,7 +24,7 @@ A vehicle whose last will arrives (and which publishes no newer state within
 ``lost_confirm_s``: a ``lost`` status is a claim, see :meth:`MqttBus._on_status`) stays in
 :meth:`latest` at its last known position with phase ``LOST``: the agent treats it as a static
 obstacle (same rule as a silent one). States carry the sender's wall-clock stamp; ageing them
-is the tick's job (``vtube_fleet.fleet.neighbours``).
+is the tick's job (``vtube_fleet.fleet.neighbour_view``).
 
 Security (``docs/security.md``): ``mqtts://`` URLs connect with TLS and verify the broker's
 certificate; ``credentials`` name the account (a file from ``vtube-fleet bus-setup``); a
@@ -150,7 +150,7 @@ class BusStats:
 
 
 class MqttBus:
-    """A :class:`~vtube_fleet.bus.base.NeighbourBus` over MQTT.
+    """The neighbour bus over MQTT: ``publish`` this vehicle's state, ``latest`` the others'.
 
     ``vehicle_id=None`` makes an *observer* (the mission coordinator): no state, no status,
     no last will; it reads everything and may own retained messages (:meth:`set_retained`).
@@ -277,7 +277,7 @@ class MqttBus:
         #: Current back-off: initial after a lost connection, ×2 per failed attempt (≤ max).
         self.backoff_s = backoff_initial_s
 
-    # -- NeighbourBus --------------------------------------------------------------------------
+    # -- the neighbour bus ----------------------------------------------------------------------
     def publish(self, state: NeighbourState) -> None:
         """Hand this vehicle's latest state to the sender (never blocks, never queues).
 

@@ -1,8 +1,8 @@
 """The fleet: the control tick, pilots and the asyncio supervisor (``vtube-fleet run``).
 
 * :mod:`~vtube_fleet.config.mission`: mission files (a scenario plus ``[mission]``);
-* :mod:`~vtube_fleet.fleet.plan`: the flight plan (tube, obstacles, flown radii, partition);
-* :mod:`~vtube_fleet.fleet.neighbours`: vehicle states as a table, the neighbour view;
+* :mod:`~vtube_fleet.fleet.flight_plan`: the flight plan (tube, obstacles, flown radii, partition);
+* :mod:`~vtube_fleet.fleet.neighbour_view`: vehicle states as a table, the neighbour view;
 * :mod:`~vtube_fleet.fleet.table`: the tick state of the vehicles a process flies;
 * :mod:`~vtube_fleet.fleet.tick`: THE control tick (one vehicle or a thousand) and its clock;
 * :mod:`~vtube_fleet.fleet.budget`: the safety budget (how much r_s and r_a are inflated);
@@ -21,8 +21,8 @@ See ``docs/fleet.md``.
 
 from vtube_fleet.config.mission import Mission, MissionConfig, load_mission
 from vtube_fleet.fleet.budget import SafetyBudget
+from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.fleet.pilot import VehiclePilot
-from vtube_fleet.fleet.plan import FlightPlan
 from vtube_fleet.fleet.supervisor import FleetResult, MissionAborted, Supervisor
 
 __all__ = [

@@ -81,7 +81,7 @@ def assumed_measurement(latency_s: float | None = None, accuracy_m: float | None
 
 def _lookahead_violations(mission: Mission, flown: ControllerParams, part: Partition
                           ) -> list[Violation]:
-    from vtube_fleet.fleet.plan import FlightPlan
+    from vtube_fleet.fleet.flight_plan import FlightPlan
 
     sc, slots = mission.scenario, mission.slots
     plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)

@@ -45,8 +45,8 @@ from vtube_fleet.fleet.budget import (
 from vtube_fleet.link.base import LinkTimeout, VehicleLink
 
 if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.fleet.flight_plan import FlightPlan
     from vtube_fleet.fleet.pilot import VehiclePilot
-    from vtube_fleet.fleet.plan import FlightPlan
     from vtube_fleet.fleet.tick import ControlClock
 
 __all__ = [

@@ -50,10 +50,10 @@ from vtube_fleet.core.metrics import SafetyMonitor, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.budget import LinkMeasurement, SafetyBudget, achieved_rate_hz, mission_budget
+from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.fleet.measure import FlightMeasurement, TickTrace
-from vtube_fleet.fleet.neighbours import NeighbourView
+from vtube_fleet.fleet.neighbour_view import NeighbourView
 from vtube_fleet.fleet.pilot import VehiclePilot
-from vtube_fleet.fleet.plan import FlightPlan
 from vtube_fleet.fleet.preflight import (
     FleetError,
     Preflight,

@@ -13,12 +13,12 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
    while arming; touch-downs of holding/landing vehicles are noticed;
 4. **states** (:func:`own_states`): what each vehicle tells the others (published on the bus
    by an agent);
-5. **classify** (:func:`~vtube_fleet.fleet.neighbours.classify`): the own states plus those
+5. **classify** (:func:`~vtube_fleet.fleet.neighbour_view.classify`): the own states plus those
    heard from others (an agent's bus) sorted into live / static / lost;
 6. **plan**: re-partition around lost and stopped vehicles
-   (:meth:`~vtube_fleet.fleet.plan.FlightPlan.with_lost`), exits (TraCondition), then the
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.with_lost`), exits (TraCondition), then the
    controller's commands for every vehicle still in the tube in ONE call
-   (:meth:`~vtube_fleet.fleet.plan.FlightPlan.commands`, ModifiedVectorField);
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.commands`, ModifiedVectorField);
 7. **actuate** (:func:`actuate`): each vehicle's setpoint for its phase (arming, the climb, the
    tube plus the estimate compensation d̂, the exit behaviour, standing still), all sent in one
    batch (:func:`~vtube_fleet.link.base.send_velocities_ned`);
@@ -48,8 +48,8 @@ from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.fleet.budget import BudgetWatch
 from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S
-from vtube_fleet.fleet.neighbours import NeighbourView, States, classify
-from vtube_fleet.fleet.plan import FlightPlan, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.flight_plan import FlightPlan, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.neighbour_view import NeighbourView, States, classify
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable, phase_mask
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_velocities_ned
@@ -404,7 +404,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
       once airborne;
     * in the tube: the controller's command (rows ``cmd_rows`` get ``cmds``; the others zero)
       plus d̂, the altitude hold; a vehicle standing still (``standstill``) zero plus d̂;
-    * past the finishing line: :func:`~vtube_fleet.fleet.plan.exit_velocities` plus d̂, or
+    * past the finishing line: :func:`~vtube_fleet.fleet.flight_plan.exit_velocities` plus d̂, or
       zero and hold when blocked, or hold / land once ``exit_clear_m`` past it
       (``after_exit``);
     * otherwise nothing (the command column cleared).

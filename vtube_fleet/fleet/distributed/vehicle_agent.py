@@ -37,10 +37,10 @@ from vtube_fleet.fleet.distributed.coordinator import (
     default_mission_id,
     needed_cell_m,
 )
-from vtube_fleet.fleet.neighbours import States, states_of
+from vtube_fleet.fleet.flight_plan import FlightPlan
+from vtube_fleet.fleet.neighbour_view import States, states_of
 from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
 from vtube_fleet.fleet.pilot import VehiclePilot
-from vtube_fleet.fleet.plan import FlightPlan
 from vtube_fleet.fleet.preflight import (
     PreflightError,
     measure_budget_links,

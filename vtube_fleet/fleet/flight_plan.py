@@ -37,7 +37,7 @@ from vtube_fleet.core.partition import (
 from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.fleet.neighbours import NeighbourView
+    from vtube_fleet.fleet.neighbour_view import NeighbourView
 
 __all__ = ["LOST_APEX_FACTOR", "FlightPlan", "exit_velocities", "lost_obstacles"]
 

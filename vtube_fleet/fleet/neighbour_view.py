@@ -13,7 +13,7 @@ and, for an MQTT agent, the other vehicles' states heard on the bus (:func:`stat
 * *lost*: silent for longer than ``lost_after_s``, or says it is ``LOST``, or is airborne but
   stopped flying the controller (holding, landing: :data:`~vtube_fleet.state.STOPPED_PHASES`):
   a static obstacle at its last position, inside the tube for everyone, at once, by the same
-  rule in every process (:func:`~vtube_fleet.fleet.plan.lost_obstacles`).
+  rule in every process (:func:`~vtube_fleet.fleet.flight_plan.lost_obstacles`).
 
 Vehicles on the ground (connecting, ready, arming, landed, failed) are ignored.
 """
