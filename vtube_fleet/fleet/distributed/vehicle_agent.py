@@ -875,9 +875,11 @@ class AgentProcess:
                                  "mission_id": self.mission_id, "run_id": cfg.run_id,
                                  "config_hash": self.hash, "broker": self.bus.url},
                              flown=flown)
+        radii = ({} if flown is None else {"r_s_flown": flown.r_s, "r_a_flown": flown.r_a})
         self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
-                  "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles},
+                  "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles,
+                  **radii},  # review searches pairs within the radii the run flew
         )
         self.bus.add_state_listener(rec.on_neighbour)
         self.recording = rec
