@@ -137,13 +137,24 @@ class Waypoint:
 class Junction:
     """Where segment ``index`` hands over to segment ``index + 1``: at waypoint ``waypoint``
     (0-based; = index + 1), its position ``center``, the bend ``theta`` (radians, > 0: a left
-    turn) and the ``overlap_m`` e by which both segments are prolonged (0: a shared base)."""
+    turn) and ``prolong_m`` (e_a, e_b): how far segment ``index`` is prolonged past the
+    waypoint and segment ``index + 1`` before it (0, 0: a shared base)."""
 
     index: int
     waypoint: int
     center: np.ndarray
     theta: float
-    overlap_m: float
+    prolong_m: tuple[float, float]
+
+    @property
+    def overlap_m(self) -> float:
+        """The larger of the two prolongations."""
+        return max(self.prolong_m)
+
+    def overlap_text(self) -> str:
+        a, b = self.prolong_m
+        return (f"{_num(a, 3)} m" if abs(a - b) < 5e-4 else
+                f"{_num(a, 3)} m / {_num(b, 3)} m")
 
     @property
     def theta_deg(self) -> float:
@@ -210,6 +221,12 @@ class RouteGeometry:
                     f"{_deg(last)}° differs from segment S{n_seg}'s "
                     f"{_deg(math.atan2(a[1], a[0]))}° (a trapezoid's bases are parallel; "
                     f"leave the last waypoint's heading out)")
+        drawn = []  # each segment's legs between its waypoints' base lines (L0, L1, R0, R1)
+        for k in range(n_seg):
+            lft = _left(heads[k])
+            c0, c1 = wps[k].position, wps[k + 1].position
+            w0, w1 = wps[k].half_width, wps[k + 1].half_width
+            drawn.append((c0 + w0 * lft, c1 + w1 * lft, c0 - w0 * lft, c1 - w1 * lft))
         junctions = []
         for j in range(1, n_seg):
             a, b = heads[j - 1], heads[j]
@@ -219,19 +236,19 @@ class RouteGeometry:
                                  f"(at most {MAX_BEND_DEG:g}°; the junction conditions need "
                                  f"at most 90°, docs/route.md)")
             wp = wps[j]
-            e = wp.overlap_m if wp.overlap_m is not None else (
-                wp.half_width * math.tan(abs(theta) / 2.0) if abs(theta) > 1e-12 else 0.0)
-            junctions.append(Junction(j - 1, j, wp.position, theta, float(e)))
+            if wp.overlap_m is not None:
+                e = (float(wp.overlap_m),) * 2
+            elif abs(theta) <= 1e-12:
+                e = (0.0, 0.0)
+            else:  # the mitre: both prolonged to the outer corner of the two outer legs
+                e = _mitre_prolongation(drawn[j - 1], drawn[j], a, b, wp, theta)
+            junctions.append(Junction(j - 1, j, wp.position, theta, e))
         segs = []
         for k in range(n_seg):
             n = heads[k]
-            lft = _left(n)
-            c0, c1 = wps[k].position, wps[k + 1].position
-            w0, w1 = wps[k].half_width, wps[k + 1].half_width
-            L0, R0 = c0 + w0 * lft, c0 - w0 * lft
-            L1, R1 = c1 + w1 * lft, c1 - w1 * lft
-            e_in = junctions[k - 1].overlap_m if k >= 1 else 0.0
-            e_out = junctions[k].overlap_m if k < n_seg - 1 else 0.0
+            L0, L1, R0, R1 = drawn[k]
+            e_in = junctions[k - 1].prolong_m[1] if k >= 1 else 0.0
+            e_out = junctions[k].prolong_m[0] if k < n_seg - 1 else 0.0
             pts = []
             for p0, p1 in ((L0, L1), (R0, R1)):
                 t = p1 - p0
@@ -262,6 +279,18 @@ class RouteGeometry:
         j + 1's side): through the intersections of the two segments' left leg lines and of
         their right leg lines (the corridor's inner and outer corners); for parallel legs the
         base through the junction's waypoint."""
+        p, q = self.mitre_corners(j)
+        b = self.segments[j + 1]
+        t = (q - p) / float(np.hypot(*(q - p)))
+        nrm = np.array([-t[1], t[0]])
+        if float(nrm @ (b.p_h1 + b.p_r1 - 2 * p)) < 0:
+            nrm = -nrm
+        return p, nrm
+
+    def mitre_corners(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) end of junction ``j``'s mitre line: the corners where the two
+        segments' left legs and their right legs meet (the waypoint's base for parallel
+        legs)."""
         a, b = self.segments[j], self.segments[j + 1]
         c = self.junctions[j].center
         corners = []
@@ -275,14 +304,9 @@ class RouteGeometry:
             corners.append(pa + u * ta)
         if corners[0] is not None and corners[1] is not None and \
                 float(np.hypot(*(corners[1] - corners[0]))) > 1e-9:
-            p, q = corners
-        else:
-            p, q = c - a.m, c + a.m  # parallel legs: the base through c_j
-        t = (q - p) / float(np.hypot(*(q - p)))
-        nrm = np.array([-t[1], t[0]])
-        if float(nrm @ (b.p_h1 + b.p_r1 - 2 * p)) < 0:
-            nrm = -nrm
-        return p, nrm
+            return corners[0], corners[1]
+        xi = float(a.xi(c))  # parallel legs: a's base through c_j
+        return a.lh(xi), a.lr(xi)
 
     def pieces(self) -> list[np.ndarray]:
         """The corridor's convex pieces Q_k (polygons (n, 2)): segment k between the mitre
@@ -299,6 +323,26 @@ class RouteGeometry:
                 poly = _clip(poly, -nrm, -float(nrm @ p) - _TOL)
             out.append(poly)
         return out
+
+
+def _mitre_prolongation(da: tuple, db: tuple, n_a: np.ndarray, n_b: np.ndarray,
+                        wp: Waypoint, theta: float) -> tuple[float, float]:
+    """(e_a, e_b) of the mitre at a bend: a prolonged past the waypoint and b before it up to
+    the corner where their outer legs meet (the right legs for a left turn), so their union is
+    the corridor with a mitred corner; w tan(|θ|/2) each for parallel outer legs."""
+    c = wp.position
+    if theta > 0:  # a left turn: the outer legs are the right ones
+        pa, qa, pb, qb = da[2], da[3], db[2], db[3]
+    else:
+        pa, qa, pb, qb = da[0], da[1], db[0], db[1]
+    ta, tb = qa - pa, qb - pb
+    den = ta[0] * tb[1] - ta[1] * tb[0]
+    fallback = wp.half_width * math.tan(abs(theta) / 2.0)
+    if abs(den) < 1e-12:
+        return fallback, fallback
+    d = pb - pa
+    x = pa + ta * ((d[0] * tb[1] - d[1] * tb[0]) / den)
+    return max(0.0, float(n_a @ (x - c))), max(0.0, float(n_b @ (c - x)))
 
 
 def _inside_margin(pts: np.ndarray, tube: Trapezoid) -> np.ndarray:
@@ -437,6 +481,26 @@ def segment_error(s: int, ids: Sequence[int], exc: PartitionError, multi: bool
                               exc.reason).removesuffix(": "), ids))
 
 
+def segment_keep_out(corridor: Corridor, s: int, params: ControllerParams,
+                     keep_out: np.ndarray | None) -> np.ndarray | None:
+    """The points Remark 6's planner keeps out of segment ``s``'s triangles (and their apex
+    look-ahead zones): ``keep_out`` (the start positions) and, after a junction, the corners
+    of its hand-over region (Junction2 wants the hand-over clear of the triangles). The same
+    for every process that plans the route."""
+    if s == 0 or corridor.is_single:
+        return keep_out
+    a, b = corridor.segments[s - 1], corridor.segments[s]
+    r = float(params.r_s)
+    line, _, _ = _handover_line(a, b, r)
+    if line is None:
+        return keep_out
+    H = _handover_region(a, b, r, line)
+    if not len(H):
+        return keep_out
+    base = np.zeros((0, 2)) if keep_out is None else np.asarray(keep_out, float).reshape(-1, 2)
+    return np.concatenate([base, H])
+
+
 def replan_segment(tube: Trapezoid, fixed: Sequence[Obstacle], lost: Sequence[Obstacle],
                    params: ControllerParams) -> Partition:
     """The default lost-vehicle re-plan of one segment: the partition around its configured
@@ -510,7 +574,8 @@ class Route:
         for s, tube in enumerate(corridor.segments):
             ids, obs = corridor.segment_obstacles(s)
             try:
-                parts.append(partition(tube, obs, params, strict=strict, keep_out=keep_out,
+                parts.append(partition(tube, obs, params, strict=strict,
+                                       keep_out=segment_keep_out(corridor, s, params, keep_out),
                                        triangles_about=triangles_about))  # type: ignore[arg-type]
             except PartitionError as e:
                 raise segment_error(s, ids, e, multi) from None
@@ -556,7 +621,8 @@ class Route:
         the partition's own objects for one)."""
         if self.S == 1:
             return self.segments[0].partition.sub_tubes
-        return tuple(dataclasses.replace(t, name=f"{seg.name}.{t.name}")
+        return tuple(dataclasses.replace(t, name=seg.name if t.name == seg.name
+                                         else f"{seg.name}.{t.name}")
                      for seg in self.segments for t in seg.partition.sub_tubes)
 
     @cached_property
@@ -599,6 +665,17 @@ class Route:
                                                                       for t in tubes]),
             "L": np.array([t.length for t in tubes]),
             "off": np.array([s.offset for s in self.segments], dtype=np.intp),
+            # the entry test of segment s + 1 as complex rows (entry_gap): for a point z,
+            # Re(z·A[s]) + B[s] = (r_s − d_Th, r_s − d_Tr, −ξ − tol, ξ − L) of segment s + 1,
+            # and +inf for the last segment
+            "A": np.array([[complex(t.n_h[0], -t.n_h[1]) * -1, complex(t.n_r[0], -t.n_r[1]) * -1,
+                            complex(t.n_c[0], -t.n_c[1]) * -1, complex(t.n_c[0], -t.n_c[1])]
+                           for t in tubes[1:]] + [[0j] * 4]),
+            "B": np.array([[float(self.params.r_s) + float(t.n_h @ t.p_h1),
+                            float(self.params.r_s) + float(t.n_r @ t.p_r1),
+                            float(t.n_c @ t.p_h0) - LOCATE_TOL,
+                            -float(t.n_c @ t.p_h0) - t.length] for t in tubes[1:]]
+                          + [[math.inf] * 4]),
         }
 
     def leg_distances(self, p: np.ndarray, segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -656,21 +733,13 @@ class Route:
         """How far (m) each point is from the entry region of the segment after its own:
         max(r_s − d_Th, r_s − d_Tr, −ξ, ξ − L) of segment + 1 (≤ 0: inside it by the main
         legs; +inf in the last segment). It shrinks by at most a point's move."""
-        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        p = np.ascontiguousarray(p, dtype=float).reshape(-1, 2)
         s = np.asarray(segment, dtype=np.intp).reshape(-1)
-        out = np.full(p.shape[0], np.inf)
-        rows = np.flatnonzero(s < self.S - 1)
-        if rows.size:
-            nxt = s[rows] + 1
-            q = p[rows]
-            tb = self._table
-            r_s = float(self.params.r_s)
-            xi = np.einsum("ij,ij->i", q, tb["n_c"][nxt]) - tb["x0"][nxt]
-            out[rows] = np.maximum.reduce([
-                r_s - (np.einsum("ij,ij->i", q, tb["n_h"][nxt]) - tb["c_h"][nxt]),
-                r_s - (np.einsum("ij,ij->i", q, tb["n_r"][nxt]) - tb["c_r"][nxt]),
-                -xi - LOCATE_TOL, xi - tb["L"][nxt]])
-        return out
+        tb = self._table
+        z = p.view(np.complex128)  # (M, 1)
+        g = (z * tb["A"].take(s, axis=0)).real
+        g += tb["B"].take(s, axis=0)
+        return g.max(axis=1)
 
     def _enters(self, q: np.ndarray, nxt: np.ndarray) -> np.ndarray:
         """Whether points q may hand over to segments ``nxt``: more than r_s from nxt's main
@@ -728,6 +797,29 @@ class Route:
             return np.zeros(p.shape[0], dtype=np.intp), k
         seg = self.start_segments(p) if segment is None else self.handover(p, segment)
         return seg, self._local(p, seg)
+
+    def follow(self, pos: np.ndarray) -> np.ndarray:
+        """(T, M) the segment of every point of a trajectory ``pos`` (T, M, 2) (NaN rows:
+        absent), the hand-overs replayed frame by frame from the segment each point starts in
+        (:meth:`start_segments` at its first frame): what ``review`` judges each leg distance
+        against."""
+        pos = np.asarray(pos, dtype=float)
+        T, M = pos.shape[:2]
+        out = np.zeros((T, M), dtype=np.intp)
+        if self.S == 1:
+            return out
+        seg = np.full(M, -1, dtype=np.intp)
+        for t in range(T):
+            p = pos[t]
+            here = np.isfinite(p).all(axis=1)
+            new = here & (seg < 0)
+            if new.any():
+                seg[new] = self.start_segments(p[new])
+            old = here & ~new
+            if old.any():
+                seg[old] = self.handover(p[old], seg[old])
+            out[t] = np.maximum(seg, 0)
+        return out
 
     def tracker(self, p0: np.ndarray) -> RouteTracker:
         """A :class:`RouteTracker` (the simulator's incremental :meth:`locate`)."""
@@ -862,9 +954,9 @@ class JunctionCheck:
       ``handover_margin_m`` the least clearance beyond r_s to the second segment's legs there
       (−inf when no such line exists);
     * ``Junction2`` (a clear junction): ``clear_margin_m``, how far the hand-over region stays
-      from the triangles (and their look-ahead zones) of both segments (inf: no obstacles);
+      upstream of the second segment's triangles and their look-ahead zones (inf: none);
     * ``Junction3`` (progress): ``progress_m_s`` = v cos β − v'_max, the least speed along
-      n_c of either segment around the junction (β the steepest narrowing leg);
+      the second segment's n_c in its first sub-tube (β its steepest narrowing leg);
     * ``Junction4`` (overlap inside the corridor): ``corridor_margin_m``, how far the
       prolonged segments stay inside the corridor's mitred outline (< 0: they leave it);
 
@@ -891,11 +983,11 @@ class JunctionCheck:
                  else f"{_num(self.clear_margin_m, 3)} m")
         corr = ("a shared base" if not math.isfinite(self.corridor_margin_m)
                 else f"{_num(self.corridor_margin_m, 3)} m")
-        return (f"{j.name}: bend {_num(j.theta_deg, 1)}°, overlap {_num(j.overlap_m, 3)} m; "
+        return (f"{j.name}: bend {_num(j.theta_deg, 1)}°, overlap {j.overlap_text()}; "
                 f"[Junction1] hand-over line {xi} of S{j.index + 1}, margin "
                 f"{_num(self.handover_margin_m, 3)} m; [Junction2] clear of triangles: {clear}; "
-                f"[Junction3] progress {_num(self.progress_m_s, 3)} m/s; [Junction4] inside "
-                f"the corridor by {corr}; command jump "
+                f"[Junction3] progress {_num(self.progress_m_s, 3)} m/s; [Junction4] overlap "
+                f"inside the corridor, margin {corr}; command jump "
                 f"{_num(self.command_jump_m_s, 3)} m/s")
 
 
@@ -976,13 +1068,13 @@ def _handover_region(a: Trapezoid, b: Trapezoid, r: float, s: float) -> np.ndarr
     return _clip(poly, -b.n_c, -(float(b.n_c @ b.p_h0) + b.length))
 
 
-def _progress(a: Trapezoid, b: Trapezoid, params: ControllerParams) -> float:
-    """v cos β − v'_max, β the steepest narrowing main leg of a and b (0 if none)."""
+def _progress(b: Trapezoid, params: ControllerParams) -> float:
+    """v cos β − v'_max, β the steepest narrowing main leg of b (0 if none): the least speed
+    along b's n_c of a robot in b's first sub-tube."""
     beta = 0.0
-    for t in (a, b):
-        for leg, has in ((t.t_h, t.has_L), (t.t_r, t.has_R)):
-            if has:
-                beta = max(beta, math.acos(max(-1.0, min(1.0, float(leg @ t.n_c)))))
+    for leg, has in ((b.t_h, b.has_L), (b.t_r, b.has_R)):
+        if has:
+            beta = max(beta, math.acos(max(-1.0, min(1.0, float(leg @ b.n_c)))))
     return params.v * math.cos(beta) - params.v_max_prime
 
 
@@ -1021,28 +1113,20 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
                     m = float(b.xi(tri.p_oth)) - depth - float(b.xi(H).max())
                     if m < clear:
                         clear, who = m, ("b", sb.obstacle_ids[tri.obstacle])
-                for tri in sa.partition.triangles:
-                    m = float(a.xi(H).min()) - (float(a.xi(tri.center)) + tri.radius_ext)
-                    if m < clear:
-                        clear, who = m, ("a", sa.obstacle_ids[tri.obstacle])
                 if clear <= 0.0:
-                    side, ob = who
-                    k = ob + 1
-                    txt = (f"the triangle of obstacle #{k} (S{j + 2}) reaches into the "
+                    _, ob = who
+                    txt = (f"the triangle of obstacle #{ob + 1} (S{j + 2}) reaches into the "
                            f"hand-over region by {_num(-clear, 3)} m (its apex"
                            f"{' and look-ahead zone' if route.lookahead else ''} must lie "
-                           f"downstream of where vehicles enter S{j + 2})" if side == "b" else
-                           f"obstacle #{k}'s triangle (S{j + 1}) ends {_num(-clear, 3)} m "
-                           f"inside the hand-over region (vehicles must leave S{j + 1}'s "
-                           f"side tubes before they enter S{j + 2})")
+                           f"downstream of where vehicles enter S{j + 2})")
                     bad.append(Violation("Junction2", f"Junction2 violated at {where}: {txt}"))
         # Junction3: progress along n_c
-        prog = _progress(a, b, p)
+        prog = _progress(b, p)
         if not prog > 0.0:
             bad.append(Violation("Junction3", (
                 f"Junction3 violated at {where}: v cos β − v'_max = {_num(prog, 3)} m/s ≤ 0 "
-                f"(β the steepest narrowing leg of S{j + 1}/S{j + 2}): a vehicle could stall "
-                f"at the junction or be pushed back out of S{j + 2}'s start")))
+                f"(β the steepest narrowing leg of S{j + 2}): a vehicle just handed over could "
+                f"be pushed back out of S{j + 2}'s start")))
         # Junction4: the prolonged segments inside the corridor's mitred outline
         corr = math.inf
         pm, nrm = geo.mitre(j)
@@ -1059,19 +1143,12 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
             bad.append(Violation("Junction4", (
                 f"Junction4 violated at {where}: the overlap of S{who} reaches "
                 f"{_num(-corr, 3)} m outside S{other}'s part of the corridor (bend "
-                f"{_num(abs(jn.theta_deg), 1)}°, overlap {_num(jn.overlap_m, 3)} m, the mitre "
-                f"{_num(_mitre_overlap(route, j), 3)} m; beyond 90° the prolonged segments "
-                f"leave the corridor)")))
+                f"{_num(abs(jn.theta_deg), 1)}°, overlap {jn.overlap_text()}; beyond 90° or "
+                f"with an overlap_m above the mitre the prolonged segments leave the "
+                f"corridor)")))
         out.append(JunctionCheck(jn, s, mu, clear, prog, corr,
                                  2.0 * p.v * math.sin(abs(jn.theta) / 2.0), tuple(bad)))
     return out
-
-
-def _mitre_overlap(route: Route, j: int) -> float:
-    jn = route.corridor.junctions[j]
-    wps = route.corridor.geometry.waypoints
-    w = wps[jn.waypoint].half_width if wps else 0.0
-    return w * math.tan(abs(jn.theta) / 2.0)
 
 
 def _polygon_margin(pts: np.ndarray, piece: np.ndarray) -> float:

@@ -55,6 +55,7 @@ from vtube_fleet.core.route import (
     junction_checks,
     obstacle_ownership,
     segment_error,
+    segment_keep_out,
 )
 from vtube_fleet.core.text import compact_number as _num
 from vtube_fleet.core.text import obstacle_label
@@ -626,7 +627,8 @@ def validate_route(corridor: Corridor, params: ControllerParams,
             violations += check_assumption3(tube, params, "Assumption3", label)
             ids, obs = corridor.segment_obstacles(s)
             try:
-                part = partition(tube, obs, params, strict=False, keep_out=keep)
+                part = partition(tube, obs, params, strict=False,
+                                 keep_out=segment_keep_out(corridor, s, params, keep))
             except PartitionError as e:
                 violations.append(Violation("Partition", (
                     f"Partition failed: {segment_error(s, ids, e, True)}")))
@@ -743,7 +745,7 @@ def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndar
                     return False
                 s_, mu, _ = _handover_line(c.segments[j], c.segments[j + 1], r)
                 return s_ is not None and mu >= -1e-9
-            e = _smallest(j1, jn.overlap_m, jn.overlap_m + 4.0 * w)
+            e = _smallest(j1, min(jn.prolong_m), max(jn.prolong_m) + 4.0 * w)
             if e is not None:
                 e = _round_up(e, j1)
                 out.append(Fix(f"waypoint {wp + 1} overlap_m", e,
@@ -761,11 +763,13 @@ def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndar
                 out.append(Fix(f"waypoint {wp + 1} bend", abs(jn.theta_deg), (
                     f"split the {_num(abs(jn.theta_deg), 1)}° bend at waypoint {wp + 1} into "
                     f"two of at most 90° (a waypoint before it, turning half-way)")))
-            elif wps:
-                mitre = wps[wp].half_width * math.tan(abs(jn.theta) / 2.0)
-                out.append(Fix(f"waypoint {wp + 1} overlap_m", mitre, (
-                    f"overlap_m ≤ {_num(math.floor(mitre * 100.0) / 100.0, 2)} m at waypoint "
-                    f"{wp + 1} (the mitre; now {_num(jn.overlap_m, 2)} m), or leave it out")))
+            elif wps and wps[wp].overlap_m is not None:
+                mitre = rebuilt(wp, overlap_m=None)
+                e = 0.0 if mitre is None else min(mitre.junctions[j].prolong_m)
+                out.append(Fix(f"waypoint {wp + 1} overlap_m", e, (
+                    f"leave overlap_m out at waypoint {wp + 1} (the mitre, "
+                    f"{mitre.junctions[j].overlap_text() if mitre else '?'}; now "
+                    f"{_num(jn.overlap_m, 2)} m)")))
         for v in msgs:
             if v.condition not in ("Junction2",):
                 continue
@@ -793,7 +797,7 @@ def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndar
 def _progress_of(corridor: Corridor, j: int, params: ControllerParams) -> float:
     from vtube_fleet.core.route import _progress
 
-    return _progress(corridor.segments[j], corridor.segments[j + 1], params)
+    return _progress(corridor.segments[j + 1], params)
 
 
 def _move_obstacle_fix(corridor: Corridor, params: ControllerParams, i: int, jn: Any,
