@@ -536,10 +536,11 @@ class _Parser:
         if raw is None:
             raise self.error("[route].waypoints", "missing required key")
         if not isinstance(raw, list) or not all(isinstance(w, dict) for w in raw):
-            raise self.error(wsec, f"expected an array of tables, got {show_value(raw)}")
+            raise self.error("[route].waypoints", f"expected an array of tables "
+                                                  f"([[route.waypoints]]), got {show_value(raw)}")
         if not 2 <= len(raw) <= MAX_WAYPOINTS:
-            raise self.error(wsec, f"a route needs 2 to {MAX_WAYPOINTS} waypoints, got "
-                                   f"{len(raw)}")
+            raise self.error("[route].waypoints", f"a route needs 2 to {MAX_WAYPOINTS} "
+                                                  f"waypoints, got {len(raw)}")
         frame = None
         wps = []
         for i, w in enumerate(raw):
