@@ -45,7 +45,6 @@ from vtube_fleet.core.validation import (
     nearest_fixes,
     route_fixes,
     validate_route,
-    validate_scenario,
 )
 
 __all__ = ["CheckReport", "check_file", "describe_partition", "describe_route"]
@@ -267,7 +266,11 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
     if not sc.geometry.is_single:
         return _check_route(sc, kind, flown, positions, budget, pre, want_fixes, delta_m,
                             extra)
-    part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions)
+    corridor = sc.corridor  # one segment: its tube and obstacles
+    tube, obstacles = corridor.tube, corridor.obstacles
+    res = validate_route(corridor, flown, positions)
+    part = None if res.route is None else res.route.segments[0].partition
+    violations = list(res.violations)
     if kind == "mission":  # checked with the flown radii: say r_s', r_a' (r_s is physical)
         violations = [dataclasses.replace(v, message=flown_symbols(v.message))
                       for v in violations]
@@ -275,7 +278,7 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
     if kind == "mission" and part is not None:
         from vtube_fleet.fleet.agent import FlightPlan
 
-        plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
+        plan = FlightPlan.build(tube, obstacles, flown, part=part)
         for i, k, d in plan.lookahead_conflicts(positions):
             violations.append(Violation("Assumption1", (
                 f"Assumption1 violated: slot {i} at {_pt(positions[i])} is in the look-ahead "
@@ -290,15 +293,15 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
     further: list[str] = []
     if any(v.condition == "Partition" and v.message.startswith("Partition failed")
            for v in violations):  # the construction stopped at one obstacle: the others
-        further = further_failures(sc.tube, sc.obstacles, flown, positions)
+        further = further_failures(tube, obstacles, flown, positions)
         if kind == "mission":
             further = [flown_symbols(x) for x in further]
     partition_bad = any(v.condition in ("Partition", "Assumption3'", "Constraint3")
                         for v in violations)
     if partition_bad:
-        binding = binding_constraints(sc.tube, sc.obstacles, flown, positions)
+        binding = binding_constraints(tube, obstacles, flown, positions)
         if want_fixes:
-            fixes = nearest_fixes(sc.tube, sc.obstacles, flown, positions, r_offset_m=delta_m)
+            fixes = nearest_fixes(tube, obstacles, flown, positions, r_offset_m=delta_m)
     return CheckReport(sc.source, kind, sc, flown, part, tuple(violations), tuple(lines),
                        budget, tuple(binding), tuple(fixes), partition_bad and want_fixes,
                        tuple(further))

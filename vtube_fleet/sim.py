@@ -69,7 +69,7 @@ from vtube_fleet.core.metrics import (
 from vtube_fleet.core.neighbours import VerletPairs
 from vtube_fleet.core.partition import Partition, PartitionError, SubTubeTracker
 from vtube_fleet.core.route import Route, RouteTracker
-from vtube_fleet.core.validation import ScenarioError, validate_route, validate_scenario
+from vtube_fleet.core.validation import ScenarioError, validate_route
 from vtube_fleet.errors import UserError
 
 __all__ = [
@@ -270,8 +270,11 @@ def simulate(
     certified: bool | None = None  # None: not validated
     failed: list[dict[str, str]] = []
     about = "O'"
+    corridor = scenario.corridor  # one segment: its tube and obstacles
     if validate:
-        part, violations = validate_scenario(scenario.tube, scenario.obstacles, params, control0)
+        res = validate_route(corridor, params, control0)
+        part = None if res.route is None else res.route.segments[0].partition
+        violations = list(res.violations)
         certified = not violations
         if violations and not uncertified:
             raise ScenarioError(violations)
@@ -280,13 +283,11 @@ def simulate(
             part, about = _uncertified_partition(scenario, params), "O"
             failed += _uncertified_conditions(scenario, part)
     if controller == "apf":
-        arrays = TubeArrays.from_tubes([scenario.tube])
+        arrays = TubeArrays.from_tubes([corridor.tube])
         tracker = None
     else:
         if part is None:
-            from vtube_fleet.core.partition import partition as build_partition
-
-            part = build_partition(scenario.tube, scenario.obstacles, params)
+            part = Route.plan(corridor, params).segments[0].partition
         arrays = TubeArrays.from_tubes(part.sub_tubes)
         tracker = part.tracker()
 
@@ -412,8 +413,7 @@ class _Run:
         r = scenario.robots
         self.unicycle = r.model == "unicycle"
         self.m = r.count
-        self.monitor = (SafetyMonitor.from_params(scenario.tube, scenario.obstacles, p)
-                        if route is None else SafetyMonitor.for_corridor(scenario.corridor, p))
+        self.monitor = SafetyMonitor.for_corridor(scenario.corridor, p)
         self.acc = SummaryAccumulator(self.m)
         self.parts: list[StepMetrics] = []
         self.parts_center: list[StepMetrics] = []
