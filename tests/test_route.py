@@ -529,3 +529,42 @@ def test_check_and_sim_accept_the_shipped_routes(tmp_path: Path,
     assert rc == 0
     s = json.loads((out_dir / "summary.json").read_text())
     assert s["exited"] == 3 and s["violations"] == 0 and s["segments"] == 2
+
+
+def test_check_refuses_a_failing_junction_with_the_numbers_and_the_fix(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = ROUTE_MOCK.read_text().replace(
+        "position = [40.0, 0.0]       # bend 60° left",
+        "position = [40.0, 0.0]       # bend 60° left\noverlap_m = 1.0")
+    assert "overlap_m = 1.0" in text
+    path = tmp_path / "route.toml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 2
+    out = capsys.readouterr().out
+    assert "INVALID: 1 violation:" in out
+    assert ("[Junction1] Junction1 violated at waypoint 2 (S1 → S2): no line across S1 reaches "
+            "into S2's entry region") in out
+    fixes = out.split("nearest fixes (each alone, the rest unchanged):\n")[1].splitlines()
+    assert fixes[0].startswith("  overlap_m ≥ ") and fixes[0].endswith(
+        " m at waypoint 2 (now 1.0 m)")
+
+
+def test_the_route_fence_holds_the_whole_flight(route_run: tuple[Any, Path]) -> None:
+    """core/fence.route_fence: one inclusion polygon per segment (their union), obstacle
+    circles; every recorded position of the route's flight is allowed; one segment is
+    tube_fence's polygon."""
+    from vtube_fleet.core.fence import route_fence, tube_fence
+
+    result, _ = route_run
+    sc = result.scenario
+    fence = route_fence(sc.corridor, sc.robots.r_s, slots=sc.robots.positions)
+    assert len(fence.polygons) == 2
+    pts = result.pos.reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    assert fence.contains(pts).all()
+    outside = sc.corridor.segments[1].p_r1 + np.array([5.0, -5.0])
+    assert not fence.contains(outside[None])[0]
+    tube = sc.corridor.segments[0]
+    one = route_fence(Corridor.single(tube), 0.3, slots=sc.robots.positions)
+    np.testing.assert_array_equal(one.polygons[0],
+                                  tube_fence(tube, (), 0.3, slots=sc.robots.positions).polygon)

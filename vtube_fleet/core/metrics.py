@@ -176,7 +176,8 @@ class SafetyLimits:
 
 @dataclass(frozen=True, eq=False)
 class SafetyMonitor:
-    """The fixed data the metrics need: the MAIN tube, the obstacles and the limits.
+    """The fixed data the metrics need: the MAIN tube (a route: every segment, ``segments``),
+    the obstacles and the limits.
 
     ``pair_radius`` is the neighbour search radius used when no candidate pairs are given
     (``from_params`` uses r_s + r_a, the controller's own neighbourhood, which is larger than
