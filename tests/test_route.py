@@ -329,7 +329,8 @@ def test_locate_hands_over_forward_only_into_the_next_segments_entry(
     r_s = route.params.r_s
     for i in np.flatnonzero(seg > cur):
         t = route.segments[int(seg[i])].tube
-        assert t.d_Th(p[i]) > r_s and t.d_Tr(p[i]) > r_s and -1e-9 <= t.xi(p[i]) <= t.length
+        deep = r_s + route.handover_depths[int(seg[i]) - 1]  # r_s + μ/2 of the junction
+        assert t.d_Th(p[i]) > deep and t.d_Tr(p[i]) > deep and -1e-9 <= t.xi(p[i]) <= t.length
         sub = route.sub_tubes[int(k[i])]
         assert sub.d_Th(p[i]) > r_s and sub.d_Tr(p[i]) > r_s
     # no further hand-over is due at the same points (locate is idempotent)

@@ -36,7 +36,7 @@ import numpy as np
 from vtube_fleet.config.scenario import Scenario, load_scenario
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Partition, Violation
-from vtube_fleet.core.route import Route, _renumber
+from vtube_fleet.core.route import Route, renumber_obstacles
 from vtube_fleet.core.validation import (
     Fix,
     binding_constraints,
@@ -157,7 +157,7 @@ def describe_partition(scenario: Scenario, part: Partition, *, ids: tuple[int, .
     else:
         lines.append("Remark 5 used by obstacle(s): none")
     if part.apex is not None:
-        lines.append(_renumber(part.apex.describe(), ids))
+        lines.append(renumber_obstacles(part.apex.describe(), ids))
     return lines
 
 
@@ -361,9 +361,9 @@ def _check_route(sc: Scenario, kind: str, flown: ControllerParams, positions: np
         ids, obs = sc.corridor.segment_obstacles(s)
         tube = sc.corridor.segments[s]
         mine = positions[seg_of == s]
-        binding += [f"segment S{s + 1}: " + _renumber(b, ids)
+        binding += [f"segment S{s + 1}: " + renumber_obstacles(b, ids)
                     for b in binding_constraints(tube, obs, flown, mine)]
-        further += [f"segment S{s + 1}: " + _renumber(x, ids)
+        further += [f"segment S{s + 1}: " + renumber_obstacles(x, ids)
                     for x in further_failures(tube, obs, flown, mine)]
     if mission:
         binding = [flown_symbols(x) for x in binding]

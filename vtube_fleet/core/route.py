@@ -72,9 +72,15 @@ __all__ = [
     "RouteTracker",
     "Segment",
     "Waypoint",
+    "handover_line",
+    "handover_region",
     "junction_checks",
     "obstacle_ownership",
+    "progress_speed",
+    "renumber_obstacles",
     "replan_segment",
+    "segment_error",
+    "segment_keep_out",
 ]
 
 #: A bend of this or more (degrees) is refused when the geometry is built: the prolongation
@@ -463,7 +469,7 @@ class Corridor:
 # ----------------------------------------------------------------------------------------------
 # the planned route
 # ----------------------------------------------------------------------------------------------
-def _renumber(text: str, ids: Sequence[int]) -> str:
+def renumber_obstacles(text: str, ids: Sequence[int]) -> str:
     """A partition message of one segment (its obstacles numbered #1… among themselves) with
     the obstacles' route numbers (config order, #1 = the first configured obstacle)."""
     return re.sub(r"#(\d+)", lambda m: f"#{ids[int(m.group(1)) - 1] + 1}"
@@ -476,8 +482,8 @@ def segment_error(s: int, ids: Sequence[int], exc: PartitionError, multi: bool
     if not multi:
         return exc
     glob = None if exc.obstacle is None else ids[exc.obstacle]
-    return PartitionError(glob, _renumber(exc.reason, ids),
-                          f"segment S{s + 1}: " + _renumber(str(exc).removesuffix(
+    return PartitionError(glob, renumber_obstacles(exc.reason, ids),
+                          f"segment S{s + 1}: " + renumber_obstacles(str(exc).removesuffix(
                               exc.reason).removesuffix(": "), ids))
 
 
@@ -491,10 +497,10 @@ def segment_keep_out(corridor: Corridor, s: int, params: ControllerParams,
         return keep_out
     a, b = corridor.segments[s - 1], corridor.segments[s]
     r = float(params.r_s)
-    line, _, _ = _handover_line(a, b, r)
+    line, _, _ = handover_line(a, b, r)
     if line is None:
         return keep_out
-    H = _handover_region(a, b, r, line)
+    H = handover_region(a, b, r, line)
     if not len(H):
         return keep_out
     base = np.zeros((0, 2)) if keep_out is None else np.asarray(keep_out, float).reshape(-1, 2)
@@ -671,12 +677,27 @@ class Route:
             "A": np.array([[complex(t.n_h[0], -t.n_h[1]) * -1, complex(t.n_r[0], -t.n_r[1]) * -1,
                             complex(t.n_c[0], -t.n_c[1]) * -1, complex(t.n_c[0], -t.n_c[1])]
                            for t in tubes[1:]] + [[0j] * 4]),
-            "B": np.array([[float(self.params.r_s) + float(t.n_h @ t.p_h1),
-                            float(self.params.r_s) + float(t.n_r @ t.p_r1),
+            "B": np.array([[float(self.params.r_s) + d + float(t.n_h @ t.p_h1),
+                            float(self.params.r_s) + d + float(t.n_r @ t.p_r1),
                             float(t.n_c @ t.p_h0) - LOCATE_TOL,
-                            -float(t.n_c @ t.p_h0) - t.length] for t in tubes[1:]]
+                            -float(t.n_c @ t.p_h0) - t.length]
+                           for t, d in zip(tubes[1:], self.handover_depths, strict=True)]
                           + [[math.inf] * 4]),
         }
+
+    @cached_property
+    def handover_depths(self) -> tuple[float, ...]:
+        """How far beyond r_s inside the next segment's legs a vehicle hands over, per
+        junction: half the Junction1 margin μ (0 when μ ≤ 0, e.g. a shared base). By the
+        hand-over line every vehicle is μ beyond r_s, so it has handed over there at the
+        latest, and it enters the next segment with μ/2 to spare (a body that lags its
+        control point, a vehicle that lags its command)."""
+        out = []
+        r = float(self.params.r_s)
+        for j in range(self.S - 1):
+            line, mu, _ = handover_line(self.segments[j].tube, self.segments[j + 1].tube, r)
+            out.append(0.5 * mu if line is not None and mu > 0.0 else 0.0)
+        return tuple(out)
 
     def leg_distances(self, p: np.ndarray, segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(dtl), (dtr) of each point (M, 2) to the MAIN legs of its own segment → (d_Th,
@@ -731,8 +752,9 @@ class Route:
 
     def entry_gap(self, p: np.ndarray, segment: np.ndarray) -> np.ndarray:
         """How far (m) each point is from the entry region of the segment after its own:
-        max(r_s − d_Th, r_s − d_Tr, −ξ, ξ − L) of segment + 1 (≤ 0: inside it by the main
-        legs; +inf in the last segment). It shrinks by at most a point's move."""
+        max(r − d_Th, r − d_Tr, −ξ, ξ − L) of segment + 1 with r = r_s + the junction's
+        :attr:`handover_depths` (< 0: inside it by the main legs; +inf in the last segment).
+        It shrinks by at most a point's move."""
         p = np.ascontiguousarray(p, dtype=float).reshape(-1, 2)
         s = np.asarray(segment, dtype=np.intp).reshape(-1)
         tb = self._table
@@ -742,9 +764,10 @@ class Route:
         return g.max(axis=1)
 
     def _enters(self, q: np.ndarray, nxt: np.ndarray) -> np.ndarray:
-        """Whether points q may hand over to segments ``nxt``: more than r_s from nxt's main
-        legs, 0 ≤ ξ ≤ L in it, and more than r_s from the legs of the sub-tube of nxt they
-        would fly (the switching rule of its partition, with the look-ahead if any)."""
+        """Whether points q may hand over to segments ``nxt``: more than r_s +
+        :attr:`handover_depths` from nxt's main legs, 0 ≤ ξ ≤ L in it, and more than r_s from
+        the legs of the sub-tube of nxt they would fly (the switching rule of its partition,
+        with the look-ahead if any)."""
         gap = self.entry_gap(q, nxt - 1)
         ok = gap < 0.0
         rows = np.flatnonzero(ok)
@@ -991,7 +1014,7 @@ class JunctionCheck:
                 f"{_num(self.command_jump_m_s, 3)} m/s")
 
 
-def _handover_line(a: Trapezoid, b: Trapezoid, r: float) -> tuple[float | None, float, str]:
+def handover_line(a: Trapezoid, b: Trapezoid, r: float) -> tuple[float | None, float, str]:
     """Junction1: the best line ξ_a = s across a's vehicle region (r from a's legs) lying in
     b's entry region (0 ≤ ξ_b ≤ L_b): maximise the least d_b − r of its two end points → (s,
     margin, what binds); (None, shortfall, why) when no line reaches past b's start base."""
@@ -1056,7 +1079,7 @@ def _handover_line(a: Trapezoid, b: Trapezoid, r: float) -> tuple[float | None, 
     return s, v, why
 
 
-def _handover_region(a: Trapezoid, b: Trapezoid, r: float, s: float) -> np.ndarray:
+def handover_region(a: Trapezoid, b: Trapezoid, r: float, s: float) -> np.ndarray:
     """H: a's vehicle region up to ξ_a = s, inside b's entry region (polygon (n, 2))."""
     poly = a.polygon()
     poly = _clip(poly, a.n_h, float(a.n_h @ a.p_h1) + r)
@@ -1068,7 +1091,7 @@ def _handover_region(a: Trapezoid, b: Trapezoid, r: float, s: float) -> np.ndarr
     return _clip(poly, -b.n_c, -(float(b.n_c @ b.p_h0) + b.length))
 
 
-def _progress(b: Trapezoid, params: ControllerParams) -> float:
+def progress_speed(b: Trapezoid, params: ControllerParams) -> float:
     """v cos β − v'_max, β the steepest narrowing main leg of b (0 if none): the least speed
     along b's n_c of a robot in b's first sub-tube."""
     beta = 0.0
@@ -1092,7 +1115,7 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
         bad: list[Violation] = []
         where = jn.name
         # Junction1: the hand-over line
-        s, mu, why = _handover_line(a, b, r)
+        s, mu, why = handover_line(a, b, r)
         why = why.replace("S_b", f"S{j + 2}")
         if s is None or mu < -1e-9:
             what = ("no line across S{a} reaches into S{b}'s entry region: {why} (by "
@@ -1105,7 +1128,7 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
         # Junction2: the hand-over region clear of triangles and look-ahead zones
         clear = math.inf
         if s is not None:
-            H = _handover_region(a, b, r, s)
+            H = handover_region(a, b, r, s)
             if len(H):
                 zones = {z.triangle: z.depth_m for z in route.zones[j + 1]}
                 for tri in sb.partition.triangles:
@@ -1121,7 +1144,7 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
                            f"downstream of where vehicles enter S{j + 2})")
                     bad.append(Violation("Junction2", f"Junction2 violated at {where}: {txt}"))
         # Junction3: progress along n_c
-        prog = _progress(b, p)
+        prog = progress_speed(b, p)
         if not prog > 0.0:
             bad.append(Violation("Junction3", (
                 f"Junction3 violated at {where}: v cos β − v'_max = {_num(prog, 3)} m/s ≤ 0 "

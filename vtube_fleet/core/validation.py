@@ -50,10 +50,10 @@ from vtube_fleet.core.route import (
     Corridor,
     JunctionCheck,
     Route,
-    _handover_line,
-    _renumber,
+    handover_line,
     junction_checks,
     obstacle_ownership,
+    renumber_obstacles,
     segment_error,
     segment_keep_out,
 )
@@ -635,7 +635,7 @@ def validate_route(corridor: Corridor, params: ControllerParams,
                 parts.append(None)
             else:
                 violations += [dataclasses.replace(w, message=f"{label}: "
-                                                   + _renumber(w.message, ids))
+                                                   + renumber_obstacles(w.message, ids))
                                for w in part.warnings]
                 parts.append(part)
         violations += _check_pothk(corridor.obstacles, params)
@@ -714,8 +714,8 @@ def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndar
         ids, obs = corridor.segment_obstacles(s)
         mine = None if pos is None else pos[seg_of == s]
         for f in nearest_fixes(corridor.segments[s], obs, params, mine, r_offset_m=r_offset_m):
-            out.append(Fix(f"S{s + 1} " + _renumber(f.parameter, ids), f.value,
-                           f"segment S{s + 1}: " + _renumber(f.text, ids)))
+            out.append(Fix(f"S{s + 1} " + renumber_obstacles(f.parameter, ids), f.value,
+                           f"segment S{s + 1}: " + renumber_obstacles(f.text, ids)))
     conds = {v.condition for v in violations}
     geo = corridor.geometry
     wps = geo.waypoints
@@ -743,7 +743,7 @@ def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndar
                 c = rebuilt(wp, overlap_m=e)
                 if c is None:
                     return False
-                s_, mu, _ = _handover_line(c.segments[j], c.segments[j + 1], r)
+                s_, mu, _ = handover_line(c.segments[j], c.segments[j + 1], r)
                 return s_ is not None and mu >= -1e-9
             e = _smallest(j1, min(jn.prolong_m), max(jn.prolong_m) + 4.0 * w)
             if e is not None:
@@ -795,9 +795,9 @@ def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndar
 
 
 def _progress_of(corridor: Corridor, j: int, params: ControllerParams) -> float:
-    from vtube_fleet.core.route import _progress
+    from vtube_fleet.core.route import progress_speed
 
-    return _progress(corridor.segments[j + 1], params)
+    return progress_speed(corridor.segments[j + 1], params)
 
 
 def _move_obstacle_fix(corridor: Corridor, params: ControllerParams, i: int, jn: Any,
