@@ -209,8 +209,10 @@ def _reconstruct_partition(data: RecordingData) -> tuple[list[Any], list[Any]]:
         if len(s) >= 4:  # closed strip p_h0, p_h1, p_r1, p_r0, p_h0
             try:
                 sub_tubes.append(Trapezoid(s[0], s[1], s[3], s[2], name=f"T_o{k + 1}"))
-            except Exception:  # noqa: BLE001 - drawing only; skip a degenerate outline
-                continue
+            except Exception:  # noqa: BLE001 - drawing only: the outline as recorded (the
+                # strips are float32: a rotated segment's bases are parallel only to ~1e-7)
+                outline = np.asarray(s[:4], dtype=float)
+                sub_tubes.append(SimpleNamespace(polygon=lambda o=outline: o))
     triangles = [SimpleNamespace(p_oth=t[0], p_otu=t[1], p_otd=t[2]) for t in tris if len(t) >= 3]
     return sub_tubes, triangles
 
