@@ -22,10 +22,18 @@ Each step (all robots still in the tube at once):
    margin loses more than half of what is left; ``"rk4"`` (single integrator only) and
    ``"euler"`` on request.
 
-The scenario must be certified (:func:`~vtube_fleet.core.validation.validate_scenario`: every
-condition of the paper holds). ``uncertified=True`` flies a scenario that is not, with the
-triangles circumscribed about O instead of O' as the authors' published code does; the summary
-then says ``certified: false`` and lists the failed conditions.
+A route of several segments (docs/route.md) is flown the same way with a
+:class:`~vtube_fleet.core.route.RouteTracker` for step 2 (each robot in its segment's
+partition, the hand-over to the next segment tested whenever some robot may have come within
+reach of it, the metric chunk flushed at every hand-over), exits at the last segment's
+finishing line, and the leg distances of the metrics and of the adaptive step's margins taken
+to each robot's own segment.
+
+The scenario must be certified (:func:`~vtube_fleet.core.validation.validate_route`: every
+condition of the paper holds, and for a route every junction condition).
+``uncertified=True`` flies a single tube that is not, with the triangles circumscribed about O
+instead of O' as the authors' published code does; the summary then says ``certified: false``
+and lists the failed conditions.
 
 The trajectory holds every ``record_every``-th step and always the last step (at t_end − dt).
 
@@ -443,7 +451,7 @@ class _Run:
         route = self.route
         # a route of several segments: the hand-overs (RouteTracker), exits from the last
         # segment only, each robot's legs for the metrics and the integrator's margins
-        route_tr: RouteTracker | None = self.tracker if route is not None else None  # type: ignore[assignment]
+        route_tr: Any = self.tracker if route is not None else None  # (a RouteTracker)
         tube = sc.tube if route is None else route.segments[-1].tube
         n_c = np.array(tube.n_c)
         thresh = tube.finish_threshold(p.eps_0)  # (TraCondition): n_cᵀp ≥ this
