@@ -653,6 +653,8 @@ def _where(section: str, name: str) -> str:
         return f"[[obstacles]][0].{name}"
     if section == "robots.grid":
         return f"[robots].grid.{name}"
+    if section == "route.waypoints":
+        return f"[[route.waypoints]][0].{name}"
     return f"[{section}].{name}"
 
 
@@ -676,6 +678,13 @@ def _bad_scenario_value(section: str, key: Key) -> st.SearchStrategy[Any]:
             return st.one_of(wrong.filter(lambda v: not isinstance(v, dict)), st.just([]),
                              st.lists(st.text(max_size=2), min_size=1, max_size=3),
                              st.just([[math.nan, 0.0]]), st.just([[0.0]]))
+        if key.name == "waypoints":  # (a route: docs/route.md)
+            return st.one_of(st.text(max_size=6), st.integers(-5, 5), st.just({}),
+                             st.just([]), st.lists(st.integers(0, 9), min_size=1, max_size=3),
+                             st.just([{"position": [0.0, 0.0], "half_width": 1.0}]))
+        if key.name == "lat_lon":  # (a scenario has no [mission] anchor: refused whatever)
+            return st.one_of(wrong, st.lists(st.floats(allow_nan=True), max_size=3),
+                             st.just([91.0, 0.0]), st.just([47.0, 8.0]))
         assert key.name == "headings", key.name
         return st.one_of(st.text(max_size=6), st.booleans(), st.just({"a": 1}),
                          st.sampled_from([math.nan, math.inf, -math.inf]),
@@ -711,7 +720,10 @@ def _bad_scenario(draw: st.DrawFn) -> tuple[str, str, Any]:
 
 
 _BASES = {"paper": tomllib.loads(PAPER.read_text()),
-          "robotarium": tomllib.loads(ROBOTARIUM.read_text())}
+          "robotarium": tomllib.loads(ROBOTARIUM.read_text()),
+          # a route (its [mission] table left out: a scenario)
+          "route": {k: v for k, v in tomllib.loads(
+              (ROOT / "configs" / "route_mock.toml").read_text()).items() if k != "mission"}}
 
 
 def test_the_bases_of_the_property_test_are_valid(tmp_path: Path,
@@ -734,11 +746,17 @@ def test_property_bad_scenario_values(bad: tuple[str, str, Any],
     import copy
 
     section, name, value = bad
-    base = "robotarium" if (section == "robots" and name in _UNICYCLE_KEYS) else "paper"
+    base = "robotarium" if (section == "robots" and name in _UNICYCLE_KEYS) else (
+        "route" if section.startswith("route") else "paper")
     data = copy.deepcopy(_BASES[base])
     data["partition"] = {"apex_distance": "default"}
     if section == "obstacles":
         data["obstacles"][0][name] = value
+    elif section == "route.waypoints":
+        wp = data["route"]["waypoints"][0]
+        if name == "lat_lon":
+            del wp["position"]
+        wp[name] = value
     elif section == "robots.grid":
         data["robots"]["grid"][name] = value
     else:

@@ -158,9 +158,13 @@ def write_sim_outputs(result: Any, out: Path, *, plots: bool = True) -> list[Pat
         if result.t.size:
             frames = pick_snapshot_frames(result.t, result.pos, 4)
             part = result.partition if result.controller != "apf" else None
+            route = getattr(result, "route", None)
+            if route is not None:  # a route: every segment, all their sub-tubes
+                part = route
             snaps = out / "snapshots.png"
             plot_snapshots(
-                snaps, sc.tube, [(float(result.t[i]), result.pos[i]) for i in frames],
+                snaps, sc.corridor.segments,
+                [(float(result.t[i]), result.pos[i]) for i in frames],
                 r_s=r.r_s, obstacles=sc.obstacles,
                 sub_tubes=part.sub_tubes if part is not None and part.K > 1 else (),
                 triangles=part.triangles if part is not None else (),

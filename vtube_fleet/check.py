@@ -21,6 +21,10 @@ the partition it would fly, or why there is none and what would fix it.
 * When the partition is infeasible, the report names what binds (:func:`~vtube_fleet.core.
   validation.binding_constraints`) and the nearest single changes that fix it
   (:func:`~vtube_fleet.core.validation.nearest_fixes`).
+* A **route** of several segments (docs/route.md) is checked by :func:`~vtube_fleet.core.
+  validation.validate_route`: the paper's conditions and the partition of every segment, and
+  the junction conditions of every junction with their margins; a failing one is named with
+  its numbers and the nearest fixes (:func:`~vtube_fleet.core.validation.route_fixes`).
 """
 
 from __future__ import annotations
@@ -35,16 +39,19 @@ import numpy as np
 from vtube_fleet.config.scenario import Scenario, load_scenario
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Partition, Violation
+from vtube_fleet.core.route import Route, renumber_obstacles
 from vtube_fleet.core.validation import (
     Fix,
+    RouteValidation,
     binding_constraints,
     flown_symbols,
     further_failures,
     nearest_fixes,
-    validate_scenario,
+    route_fixes,
+    validate_route,
 )
 
-__all__ = ["CheckReport", "check_file", "describe_partition"]
+__all__ = ["CheckReport", "check_file", "describe_partition", "describe_route"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,6 +76,10 @@ class CheckReport:
     #: the obstacles that fail after the first one (:func:`~vtube_fleet.core.validation.
     #: further_failures`), one line each
     further: tuple[str, ...] = ()
+    #: a route of several segments: the planned route (``partition`` is then None) and the
+    #: junction conditions (:class:`~vtube_fleet.core.route.JunctionCheck`)
+    route: Route | None = None
+    junctions: tuple[Any, ...] = ()
     #: a mission's :class:`~vtube_fleet.fleet.margin.BudgetMargin` (None for a scenario)
     margin: Any = None
 
@@ -122,16 +133,22 @@ def _xi(x: float) -> str:
     return f"{x:8.3f}" if math.isfinite(x) else ("    -inf" if x < 0 else "     inf")
 
 
-def describe_partition(scenario: Scenario, part: Partition) -> list[str]:
+def describe_partition(scenario: Scenario, part: Partition, *, ids: tuple[int, ...] | None = None,
+                       names: tuple[str, ...] | None = None) -> list[str]:
     """Human-readable lines describing the partition (sub-tubes, triangles, Remark 5, the
-    apex distances the planner chose)."""
+    apex distances the planner chose). ``ids``: the route numbers of the partition's obstacles
+    (a segment of a route; default: the scenario's, in order), ``names`` its sub-tubes'."""
     lines = []
-    tube = scenario.tube
+    tube = part.tube
+    ids = tuple(range(len(scenario.obstacles))) if ids is None else ids
+    names = tuple(t.name for t in part.sub_tubes) if names is None else names
     lines.append(f"sub-tubes: {part.K}")
-    for name_tube, xs, xe in zip(part.sub_tubes, part.xi_start, part.xi_end, strict=True):
+    wn = max([6, *(len(n) for n in names)])
+    for name, name_tube, xs, xe in zip(names, part.sub_tubes, part.xi_start, part.xi_end,
+                                       strict=True):
         a, b = max(float(xs), 0.0), min(float(xe), tube.length)
         lines.append(
-            f"  {name_tube.name:6s} xi [{_xi(float(xs))}, {_xi(float(xe))})  "
+            f"  {name:{wn}s} xi [{_xi(float(xs))}, {_xi(float(xe))})  "
             f"start base {_pt(name_tube.p_h0)}–{_pt(name_tube.p_r0)}  "
             f"L:{'yes' if name_tube.has_L else 'no '} R:{'yes' if name_tube.has_R else 'no '}"
             f"  ({b - a:.2f} m long)"
@@ -139,33 +156,65 @@ def describe_partition(scenario: Scenario, part: Partition) -> list[str]:
     r5 = [tri for tri in part.triangles if tri.remark5 is not None]
     lines.append(f"triangles: {len(part.triangles)}")
     for tri in part.triangles:
-        ob = scenario.obstacles[tri.obstacle]
+        gi = ids[tri.obstacle]
+        ob = scenario.obstacles[gi] if gi < len(scenario.obstacles) else None
         note = "isosceles"
         if tri.remark5:
             beta = math.degrees(tri.beta)
             note = f"Remark 5: {tri.remark5} side tube dropped, beta = {beta:.2f} deg"
-        how = " (auto)" if isinstance(ob.apex_distance, str) else ""
+        how = " (auto)" if ob is not None and isinstance(ob.apex_distance, str) else ""
+        r_o = f"{ob.radius:g}" if ob is not None else "(lost vehicle)"
         lines.append(
-            f"  obstacle #{tri.obstacle + 1} at {_pt(ob.center)} r_o = {ob.radius:g}: "
+            f"  obstacle #{gi + 1} at {_pt(tri.center)} r_o = {r_o}: "
             f"h = {tri.h:.3f} m{how}, alpha = {math.degrees(tri.alpha):.2f} deg, apex "
             f"{_pt(tri.p_oth)}, base {_pt(tri.p_otu)}–{_pt(tri.p_otd)}; {note}"
         )
     if r5:
         lines.append("Remark 5 used by obstacle(s): "
-                     + ", ".join(f"#{tri.obstacle + 1} ({tri.remark5})" for tri in r5))
+                     + ", ".join(f"#{ids[tri.obstacle] + 1} ({tri.remark5})" for tri in r5))
     else:
         lines.append("Remark 5 used by obstacle(s): none")
     if part.apex is not None:
-        lines.append(part.apex.describe())
+        lines.append(renumber_obstacles(part.apex.describe(), ids))
+    return lines
+
+
+def describe_route(scenario: Scenario, route: Route) -> list[str]:
+    """The lines of a route of several segments: each segment (its waypoints, length, widths)
+    and its partition (:func:`describe_partition`, sub-tubes named S2.T_o3, obstacles by their
+    route numbers)."""
+    lines = []
+    k0 = 0
+    for seg in route.segments:
+        t = seg.tube
+        j = seg.index
+        lines.append(
+            f"segment {seg.name} (waypoints {j + 1} → {j + 2}): heading "
+            f"{math.degrees(math.atan2(t.n_c[1], t.n_c[0])):.1f} deg, length {t.length:.3f} m, "
+            f"width {float(t.width(0.0)):.3f} -> {float(t.width(t.length)):.3f} m, obstacles "
+            + (", ".join(f"#{i + 1}" for i in seg.obstacle_ids) or "none"))
+        names = tuple(x.name for x in route.sub_tubes[k0:k0 + seg.K])
+        lines += [f"  {x}" for x in describe_partition(scenario, seg.partition,
+                                                       ids=seg.obstacle_ids, names=names)]
+        k0 += seg.K
     return lines
 
 
 def _header(sc: Scenario, params: ControllerParams) -> list[str]:
-    r, tube, c = sc.robots, sc.tube, params
+    r, c = sc.robots, params
+    geo = sc.geometry
+    if geo.is_single:
+        tube = geo.segments[0]
+        first = (f"tube: p_h0 {_pt(tube.p_h0)} p_h1 {_pt(tube.p_h1)} p_r0 {_pt(tube.p_r0)} "
+                 f"p_r1 {_pt(tube.p_r1)}; length {tube.length:.3f} m, width "
+                 f"{tube.width(0.0):.3f} -> {tube.width(tube.length):.3f} m")
+    else:
+        bends = ", ".join(f"{j.theta_deg:.1f} deg at waypoint {j.waypoint + 1}"
+                          for j in geo.junctions)
+        first = (f"route: {geo.S} segments through {len(geo.waypoints)} waypoints "
+                 f"{', '.join(_pt(w.position) for w in geo.waypoints)}; bends {bends}")
     return [
-        f"tube: p_h0 {_pt(tube.p_h0)} p_h1 {_pt(tube.p_h1)} p_r0 {_pt(tube.p_r0)} "
-        f"p_r1 {_pt(tube.p_r1)}; length {tube.length:.3f} m, width "
-        f"{tube.width(0.0):.3f} -> {tube.width(tube.length):.3f} m",
+        first,
         f"robots: {r.count} {r.model}, r_s = {r.r_s:g}, r_a = {r.r_a:g}, "
         f"speed in [{r.v_min:g}, {r.v_max:g}] m/s"
         + (f", NID s = {r.nid_distance:g} m" if r.model == "unicycle" else ""),
@@ -196,7 +245,7 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
     mission = load_mission(path)
     sc = mission.scenario
     measured = assumed_measurement(latency_s, accuracy_m)
-    budget, flown, part, violations = slot_violations(mission, measured)
+    budget, flown, res, violations = slot_violations(mission, measured)
     cfg = mission.config
     assumed = []
     if cfg.latency_s is None:
@@ -215,20 +264,27 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
            f"flown: r_s' = {flown.r_s:.3f} m, r_a' = {flown.r_a:.3f} m (the partition below "
            f"is built with these, as the fleet builds it)"]
     return _check(sc, "mission", flown, mission.slots, budget, pre, fixes, budget.delta_m,
-                  found=(part, violations), margin=mission_margin(mission, measured))
+                  found=(res, violations), margin=mission_margin(mission, measured))
 
 
 def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarray,
            budget: Any, pre: list[str], want_fixes: bool, delta_m: float, *,
-           found: tuple[Partition | None, list[Violation]] | None = None,
+           found: tuple[RouteValidation, list[Violation]] | None = None,
            margin: Any = None) -> CheckReport:
     """``flown``: the parameters the checks use, with the flown radii r_s', r_a' (a mission's
     inflated by the safety budget; a scenario's are its own); ``found``: a mission's
-    (partition, violations) from :func:`~vtube_fleet.fleet.margin.slot_violations`."""
+    (validation, violations) from :func:`~vtube_fleet.fleet.margin.slot_violations`."""
+    if not sc.geometry.is_single:
+        return _check_route(sc, kind, flown, positions, budget, pre, want_fixes, delta_m,
+                            found=found, margin=margin)
+    corridor = sc.corridor  # one segment: its tube and obstacles
+    tube, obstacles = corridor.tube, corridor.obstacles
     if found is None:
-        part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions)
+        res = validate_route(corridor, flown, positions)
+        violations = list(res.violations)
     else:
-        part, violations = found[0], list(found[1])
+        res, violations = found[0], list(found[1])
+    part = None if res.route is None else res.route.segments[0].partition
     lines = [f"{sc.source}:"] + [f"  {x}" for x in _header(sc, sc.controller) + pre]
     if part is not None:
         lines += [f"  {x}" for x in describe_partition(sc, part)]
@@ -237,15 +293,68 @@ def _check(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarr
     further: list[str] = []
     if any(v.condition == "Partition" and v.message.startswith("Partition failed")
            for v in violations):  # the construction stopped at one obstacle: the others
-        further = further_failures(sc.tube, sc.obstacles, flown, positions)
+        further = further_failures(tube, obstacles, flown, positions)
         if kind == "mission":
             further = [flown_symbols(x) for x in further]
     partition_bad = any(v.condition in ("Partition", "Assumption3'", "Constraint3")
                         for v in violations)
     if partition_bad:
-        binding = binding_constraints(sc.tube, sc.obstacles, flown, positions)
+        binding = binding_constraints(tube, obstacles, flown, positions)
         if want_fixes:
-            fixes = nearest_fixes(sc.tube, sc.obstacles, flown, positions, r_offset_m=delta_m)
+            fixes = nearest_fixes(tube, obstacles, flown, positions, r_offset_m=delta_m)
     return CheckReport(sc.source, kind, sc, flown, part, tuple(violations), tuple(lines),
                        budget, tuple(binding), tuple(fixes), partition_bad and want_fixes,
-                       tuple(further), margin)
+                       tuple(further), margin=margin)
+
+
+def _check_route(sc: Scenario, kind: str, flown: ControllerParams, positions: np.ndarray,
+                 budget: Any, pre: list[str], want_fixes: bool, delta_m: float, *,
+                 found: tuple[RouteValidation, list[Violation]] | None = None,
+                 margin: Any = None) -> CheckReport:
+    """:func:`_check` of a route of several segments (module docstring). A mission is checked
+    as the fleet flies it: the flown radii and the apex look-ahead (``found``: its
+    :func:`~vtube_fleet.fleet.margin.slot_violations`)."""
+    mission = kind == "mission"
+    if found is None:
+        res = validate_route(sc.corridor, flown, positions, lookahead=mission)
+        violations = list(res.violations)
+    else:
+        res, violations = found[0], list(found[1])
+    lines = [f"{sc.source}:"] + [f"  {x}" for x in _header(sc, sc.controller) + pre]
+    if res.route is not None:
+        lines += [f"  {x}" for x in describe_route(sc, res.route)]
+        lines.append("  junctions:")
+        lines += [f"    {flown_symbols(c.describe()) if mission else c.describe()}"
+                  for c in res.junctions]
+    binding: list[str] = []
+    further: list[str] = []
+    fixes: list[Fix] = []
+    fixable = ("Partition", "Assumption3'", "Constraint3", "Junction1", "Junction2",
+               "Junction3", "Junction4", "Junction5")
+    bad = any(v.condition in fixable for v in violations)
+    seg_of = sc.corridor.start_segment_of(positions)
+    for s in sorted({int(m) - 1 for v in violations
+                     if v.condition in ("Partition", "Assumption3'", "Constraint3")
+                     for m in _segments_named(v.message)}):
+        ids, obs = sc.corridor.segment_obstacles(s)
+        tube = sc.corridor.segments[s]
+        mine = positions[seg_of == s]
+        binding += [f"segment S{s + 1}: " + renumber_obstacles(b, ids)
+                    for b in binding_constraints(tube, obs, flown, mine)]
+        further += [f"segment S{s + 1}: " + renumber_obstacles(x, ids)
+                    for x in further_failures(tube, obs, flown, mine)]
+    if mission:
+        binding = [flown_symbols(x) for x in binding]
+        further = [flown_symbols(x) for x in further]
+    if bad and want_fixes:
+        fixes = route_fixes(sc.corridor, flown, positions, violations, r_offset_m=delta_m,
+                            lookahead=mission)
+    return CheckReport(sc.source, kind, sc, flown, None, tuple(violations), tuple(lines),
+                       budget, tuple(binding), tuple(fixes), bad and want_fixes,
+                       tuple(further), res.route, tuple(res.junctions), margin=margin)
+
+
+def _segments_named(message: str) -> list[str]:
+    import re
+
+    return re.findall(r"segment S(\d+)", message)

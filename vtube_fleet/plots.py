@@ -33,6 +33,13 @@ __all__ = [
 ]
 
 
+def _outlines(tube: Trapezoid | Sequence[Trapezoid]) -> list[np.ndarray]:
+    """The polygons to draw: one tube's, or every segment's of a route."""
+    if isinstance(tube, Trapezoid):
+        return [tube.polygon()]
+    return [t.polygon() for t in tube]
+
+
 def _finite(x: Any) -> np.ndarray:
     a = np.asarray(x, dtype=float)
     return np.where(np.isfinite(a), a, np.nan)
@@ -191,7 +198,7 @@ def pick_snapshot_frames(t: np.ndarray, pos: np.ndarray, count: int = 4) -> list
 
 def plot_snapshots(
     path: str | os.PathLike[str],
-    tube: Trapezoid,
+    tube: Trapezoid | Sequence[Trapezoid],
     frames: Iterable[tuple[float, np.ndarray]],
     *,
     r_s: float,
@@ -204,7 +211,8 @@ def plot_snapshots(
 ) -> None:
     """Snapshots of the swarm, one panel per ``(t, positions (M, 2))`` frame (NaN = absent).
 
-    Each panel shows the main tube, the sub-tube outlines of the partition, the circumscribed
+    Each panel shows the main tube (``tube``: or a route's segments, each outlined), the
+    sub-tube outlines of the partition, the circumscribed
     triangles I_k (``triangles`` items with ``p_oth``, ``p_otu``, ``p_otd``), the obstacles O_k
     with their extended areas O'_k (dashed, radius r_o + r_s), and every robot with its safety
     disc S_i (red circle of radius r_s, as in the paper's Fig. 10). ``headings`` (one (M,) array
@@ -212,7 +220,8 @@ def plot_snapshots(
     """
     frames = list(frames)
     n = max(len(frames), 1)
-    poly = tube.polygon()
+    outlines = _outlines(tube)
+    poly = np.concatenate(outlines)
     xmin, ymin = poly.min(axis=0)
     xmax, ymax = poly.max(axis=0)
     span_x, span_y = xmax - xmin, ymax - ymin
@@ -230,7 +239,8 @@ def plot_snapshots(
             continue
         t_s, pos = frames[idx]
         pos = np.asarray(pos, dtype=float)
-        ax.add_patch(Polygon(poly, closed=True, fill=False, ec="black", lw=1.4))
+        for outline in outlines:
+            ax.add_patch(Polygon(outline, closed=True, fill=False, ec="black", lw=1.4))
         for sub in sub_tubes:
             ax.add_patch(Polygon(sub.polygon(), closed=True, fill=False, ec="tab:blue", lw=0.6,
                                  ls="--", alpha=0.7))
@@ -265,7 +275,7 @@ def plot_snapshots(
 
 
 def trajectory_figure(
-    tube: Trapezoid,
+    tube: Trapezoid | Sequence[Trapezoid],
     t: np.ndarray,
     pos: np.ndarray,
     *,
@@ -278,11 +288,13 @@ def trajectory_figure(
 ) -> Figure:
     """The whole flight in one panel: every vehicle's path (``pos`` (T, M, 2), NaN = absent;
     one colour per vehicle, a dot where it was first seen, a cross where it was last seen)
-    over the main tube, the partition (sub-tube outlines, triangles I_k) and the obstacles O_k
+    over the main tube (or a route's segments), the partition (sub-tube outlines, triangles
+    I_k) and the obstacles O_k
     with O'_k. The axes hold the tube and every recorded position: nothing leaves the frame
     (a vehicle flying on past the finishing line, landing elsewhere)."""
     pos = np.asarray(pos, dtype=float).reshape(len(t), -1, 2)
-    poly = tube.polygon()
+    outlines = _outlines(tube)
+    poly = np.concatenate(outlines)
     pts = np.vstack([poly, pos.reshape(-1, 2)])
     pts = pts[np.isfinite(pts).all(axis=1)]
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -292,7 +304,10 @@ def trajectory_figure(
     width = 10.0
     fig = Figure(figsize=(width, max(3.0, min(14.0, width * aspect + 1.2))), layout="constrained")
     ax = fig.subplots()
-    ax.add_patch(Polygon(poly, closed=True, fill=False, ec="black", lw=1.4, label="tube T"))
+    for k, outline in enumerate(outlines):
+        ax.add_patch(Polygon(outline, closed=True, fill=False, ec="black", lw=1.4,
+                             label=None if k else ("tube T" if len(outlines) == 1
+                                                   else "route segments")))
     for k, sub in enumerate(sub_tubes):
         ax.add_patch(Polygon(sub.polygon(), closed=True, fill=False, ec="tab:blue", lw=0.6,
                              ls="--", alpha=0.7, label="sub-tubes T_o,k" if k == 0 else None))
@@ -335,7 +350,8 @@ def trajectory_figure(
     return fig
 
 
-def plot_trajectories(path: str | os.PathLike[str], tube: Trapezoid, t: np.ndarray,
+def plot_trajectories(path: str | os.PathLike[str], tube: Trapezoid | Sequence[Trapezoid],
+                      t: np.ndarray,
                       pos: np.ndarray, *, dpi: int = 110, **kw: Any) -> None:
     """:func:`trajectory_figure` saved as a PNG."""
     _save(trajectory_figure(tube, t, pos, **kw), path, dpi)

@@ -22,10 +22,18 @@ Each step (all robots still in the tube at once):
    margin loses more than half of what is left; ``"rk4"`` (single integrator only) and
    ``"euler"`` on request.
 
-The scenario must be certified (:func:`~vtube_fleet.core.validation.validate_scenario`: every
-condition of the paper holds). ``uncertified=True`` flies a scenario that is not, with the
-triangles circumscribed about O instead of O' as the authors' published code does; the summary
-then says ``certified: false`` and lists the failed conditions.
+A route of several segments (docs/route.md) is flown the same way with a
+:class:`~vtube_fleet.core.route.RouteTracker` for step 2 (each robot in its segment's
+partition, the hand-over to the next segment tested whenever some robot may have come within
+reach of it, the metric chunk flushed at every hand-over), exits at the last segment's
+finishing line, and the leg distances of the metrics and of the adaptive step's margins taken
+to each robot's own segment.
+
+The scenario must be certified (:func:`~vtube_fleet.core.validation.validate_route`: every
+condition of the paper holds, and for a route every junction condition).
+``uncertified=True`` flies a single tube that is not, with the triangles circumscribed about O
+instead of O' as the authors' published code does; the summary then says ``certified: false``
+and lists the failed conditions.
 
 The trajectory holds every ``record_every``-th step and always the final state (at t_end, after
 the last step): every robot still present then, the ones that meet (TraCondition) at that
@@ -71,7 +79,8 @@ from vtube_fleet.core.metrics import (
 )
 from vtube_fleet.core.neighbours import VerletPairs
 from vtube_fleet.core.partition import Partition, PartitionError, SubTubeTracker
-from vtube_fleet.core.validation import ScenarioError, validate_scenario
+from vtube_fleet.core.route import Route, RouteTracker
+from vtube_fleet.core.validation import ScenarioError, validate_route
 from vtube_fleet.errors import UserError
 
 __all__ = [
@@ -134,6 +143,8 @@ class SimResult:
     heading: np.ndarray | None = None
     interrupted: bool = False
     exit_pos: np.ndarray | None = None
+    #: the planned route of a route of several segments (``partition`` is then None)
+    route: Route | None = None
 
     def trajectory_arrays(self) -> dict[str, np.ndarray]:
         """The arrays of ``trajectory.npz``."""
@@ -267,12 +278,18 @@ def simulate(
         raise SimError(f"record_every must be >= 1, got {record_every}")
 
     control0 = rcfg.control_points()
+    if not scenario.geometry.is_single:
+        return _simulate_route(scenario, controller, dt, n_steps, record_every, progress, skin,
+                               validate, recorder, integrator, uncertified, control0)
     part: Partition | None = None
     certified: bool | None = None  # None: not validated
     failed: list[dict[str, str]] = []
     about = "O'"
+    corridor = scenario.corridor  # one segment: its tube and obstacles
     if validate:
-        part, violations = validate_scenario(scenario.tube, scenario.obstacles, params, control0)
+        res = validate_route(corridor, params, control0)
+        part = None if res.route is None else res.route.segments[0].partition
+        violations = list(res.violations)
         certified = not violations
         if violations and not uncertified:
             raise ScenarioError(violations)
@@ -281,13 +298,11 @@ def simulate(
             part, about = _uncertified_partition(scenario, params), "O"
             failed += _uncertified_conditions(scenario, part)
     if controller == "apf":
-        arrays = TubeArrays.from_tubes([scenario.tube])
+        arrays = TubeArrays.from_tubes([corridor.tube])
         tracker = None
     else:
         if part is None:
-            from vtube_fleet.core.partition import partition as build_partition
-
-            part = build_partition(scenario.tube, scenario.obstacles, params)
+            part = Route.plan(corridor, params).segments[0].partition
         arrays = TubeArrays.from_tubes(part.sub_tubes)
         tracker = part.tracker()
 
@@ -300,6 +315,46 @@ def simulate(
                recorder, integrator)
     run.execute()
     result = run.result(part, info)
+    if recorder is not None:
+        recorder.log_summary(result.summary)
+    return result
+
+
+def _simulate_route(scenario: Scenario, controller: str, dt: float, n_steps: int,
+                    record_every: int, progress: ProgressFn | None, skin: float | None,
+                    validate: bool, recorder: Any, integrator: str, uncertified: bool,
+                    control0: np.ndarray) -> SimResult:
+    """:func:`simulate` of a route of several segments (docs/route.md): the paper's controller
+    in each robot's segment, the hand-over at the junctions (:class:`~vtube_fleet.core.route.
+    RouteTracker`), exits at the last finishing line, the leg distances judged to each robot's
+    segment."""
+    corridor = scenario.corridor
+    params = scenario.controller
+    if controller == "apf":
+        raise SimError(f"controller 'apf' (Appendix C's potential on the main tube) flies one "
+                       f"tube; this route has {corridor.S} segments")
+    certified: bool | None = None
+    route: Route | None = None
+    if validate:
+        res = validate_route(corridor, params, control0)
+        certified = res.ok
+        if not res.ok:
+            if uncertified:
+                raise SimError("--uncertified flies one tube as the authors' code builds it; "
+                               "a route must pass its conditions (vtube-fleet check)")
+            raise ScenarioError(res.violations)
+        route = res.route
+    if route is None:
+        route = Route.plan(corridor, params)
+    info = {"integrator": integrator, "certified": certified, "failed_conditions": [],
+            "triangles_about": "O'"}
+    if recorder is not None:
+        recorder.log_scene(scenario, route, meta={
+            "dt_s": dt, "controller": controller, "record_every": record_every, **info})
+    run = _Run(scenario, controller, dt, n_steps, record_every, route.arrays,
+               route.tracker(control0), progress, skin, recorder, integrator, route=route)
+    run.execute()
+    result = run.result(None, info)
     if recorder is not None:
         recorder.log_summary(result.summary)
     return result
@@ -350,10 +405,12 @@ class _Run:
     """State of one simulation; the hot loop lives in :meth:`execute`."""
 
     def __init__(self, scenario: Scenario, controller: str, dt: float, n_steps: int,
-                 record_every: int, arrays: TubeArrays, tracker: SubTubeTracker | None,
+                 record_every: int, arrays: TubeArrays,
+                 tracker: SubTubeTracker | RouteTracker | None,
                  progress: ProgressFn | None, skin: float | None, recorder: Any = None,
-                 integrator: str = "euler") -> None:
+                 integrator: str = "euler", route: Route | None = None) -> None:
         self.scenario = scenario
+        self.route = route
         self.integrator = integrator
         self.istats = AdaptiveStats()
         self.recorder = recorder
@@ -371,7 +428,7 @@ class _Run:
         r = scenario.robots
         self.unicycle = r.model == "unicycle"
         self.m = r.count
-        self.monitor = SafetyMonitor.from_params(scenario.tube, scenario.obstacles, p)
+        self.monitor = SafetyMonitor.for_corridor(scenario.corridor, p)
         self.acc = SummaryAccumulator(self.m)
         # where each robot met (TraCondition): the robot, or a unicycle's control point
         self.exit_pos = np.full((self.m, 2), np.nan)
@@ -400,7 +457,11 @@ class _Run:
         sc = self.scenario
         dt = self.dt
         p = self.params
-        tube = sc.tube
+        route = self.route
+        # a route of several segments: the hand-overs (RouteTracker), exits from the last
+        # segment only, each robot's legs for the metrics and the integrator's margins
+        route_tr: Any = self.tracker if route is not None else None  # (a RouteTracker)
+        tube = sc.tube if route is None else route.segments[-1].tube
         n_c = np.array(tube.n_c)
         thresh = tube.finish_threshold(p.eps_0)  # (TraCondition): n_cᵀp ≥ this
         # An upper bound of how far any evaluation point moves per second: ‖v_c‖ ≤ v_max under
@@ -428,6 +489,12 @@ class _Run:
         adaptive = integ == "adaptive"
         rk4 = integ == "rk4"
         guard = MarginGuard(tube, sc.obstacles, SafetyLimits.from_params(p))
+        base_guard = guard
+        cur_seg: np.ndarray | None = None  # the segments of the buffered steps (a route)
+        last_seg = 0 if route is None else route.S - 1
+        if route_tr is not None:
+            cur_seg = route_tr.segment
+            guard = base_guard.with_legs(*route.leg_table(cur_seg))
         thr_single = guard.single_threshold(max_move)
         thr_pair = guard.pair_threshold(max_move) + guard.limits.pair_m  # on the pair distance
         next_single = 0
@@ -474,7 +541,7 @@ class _Run:
                 return
             tt = (step - nc + np.arange(nc)) * dt  # == (step − nc + i)·dt of the loop
             met = monitor.evaluate(cpos[:nc, :n], cvel[:nc, :n], pairs=cur_pairs,
-                                   all_present=True, min_pair=cpm[:nc])
+                                   all_present=True, min_pair=cpm[:nc], segment=cur_seg)
             acc.add(tt, met)
             self.parts.append(met)
             self.step_t_parts.append(tt)
@@ -483,7 +550,7 @@ class _Run:
                 # r_s + r_a, hence in the list; otherwise search them step by step
                 metc = monitor.evaluate(ccen[:nc, :n], ccvel[:nc, :n],
                                         pairs=cur_pairs if centre_pairs_ok else None,
-                                        all_present=True)
+                                        all_present=True, segment=cur_seg)
                 acc.add(tt, metc, suffix="_center")
                 self.parts_center.append(metc)
             if rec is not None:  # handed to the recorder in blocks of >= REC_METRIC_BLOCK steps
@@ -561,10 +628,19 @@ class _Run:
             elif rec is not None:
                 rec.log_tick(t_s=t, tick=st, ids=ids_, pos=pos_, vel=vel_)
 
+        # the tracker between the steps' own locates (integrator sub-steps, the quiet loop
+        # below): a route hands over only at a step's start (the outer loop)
+        sub_update: Any = None
+        if route_tr is not None:
+            def sub_update(pp: np.ndarray, mv: float) -> np.ndarray:
+                return route_tr.update(pp, mv, False)
+        elif tracker is not None:
+            sub_update = tracker.update
+
         def rhs_of(k0: np.ndarray, prs: tuple) -> Callable[[np.ndarray, float], np.ndarray]:
             """The command at sub-step points z (complex) of the single integrator."""
             def rhs(z: np.ndarray, move: float) -> np.ndarray:
-                kk = k0 if tracker is None else tracker.update(
+                kk = k0 if tracker is None else sub_update(
                     z.view(np.float64).reshape(-1, 2), move)
                 return command.step(z, kk, prs, move=move)
             return rhs
@@ -579,7 +655,7 @@ class _Run:
         def uni_rhs(k0: np.ndarray, prs: tuple) -> Callable:
             def rhs(state: tuple, z: np.ndarray, move: float) -> np.ndarray:
                 qq = np.ascontiguousarray(z.view(np.float64).reshape(-1, 2))
-                kk = k0 if tracker is None else tracker.update(qq, move)
+                kk = k0 if tracker is None else sub_update(qq, move)
                 return command(qq, kk, prs)
             return rhs
 
@@ -594,8 +670,14 @@ class _Run:
                 if step >= next_exit_check:
                     xi = q @ n_c
                     xmax = xi.max()
+                    gone = None
                     if xmax >= thresh:
                         gone = xi >= thresh
+                        if route_tr is not None:  # only from the last segment
+                            gone &= route_tr.segment == last_seg
+                            if not gone.any():
+                                gone = None
+                    if gone is not None:
                         if gone.all():  # the run ends here: the final state is a frame
                             if unicycle:
                                 record_frame(step, ids, pos, last_command(ccvel), q,
@@ -622,12 +704,28 @@ class _Run:
                             q = pos = PR[0]
                         if n == 0:
                             break
+                        if route_tr is not None:
+                            route_tr.keep(keep)
+                            cur_seg = route_tr.segment
+                            guard = base_guard.with_legs(*route.leg_table(cur_seg))
+                            next_single = step
                         xmax = xi[keep].max()
                         next_verlet = step  # the robot set changed: rebuild the list now
                     next_exit_check = step + max(1, int((thresh - xmax) / (v_bound * dt)))
                 # 2-4. sub-tube, neighbours, command
                 if tracker is not None:
                     k = tracker.update(q, track_move)
+                    if route_tr is not None and route_tr.handed:
+                        # a hand-over: the buffered steps are judged in the old segments
+                        route_tr.handed = False
+                        if nc:
+                            flush(n, step)
+                            if not unicycle:  # the current positions move to row 0
+                                P2[0] = pos
+                                q = pos = PR[0]
+                        cur_seg = route_tr.segment
+                        guard = base_guard.with_legs(*route.leg_table(cur_seg))
+                        next_single = step
                 else:
                     if kzero.shape[0] != n:
                         kzero = np.zeros(n, dtype=np.intp)
@@ -712,9 +810,11 @@ class _Run:
                 end = min(next_exit_check, next_verlet, step + chunk - nc, next_rec,
                           n_steps, next_single if adaptive else n_steps,
                           n_steps if progress is None else next_progress)
+                if route_tr is not None:  # no hand-over can be due before this
+                    end = min(end, step + route_tr.quiet_calls(track_move))
                 while step < end:
                     if tracker is not None:
-                        k = tracker.update(pos, track_move)
+                        k = sub_update(pos, track_move)
                     zc = ZR[nc]
                     vz = cstep(zc, k, pairs, VR[nc], track_move)
                     cpm[nc] = min_pair = command.min_pair_distance
@@ -736,6 +836,8 @@ class _Run:
             # frame with every robot still present, those just exited included
             q = models.nid_control_point(pos, theta, s_nid) if unicycle else pos
             gone = q @ n_c >= thresh
+            if route_tr is not None:  # only from the last segment
+                gone &= route_tr.segment == last_seg
             if gone.any():
                 acc.add_exits(step * dt, ids[gone])
                 self.exit_pos[ids[gone]] = q[gone]
@@ -764,6 +866,8 @@ class _Run:
         step_t = (np.concatenate(self.step_t_parts) if self.step_t_parts
                   else np.zeros(0))
         sc = self.scenario
+        route = self.route
+        plan: Any = part if route is None else route  # (both have .K and .triangles)
         summary = self.acc.summary(
             dt_s=self.dt,
             wall_s=round(self.wall_s, 6),
@@ -776,13 +880,14 @@ class _Run:
             model=sc.robots.model,
             record_every=self.record_every,
             frames=f,
-            sub_tubes=1 if part is None or self.controller == "apf" else part.K,
+            segments=1 if route is None else route.S,
+            sub_tubes=1 if plan is None or self.controller == "apf" else plan.K,
             obstacles=len(sc.obstacles),
-            remark5=[] if part is None else [
-                tri.obstacle for tri in part.triangles if tri.remark5 is not None
+            remark5=[] if plan is None else [
+                tri.obstacle for tri in plan.triangles if tri.remark5 is not None
             ],
-            apex_distances_m=[] if part is None else [  # h_k flown ("auto": core/plan.py)
-                next((t.h for t in part.triangles if t.obstacle == i), None)
+            apex_distances_m=[] if plan is None else [  # h_k flown ("auto": core/plan.py)
+                next((t.h for t in plan.triangles if t.obstacle == i), None)
                 for i in range(len(sc.obstacles))],
             **(info or {"integrator": self.integrator}),
             integrator_stats=self.istats.as_dict(),
@@ -801,6 +906,7 @@ class _Run:
             metrics_center=metrics_center,
             summary=summary,
             partition=part,
+            route=route,
             control_pos=self.rec_cpos[:f] if self.unicycle else None,
             control_vel=self.rec_cvel[:f] if self.unicycle else None,
             heading=self.rec_head[:f] if self.unicycle else None,

@@ -118,7 +118,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from vtube_fleet.config.scenario import load_scenario
     from vtube_fleet.sim import ProgressBar, simulate
 
-    sc = load_scenario(args.config)
+    sc = load_scenario(args.config, extra_sections=("mission",))
+    if "mission" in sc.extra:  # (a mission file: its scenario, as configured)
+        print("note: a mission file: simulated as its scenario (the physical r_s, r_a; the "
+              "fleet flies them inflated by its safety budget, see vtube-fleet check)",
+              file=sys.stderr)
     out = Path(args.out) if args.out else _default_out(args.config, args.controller)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out}: exists and is not a directory")

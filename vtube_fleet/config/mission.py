@@ -327,11 +327,11 @@ class Mission:
         """Refuse slots 0..count-1 that overlap each other, an obstacle, or leave the tube
         (Assumption 1 with the scenario's own r_s; the run's preflight re-checks with the safety
         budget): raises :class:`SlotError` listing each offending slot with the numbers."""
-        from vtube_fleet.core.validation import validate_scenario
+        from vtube_fleet.core.validation import validate_route
 
         n = self.count if count is None else count
         sc = self.scenario
-        _, violations = validate_scenario(sc.tube, sc.obstacles, sc.controller, self.slots[:n])
+        violations = validate_route(sc.corridor, sc.controller, self.slots[:n]).violations
         bad = [v.message.removeprefix("Assumption1 violated: ") for v in violations
                if v.condition == "Assumption1"]
         if bad:

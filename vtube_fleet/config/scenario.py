@@ -1,9 +1,12 @@
 """Scenario configuration: a TOML file → a frozen :class:`Scenario`.
 
-A scenario is everything the paper's simulation needs (Section V-A): the main trapezoid virtual
-tube T(p_h0, p_h1, p_r0, p_r1), the circular obstacles O_k (obstacle), the robots (model, initial
-positions, r_s, r_a, v_min, v_max), the controller parameters of (ModifiedVectorField) and
-(TraCondition), and the simulation settings. The format is documented in ``docs/config.md``.
+A scenario is everything the paper's simulation needs (Section V-A): the corridor — one
+trapezoid virtual tube T(p_h0, p_h1, p_r0, p_r1) (``[tube]``) or a route of chained trapezoids
+given by waypoints (``[[route.waypoints]]``, docs/route.md) — the circular obstacles O_k
+(obstacle), the robots (model, initial positions, r_s, r_a, v_min, v_max), the controller
+parameters of (ModifiedVectorField) and (TraCondition), and the simulation settings. The format
+is documented in ``docs/config.md``. Waypoints may be given in latitude/longitude in a mission
+file (its ``[mission]`` anchor places them in the tube frame, :mod:`vtube_fleet.frames`).
 
 Parsing is strict: an unknown key, a wrong type (``true`` is not a number), a missing required
 key or a non-finite number raises :class:`~vtube_fleet.errors.ConfigError` whose message names
@@ -33,11 +36,19 @@ import os
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-from vtube_fleet.config.keys import POSITIVE, Bound, Key, markdown_table, show_value
+from vtube_fleet.config.keys import (
+    NON_NEGATIVE,
+    POSITIVE,
+    Bound,
+    Key,
+    markdown_table,
+    show_value,
+)
 from vtube_fleet.core.integrate import DEFAULT_INTEGRATOR, INTEGRATORS
 from vtube_fleet.core.params import (
     CONTROLLER_DEFAULTS,
@@ -45,6 +56,7 @@ from vtube_fleet.core.params import (
     ControllerParams,
     parameter_problems,
 )
+from vtube_fleet.core.route import Corridor, RouteGeometry, Waypoint
 from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
 from vtube_fleet.errors import ConfigError, UserError
 
@@ -84,6 +96,8 @@ MAX_ROBOTS = 10_000
 MAX_SIM_STEPS = 10**8
 #: The smallest ``dt`` (s): a microsecond, a thousandth of the paper's step (smaller is a typo).
 MIN_DT_S = 1e-6
+#: At most this many route waypoints (a corridor of 99 segments is already a long flight plan).
+MAX_WAYPOINTS = 100
 
 _SPEED = Bound(0.0, PX4_MAX_HORIZONTAL_M_S, why="PX4's MPC_XY_VEL_MAX default: faster "
                "setpoints are clipped")
@@ -125,6 +139,34 @@ SCENARIO_KEYS: Mapping[str, tuple[Key, ...]] = {
         Key("p_h1", "point", "end of the left leg", "m", required=True),
         Key("p_r0", "point", "start of the right leg", "m", required=True),
         Key("p_r1", "point", "end of the right leg", "m", required=True),
+    ),
+    "route": (
+        Key("waypoints", "other", "the route's waypoints, in order (2 or more; instead of "
+            "`[tube]`); waypoints i and i + 1 make segment i (docs/route.md)",
+            type_label="array of tables", default_text="`[tube]` instead",
+            bound_note=f"2 to {MAX_WAYPOINTS} waypoints"),
+    ),
+    "route.waypoints": (
+        Key("position", "point", "waypoint position c_i (the middle of its base lines)", "m",
+            default_text="one of `position`/`lat_lon`"),
+        Key("lat_lon", "other", "waypoint position as WGS84 latitude and longitude (mission "
+            "files only: their `[mission]` anchor puts it in the tube frame)", "deg",
+            type_label="`[lat, lon]`", default_text="one of `position`/`lat_lon`",
+            bound_note="latitude in (-90, 90), longitude in [-180, 180]"),
+        Key("half_width", "number", "w_i: the corridor's half-width at the waypoint, measured "
+            "perpendicular to each adjacent segment", "m", required=True, bound=POSITIVE),
+        Key("heading_deg", "number", "direction of flight across the base lines of the "
+            "segment starting here, counter-clockwise from the frame's x axis (the last "
+            "waypoint's must equal its segment's)", "deg",
+            bound=Bound(-360.0, 360.0, low_inclusive=True, interval=True),
+            default_text="towards the next waypoint"),
+        Key("bearing_deg", "number", "the same as a compass bearing, clockwise from true "
+            "north (mission files only; instead of `heading_deg`)", "deg",
+            bound=Bound(-360.0, 360.0, low_inclusive=True, interval=True),
+            default_text="towards the next waypoint"),
+        Key("overlap_m", "number", "e_i: how far both segments are prolonged at this "
+            "waypoint's bend (the hand-over overlap, docs/route.md)", "m", bound=NON_NEGATIVE,
+            default_text="the mitre w_i tan(|θ_i|/2)"),
     ),
     "obstacles": (
         Key("center", "point", "obstacle centre p_o,k", "m", required=True),
@@ -188,8 +230,8 @@ SCENARIO_KEYS: Mapping[str, tuple[Key, ...]] = {
 
 
 def _section_title(section: str) -> str:
-    return {"obstacles": "[[obstacles]]", "robots.grid": "[robots].grid"}.get(
-        section, f"[{section}]")
+    return {"obstacles": "[[obstacles]]", "robots.grid": "[robots].grid",
+            "route.waypoints": "[[route.waypoints]]"}.get(section, f"[{section}]")
 
 
 def scenario_key(section: str, name: str) -> Key:
@@ -255,9 +297,12 @@ class SimConfig:
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A parsed scenario. ``extra`` holds the raw tables of the allowed extra sections."""
+    """A parsed scenario: ``geometry`` (the segments of its route: one for a ``[tube]``),
+    ``obstacles`` (config order), robots, controller, sim. ``extra`` holds the raw tables of the
+    allowed extra sections. :attr:`corridor` is the geometry with its obstacles, the one object
+    the checks, the simulator and the recorder take."""
 
-    tube: Trapezoid
+    geometry: RouteGeometry
     obstacles: tuple[Obstacle, ...]
     robots: RobotsConfig
     controller: ControllerParams
@@ -266,6 +311,23 @@ class Scenario:
     extra: Mapping[str, Any] = field(default_factory=dict)
     #: :func:`content_hash` of the parsed document (comments and formatting do not count)
     content_hash: str = ""
+
+    @cached_property
+    def corridor(self) -> Corridor:
+        """The route's geometry and the obstacles (each owned by its segment)."""
+        return Corridor(self.geometry, tuple(self.obstacles))
+
+    @property
+    def tube(self) -> Trapezoid:
+        """The one trapezoid of a ``[tube]`` scenario; a route of several segments refuses
+        (:class:`~vtube_fleet.core.route.RouteError`, one ``error:`` line) where a caller
+        still expects one tube."""
+        return self.corridor.tube
+
+    @property
+    def is_route(self) -> bool:
+        """More than one segment."""
+        return not self.geometry.is_single
 
     def with_robots(self, n: int) -> Scenario:
         """The same scenario keeping only the first ``n`` robots (config order)."""
@@ -324,12 +386,19 @@ def parse_scenario(
     """
     p = _Parser(source)
     extra_names = tuple(extra_sections)
-    known = ("tube", "obstacles", "robots", "controller", "sim", "partition", *extra_names)
+    known = ("tube", "route", "obstacles", "robots", "controller", "sim", "partition",
+             *extra_names)
     p.check_keys(data, known, "")
-    tube = p.parse_tube(p.table(data, "tube", ""))
+    if "route" in data:
+        if "tube" in data:
+            raise p.error("[route]", "give either [tube] (one trapezoid) or [route] (waypoints), "
+                                     "not both")
+        geometry = p.parse_route(p.table(data, "route", ""), data)
+    else:
+        geometry = RouteGeometry.single(p.parse_tube(p.table(data, "tube", "")))
     apex_default = p.parse_partition(p.table(data, "partition", "", required=False))
     obstacles = p.parse_obstacles(data.get("obstacles", []), apex_default)
-    robots = p.parse_robots(p.table(data, "robots", ""), tube)
+    robots = p.parse_robots(p.table(data, "robots", ""), geometry.segments[0])
     controller = p.parse_controller(p.table(data, "controller", ""), robots)
     sim = p.parse_sim(p.table(data, "sim", "", required=False))
     extra = {}
@@ -337,7 +406,7 @@ def parse_scenario(
         if name in data:
             extra[name] = p.table(data, name, "")
     return Scenario(
-        tube=tube,
+        geometry=geometry,
         obstacles=obstacles,
         robots=robots,
         controller=controller,
@@ -457,6 +526,94 @@ class _Parser:
             return Trapezoid(pts["p_h0"], pts["p_h1"], pts["p_r0"], pts["p_r1"])
         except UserError as exc:
             raise self.error(sec, str(exc)) from None
+
+    def parse_route(self, t: Mapping[str, Any], data: Mapping[str, Any]) -> RouteGeometry:
+        """[route]: ``[[route.waypoints]]`` → the segments (:class:`RouteGeometry`); waypoints
+        in latitude/longitude go through the mission's geodetic anchor."""
+        self.check_keys(t, [k.name for k in SCENARIO_KEYS["route"]], "[route]")
+        wsec = "[[route.waypoints]]"
+        raw = t.get("waypoints")
+        if raw is None:
+            raise self.error("[route].waypoints", "missing required key")
+        if not isinstance(raw, list) or not all(isinstance(w, dict) for w in raw):
+            raise self.error("[route].waypoints", f"expected an array of tables "
+                                                  f"([[route.waypoints]]), got {show_value(raw)}")
+        if not 2 <= len(raw) <= MAX_WAYPOINTS:
+            raise self.error("[route].waypoints", f"a route needs 2 to {MAX_WAYPOINTS} "
+                                                  f"waypoints, got {len(raw)}")
+        frame = None
+        wps = []
+        for i, w in enumerate(raw):
+            sec = f"{wsec}[{i}]"
+            v = self.section_values(w, "route.waypoints", sec)
+            has_pos, has_geo = "position" in w, "lat_lon" in w
+            if has_pos == has_geo:
+                raise self.error(sec, "give exactly one of position = [x, y] (metres) and "
+                                      "lat_lon = [lat, lon] (degrees)")
+            if "heading_deg" in w and "bearing_deg" in w:
+                raise self.error(sec, "give heading_deg or bearing_deg, not both")
+            if has_geo or "bearing_deg" in w:
+                if frame is None:
+                    frame = self.anchor(data, self.name(sec, "lat_lon" if has_geo
+                                                        else "bearing_deg"))
+            if has_geo:
+                lat, lon = self.lat_lon(w["lat_lon"], self.name(sec, "lat_lon"))
+                x, y, _ = frame.geodetic_to_tube(lat, lon, frame.alt0_m)
+                pos = np.array([float(x), float(y)])
+            else:
+                pos = np.array(v["position"], dtype=float)
+            heading = None
+            if v["heading_deg"] is not None:
+                heading = math.radians(v["heading_deg"])
+            elif v["bearing_deg"] is not None:  # frame x is at compass heading_deg, y left
+                heading = math.radians(frame.heading_deg - v["bearing_deg"])
+            try:
+                wps.append(Waypoint(pos, v["half_width"], heading, v["overlap_m"]))
+            except UserError as exc:  # pragma: no cover - the keys' bounds come first
+                raise self.error(sec, str(exc)) from None
+        try:
+            return RouteGeometry.from_waypoints(wps)
+        except UserError as exc:
+            raise self.error("[route]", str(exc)) from None
+
+    def anchor(self, data: Mapping[str, Any], where: str) -> Any:
+        """The tube frame of the file's ``[mission]`` anchor (lat/lon waypoints need it)."""
+        from vtube_fleet.config.mission import MISSION_KEYS  # (mission imports this module)
+        from vtube_fleet.frames import TubeFrame
+
+        m = data.get("mission")
+        if not isinstance(m, dict):
+            raise self.error(where, "latitude/longitude need the geodetic anchor of a "
+                                    "[mission] table (origin_lat_deg, origin_lon_deg, "
+                                    "origin_alt_m, heading_deg): give position = [x, y] in "
+                                    "metres instead")
+        keys = {k.name: k for k in MISSION_KEYS}
+        vals = {}
+        for name in ("origin_lat_deg", "origin_lon_deg", "origin_alt_m", "heading_deg"):
+            if name not in m:
+                raise self.error(f"[mission].{name}", "missing required key (the anchor of "
+                                                      f"{where})")
+            try:
+                vals[name] = keys[name].parse(m[name])
+            except ValueError as exc:
+                raise self.error(f"[mission].{name}", str(exc)) from None
+        try:
+            return TubeFrame(vals["origin_lat_deg"], vals["origin_lon_deg"],
+                             vals["origin_alt_m"], vals["heading_deg"])
+        except UserError as exc:  # pragma: no cover - the keys' bounds come first
+            raise self.error("[mission]", str(exc)) from None
+
+    def lat_lon(self, value: Any, where: str) -> tuple[float, float]:
+        try:
+            lat, lon = _POINT.parse(value)
+        except ValueError:
+            raise self.error(where, f"expected [lat, lon] in degrees, got {show_value(value)}"
+                             ) from None
+        if not -90.0 < lat < 90.0:
+            raise self.error(where, f"latitude must be within (-90, 90), got {lat:g}")
+        if not -180.0 <= lon <= 180.0:
+            raise self.error(where, f"longitude must be within [-180, 180], got {lon:g}")
+        return lat, lon
 
     def parse_partition(self, t: Mapping[str, Any]) -> str | None:
         """[partition]: ``apex_distance = "auto" | "default"``, the apex distance of every

@@ -22,13 +22,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from vtube_fleet.core.text import compact_number, point_text
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
-__all__ = ["FENCE_MARGIN_M", "FenceGeometry", "tube_fence"]
+__all__ = ["FENCE_MARGIN_M", "FenceGeometry", "RouteFence", "route_fence", "tube_fence"]
 
 #: Default margin beyond r_s by which the legs are widened (metres).
 FENCE_MARGIN_M = 1.0
@@ -153,3 +154,52 @@ def tube_fence(tube: Trapezoid, obstacles: Sequence[Obstacle], r_s: float, *,
     for a in (poly, centers, radii):
         a.setflags(write=False)
     return FenceGeometry(poly, centers, radii, w, back_m, float(exit_m))
+
+
+@dataclass(frozen=True, eq=False)
+class RouteFence:
+    """The fence of a route: one inclusion polygon per segment (PX4 takes several inclusion
+    polygons as their union: a point is allowed if it is inside any of them) and the
+    exclusion circles of every obstacle."""
+
+    segments: tuple[FenceGeometry, ...]
+
+    @property
+    def polygons(self) -> tuple[np.ndarray, ...]:
+        return tuple(f.polygon for f in self.segments)
+
+    @property
+    def circle_centers(self) -> np.ndarray:
+        return self.segments[0].circle_centers
+
+    @property
+    def circle_radii(self) -> np.ndarray:
+        return self.segments[0].circle_radii
+
+    def contains(self, x: np.ndarray) -> np.ndarray:
+        """Points (…, 2) the fence allows: inside some polygon, outside every circle."""
+        inside = np.zeros(np.asarray(x).shape[:-1], dtype=bool)
+        for f in self.segments:
+            inside |= f.inside_polygon(x)
+        return inside & ~self.segments[0].inside_exclusion(x)
+
+
+def route_fence(corridor: Any, r_s: float, *, slots: np.ndarray | None = None,
+                margin_m: float = FENCE_MARGIN_M, exit_m: float | None = None,
+                exit_clear_m: float = 0.0) -> RouteFence:
+    """The fence of a route (:class:`~vtube_fleet.core.route.Corridor`): for each segment,
+    :func:`tube_fence` of its trapezoid — the legs widened by w = r_s + ``margin_m``, the first
+    segment's polygon reaching ``slots`` behind its start base, the last one's ``exit_m`` past
+    the route's finishing line, every other end w past the segment's base (the junctions'
+    overlap, so the union holds every vehicle body at a bend too); the obstacles' exclusion
+    circles. One segment: the same polygon as :func:`tube_fence`."""
+    segs = tuple(corridor.segments)
+    w = float(r_s) + float(margin_m)
+    out = []
+    for k, t in enumerate(segs):
+        first, last = k == 0, k == len(segs) - 1
+        f = tube_fence(t, corridor.obstacles, r_s, slots=slots if first else None,
+                       margin_m=margin_m, exit_m=exit_m if last else w,
+                       exit_clear_m=exit_clear_m if last else 0.0)
+        out.append(f)
+    return RouteFence(tuple(out))

@@ -84,9 +84,10 @@ class AdaptiveStats:
 
 @dataclass(frozen=True, eq=False)
 class MarginGuard:
-    """The barrier margins of Theorem 1 in the MAIN tube: pairs ‖p_ij‖ − 2 r_s, legs
-    d_Th − r_s and d_Tr − r_s (dtl)/(dtr), obstacle centres ‖p − p_o,k‖ − (r_o,k + r_s): each
-    distance minus its :class:`~vtube_fleet.core.metrics.SafetyLimits` limit.
+    """The barrier margins of Theorem 1 in the MAIN tube (or, :meth:`with_legs`, in each
+    robot's own segment of a route): pairs ‖p_ij‖ − 2 r_s, legs d_Th − r_s and d_Tr − r_s
+    (dtl)/(dtr), obstacle centres ‖p − p_o,k‖ − (r_o,k + r_s): each distance minus its
+    :class:`~vtube_fleet.core.metrics.SafetyLimits` limit.
 
     ``frac``: the largest fraction of a positive margin one (sub-)step may consume (the
     integrator's own step-size rule, not a safety limit).
@@ -113,6 +114,20 @@ class MarginGuard:
             "pair": lim.pair_m,
         })
 
+    def with_legs(self, n_h: np.ndarray, c_h: np.ndarray, n_r: np.ndarray,
+                  c_r: np.ndarray) -> MarginGuard:
+        """The guard with each point's own legs (a route: the legs of the segment each robot
+        flies): n_h, n_r (M, 2) inward unit normals, c_h = n_hᵀp_h1, c_r = n_rᵀp_r1 (M,); the
+        points given to :meth:`single_margin` and :meth:`accepts` are then these M robots."""
+        out = MarginGuard(self.tube, self.obstacles, self.limits, self.frac)
+        n_h, n_r = np.asarray(n_h, float), np.asarray(n_r, float)
+        lim = self.limits
+        out._g.update({
+            "nh": n_h[:, 0] - 1j * n_h[:, 1], "bh": np.asarray(c_h, float) + lim.leg_m,
+            "nr": n_r[:, 0] - 1j * n_r[:, 1], "br": np.asarray(c_r, float) + lim.leg_m,
+            "per_robot": True})
+        return out
+
     # ----- cheap bounds: is a guarded step needed at all? ------------------------------------
     def single_margin(self, z: np.ndarray) -> float:
         """Smallest leg or obstacle-centre margin of the points ``z`` (M,) complex (inf if
@@ -120,8 +135,12 @@ class MarginGuard:
         if z.shape[0] == 0:
             return math.inf
         g = self._g
-        m = min(float((z * g["nh"]).real.min()) - g["bh"],
-                float((z * g["nr"]).real.min()) - g["br"])
+        if g.get("per_robot"):
+            m = min(float(((z * g["nh"]).real - g["bh"]).min()),
+                    float(((z * g["nr"]).real - g["br"]).min()))
+        else:
+            m = min(float((z * g["nh"]).real.min()) - g["bh"],
+                    float((z * g["nr"]).real.min()) - g["br"])
         if g["oc"].shape[1]:
             m = min(m, float((np.abs(z[:, None] - g["oc"]) - g["orad"]).min()))
         return m

@@ -7,7 +7,8 @@ Per time step, from robot positions p (M, 2) and velocities (M, 2):
   (S_i ∩ O_k = ∅; paper note 7: the triangle sides of the partition are virtual walls,
   this is the figure that matters);
 * the minimum distance to the MAIN tube's left and right legs, d_Th (dtl) and d_Tr (dtr),
-  safe iff > r_s (S_i ∩ ∂T = ∅);
+  safe iff > r_s (S_i ∩ ∂T = ∅); on a route, to the legs of the segment each robot flies
+  (``segment=`` of :meth:`SafetyMonitor.evaluate`; docs/route.md);
 * the minimum and maximum speed, safe iff within [v_min, v_max] (vminvmax), with a 1e-9 m/s
   tolerance for rounding.
 
@@ -175,7 +176,8 @@ class SafetyLimits:
 
 @dataclass(frozen=True, eq=False)
 class SafetyMonitor:
-    """The fixed data the metrics need: the MAIN tube, the obstacles and the limits.
+    """The fixed data the metrics need: the MAIN tube (a route: every segment, ``segments``),
+    the obstacles and the limits.
 
     ``pair_radius`` is the neighbour search radius used when no candidate pairs are given
     (``from_params`` uses r_s + r_a, the controller's own neighbourhood, which is larger than
@@ -190,6 +192,9 @@ class SafetyMonitor:
     v_max: float
     pair_radius: float
     speed_tol: float = 1e-9
+    #: a route's segments (empty: one tube): the leg distances are then to the segment each
+    #: robot flies (``segment=`` of :meth:`evaluate` and :meth:`explain`)
+    segments: tuple[Trapezoid, ...] = ()
     _geom: dict[str, Any] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -208,7 +213,23 @@ class SafetyMonitor:
             "off_r": float(t.n_r @ t.p_r1),
             "oc": (c[:, 0] + 1j * c[:, 1])[:, None],  # (P, 1)
         }
+        if self.segments:  # per segment: conj(n), nᵀp_1 of both legs, (S,)
+            segs = tuple(self.segments)
+            object.__setattr__(self, "segments", segs)
+            geom["seg"] = tuple(np.array(v) for v in (
+                [complex(t.n_h[0], -t.n_h[1]) for t in segs], [float(t.n_h @ t.p_h1)
+                                                                for t in segs],
+                [complex(t.n_r[0], -t.n_r[1]) for t in segs], [float(t.n_r @ t.p_r1)
+                                                                for t in segs]))
         object.__setattr__(self, "_geom", geom)
+
+    def _legs(self, segment: np.ndarray | None) -> tuple | None:
+        """(conj n_h, n_hᵀp_h1, conj n_r, n_rᵀp_r1) of each robot's segment (shaped like
+        ``segment``), or None: the one tube's."""
+        if segment is None or len(self.segments) <= 1:
+            return None
+        s = np.asarray(segment, dtype=np.intp)
+        return tuple(a.take(s) for a in self._geom["seg"])
 
     @property
     def limits(self) -> SafetyLimits:
@@ -231,6 +252,16 @@ class SafetyMonitor:
         )
 
     @classmethod
+    def for_corridor(cls, corridor: Any, params: Any, flown: Any = None) -> SafetyMonitor:
+        """The monitor of a route (:class:`~vtube_fleet.core.route.Corridor`): its obstacles,
+        the leg distances to each robot's own segment; one segment: :meth:`for_run` of its
+        tube."""
+        mon = cls.for_run(corridor.segments[0], corridor.obstacles, params, flown)
+        if corridor.S == 1:
+            return mon
+        return dataclasses.replace(mon, segments=tuple(corridor.segments))
+
+    @classmethod
     def for_run(cls, tube: Trapezoid, obstacles: Iterable[Obstacle], params: Any,
                 flown: Any = None) -> SafetyMonitor:
         """The monitor of a run that flies inflated radii ``flown`` (r_s', r_a'): the limits
@@ -251,8 +282,12 @@ class SafetyMonitor:
         pairs: tuple[np.ndarray, np.ndarray] | None = None,
         all_present: bool = False,
         min_pair: np.ndarray | None = None,
+        segment: np.ndarray | None = None,
     ) -> StepMetrics:
         """Metrics of one step (``pos`` (M, 2)) or of K steps (``pos`` (K, M, 2)).
+
+        ``segment`` (a route's monitor): each robot's segment, (M,) for every step or (K, M)
+        step by step; the leg distances are to that segment's legs.
 
         NaN rows in ``pos`` are absent robots. ``pairs`` = (I, J) candidate pairs valid for all
         K steps (e.g. a Verlet list); without it, pairs within :attr:`pair_radius` are searched
@@ -286,17 +321,27 @@ class SafetyMonitor:
             min_pair = np.array(min_pair, dtype=float).reshape(-1)  # (a copy: kept)
             if min_pair.shape != (k,):
                 raise ValueError(f"min_pair must have shape ({k},), got {min_pair.shape}")
-        if all_present and m and (pairs is not None or min_pair is not None):
+        legs = self._legs(segment)
+        if legs is not None and legs[0].ndim == 2 and legs[0].shape != (k, m):
+            raise ValueError(f"segment must have shape ({m},) or ({k}, {m})")
+        if all_present and m and (pairs is not None or min_pair is not None) and (
+                legs is None or legs[0].ndim == 1):
             return self._evaluate_pruned(z, None if vel is None else np.asarray(vel, float),
-                                         pairs, min_pair)
+                                         pairs, min_pair, legs)
         present = ~np.isnan(z.real)
         robots = present.sum(axis=1)
         g = self._geom
         fmin = np.fmin.reduce
 
-        # legs of the MAIN tube, (dtl)/(dtr): d = Re(z conj(n)) − nᵀp_1
-        left = fmin((z * g["nh"]).real, axis=1, initial=np.inf) - g["off_h"]
-        right = fmin((z * g["nr"]).real, axis=1, initial=np.inf) - g["off_r"]
+        # legs of the MAIN tube, (dtl)/(dtr): d = Re(z conj(n)) − nᵀp_1 (a route: each
+        # robot's segment)
+        if legs is None:
+            left = fmin((z * g["nh"]).real, axis=1, initial=np.inf) - g["off_h"]
+            right = fmin((z * g["nr"]).real, axis=1, initial=np.inf) - g["off_r"]
+        else:
+            nh, oh, nr, orr = legs
+            left = fmin((z * nh).real - oh, axis=1, initial=np.inf)
+            right = fmin((z * nr).real - orr, axis=1, initial=np.inf)
 
         # obstacle centres: (K, P, M)
         if self.obstacle_radii.size and m:
@@ -340,7 +385,7 @@ class SafetyMonitor:
 
     def _evaluate_pruned(
         self, z: np.ndarray, vel: np.ndarray | None, pairs: tuple[np.ndarray, np.ndarray] | None,
-        min_pair: np.ndarray | None = None,
+        min_pair: np.ndarray | None = None, legs: tuple | None = None,
     ) -> StepMetrics:
         """:meth:`evaluate` for NaN-free chunks, evaluating only candidates (see there).
 
@@ -370,8 +415,18 @@ class SafetyMonitor:
             cand = np.flatnonzero(d0 - disp <= (d0 + disp).min())
             return minimum((rows(cand) * n).real, axis=0) - off
 
-        left = leg(g["nh"], g["off_h"])
-        right = leg(g["nr"], g["off_r"])
+        def legs_of(n: np.ndarray, off: np.ndarray) -> np.ndarray:  # each robot its own leg
+            d0 = (z0 * n).real - off
+            cand = np.flatnonzero(d0 - disp <= (d0 + disp).min())
+            return minimum((rows(cand) * n.take(cand)[:, None]).real
+                           - off.take(cand)[:, None], axis=0)
+
+        if legs is None:
+            left = leg(g["nh"], g["off_h"])
+            right = leg(g["nr"], g["off_r"])
+        else:
+            left = legs_of(legs[0], legs[1])
+            right = legs_of(legs[2], legs[3])
 
         radii = self.obstacle_radii
         if radii.size:
@@ -414,10 +469,12 @@ class SafetyMonitor:
         return self._result(min_pair, min_center, min_clear, left, right, vmin, vmax,
                             np.full(k, m, dtype=np.int64), speed_bad)
 
-    def explain(self, pos: np.ndarray, vel: np.ndarray | None = None) -> list[dict[str, Any]]:
+    def explain(self, pos: np.ndarray, vel: np.ndarray | None = None,
+                segment: np.ndarray | None = None) -> list[dict[str, Any]]:
         """What breaks the limits in ONE step (``pos`` (M, 2), NaN rows absent): one entry per
         broken condition, the worst offender: ``condition``, ``value`` (m or m/s), ``limit``
-        and ``robots`` (indices into ``pos``). For reports; O(M²) in the pairs."""
+        and ``robots`` (indices into ``pos``). ``segment`` (M,): each robot's segment (a
+        route). For reports; O(M²) in the pairs."""
         p = np.asarray(pos, dtype=float).reshape(-1, 2)
         ok = np.flatnonzero(np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]))
         lim = self.limits
@@ -433,7 +490,13 @@ class SafetyMonitor:
         if ok.size:
             q = p[ok]
             t = self.tube
-            for cond, dist in (("left_leg", t.d_Th(q)), ("right_leg", t.d_Tr(q))):
+            legs = self._legs(None if segment is None else np.asarray(segment).reshape(-1)[ok])
+            if legs is None:
+                dists = (t.d_Th(q), t.d_Tr(q))
+            else:
+                zq = q[:, 0] + 1j * q[:, 1]
+                dists = ((zq * legs[0]).real - legs[1], (zq * legs[2]).real - legs[3])
+            for cond, dist in zip(("left_leg", "right_leg"), dists, strict=True):
                 k = int(np.argmin(dist))
                 if dist[k] <= lim.leg_m:
                     out.append({"condition": cond, "value": float(dist[k]), "limit": lim.leg_m,
@@ -684,10 +747,11 @@ class ViolationLog:
         self._seen: set[str] = set()
 
     def note(self, t_s: float, suffix: str, metrics: StepMetrics, pos: np.ndarray,
-             vel: np.ndarray | None, ids: Sequence[int]) -> dict[str, Any] | None:
+             vel: np.ndarray | None, ids: Sequence[int],
+             segment: np.ndarray | None = None) -> dict[str, Any] | None:
         if suffix in self._seen or not bool(np.asarray(metrics.violation).any()):
             return None
-        what = self.monitor.explain(pos, vel)
+        what = self.monitor.explain(pos, vel, segment)
         if not what:
             return None
         self._seen.add(suffix)

@@ -26,6 +26,7 @@ __all__ = ["APEX_AUTO", "GeometryError", "Obstacle", "Trapezoid", "perp"]
 APEX_AUTO = "auto"
 
 _EPS = 1e-12
+_PARALLEL = 1e-12  # |n_cᵀn| below this: a leg parallel to n_c (no L/R area)
 
 
 class GeometryError(UserError):
@@ -124,13 +125,15 @@ class Trapezoid:
 
     @property
     def has_L(self) -> bool:
-        """The left area L_T exists iff n_cᵀn_h < 0 (the left leg narrows the tube)."""
-        return bool(self.n_c @ self.n_h < 0)
+        """The left area L_T exists iff n_cᵀn_h < 0 (the left leg narrows the tube); a leg
+        parallel to n_c up to rounding (|n_cᵀn_h| ≤ 1e-12, e.g. in a rotated segment of a
+        route) does not narrow it."""
+        return bool(self.n_c @ self.n_h < -_PARALLEL)
 
     @property
     def has_R(self) -> bool:
-        """The right area R_T exists iff n_cᵀn_r < 0."""
-        return bool(self.n_c @ self.n_r < 0)
+        """The right area R_T exists iff n_cᵀn_r < 0 (up to rounding, as :attr:`has_L`)."""
+        return bool(self.n_c @ self.n_r < -_PARALLEL)
 
     # ----- coordinates ------------------------------------------------------------------
     @cached_property

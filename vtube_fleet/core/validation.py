@@ -46,6 +46,17 @@ from vtube_fleet.core.partition import (
     partition,
 )
 from vtube_fleet.core.plan import plan_apex
+from vtube_fleet.core.route import (
+    Corridor,
+    JunctionCheck,
+    Route,
+    handover_line,
+    junction_checks,
+    obstacle_ownership,
+    renumber_obstacles,
+    segment_error,
+    segment_keep_out,
+)
 from vtube_fleet.core.text import compact_number as _num
 from vtube_fleet.core.text import obstacle_label
 from vtube_fleet.core.text import point_text as _pt
@@ -59,6 +70,7 @@ __all__ = [
     "FIX_ITERATIONS",
     "MAX_LISTED",
     "Fix",
+    "RouteValidation",
     "ScenarioError",
     "Violation",
     "binding_constraints",
@@ -66,6 +78,8 @@ __all__ = [
     "flown_symbols",
     "further_failures",
     "nearest_fixes",
+    "route_fixes",
+    "validate_route",
     "validate_scenario",
 ]
 
@@ -156,12 +170,15 @@ def _capped(n: int, describe: Callable[[int], str], more: str) -> list[Violation
 
 
 def _check_assumption1(
-    tube: Trapezoid,
+    tube: Trapezoid | None,
     obstacles: Sequence[Obstacle],
     params: ControllerParams,
     p: np.ndarray,
-    part: Partition | None,
+    part: Partition | Route | None,
+    route: Route | None = None,
 ) -> list[Violation]:
+    """Assumption 1 of the start positions ``p`` in ``tube`` (one tube) or, with ``route``,
+    each in the segment it starts in (:meth:`Route.start_segments`)."""
     lim = SafetyLimits.from_params(params)
     r_s = lim.leg_m
     out: list[Violation] = []
@@ -172,9 +189,18 @@ def _check_assumption1(
     idx = np.flatnonzero(finite)
     q = p[idx]
 
-    # S_i ⊂ T: d_Th ≥ r_s, d_Tr ≥ r_s and the centre between the bases.
-    d_h, d_r, xi = tube.d_Th(q), tube.d_Tr(q), tube.xi(q)
-    L = tube.length
+    # S_i ⊂ T: d_Th ≥ r_s, d_Tr ≥ r_s and the centre between the bases (of its segment).
+    if route is None:
+        assert tube is not None
+        d_h, d_r, xi = tube.d_Th(q), tube.d_Tr(q), tube.xi(q)
+        L = np.full(q.shape[0], tube.length)
+        where = np.full(q.shape[0], "T")
+    else:
+        seg = route.start_segments(q)
+        d_h, d_r = route.leg_distances(q, seg)
+        xi = route.xi(q, seg)
+        L = np.array([route.segments[int(s)].tube.length for s in seg])
+        where = np.array([f"its segment S{int(s) + 1}" for s in seg])
     outside = np.flatnonzero((d_h < r_s) | (d_r < r_s) | (xi < 0) | (xi > L))
 
     def not_in_T(n: int) -> str:
@@ -188,10 +214,11 @@ def _check_assumption1(
                        f"{_num(r_s)} m")
         if xi[k] < 0:
             why.append(f"ξ = {_num(float(xi[k]), 2)} m is before the start base")
-        if xi[k] > L:
+        if xi[k] > L[k]:
             why.append(f"ξ = {_num(float(xi[k]), 2)} m is beyond the finishing line "
-                       f"(L = {_num(L, 2)} m)")
-        return f"robot {idx[k]} at {_pt(q[k])} is not inside T (S_i ⊄ T): " + "; ".join(why)
+                       f"(L = {_num(float(L[k]), 2)} m)")
+        return (f"robot {idx[k]} at {_pt(q[k])} is not inside {where[k]} (S_i ⊄ T): "
+                + "; ".join(why))
 
     out += _capped(len(outside), not_in_T, "robots not inside T")
 
@@ -230,7 +257,7 @@ def _check_assumption1(
     # Not inside a circumscribed triangle (such a robot belongs to no sub-tube).
     if part is not None:
         in_tri = []  # (robot row in q, triangle)
-        for tri in part.triangles:
+        for tri in (route if route is not None else part).triangles:
             inside = tri.contains(q, tol=-1e-9) & (np.hypot(*(q - tri.center).T) > tri.radius_ext)
             in_tri += [(k, tri) for k in np.flatnonzero(inside)]
 
@@ -550,3 +577,263 @@ def _previous_obstacle(tube: Trapezoid, obstacles: Sequence[Obstacle], j: int) -
         if i != j and bx < x <= xj:
             best, bx = i, x
     return best
+
+
+# ----------------------------------------------------------------------------------------------
+# Routes: the paper's conditions per segment, the junction conditions (docs/route.md)
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class RouteValidation:
+    """What :func:`validate_route` found: the planned ``route`` (None when a segment could not
+    be partitioned or the parameters are unusable), every violation, and the junction
+    conditions with their margins (one :class:`~vtube_fleet.core.route.JunctionCheck` per
+    junction, empty when the route could not be planned)."""
+
+    route: Route | None
+    violations: tuple[Violation, ...]
+    junctions: tuple[JunctionCheck, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.violations
+
+
+def validate_route(corridor: Corridor, params: ControllerParams,
+                   positions: np.ndarray | None = None, keep_out: np.ndarray | None = None,
+                   *, lookahead: bool = False) -> RouteValidation:
+    """Check a route: for one segment exactly :func:`validate_scenario`; for several, the
+    paper's conditions per segment (Constraint2, Assumption3, its partition with Remark 6's
+    planner, Assumption3'/Constraint3 of its sub-tubes; messages name the segment and the
+    obstacles by their route numbers), (pothk), Constraint1, the junction conditions
+    Junction1–5 and Assumption 1 of ``positions`` each in the segment it starts in.
+    ``lookahead``: the route is flown with the apex look-ahead (Junction2 keeps its zones
+    clear of the hand-over too)."""
+    keep = positions if keep_out is None else keep_out
+    if corridor.is_single:
+        part, violations = validate_scenario(corridor.tube, corridor.obstacles, params,
+                                             positions, keep_out)
+        route = None if part is None else Route.from_partitions(corridor, params, [part],
+                                                                lookahead=lookahead)
+        return RouteValidation(route, tuple(violations))
+    violations = _check_parameters(params)
+    sane = not violations
+    if all(math.isfinite(float(x)) for x in (params.v, params.v_max_prime, params.v_min,
+                                            params.v_max)):
+        violations += _check_constraint1(params)
+    route: Route | None = None
+    checks: list[JunctionCheck] = []
+    if sane:
+        parts = []
+        for s, tube in enumerate(corridor.segments):
+            label = f"segment S{s + 1}"
+            violations += check_constraint2(tube, params, "Constraint2", label)
+            violations += check_assumption3(tube, params, "Assumption3", label)
+            ids, obs = corridor.segment_obstacles(s)
+            try:
+                part = partition(tube, obs, params, strict=False,
+                                 keep_out=segment_keep_out(corridor, s, params, keep))
+            except PartitionError as e:
+                violations.append(Violation("Partition", (
+                    f"Partition failed: {segment_error(s, ids, e, True)}")))
+                parts.append(None)
+            else:
+                violations += [dataclasses.replace(w, message=f"{label}: "
+                                                   + renumber_obstacles(w.message, ids))
+                               for w in part.warnings]
+                parts.append(part)
+        violations += _check_pothk(corridor.obstacles, params)
+        violations += obstacle_ownership(corridor, float(params.r_s))
+        if all(p is not None for p in parts):
+            route = Route.from_partitions(corridor, params, parts, lookahead=lookahead)
+            checks = junction_checks(route)
+            for c in checks:
+                violations += list(c.violations)
+    if positions is not None:
+        p = np.asarray(positions, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 2:
+            raise ValueError(f"positions must have shape (M, 2), got {p.shape}")
+        if float(params.r_s) > 0 and route is not None:
+            violations += _check_assumption1(None, route.obstacles, params, p, route, route)
+        elif float(params.r_s) > 0:  # no route: each robot in the segment that contains it
+            seg = corridor.start_segment_of(p)
+            for s, tube in enumerate(corridor.segments):
+                rows = np.flatnonzero(seg == s)
+                if rows.size:
+                    vs = _check_assumption1(tube, corridor.obstacles, params, p[rows], None)
+                    violations += [dataclasses.replace(v, message=_renumber_robots(
+                        v.message, rows)) for v in vs]
+    return RouteValidation(route, tuple(violations), tuple(checks))
+
+
+def _renumber_robots(text: str, rows: np.ndarray) -> str:
+    return re.sub(r"\brobots? (\d+)( and (\d+))?", lambda m: (
+        f"robot {rows[int(m.group(1))]}" if m.group(2) is None else
+        f"robots {rows[int(m.group(1))]} and {rows[int(m.group(3))]}"), text)
+
+
+def _smallest(works: Callable[[float], bool], lo: float, hi: float,
+              iterations: int = FIX_ITERATIONS) -> float | None:
+    """The smallest x in (lo, hi] for which ``works`` holds, found as :func:`nearest_fixes`
+    finds its values: a scan from lo with doubling steps to the first working value, then
+    bisection back towards the last failing one (None: nothing in the range works)."""
+    bad, step = lo, (hi - lo) / 256.0
+    good = None
+    while True:
+        x = bad + step if bad + step < hi else hi
+        if works(x):
+            good = x
+            break
+        if x >= hi:
+            return None
+        bad, step = x, 2.0 * step
+    for _ in range(iterations):
+        mid = 0.5 * (good + bad)
+        if works(mid):
+            good = mid
+        else:
+            bad = mid
+    return good
+
+
+def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndarray | None,
+                violations: Sequence[Violation], *, r_offset_m: float = 0.0,
+                lookahead: bool = False) -> list[Fix]:
+    """The nearest single changes that fix a route, each computed and checked on its one
+    parameter: for a segment whose partition fails, :func:`nearest_fixes` of that segment
+    (with the robots that start in it); for a failed junction condition, the overlap at its
+    waypoint (Junction1, Junction4), the binding obstacle moved away from the junction
+    (Junction2, Junction5), v'_max (Junction3), or splitting a bend sharper than 90°
+    (Junction4)."""
+    out: list[Fix] = []
+    if corridor.is_single:
+        return nearest_fixes(corridor.tube, corridor.obstacles, params, positions,
+                             r_offset_m=r_offset_m)
+    pos = None if positions is None else np.asarray(positions, dtype=float)
+    bad_segments = sorted({int(m.group(1)) - 1 for v in violations
+                           if v.condition in _FIXABLE
+                           for m in [re.search(r"segment S(\d+)", v.message)] if m})
+    seg_of = None if pos is None else corridor.start_segment_of(pos)
+    for s in bad_segments:
+        ids, obs = corridor.segment_obstacles(s)
+        mine = None if pos is None else pos[seg_of == s]
+        for f in nearest_fixes(corridor.segments[s], obs, params, mine, r_offset_m=r_offset_m):
+            out.append(Fix(f"S{s + 1} " + renumber_obstacles(f.parameter, ids), f.value,
+                           f"segment S{s + 1}: " + renumber_obstacles(f.text, ids)))
+    conds = {v.condition for v in violations}
+    geo = corridor.geometry
+    wps = geo.waypoints
+    r = float(params.r_s)
+
+    def rebuilt(j_wp: int, **change: float) -> Corridor | None:
+        from vtube_fleet.core.route import RouteError, RouteGeometry
+
+        new = list(wps)
+        new[j_wp] = dataclasses.replace(new[j_wp], **change)
+        try:
+            return Corridor(RouteGeometry.from_waypoints(new), corridor.obstacles)
+        except RouteError:
+            return None
+
+    for jn in geo.junctions:
+        j, wp = jn.index, jn.waypoint
+        msgs = [v for v in violations if v.condition.startswith("Junction")
+                and f"waypoint {wp + 1} " in v.message]
+        names = {v.condition for v in msgs}
+        if "Junction1" in names and wps:
+            w = wps[wp].half_width
+
+            def j1(e: float, wp: int = wp, j: int = j) -> bool:
+                c = rebuilt(wp, overlap_m=e)
+                if c is None:
+                    return False
+                s_, mu, _ = handover_line(c.segments[j], c.segments[j + 1], r)
+                return s_ is not None and mu >= -1e-9
+            e = _smallest(j1, min(jn.prolong_m), max(jn.prolong_m) + 4.0 * w)
+            if e is not None:
+                e = _round_up(e, j1)
+                out.append(Fix(f"waypoint {wp + 1} overlap_m", e,
+                               f"overlap_m ≥ {_num(e, 2)} m at waypoint {wp + 1} (now "
+                               f"{_num(jn.overlap_m, 2)} m)"))
+        if "Junction3" in names:
+            # v cos β − v'_max > 0: v'_max below v cos β (Constraint1 keeps holding)
+            vp = math.floor((params.v_max_prime + _progress_of(corridor, j, params)) * 100.0
+                            - 1e-6) / 100.0
+            if vp > 0:
+                out.append(Fix("v_max_prime", vp, f"v'_max ≤ {_num(vp, 2)} (now "
+                               f"{_num(params.v_max_prime, 2)})"))
+        if "Junction4" in names:
+            if abs(jn.theta_deg) > 90.0:
+                out.append(Fix(f"waypoint {wp + 1} bend", abs(jn.theta_deg), (
+                    f"split the {_num(abs(jn.theta_deg), 1)}° bend at waypoint {wp + 1} into "
+                    f"two of at most 90° (a waypoint before it, turning half-way)")))
+            elif wps and wps[wp].overlap_m is not None:
+                mitre = rebuilt(wp, overlap_m=None)
+                e = 0.0 if mitre is None else min(mitre.junctions[j].prolong_m)
+                out.append(Fix(f"waypoint {wp + 1} overlap_m", e, (
+                    f"leave overlap_m out at waypoint {wp + 1} (the mitre, "
+                    f"{mitre.junctions[j].overlap_text() if mitre else '?'}; now "
+                    f"{_num(jn.overlap_m, 2)} m)")))
+        for v in msgs:
+            if v.condition not in ("Junction2",):
+                continue
+            m = re.search(r"obstacle #(\d+)", v.message)
+            if m:
+                out += _move_obstacle_fix(corridor, params, int(m.group(1)) - 1, jn, pos,
+                                          lookahead, "Junction2")
+    if "Junction5" in conds:
+        done = set()
+        for v in violations:
+            if v.condition != "Junction5":
+                continue
+            m = re.search(r"obstacle #(\d+)", v.message)
+            if m and int(m.group(1)) not in done:
+                done.add(int(m.group(1)))
+                i = int(m.group(1)) - 1
+                own = corridor.owner[i]
+                jn = min(geo.junctions, key=lambda q: float(np.hypot(
+                    *(q.center - corridor.obstacles[i].center))))
+                out += _move_obstacle_fix(corridor, params, i, jn, pos, lookahead,
+                                          "Junction5", own)
+    return out
+
+
+def _progress_of(corridor: Corridor, j: int, params: ControllerParams) -> float:
+    from vtube_fleet.core.route import progress_speed
+
+    return progress_speed(corridor.segments[j + 1], params)
+
+
+def _move_obstacle_fix(corridor: Corridor, params: ControllerParams, i: int, jn: Any,
+                       pos: np.ndarray | None, lookahead: bool, cond: str,
+                       own: int | None = None) -> list[Fix]:
+    """Obstacle ``i`` moved along its segment's n_c away from junction ``jn`` (downstream if
+    it is in the segment after it, upstream otherwise) by the least distance that clears
+    ``cond`` at that junction and keeps every segment partitioned."""
+    own = corridor.owner[i] if own is None else own
+    tube = corridor.segments[own]
+    ob = corridor.obstacles[i]
+    sign = 1.0 if own > jn.index else -1.0
+    xi = float(tube.xi(ob.center))
+    room = (tube.length - xi) if sign > 0 else xi
+    if room <= 1e-6:
+        return []
+
+    def works(d: float) -> bool:
+        obs = tuple(dataclasses.replace(o, center=o.center + tube.n_c * (sign * d))
+                    if k == i else o for k, o in enumerate(corridor.obstacles))
+        c = corridor.with_obstacles(obs)
+        try:
+            res = validate_route(c, params, None, pos, lookahead=lookahead)
+        except UserError:
+            return False
+        return not any(v.condition == cond or v.condition == "Partition"
+                       for v in res.violations)
+
+    d = _smallest(works, 0.0, room)
+    if d is None:
+        return []
+    d = _round_up(d, works)
+    word = "downstream" if sign > 0 else "upstream"
+    return [Fix(f"obstacle #{i + 1} along n_c", sign * d,
+                f"move obstacle #{i + 1} {_num(d, 2)} m {word} (out of the junction at "
+                f"waypoint {jn.waypoint + 1})")]

@@ -7,7 +7,7 @@ stays valid while
 
 * the inflated scenario validates on the slots: :func:`slot_violations`, the one check that
   ``check``'s verdict is, the same conditions as the supervisor's preflight
-  (``validate_scenario`` with the slots as the planner's keep-out points, the apex
+  (``validate_route`` with the slots as the planner's keep-out points, the apex
   look-ahead) and the budget's own refusals (L + ``latency_headroom_s`` > ``max_latency_s``,
   σ > ``max_position_accuracy_m``);
 * that is, while δ ≤ δ_max, found by bisection over δ (the geometry alone) and checked on a
@@ -36,8 +36,9 @@ import numpy as np
 
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.params import ControllerParams
-from vtube_fleet.core.partition import Partition, Violation
-from vtube_fleet.core.validation import flown_symbols, validate_scenario
+from vtube_fleet.core.partition import Violation
+from vtube_fleet.core.route import Route
+from vtube_fleet.core.validation import RouteValidation, flown_symbols, validate_route
 from vtube_fleet.fleet.budget import (
     PX4_SITL_ACCURACY_M,
     PX4_SITL_LATENCY_S,
@@ -79,39 +80,46 @@ def assumed_measurement(latency_s: float | None = None, accuracy_m: float | None
         accuracy_m=PX4_SITL_ACCURACY_M if accuracy_m is None else float(accuracy_m))
 
 
-def _lookahead_violations(mission: Mission, flown: ControllerParams, part: Partition
-                          ) -> list[Violation]:
-    from vtube_fleet.fleet.flight_plan import FlightPlan
-
-    sc, slots = mission.scenario, mission.slots
-    plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
+def lookahead_violations(route: Route, positions: np.ndarray) -> list[Violation]:
+    """Slots that the apex look-ahead (a mission flies it) puts into a side tube at most r_s'
+    from its legs: they would start inside the barrier (the fleet's preflight refuses them)."""
+    if not len(positions):
+        return []
+    flat = dataclasses.replace(route, lookahead=False)
+    seg0, k0 = flat.locate(positions)
+    _, k1 = route.locate(positions, seg0)
     out = []
-    for i, k, d in plan.lookahead_conflicts(slots):
-        out.append(Violation("Assumption1", (
-            f"Assumption1 violated: slot {i} at ({slots[i, 0]:.3f}, {slots[i, 1]:.3f}) is in "
-            f"the look-ahead zone of an apex: it would fly {part.sub_tubes[k].name} with "
-            f"{d:.2f} m to its legs ≤ r_s' = {flown.r_s:.2f} m (move the slot upstream or the "
-            f"obstacle downstream)")))
+    for i in np.flatnonzero(k0 != k1):
+        t = route.sub_tubes[int(k1[i])]
+        d = min(float(t.d_Th(positions[i])), float(t.d_Tr(positions[i])))
+        if d <= route.params.r_s:
+            out.append(Violation("Assumption1", (
+                f"Assumption1 violated: slot {i} at ({positions[i, 0]:.3f}, "
+                f"{positions[i, 1]:.3f}) is in the look-ahead zone of an apex: it would fly "
+                f"{t.name} with {d:.2f} m to its legs ≤ r_s' = {route.params.r_s:.2f} m (move "
+                f"the slot upstream or the obstacle downstream)")))
     return out
 
 
 def _geometry(mission: Mission, budget: SafetyBudget
-              ) -> tuple[ControllerParams, Partition | None, list[Violation]]:
+              ) -> tuple[ControllerParams, RouteValidation, list[Violation]]:
     sc = mission.scenario
     flown = budget.inflate(sc.controller)
-    part, found = validate_scenario(sc.tube, sc.obstacles, flown, mission.slots,
-                                    keep_out=mission.slots)
-    violations = [dataclasses.replace(v, message=flown_symbols(v.message)) for v in found]
-    if part is not None:
-        violations += _lookahead_violations(mission, flown, part)
-    return flown, part, violations
+    res = validate_route(sc.corridor, flown, mission.slots, keep_out=mission.slots,
+                         lookahead=True)
+    violations = [dataclasses.replace(v, message=flown_symbols(v.message))
+                  for v in res.violations]
+    if res.route is not None:
+        violations += lookahead_violations(res.route, mission.slots)
+    return flown, res, violations
 
 
 def slot_violations(mission: Mission, measured: LinkMeasurement
-                    ) -> tuple[SafetyBudget, ControllerParams, Partition | None, list[Violation]]:
-    """(budget, flown parameters, partition or None, violations) of ``mission`` on its start
-    slots with the links ``measured`` (module docstring): what ``check``'s verdict and the
-    margin judge. Violations of the budget itself come first (condition ``Budget``)."""
+                    ) -> tuple[SafetyBudget, ControllerParams, RouteValidation, list[Violation]]:
+    """(budget, flown parameters, the route's validation (its planned route, junction checks),
+    violations) of ``mission`` on its start slots with the links ``measured`` (module
+    docstring): what ``check``'s verdict and the margin judge. Violations of the budget itself
+    come first (condition ``Budget``)."""
     cfg = mission.config
     budget = mission_budget(mission, measured)
     extra = [Violation("Budget", f"Budget refused: {p}")
@@ -123,8 +131,8 @@ def slot_violations(mission: Mission, measured: LinkMeasurement
             f"Budget refused: σ = {sigma:g} m > max_position_accuracy_m = "
             f"{cfg.max_position_accuracy_m:g} m: the vehicles would wait for a better fix "
             f"until ready_timeout_s = {cfg.ready_timeout_s:g} s and be refused")))
-    flown, part, violations = _geometry(mission, budget)
-    return budget, flown, part, extra + violations
+    flown, res, violations = _geometry(mission, budget)
+    return budget, flown, res, extra + violations
 
 
 def _largest(valid: Callable[[float], bool], lo: float, hi: float) -> float:

@@ -25,6 +25,7 @@ __all__ = [
     "E_STATUS",
     "E_SUB_TUBES",
     "E_SUMMARY",
+    "E_JUNCTIONS",
     "E_TRIANGLES",
     "E_TUBE",
     "E_VEHICLES",
@@ -113,7 +114,13 @@ E_AXES = "world/axes"
 E_LEGEND = "world/legend"
 
 
+#: The corridor: one outline per segment of the route (one ``tube T`` for a single tube).
 E_TUBE = "world/tube"
+
+
+#: A route's junctions: each bend's mitre line (the corridor's inner to outer corner) and its
+#: waypoint, labelled with the bend angle.
+E_JUNCTIONS = "world/junctions"
 
 
 E_OBSTACLES = "world/obstacles"

@@ -6,6 +6,7 @@ Uses ``rerun.chunk.RrdReader``.
 from __future__ import annotations
 
 import json
+import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -35,6 +36,7 @@ from vtube_fleet.recording.layout import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.core.route import Corridor
     from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 __all__ = [
@@ -127,6 +129,24 @@ class RecordingData:
         t = self.meta["tube"]
         return Trapezoid(np.array(t["p_h0"]), np.array(t["p_h1"]), np.array(t["p_r0"]),
                          np.array(t["p_r1"]))
+
+    def corridor(self) -> Corridor:
+        """The recorded route (``meta["route"]``: every segment and junction) with its
+        obstacles; a single tube's recording gives a one-segment corridor."""
+        from vtube_fleet.core.route import Corridor, Junction, RouteGeometry
+        from vtube_fleet.core.tube import Trapezoid
+
+        route = self.meta.get("route")
+        if not route:
+            return Corridor.single(self.tube(), self.obstacles())
+        segs = tuple(Trapezoid(np.array(t["p_h0"]), np.array(t["p_h1"]), np.array(t["p_r0"]),
+                               np.array(t["p_r1"]), name=f"S{i + 1}")
+                     for i, t in enumerate(route["segments"]))
+        juncs = tuple(Junction(i, int(j["waypoint"]), np.array(j["center"], dtype=float),
+                               math.radians(float(j["theta_deg"])),
+                               tuple(float(x) for x in j["prolong_m"]))
+                      for i, j in enumerate(route["junctions"]))
+        return Corridor(RouteGeometry(segs, juncs), self.obstacles())
 
     def obstacles(self) -> tuple[Obstacle, ...]:
         from vtube_fleet.core.tube import Obstacle

@@ -78,7 +78,41 @@ def _monitor(data: RecordingData) -> Any:
     flown = None
     if meta.get("r_s_flown") is not None and meta.get("r_a_flown") is not None:
         flown = SimpleNamespace(r_s=meta["r_s_flown"], r_a=meta["r_a_flown"])
+    if meta.get("route"):
+        return SafetyMonitor.for_corridor(data.corridor(), params, flown)
     return SafetyMonitor.for_run(data.tube(), data.obstacles(), params, flown)
+
+
+def route_segments(data: RecordingData) -> np.ndarray | None:
+    """(T, M) the segment each vehicle flew at every recorded tick of a route's recording
+    (None for a single tube): the route planned again from the recording's scene (obstacles
+    at the apex distances flown, the controller's parameters with the flown radii) and its
+    hand-overs replayed on the positions the run's metrics used (``core.route.Route.follow``).
+    With a frame for every step this is the run's own assignment."""
+    import dataclasses
+
+    from vtube_fleet.core.params import ControllerParams
+    from vtube_fleet.core.route import Route
+
+    meta = data.meta
+    if not meta.get("route"):
+        return None
+    cached = getattr(data, "_route_segments", None)
+    if cached is not None:
+        return cached
+    corridor = data.corridor()
+    h = meta.get("apex_distances_m") or []
+    obs = tuple(dataclasses.replace(o, apex_distance=h[i]) if i < len(h) and h[i] is not None
+                else o for i, o in enumerate(corridor.obstacles))
+    params = ControllerParams(**meta["controller_params"])
+    if meta.get("r_s_flown") is not None and meta.get("r_a_flown") is not None:
+        params = dataclasses.replace(params, r_s=meta["r_s_flown"], r_a=meta["r_a_flown"])
+    route = Route.plan(corridor.with_obstacles(obs), params,
+                       lookahead=data.kind in ("fleet", "mqtt", "agent"))
+    pos = data.safety[""][0] if "" in data.safety else data.pos
+    seg = route.follow(pos)
+    data._route_segments = seg  # type: ignore[attr-defined]
+    return seg
 
 
 def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any]:
@@ -94,10 +128,13 @@ def step_metrics(data: RecordingData, suffix: str = "") -> tuple[np.ndarray, Any
     pos, vel, rows = _judged(data, suffix)
     pos, vel, t = pos[rows], vel[rows], data.t_s[rows]
     mon = _monitor(data)
+    seg = route_segments(data)  # a route: each vehicle's segment at every tick
+    if seg is not None:
+        seg = seg[rows]  # at the ticks judged
     parts = [mon.evaluate(pos, vel)] if not len(t) else []
     for s in range(0, len(t), _CHUNK_STEPS):
         sl = slice(s, s + _CHUNK_STEPS)
-        parts.append(mon.evaluate(pos[sl], vel[sl]))
+        parts.append(mon.evaluate(pos[sl], vel[sl], segment=None if seg is None else seg[sl]))
     return t, StepMetrics.concatenate(parts)
 
 
@@ -273,8 +310,10 @@ def _reconstruct_partition(data: RecordingData) -> tuple[list[Any], list[Any]]:
         if len(s) >= 4:  # closed strip p_h0, p_h1, p_r1, p_r0, p_h0
             try:
                 sub_tubes.append(Trapezoid(s[0], s[1], s[3], s[2], name=f"T_o{k + 1}"))
-            except Exception:  # noqa: BLE001 - drawing only; skip a degenerate outline
-                continue
+            except Exception:  # noqa: BLE001 - drawing only: the outline as recorded (the
+                # strips are float32: a rotated segment's bases are parallel only to ~1e-7)
+                outline = np.asarray(s[:4], dtype=float)
+                sub_tubes.append(SimpleNamespace(polygon=lambda o=outline: o))
     triangles = [SimpleNamespace(p_oth=t[0], p_otu=t[1], p_otd=t[2]) for t in tris if len(t) >= 3]
     return sub_tubes, triangles
 
@@ -313,14 +352,16 @@ def write_review_plots(data: RecordingData, out_dir: Path, metrics: Any | None =
         sub_tubes, triangles = _reconstruct_partition(data)
         frames = pick_snapshot_frames(t_snap, p_snap, count=4)
         snaps = out_dir / f"{stem}-snapshots.png"
-        plot_snapshots(snaps, data.tube(), [(float(t_snap[i]), p_snap[i]) for i in frames],
+        plot_snapshots(snaps, data.corridor().segments,
+                       [(float(t_snap[i]), p_snap[i]) for i in frames],
                        r_s=meta["r_s"], obstacles=data.obstacles(), sub_tubes=sub_tubes,
                        triangles=triangles, title=title)
         written.append(snaps)
     if len(data.t_s):  # every recorded position, also before and after the tube
         sub_tubes, triangles = _reconstruct_partition(data)
         paths = out_dir / f"{stem}-trajectories.png"
-        plot_trajectories(paths, data.tube(), data.t_s, data.pos, ids=[int(i) for i in data.ids],
+        plot_trajectories(paths, data.corridor().segments, data.t_s, data.pos,
+                          ids=[int(i) for i in data.ids],
                           r_s=meta["r_s"], obstacles=data.obstacles(), sub_tubes=sub_tubes,
                           triangles=triangles, title=title)
         written.append(paths)

@@ -37,6 +37,7 @@ from vtube_fleet.recording.layout import (
     E_COMMANDS,
     E_EVENTS,
     E_EXITS,
+    E_JUNCTIONS,
     E_LEGEND,
     E_META,
     E_OBSTACLES,
@@ -648,7 +649,8 @@ class RerunRecorder:
         mission: MissionConfig | None = None, meta: Mapping[str, Any] | None = None,
     ) -> None:
         rr = self._rr
-        tube = scenario.tube
+        corridor = getattr(scenario, "corridor", None)  # (a scenario-like without one: a tube)
+        segments = tuple(corridor.segments) if corridor is not None else (scenario.tube,)
         obstacles = tuple(scenario.obstacles)
         robots = scenario.robots
         params = scenario.controller
@@ -663,7 +665,7 @@ class RerunRecorder:
             self._meta = doc
             self._r_s = r_s
             self._robots = int(robots.count)
-            poly = tube.polygon()
+            poly = np.concatenate([t.polygon() for t in segments])
             lo, hi = poly.min(axis=0), poly.max(axis=0)
             self._tube_box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
             self._set_limits(r_s, obstacles, float(robots.v_min), float(robots.v_max))
@@ -673,10 +675,21 @@ class RerunRecorder:
             self._send_blueprint(self._view_bounds(self._tube_box))
             self._rec.log(E_META, rr.TextDocument(json.dumps(doc, indent=1),
                                                   media_type=rr.MediaType.TEXT), static=True)
-            self._rec.log(E_TUBE, rr.LineStrips2D([_closed(tube.polygon())], colors=[TUBE_COLOR],
-                                                  radii=rr.Radius.ui_points(2.0), draw_order=25.0,
-                                                  labels=["tube T"]),
-                          static=True)
+            single = len(segments) == 1
+            self._rec.log(E_TUBE, rr.LineStrips2D(
+                [_closed(t.polygon()) for t in segments], colors=[TUBE_COLOR],
+                radii=rr.Radius.ui_points(2.0), draw_order=25.0,
+                labels=["tube T"] if single else [f"segment {t.name}" for t in segments]),
+                static=True)
+            if not single:  # each junction: its mitre line and its waypoint
+                geo = corridor.geometry
+                strips, labels = [], []
+                for jn in geo.junctions:
+                    strips.append(np.stack(geo.mitre_corners(jn.index)))
+                    labels.append(f"waypoint {jn.waypoint + 1}: {jn.theta_deg:+.1f}°")
+                self._rec.log(E_JUNCTIONS, rr.LineStrips2D(
+                    strips, colors=[TUBE_COLOR], radii=rr.Radius.ui_points(1.0),
+                    draw_order=24.0, labels=labels), static=True)
             # display defaults of the partition outlines (their strips are temporal)
             self._rec.log(E_SUB_TUBES, rr.LineStrips2D.from_fields(
                 radii=[rr.Radius.ui_points(0.8)], draw_order=22.0), static=True)
@@ -698,7 +711,8 @@ class RerunRecorder:
 
     def _scene_meta(self, scenario: Scenario, mission_cfg: MissionConfig | None,
                     meta: Mapping[str, Any] | None) -> dict[str, Any]:
-        tube = scenario.tube
+        corridor = getattr(scenario, "corridor", None)
+        tube = corridor.segments[0] if corridor is not None else scenario.tube
         robots = scenario.robots
         params = scenario.controller
         sim = scenario.sim
@@ -734,6 +748,16 @@ class RerunRecorder:
             "sim": json_safe(sim) if sim is not None else None,
             "dt_s": float(sim.dt) if sim is not None else None,
         }
+        if corridor is not None and corridor.S > 1:  # every segment and junction (review)
+            # (the controller's parameters too: review plans the route again to replay its
+            # hand-overs; "controller" may be replaced by the law's name below)
+            doc["controller_params"] = json_safe(params)
+            doc["route"] = {
+                "segments": [{k: _pt(getattr(t, k)) for k in ("p_h0", "p_h1", "p_r0", "p_r1")}
+                             for t in corridor.segments],
+                "junctions": [{"waypoint": j.waypoint, "center": _pt(j.center),
+                               "theta_deg": j.theta_deg, "prolong_m": list(j.prolong_m)}
+                              for j in corridor.junctions]}
         if mission_cfg is not None:
             doc["mission"] = json_safe(mission_cfg)
         if meta:
