@@ -42,6 +42,7 @@ from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.plan import FlightPlan
 from vtube_fleet.fleet.preflight import (
+    Preflight,
     PreflightError,
     measure_budget_links,
     preflight_report,
@@ -415,6 +416,8 @@ class AgentRecording:
         }
         if pilot is not None:
             own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds,
+                       battery_pct=finite_or_none(
+                           round(100.0 * pilot.pilot.link.state.battery_remaining, 1)),
                        # its own control loop's health: a stall beyond T + L makes it hold
                        tick_gap_p99_s=finite_or_none(percentile_or_none(pilot.tick_gaps_s, 99)),
                        tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)),
@@ -735,6 +738,20 @@ class AgentProcess:
                 f"(r_s + r_a + 2δ + v_max·(T + max age)); start the run with --no-cells"
             )
 
+    async def check_battery(self, pilot: VehiclePilot) -> None:
+        """The battery check before arming (:meth:`~vtube_fleet.fleet.preflight.Preflight.
+        check_batteries`), once READY: a refusal, so the coordinator stops the run before
+        anybody arms (the pilot checks again just before arming)."""
+
+        def event(text: str, vehicle_id: int | None = None, level: str = "info",
+                  echo: bool = True) -> None:
+            pilot.event(text, level)
+
+        try:
+            await Preflight([pilot], self.mission, event=event).check_batteries()
+        except PreflightError as exc:
+            raise self.refuse(str(exc)) from None
+
     def preflight(self, pilot: VehiclePilot) -> None:
         """The paper's conditions with the READY positions of every vehicle of the run."""
         assert self.budget is not None and self.run_cfg is not None
@@ -829,6 +846,7 @@ class AgentProcess:
             await self._unless_interrupted(pilot.wait_ready(), "waiting for the vehicle")
             self.bus.announce("online", stage="ready")
             await self._unless_interrupted(self.measure_budget(control), "measuring the link")
+            await self._unless_interrupted(self.check_battery(pilot), "checking the battery")
             self.say("vehicle READY; waiting for the start command")
 
             def started() -> bool:
