@@ -204,3 +204,48 @@ async def test_a_low_battery_mid_tube_lands_and_the_others_pass(tmp_path: Path) 
           f"{truth['right_leg']:.3f} m; vehicle 0 drifted {drift:.3f} m while landing (its "
           f"obstacle followed it in {steps} steps of > {anchor:g} m); the others' closest "
           f"approach while it was in the air {clearance:.3f} m")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+async def test_an_mqtt_agent_whose_battery_does_not_cover_the_mission_refuses(
+        tmp_path: Path) -> None:
+    """The same check in an MQTT agent (the preflight's one implementation): before its vehicle
+    is READY, the agent of a pack that covers the reserve but not the mission refuses with the
+    numbers, the
+    coordinator's start fails naming it, and no vehicle is ever told to arm."""
+    import asyncio
+
+    from broker import LocalBroker
+
+    from vtube_fleet.fleet.distributed.coordinator import Coordinator, MissionRunError
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentProcess, AgentRefused
+
+    mission = write_mission(tmp_path, straight_mission(14.0, [[2.0, 3.0], [2.0, -3.0]]))
+    path = tmp_path / "mission.toml"
+    need = mission.battery_needed_pct
+    assert 20.0 < 22.0 < need  # above the reserve, short of the mission
+    faults = [None, Faults(battery_pct=22.0)]
+    with LocalBroker() as broker:
+        async with mock_fleet(mission, **_boot(2, 6, faults=faults)) as fleet:
+            agents = [AgentProcess(path, v, broker=broker.url, join_timeout_s=60,
+                                   endpoint=fleet.endpoints[v]) for v in range(2)]
+            tasks = [asyncio.ensure_future(a.run()) for a in agents]
+            async with Coordinator(path, broker.url, vehicles=2, say=lambda _: None) as coord:
+                with pytest.raises(MissionRunError) as err:
+                    await coord.start_run(asyncio.Event(), ready_timeout_s=120)
+                with pytest.raises(AgentRefused) as refused:
+                    await tasks[1]
+                for a in agents:
+                    a.interrupt("the test is over")
+                await asyncio.gather(tasks[0], return_exceptions=True)
+            armed = [any(c == 400 for _, c, *_ in v.command_log) for v in fleet.vehicles]
+    print(f"\n{err.value}")
+    assert str(refused.value) == (
+        f"vehicle 1 refuses to fly: preflight failed, nothing armed: 1 of 1 vehicles' batteries "
+        f"do not cover the mission (battery_reserve_pct 20 % + battery_drain_pct_per_min 5 %/min "
+        f"× {mission.expected_airborne_s:.0f} s expected in the air = {need:.1f} %): slot 1 "
+        f"({fleet.endpoints[1]}): battery 22 % < {need:.1f} % needed")
+    assert "vehicle 1: preflight failed, nothing armed: 1 of 1 vehicles' batteries" in str(
+        err.value)
+    assert armed == [False, False]
