@@ -22,7 +22,7 @@ from fleet_ports import free_ports
 from missions import straight_mission, write_mission
 from truth import TruthLog, assert_true_clearance
 
-from sim_stub import Faults
+from sim_stub import Faults, MockFleet
 from sim_stub.battery import Battery
 from sim_stub.errors import SimStubError
 from sim_stub.faults import parse_fault_spec
@@ -63,6 +63,28 @@ def test_the_mock_battery_is_px4_sitls_and_configurable_per_vehicle() -> None:
         parse_fault_spec("battery=120")
     with pytest.raises(SimStubError, match="'battery_low'"):
         parse_fault_spec("batery_low=3")  # the error lists the keys
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("backend", ["mavlink", "mavsdk"])
+async def test_both_links_report_the_battery(backend: str) -> None:
+    """``VehicleState.battery_remaining`` (0..1): SYS_STATUS with the mavlink backend, MAVSDK's
+    battery (BATTERY_STATUS) with mavsdk; a drop on the vehicle shows."""
+    from vtube_fleet.link import open_links
+
+    faults = [Faults(battery_pct=42.0), None]
+    async with (MockFleet(2, spacing_m=5.0, port_scheme=free_ports(2), boot_time_scale=0.3,
+                          faults=faults) as fleet,
+                open_links(fleet.endpoints, backend, sysids=[1, 2]) as links):
+        for link in links:
+            await link.connect(30.0)
+        for link, want in zip(links, (0.42, 1.0), strict=True):
+            await link.wait_until(lambda s, w=want: abs(s.battery_remaining - w) < 1e-9, 20.0,
+                                  f"battery {want:.0%}")
+        fleet.vehicles[1].set_battery(17.0)
+        await links[1].wait_until(lambda s: abs(s.battery_remaining - 0.17) < 1e-9, 20.0,
+                                  "battery 17 %")
 
 
 # ----------------------------------------------------------------------------------------------
