@@ -371,7 +371,8 @@ class ClockOffset:
         return abs(self.offset_s) + 0.5 * max(self.delay_s, 0.0)
 
     def describe(self) -> str:
-        return (f"clock offset {1000 * self.offset_s:+.1f} ms to the coordinator's (round trip "
+        ms = round(1000.0 * self.offset_s, 1) + 0.0  # (+ 0.0: never "-0.0")
+        return (f"clock offset {ms:+.1f} ms to the coordinator's (round trip "
                 f"{1000 * self.delay_s:.1f} ms, best of {self.samples}: within "
                 f"{1000 * self.bound_s:.1f} ms)")
 

@@ -339,7 +339,8 @@ class Coordinator:
     def clock_line(self) -> str:
         """``vehicle 0 +0.4 ms (within 0.9 ms), …`` of :meth:`clocks`."""
         return ", ".join(f"vehicle {v} " + ("not reported" if c is None else
-                                            f"{1000 * c['offset_s']:+.1f} ms (within "
+                                            f"{round(1000 * c['offset_s'], 1) + 0.0:+.1f}"
+                                            f" ms (within "
                                             f"{1000 * c['within_s']:.1f} ms)")
                          for v, c in enumerate(self.clocks()))
 
