@@ -1,6 +1,7 @@
-"""Per-vehicle fault injection for the mock (link and vehicle faults).
+"""Per-vehicle fault injection for the mock (link and vehicle faults), and its battery.
 
-All faults are off by default. Randomness (packet loss, GPS noise) comes from a per-vehicle
+All faults are off by default; the battery is PX4 SITL's simulated one (:mod:`sim_stub.battery`).
+Randomness (packet loss, GPS noise) comes from a per-vehicle
 ``random.Random``/``numpy`` generator seeded from the fleet seed, so a run is reproducible.
 """
 
@@ -40,6 +41,12 @@ class Faults:
     (no COMMAND_ACK: the link retries, then gives up) or ``"deny"``-ed (COMMAND_ACK DENIED);
     NAV_LAND and everything else still work (the vehicle that would not hold, seen on real PX4
     SITL when its acks were lost).
+
+    The battery (:mod:`sim_stub.battery`; defaults: PX4 SITL's): ``battery_pct`` the charge of
+    the full pack (at start, and again whenever disarmed), ``drain_pct_per_min`` the drain while
+    armed, ``battery_floor_pct`` where the drain stops. The ``battery_low`` fault:
+    ``battery_low_pct`` is the charge from ``battery_low_at_s`` after the vehicle's start on
+    (and it stays there, also after disarming); :meth:`MockVehicle.set_battery` on demand.
     """
 
     loss_pct: float = 0.0
@@ -52,6 +59,11 @@ class Faults:
     push_at_s: float | None = None
     push_for_s: float = 1.0
     mode_fault: str = ""
+    battery_pct: float = 100.0
+    drain_pct_per_min: float = 100.0  # PX4 SITL: SIM_BAT_DRAIN = 60 s for 100 %
+    battery_floor_pct: float = 50.0  # PX4 SITL: SIM_BAT_MIN_PCT
+    battery_low_pct: float | None = None
+    battery_low_at_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.loss_pct <= 100.0:
@@ -75,6 +87,19 @@ class Faults:
             raise SimStubError(f"fault push_at_s must be >= 0 s, got {self.push_at_s}")
         if not 0.0 < self.push_for_s <= 3600.0:
             raise SimStubError(f"fault push_for_s must be in (0, 3600] s, got {self.push_for_s}")
+        for name in ("battery_pct", "battery_floor_pct"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 100.0:
+                raise SimStubError(f"fault {name} must be in [0, 100] %, got {v}")
+        if self.battery_low_pct is not None and not 0.0 <= self.battery_low_pct <= 100.0:
+            raise SimStubError(f"fault battery_low_pct must be in [0, 100] %, got "
+                               f"{self.battery_low_pct}")
+        if not 0.0 <= self.drain_pct_per_min <= 1000.0:
+            raise SimStubError(f"fault drain_pct_per_min must be in [0, 1000] %/min, got "
+                               f"{self.drain_pct_per_min}")
+        if not self.battery_low_at_s >= 0.0:
+            raise SimStubError(f"fault battery_low_at_s must be >= 0 s, got "
+                               f"{self.battery_low_at_s}")
 
     @property
     def affects_link(self) -> bool:
@@ -97,7 +122,14 @@ _KEYS = {
     "push_at": ("push_at_s", float),
     "push_for": ("push_for_s", float),
     "mode_fault": ("mode_fault", str),
+    "battery": ("battery_pct", float),
+    "drain": ("drain_pct_per_min", float),
+    "battery_floor": ("battery_floor_pct", float),
+    "battery_low": ("battery_low_pct", float),
+    "battery_low_at": ("battery_low_at_s", float),
 }
+#: the keys a fault spec's error lists (the long field names are accepted too)
+_SHOWN = sorted(k for k, (name, _) in _KEYS.items() if k != name or k in ("die_how", "mode_fault"))
 
 
 def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
@@ -105,7 +137,9 @@ def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
 
     Example: ``"2:loss=5,latency=0.05,die_at=30,die_how=freeze"``; without ``I:`` it applies to
     every vehicle. Keys: loss (percent), latency (s), gps_noise (m), die_at (s), die_how,
-    push_north / push_east (m/s), push_at (s), push_for (s), mode_fault (drop / deny).
+    push_north / push_east (m/s), push_at (s), push_for (s), mode_fault (drop / deny),
+    battery (% of the full pack), drain (%/min while armed), battery_floor (%), battery_low (%)
+    and battery_low_at (s).
     """
     index: int | None = None
     body = spec.strip()
@@ -125,9 +159,7 @@ def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
         key, eq, value = item.partition("=")
         if not eq or key.strip() not in _KEYS:
             raise SimStubError(
-                f"fault spec {spec!r}: expected key=value with key in "
-                f"{sorted(set(k for k in _KEYS if '_' not in k or k in ('die_how', 'mode_fault')))}"
-                f", got {item!r}"
+                f"fault spec {spec!r}: expected key=value with key in {_SHOWN}, got {item!r}"
             )
         field, conv = _KEYS[key.strip()]
         try:

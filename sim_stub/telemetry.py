@@ -169,8 +169,11 @@ class TelemetryMixin:
             if self._prearm_ok():
                 health |= px4.SENSOR_PREARM
         errors = self._rx_malformed & 0xFFFF
+        self.battery_pct(now)
+        bat = self.battery
         return _S["SYS_STATUS"].pack(
-            present, enabled, health, 100, 16200, -100, 0, errors, 0, 0, 0, 0, 99, 0, 0, 1
+            present, enabled, health, 100, bat.voltage_mv, -100, 0, errors, 0, 0, 0, 0,
+            bat.remaining_pct, 0, 0, 1
         )
 
     def _b_extended_sys_state(self, now: float) -> bytes:
@@ -485,8 +488,11 @@ class TelemetryMixin:
         return _S["TIME_ESTIMATE_TO_TARGET"].pack(safe, -1, -1, -1, -1)
 
     def _b_battery_status(self, now: float) -> bytes:
+        self.battery_pct(now)
+        bat = self.battery
         return _S["BATTERY_STATUS"].pack(
-            0, -1, 32767, 16200, *_V9, -100, 0, 1, 1, 99, 0, 1, 0, 0, 0, 0, 0, 0
+            0, -1, 32767, bat.voltage_mv, *_V9, -100, 0, 1, 1, bat.remaining_pct, 0,
+            bat.charge_state, 0, 0, 0, 0, 0, 0
         )
 
     def _b_vibration(self, now: float) -> bytes:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import common as _mav
 
 from . import px4
+from .battery import Battery
 from .codec import SPECS, DatagramParser, Encoder, MsgSpec, fast_decoder, mcrf4xx
 from .commander import CommanderMixin, Setpoint
 from .errors import SimStubError
@@ -317,6 +318,7 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         # (uptime, MAV_CMD, params 1..7, MAV_RESULT) of the last 1000 commands
         self.command_log: deque[tuple[float, int, tuple[float, ...], int]] = deque(maxlen=1000)
         self._link_stat = (0.0, 0, 0)
+        self.battery = Battery(self.faults)
         self._fence_init()  # sim_stub/fence.py
 
     # ------------------------------------------------------------------------------------------
@@ -446,6 +448,19 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
             raise SimStubError("push needs finite velocities and a duration > 0 s")
         self._sched.push[self.slot] = (north_m_s, east_m_s, 0.0)
         self._push_until = self._now() + duration_s
+
+    def set_battery(self, pct: float) -> None:
+        """The battery holds at most ``pct`` % from now on (also after disarming): the
+        ``battery_low`` fault on demand (:mod:`sim_stub.battery`)."""
+        try:
+            self.battery.drop_to(float(pct))
+        except ValueError as exc:
+            raise SimStubError(str(exc)) from None
+
+    def battery_pct(self, now: float | None = None) -> float:
+        """The battery's charge (%) now (:mod:`sim_stub.battery`)."""
+        t = self._now() if now is None else now
+        return self.battery.update(t, t - self.t0 if self.started else 0.0, self.armed)
 
     # ------------------------------------------------------------------------------------------
     # introspection (true state)

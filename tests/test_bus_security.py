@@ -430,9 +430,13 @@ def test_the_acl_gives_each_vehicle_its_own_topics_only():
     blocks = {b.splitlines()[0]: b.splitlines()[1:] for b in acl.split("\n\n")[1:]}
     assert [x for x in blocks["user vehicle-1"] if "write" in x] == [
         "topic write vtube/m/state/+/+/1", "topic write vtube/m/status/1",
-        "topic write vtube/m/last/1"]
+        "topic write vtube/m/last/1", "topic write vtube/m/clock/ask/1"]
+    assert "topic read vtube/m/clock/echo/1" in blocks["user vehicle-1"]
+    assert not any("clock/echo/0" in x for x in blocks["user vehicle-1"])
     writes = [x for x in blocks["user coordinator"] if "write" in x]
-    assert writes == ["topic readwrite vtube/m/config", "topic readwrite vtube/m/cmd"]
+    assert writes == ["topic readwrite vtube/m/config", "topic readwrite vtube/m/cmd",
+                      "topic write vtube/m/clock/echo/+"]
+    assert "topic read vtube/m/clock/ask/+" in blocks["user coordinator"]
 
 
 def test_bus_setup_never_overwrites_and_offers_plain_loopback_only(tmp_path, capsys):

@@ -30,7 +30,7 @@ from vtube_fleet.fleet.compensation import (
 from vtube_fleet.fleet.neighbour_view import States, classify, states_of
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
-from vtube_fleet.fleet.tick import FAULT_RULES, FaultRule, Tick
+from vtube_fleet.fleet.tick import FAULT_RULES, Tick
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, NeighbourState, Phase
 
 WALL = 1.7e9  # wall clock = monotonic + WALL
@@ -308,23 +308,14 @@ async def test_each_fault_rule_finds_its_vehicle() -> None:
                    for x in [p[3], p[4], p[5], *p[9:]])
 
 
-def _battery_rule(level: float) -> FaultRule:
-    def find(ctx):
-        rem = np.array([getattr(s, "battery_remaining", math.nan) for s in ctx.links.states])
-        return rem < level, lambda r: f"battery {rem[r]:.0%} < {level:.0%}"
-
-    return FaultRule("test_battery", find, action="land")
-
-
 async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
-    """One rule appended to the tick's rules: every vehicle of a 12-vehicle fleet that hits it
+    """One rule of the tick's rules (FAULT_RULES' last: a battery below the mission's
+    ``battery_reserve_pct``, action "land"): every vehicle of a 12-vehicle fleet that hits it
     and an agent's one vehicle act on it alike (here: land, an obstacle for the others)."""
+    assert FAULT_RULES[-1].name == "battery_low" and FAULT_RULES[-1].action == "land"
     sup, links = memory_fleet(12, now_s=100.0)
-    rules = (*FAULT_RULES, _battery_rule(0.2))
-    sup.ticker.rules = rules
+    assert sup.cfg.battery_reserve_pct == 20.0
     agents = _agents(sup, 12, 100.0)
-    for tick, *_ in agents:
-        tick.rules = rules
     low = {2, 5, 6, 11}
     for world in (links, [a[2] for a in agents]):
         for i, link in enumerate(world):
@@ -337,7 +328,8 @@ async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
     for group in (sup.pilots, [a[1] for a in agents]):
         landing = {p.vehicle_id for p in group if p.phase == Phase.LANDING}
         assert landing == low
-        assert all(p.reason == "battery 10% < 20%" for p in group if p.vehicle_id in low)
+        assert all(p.reason.startswith("battery 10 % < battery_reserve_pct = 20 %: lands")
+                   for p in group if p.vehicle_id in low)
     await asyncio.sleep(0)
     # the next tick: the landing vehicles are obstacles (stopped) for the others
     now += 0.05

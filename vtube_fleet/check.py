@@ -241,6 +241,7 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
                       fixes, 0.0)
     from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleet.margin import assumed_measurement, mission_margin, slot_violations
+    from vtube_fleet.fleet.preflight import battery_needs
 
     mission = load_mission(path)
     sc = mission.scenario
@@ -262,7 +263,9 @@ def check_file(path: str | os.PathLike[str], *, latency_s: float | None = None,
            f"{budget.describe(sc.controller)}"
            + (f"; assumed {', '.join(assumed)}" if assumed else ""),
            f"flown: r_s' = {flown.r_s:.3f} m, r_a' = {flown.r_a:.3f} m (the partition below "
-           f"is built with these, as the fleet builds it)"]
+           f"is built with these, as the fleet builds it)",
+           f"battery: every vehicle must report at least {mission.battery_needed_pct:.1f} % "
+           f"before arming ({battery_needs(mission)})"]
     return _check(sc, "mission", flown, mission.slots, budget, pre, fixes, budget.delta_m,
                   found=(res, violations), margin=mission_margin(mission, measured))
 

@@ -50,6 +50,10 @@ __all__ = [
     "MissionConfigMsg",
     "encode_config",
     "decode_config",
+    "ClockMsg",
+    "ClockOffset",
+    "encode_clock",
+    "decode_clock",
 ]
 
 STATE_VERSION = 1
@@ -154,23 +158,27 @@ class Status:
     #: Where the agent's procedure is: "" (waiting for a mission), "joined" (accepted the
     #: run), "at_altitude" (climbed; waits for the fleet to enter the tube together), "done".
     stage: str = ""
+    #: The agent's clock offset to the coordinator's, as it measured it (None: not measured).
+    clock: ClockOffset | None = None
 
 
 def encode_status(status: Status) -> bytes:
     if status.status not in STATUSES:
         raise CodecError(f"unknown status {status.status!r}; expected one of {STATUSES}")
-    return _dumps(
-        {
-            "v": CONTROL_VERSION,
-            "id": status.vehicle_id,
-            "status": status.status,
-            "hash": status.config_hash,
-            "run": status.run_id,
-            "t": status.stamp_s,
-            "detail": status.detail,
-            "stage": status.stage,
-        }
-    )
+    obj: dict[str, Any] = {
+        "v": CONTROL_VERSION,
+        "id": status.vehicle_id,
+        "status": status.status,
+        "hash": status.config_hash,
+        "run": status.run_id,
+        "t": status.stamp_s,
+        "detail": status.detail,
+        "stage": status.stage,
+    }
+    c = status.clock
+    if c is not None:
+        obj["clock"] = {"offset_s": c.offset_s, "delay_s": c.delay_s, "samples": c.samples}
+    return _dumps(obj)
 
 
 def decode_status(payload: bytes) -> Status:
@@ -178,6 +186,14 @@ def decode_status(payload: bytes) -> Status:
     st = _field(obj, "status", str, "status")
     if st not in STATUSES:
         raise CodecError(f"status payload: unknown status {st!r}")
+    clock = None
+    c = obj.get("clock")
+    if c is not None:
+        if not isinstance(c, dict):
+            raise CodecError(f"status payload: field 'clock' = {c!r} is not an object")
+        clock = ClockOffset(_finite(c.get("offset_s"), "status clock offset_s"),
+                            _nonneg(c.get("delay_s"), "delay_s"),
+                            _field(c, "samples", int, "status clock"))
     return Status(
         vehicle_id=_field(obj, "id", int, "status"),
         status=st,
@@ -186,6 +202,7 @@ def decode_status(payload: bytes) -> Status:
         stamp_s=float(_field(obj, "t", (int, float), "status")),
         detail=str(obj.get("detail", "")),
         stage=str(obj.get("stage", "")),
+        clock=clock,
     )
 
 
@@ -295,6 +312,75 @@ def decode_config(payload: bytes) -> MissionConfigMsg:
         cell_m=float(_field(obj, "cell_m", (int, float), "config")),
         delta_m=_nonneg(obj.get("delta_m", 0.0), "delta_m"),
     )
+
+
+# -- clock --------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class ClockMsg:
+    """One timestamp round trip between an agent and the coordinator (NTP's four stamps,
+    wall clock, s): the agent sends ``t1_s`` (its clock) on ``clock/ask/<id>``; the coordinator
+    answers on ``clock/echo/<id>`` with ``t2_s`` (its clock when the ask arrived) and ``t3_s``
+    (its clock when it answered); the agent notes t4 when the echo arrives. ``nonce`` pairs an
+    echo with its ask."""
+
+    vehicle_id: int
+    nonce: int
+    t1_s: float
+    t2_s: float = 0.0
+    t3_s: float = 0.0
+
+
+def encode_clock(msg: ClockMsg) -> bytes:
+    return _dumps({"v": CONTROL_VERSION, "id": msg.vehicle_id, "n": msg.nonce, "t1": msg.t1_s,
+                   "t2": msg.t2_s, "t3": msg.t3_s})
+
+
+def decode_clock(payload: bytes) -> ClockMsg:
+    obj = _loads(payload, "clock")
+    return ClockMsg(
+        vehicle_id=_field(obj, "id", int, "clock"),
+        nonce=_field(obj, "n", int, "clock"),
+        t1_s=_finite(obj.get("t1"), "clock t1"),
+        t2_s=_finite(obj.get("t2", 0.0), "clock t2"),
+        t3_s=_finite(obj.get("t3", 0.0), "clock t3"),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class ClockOffset:
+    """An agent's clock against the coordinator's, from the round trip of least delay out of
+    ``samples`` (NTP): ``offset_s`` = the agent's clock − the coordinator's (positive: the
+    agent's runs ahead), ``delay_s`` the round trip without the coordinator's own time. The true
+    offset lies within ``offset_s`` ± ``delay_s`` / 2 (the two legs of the trip may differ by
+    all of it), so the agent's clock is at most :attr:`bound_s` from the coordinator's."""
+
+    offset_s: float
+    delay_s: float
+    samples: int = 1
+
+    @classmethod
+    def from_stamps(cls, t1_s: float, t2_s: float, t3_s: float, t4_s: float) -> ClockOffset:
+        """One round trip: t1 ask sent, t2 ask received (coordinator), t3 echo sent
+        (coordinator), t4 echo received: offset = ((t1 − t2) + (t4 − t3)) / 2 (the agent's
+        minus the coordinator's), delay = (t4 − t1) − (t3 − t2)."""
+        return cls(((t1_s - t2_s) + (t4_s - t3_s)) / 2.0, (t4_s - t1_s) - (t3_s - t2_s))
+
+    @property
+    def bound_s(self) -> float:
+        """|offset| + delay / 2: how far the agent's clock may be from the coordinator's."""
+        return abs(self.offset_s) + 0.5 * max(self.delay_s, 0.0)
+
+    def describe(self) -> str:
+        ms = round(1000.0 * self.offset_s, 1) + 0.0  # (+ 0.0: never "-0.0")
+        return (f"clock offset {ms:+.1f} ms to the coordinator's (round trip "
+                f"{1000 * self.delay_s:.1f} ms, best of {self.samples}: within "
+                f"{1000 * self.bound_s:.1f} ms)")
+
+
+def _finite(v: Any, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise CodecError(f"{name} must be a finite number, got {v!r}")
+    return float(v)
 
 
 def _nonneg(v: Any, name: str) -> float:

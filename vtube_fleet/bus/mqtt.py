@@ -57,14 +57,18 @@ from pathlib import Path
 
 from vtube_fleet.bus.client import MqttClient, MqttError, Will
 from vtube_fleet.bus.codec import (
+    ClockMsg,
+    ClockOffset,
     CodecError,
     Command,
     MissionConfigMsg,
     Status,
+    decode_clock,
     decode_command,
     decode_config,
     decode_state,
     decode_status,
+    encode_clock,
     encode_state,
     encode_status,
 )
@@ -175,12 +179,16 @@ class MqttBus:
         insecure: bool = False,
         limits: StateLimits | None = None,
         lost_confirm_s: float | None = None,
+        wall_clock: Callable[[], float] = time.time,
+        serve_clock: bool = False,
     ) -> None:
         """``credentials``: a credentials file (``vtube_fleet.bus.security``) or its contents;
         ``insecure``: allow a broker that is neither on loopback nor TLS; ``limits``: what
         states are plausible (default: any vehicle id, anywhere); ``lost_confirm_s``: how long a
         ``lost`` status waits for a contradicting fresh state (default 1.5 × ``last_period_s``;
-        see :meth:`_on_status`)."""
+        see :meth:`_on_status`); ``wall_clock``: this process's wall clock (stamps, ages: the
+        states' clock); ``serve_clock``: answer the agents' clock round trips (the
+        coordinator; :meth:`measure_clock`)."""
         self.url = url
         self.host, self.port, self._user, self._password = parse_broker_url(url)
         self.tls = broker_uses_tls(url)
@@ -205,6 +213,12 @@ class MqttBus:
             tls_context(credentials.ca_file if credentials is not None else None)
             if self.tls else None
         )
+        self.wall_clock = wall_clock
+        self.serve_clock = serve_clock
+        #: this agent's clock against the coordinator's (:meth:`measure_clock`; in its status)
+        self.clock: ClockOffset | None = None
+        self._clock_waiters: dict[int, tuple[float, asyncio.Future[ClockOffset]]] = {}
+        self._clock_nonce = 0
         self.limits = limits if limits is not None else StateLimits()
         self._fleet_ids = self.limits.vehicle_ids  # the mission's slots (a run has fewer)
         self.lost_confirm_s = 1.5 * last_period_s if lost_confirm_s is None else lost_confirm_s
@@ -541,9 +555,10 @@ class MqttBus:
             status,
             self.config_hash,
             self.run_id,
-            time.time(),
+            self.wall_clock(),
             detail,
             self.stage,
+            self.clock,
         )
 
     def announce(
@@ -698,9 +713,11 @@ class MqttBus:
         for topic, payload in list(self._retained.items()):
             await client.publish(topic, payload, qos=1, retain=True)
         t = self.topics
+        clock = ([(t.all_clock_asks, 0)] if self.serve_clock else []) + (
+            [(t.clock_echo(self.vehicle_id), 0)] if self.vehicle_id is not None else [])
         await client.subscribe(
             [(t.all_statuses, 1), (t.config, 1), (t.cmd, 1), (self._sync_topic, 1)]
-            + [(t.last(v), 0) for v in sorted(self._want_last)]
+            + [(t.last(v), 0) for v in sorted(self._want_last)] + clock
         )
         self._state_filters = set()
         await self._apply_window(client)
@@ -721,7 +738,7 @@ class MqttBus:
     def _send_state(self, client: MqttClient, state: NeighbourState) -> None:
         """Write our state to its cell's topic (QoS 0, no waiting), plus the notice to the cell
         it left and the retained last-seen state when due; drop it if it is too old."""
-        if state.age_s() > self.max_publish_age_s:
+        if state.age_s(self.wall_clock()) > self.max_publish_age_s:
             self.stats.dropped_stale += 1
             return
         vid = state.vehicle_id
@@ -820,6 +837,12 @@ class MqttBus:
             elif kind == "cmd":
                 if payload:
                     self._on_command(decode_command(payload), topic)
+            elif kind == "clock_ask":
+                if self.serve_clock:
+                    self._answer_clock(decode_clock(payload), vid, topic)
+            elif kind == "clock_echo":
+                if vid == self.vehicle_id:
+                    self._on_clock_echo(decode_clock(payload))
         except CodecError as exc:
             self.stats.decode_errors += 1
             sender = f"vehicle {vid}" if vid is not None else kind if kind != "unknown" else topic
@@ -835,7 +858,8 @@ class MqttBus:
         prev = self._states.get(vid)
         claim = self._claims.get(vid)
         bad = self.limits.problem(state, prev if prev is not None else
-                                  (claim.last if claim is not None else None), time.time())
+                                  (claim.last if claim is not None else None),
+                                  self.wall_clock())
         if bad is not None:
             self._refuse(bad[0], f"vehicle {vid}", topic, bad[1])
             return
@@ -864,7 +888,7 @@ class MqttBus:
         self._states[vid] = state
         self.stats.received += 1
         if not from_last and self._state_listeners:
-            now = time.time()
+            now = self.wall_clock()
             for cb in self._state_listeners:
                 cb(state, now)
         if self._waiters:
@@ -893,7 +917,7 @@ class MqttBus:
             elif vid not in self._claims:
                 loop = asyncio.get_running_loop()
                 self._claims[vid] = _LostClaim(
-                    status, time.time(), loop.call_later(self.lost_confirm_s,
+                    status, self.wall_clock(), loop.call_later(self.lost_confirm_s,
                                                          self._confirm_lost, vid))
                 if vid not in self._want_last:
                     # where is it? its retained last-seen state (it may never have been near
@@ -948,10 +972,69 @@ class MqttBus:
         with contextlib.suppress(MqttError):
             await client.unsubscribe([topic])
 
+    # -- clocks (docs/mqtt.md, "Clocks") -------------------------------------------------------
+    def _answer_clock(self, ask: ClockMsg, vid: int | None, topic: str) -> None:
+        """The coordinator: echo an agent's clock round trip with its own two stamps, at
+        once (in the parser's callback: what it adds to the trip is measured, t3 − t2)."""
+        t2 = self.wall_clock()
+        client = self._client
+        if vid is None or ask.vehicle_id != vid or client is None or not self._connected:
+            if vid is not None and ask.vehicle_id != vid:
+                self._refuse("id_mismatch", f"vehicle {vid}", topic,
+                             f"clock ask of vehicle {ask.vehicle_id} on the topic of {vid}")
+            return
+        echo = dataclasses.replace(ask, t2_s=t2, t3_s=self.wall_clock())
+        with contextlib.suppress(MqttError):
+            client.publish_nowait(self.topics.clock_echo(vid), encode_clock(echo))
+
+    def _on_clock_echo(self, echo: ClockMsg) -> None:
+        t4 = self.wall_clock()
+        waiter = self._clock_waiters.pop(echo.nonce, None)
+        if waiter is None or waiter[1].done() or echo.t1_s != waiter[0]:
+            return  # late, or not ours
+        waiter[1].set_result(ClockOffset.from_stamps(echo.t1_s, echo.t2_s, echo.t3_s, t4))
+
+    async def clock_round_trip(self, timeout_s: float) -> ClockOffset:
+        """One clock round trip to the coordinator (:class:`~vtube_fleet.bus.codec.ClockMsg`,
+        QoS 0: a lost one times out, never comes back late as a retransmission);
+        :class:`TimeoutError` after ``timeout_s``."""
+        if self.vehicle_id is None:
+            raise RuntimeError("an observer MqttBus has no clock to measure")
+        client = self._client
+        if client is None or not self._connected:
+            raise TimeoutError
+        self._clock_nonce += 1
+        nonce = self._clock_nonce
+        fut: asyncio.Future[ClockOffset] = asyncio.get_running_loop().create_future()
+        t1 = self.wall_clock()
+        self._clock_waiters[nonce] = (t1, fut)
+        try:
+            client.publish_nowait(self.topics.clock_ask(self.vehicle_id),
+                                  encode_clock(ClockMsg(self.vehicle_id, nonce, t1)))
+            async with asyncio.timeout(timeout_s):
+                return await fut
+        finally:
+            self._clock_waiters.pop(nonce, None)
+
+    async def measure_clock(self, samples: int, timeout_s: float) -> ClockOffset:
+        """``samples`` round trips one after the other (:meth:`clock_round_trip`, each at most
+        ``timeout_s``); the one of least delay (its two legs the most alike: NTP's choice),
+        kept in :attr:`clock` and sent in this agent's status from now on.
+        :class:`TimeoutError` when none came back."""
+        got: list[ClockOffset] = []
+        for _ in range(samples):
+            with contextlib.suppress(TimeoutError, MqttError):
+                got.append(await self.clock_round_trip(timeout_s))
+        if not got:
+            raise TimeoutError
+        best = min(got, key=lambda c: c.delay_s)
+        self.clock = dataclasses.replace(best, samples=len(got))
+        return self.clock
+
     def _control_problem(self, mission_id: str, stamp_s: float) -> tuple[str, str] | None:
         if mission_id != self.mission_id:
             return "wrong_mission", f"for mission {mission_id!r}, this is {self.mission_id!r}"
-        why = self.limits.future_problem(stamp_s, time.time())
+        why = self.limits.future_problem(stamp_s, self.wall_clock())
         return None if why is None else ("future", why)
 
     def _on_config(self, cfg: MissionConfigMsg, topic: str) -> None:
@@ -969,7 +1052,7 @@ class MqttBus:
     def _on_command(self, cmd: Command, topic: str = "") -> None:
         bad = self._control_problem(cmd.mission_id, cmd.stamp_s)
         if bad is None:
-            ahead_s = cmd.seq / 1000.0 - time.time()
+            ahead_s = cmd.seq / 1000.0 - self.wall_clock()
             if ahead_s > self.limits.max_future_s:
                 bad = ("future", f"seq {cmd.seq} is {ahead_s:.3g} s in the future (ms since "
                                  "the epoch)")

@@ -183,7 +183,8 @@ def _write_passwd(path: Path, users: dict[str, str], tool: str | None) -> str:
 # -- ACL -----------------------------------------------------------------------------------------
 def mosquitto_acl(mission_id: str, vehicles: int) -> str:
     """The mosquitto ACL of a mission (``docs/security.md``): per-vehicle write rights on its own
-    topics only, the coordinator alone on config and cmd."""
+    topics only (its clock asks too, and it alone reads the coordinator's echoes), the
+    coordinator alone on config, cmd and the clock echoes."""
     t = MissionTopics(mission_id)
     b = t.base
     reads = [f"{b}/state/#", f"{b}/status/+", f"{b}/last/+", t.config, t.cmd]
@@ -195,16 +196,20 @@ def mosquitto_acl(mission_id: str, vehicles: int) -> str:
         f"user {COORDINATOR_USER}",
         f"topic readwrite {t.config}",
         f"topic readwrite {t.cmd}",
+        f"topic write {b}/clock/echo/+",
         *(f"topic read {r}" for r in reads if r not in (t.config, t.cmd)),
+        f"topic read {t.all_clock_asks}",
     ]
     for i in range(vehicles):
         lines += [
             "",
             f"user {vehicle_user(i)}",
             *(f"topic read {r}" for r in reads),
+            f"topic read {t.clock_echo(i)}",
             f"topic write {b}/state/+/+/{i}",
             f"topic write {t.status(i)}",
             f"topic write {t.last(i)}",
+            f"topic write {t.clock_ask(i)}",
         ]
     return "\n".join(lines) + "\n"
 

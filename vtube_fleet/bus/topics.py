@@ -11,6 +11,8 @@ topic                               QoS  retained  payload (``vtube_fleet.bus.co
 ``vtube/<m>/config``                1    yes       JSON run announcement (hash, run, count)
 ``vtube/<m>/cmd``                   1    yes       JSON fleet command (start / abort)
 ``vtube/<m>/sync/<client>``         1    no        a client's own in-order delivery marker
+``vtube/<m>/clock/ask/<id>``        0    no        JSON clock round trip: the agent's stamp
+``vtube/<m>/clock/echo/<id>``       0    no        ... and the coordinator's two stamps added
 ==================================  ===  ========  ==========================================
 
 The QoS choices are justified in ``docs/mqtt.md``. Vehicle ids are the 0-based fleet slots.
@@ -56,7 +58,8 @@ def _is_int(text: str) -> bool:
 class MissionTopics:
     """The topic names of one mission (``vtube/<mission>/…``) and their parsers."""
 
-    __slots__ = ("mission_id", "base", "config", "cmd", "_state", "_status", "_last", "_kinds")
+    __slots__ = ("mission_id", "base", "config", "cmd", "_state", "_status", "_last",
+                 "_clock_ask", "_clock_echo", "_kinds")
 
     def __init__(self, mission_id: str) -> None:
         self.mission_id = validate_mission_id(mission_id)
@@ -66,6 +69,8 @@ class MissionTopics:
         self._state = f"{self.base}/state/"
         self._status = f"{self.base}/status/"
         self._last = f"{self.base}/last/"
+        self._clock_ask = f"{self.base}/clock/ask/"
+        self._clock_echo = f"{self.base}/clock/echo/"
         self._kinds: dict[str, tuple[str, int | None]] = {}  # classify()'s answers
 
     # -- per-vehicle topics -------------------------------------------------------------------
@@ -83,6 +88,14 @@ class MissionTopics:
     def last(self, vehicle_id: int) -> str:
         return f"{self._last}{int(vehicle_id)}"
 
+    def clock_ask(self, vehicle_id: int) -> str:
+        """Where an agent sends its clock round trips (the coordinator answers)."""
+        return f"{self._clock_ask}{int(vehicle_id)}"
+
+    def clock_echo(self, vehicle_id: int) -> str:
+        """Where the coordinator answers an agent's clock round trip."""
+        return f"{self._clock_echo}{int(vehicle_id)}"
+
     # -- subscription filters -------------------------------------------------------------------
     @property
     def all_states(self) -> str:
@@ -92,11 +105,16 @@ class MissionTopics:
     def all_statuses(self) -> str:
         return f"{self._status}+"
 
+    @property
+    def all_clock_asks(self) -> str:
+        return f"{self._clock_ask}+"
+
     # -- parsing --------------------------------------------------------------------------------
     def classify(self, topic: str) -> tuple[str, int | None]:
         """``(kind, vehicle_id)`` of a topic of this mission.
 
-        ``kind`` is ``"state"``, ``"status"``, ``"last"`` (with the vehicle id), ``"config"``,
+        ``kind`` is ``"state"``, ``"status"``, ``"last"``, ``"clock_ask"``, ``"clock_echo"``
+        (with the vehicle id), ``"config"``,
         ``"cmd"`` (id ``None``) or ``"unknown"`` (also for a malformed vehicle id).
 
         Answers are remembered (the same few hundred topics arrive at the control rate); at
@@ -115,6 +133,8 @@ class MissionTopics:
             ("state", self._state),
             ("status", self._status),
             ("last", self._last),
+            ("clock_ask", self._clock_ask),
+            ("clock_echo", self._clock_echo),
         ):
             if topic.startswith(prefix):
                 tail = topic[len(prefix) :]

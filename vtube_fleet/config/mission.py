@@ -33,6 +33,10 @@ from vtube_fleet.frames import TubeFrame
 
 __all__ = [
     "AFTER_EXIT",
+    "DEFAULT_BATTERY_DRAIN_PCT_PER_MIN",
+    "DEFAULT_MAX_CLOCK_OFFSET_S",
+    "MAX_CLOCK_OFFSET_S",
+    "PX4_LAND_SPEED_M_S",
     "FENCE_ACTIONS",
     "MAX_ALTITUDE_M",
     "MISSION_KEYS",
@@ -50,6 +54,21 @@ __all__ = [
 DEFAULT_ACCURACY_FACTOR = 2.0
 #: D: the estimate disturbance left after compensation (m/s; docs/fleet.md).
 DEFAULT_DISTURBANCE_M_S = 0.25
+
+#: The charge a vehicle uses per minute in the air (%/min) unless the mission says: a
+#: multicopter that flies 20 minutes on a full pack (docs/fleet.md, "Batteries").
+DEFAULT_BATTERY_DRAIN_PCT_PER_MIN = 5.0
+#: How far an MQTT agent's clock may be from the coordinator's (s) unless the mission says
+#: (docs/mqtt.md, "Clocks"): two agents within it are within 50 ms (one control period at
+#: 20 Hz) of each other.
+DEFAULT_MAX_CLOCK_OFFSET_S = 0.025
+#: The largest ``max_clock_offset_s``: half the bus's limit on stamps from the future
+#: (``vtube_fleet.bus.validate.MAX_FUTURE_S`` = 0.25 s): two agents within it of the coordinator
+#: are within 0.25 s of each other, so no honest state is refused as coming from the future.
+MAX_CLOCK_OFFSET_S = 0.125
+#: PX4's MPC_LAND_SPEED default (m/s): how fast a vehicle comes down in Land near the ground
+#: (faster above MPC_LAND_ALT1), for the mission's expected airborne time.
+PX4_LAND_SPEED_M_S = 0.7
 
 #: What a vehicle does once it has crossed the finishing line (Assumption 2).
 AFTER_EXIT: tuple[str, ...] = ("continue", "hold", "land")
@@ -99,6 +118,10 @@ class MissionConfig:
     safety_margin_m: float | None = None
     fence_action: str = "hold"
     fence_margin_m: float = 1.0
+    battery_reserve_pct: float = 20.0
+    battery_drain_pct_per_min: float = DEFAULT_BATTERY_DRAIN_PCT_PER_MIN
+    expected_airborne_s: float | None = None
+    max_clock_offset_s: float = DEFAULT_MAX_CLOCK_OFFSET_S
     signing_key_file: str | None = None
 
     @property
@@ -219,6 +242,27 @@ MISSION_KEYS: tuple[Key, ...] = (
         default="hold", choices=FENCE_ACTIONS),
     Key("fence_margin_m", "number", "the fence polygon lies r_s + this outside the tube's "
         "legs and behind the start base", "m", 1.0, bound=NON_NEGATIVE),
+    Key("battery_reserve_pct", "number", "the battery charge a vehicle keeps in reserve: "
+        "before arming every vehicle must report this plus the mission's use "
+        "(`battery_drain_pct_per_min` × `expected_airborne_s`); in the air a vehicle that "
+        "reports less lands where it is (an obstacle for the others). 0 with a drain of 0: no "
+        "battery check", "%", 20.0,
+        bound=Bound(0.0, 100.0, low_inclusive=True, high_inclusive=False, interval=True)),
+    Key("battery_drain_pct_per_min", "number", "the charge a vehicle uses per minute in the "
+        "air (100 / its endurance in minutes on a full pack)", "%/min",
+        DEFAULT_BATTERY_DRAIN_PCT_PER_MIN,
+        bound=Bound(0.0, 100.0, low_inclusive=True,
+                    why="more empties a full pack in under a minute")),
+    Key("expected_airborne_s", "number", "how long each vehicle is in the air, for the "
+        "battery check before arming", "s", None, bound=POSITIVE,
+        default_text="derived: the climb (`altitude_m / climb_speed_m_s`) + the longest slot's "
+        "path to the finishing line plus `exit_clear_m` at v_min (at most "
+        "`mission_timeout_s`) + the descent at PX4's MPC_LAND_SPEED (0.7 m/s)"),
+    Key("max_clock_offset_s", "number", "an MQTT agent refuses to fly when its clock may be "
+        "further than this from the coordinator's (measured offset + half the round trip; "
+        "docs/mqtt.md, clocks)", "s", DEFAULT_MAX_CLOCK_OFFSET_S,
+        bound=Bound(0.0, MAX_CLOCK_OFFSET_S, why="half the bus's 0.25 s limit on stamps "
+                    "from the future")),
     Key("signing_key_file", "text", "MAVLink 2 signing key file (32 bytes, mode 0600), "
         "relative to the mission file; `{slot}` in the name = one key per vehicle. Every "
         "MAVLink packet is then signed and only signed ones are accepted (mavlink backend "
@@ -314,6 +358,34 @@ class Mission:
     def frame(self) -> TubeFrame:
         return self.config.frame
 
+    @property
+    def expected_airborne_s(self) -> float:
+        """How long each vehicle is in the air (s): ``expected_airborne_s`` when the mission
+        says, else the climb (``altitude_m / climb_speed_m_s``) + the tube (the longest slot's
+        path to the finishing line, plus ``exit_clear_m``, at v_min: the controller never
+        commands less, paper note 9; at most ``mission_timeout_s``, after which the run ends)
+        + the descent (``altitude_m`` at :data:`PX4_LAND_SPEED_M_S`). The fleet climbs and
+        enters the tube together and lands once the last vehicle is out, so every vehicle is
+        in the air about as long as the slowest."""
+        cfg = self.config
+        if cfg.expected_airborne_s is not None:
+            return float(cfg.expected_airborne_s)
+        sc = self.scenario
+        tube = sc.tube
+        path = float(np.max(tube.length - np.asarray(tube.xi(self.slots), float)))
+        tube_s = min((max(path, 0.0) + cfg.exit_clear_m) / sc.robots.v_min,
+                     cfg.mission_timeout_s)
+        return (cfg.altitude_m / cfg.climb_speed_m_s + tube_s
+                + cfg.altitude_m / PX4_LAND_SPEED_M_S)
+
+    @property
+    def battery_needed_pct(self) -> float:
+        """The charge (%) every vehicle must report before arming: ``battery_reserve_pct`` +
+        ``battery_drain_pct_per_min`` × :attr:`expected_airborne_s` (in minutes)."""
+        cfg = self.config
+        return (cfg.battery_reserve_pct
+                + cfg.battery_drain_pct_per_min * self.expected_airborne_s / 60.0)
+
     def slot_geodetic(self) -> np.ndarray:
         """(M, 3) lat_deg, lon_deg, alt_m (AMSL, ground = ``origin_alt_m``) of the slots."""
         lat, lon, alt = self.frame.tube_to_geodetic(self.slots[:, 0], self.slots[:, 1], 0.0)
@@ -355,4 +427,14 @@ def load_mission(path: str | os.PathLike[str]) -> Mission:
         raise ConfigError(f"{source}: [robots].v_max: must be <= {PX4_MAX_HORIZONTAL_M_S:g} "
                           f"(PX4's MPC_XY_VEL_MAX default: faster setpoints are clipped), got "
                           f"{scenario.robots.v_max:g}")
-    return Mission(scenario, parse_mission_config(scenario.extra["mission"], source))
+    mission = Mission(scenario, parse_mission_config(scenario.extra["mission"], source))
+    cfg = mission.config
+    need = mission.battery_needed_pct
+    if need > 100.0:
+        raise ConfigError(f"{source}: [mission].battery_reserve_pct: the reserve "
+                          f"{cfg.battery_reserve_pct:g} % + battery_drain_pct_per_min "
+                          f"{cfg.battery_drain_pct_per_min:g} %/min × the expected "
+                          f"{mission.expected_airborne_s:.0f} s in the air = {need:.0f} % of a "
+                          f"full pack: no vehicle could fly it (lower the drain or the reserve, "
+                          f"or set expected_airborne_s)")
+    return mission

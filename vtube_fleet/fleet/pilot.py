@@ -22,7 +22,8 @@ hovers at the mission altitude until the tube flight starts.
 
 **Faults** are found by the tick's rules (:data:`~vtube_fleet.fleet.tick.FAULT_RULES`) and
 applied here (:meth:`fault`): phase LOST — the tick stops commanding the vehicle and the others
-see a static obstacle at its last position (and re-partition around it).
+see a static obstacle at its last position (and re-partition around it); or LANDING (a low
+battery) — PX4 lands it where it is, and the others see a stopped vehicle, an obstacle too.
 """
 
 from __future__ import annotations
@@ -191,9 +192,9 @@ class VehiclePilot:
             getattr(log, "warning" if level in ("warning", "error") else "info")(
                 "%s: %s", self.name, text)
 
-    def set_phase(self, phase: Phase, why: str = "") -> bool:
-        """Set the phase (the table's column), wake the waiters, tell the event sink; True if
-        it changed."""
+    def set_phase(self, phase: Phase, why: str = "", level: str | None = None) -> bool:
+        """Set the phase (the table's column), wake the waiters, tell the event sink (at
+        ``level``; default: a warning for LOST and FAILED); True if it changed."""
         phase = Phase(phase)
         old = self.phase
         if phase == old:
@@ -203,8 +204,9 @@ class VehiclePilot:
         for fut in waiters:
             if not fut.done():
                 fut.set_result(None)
-        self.event(f"{old.value} → {phase.value}" + (f" ({why})" if why else ""),
-                   "warning" if phase in (Phase.LOST, Phase.FAILED) else "info")
+        if level is None:
+            level = "warning" if phase in (Phase.LOST, Phase.FAILED) else "info"
+        self.event(f"{old.value} → {phase.value}" + (f" ({why})" if why else ""), level)
         return True
 
     def spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
@@ -228,7 +230,7 @@ class VehiclePilot:
             self.set_phase(Phase.FAILED, reason)
         elif action == "land":
             self.reason = self.reason or reason
-            self.begin_land(reason)
+            self.begin_land(reason, level="warning")
         else:
             self.declare_lost(reason)
 
@@ -284,11 +286,12 @@ class VehiclePilot:
         self.table.offboard_seen[self.row] = False
         self._run_transition(self._hold_or_land(), "hold")
 
-    def begin_land(self, why: str) -> None:
-        """LAND in place (:meth:`land_command`: retried, reported by name if unanswered)."""
+    def begin_land(self, why: str, level: str | None = None) -> None:
+        """LAND in place (:meth:`land_command`: retried, reported by name if unanswered);
+        ``level``: of the phase change's event (a fault's landing warns)."""
         if self.phase in (Phase.LANDING, Phase.LANDED, Phase.LOST):
             return
-        self.set_phase(Phase.LANDING, why)
+        self.set_phase(Phase.LANDING, why, level)
         self.table.offboard_seen[self.row] = False
         self._run_transition(self.land_command(), "land")
 
@@ -464,7 +467,8 @@ class VehiclePilot:
 
         cfg = self.cfg
         await self.wait_ready()
-        await audit_and_fence([self], self.mission, fence=self.fence)
+        pre = await audit_and_fence([self], self.mission, fence=self.fence)
+        await pre.check_batteries()
         await self.arm_and_climb()
         if start is not None:
             await start()

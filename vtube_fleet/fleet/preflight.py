@@ -13,9 +13,12 @@ agent's one vehicle) and reports through an event sink; every failure is a one-l
    age, reported accuracy) and :func:`preflight_report` (the paper's conditions with the flown
    radii and the vehicles' actual positions);
 5. :meth:`~Preflight.install_fences`: the tube as every vehicle's PX4 geofence;
-6. :meth:`~Preflight.check_loop`: the control loop keeps its rate before anything arms.
+6. :meth:`~Preflight.check_batteries`: every vehicle's reported charge covers the mission
+   (:func:`battery_problems`);
+7. :meth:`~Preflight.check_loop`: the control loop keeps its rate before anything arms.
 
-:func:`audit_and_fence` is stages 3 and 5 for a pilot flying alone (``VehiclePilot.fly``).
+:func:`audit_and_fence` is stages 3 and 5 for a pilot flying alone (``VehiclePilot.fly``, which
+then checks its battery too).
 """
 
 from __future__ import annotations
@@ -55,7 +58,9 @@ __all__ = [
     "MEASURE_TRIES",
     "Preflight",
     "PreflightError",
+    "BATTERY_WAIT_S",
     "audit_and_fence",
+    "battery_problems",
     "measure_budget_links",
     "measure_links",
     "preflight_report",
@@ -251,6 +256,34 @@ def preflight_report(
 
 
 
+#: Seconds :meth:`Preflight.check_batteries` waits for every vehicle's first battery report
+#: (PX4 sends SYS_STATUS at 5 Hz from half a second after boot, BATTERY_STATUS at 0.5 Hz).
+BATTERY_WAIT_S = 5.0
+
+
+def battery_problems(pilots: Sequence[VehiclePilot], mission: Mission) -> list[str]:
+    """One line per vehicle whose reported charge does not cover the mission:
+    :attr:`~vtube_fleet.config.mission.Mission.battery_needed_pct` (``battery_reserve_pct``
+    + ``battery_drain_pct_per_min`` × ``expected_airborne_s``), or that reports none."""
+    need = mission.battery_needed_pct
+    out = []
+    for p in pilots:
+        pct = 100.0 * p.link.state.battery_remaining
+        if math.isnan(pct):
+            out.append(f"{p.name}: reports no battery charge")
+        elif pct < need:
+            out.append(f"{p.name}: battery {pct:.0f} % < {need:.1f} % needed")
+    return out
+
+
+def battery_needs(mission: Mission) -> str:
+    """What :func:`battery_problems` requires, with the numbers (for its messages)."""
+    cfg = mission.config
+    return (f"battery_reserve_pct {cfg.battery_reserve_pct:g} % + battery_drain_pct_per_min "
+            f"{cfg.battery_drain_pct_per_min:g} %/min × {mission.expected_airborne_s:.0f} s "
+            f"expected in the air = {mission.battery_needed_pct:.1f} %")
+
+
 #: ``event(text, vehicle_id=None, level="info", echo=True)``: where the stages report.
 Events = Callable[..., None]
 
@@ -280,6 +313,9 @@ class Preflight:
             "fence": None, "fence_items": 0, "gf_action": None, "px4_params": [],
             "params_fixed": {}}
         self.param_restore: list[dict[str, float]] = []
+        #: summary "battery": what the check before arming required and found
+        #: (:meth:`check_batteries`; None: not reached)
+        self.battery: dict[str, Any] | None = None
 
     # -- reporting -------------------------------------------------------------------------------
     def listed(self, problems: Sequence[str]) -> str:
@@ -453,7 +489,40 @@ class Preflight:
                    f"{geom.exit_m:.2f} m past the finish), {geom.circle_radii.size} exclusion "
                    f"circle(s); GF_ACTION = {GF_ACTION_VALUES[action]} ({action})")
 
-    # -- 6. the control loop -----------------------------------------------------------------------
+    # -- 6. the batteries ---------------------------------------------------------------------
+    async def check_batteries(self) -> None:
+        """Before arming: every vehicle reports at least the charge the mission needs
+        (:func:`battery_problems`; waits up to :data:`BATTERY_WAIT_S` for the first reports);
+        one line per vehicle that does not, with the numbers. Off when the mission needs
+        nothing (``battery_reserve_pct`` and ``battery_drain_pct_per_min`` both 0)."""
+        mission, cfg = self.mission, self.cfg
+        need = mission.battery_needed_pct
+        self.battery = {"reserve_pct": cfg.battery_reserve_pct,
+                        "drain_pct_per_min": cfg.battery_drain_pct_per_min,
+                        "expected_airborne_s": round(mission.expected_airborne_s, 1),
+                        "needed_pct": round(need, 1), "at_arming_pct": None}
+        if need <= 0.0:
+            self.event("battery check off (battery_reserve_pct and battery_drain_pct_per_min "
+                       "are 0)", level="warning")
+            return
+        loop = asyncio.get_running_loop()
+        end = loop.time() + BATTERY_WAIT_S
+        while (any(math.isnan(p.link.state.battery_remaining) for p in self.pilots)
+               and loop.time() < end):
+            await asyncio.sleep(0.2)  # the next SYS_STATUS (5 Hz)
+        found = [100.0 * p.link.state.battery_remaining for p in self.pilots]
+        self.battery["at_arming_pct"] = [None if math.isnan(x) else round(x, 1) for x in found]
+        problems = battery_problems(self.pilots, mission)
+        if problems:
+            raise PreflightError(f"preflight failed, nothing armed: {len(problems)} of "
+                                 f"{len(self.pilots)} vehicles' batteries do not cover the "
+                                 f"mission ({battery_needs(mission)}): "
+                                 + self.listed(problems))
+        low = min(found)
+        self.event(f"batteries: at least {low:.0f} % on every vehicle, {need:.1f} % needed "
+                   f"({battery_needs(mission)})")
+
+    # -- 7. the control loop -----------------------------------------------------------------------
     async def check_loop(self, clock: ControlClock) -> None:
         """Before arming: :func:`~vtube_fleet.fleet.budget.loop_problem` over the last
         LOOP_CHECK_S of clock time (at least LOOP_MIN_S: waits for it); a failure is judged

@@ -55,6 +55,7 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
             "last_position": None if not p.has_position() else [
                 round(float(p.xy[0]), 3), round(float(p.xy[1]), 3)],
             "setpoints_sent": p.setpoints_sent,
+            "battery_pct": finite_or_none(round(100.0 * p.link.state.battery_remaining, 1)),
         })
     last_exit = [p.exit_time_s for p in sup.pilots if p.exit_time_s is not None]
     extra: dict[str, Any] = {
@@ -64,6 +65,7 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
         "outcome": sup.outcome,
         "reason": sup.reason,
         "onboard": dict(sup.onboard),  # the fence and the PX4 parameter audit
+        "battery": sup.preflight.battery,  # the check before arming (fleet/preflight.py)
         "mavlink_signing": signing_summary(sup),
         "vehicles": len(sup.pilots),
         "lost": [p.vehicle_id for p in sup.pilots if p.phase == Phase.LOST],

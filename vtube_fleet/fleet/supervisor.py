@@ -337,7 +337,8 @@ class Supervisor:
         self.partitions += 1
         where = ", ".join(f"({o.center[0]:.2f}, {o.center[1]:.2f}) r={o.radius:.2f}"
                           for o in plan.lost)
-        self.event(f"re-partitioned around lost vehicle(s): {len(plan.partition.sub_tubes)} "
+        self.event(f"re-partitioned around lost or stopped vehicle(s): "
+                   f"{len(plan.partition.sub_tubes)} "
                    f"sub-tubes; lost obstacles {where or 'none inside the tube'}",
                    level="warning")
         self.recorder.log_partition(plan.partition, t)
@@ -525,6 +526,7 @@ class Supervisor:
             self._heap_frozen = True
 
     async def _takeoff(self) -> None:
+        await self.preflight.check_batteries()
         await self.preflight.check_loop(self.clock)
         self._set_stage("takeoff")
         problems = await self.preflight.gather_named(

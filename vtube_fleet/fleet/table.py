@@ -65,15 +65,16 @@ class FleetTable:
     with ``cmd_set`` and ``cmd_in_tube`` (this tick's command is the tube controller's), the
     frozen position of a LOST vehicle ``lost`` with ``lost_set``, ``phase`` codes,
     ``offboard_seen`` (OFFBOARD confirmed once), ``still_since_s`` / ``still_xy`` (a slow spell
-    being timed, and where it began), ``in_transition`` (a mode change in flight),
-    ``standstill`` (stand still in the tube: zero velocity, no controller; the MQTT agent's
-    broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none), ``exit_s``
-    (mission time of the exit), ``setpoints_sent``, ``ever_sent`` and the published state's
-    ``seq``."""
+    being timed, and where it began), ``stop_xy`` / ``stop_set`` (where a stopped vehicle tells
+    the others it is: :func:`~vtube_fleet.fleet.tick.own_states`), ``in_transition`` (a mode
+    change in flight), ``standstill`` (stand still in the tube: zero velocity, no controller;
+    the MQTT agent's broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none),
+    ``exit_s`` (mission time of the exit), ``setpoints_sent``, ``ever_sent`` and the published
+    state's ``seq``."""
 
     _COLUMNS = ("xy", "vel", "up", "sample_s", "has", "cmd", "cmd_set", "cmd_in_tube", "lost",
-                "lost_set", "phase", "offboard_seen", "still_since_s", "still_xy",
-                "in_transition", "standstill", "takeoff_xy", "exit_s", "setpoints_sent",
+                "lost_set", "phase", "offboard_seen", "still_since_s", "still_xy", "stop_xy",
+                "stop_set", "in_transition", "standstill", "takeoff_xy", "exit_s", "setpoints_sent",
                 "ever_sent", "seq")
 
     def __init__(self, ids: Sequence[int], mission: Mission, frame: TubeFrame | None = None
@@ -98,6 +99,8 @@ class FleetTable:
         self.offboard_seen = np.zeros(n, bool)
         self.still_since_s = np.full(n, np.nan)
         self.still_xy = np.full((n, 2), np.nan)
+        self.stop_xy = np.full((n, 2), np.nan)
+        self.stop_set = np.zeros(n, bool)
         self.in_transition = np.zeros(n, bool)
         self.standstill = np.zeros(n, bool)
         self.takeoff_xy = np.full((n, 2), np.nan)

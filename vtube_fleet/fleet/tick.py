@@ -9,8 +9,9 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
 2. **sense** (:func:`sense`): new local positions into the tube frame (one vectorized frame
    conversion), the estimate compensator fed;
 3. **faults** (:func:`find_faults` over :data:`FAULT_RULES`): every rule evaluated for every
-   vehicle; a vehicle that hits one is LOST (a static obstacle at its last position) or FAILED
-   while arming; touch-downs of holding/landing vehicles are noticed;
+   vehicle; a vehicle that hits one is LOST (a static obstacle at its last position) or lands
+   where it is (a low battery: stopped, an obstacle until it is down), or FAILED while arming;
+   touch-downs of holding/landing vehicles are noticed;
 4. **states** (:func:`own_states`): what each vehicle tells the others (published on the bus
    by an agent);
 5. **classify** (:func:`~vtube_fleet.fleet.neighbour_view.classify`): the own states plus those
@@ -53,7 +54,7 @@ from vtube_fleet.fleet.neighbour_view import NeighbourView, States, classify
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable, phase_mask
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_velocities_ned
-from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, Phase
+from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, STOPPED_PHASES, Phase
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.fleet.pilot import VehiclePilot
@@ -74,6 +75,7 @@ __all__ = [
     "read_links",
     "sense",
     "slow_m_s",
+    "stop_anchor_m",
     "unresponsive_s",
     "used_ages",
     "vertical_down_m_s",
@@ -90,6 +92,7 @@ _LOST = PHASE_CODE[Phase.LOST]
 _OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
 _CHECKED_MASK = phase_mask(AIRBORNE_PHASES | {Phase.ARMING})
 _FLYING_TUBE_MASK = phase_mask({Phase.IN_TUBE, Phase.TAKEOFF})
+_STOPPED_MASK = phase_mask(STOPPED_PHASES)
 
 #: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
 #: estimate-disturbance compensation, which cancels most of the take-off drift).
@@ -111,8 +114,9 @@ class LinkColumns:
     local position ``position_s`` (NaN: none), whether its GPS origin is known
     (``origin_known``), whether it reports OFFBOARD (``offboard``), armed (``armed``: True) and
     disarmed (``disarmed``: False; unknown is neither), on the ground (``on_ground``) or in the
-    air (``in_air``), its one-way latency ``latency_s`` (NaN: not measured yet) and whether it
-    is ``closed``. The links only change between ticks (their telemetry arrives in the event
+    air (``in_air``), its one-way latency ``latency_s`` (NaN: not measured yet), whether it
+    is ``closed`` and its remaining battery charge ``battery_pct`` (%, NaN: not reported). The
+    links only change between ticks (their telemetry arrives in the event
     loop), so one snapshot serves every step of a tick."""
 
     states: list[VehicleState]
@@ -125,6 +129,7 @@ class LinkColumns:
     in_air: np.ndarray
     latency_s: np.ndarray
     closed: np.ndarray
+    battery_pct: np.ndarray
 
 
 def read_links(links: Sequence[VehicleLink]) -> LinkColumns:
@@ -135,11 +140,12 @@ def read_links(links: Sequence[VehicleLink]) -> LinkColumns:
     cols = np.array([(nan if (t := s.last_position_s) is None else t, s.origin is not None,
                       s.flight_mode == "OFFBOARD", s.armed is True, s.armed is False,
                       s.landed_state == "ON_GROUND", s.landed_state == "IN_AIR",
-                      nan if (x := lk.latency_s) is None else x, lk.closed)
-                     for lk, s in zip(links, states, strict=True)], dtype=float).reshape(n, 9)
+                      nan if (x := lk.latency_s) is None else x, lk.closed,
+                      s.battery_remaining)
+                     for lk, s in zip(links, states, strict=True)], dtype=float).reshape(n, 10)
     flag = cols[:, 1:7] == 1.0
     return LinkColumns(states, cols[:, 0], flag[:, 0], flag[:, 1], flag[:, 2], flag[:, 3],
-                       flag[:, 4], flag[:, 5], cols[:, 7], cols[:, 8] == 1.0)
+                       flag[:, 4], flag[:, 5], cols[:, 7], cols[:, 8] == 1.0, 100.0 * cols[:, 9])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -312,6 +318,30 @@ def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
     return hit, why
 
 
+#: The phases a low battery lands from (landing already, nothing to change).
+_LANDS_MASK = phase_mask({Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED,
+                          Phase.HOLDING})
+
+
+def _battery_low(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
+    """Reports less charge than ``battery_reserve_pct`` (0: off): it lands where it is, and
+    while it comes down it is a stopped vehicle, an obstacle in the tube for everyone
+    (:data:`~vtube_fleet.state.STOPPED_PHASES`). The check before arming
+    (:meth:`~vtube_fleet.fleet.preflight.Preflight.check_batteries`) makes this rare: the
+    mission's drain or duration was underestimated, or the pack is failing."""
+    reserve = ctx.mission.config.battery_reserve_pct
+    pct = ctx.links.battery_pct
+    if reserve <= 0.0:
+        return np.zeros(ctx.tab.n, bool), str
+    hit = _LANDS_MASK[ctx.tab.phase] & (pct < reserve)  # NaN (not reported) is never below
+
+    def why(r: int) -> str:
+        return (f"battery {float(pct[r]):.0f} % < battery_reserve_pct = {reserve:g} %: lands "
+                f"where it is, an obstacle for the others until it is on the ground")
+
+    return hit, why
+
+
 #: The in-flight fault rules, in order of precedence (a vehicle takes the first it hits). A
 #: rule added here acts for every vehicle of every process (supervisor and agents alike).
 FAULT_RULES: tuple[FaultRule, ...] = (
@@ -319,6 +349,7 @@ FAULT_RULES: tuple[FaultRule, ...] = (
     FaultRule("left_offboard", _left_offboard),
     FaultRule("disarmed_in_air", _disarmed_in_air),
     FaultRule("unresponsive", _unresponsive),
+    FaultRule("battery_low", _battery_low, action="land"),
 )
 
 
@@ -350,16 +381,39 @@ def find_faults(tab: FleetTable, links: LinkColumns, mission: Mission, now_s: fl
 # ----------------------------------------------------------------------------------------------
 # 4. states
 # ----------------------------------------------------------------------------------------------
-def own_states(tab: FleetTable, links: LinkColumns, now_mono: float, now_wall: float
-               ) -> tuple[States, np.ndarray, np.ndarray]:
+def stop_anchor_m(mission: Mission) -> float:
+    """How far a stopped vehicle (holding, landing) may move from the position it tells the
+    others before that position follows it: half of ``lost_obstacle_margin_m`` (at least
+    :data:`MIN_ANCHOR_M`), so it stays inside the obstacle it is for them."""
+    return max(0.5 * mission.config.lost_obstacle_margin_m, MIN_ANCHOR_M)
+
+
+#: The smallest step of a stopped vehicle's told position (m): :func:`stop_anchor_m`.
+MIN_ANCHOR_M = 0.1
+
+
+def own_states(tab: FleetTable, links: LinkColumns, now_mono: float, now_wall: float,
+               anchor_m: float = MIN_ANCHOR_M) -> tuple[States, np.ndarray, np.ndarray]:
     """What each vehicle with a position sample tells the others now: a LOST vehicle at its
-    frozen position with zero velocity, the stamp the wall-clock time its position was measured
-    (its age: since it arrived plus the one-way link latency). Returns the states, their table
-    rows and their ages (s)."""
+    frozen position with zero velocity; a stopped one (holding, landing: an obstacle for the
+    others, re-partitioned around) at its *anchor* with zero velocity: where it stopped, moved
+    to where it is only once it is more than ``anchor_m`` away (PX4 brakes, then holds or
+    lands with a slow drift: the estimate's wander would otherwise make every process
+    re-partition the tube every tick, each at a slightly different moment); the stamp the
+    wall-clock time its position was measured (its age: since it arrived plus the one-way link
+    latency). Returns the states, their table rows and their ages (s)."""
+    stopped = _STOPPED_MASK[tab.phase] & tab.has
+    tab.stop_set &= stopped
+    if stopped.any():
+        d = np.hypot(tab.xy[:, 0] - tab.stop_xy[:, 0], tab.xy[:, 1] - tab.stop_xy[:, 1])
+        move = stopped & (~tab.stop_set | (d > anchor_m))  # (NaN > x is False: not set yet)
+        tab.stop_xy[move] = tab.xy[move]
+        tab.stop_set |= move
     rows = np.flatnonzero(np.isfinite(tab.sample_s))
     lost = tab.lost_set[rows, None]
-    pos = np.where(lost, tab.lost[rows], tab.xy[rows])
-    vel = np.where(lost, 0.0, tab.vel[rows])
+    anchored = tab.stop_set[rows, None]
+    pos = np.where(lost, tab.lost[rows], np.where(anchored, tab.stop_xy[rows], tab.xy[rows]))
+    vel = np.where(lost | anchored, 0.0, tab.vel[rows])
     ages = (now_mono - tab.sample_s[rows]) + np.nan_to_num(links.latency_s[rows], nan=0.0)
     return States(tab.ids[rows], pos, vel, tab.phase[rows], now_wall - ages), rows, ages
 
@@ -584,6 +638,8 @@ class Tick:
         #: the radius of the obstacle a lost vehicle becomes: physical r_s + margin
         self.lost_radius_m = (mission.scenario.controller.r_s
                               + self.cfg.lost_obstacle_margin_m)
+        #: how far a stopped vehicle moves before the others see it move (:func:`own_states`)
+        self.anchor_m = stop_anchor_m(mission)
         #: what the own vehicles published last (one message per row with a position)
         self.last_states: dict[int, Any] = {}
 
@@ -619,7 +675,7 @@ class Tick:
         for f in faults:
             pilots[f.row].fault(f.rule.action, f.reason)
         # 4. states
-        states, rows, ages = own_states(tab, links, now_mono, now_wall)
+        states, rows, ages = own_states(tab, links, now_mono, now_wall, self.anchor_m)
         if self.publish is not None and len(states):
             tab.seq[rows] += 1
             for msg in states.messages(tab.seq[rows]):

@@ -158,6 +158,9 @@ class VehicleState:
     pos_accuracy_m: float = _NAN
     gnss_h_acc_m: float = _NAN  #: GNSS receiver horizontal accuracy (GPS_RAW_INT.h_acc)
     gnss_fix_type: int | None = None  #: GPS_RAW_INT.fix_type (3 = 3D, 6 = RTK fixed)
+    #: remaining battery charge, 0..1 (SYS_STATUS / MAVSDK's battery ``remaining_percent``);
+    #: NaN until reported, or when the vehicle does not know it (-1 on the wire)
+    battery_remaining: float = _NAN
     #: the SITL simulator's ground truth (HIL_STATE_QUATERNION), only when asked for: WGS84
     #: position (alt AMSL) and NED velocity; NaN until received
     truth_lat_deg: float = _NAN

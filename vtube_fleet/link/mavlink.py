@@ -464,6 +464,8 @@ class MavlinkLink(VehicleLink):
 
     def _on_sys_status(self, m: Any, now: float) -> None:
         st = self.state
+        pct = m.battery_remaining  # -1: the vehicle does not know
+        st.battery_remaining = pct * 0.01 if 0 <= pct <= 100 else math.nan
         problems = tuple(px4.health_problems(m.onboard_control_sensors_health))
         if problems != st.health_problems:
             st.health_problems = problems

@@ -601,6 +601,7 @@ class MavsdkLink(VehicleLink):
             (t.subscribe_status_text, self._on_status_text),
             (t.subscribe_raw_gps, self._on_raw_gps),
             (t.subscribe_gps_info, self._on_gps_info),
+            (t.subscribe_battery, self._on_battery),
         ]
         d = self._direct
         if d is not None:
@@ -685,6 +686,10 @@ class MavsdkLink(VehicleLink):
             log.warning("%s: vehicle left OFFBOARD (now %s)", self.name, mode.name)
             self._offboard_active = False
         self._notify_state()
+
+    def _on_battery(self, battery: Any) -> None:
+        pct = float(battery.remaining_percent)  # 0..100 (MAVSDK >= 2); NaN: unknown
+        self.state.battery_remaining = pct * 0.01 if 0.0 <= pct <= 100.0 else math.nan
 
     def _on_landed_state(self, landed: Any) -> None:
         self.state.landed_state = landed.name

@@ -40,6 +40,7 @@ __all__ = [
     "MissionRunError",
     "RunResult",
     "bus_safety_budget",
+    "clock_latency_s",
     "default_max_age_s",
     "default_mission_id",
     "mission_bus_setup",
@@ -76,10 +77,22 @@ def default_max_age_s(mission: Any) -> float:
     return min(3.0 * cfg.period_s, cfg.neighbour_max_age_s)
 
 
-def bus_safety_budget(mission: Any, measured: Any, max_age_s: float) -> Any:
+def clock_latency_s(mission: Any, own_bound_s: float | None = None) -> float:
+    """What clocks add to L (docs/mqtt.md, "Clocks"): a neighbour's state is stamped by its
+    agent's clock and aged by ours, so its true age is off by the difference of the two
+    clocks: at most this agent's measured bound (``own_bound_s``, |offset| + delay / 2 to the
+    coordinator's) plus ``max_clock_offset_s`` (the bound every other agent kept, or it
+    refused); 2 × ``max_clock_offset_s`` before anybody measured (the coordinator)."""
+    bound = float(mission.config.max_clock_offset_s)
+    return 2.0 * bound if own_bound_s is None else float(own_bound_s) + bound
+
+
+def bus_safety_budget(mission: Any, measured: Any, max_age_s: float,
+                      clock_bound_s: float | None = None) -> Any:
     """The MQTT agents' :class:`~vtube_fleet.fleet.budget.SafetyBudget`: the fleet's
-    :func:`~vtube_fleet.fleet.budget.mission_budget` with ``max_age_s`` added to L (a
-    neighbour's state is used up to that old). ``measured``: a
+    :func:`~vtube_fleet.fleet.budget.mission_budget` with ``max_age_s`` (a neighbour's state
+    is used up to that old) and the clocks' share (:func:`clock_latency_s` of this agent's
+    measured ``clock_bound_s``) added to L. ``measured``: a
     :class:`~vtube_fleet.fleet.budget.LinkMeasurement` (an agent's own), or None for the
     coordinator's assumptions (:data:`ASSUMED_LINK_LATENCY_S`, :data:`ASSUMED_ACCURACY_M`)."""
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
@@ -87,7 +100,8 @@ def bus_safety_budget(mission: Any, measured: Any, max_age_s: float) -> Any:
     if measured is None:
         measured = LinkMeasurement(ASSUMED_LINK_LATENCY_S - mission.config.latency_headroom_s,
                                    0.0, ASSUMED_ACCURACY_M)
-    return mission_budget(mission, measured, extra_latency_s=max_age_s)
+    return mission_budget(mission, measured,
+                          extra_latency_s=max_age_s + clock_latency_s(mission, clock_bound_s))
 
 
 def needed_cell_m(mission: Any, max_age_s: float, delta_m: float) -> float:
@@ -182,7 +196,7 @@ class Coordinator:
             raise MissionRunError(f"--broker-timeout: {why}, got {broker_timeout_s:g}")
         self.broker_timeout_s = broker_timeout_s
         self.bus = MqttBus(broker, self.mission_id, credentials=credentials, insecure=insecure,
-                           limits=mission_state_limits(self.mission))
+                           limits=mission_state_limits(self.mission), serve_clock=True)
         self.run_id = ""
         self.announced: MissionConfigMsg | None = None
         self.t_start_wall: float | None = None
@@ -284,6 +298,7 @@ class Coordinator:
             joined = [v for v in range(self.vehicles) if self.joined(v)]
             ready = [v for v in range(self.vehicles) if self.ready(v)]
             if len(ready) == self.vehicles:
+                self.say(f"clocks: {self.clock_line()}")
                 return
             now = loop.time()
             if now > deadline:
@@ -308,6 +323,26 @@ class Coordinator:
                          f"{len(ready)}/{self.vehicles} ready")
             with contextlib.suppress(TimeoutError):
                 await self.bus.wait_for(lambda: False, 0.2)
+
+    def clocks(self) -> list[dict[str, Any] | None]:
+        """Every vehicle's clock offset to ours, as its agent measured and reported it
+        (docs/mqtt.md, "Clocks"; None: not reported)."""
+        out: list[dict[str, Any] | None] = []
+        for vid in range(self.vehicles):
+            st = self.bus.statuses.get(vid)
+            c = st.clock if st is not None else None
+            out.append(None if c is None else {
+                "vehicle": vid, "offset_s": round(c.offset_s, 6), "delay_s": round(c.delay_s, 6),
+                "within_s": round(c.bound_s, 6), "samples": c.samples})
+        return out
+
+    def clock_line(self) -> str:
+        """``vehicle 0 +0.4 ms (within 0.9 ms), …`` of :meth:`clocks`."""
+        return ", ".join(f"vehicle {v} " + ("not reported" if c is None else
+                                            f"{round(1000 * c['offset_s'], 1) + 0.0:+.1f}"
+                                            f" ms (within "
+                                            f"{1000 * c['within_s']:.1f} ms)")
+                         for v, c in enumerate(self.clocks()))
 
     def _phase(self, vid: int) -> str:
         s = self.bus.latest().get(vid)
@@ -447,7 +482,8 @@ class Coordinator:
             return mon.summary(
                 mission_id=self.mission_id, run_id=self.run_id, config_hash=self.config_hash,
                 broker=self.broker, lost=self.lost_vehicles(),
-                vehicle_states=self.vehicle_table(),
+                vehicle_states=self.vehicle_table(), clocks=self.clocks(),
+                max_clock_offset_s=cfg.max_clock_offset_s,
                 wall_s=round(time.time() - (self.t_start_wall or time.time()), 3), **extra)
 
         def checkpoint() -> None:
@@ -558,6 +594,8 @@ class Coordinator:
                     "x_m": round(s.x_m, 3) if s else None,
                     "y_m": round(s.y_m, 3) if s else None,
                     "age_s": round(now - s.stamp_s, 3) if s else None,
+                    "clock_offset_s": (round(st.clock.offset_s, 6)
+                                       if st is not None and st.clock is not None else None),
                 }
             )
         return rows

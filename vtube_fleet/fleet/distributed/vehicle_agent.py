@@ -33,6 +33,7 @@ from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_LINK_LATENCY_S,
     DEFAULT_BROKER,
     bus_safety_budget,
+    clock_latency_s,
     default_max_age_s,
     default_mission_id,
     needed_cell_m,
@@ -42,6 +43,7 @@ from vtube_fleet.fleet.neighbour_view import States, states_of
 from vtube_fleet.fleet.onboard import NO_FENCE_WARNING
 from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.preflight import (
+    Preflight,
     PreflightError,
     measure_budget_links,
     preflight_report,
@@ -59,6 +61,8 @@ __all__ = [
     "AgentRecording",
     "AgentRefused",
     "BACKOFF_JITTER",
+    "CLOCK_SAMPLES",
+    "CLOCK_TIMEOUT_S",
     "AgentControl",
     "BusNeighbours",
     "rejoin_grace_s",
@@ -74,6 +78,11 @@ log = logging.getLogger(__name__)
 
 
 
+
+#: Clock round trips an agent makes to the coordinator before it joins a run, and how long it
+#: waits for each (docs/mqtt.md, "Clocks"): the one of least delay is kept.
+CLOCK_SAMPLES = 8
+CLOCK_TIMEOUT_S = 1.0
 
 #: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
 _UP_STAGES = ("at_altitude", "in_tube", "exited", "done")
@@ -179,7 +188,8 @@ class AgentControl:
     start command on). A failed re-partition makes the vehicle hold, as the supervisor does."""
 
     def __init__(self, pilot: VehiclePilot, mqtt: MqttBus, mission: Any, plan: FlightPlan, *,
-                 max_age_s: float, broker_hold_limit_s: float = 30.0) -> None:
+                 max_age_s: float, broker_hold_limit_s: float = 30.0,
+                 wall_clock: Callable[[], float] = time.time) -> None:
         cfg = mission.config
         self.pilot = pilot
         self.mqtt = mqtt
@@ -190,7 +200,8 @@ class AgentControl:
         self.tick = Tick(pilot.table, [pilot], mission, plan, frame=pilot.frame,
                          neighbours=self.neighbours, publish=mqtt.publish,
                          on_exit=self._exited, on_replan_failed=self._replan_failed)
-        self.clock = ControlClock(cfg.period_s, self.step, guard=self._tick_failed)
+        self.clock = ControlClock(cfg.period_s, self.step, guard=self._tick_failed,
+                                  wall_clock=wall_clock)
         self.bus_hold: str | None = None  # why the vehicle stands still for the bus
         self.bus_hold_since: float | None = None  # monotonic
         self.bus_holds = 0  # how many times it stood still for the bus
@@ -221,6 +232,11 @@ class AgentControl:
     @property
     def cmd_in_tube(self) -> bool:
         return self.pilot.cmd_in_tube
+
+    @property
+    def battery_pct(self) -> float | None:
+        """The vehicle's last reported charge (%; None: none reported)."""
+        return finite_or_none(round(100.0 * self.pilot.link.state.battery_remaining, 1))
 
     @property
     def tick_gaps_s(self) -> list[float]:
@@ -347,15 +363,18 @@ class AgentRecording:
 
     def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
                  t0_s: float, out: Path | None = None,
-                 meta: dict[str, Any] | None = None, flown: Any = None) -> None:
+                 meta: dict[str, Any] | None = None, flown: Any = None,
+                 wall_clock: Callable[[], float] = time.time) -> None:
         """``out``: where the interim summaries go (:meth:`after_tick`; None: none);
-        ``meta``: keys every summary carries (mission and run id, config hash, broker);
-        ``flown``: the radii the run flies (r_s', r_a'), where the monitor looks for pairs."""
+        ``meta``: keys every summary carries (mission and run id, config hash, broker, the
+        clock); ``flown``: the radii the run flies (r_s', r_a'), where the monitor looks for
+        pairs; ``wall_clock``: the agent's."""
         from vtube_fleet.artifacts import SummaryPacer
         from vtube_fleet.fleet.distributed.monitor import RunMonitor
 
         self.vehicle = vehicle
         self.recorder = recorder
+        self.wall_clock = wall_clock
         self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s, flown=flown)
         self.out = out
         self.meta = dict(meta or {})
@@ -406,7 +425,7 @@ class AgentRecording:
         (seconds since the start command) and ``extra``; THE verdict applied (``unsafe``), or
         ``aborted`` after a failed safety evaluation. Sets :attr:`unsafe`."""
         mon = self.monitor
-        now = time.time() if now_wall is None else now_wall
+        now = self.wall_clock() if now_wall is None else now_wall
         stamp = mon.exit_stamp.get(self.vehicle)
         own: dict[str, Any] = {
             "kind": "agent",
@@ -416,6 +435,7 @@ class AgentRecording:
         }
         if pilot is not None:
             own.update(phase=pilot.phase.value, reason=pilot.reason, bus_holds=pilot.bus_holds,
+                       battery_pct=getattr(pilot, "battery_pct", None),
                        # its own control loop's health: a stall beyond T + L makes it hold
                        tick_gap_p99_s=finite_or_none(percentile_or_none(pilot.tick_gaps_s, 99)),
                        tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)),
@@ -504,8 +524,11 @@ class AgentProcess:
         credentials: str | Path | None = None,
         insecure: bool = False,
         fence: bool = True,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
-        """``credentials``: the agent's broker credentials file (``vtube-fleet bus-setup``);
+        """``wall_clock``: this agent's wall clock (state stamps, ages, the clock round trips;
+        a test skews it);
+        ``credentials``: the agent's broker credentials file (``vtube-fleet bus-setup``);
         ``insecure``: allow a plain-MQTT broker that is not on loopback;
         ``fence``: upload the tube as the vehicle's PX4 geofence before arming (``--no-fence``
         turns it off, with :data:`~vtube_fleet.fleet.onboard.NO_FENCE_WARNING`);
@@ -541,9 +564,10 @@ class AgentProcess:
         self._say: Callable[[str], None] = say if say is not None else log.info
         self.recording: AgentRecording | None = None
         self.summary_path: Path | None = None
+        self.wall_clock = wall_clock
         self.bus = MqttBus(broker, self.mission_id, vehicle, config_hash=self.hash,
                            credentials=credentials, insecure=insecure,
-                           limits=mission_state_limits(self.mission))
+                           limits=mission_state_limits(self.mission), wall_clock=wall_clock)
         self.run_cfg: MissionConfigMsg | None = None
         self.pilot: VehiclePilot | None = None
         self.control: AgentControl | None = None
@@ -638,7 +662,7 @@ class AgentProcess:
         cmd = self.bus.command
         if cmd is not None and cmd.run_id == cfg.run_id and cmd.command == "start":
             raise self.refuse(
-                f"run {cfg.run_id} already started {time.time() - cmd.stamp_s:.0f} s ago; a "
+                f"run {cfg.run_id} already started {self.wall_clock() - cmd.stamp_s:.0f} s ago; a "
                 f"late agent does not join a fleet in flight"
             )
 
@@ -655,15 +679,23 @@ class AgentProcess:
                 f"waiting for `vtube-fleet mission start {self.path.name}` on {self.bus.url} "
                 f"(mission id {self.mission_id})"
             )
-        if not await self._wait(lambda: self.bus.config is not None, self.join_timeout_s):
+        def future() -> bool:  # a run announced "from the future": our clock runs behind
+            return self.bus.refusal_counts().get(("config", "future"), 0) > 0
+
+        if not await self._wait(lambda: self.bus.config is not None or future(),
+                                self.join_timeout_s):
             raise AgentRefused(
                 f"no run of mission {self.mission_id} announced on {self.bus.url} within "
                 f"{self.join_timeout_s:g} s"
             )
         await self.bus.sync()  # a retained command comes with it: see check_run
         cfg = self.bus.config
-        assert cfg is not None
+        if cfg is None:  # refused as stamped in the future: the clock says by how much
+            await self.check_clock()
+            raise self.refuse("the run's announcement is stamped in the future of this "
+                              "agent's clock")
         self.check_run(cfg)
+        await self.check_clock()
         self.run_cfg = cfg
         self.bus.set_limits(self.bus.limits.with_vehicles(cfg.vehicles))
         if cfg.max_age_s > 0:
@@ -673,6 +705,38 @@ class AgentProcess:
         self.bus.run_id = cfg.run_id
         self.bus.announce("online", stage="joined")
         self.say(f"joined run {cfg.run_id} ({cfg.vehicles} vehicles); vehicle {self.endpoint}")
+
+    async def check_clock(self) -> None:
+        """Measure this agent's clock against the coordinator's (:data:`CLOCK_SAMPLES` round
+        trips, the one of least delay: :meth:`~vtube_fleet.bus.mqtt.MqttBus.measure_clock`;
+        docs/mqtt.md, "Clocks"); refuse when it may be further than ``max_clock_offset_s``,
+        or when the coordinator does not answer. The offset goes into this agent's status (the
+        coordinator's summary) and summary, and what is left of it into its safety budget."""
+        bound = self.cfg.max_clock_offset_s
+        try:
+            clock = await self.bus.measure_clock(CLOCK_SAMPLES, CLOCK_TIMEOUT_S)
+        except TimeoutError:
+            raise self.refuse(
+                f"the coordinator answered none of {CLOCK_SAMPLES} clock round trips within "
+                f"{CLOCK_TIMEOUT_S:g} s each (is `vtube-fleet mission start` of this version "
+                f"running?)") from None
+        if clock.bound_s > bound:
+            raise self.refuse(
+                f"{clock.describe()} > max_clock_offset_s = {1000 * bound:g} ms: synchronise "
+                f"this machine's clock with the coordinator's (NTP: chrony, "
+                f"systemd-timesyncd) or raise max_clock_offset_s (at most 125 ms)")
+        self.say(f"{clock.describe()} ≤ max_clock_offset_s = {1000 * bound:g} ms")
+
+    @property
+    def clock_summary(self) -> dict[str, Any] | None:
+        """The measured clock for the summary (None: not measured)."""
+        c = self.bus.clock
+        if c is None:
+            return None
+        return {"offset_s": round(c.offset_s, 6), "delay_s": round(c.delay_s, 6),
+                "within_s": round(c.bound_s, 6), "samples": c.samples,
+                "max_clock_offset_s": self.cfg.max_clock_offset_s,
+                "budgeted_s": round(clock_latency_s(self.mission, c.bound_s), 6)}
 
     # -- 2. vehicle ready, budget, preflight -----------------------------------------------
     def _plan(self, budget: SafetyBudget) -> FlightPlan:
@@ -698,10 +762,11 @@ class AgentProcess:
                 raise self.refuse(str(exc)) from None
         run_delta = self.run_cfg.delta_m if self.run_cfg is not None else 0.0
         params = self.mission.scenario.controller
+        clock_bound = None if self.bus.clock is None else self.bus.clock.bound_s
 
         def too_slow(measured: LinkMeasurement) -> str | None:
             """The run's δ does not cover what this vehicle was measured to need."""
-            own = bus_safety_budget(self.mission, measured, self.max_age_s)
+            own = bus_safety_budget(self.mission, measured, self.max_age_s, clock_bound)
             if run_delta <= 0 or own.overridden or own.delta_m <= run_delta + 1e-9:
                 return None
             return (f"this vehicle needs the safety budget {own.describe(params)}, more than "
@@ -714,7 +779,7 @@ class AgentProcess:
                                                         too_slow=too_slow)
         if problems:
             raise self.refuse("; ".join(problems))
-        own = bus_safety_budget(self.mission, measured, self.max_age_s)
+        own = bus_safety_budget(self.mission, measured, self.max_age_s, clock_bound)
         if run_delta > 0 and not own.overridden:
             # its own measured terms, the run's δ (what SafetyBudget.compute's override does)
             self.budget = dataclasses.replace(own, delta_m=float(run_delta), overridden=True,
@@ -725,7 +790,8 @@ class AgentProcess:
         control.watch = BudgetWatch(self.mission, own)  # what THIS vehicle was measured to need
         self.say(
             f"safety budget: needs {own.describe(params)} (L = link {measured.latency_s * 1000:.1f}"
-            f" ms + headroom + neighbour max age {self.max_age_s * 1000:.0f} ms; σ "
+            f" ms + headroom + neighbour max age {self.max_age_s * 1000:.0f} ms + clocks "
+            f"{1000 * clock_latency_s(self.mission, clock_bound):.0f} ms; σ "
             f"{measured.accuracy_m:.2f} m); flies the run's δ = {self.budget.delta_m:.3f} m"
         )
         cell = self.run_cfg.cell_m if self.run_cfg is not None else 0.0
@@ -735,6 +801,21 @@ class AgentProcess:
                 f"the run's cells of {cell:g} m are smaller than this agent needs, {need:.2f} m "
                 f"(r_s + r_a + 2δ + v_max·(T + max age)); start the run with --no-cells"
             )
+
+    async def check_battery(self, pilot: VehiclePilot) -> None:
+        """The battery check before arming (:meth:`~vtube_fleet.fleet.preflight.Preflight.
+        check_batteries`), before the vehicle is READY: a refusal, so the coordinator (which
+        starts the run once every vehicle is READY) stops the run before anybody arms; the
+        pilot checks again just before it arms."""
+
+        def event(text: str, vehicle_id: int | None = None, level: str = "info",
+                  echo: bool = True) -> None:
+            pilot.event(text, level)
+
+        try:
+            await Preflight([pilot], self.mission, event=event).check_batteries()
+        except PreflightError as exc:
+            raise self.refuse(str(exc)) from None
 
     def preflight(self, pilot: VehiclePilot) -> None:
         """The paper's conditions with the READY positions of every vehicle of the run."""
@@ -818,7 +899,8 @@ class AgentProcess:
         pilot.fence = self.fence
         control = AgentControl(pilot, self.bus, self.mission, self._plan(budget),
                                max_age_s=self.max_age_s,
-                               broker_hold_limit_s=self.broker_hold_limit_s)
+                               broker_hold_limit_s=self.broker_hold_limit_s,
+                               wall_clock=self.wall_clock)
         if not self.fence:
             self.say(NO_FENCE_WARNING)
         self.pilot = pilot
@@ -827,6 +909,8 @@ class AgentProcess:
                                        "connecting to the vehicle")
         control.start()  # the control tick runs from here to the end (sensing at first)
         try:
+            # before READY: a refusal reaches the coordinator before it can start the run
+            await self._unless_interrupted(self.check_battery(pilot), "checking the battery")
             await self._unless_interrupted(pilot.wait_ready(), "waiting for the vehicle")
             self.bus.announce("online", stage="ready")
             await self._unless_interrupted(self.measure_budget(control), "measuring the link")
@@ -866,15 +950,18 @@ class AgentProcess:
             return
         cfg = self.run_cfg
         cmd = self.bus.command
-        t0 = cmd.stamp_s if cmd is not None else time.time()  # the coordinator's time base
+        # the coordinator's time base, on this agent's clock
+        offset = self.bus.clock.offset_s if self.bus.clock is not None else 0.0
+        t0 = cmd.stamp_s + offset if cmd is not None else self.wall_clock()
         mission = self.mission.with_vehicles(cfg.vehicles)
         flown = (None if self.budget is None
                  else self.budget.inflate(mission.scenario.controller))
         rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0,
                              out=self.out, meta={
                                  "mission_id": self.mission_id, "run_id": cfg.run_id,
-                                 "config_hash": self.hash, "broker": self.bus.url},
-                             flown=flown)
+                                 "config_hash": self.hash, "broker": self.bus.url,
+                                 "clock": self.clock_summary},
+                             flown=flown, wall_clock=self.wall_clock)
         radii = ({} if flown is None else {"r_s_flown": flown.r_s, "r_a_flown": flown.r_a})
         self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
