@@ -61,6 +61,7 @@ from vtube_fleet.artifacts import (
 )
 from vtube_fleet.bus.base import InProcessBus
 from vtube_fleet.config.mission import Mission
+from vtube_fleet.core.loss import cannot_pass
 from vtube_fleet.core.metrics import (
     SafetyMonitor,
     SummaryAccumulator,
@@ -538,6 +539,18 @@ class Supervisor:
                               root.flown)
         try:
             new = root.with_lost(lost)
+            # a vehicle inside the new region has no safe sub-tube (core/loss.cannot_pass);
+            # until those alone hold and land (issue 34 part 1), that ends the mission as a
+            # failed re-partition does
+            if new is not self.plan:
+                flying = [p for p in self.pilots if p.phase == Phase.IN_TUBE and p.has_position()]
+                inside = cannot_pass(new.partition, np.array([p.xy for p in flying]).reshape(
+                    -1, 2), new.zones)
+                if inside.any():
+                    raise PartitionError(None, "vehicle(s) " + ", ".join(
+                        f"{p.vehicle_id} at ({p.xy[0]:.2f}, {p.xy[1]:.2f})" for p, i in
+                        zip(flying, inside, strict=True) if i) + " inside the region the new "
+                        "partition takes around it (no safe sub-tube for them)")
         except PartitionError as exc:
             if self._abort_reason is None:
                 ids = [int(i) for i in view.lost_ids]
