@@ -44,6 +44,8 @@ import numpy as np
 
 from vtube_fleet.bus.base import NeighbourBus
 from vtube_fleet.config.mission import Mission
+from vtube_fleet.core.loss import cannot_pass
+from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.agent import Agent, NeighbourView, exit_velocity
 from vtube_fleet.fleet.budget import (
@@ -978,7 +980,13 @@ class VehiclePilot:
         heard = (None if self._listening_since is None
                  else now_wall - (now_mono - self._listening_since))
         view = agent.view(now_wall, heard)
-        agent.update_plan(view)
+        if (agent.update_plan(view) and self.phase == Phase.IN_TUBE and self.has_position()
+                and cannot_pass(agent.plan.partition, self.xy, agent.plan.zones)[0]):
+            # inside the region the new partition takes around a lost vehicle: no safe
+            # sub-tube for this one (core/loss.cannot_pass); the caller holds it
+            raise PartitionError(None, f"vehicle {self.vehicle_id} at ({self.xy[0]:.2f}, "
+                                 f"{self.xy[1]:.2f}) is inside the region the new partition "
+                                 f"takes around it (no safe sub-tube for it)")
         cmd = None
         if self.phase == Phase.IN_TUBE and self.has_position():
             if agent.has_exited(self.xy):
