@@ -94,7 +94,6 @@ __all__ = [
     "ALPHA_FACTORS",
     "MAX_LEVELS",
     "ClippedTriangle",
-    "PASSAGES",
     "Grouping",
     "Repartition",
     "cannot_pass",
@@ -108,12 +107,10 @@ __all__ = [
 #: The half apex angles a group's (or a lost disc's) triangle is tried with in the fallback:
 #: sin α = sin α_max / f (f = 1: α_max, the shortest triangle allowed by (pothk)).
 ALPHA_FACTORS = (1.0, 1.05, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0)
-#: The shapes tried for each circle of the fallback (:func:`group_obstacle`): both side
-#: passages kept, or only the left / the right one (the other side on T's leg, Remark 5).
-PASSAGES = ("both", "left", "right")
-#: The order in which the shapes are tried at each merge level: a circle with both passages
-#: first (it leaves the vehicles beside the lost one their sides); only if none builds, the
-#: one-sided ones (they take one whole side of the tube from the apex to the base).
+#: The shapes tried at each merge level, (passage, clipped) (:func:`group_obstacle`,
+#: :class:`ClippedTriangle`): both passages first (they leave the vehicles beside the lost one
+#: their sides); only if neither builds, the one-sided ones (they take one whole side of the
+#: tube from the apex to the base).
 _TIERS: tuple[tuple[tuple[str, bool], ...], ...] = (
     (("both", True), ("both", False)),
     (("left", True), ("right", True), ("left", False), ("right", False)),
@@ -447,10 +444,12 @@ def _grouped(tube: Trapezoid, obstacles: tuple[Obstacle, ...], lost: tuple[Obsta
         best: tuple[tuple[float, float], Repartition] | None = None
         for shape, clipped in tier:
             for f in ALPHA_FACTORS:  # the steepest sides that build (the smallest triangle)
+                alpha = math.asin(min(1.0, math.sin(a_max) / f))
+                if clipped and not _can_clip(groups, radii, alpha, params):
+                    continue
                 tried += 1
                 got = _candidate(tube, obstacles, fixed, index, centers, radii, groups,
-                                 math.asin(min(1.0, math.sin(a_max) / f)), shape, clipped,
-                                 params, floor)
+                                 alpha, shape, clipped, params, floor)
                 if got is None:
                     continue
                 part, alpha, ext, margin = got
@@ -464,6 +463,21 @@ def _grouped(tube: Trapezoid, obstacles: tuple[Obstacle, ...], lost: tuple[Obsta
         if best is not None:
             return best[1], tried
     return None, tried
+
+
+def _can_clip(groups: list[list[int]], radii: np.ndarray, alpha: float,
+              params: ControllerParams) -> bool:
+    """Whether some group's triangle may have a side long enough to clip: a single disc's
+    side reaches the disc's width R + h(1 − cos α) before the base (h = R / sin α), and both
+    parts must be longer than 2 r_a; a group of several discs is tried."""
+    need = 2.0 * params.r_a
+    for g in groups:
+        if len(g) > 1:
+            return True
+        R = float(radii[g[0]])
+        if R + R / math.sin(alpha) * (1.0 - math.cos(alpha)) > need:
+            return True
+    return False
 
 
 def _candidate(tube: Trapezoid, obstacles: tuple[Obstacle, ...], fixed: list[int],
