@@ -297,7 +297,7 @@ async def test_vehicle_lost_beside_the_obstacle_the_others_pass(tmp_path: Path) 
         result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],
                            out_dir=tmp_path, keep_trace=True, truth=True, tick_hook=hook)
     sup = holder[0]
-    assert killed, "vehicle 1 never reached x = 15 m"
+    assert killed, f"vehicle 1 never reached x = 15 m: {result.outcome}: {result.reason}"
     assert result.summary["lost"] == [1], result.reason
     assert result.summary["exited"] == 2, result.reason
     assert result.outcome == "incomplete" and result.exit_code == 3, result.reason
