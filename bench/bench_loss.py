@@ -295,7 +295,7 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
     return {
         "vehicle": vehicle, "at_s": at_s, "killed_at": flown_log["killed"],
         "outcome": result.outcome, "exit_code": result.exit_code,
-        "reason": result.reason[:300], "exited": s.get("exited"), "others": others,
+        "reason": result.reason, "exited": s.get("exited"), "others": others,
         "lost": s.get("lost"), "repartitions": flown_log["repartitions"],
         "truth_violations": s.get("truth_violations"),
         "truth_min_pair_m": s.get("truth_min_pair_distance_m"),
