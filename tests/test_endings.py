@@ -413,11 +413,11 @@ def test_a_timeout_aborts_and_the_review_agrees(tmp_path: Path, stage: str) -> N
     print(f"\n{stage} timeout: {result.reason}")
 
 
-#: One pole in a short tube: with the mock's budget (δ ≈ 1.67 m: r_s' ≈ 1.97 m, r_a' ≈ 2.67 m)
-#: a lost vehicle anywhere in it leaves no valid partition, with the lost obstacle's default h
-#: and with the planner's (checked offline on a 1 m grid, also for δ = 1.05 m).
-POLE = "\n[[obstacles]]\ncenter = [14.0, 0.0]\nradius = 0.5\n" + straight_mission(
-    26.0, [[2.0, 2.25], [2.0, -2.25]], heading_deg=90.0)
+#: An 8 m wide tube, two vehicles in a file: with the mock's budget (δ ≈ 1.67 m: r_s' ≈ 1.97 m)
+#: the lead lost in the middle leaves no passage a robot fits through — neither with today's
+#: rules nor with the fallback that groups it with the obstacles near it (core/loss.py).
+BLOCKED = straight_mission(26.0, [[8.0, 0.0], [2.0, 0.0]], heading_deg=90.0).replace(
+    ", 10.0]", ", 4.0]").replace(", -10.0]", ", -4.0]")
 
 
 @pytest.mark.slow
@@ -428,7 +428,7 @@ def test_a_lost_vehicle_that_blocks_the_tube_cannot_re_partition(tmp_path: Path)
     reason says "cannot re-partition" (not "cannot reach anyone") and why vehicle 0 is lost;
     the review agrees."""
     result, res = _fly_recorded(
-        tmp_path, POLE, kill=(0, "silent"),
+        tmp_path, BLOCKED, kill=(0, "silent"),
         when=lambda sup: sup.tube_start_s is not None and sup.t_s() - sup.tube_start_s >= 1.0)
     assert result.outcome == "aborted" and result.exit_code == 3, result.reason
     assert result.reason.startswith("cannot re-partition the tube around the lost vehicle(s) 0 "

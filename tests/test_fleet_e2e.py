@@ -263,6 +263,67 @@ async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None
           f"{clearance:.3f} m")
 
 
+async def test_vehicle_lost_beside_the_obstacle_the_others_pass(tmp_path: Path) -> None:
+    """The fault real PX4 SITL flew (docs/fleet.md, "Losing a vehicle"): px4_sitl_3, vehicle
+    1's link dies 15 m into the tube, beside obstacle #1, where today's rules (1.05 h_min,
+    then the planner) give no partition and the run aborted. The fallback (core/loss.py)
+    groups the lost vehicle with the obstacle; nobody is inside the new region; the other two
+    pass it and exit; the ground truth stays clean."""
+    from vtube_fleet.core.loss import cannot_pass, repartition_around_lost
+    from vtube_fleet.core.partition import PartitionError, partition
+    from vtube_fleet.core.tube import APEX_AUTO, Obstacle
+
+    mission = load_mission(ROOT / "configs" / "px4_sitl_3.toml")
+    holder: list[Supervisor] = []
+    killed: list[np.ndarray] = []
+    inside: list[list[int]] = []
+    async with mock_fleet(mission, **boot(3, seed=11)) as fleet:
+        log = TruthLog(fleet, mission)
+
+        def hook(tick: int, sup: Supervisor) -> None:
+            if not holder:
+                holder.append(sup)
+            log(tick, sup)
+            p = sup.pilots[1]
+            if not killed and p.phase.value == "in_tube" and p.xy[0] > 15.0:
+                killed.append(p.xy.copy())
+                fleet.kill(1, "silent")
+            if killed and sup.plan.lost and not inside:  # the re-partition, as it happens
+                flying = [q for q in sup.pilots if q.phase.value == "in_tube"]
+                xy = np.array([q.xy for q in flying])
+                hit = cannot_pass(sup.plan.partition, xy, sup.plan.zones)
+                inside.append([q.vehicle_id for q, h in zip(flying, hit, strict=True) if h])
+
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],
+                           out_dir=tmp_path, keep_trace=True, truth=True, tick_hook=hook)
+    sup = holder[0]
+    assert killed, f"vehicle 1 never reached x = 15 m: {result.outcome}: {result.reason}"
+    assert result.summary["lost"] == [1], result.reason
+    assert result.summary["exited"] == 2, result.reason
+    assert result.outcome == "incomplete" and result.exit_code == 3, result.reason
+    # today's rules have no partition for this loss; the fallback does, and nobody is in it
+    sc, plan = mission.scenario, sup.plan
+    lost = plan.lost
+    assert len(lost) == 1
+    for discs in (lost, tuple(Obstacle(o.center, o.radius, APEX_AUTO) for o in lost)):
+        with pytest.raises(PartitionError):
+            partition(sc.tube, (*sc.obstacles, *discs), plan.flown)
+    assert repartition_around_lost(sc.tube, sc.obstacles, lost, plan.flown).step == "grouped"
+    assert inside == [[]]
+    # the others flew past the dead vehicle (TRUE positions), truth clean
+    dead_true = log.xy[-1][1]
+    after = [k for k, ph in enumerate(log.phases) if ph[1] == "lost"]
+    others = np.concatenate([log.xy[k][[0, 2]] for k in after
+                             if all(log.phases[k][j] in ("in_tube", "exited") for j in (0, 2))])
+    assert float(others[:, 0].max()) > dead_true[0] + 3.0
+    s = result.summary
+    assert s["truth"] and s["truth_violations"] == 0 and s["violations"] == 0
+    worst = check_safety(mission, sup.trace, lost=(1,))
+    truth = assert_true_clearance(log)
+    report("vehicle lost beside the obstacle", result, worst, truth)
+    print(f"killed at ({killed[0][0]:.2f}, {killed[0][1]:.2f})")
+
+
 async def test_a_run_that_breaks_a_limit_ends_unsafe(tmp_path: Path) -> None:
     """The ideal estimator (telemetry = truth) and a gust the vehicle cannot hold against push
     vehicle 0 out through the left leg: the run's own telemetry breaks the limit, so the run

@@ -172,8 +172,10 @@ def test_lost_neighbour_becomes_obstacle_and_repartitions(mission, budget) -> No
 
 
 def test_no_valid_partition_raises(plan) -> None:
-    view = view_of([st(5, 0.5, 0.0, phase=Phase.LOST)])  # at the start base: no room
-    with pytest.raises(PartitionError):
+    # two lost side by side in the 10 m wide tube: no passage is wide enough for a robot
+    # (not even with the fallback: core/loss.py)
+    view = view_of([st(5, 6.0, -2.5, phase=Phase.LOST), st(6, 6.0, 2.5, phase=Phase.LOST)])
+    with pytest.raises(PartitionError, match="nor with the fallback"):
         plan.with_lost(lost_obstacles(view, plan.tube, 0.8, plan.flown))
 
 

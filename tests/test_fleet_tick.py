@@ -226,25 +226,26 @@ def _why(reason: str | None) -> str | None:
 
 
 def _inject(k: int, links) -> None:
-    """Faults on tick ``k``: 39 disarms, 31 leaves OFFBOARD; 37 no longer follows (below)."""
+    """Faults on tick ``k``: 9 disarms, 1 leaves OFFBOARD; 7 no longer follows (below)."""
     for i, link in enumerate(links):
         s = link.state
-        if i == 39 and k == 20:
+        if i == 9 and k == 20:
             s.armed = False
-        if i == 31 and k == 140:
+        if i == 1 and k == 40:
             s.flight_mode = "POSCTL"
 
 
 async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     """The same vehicles, the same telemetry: the supervisor's tick over its fleet table, and
     one agent per vehicle running the same tick over a table of one row with the others'
-    states from a bus: the same setpoints, commands, phases and reasons, bit for bit. (The
-    second loss cannot be re-partitioned around: the supervisor aborts, every agent holds.)"""
-    count, t0 = 40, 5000.0
-    sup, links = memory_fleet(count, now_s=t0)
+    states from a bus: the same setpoints, commands, phases and reasons, bit for bit, through
+    every fault rule, the re-partitions around them, the vehicles they trap (which land) and
+    the abort when the tube can no longer be re-partitioned."""
+    count, t0 = 10, 5000.0
+    sup, links = memory_fleet(count, now_s=t0, spacing_m=6.0)
     agents = _agents(sup, count, t0)
-    sup.pilots[34].begin_hold("a test")  # a stopped vehicle: an obstacle, a transition
-    agents[34][1].begin_hold("a test")
+    sup.pilots[4].begin_hold("a test")  # a stopped vehicle: an obstacle, a transition
+    agents[4][1].begin_hold("a test")
     a_links = [a[2] for a in agents]
     period = sup.cfg.period_s
     now = t0
@@ -253,8 +254,8 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
         now += period * (1.0 + 0.3 * jitter.random())
         listening = now - 1.0 if k == 60 else None  # a stall of our own loop once
         for world in (links, a_links):
-            if k > 10:  # vehicle 37 no longer follows its setpoints
-                world[37].v_ned = (0.0, 0.0, world[37].v_ned[2])
+            if k > 10:  # vehicle 7 no longer follows its setpoints
+                world[7].v_ned = (0.0, 0.0, world[7].v_ned[2])
             if k % 2 == 0:
                 fly_telemetry(world, 2 * period, now)
             _inject(k, world)
@@ -269,10 +270,14 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
         got = [None if p.cmd_xy is None else p.cmd_xy.tobytes() for p in sup.pilots]
         assert got == [None if a[1].cmd_xy is None else a[1].cmd_xy.tobytes()
                        for a in agents], k
-    phases = [p.phase for p in sup.pilots]
-    assert phases[39] == Phase.LOST and "disarmed in the air" in (sup.pilots[39].reason or "")
-    assert phases[34] == Phase.HOLDING and sup.partitions == 2  # re-planned around 34 once
-    assert all(ph == Phase.HOLDING for i, ph in enumerate(phases) if i != 39)  # then aborted
+    p = sup.pilots
+    assert p[4].phase == Phase.HOLDING and sup.partitions >= 3
+    assert p[9].phase == Phase.LOST and p[9].reason == "disarmed in the air"
+    assert p[1].phase == Phase.LOST and p[1].reason.startswith("left OFFBOARD unexpectedly")
+    assert p[7].phase == Phase.LOST and p[7].reason.startswith("not following its setpoints")
+    trapped = [x for x in p if x.phase == Phase.LANDING]
+    assert trapped and all(x.reason.startswith("cannot pass the stopped vehicle")
+                           for x in trapped)
     res = sup.table.residuals.residuals()
     assert res.size == sum(a[1].table.residuals.residuals().size for a in agents) > 0
 
@@ -327,12 +332,16 @@ async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
         tick(now, now + WALL)
     for group in (sup.pilots, [a[1] for a in agents]):
         landing = {p.vehicle_id for p in group if p.phase == Phase.LANDING}
-        assert landing == low
+        assert low <= landing  # (and those they trap: inside the new partition's region)
         assert all(p.reason.startswith("battery 10 % < battery_reserve_pct = 20 %: lands")
                    for p in group if p.vehicle_id in low)
+        assert all(p.reason.startswith("cannot pass the stopped vehicle")
+                   for p in group if p.vehicle_id in landing - low)
+    assert ({p.vehicle_id for p in sup.pilots if p.phase == Phase.LANDING}
+            == {a[1].vehicle_id for a in agents if a[1].phase == Phase.LANDING})
     await asyncio.sleep(0)
     # the next tick: the landing vehicles are obstacles (stopped) for the others
     now += 0.05
     fleet = sup.ticker(now, now + WALL)
     assert fleet.view is not None and low <= set(fleet.view.lost_ids.tolist())
-    assert (sup.table.phase == PHASE_CODE[Phase.LANDING]).sum() == len(low)
+    assert (sup.table.phase == PHASE_CODE[Phase.LANDING]).sum() >= len(low)

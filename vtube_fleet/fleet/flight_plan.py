@@ -23,18 +23,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vtube_fleet.core.controller import TubeArrays, velocity_command
+from vtube_fleet.core.loss import cannot_pass, partition_around_lost
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import (
     ApexZone,
     Partition,
-    PartitionError,
     apex_lookahead,
     apex_zones,
     h_min,
     partition,
 )
-from vtube_fleet.core.tube import APEX_AUTO, Obstacle, Trapezoid
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.fleet.neighbour_view import NeighbourView
@@ -136,7 +136,9 @@ class FlightPlan:
         The configured obstacles keep the apex distances of this plan (``"auto"`` ones are not
         re-planned under flying vehicles); a lost-vehicle obstacle gets
         ``LOST_APEX_FACTOR`` × h_min, and only if that partition fails, h_k chosen by the
-        planner (core/plan.py: deterministic, so every agent gets the same partition)."""
+        planner (core/plan.py), and only if that fails too, the lost vehicle grouped with the
+        obstacles near it (:func:`~vtube_fleet.core.loss.partition_around_lost`; all
+        deterministic, so every agent gets the same partition)."""
         lost = tuple(lost)
         key = tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
                      round(float(o.radius), 6)) for o in lost)
@@ -146,18 +148,20 @@ class FlightPlan:
             fixed = tuple(dataclasses.replace(ob, apex_distance=tri_h[i])
                           if isinstance(ob.apex_distance, str) and i in tri_h else ob
                           for i, ob in enumerate(self.obstacles))
-            try:
-                part = partition(self.tube, fixed + lost, self.flown)
-            except PartitionError:
-                if not lost:
-                    raise
-                auto = tuple(dataclasses.replace(o, apex_distance=APEX_AUTO) for o in lost)
-                part = partition(self.tube, fixed + auto, self.flown)
+            part = partition_around_lost(self.tube, fixed, lost, self.flown)
             zones = apex_zones(part, self.flown) if self.lookahead else ()
             hit = FlightPlan(self.tube, self.obstacles, self.flown, part, lost, self.kind,
                              self._cache, zones, self.lookahead)
             self._cache[key] = hit
         return hit
+
+    def cannot_pass(self, p: np.ndarray) -> np.ndarray:
+        """Points (M, 2) inside the region this plan's partition takes around its obstacles
+        (:func:`~vtube_fleet.core.loss.cannot_pass`): no safe sub-tube for a vehicle there."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        if not p.shape[0]:
+            return np.zeros(0, bool)
+        return cannot_pass(self.partition, p, self.zones)
 
     def exited(self, p: np.ndarray) -> np.ndarray:
         """(TraCondition) on the MAIN tube: −n_cᵀ(p − p_r1) ≤ ε_0 → (…,) bool."""

@@ -740,6 +740,26 @@ class Tick:
             self.plan = new
             if self.on_replan is not None:
                 self.on_replan(new, t)
+            self._land_the_trapped(new)
+
+    def _land_the_trapped(self, plan: FlightPlan) -> None:
+        """A vehicle of this table still flying the climb or the tube whose position lies
+        inside the region the new partition takes around its obstacles has no safe sub-tube
+        (:meth:`FlightPlan.cannot_pass`): it lands where it is (stopped, it is an obstacle for
+        everyone at the next tick); the others fly on. Vehicles already past the lost one are
+        not in that region and finish."""
+        tab = self.table
+        rows = np.flatnonzero(_FLYING_TUBE_MASK[tab.phase] & tab.has)
+        if not rows.size:
+            return
+        trapped = rows[plan.cannot_pass(tab.xy[rows])]
+        for r in trapped.tolist():
+            x, y = tab.xy[r]
+            pilot = self.pilots[r]
+            why = (f"cannot pass the stopped vehicle(s): at ({x:.2f}, {y:.2f}), inside the "
+                   f"region the new partition takes around them (no safe sub-tube)")
+            pilot.reason = pilot.reason or why
+            pilot.begin_land(why, "warning")
 
     def _commands(self, view: NeighbourView | None, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Exits (TraCondition), then the controller's commands of every vehicle still in the
