@@ -18,7 +18,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -29,6 +29,7 @@ from vtube_fleet.errors import UserError
 from vtube_fleet.link.endpoints import Endpoint, parse_endpoint
 
 __all__ = [
+    "LinkConflict",
     "LinkError",
     "LinkTimeout",
     "CommandRejected",
@@ -68,6 +69,12 @@ class LinkError(UserError):
 
 class LinkTimeout(LinkError):
     """The vehicle did not answer / did not reach a state in time."""
+
+
+class LinkConflict(LinkError):
+    """Before arming, the link's port carries more than its one vehicle: the HEARTBEATs of
+    other vehicles, or its system id from two addresses (docs/links.md, "Identity and
+    source"). The message names the ids, the addresses and the likely cause."""
 
 
 class CommandRejected(LinkError):
@@ -185,11 +192,21 @@ class VehicleState:
     rx_packets: int = 0
     bad_packets: int = 0  #: datagrams (or parts) that failed to parse: garbage, bad CRC, cut off
     foreign_packets: int = 0  #: valid packets from another system id / a GCS, ignored
+    #: what the link refused of this vehicle's port, by kind (link/guard.REFUSAL_KINDS):
+    #: ``other_sysid`` (another vehicle), ``other_source`` (its id from another address),
+    #: ``speed``, ``position_jump``, ``time_backwards``, ``time_jump`` (cannot be true)
+    telemetry_refused: Counter[str] = field(default_factory=Counter)
+    #: set (once, it stays) when the refusals persisted: the vehicle's telemetry is not to be
+    #: trusted; a human reason ("telemetry from two sources: position jumped 14.2 m in 20 ms
+    #: (…)"). None while it is.
+    telemetry_fault: str | None = None
+    source_changes: int = 0  #: times the vehicle's address was re-learned (logged)
 
     def copy(self) -> VehicleState:
         """An independent copy (the link keeps updating the original)."""
         new = dataclasses.replace(self)
         new.statustexts = deque(self.statustexts, maxlen=self.statustexts.maxlen)
+        new.telemetry_refused = Counter(self.telemetry_refused)
         return new
 
     @property
@@ -252,6 +269,11 @@ class VehicleLink(abc.ABC):
         )
         if sysid is not None and not 1 <= int(sysid) <= 255:
             raise LinkError(f"{self.endpoint}: system id must be 1..255, got {sysid}")
+        given = self.endpoint.sysid
+        if given is not None and sysid is not None and int(sysid) != given:
+            raise LinkError(f"{self.endpoint}: system id {sysid} given for an endpoint that "
+                            f"says sysid={given}")
+        sysid = given if sysid is None else sysid
         self.state = VehicleState(endpoint=self.endpoint.url, sysid=sysid)
         self._state_waiters: list[asyncio.Future[None]] = []
         self._position_waiters: list[asyncio.Future[None]] = []
@@ -277,6 +299,24 @@ class VehicleLink(abc.ABC):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def telemetry_fault(self) -> str | None:
+        """``state.telemetry_fault``: why this vehicle's telemetry is not to be trusted."""
+        return self.state.telemetry_fault
+
+    # -- identity (docs/links.md, "Identity and source") ---------------------------------------
+    def identity_problem(self) -> str | None:
+        """Why the vehicle behind this port is ambiguous (other vehicles heard on it, its id
+        from two addresses), None if it is not. Backends fill it in."""
+        return None
+
+    def check_identity(self) -> None:
+        """:class:`LinkConflict` if :meth:`identity_problem`: called by ``connect``,
+        :meth:`wait_ready` and ``arm`` (so, before arming)."""
+        problem = self.identity_problem()
+        if problem is not None:
+            raise LinkConflict(f"{self.name}: {problem}")
 
     def _log_statustext(self, logger: logging.Logger, severity: int, text: str) -> None:
         """Log a vehicle's STATUSTEXT (WARNING for severity <= 4, else INFO); a repeat of the
@@ -405,6 +445,7 @@ class VehicleLink(abc.ABC):
         deadline = loop.time() + timeout_s
         next_tick = loop.time() + 1.0
         while True:
+            self.check_identity()
             missing = self.missing_for_ready()
             if not missing:
                 return self.state

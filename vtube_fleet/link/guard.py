@@ -1,0 +1,275 @@
+"""What a link believes of its vehicle's telemetry: the plausibility checks (issue 33).
+
+Most PX4 fleets cannot sign MAVLink (PX4 < 1.18), so the link itself is the guard. Who may speak
+for the vehicle is settled by the backends (its system id and its source address, docs/links.md
+"Identity and source"); this module refuses what the vehicle *cannot have flown*, whoever sent
+it (docs/security.md, "Unsigned links"):
+
+* a reported horizontal speed above ``max_speed_m_s`` or a vertical one above
+  ``max_vertical_speed_m_s`` (``speed``);
+* a position farther from the last accepted one than the vehicle can fly in the time between
+  them plus the estimate's reported accuracy: ``max_speed × Δt + jump_floor_m + σ`` (``σ`` =
+  ESTIMATOR_STATUS.pos_horiz_accuracy, at most ``accuracy_cap_m``), horizontally and
+  vertically (``position_jump``); also against an *anchor*, an accepted sample 0.25-0.5 s older
+  by our clock, so that a chain of small jumps cannot walk away faster than that either;
+* a ``time_boot_ms`` that goes back (or repeats with another position: ``time_backwards``) or
+  runs ahead of our clock by more than ``clock_slack_s`` since the last accepted sample
+  (``time_jump``). Δt is the vehicle's (``time_boot_ms``) where there is one (mavlink backend),
+  else our arrival clock (MAVSDK hands positions over without their time).
+
+A refused sample changes nothing in the :class:`~vtube_fleet.link.base.VehicleState`; it is
+counted in ``state.telemetry_refused`` by kind. **Persistent refusals are a fault**: when a
+vehicle's refusals go on for ``fault_after_s`` (refusals less than ``episode_gap_s`` apart
+belong together), ``state.telemetry_fault`` is set (once; it stays) to a human reason: ``position
+jumped 14.2 m in 20 ms (25 of 25 position samples refused in 0.50 s)``, prefixed ``telemetry from
+two sources:`` when the vehicle's samples were accepted in between (two streams interleaved).
+:class:`TelemetryBounds` carries the limits; :meth:`TelemetryBounds.for_mission` derives them
+from a mission.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = [
+    "ANCHOR_S",
+    "DEFAULT_BOUNDS",
+    "PX4_CRUISE_M_S",
+    "REFUSAL_KINDS",
+    "SPEED_MARGIN_M_S",
+    "TelemetryBounds",
+    "TelemetryGuard",
+    "VERTICAL_MARGIN_M_S",
+]
+
+log = logging.getLogger("vtube_fleet.link")
+
+#: Every kind of refusal a link counts (``VehicleState.telemetry_refused``): the first two at
+#: the door (another vehicle on the port; the vehicle's id from another address), the others
+#: by the plausibility checks of this module.
+REFUSAL_KINDS = ("other_sysid", "other_source", "speed", "position_jump", "time_backwards",
+                 "time_jump")
+#: Added to the fastest the mission flies (m/s): a gust the vehicle cannot hold against,
+#: PX4's overshoot and its velocity estimate's error (≤ 0.8 m/s on SITL).
+SPEED_MARGIN_M_S = 5.0
+VERTICAL_MARGIN_M_S = 2.0
+#: PX4's MPC_XY_CRUISE default: the speed of its own RTL (a mission with fence_action "rtl").
+PX4_CRUISE_M_S = 5.0
+#: The anchor sample is 0.25-0.5 s older than the newest accepted one (by our clock).
+ANCHOR_S = 0.25
+_M_PER_DEG = 6371000.0 * math.pi / 180.0
+_WARN_S = 5.0
+
+
+@dataclass(frozen=True)
+class TelemetryBounds:
+    """The limits of :class:`TelemetryGuard` (module docstring; m, m/s, s)."""
+
+    max_speed_m_s: float = 12.0 + SPEED_MARGIN_M_S  #: PX4's MPC_XY_VEL_MAX default + margin
+    max_vertical_speed_m_s: float = 3.0 + VERTICAL_MARGIN_M_S  #: MPC_Z_VEL_MAX_UP + margin
+    jump_floor_m: float = 0.3
+    accuracy_cap_m: float = 1.0
+    clock_slack_s: float = 0.25
+    fault_after_s: float = 0.5
+    episode_gap_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("max_speed_m_s", "max_vertical_speed_m_s", "jump_floor_m",
+                     "accuracy_cap_m", "clock_slack_s", "fault_after_s", "episode_gap_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"telemetry bound {name} must be finite and > 0, got {v}")
+
+    @classmethod
+    def for_mission(cls, mission: Any) -> TelemetryBounds:
+        """The bounds of ``mission``'s vehicles: horizontally the fastest it flies (v_max; 5
+        m/s of PX4's own RTL with ``fence_action = "rtl"``) + :data:`SPEED_MARGIN_M_S`;
+        vertically PX4's climb limit (3 m/s, at least the mission's climb) +
+        :data:`VERTICAL_MARGIN_M_S`; the accuracy term capped at the mission's
+        ``max_position_accuracy_m`` (a larger σ is refused before arming anyway)."""
+        from vtube_fleet.config.mission import PX4_MAX_CLIMB_M_S, PX4_MAX_DESCENT_M_S
+
+        cfg = mission.config
+        fastest = float(mission.scenario.robots.v_max)
+        if cfg.fence_action == "rtl":
+            fastest = max(fastest, PX4_CRUISE_M_S)
+        vertical = max(PX4_MAX_CLIMB_M_S, PX4_MAX_DESCENT_M_S, float(cfg.climb_speed_m_s),
+                       float(cfg.max_vertical_speed_m_s))
+        return cls(max_speed_m_s=fastest + SPEED_MARGIN_M_S,
+                   max_vertical_speed_m_s=vertical + VERTICAL_MARGIN_M_S,
+                   accuracy_cap_m=float(cfg.max_position_accuracy_m))
+
+
+DEFAULT_BOUNDS = TelemetryBounds()
+
+
+class _Stream:
+    """The last accepted sample of one position stream and its anchor: (t, arrival, a, b, c)
+    with t the vehicle's time (s) or the arrival, (a, b, c) north, east, down (m) or lat,
+    lon (deg), alt (m)."""
+
+    __slots__ = ("ref", "anchor", "next")
+
+    def __init__(self) -> None:
+        self.ref: tuple[float, float, float, float, float] | None = None
+        self.anchor: tuple[float, float, float, float, float] | None = None
+        self.next: tuple[float, float, float, float, float] | None = None
+
+
+class TelemetryGuard:
+    """The plausibility checks of one link (module docstring). ``owner`` is the link (for its
+    name in log lines); the counters and the fault go into ``state``."""
+
+    def __init__(self, owner: Any, state: Any, bounds: TelemetryBounds) -> None:
+        self.owner = owner
+        self.state = state
+        self.bounds = bounds
+        self._vh = bounds.max_speed_m_s
+        self._vh2 = bounds.max_speed_m_s ** 2
+        self._vz = bounds.max_vertical_speed_m_s
+        self._slack = bounds.clock_slack_s
+        self._allow = bounds.jump_floor_m
+        self.local = _Stream()
+        self.global_ = _Stream()
+        self._ep_start = 0.0
+        self._ep_last: float | None = None
+        self._ep_ok = 0
+        self._ep_bad = 0
+        self._warned_at = -math.inf
+        self._suppressed = 0
+
+    def set_accuracy(self, sigma_m: float) -> None:
+        """The estimate's reported accuracy (ESTIMATOR_STATUS.pos_horiz_accuracy) joins the
+        allowance of a jump, capped at ``accuracy_cap_m`` (a spoofed σ cannot widen it more)."""
+        s = sigma_m if math.isfinite(sigma_m) and sigma_m > 0 else 0.0
+        self._allow = self.bounds.jump_floor_m + min(s, self.bounds.accuracy_cap_m)
+
+    # -- the checks ------------------------------------------------------------------------------
+    def check_local(self, tb_ms: int | None, n: float, e: float, d: float, vn: float,
+                    ve: float, vd: float, now: float) -> bool:
+        """A LOCAL_POSITION_NED sample (NED metres and m/s): True to take it, False refused."""
+        if vn * vn + ve * ve > self._vh2 or abs(vd) > self._vz:
+            return self._speed(vn, ve, vd, now)
+        return self._position(self.local, tb_ms, n, e, d, now, 1.0, 1.0)
+
+    def check_global(self, tb_ms: int | None, lat_deg: float, lon_deg: float, alt_m: float,
+                     vn: float, ve: float, vd: float, now: float) -> bool:
+        """A GLOBAL_POSITION_INT sample (degrees, m AMSL, m/s): True to take it."""
+        if vn * vn + ve * ve > self._vh2 or abs(vd) > self._vz:
+            return self._speed(vn, ve, vd, now)
+        k = _M_PER_DEG * math.cos(math.radians(lat_deg))
+        return self._position(self.global_, tb_ms, lat_deg, lon_deg, -alt_m, now, _M_PER_DEG,
+                              k)
+
+    def _position(self, s: _Stream, tb_ms: int | None, a: float, b: float, c: float,
+                  now: float, ka: float, kb: float) -> bool:
+        t = now if tb_ms is None else tb_ms * 0.001
+        r = s.ref
+        if r is None:
+            s.ref = s.anchor = s.next = (t, now, a, b, c)
+            return True
+        dt = t - r[0]
+        if tb_ms is not None:
+            if dt <= 0.0:
+                if dt == 0.0 and (a, b, c) == r[2:]:
+                    return True  # the same sample again: nothing new, nothing wrong
+                return self._refuse("time_backwards", (
+                    f"time_boot_ms went back from {round(r[0] * 1000)} to {tb_ms} ms" if dt < 0
+                    else f"time_boot_ms {tb_ms} ms repeated with another position"), now)
+            if dt > now - r[1] + self._slack:
+                return self._refuse("time_jump", (
+                    f"time_boot_ms jumped {dt:.3g} s ahead in {now - r[1]:.3g} s"), now)
+        elif dt < 0.0:
+            dt = 0.0
+        allow, vh, vz = self._allow, self._vh, self._vz
+        lim = vh * dt + allow
+        da, db = (a - r[2]) * ka, (b - r[3]) * kb
+        if abs(da) + abs(db) > lim and da * da + db * db > lim * lim:
+            return self._jump(math.hypot(da, db), dt, now)
+        if abs(c - r[4]) > vz * dt + allow:
+            return self._jump(abs(c - r[4]), dt, now, "vertically ")
+        an = s.anchor
+        assert an is not None
+        dt_a = min(t - an[0], now - an[1] + self._slack)
+        lim = vh * dt_a + allow
+        da, db = (a - an[2]) * ka, (b - an[3]) * kb
+        if abs(da) + abs(db) > lim and da * da + db * db > lim * lim:
+            return self._jump(math.hypot(da, db), dt_a, now)
+        s.ref = ref = (t, now, a, b, c)
+        nx = s.next
+        assert nx is not None
+        if now - nx[1] >= ANCHOR_S:
+            s.anchor, s.next = nx, ref
+        if self._ep_last is not None:
+            self._accepted(now)
+        return True
+
+    # -- refusals and the fault ------------------------------------------------------------------
+    def _speed(self, vn: float, ve: float, vd: float, now: float) -> bool:
+        h = math.hypot(vn, ve)
+        if h > self._vh:
+            why = f"reported speed {h:.3g} m/s above the bound {self._vh:.3g} m/s"
+        else:
+            why = f"reported vertical speed {abs(vd):.3g} m/s above the bound {self._vz:.3g} m/s"
+        return self._refuse("speed", why, now)
+
+    def _jump(self, dist_m: float, dt_s: float, now: float, how: str = "") -> bool:
+        return self._refuse("position_jump",
+                            f"position jumped {how}{dist_m:.3g} m in {dt_s * 1000:.0f} ms", now)
+
+    def _accepted(self, now: float) -> None:
+        if self._ep_last is not None and now - self._ep_last > self.bounds.episode_gap_s:
+            self._ep_last = None  # the episode is over
+        else:
+            self._ep_ok += 1
+
+    def _refuse(self, kind: str, why: str, now: float) -> bool:
+        st = self.state
+        st.telemetry_refused[kind] += 1
+        last = self._ep_last
+        if last is None or now - last > self.bounds.episode_gap_s:
+            self._ep_start, self._ep_ok, self._ep_bad = now, 0, 0
+        self._ep_last = now
+        self._ep_bad += 1
+        span = now - self._ep_start
+        if (st.telemetry_fault is None and self._ep_bad >= 2
+                and span >= self.bounds.fault_after_s):
+            ok, bad = self._ep_ok, self._ep_bad
+            head = ("telemetry from two sources: " if ok >= 2 and 5 * ok >= ok + bad else "")
+            self.declare_fault(f"{head}{why} ({bad} of {ok + bad} position samples refused in "
+                               f"{span:.2f} s)")
+        self._warn(f"{self.owner.name}: refused telemetry ({kind}): {why}", now)
+        return False
+
+    def refuse_at_door(self, kind: str, why: str, now: float | None = None) -> None:
+        """Count a refusal of the identity/source rules (no plausibility episode: nothing of
+        it reached the state); warned about at most every 5 s."""
+        self.state.telemetry_refused[kind] += 1
+        self._warn(f"{self.owner.name}: refused ({kind}): {why}",
+                   time.monotonic() if now is None else now)
+
+    def declare_fault(self, reason: str) -> None:
+        """Set ``state.telemetry_fault`` (once: the first reason stays) and say so."""
+        if self.state.telemetry_fault is None:
+            self.state.telemetry_fault = reason
+            log.error("%s: telemetry fault: %s", self.owner.name, reason)
+
+    def _warn(self, message: str, now: float) -> None:
+        if now - self._warned_at < _WARN_S:
+            self._suppressed += 1
+            return
+        if self._suppressed:
+            message += (f" ({self._suppressed} more refusals in the last "
+                        f"{now - self._warned_at:.0f} s; so far {self.counts()})")
+        self._warned_at, self._suppressed = now, 0
+        log.warning(message)
+
+    def counts(self) -> str:
+        """``3 other_source, 12 position_jump`` (or ``none``)."""
+        refused: Counter[str] = self.state.telemetry_refused
+        return ", ".join(f"{n} {k}" for k, n in sorted(refused.items()) if n) or "none"
