@@ -312,8 +312,9 @@ class VehicleLink(abc.ABC):
         return None
 
     def check_identity(self) -> None:
-        """:class:`LinkConflict` if :meth:`identity_problem`: called by ``connect``,
-        :meth:`wait_ready` and ``arm`` (so, before arming)."""
+        """:class:`LinkConflict` if :meth:`identity_problem`: called by :meth:`wait_ready`
+        and ``arm`` (so, before arming; ``connect`` does not, so that the fleet reports it as
+        a vehicle that is not ready rather than one that did not connect)."""
         problem = self.identity_problem()
         if problem is not None:
             raise LinkConflict(f"{self.name}: {problem}")

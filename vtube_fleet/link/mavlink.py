@@ -912,11 +912,9 @@ class MavlinkLink(VehicleLink):
                         f"{st.bad_packets} malformed, {st.foreign_packets} from others"
                         f"{self._signing_note()}){self._other_ids_note()}"
                     ) from None
-            self.check_identity()
             if not self._streams_requested:
                 await self._request_streams(deadline)
                 self._streams_requested = True
-            self.check_identity()
             log.info("%s: connected", self.name)
 
     def _other_ids_note(self) -> str:

@@ -701,8 +701,6 @@ class MavsdkLink(VehicleLink):
                     await setter(rate)
                 except Exception as exc:
                     log.warning("%s: could not set telemetry rate %g Hz: %s", self.name, rate, exc)
-            await self.hub._refresh_systems()
-            self.check_identity()
             log.info("%s: connected (mavsdk)", self.name)
 
     def _start_telemetry(self) -> None:
