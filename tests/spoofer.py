@@ -5,7 +5,8 @@ Per target (the controller's port of one vehicle, its system id, where to claim 
 period: a LOCAL_POSITION_NED and an ATTITUDE; once a second a HEARTBEAT that says armed, in
 OFFBOARD (what PX4 says in the tube). ``time_boot_ms`` is the spoofer's own clock from 0 unless
 the target gives one (an attacker who sniffs the vehicle's clock). It runs in a thread of its
-own, as another process on the network would, at ``rate_hz`` (50 Hz: the attack of issue 33).
+own, as another process on the network would, at ``rate_hz`` (50 Hz: the attack of issue 33),
+for ``duration_s`` (then it falls silent; :attr:`done` is set).
 
     with Spoofer([SpoofTarget(("127.0.0.1", 14541), 2, lambda t: (20.0, 0.5, -5.0, 3, 0, 0))]):
         ...
@@ -44,9 +45,12 @@ class Spoofer:
     """Sends the fakes of ``targets`` from one UDP socket (its own address) until stopped."""
 
     def __init__(self, targets: list[SpoofTarget], rate_hz: float = 50.0,
+                 duration_s: float = float("inf"),
                  source: tuple[str, int] = ("127.0.0.1", 0)) -> None:
         self.targets = targets
         self.period_s = 1.0 / rate_hz
+        self.duration_s = duration_s
+        self.done = threading.Event()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(source)
         self.address = self.sock.getsockname()
@@ -86,6 +90,8 @@ class Spoofer:
         while not self._stop.is_set():
             now = time.monotonic()
             t = now - t0
+            if t > self.duration_s:
+                break
             hb = now >= next_hb
             if hb:
                 next_hb += 1.0
@@ -101,3 +107,8 @@ class Spoofer:
                 self._send(target, m, m.local_position_ned_encode(tb, n, e, d, vn, ve, vd))
                 self._send(target, m, m.attitude_encode(tb, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
             self._stop.wait(self.period_s)
+        self.done.set()
+
+    @property
+    def started(self) -> bool:
+        return self._thread is not None

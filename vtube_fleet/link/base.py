@@ -40,6 +40,7 @@ __all__ = [
     "StatusText",
     "VehicleState",
     "VehicleLink",
+    "IDENTITY_GATHER_S",
     "READY_MAX_AGE_S",
     "cancel_tasks",
     "send_velocities_ned",
@@ -48,6 +49,9 @@ __all__ = [
 
 #: A heartbeat / position older than this does not count for :meth:`VehicleLink.wait_ready`.
 READY_MAX_AGE_S = 3.0
+#: :meth:`VehicleLink.wait_ready` reports a port that carries other vehicles this long after it
+#: first heard one (a bit more than PX4's 1 Hz HEARTBEAT: the message names them all).
+IDENTITY_GATHER_S = 1.2
 
 
 async def cancel_tasks(tasks: list[asyncio.Task]) -> None:
@@ -440,17 +444,25 @@ class VehicleLink(abc.ABC):
     async def wait_ready(self, timeout_s: float = 30.0) -> VehicleState:
         """Wait for heartbeat, local and global position, home, GPS origin and health.
 
-        Raises :class:`LinkTimeout` listing what is still missing.
+        Raises :class:`LinkTimeout` listing what is still missing, :class:`LinkConflict`
+        when the port carries more than its vehicle (:meth:`identity_problem`; reported
+        :data:`IDENTITY_GATHER_S` after it was first seen, so that the message names every
+        vehicle heard by then).
         """
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
         next_tick = loop.time() + 1.0
+        conflict_at: float | None = None
         while True:
-            self.check_identity()
-            missing = self.missing_for_ready()
-            if not missing:
-                return self.state
             now = loop.time()
+            missing = self.missing_for_ready()
+            if self.identity_problem() is not None:
+                if conflict_at is None:
+                    conflict_at = now
+                if now - conflict_at >= IDENTITY_GATHER_S or now >= deadline:
+                    self.check_identity()
+            elif not missing:
+                return self.state
             if now >= deadline:
                 raise LinkTimeout(
                     f"{self.name}: not ready after {timeout_s:.1f} s: {'; '.join(missing)}"
@@ -458,8 +470,10 @@ class VehicleLink(abc.ABC):
             if now >= next_tick:
                 next_tick = now + 1.0
                 await self._ready_tick(missing)
+            wake = min(deadline, next_tick,
+                       math.inf if conflict_at is None else conflict_at + IDENTITY_GATHER_S)
             try:
-                async with asyncio.timeout(max(0.0, min(deadline, next_tick) - now)):
+                async with asyncio.timeout(max(0.0, wake - now)):
                     await self._next("_state_waiters")
             except TimeoutError:
                 pass

@@ -220,8 +220,8 @@ def shared_port_cause(ports: Iterable[int], from_ports: Iterable[int]) -> str:
                 f"from 18570+i), and it is instance 10's API port (14540+10); move the GCS "
                 f"link (the -o {PX4_SITL_GCS_PORT} of px4-rc.mavlink) or fly another API port "
                 f"scheme (docs/links.md, \"Identity and source\")")
-    return ("another vehicle sends to this port: two PX4 instances with one port, or a "
-            "MAVLink link of another vehicle pointed here")
+    return ("another vehicle's MAVLink link (a GCS link, say) sends to this port, or two PX4 "
+            "instances share it")
 
 
 def px4_sitl_sysid(port: int) -> int | None:

@@ -527,7 +527,7 @@ class MavlinkLink(VehicleLink):
             ids = sorted({*self._vehicles_heard, *([] if me is None else [me])})
             froms = sorted({a for s in self._vehicles_heard.values() for a in s}, key=str)
             problems.append(
-                f"{self.endpoint.url} hears the HEARTBEATs of {len(ids)} vehicles, systems "
+                f"its port hears the HEARTBEATs of {len(ids)} vehicles, systems "
                 f"{_id_list(ids)} (this link flies system {me}; the others from "
                 f"{', '.join(_addr(a) for a in froms[:4])}{' …' if len(froms) > 4 else ''}): "
                 + shared_port_cause([self.endpoint.port],

@@ -277,7 +277,7 @@ class MavsdkHub:
             urls = ", ".join(self._urls) or link.endpoint.transport_url
             froms = [a for s in extra for a in self._remotes.get(s, [])]
             ids = sorted({*extra, *self._flown})
-            where = (f"{urls} hears the HEARTBEATs of {len(ids)} vehicles, systems "
+            where = (f"its port hears the HEARTBEATs of {len(ids)} vehicles, systems "
                      f"{', '.join(map(str, ids))}" if len(self._urls) <= 1 else
                      f"the hub's connections ({urls}) hear systems "
                      f"{', '.join(map(str, extra))} that no link flies")
@@ -307,6 +307,8 @@ class MavsdkHub:
                 raise LinkError(f"mavsdk: cannot add connection {url}: {exc}") from None
 
     async def _refresh_systems(self) -> None:
+        if self._mavsdk is None:
+            return
         for system in await self._mavsdk.get_systems():
             sysid = await system.get_system_id()
             if sysid not in self._systems:
@@ -861,6 +863,7 @@ class MavsdkLink(VehicleLink):
         self._notify_state()
 
     async def _ready_tick(self, missing: list[str]) -> None:
+        await self.hub._refresh_systems()  # (autopilots discovered meanwhile: identity)
         if "no GPS global origin" in missing and self._telemetry is not None:
             try:
                 o = await self._telemetry.get_gps_global_origin()
