@@ -327,3 +327,33 @@ def test_with_a_key_unsigned_fakes_are_refused_before_any_of_this(tmp_path: Path
         link.feed_datagram(hb(m), src, now=10.01)
     assert link.signing_refused["unsigned"] == 4
     assert not link.state.telemetry_refused and link.state.north_m == 0.0
+
+
+def test_a_stall_of_our_loop_with_lost_datagrams_is_no_refusal() -> None:
+    """The reference read 1 s late (our loop stalled), the datagrams after it lost (a full
+    socket buffer), the next one read in the same round: it looks 1 s early, and is still
+    taken (the cap of Δt, no time_jump below 2 s)."""
+    link, m = pinned_link(telemetry=BOUNDS)
+    st = link.state
+    link.feed_datagram(lpn(m, 10_000, 0.0), VEHICLE, now=10.0)
+    link.feed_datagram(lpn(m, 10_020, 0.03), VEHICLE, now=11.0)  # read 0.98 s late
+    for k in range(50):  # lost: 10_040 .. 11_020; read promptly from 11_040 on
+        link.feed_datagram(lpn(m, 11_040 + 20 * k, 1.56 + 0.03 * k), VEHICLE,
+                           now=11.0 + 0.02 * k)
+    assert not st.telemetry_refused and st.north_m == pytest.approx(1.56 + 0.03 * 49)
+
+
+def test_a_reference_read_very_late_costs_one_refusal_not_a_fault() -> None:
+    """As above with a 2.5 s stall: the first prompt sample looks 2.5 s early (time_jump,
+    compared with the last sample seen); the next ones are compared with it and taken once
+    our clock has moved a little (the cap of Δt heals)."""
+    link, m = pinned_link(telemetry=BOUNDS)
+    st = link.state
+    link.feed_datagram(lpn(m, 10_000, 0.0), VEHICLE, now=10.0)
+    link.feed_datagram(lpn(m, 10_020, 0.03), VEHICLE, now=12.5)  # read 2.48 s late
+    for k in range(50):  # lost until 12_520; prompt from then on, at 1.5 m/s
+        link.feed_datagram(lpn(m, 12_520 + 20 * k, 3.78 + 0.03 * k), VEHICLE,
+                           now=12.52 + 0.02 * k)
+    assert st.telemetry_refused["time_jump"] == 1
+    assert st.telemetry_refused.total() < 25 and st.telemetry_fault is None
+    assert st.north_m == pytest.approx(3.78 + 0.03 * 49)

@@ -13,9 +13,17 @@ it (docs/security.md, "Unsigned links"):
   vertically (``position_jump``); also against an *anchor*, an accepted sample 0.25-0.5 s older
   by our clock, so that a chain of small jumps cannot walk away faster than that either;
 * a ``time_boot_ms`` that goes back (or repeats with another position: ``time_backwards``) or
-  runs ahead of our clock by more than ``clock_slack_s`` since the last accepted sample
+  runs ahead of our clock by more than ``time_jump_s`` since the last sample seen
   (``time_jump``). Δt is the vehicle's (``time_boot_ms``) where there is one (mavlink backend),
-  else our arrival clock (MAVSDK hands positions over without their time).
+  but never more than our clock moved since the reference + ``arrival_slack_s`` (a forged time
+  buys no allowance); MAVSDK hands positions over without their time: there, our arrival clock.
+
+Our arrival clock is the hub's reading when it read the datagram, so a reference read late (a
+stalled loop) makes a prompt sample after it look early by that delay, with the datagrams in
+between lost (a full socket buffer). ``time_jump`` therefore compares with the last sample seen
+(accepted or not), so it heals after one sample, and the cap of Δt costs a refusal only when the
+delay is large against the bound (it heals as our clock moves on: the allowed distance grows at
+the bound, the true one at the vehicle's speed; test: a 1 s stall with losses, no refusal).
 
 A refused sample changes nothing in the :class:`~vtube_fleet.link.base.VehicleState`; it is
 counted in ``state.telemetry_refused`` by kind. **Persistent refusals are a fault**: when a
@@ -74,13 +82,15 @@ class TelemetryBounds:
     max_vertical_speed_m_s: float = 3.0 + VERTICAL_MARGIN_M_S  #: MPC_Z_VEL_MAX_UP + margin
     jump_floor_m: float = 0.3
     accuracy_cap_m: float = 1.0
-    clock_slack_s: float = 0.25
+    time_jump_s: float = 2.0
+    arrival_slack_s: float = 0.25
     fault_after_s: float = 0.5
     episode_gap_s: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("max_speed_m_s", "max_vertical_speed_m_s", "jump_floor_m",
-                     "accuracy_cap_m", "clock_slack_s", "fault_after_s", "episode_gap_s"):
+                     "accuracy_cap_m", "time_jump_s", "arrival_slack_s", "fault_after_s",
+                     "episode_gap_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"telemetry bound {name} must be finite and > 0, got {v}")
@@ -111,14 +121,17 @@ DEFAULT_BOUNDS = TelemetryBounds()
 class _Stream:
     """The last accepted sample of one position stream and its anchor: (t, arrival, a, b, c)
     with t the vehicle's time (s) or the arrival, (a, b, c) north, east, down (m) or lat,
-    lon (deg), alt (m)."""
+    lon (deg), alt (m); and the time and arrival of the last sample seen after the reference,
+    accepted or not (what ``time_jump`` compares with)."""
 
-    __slots__ = ("ref", "anchor", "next")
+    __slots__ = ("ref", "anchor", "next", "seen_t", "seen_at")
 
     def __init__(self) -> None:
         self.ref: tuple[float, float, float, float, float] | None = None
         self.anchor: tuple[float, float, float, float, float] | None = None
         self.next: tuple[float, float, float, float, float] | None = None
+        self.seen_t = 0.0
+        self.seen_at = 0.0
 
 
 class TelemetryGuard:
@@ -132,7 +145,8 @@ class TelemetryGuard:
         self._vh = bounds.max_speed_m_s
         self._vh2 = bounds.max_speed_m_s ** 2
         self._vz = bounds.max_vertical_speed_m_s
-        self._slack = bounds.clock_slack_s
+        self._jump_s = bounds.time_jump_s
+        self._slack = bounds.arrival_slack_s
         self._allow = bounds.jump_floor_m
         self.local = _Stream()
         self.global_ = _Stream()
@@ -172,6 +186,7 @@ class TelemetryGuard:
         r = s.ref
         if r is None:
             s.ref = s.anchor = s.next = (t, now, a, b, c)
+            s.seen_t, s.seen_at = t, now
             return True
         dt = t - r[0]
         if tb_ms is not None:
@@ -181,9 +196,16 @@ class TelemetryGuard:
                 return self._refuse("time_backwards", (
                     f"time_boot_ms went back from {round(r[0] * 1000)} to {tb_ms} ms" if dt < 0
                     else f"time_boot_ms {tb_ms} ms repeated with another position"), now)
-            if dt > now - r[1] + self._slack:
+            # ahead of the last sample seen by more than our clock moved (a sample seen, not
+            # the reference: one read late must not make every prompt one after it a jump)
+            ahead = t - s.seen_t - (now - s.seen_at)
+            s.seen_t, s.seen_at = t, now
+            if ahead > self._jump_s:
                 return self._refuse("time_jump", (
-                    f"time_boot_ms jumped {dt:.3g} s ahead in {now - r[1]:.3g} s"), now)
+                    f"time_boot_ms ran {ahead:.3g} s ahead of our clock"), now)
+            cap = now - r[1] + self._slack  # Δt: at most what our clock allows
+            if dt > cap:
+                dt = cap
         elif dt < 0.0:
             dt = 0.0
         allow, vh, vz = self._allow, self._vh, self._vz

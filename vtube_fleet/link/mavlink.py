@@ -15,6 +15,16 @@
   rate-limited warning; other systems' packets and other GCSs' heartbeats are counted
   (``foreign_packets``) and ignored; message ids the dialect lacks (PX4's 8, 380, 410, 411, 436)
   are fine.
+* Identity and source (issue 33, docs/links.md): the link flies one system id (given, or the
+  first autopilot heard) and refuses every other (``telemetry_refused["other_sysid"]``); a
+  ``udpin`` link learns the vehicle's address from its autopilot's first packet and refuses its
+  id from any other address (``other_source``), re-learning only from 3 HEARTBEATs of one new
+  address while the learned one has been silent for 3 s (logged). Other vehicles' HEARTBEATs,
+  and the id from a second address, make :meth:`MavlinkLink.identity_problem`: a
+  :class:`~vtube_fleet.link.base.LinkConflict` from ``wait_ready`` and ``arm``.
+* Plausibility (:mod:`vtube_fleet.link.guard`, ``telemetry=``): LOCAL_POSITION_NED (also on
+  its fast path) and GLOBAL_POSITION_INT that the vehicle cannot have flown are refused and
+  counted; persistent refusals set ``state.telemetry_fault``.
 * GCS identity sysid 255 / compid 190, HEARTBEAT (type GCS, autopilot INVALID) every second,
   as the capture GCS did. On connect: SET_MESSAGE_INTERVAL for LOCAL_POSITION_NED (50 Hz),
   GLOBAL_POSITION_INT (10 Hz), EXTENDED_SYS_STATE (5 Hz), HOME_POSITION (1 Hz) and
