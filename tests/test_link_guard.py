@@ -264,7 +264,7 @@ def test_several_vehicles_on_the_gcs_port_14550_are_refused_naming_them_and_the_
         link.check_identity()
     msg = str(err.value)
     assert "\n" not in msg and msg.startswith("vehicle 11 (udpin://127.0.0.1:14550): ")
-    assert "hears the HEARTBEATs of 11 vehicles, systems 1, 2, 3" in msg and "and 11" in msg
+    assert "hears 11 vehicles, systems 1, 2, 3" in msg and "and 11" in msg
     assert "this link flies system 11" in msg and "127.0.0.1:18570" in msg
     assert "14550 is where PX4 SITL's GCS link sends" in msg
     assert "move the GCS link" in msg and "another API port scheme" in msg
@@ -357,3 +357,17 @@ def test_a_reference_read_very_late_costs_one_refusal_not_a_fault() -> None:
     assert st.telemetry_refused["time_jump"] == 1
     assert st.telemetry_refused.total() < 25 and st.telemetry_fault is None
     assert st.north_m == pytest.approx(3.78 + 0.03 * 49)
+
+
+def test_another_vehicles_position_stream_alone_is_a_conflict() -> None:
+    """Its autopilot's packets (compid 1) are enough, before any HEARTBEAT of it (PX4 streams
+    LOCAL_POSITION_NED from 0.5 s after boot, its first HEARTBEAT comes at 1.3 s); a
+    companion's or a GCS's packets of another id are not a vehicle."""
+    link, m = pinned_link("udpin://127.0.0.1:24010", sysid=3)
+    link.feed_datagram(lpn(codec(7, 191), 5_000, 1.0), ("127.0.0.1", 24111), now=0.2)
+    link.check_identity()
+    link.feed_datagram(lpn(codec(7), 5_000, 1.0), ("127.0.0.1", 24111), now=0.3)
+    with pytest.raises(LinkConflict, match=r"its port hears 2 vehicles, systems 3 and 7 \(this "
+                                           r"link flies system 3; the others from 127\.0\.0\.1:"
+                                           r"24111\)"):
+        link.check_identity()

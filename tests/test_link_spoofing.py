@@ -202,7 +202,7 @@ async def test_a_port_that_hears_other_vehicles_is_refused_before_arming(
     reason = result.reason
     assert "not ready" in reason and "\n" not in reason
     if backend == "mavlink":
-        assert ("vehicle 3 (" in reason and "its port hears the HEARTBEATs of 3 vehicles, "
+        assert ("vehicle 3 (" in reason and "its port hears 3 vehicles, "
                 "systems 1, 2 and 3 (this link flies system 3" in reason)
     else:  # one MAVSDK for the fleet: it merges systems 1 and 2 from both addresses
         assert "system 1 speaks from 2 addresses" in reason
@@ -228,15 +228,57 @@ async def test_an_agent_on_a_port_with_other_vehicles_is_refused_before_arming(
                 sys.executable, "-m", "vtube_fleet", "mission", "start", str(PX4_SITL_3),
                 "--broker", broker.url, "--vehicles", "3", "--ready-timeout", "60",
                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-            with pytest.raises(LinkConflict) as err:
-                await agent.run()
-            _, errb = await asyncio.wait_for(coordinator.communicate(), 60)
+            try:
+                with pytest.raises(LinkConflict) as err:
+                    async with asyncio.timeout(120):  # (refused within seconds)
+                        await agent.run()
+                _, errb = await asyncio.wait_for(coordinator.communicate(), 60)
+            finally:
+                if coordinator.returncode is None:
+                    coordinator.kill()
+                    await coordinator.wait()
             armed = [any(a for _, _, a in v.mode_log) for v in fleet.vehicles]
     msg = str(err.value)
     print(f"\nagent: {msg}")
-    assert "its port hears the HEARTBEATs of 3 vehicles, systems 1, 2 and 3" in msg, msg
+    assert "its port hears 3 vehicles, systems 1, 2 and 3" in msg, msg
     assert "speaks from" not in msg  # its own vehicle's GCS link goes elsewhere, as PX4's
     assert armed == [False, False, False]
     text = errb.decode()
     assert coordinator.returncode == 2 and "refused" in text and "vehicle 2" in text, text
-    assert "its port hears the HEARTBEATs of 3 vehicles" in text, text
+    assert "its port hears 3 vehicles" in text, text
+
+
+# -- signing first --------------------------------------------------------------------------
+async def test_with_a_key_the_unsigned_spoof_is_refused_by_signing_before_any_of_this(
+        tmp_path: Path) -> None:
+    """A vehicle holding the key (PX4 ≥ 1.18 after sign-setup) and a signing link: the
+    spoofer's unsigned datagrams never reach the identity, source or plausibility rules; they
+    are all signing's refusals, and the link's position stays the vehicle's."""
+    from sim_stub import MockVehicle
+    from sim_stub.ports import free_port_scheme
+    from vtube_fleet.link import MavlinkLink
+    from vtube_fleet.link.signing import LinkSigning, TimestampStore
+
+    key = bytes(range(1, 33))
+    ports = free_port_scheme(1)
+    async with MockVehicle(0, ports=ports, signing=key, boot_time_scale=0.3) as v:
+        link = MavlinkLink(ports.endpoint(0), sysid=v.sysid,
+                           signing=LinkSigning(key, TimestampStore(tmp_path / "k.timestamp")))
+        try:
+            await link.connect(15.0)
+            await link.wait_ready(20.0)
+            target = SpoofTarget(v.gcs_address, v.sysid, lambda t: (20.0, 0.5, -5.0, 3, 0, 0))
+            spoofer = Spoofer([target], duration_s=2.0)
+            with spoofer:
+                await asyncio.get_running_loop().run_in_executor(None, spoofer.done.wait, 10)
+            # the vehicle's own (signed) stream goes on: its next positions come after the fakes
+            fakes = spoofer.sent
+            await link.wait_until(lambda s: link.signing_refused["unsigned"] >= fakes, 5.0,
+                                  "every fake refused by signing")
+            north, east, _ = v.position_ned
+            st = link.state
+        finally:
+            await link.close()
+    assert fakes > 150 and link.signing_refused["unsigned"] == fakes
+    assert not st.telemetry_refused and st.telemetry_fault is None
+    assert abs(st.north_m - north) < 1.0 and abs(st.east_m - east) < 1.0

@@ -459,7 +459,8 @@ class MavlinkLink(VehicleLink):
     def _admit(self, sysid: int, compid: int, hb: Any, addr: Any, now: float) -> bool:
         """Whether one valid packet speaks for this link's vehicle (``hb``: the packet if it
         is a HEARTBEAT). Its system id only (another vehicle's packets are refused, counted,
-        and their HEARTBEATs kept for :meth:`identity_problem`); a GCS's HEARTBEAT is foreign;
+        and kept for :meth:`identity_problem` when they come from an autopilot: compid 1, or
+        a HEARTBEAT not of a GCS); a GCS's HEARTBEAT is foreign;
         from the learned address only (a ``udpin`` link learns it from the first packet of
         its vehicle's autopilot; :meth:`_relearned` is the one way to another)."""
         st = self.state
@@ -471,7 +472,9 @@ class MavlinkLink(VehicleLink):
             else:
                 st.foreign_packets += 1
                 if not gcs_hb:
-                    if hb is not None and hb.type != _MAV_TYPE_GCS:
+                    # another vehicle: its autopilot's packets (or a vehicle's HEARTBEAT)
+                    if (compid == _MAV_COMP_ID_AUTOPILOT1 if hb is None
+                            else hb.type != _MAV_TYPE_GCS):
                         heard = self._vehicles_heard.setdefault(sysid, set())
                         if len(heard) < _HEARD_MAX:
                             heard.add(addr)
@@ -537,7 +540,7 @@ class MavlinkLink(VehicleLink):
             ids = sorted({*self._vehicles_heard, *([] if me is None else [me])})
             froms = sorted({a for s in self._vehicles_heard.values() for a in s}, key=str)
             problems.append(
-                f"its port hears the HEARTBEATs of {len(ids)} vehicles, systems "
+                f"its port hears {len(ids)} vehicles, systems "
                 f"{_id_list(ids)} (this link flies system {me}; the others from "
                 f"{', '.join(_addr(a) for a in froms[:4])}{' …' if len(froms) > 4 else ''}): "
                 + shared_port_cause([self.endpoint.port],

@@ -277,7 +277,7 @@ class MavsdkHub:
             urls = ", ".join(self._urls) or link.endpoint.transport_url
             froms = [a for s in extra for a in self._remotes.get(s, [])]
             ids = sorted({*extra, *self._flown})
-            where = (f"its port hears the HEARTBEATs of {len(ids)} vehicles, systems "
+            where = (f"its port hears {len(ids)} vehicles, systems "
                      f"{', '.join(map(str, ids))}" if len(self._urls) <= 1 else
                      f"the hub's connections ({urls}) hear systems "
                      f"{', '.join(map(str, extra))} that no link flies")
