@@ -371,3 +371,8 @@ def test_another_vehicles_position_stream_alone_is_a_conflict() -> None:
                                            r"link flies system 3; the others from 127\.0\.0\.1:"
                                            r"24111\)"):
         link.check_identity()
+    # a tool of a ground station (ids 245-255) sending from compid 1: only by a HEARTBEAT
+    tool, _ = pinned_link("udpin://127.0.0.1:24011", sysid=3)
+    tool.feed_datagram(lpn(codec(250), 5_000, 1.0), ("127.0.0.1", 24112), now=0.3)
+    tool.check_identity()
+    assert tool.state.telemetry_refused["other_sysid"] == 1

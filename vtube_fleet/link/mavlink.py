@@ -158,6 +158,8 @@ _RESULT_IN_PROGRESS = 5
 _MAV_COMP_ID_AUTOPILOT1 = 1
 _MAV_AUTOPILOT_INVALID = 8  # a GCS's HEARTBEAT
 _MAV_TYPE_GCS = 6
+#: system ids of ground stations by convention (MAVSDK 245, QGroundControl and us 255)
+_GCS_IDS_FROM = 245
 _WARN_INTERVAL_S = 5.0
 _HEARTBEAT_LOST_S = 3.0
 #: the vehicle's address is re-learned only from this many HEARTBEATs of its id from one new
@@ -459,8 +461,9 @@ class MavlinkLink(VehicleLink):
     def _admit(self, sysid: int, compid: int, hb: Any, addr: Any, now: float) -> bool:
         """Whether one valid packet speaks for this link's vehicle (``hb``: the packet if it
         is a HEARTBEAT). Its system id only (another vehicle's packets are refused, counted,
-        and kept for :meth:`identity_problem` when they come from an autopilot: compid 1, or
-        a HEARTBEAT not of a GCS); a GCS's HEARTBEAT is foreign;
+        and kept for :meth:`identity_problem` when they come from a vehicle: a HEARTBEAT not
+        of a GCS, or a packet of an autopilot, compid 1, below id 245); a GCS's HEARTBEAT is
+        foreign;
         from the learned address only (a ``udpin`` link learns it from the first packet of
         its vehicle's autopilot; :meth:`_relearned` is the one way to another)."""
         st = self.state
@@ -472,9 +475,11 @@ class MavlinkLink(VehicleLink):
             else:
                 st.foreign_packets += 1
                 if not gcs_hb:
-                    # another vehicle: its autopilot's packets (or a vehicle's HEARTBEAT)
-                    if (compid == _MAV_COMP_ID_AUTOPILOT1 if hb is None
-                            else hb.type != _MAV_TYPE_GCS):
+                    # another vehicle: a vehicle's HEARTBEAT, or its autopilot's packets
+                    # (not of ids 245-255, where ground stations live: their tools' packets
+                    # can come from compid 1 and be forwarded by PX4)
+                    if (hb.type != _MAV_TYPE_GCS if hb is not None
+                            else compid == _MAV_COMP_ID_AUTOPILOT1 and sysid < _GCS_IDS_FROM):
                         heard = self._vehicles_heard.setdefault(sysid, set())
                         if len(heard) < _HEARD_MAX:
                             heard.add(addr)
