@@ -19,8 +19,8 @@
   first autopilot heard) and refuses every other (``telemetry_refused["other_sysid"]``); a
   ``udpin`` link learns the vehicle's address from its autopilot's first packet and refuses its
   id from any other address (``other_source``), re-learning only from 3 HEARTBEATs of one new
-  address while the learned one has been silent for 3 s (logged). Other vehicles' HEARTBEATs,
-  and the id from a second address, make :meth:`MavlinkLink.identity_problem`: a
+  address while the learned one has been silent for 3 s (logged). Other vehicles heard, and
+  the id's HEARTBEAT from a second address, make :meth:`MavlinkLink.identity_problem`: a
   :class:`~vtube_fleet.link.base.LinkConflict` from ``wait_ready`` and ``arm``.
 * Plausibility (:mod:`vtube_fleet.link.guard`, ``telemetry=``): LOCAL_POSITION_NED (also on
   its fast path) and GLOBAL_POSITION_INT that the vehicle cannot have flown are refused and
@@ -241,7 +241,7 @@ class MavlinkLink(VehicleLink):
         #: refuse the vehicle's id from any address but the learned one (False: a test switch
         #: that accepts every address and keeps the learned one for sending)
         self.pin_source = bool(pin_source)
-        #: other vehicles heard on this port (their HEARTBEATs): sysid -> addresses
+        #: other vehicles heard on this port (_admit): sysid -> addresses
         self._vehicles_heard: dict[int, set[Any]] = {}
         #: other addresses that sent this vehicle's HEARTBEAT while the learned one was alive
         self._sources_heard: set[Any] = set()
@@ -460,12 +460,11 @@ class MavlinkLink(VehicleLink):
     # -- identity and source (docs/links.md, "Identity and source") ---------------------------
     def _admit(self, sysid: int, compid: int, hb: Any, addr: Any, now: float) -> bool:
         """Whether one valid packet speaks for this link's vehicle (``hb``: the packet if it
-        is a HEARTBEAT). Its system id only (another vehicle's packets are refused, counted,
-        and kept for :meth:`identity_problem` when they come from a vehicle: a HEARTBEAT not
+        is a HEARTBEAT). Its system id only: another vehicle's packets are refused, counted,
+        and kept for :meth:`identity_problem` when they come from a vehicle (a HEARTBEAT not
         of a GCS, or a packet of an autopilot, compid 1, below id 245); a GCS's HEARTBEAT is
-        foreign;
-        from the learned address only (a ``udpin`` link learns it from the first packet of
-        its vehicle's autopilot; :meth:`_relearned` is the one way to another)."""
+        foreign. From the learned address only: a ``udpin`` link learns it from the first
+        packet of its vehicle's autopilot; :meth:`_relearned` is the one way to another."""
         st = self.state
         gcs_hb = hb is not None and hb.autopilot == _MAV_AUTOPILOT_INVALID
         if sysid != self._sysid:
@@ -519,8 +518,8 @@ class MavlinkLink(VehicleLink):
                 self._sources_heard.add(addr)
             return False
         cand = self._relearn
-        if cand is None or cand[0] != addr:
-            self._relearn = cand = [addr, now, 0]
+        if cand is None or cand[0] != addr or (last is not None and cand[1] < last):
+            self._relearn = cand = [addr, now, 0]  # (all of them after the old one's last)
         cand[2] += 1
         if cand[2] < RELEARN_HEARTBEATS:
             return False
@@ -536,9 +535,9 @@ class MavlinkLink(VehicleLink):
         return True
 
     def identity_problem(self) -> str | None:
-        """Other vehicles' HEARTBEATs on this port, or this vehicle's id from a second address
-        while the first one spoke: the port does not carry one vehicle (refused before arming,
-        with the likely cause)."""
+        """Other vehicles heard on this port, or this vehicle's id from a second address while
+        the first one spoke: the port does not carry one vehicle (refused before arming, with
+        the likely cause)."""
         me = self._sysid
         problems = []
         if self._vehicles_heard:

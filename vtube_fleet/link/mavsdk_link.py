@@ -443,17 +443,14 @@ class MavsdkLink(VehicleLink):
         """MAVSDK logged the vehicle's id from another address: counted; a fault (MAVSDK takes
         both and sends to both; it cannot be told to refuse one) unless ``pin_source`` is off.
         Before arming, :meth:`identity_problem` refuses the port."""
-        self._refuse_at_door("other_source", f"MAVSDK hears system {self.state.sysid} from "
-                             f"{addrs[-1][0]}:{addrs[-1][1]} too")
+        self.state.telemetry_refused["other_source"] += 1  # (MAVSDK took it: counted, per address)
+        log.warning("%s: a second source (other_source): MAVSDK hears system %s from %s:%s too",
+                    self.name, self.state.sysid, addrs[-1][0], addrs[-1][1])
         if self.pin_source and self._guard is not None:
             self._guard.declare_fault(
                 f"telemetry from two sources: system {self.state.sysid} speaks from "
                 f"{', '.join(f'{h}:{p}' for h, p in addrs[:4])} (MAVSDK takes both; it "
                 f"cannot be told to refuse one)")
-
-    def _refuse_at_door(self, kind: str, why: str) -> None:
-        self.state.telemetry_refused[kind] += 1
-        log.warning("%s: refused (%s): %s", self.name, kind, why)
 
     # -- watchdog hooks (called from the hub's threads) -------------------------------------------
     def _stall_s(self, now: float) -> float | None:
