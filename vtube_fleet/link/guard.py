@@ -219,7 +219,7 @@ class TelemetryGuard:
                 dt = cap
         dn, de = n - s.ref_a, e - s.ref_b
         vdt = self._vh * dt
-        if abs(dn) + abs(de) > vdt:
+        if dn * dn + de * de > vdt * vdt:
             # more than the bound flies in Δt: within the allowance of the last sample, and
             # of the anchor (so that the allowance cannot add up along a chain of samples;
             # samples within the bound cannot add up to more than the bound)
