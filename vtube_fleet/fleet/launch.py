@@ -250,7 +250,7 @@ async def fleet_supervisor(
         if backend not in BACKENDS:
             raise FleetCliError(f"unknown backend {backend!r} (choose from "
                                 f"{', '.join(BACKENDS)})")
-        if sysids is None:  # every link flies one id (docs/links.md, "Identity and source")
+        if sysids is None:  # every link flies one id (docs/links.md, "Identity, source …")
             sysids = [endpoint_sysid(u, i) for i, u in enumerate(endpoints)]
         options = dict(link_options or {})
         # what the mission's vehicles can fly: the links refuse the rest (docs/security.md)

@@ -309,7 +309,7 @@ class VehicleLink(abc.ABC):
         """``state.telemetry_fault``: why this vehicle's telemetry is not to be trusted."""
         return self.state.telemetry_fault
 
-    # -- identity (docs/links.md, "Identity and source") ---------------------------------------
+    # -- identity (docs/links.md, "Identity, source and plausibility") ------------------------
     def identity_problem(self) -> str | None:
         """Why the vehicle behind this port is ambiguous (other vehicles heard on it, its id
         from two addresses), None if it is not. Backends fill it in."""

@@ -11,8 +11,9 @@ Accepted forms (the UDP subset of MAVSDK's ``CliArg``):
   ``udpin``, any other host means ``udpout``. It is normalised to the explicit scheme.
 * ``?sysid=N`` after any of them (ours, not MAVSDK's): the MAVLink system id of the vehicle
   behind the endpoint (1..254). The link flies that id only and refuses every other one
-  (docs/links.md, "Identity and source"); without it the fleet takes PX4 SITL's scheme for
-  ports 14540..14579 and the slot's id (:func:`fleet_sysid`) elsewhere (:func:`endpoint_sysid`).
+  (docs/links.md, "Identity, source and plausibility"); without it the fleet takes PX4 SITL's
+  scheme for ports 14540..14579 and the slot's id (:func:`fleet_sysid`) elsewhere
+  (:func:`endpoint_sysid`).
 
 PX4 SITL port scheme (``px4-rc.mavlinksim``): instance ``i`` has its API/Onboard link on
 GCS port ``14540 + i`` (remote) and sends from ``14580 + i`` (local). The scheme collides from
@@ -219,7 +220,7 @@ def shared_port_cause(ports: Iterable[int], from_ports: Iterable[int]) -> str:
         return (f"port {PX4_SITL_GCS_PORT} is where PX4 SITL's GCS link sends (instances 0-9, "
                 f"from 18570+i), and it is instance 10's API port (14540+10); move the GCS "
                 f"link (the -o {PX4_SITL_GCS_PORT} of px4-rc.mavlink) or fly another API port "
-                f"scheme (docs/links.md, \"Identity and source\")")
+                f"scheme (docs/links.md, \"Identity, source and plausibility\")")
     return ("another vehicle's MAVLink link (a GCS link, say) sends to this port, or two PX4 "
             "instances share it")
 

@@ -1,9 +1,9 @@
 """What a link believes of its vehicle's telemetry: the plausibility checks (issue 33).
 
 Most PX4 fleets cannot sign MAVLink (PX4 < 1.18), so the link itself is the guard. Who may speak
-for the vehicle is settled by the backends (its system id and its source address, docs/links.md
-"Identity and source"); this module refuses what the vehicle *cannot have flown*, whoever sent
-it (docs/security.md, "Unsigned links"):
+for the vehicle is settled by the backends (its system id and its source address); this module
+refuses what the vehicle *cannot have flown*, whoever sent it (docs/links.md, "Identity, source
+and plausibility"; docs/security.md, layer 6):
 
 * a reported horizontal speed above ``max_speed_m_s`` or a vertical one above
   ``max_vertical_speed_m_s`` (``speed``);

@@ -457,7 +457,7 @@ class MavlinkLink(VehicleLink):
             )
             self._notify_state()
 
-    # -- identity and source (docs/links.md, "Identity and source") ---------------------------
+    # -- identity and source (docs/links.md, "Identity, source and plausibility") -------------
     def _admit(self, sysid: int, compid: int, hb: Any, addr: Any, now: float) -> bool:
         """Whether one valid packet speaks for this link's vehicle (``hb``: the packet if it
         is a HEARTBEAT). Its system id only: another vehicle's packets are refused, counted,

@@ -26,8 +26,9 @@
   :class:`LinkTimeout`); MAVSDK maps PX4's TEMPORARILY_REJECTED and DENIED both to
   COMMAND_DENIED, so :meth:`MavsdkLink.arm` retries COMMAND_DENIED until its deadline.
 
-* Identity and source (docs/links.md): each link flies one system id; MAVSDK merges a system's
-  traffic from every connection and address and cannot be told to refuse any, so the hub
+* Identity and source (docs/links.md, "Identity, source and plausibility"): each link flies
+  one system id; MAVSDK merges a system's traffic from every connection and address and
+  cannot be told to refuse any, so the hub
   *detects* instead: an autopilot system discovered that no link of the hub flies is a
   :class:`~vtube_fleet.link.base.LinkConflict` before arming, and a system id that MAVSDK
   reports from a second address (its log line ``New system on: IP:PORT (system ID: N)``) is
@@ -435,7 +436,7 @@ class MavsdkLink(VehicleLink):
         #: either); False: a test switch that only counts it
         self.pin_source = bool(pin_source)
 
-    # -- identity (docs/links.md, "Identity and source") ---------------------------------------
+    # -- identity (docs/links.md, "Identity, source and plausibility") ------------------------
     def identity_problem(self) -> str | None:
         return self.hub.identity_problem(self)
 
