@@ -39,8 +39,8 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -212,8 +212,8 @@ class TelemetryGuard:
             ahead = lead - s.seen_lead
             s.seen_lead = lead
             if ahead > self._jump_s:
-                return self._refuse("time_jump", f"time_boot_ms ran {ahead:.3g} s ahead of "
-                                    f"our clock", now)
+                return self._refuse("time_jump", now, lambda: (
+                    f"time_boot_ms ran {ahead:.3g} s ahead of our clock"))
             cap = now - s.ref_at + self._slack  # Δt: at most what our clock allows
             if dt > cap:
                 dt = cap
@@ -263,22 +263,24 @@ class TelemetryGuard:
                    now: float) -> bool:
         if dt == 0.0 and (n, e, d) == (s.ref_a, s.ref_b, s.ref_c):
             return True  # the same sample again: nothing new, nothing wrong
-        return self._refuse("time_backwards", (
-            f"time_boot_ms went back from {round(s.ref_t * 1000)} to {tb_ms} ms" if dt < 0
-            else f"time_boot_ms {tb_ms} ms repeated with another position"), now)
+        ref_ms = round(s.ref_t * 1000)
+        return self._refuse("time_backwards", now, lambda: (
+            f"time_boot_ms went back from {ref_ms} to {tb_ms} ms" if dt < 0
+            else f"time_boot_ms {tb_ms} ms repeated with another position"))
 
     # -- refusals and the fault ------------------------------------------------------------------
     def _speed(self, vn: float, ve: float, vd: float, now: float) -> bool:
-        h = math.hypot(vn, ve)
-        if h > self._vh:
-            why = f"reported speed {h:.3g} m/s above the bound {self._vh:.3g} m/s"
-        else:
-            why = f"reported vertical speed {abs(vd):.3g} m/s above the bound {self._vz:.3g} m/s"
-        return self._refuse("speed", why, now)
+        def why() -> str:
+            h = math.hypot(vn, ve)
+            if h > self._vh:
+                return f"reported speed {h:.3g} m/s above the bound {self._vh:.3g} m/s"
+            return (f"reported vertical speed {abs(vd):.3g} m/s above the bound "
+                    f"{self._vz:.3g} m/s")
+        return self._refuse("speed", now, why)
 
     def _jump(self, dist_m: float, dt_s: float, now: float, how: str = "") -> bool:
-        return self._refuse("position_jump",
-                            f"position jumped {how}{dist_m:.3g} m in {dt_s * 1000:.0f} ms", now)
+        return self._refuse("position_jump", now, lambda: (
+            f"position jumped {how}{dist_m:.3g} m in {dt_s * 1000:.0f} ms"))
 
     def _accepted(self, now: float) -> None:
         if self._ep_last is not None and now - self._ep_last > self.bounds.episode_gap_s:
@@ -286,7 +288,9 @@ class TelemetryGuard:
         else:
             self._ep_ok += 1
 
-    def _refuse(self, kind: str, why: str, now: float) -> bool:
+    def _refuse(self, kind: str, now: float, why: Callable[[], str]) -> bool:
+        """Count a refusal of ``kind``; the text ``why()`` is made only when it is said (a
+        flood of fakes must not cost a formatted line each)."""
         st = self.state
         st.telemetry_refused[kind] += 1
         last = self._ep_last
@@ -299,17 +303,13 @@ class TelemetryGuard:
                 and span >= self.bounds.fault_after_s):
             ok, bad = self._ep_ok, self._ep_bad
             head = ("telemetry from two sources: " if ok >= 2 and 5 * ok >= ok + bad else "")
-            self.declare_fault(f"{head}{why} ({bad} of {ok + bad} position samples refused in "
-                               f"{span:.2f} s)")
-        self._warn(f"{self.owner.name}: refused telemetry ({kind}): {why}", now)
+            self.declare_fault(f"{head}{why()} ({bad} of {ok + bad} position samples refused "
+                               f"in {span:.2f} s)")
+        if now - self._warned_at < _WARN_S:
+            self._suppressed += 1
+        else:
+            self._warn(f"{self.owner.name}: refused telemetry ({kind}): {why()}", now)
         return False
-
-    def refuse_at_door(self, kind: str, why: str, now: float | None = None) -> None:
-        """Count a refusal of the identity/source rules (no plausibility episode: nothing of
-        it reached the state); warned about at most every 5 s."""
-        self.state.telemetry_refused[kind] += 1
-        self._warn(f"{self.owner.name}: refused ({kind}): {why}",
-                   time.monotonic() if now is None else now)
 
     def declare_fault(self, reason: str) -> None:
         """Set ``state.telemetry_fault`` (once: the first reason stays) and say so."""

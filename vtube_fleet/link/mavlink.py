@@ -482,9 +482,9 @@ class MavlinkLink(VehicleLink):
                         heard = self._vehicles_heard.setdefault(sysid, set())
                         if len(heard) < _HEARD_MAX:
                             heard.add(addr)
-                    self._refuse_at_door(
-                        "other_sysid", f"a packet of system {sysid} from {_addr(addr)}; this "
-                        f"link flies system {self._sysid}", now)
+                    self._refuse_at_door("other_sysid", lambda: (
+                        f"a packet of system {sysid} from {_addr(addr)}; this link flies "
+                        f"system {self._sysid}"))
                 return False
         if gcs_hb:
             st.foreign_packets += 1  # a GCS using the vehicle's id
@@ -500,9 +500,9 @@ class MavlinkLink(VehicleLink):
                 pass  # the test switch: anyone may speak for the vehicle
             elif not (hb is not None and compid == self.target_compid
                       and self._relearned(addr, now)):
-                self._refuse_at_door(
-                    "other_source", f"system {sysid} from {_addr(addr)}, but the vehicle is at "
-                    f"{_addr(self._remote)}", now)
+                self._refuse_at_door("other_source", lambda: (
+                    f"system {sysid} from {_addr(addr)}, but the vehicle is at "
+                    f"{_addr(self._remote)}"))
                 return False
         return True
 
@@ -558,12 +558,18 @@ class MavlinkLink(VehicleLink):
                 f"link sends from 18570+i), or someone else sending as system {me}")
         return "; ".join(problems) or None
 
-    def _refuse_at_door(self, kind: str, why: str, now: float) -> None:
+    def _refuse_at_door(self, kind: str, why: Callable[[], str]) -> None:
+        """Count a refusal of the identity/source rules; ``why()`` is made only when it is
+        warned about (at most every 5 s: a flood must not cost a formatted line each)."""
         st = self.state
         st.telemetry_refused[kind] += 1
-        self._warn_limited(f"refused {kind}",
-                           f"{self.name}: refused ({kind}): {why} (refused so far: "
-                           f"{st.telemetry_refused[kind]})")
+        key = "refused " + kind
+        last = self._warned_at.get(key)
+        if last is not None and time.monotonic() - last < _WARN_INTERVAL_S:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return
+        self._warn_limited(key, f"{self.name}: refused ({kind}): {why()} (refused so far: "
+                                f"{st.telemetry_refused[kind]})")
 
     # -- message handlers ------------------------------------------------------------------------
     def _on_heartbeat(self, m: Any, now: float) -> None:
