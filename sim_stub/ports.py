@@ -10,8 +10,10 @@ PX4 SITL also runs a second MAVLink instance, the **GCS link**: instance ``i`` s
 ``127.0.0.1:18570+i`` to ``14550`` (every instance below 10 to the same GCS port; a GCS tells
 them apart by system id), instances 10-19 to 34650 and from 20 on to 34750 (PX4's
 ``px4-rc.mavlink``; so that instance 10's GCS link does not land on instance 10's API port
-14550). ``gcs_link_base``/``gcs_link_remotes`` give it; ``None`` means no GCS link (the schemes
-tests and benchmarks make with :func:`free_port_scheme`).
+14550). Instances 0-9's GCS links still do, from 11 instances on: a client on 14550 then hears
+eleven vehicles (vtube_fleet's links refuse such a port; its built-in mock moves the GCS link
+of 0-9 to 34550). ``gcs_link_base``/``gcs_link_remotes`` give it; ``None`` means no GCS link
+(the schemes tests and benchmarks make with :func:`free_port_scheme`).
 """
 
 from __future__ import annotations
@@ -102,7 +104,7 @@ class PortScheme:
                         f"port scheme {self.name!r}: GCS link ports {lo}..{hi} overlap the "
                         f"{what} ports {a}..{b}")
                 for r in remotes:  # (a remote among the GCS ports is PX4's own scheme from
-                    # instance 10 on: 14540+10 = 14550; clients filter by system id)
+                    # instance 10 on: 14540+10 = 14550; a client there hears 0-9 too)
                     if what != "GCS" and a <= r <= b:
                         raise SimStubError(
                             f"port scheme {self.name!r}: GCS link remote port {r} is one of "

@@ -147,6 +147,8 @@ async def mock_fleet(mission: Mission, count: int | None = None, *,
                    else ((0, gcs_link_port),))
         kwargs["port_scheme"] = dataclasses.replace(scheme, gcs_link_base=base,
                                                     gcs_link_remotes=remotes)
+    if gcs_link_port is None and kwargs.get("gcs_link") != "off":
+        kwargs["port_scheme"] = _gcs_link_off_api_ports(kwargs["port_scheme"], n)
     if mission.config.signing_key_file and "signing" not in kwargs:
         # the built-in mock holds the mission's keys, as vehicles after `sign-setup` do
         if processes > 1:
@@ -170,6 +172,35 @@ async def mock_fleet(mission: Mission, count: int | None = None, *,
         raise _mock_error(exc) from None
     finally:
         await fleet.stop()
+
+
+#: where the built-in mock's GCS link goes instead of an API port of the fleet (PX4 SITL's
+#: 14550 is instance 10's API port; PX4 itself moves instances 10-19 to 34650, 20+ to 34750)
+MOCK_GCS_LINK_MOVED_PORT = 34550
+
+
+def _gcs_link_off_api_ports(scheme: Any, count: int) -> Any:
+    """``scheme`` with every GCS link remote that is one of the fleet's API ports (PX4 SITL's
+    14550 from 11 vehicles on) moved to :data:`MOCK_GCS_LINK_MOVED_PORT`: the link on that API
+    port would hear ten other vehicles and refuse the mission (docs/links.md, "Identity and
+    source"). ``python -m sim_stub`` keeps PX4's ports; an explicit ``gcs_link_port`` too."""
+    from sim_stub.ports import resolve_port_scheme
+
+    sc = resolve_port_scheme(scheme)
+    if sc.gcs_link_base is None:
+        return scheme
+    api = {sc.gcs_port(i) for i in range(count)}
+    moved = tuple((first, MOCK_GCS_LINK_MOVED_PORT if port in api else port)
+                  for first, port in sc.gcs_link_remotes)
+    if moved == sc.gcs_link_remotes:
+        return scheme
+    clash = sorted({sc.gcs_link_remote(i) for i in range(count)} & api)
+    which = [i for i in range(count) if sc.gcs_link_remote(i) in api]
+    log.warning("mock fleet: vehicles %d-%d send their GCS link to %d, not %s: that is the API "
+                "port of a vehicle of this fleet (PX4 SITL's scheme collides at instance 10; "
+                "docs/links.md)", which[0], which[-1], MOCK_GCS_LINK_MOVED_PORT,
+                ", ".join(map(str, clash)))
+    return dataclasses.replace(sc, gcs_link_remotes=moved)
 
 
 def _mock_error(exc: Exception) -> FleetCliError:
@@ -215,7 +246,7 @@ async def fleet_supervisor(
     """The :class:`~vtube_fleet.fleet.supervisor.Supervisor` of ``mission`` over open links
     (an in-process mock fleet when ``endpoints`` is None); links and mock closed on exit."""
     from vtube_fleet.fleet.supervisor import Supervisor
-    from vtube_fleet.link import fleet_sysid, open_links
+    from vtube_fleet.link import TelemetryBounds, endpoint_sysid, fleet_sysid, open_links
 
     async with contextlib.AsyncExitStack() as stack:
         if endpoints is None:
@@ -227,12 +258,11 @@ async def fleet_supervisor(
         if backend not in BACKENDS:
             raise FleetCliError(f"unknown backend {backend!r} (choose from "
                                 f"{', '.join(BACKENDS)})")
-        if sysids is None and backend == "mavsdk":
-            from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
-
-            sysids = [px4_sitl_sysid(parse_endpoint(u).port) or fleet_sysid(i)
-                      for i, u in enumerate(endpoints)]
+        if sysids is None:  # every link flies one id (docs/links.md, "Identity, source …")
+            sysids = [endpoint_sysid(u, i) for i, u in enumerate(endpoints)]
         options = dict(link_options or {})
+        # what the mission's vehicles can fly: the links refuse the rest (docs/security.md)
+        options.setdefault("telemetry", TelemetryBounds.for_mission(mission))
         if backend == "mavlink":
             options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
         if mission.config.signing_key_file and "signing" not in options:

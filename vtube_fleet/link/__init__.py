@@ -20,6 +20,7 @@ from typing import Any
 from vtube_fleet.link.base import (
     CommandRejected,
     GeoPoint,
+    LinkConflict,
     LinkError,
     LinkTimeout,
     StatusText,
@@ -30,11 +31,13 @@ from vtube_fleet.link.endpoints import (
     MAX_VEHICLE_SYSIDS,
     Endpoint,
     EndpointError,
+    endpoint_sysid,
     fleet_sysid,
     parse_endpoint,
     px4_sitl_endpoints,
     px4_sitl_sysid,
 )
+from vtube_fleet.link.guard import TelemetryBounds
 from vtube_fleet.link.mavlink import MavlinkLink
 
 __all__ = [
@@ -43,17 +46,20 @@ __all__ = [
     "Endpoint",
     "EndpointError",
     "GeoPoint",
+    "LinkConflict",
     "LinkError",
     "LinkTimeout",
     "MavlinkLink",
     "open_links",
     "StatusText",
+    "TelemetryBounds",
     "VehicleLink",
     "VehicleState",
     "parse_endpoint",
     "px4_sitl_endpoints",
     "px4_sitl_sysid",
     "fleet_sysid",
+    "endpoint_sysid",
 ]
 
 #: Backend names accepted by the fleet (``--link``).
@@ -71,10 +77,15 @@ async def open_links(
 ) -> AsyncIterator[list[VehicleLink]]:
     """Create (not connect) one link per endpoint with ``backend``; close them all on exit.
 
-    ``sysids`` (optional, one per endpoint) pins system ids; the mavsdk backend otherwise uses
-    PX4 SITL's scheme (port 14540 + i → i + 1). ``watchdog_s`` is the mavsdk backend's stall
-    limit (ignored by ``mavlink``, whose stall is caught by PX4's own failsafe). ``options`` go
-    to the link constructor (e.g. ``command_timeout_s`` for mavlink). ``signing``: one
+    ``sysids`` (optional, one per endpoint) pins system ids; an endpoint's ``?sysid=N`` pins
+    its own (a different id in ``sysids`` is an error); otherwise the mavsdk backend uses PX4
+    SITL's scheme (port 14540 + i → i + 1) and the mavlink link locks onto the first
+    autopilot it hears (the fleet always pins: :func:`endpoint_sysid`). ``watchdog_s`` is the
+    mavsdk backend's stall limit (ignored by ``mavlink``, whose stall is caught by PX4's own
+    failsafe). ``options`` go to the link constructor (e.g. ``command_timeout_s`` for
+    mavlink; ``telemetry``: the :class:`TelemetryBounds` of the plausibility checks, None
+    turns them off; ``pin_source=False`` accepts the vehicle's id from any address: both test
+    switches, docs/security.md). ``signing``: one
     :class:`~vtube_fleet.link.signing.LinkSigning` (or None) per endpoint, mavlink only (the
     mavsdk backend refuses). Connecting is left to the caller (concurrently, with its own
     timeouts and error report).
@@ -82,13 +93,19 @@ async def open_links(
     if backend not in BACKENDS:
         raise LinkError(f"unknown link backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     eps = [parse_endpoint(e) for e in endpoints]
-    urls = [e.url for e in eps]
+    urls = [e.transport_url for e in eps]
     dupes = sorted({u for u in urls if urls.count(u) > 1})
     if dupes:
         raise EndpointError(f"endpoint listed more than once: {', '.join(dupes)}")
     ids = list(sysids) if sysids is not None else [None] * len(eps)
     if len(ids) != len(eps):
         raise LinkError(f"{len(ids)} system ids for {len(eps)} endpoints")
+    for k, (e, s) in enumerate(zip(eps, ids, strict=True)):
+        if e.sysid is not None:
+            if s is not None and s != e.sysid:
+                raise LinkError(f"{e.url}: system id {s} given for an endpoint that says "
+                                f"sysid={e.sysid}")
+            ids[k] = e.sysid
     bad = [(e.url, s) for e, s in zip(eps, ids, strict=True)
            if s is not None and (isinstance(s, bool) or not 1 <= int(s) <= 255)]
     if bad:

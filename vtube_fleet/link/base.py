@@ -18,7 +18,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -29,6 +29,7 @@ from vtube_fleet.errors import UserError
 from vtube_fleet.link.endpoints import Endpoint, parse_endpoint
 
 __all__ = [
+    "LinkConflict",
     "LinkError",
     "LinkTimeout",
     "CommandRejected",
@@ -39,6 +40,7 @@ __all__ = [
     "StatusText",
     "VehicleState",
     "VehicleLink",
+    "IDENTITY_GATHER_S",
     "READY_MAX_AGE_S",
     "cancel_tasks",
     "send_velocities_ned",
@@ -47,6 +49,9 @@ __all__ = [
 
 #: A heartbeat / position older than this does not count for :meth:`VehicleLink.wait_ready`.
 READY_MAX_AGE_S = 3.0
+#: :meth:`VehicleLink.wait_ready` reports a port that carries other vehicles this long after it
+#: first heard one (a bit more than PX4's 1 Hz HEARTBEAT: the message names them all).
+IDENTITY_GATHER_S = 1.2
 
 
 async def cancel_tasks(tasks: list[asyncio.Task]) -> None:
@@ -68,6 +73,12 @@ class LinkError(UserError):
 
 class LinkTimeout(LinkError):
     """The vehicle did not answer / did not reach a state in time."""
+
+
+class LinkConflict(LinkError):
+    """Before arming, the link's port carries more than its one vehicle: the HEARTBEATs of
+    other vehicles, or its system id from two addresses (docs/links.md, "Identity and
+    source"). The message names the ids, the addresses and the likely cause."""
 
 
 class CommandRejected(LinkError):
@@ -188,6 +199,15 @@ class VehicleState:
     rx_packets: int = 0
     bad_packets: int = 0  #: datagrams (or parts) that failed to parse: garbage, bad CRC, cut off
     foreign_packets: int = 0  #: valid packets from another system id / a GCS, ignored
+    #: what the link refused of this vehicle's port, by kind (link/guard.REFUSAL_KINDS):
+    #: ``other_sysid`` (another vehicle), ``other_source`` (its id from another address),
+    #: ``speed``, ``position_jump``, ``time_backwards``, ``time_jump`` (cannot be true)
+    telemetry_refused: Counter[str] = field(default_factory=Counter)
+    #: set (once, it stays) when the refusals persisted: the vehicle's telemetry is not to be
+    #: trusted; a human reason ("telemetry from two sources: position jumped 14.2 m in 20 ms
+    #: (…)"). None while it is.
+    telemetry_fault: str | None = None
+    source_changes: int = 0  #: times the vehicle's address was re-learned (logged)
 
     def accuracy_m(self, allow_gnss: bool = True) -> float:
         """The reported horizontal position accuracy (1 σ): the estimator's (ESTIMATOR_STATUS)
@@ -200,6 +220,7 @@ class VehicleState:
         """An independent copy (the link keeps updating the original)."""
         new = dataclasses.replace(self)
         new.statustexts = deque(self.statustexts, maxlen=self.statustexts.maxlen)
+        new.telemetry_refused = Counter(self.telemetry_refused)
         return new
 
     @property
@@ -262,6 +283,11 @@ class VehicleLink(abc.ABC):
         )
         if sysid is not None and not 1 <= int(sysid) <= 255:
             raise LinkError(f"{self.endpoint}: system id must be 1..255, got {sysid}")
+        given = self.endpoint.sysid
+        if given is not None and sysid is not None and int(sysid) != given:
+            raise LinkError(f"{self.endpoint}: system id {sysid} given for an endpoint that "
+                            f"says sysid={given}")
+        sysid = given if sysid is None else sysid
         self.state = VehicleState(endpoint=self.endpoint.url, sysid=sysid)
         self._state_waiters: list[asyncio.Future[None]] = []
         self._position_waiters: list[asyncio.Future[None]] = []
@@ -287,6 +313,25 @@ class VehicleLink(abc.ABC):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def telemetry_fault(self) -> str | None:
+        """``state.telemetry_fault``: why this vehicle's telemetry is not to be trusted."""
+        return self.state.telemetry_fault
+
+    # -- identity (docs/links.md, "Identity, source and plausibility") ------------------------
+    def identity_problem(self) -> str | None:
+        """Why the vehicle behind this port is ambiguous (other vehicles heard on it, its id
+        from two addresses), None if it is not. Backends fill it in."""
+        return None
+
+    def check_identity(self) -> None:
+        """:class:`LinkConflict` if :meth:`identity_problem`: called by :meth:`wait_ready`
+        and ``arm`` (so, before arming; ``connect`` does not, so that the fleet reports it as
+        a vehicle that is not ready rather than one that did not connect)."""
+        problem = self.identity_problem()
+        if problem is not None:
+            raise LinkConflict(f"{self.name}: {problem}")
 
     def _log_statustext(self, logger: logging.Logger, severity: int, text: str) -> None:
         """Log a vehicle's STATUSTEXT (WARNING for severity <= 4, else INFO); a repeat of the
@@ -409,16 +454,25 @@ class VehicleLink(abc.ABC):
     async def wait_ready(self, timeout_s: float = 30.0) -> VehicleState:
         """Wait for heartbeat, local and global position, home, GPS origin and health.
 
-        Raises :class:`LinkTimeout` listing what is still missing.
+        Raises :class:`LinkTimeout` listing what is still missing, :class:`LinkConflict`
+        when the port carries more than its vehicle (:meth:`identity_problem`; reported
+        :data:`IDENTITY_GATHER_S` after it was first seen, so that the message names every
+        vehicle heard by then).
         """
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
         next_tick = loop.time() + 1.0
+        conflict_at: float | None = None
         while True:
-            missing = self.missing_for_ready()
-            if not missing:
-                return self.state
             now = loop.time()
+            missing = self.missing_for_ready()
+            if self.identity_problem() is not None:
+                if conflict_at is None:
+                    conflict_at = now
+                if now - conflict_at >= IDENTITY_GATHER_S or now >= deadline:
+                    self.check_identity()
+            elif not missing:
+                return self.state
             if now >= deadline:
                 raise LinkTimeout(
                     f"{self.name}: not ready after {timeout_s:.1f} s: {'; '.join(missing)}"
@@ -426,8 +480,10 @@ class VehicleLink(abc.ABC):
             if now >= next_tick:
                 next_tick = now + 1.0
                 await self._ready_tick(missing)
+            wake = min(deadline, next_tick,
+                       math.inf if conflict_at is None else conflict_at + IDENTITY_GATHER_S)
             try:
-                async with asyncio.timeout(max(0.0, min(deadline, next_tick) - now)):
+                async with asyncio.timeout(max(0.0, wake - now)):
                     await self._next("_state_waiters")
             except TimeoutError:
                 pass

@@ -15,6 +15,16 @@
   rate-limited warning; other systems' packets and other GCSs' heartbeats are counted
   (``foreign_packets``) and ignored; message ids the dialect lacks (PX4's 8, 380, 410, 411, 436)
   are fine.
+* Identity and source (issue 33, docs/links.md): the link flies one system id (given, or the
+  first autopilot heard) and refuses every other (``telemetry_refused["other_sysid"]``); a
+  ``udpin`` link learns the vehicle's address from its autopilot's first packet and refuses its
+  id from any other address (``other_source``), re-learning only from 3 HEARTBEATs of one new
+  address while the learned one has been silent for 3 s (logged). Other vehicles heard, and
+  the id's HEARTBEAT from a second address, make :meth:`MavlinkLink.identity_problem`: a
+  :class:`~vtube_fleet.link.base.LinkConflict` from ``wait_ready`` and ``arm``.
+* Plausibility (:mod:`vtube_fleet.link.guard`, ``telemetry=``): LOCAL_POSITION_NED (also on
+  its fast path) and GLOBAL_POSITION_INT that the vehicle cannot have flown are refused and
+  counted; persistent refusals set ``state.telemetry_fault``.
 * GCS identity sysid 255 / compid 190, HEARTBEAT (type GCS, autopilot INVALID) every second,
   as the capture GCS did. On connect: SET_MESSAGE_INTERVAL for LOCAL_POSITION_NED (50 Hz),
   GLOBAL_POSITION_INT (10 Hz), EXTENDED_SYS_STATE (5 Hz), HOME_POSITION (1 Hz) and
@@ -70,7 +80,8 @@ from vtube_fleet.link.base import (
     VehicleLink,
     cancel_tasks,
 )
-from vtube_fleet.link.endpoints import Endpoint
+from vtube_fleet.link.endpoints import Endpoint, shared_port_cause
+from vtube_fleet.link.guard import DEFAULT_BOUNDS, TelemetryBounds, TelemetryGuard
 from vtube_fleet.link.signing import LINK_UNSIGNED_ALLOWED, LinkSigning, SigningError
 from vtube_fleet.link.udp import DatagramSocket
 from vtube_fleet.link.wire import WireCodec, mcrf4xx
@@ -145,8 +156,19 @@ _RESULT_ACCEPTED = 0
 _RESULT_TEMPORARILY_REJECTED = 1
 _RESULT_IN_PROGRESS = 5
 _MAV_COMP_ID_AUTOPILOT1 = 1
+_MAV_AUTOPILOT_INVALID = 8  # a GCS's HEARTBEAT
+_MAV_TYPE_GCS = 6
+#: system ids of ground stations by convention (MAVSDK 245, QGroundControl and us 255)
+_GCS_IDS_FROM = 245
 _WARN_INTERVAL_S = 5.0
 _HEARTBEAT_LOST_S = 3.0
+#: the vehicle's address is re-learned only from this many HEARTBEATs of its id from one new
+#: address, all while the learned address has been silent for RELEARN_SILENCE_S or longer
+RELEARN_HEARTBEATS = 3
+RELEARN_SILENCE_S = 3.0
+#: addresses kept per other vehicle / other source for the conflict report (a flood of forged
+#: addresses must not grow the link)
+_HEARD_MAX = 8
 _RTT_ALPHA = 0.2
 
 
@@ -187,6 +209,8 @@ class MavlinkLink(VehicleLink):
         decode_all: bool = False,
         fast_codec: bool = True,
         signing: LinkSigning | None = None,
+        telemetry: TelemetryBounds | None = DEFAULT_BOUNDS,
+        pin_source: bool = True,
     ) -> None:
         super().__init__(endpoint, sysid)
         if command_tries < 1 or not command_timeout_s > 0:
@@ -210,7 +234,19 @@ class MavlinkLink(VehicleLink):
         mav = mavlink2.MAVLink(None, srcSystem=gcs_sysid, srcComponent=gcs_compid)
         mav.robust_parsing = True
         self._mav = mav
-        self._sysid: int | None = sysid
+        self._sysid: int | None = self.state.sysid  # (the endpoint's ?sysid= included)
+        #: the plausibility checks (link/guard.py); None: off (a test switch)
+        self._guard: TelemetryGuard | None = (
+            None if telemetry is None else TelemetryGuard(self, self.state, telemetry))
+        #: refuse the vehicle's id from any address but the learned one (False: a test switch
+        #: that accepts every address and keeps the learned one for sending)
+        self.pin_source = bool(pin_source)
+        #: other vehicles heard on this port (_admit): sysid -> addresses
+        self._vehicles_heard: dict[int, set[Any]] = {}
+        #: other addresses that sent this vehicle's HEARTBEAT while the learned one was alive
+        self._sources_heard: set[Any] = set()
+        #: a re-learning candidate: [address, first HEARTBEAT's time, HEARTBEATs]
+        self._relearn: list[Any] | None = None
         self._remote: Any = None if self.endpoint.listens else (
             self.endpoint.host, self.endpoint.port
         )
@@ -328,8 +364,12 @@ class MavlinkLink(VehicleLink):
                 and data[5] == self._sysid and addr == self._remote and self.signing is None
                 and self._fast_codec
                 and mcrf4xx(_LPN_EXTRA, mcrf4xx(data[1:38])) == _CRC16.unpack_from(data, 38)[0]):
+            tb, n, e, d, vn, ve, vd = _LPN.unpack_from(data, 10)
+            g = self._guard
+            if g is not None and not g.check_local(tb, n, e, d, vn, ve, vd, now):
+                return  # refused: counted in state.telemetry_refused
             (st.time_boot_ms, st.north_m, st.east_m, st.down_m, st.vn_m_s, st.ve_m_s,
-             st.vd_m_s) = _LPN.unpack_from(data, 10)
+             st.vd_m_s) = tb, n, e, d, vn, ve, vd
             st.rx_packets += 1
             st.last_packet_s = st.last_position_s = now
             if self._position_waiters or self._state_waiters:
@@ -353,8 +393,8 @@ class MavlinkLink(VehicleLink):
             if msgid in _FAST_RX and self.fast_codec:
                 m = _WIRE.unpack(data)
                 if m is not None:
-                    if msgid == MSG_HEARTBEAT and m.autopilot == 8:  # a GCS using its id
-                        st.foreign_packets += 1
+                    if msgid == MSG_HEARTBEAT and m.autopilot == _MAV_AUTOPILOT_INVALID:
+                        st.foreign_packets += 1  # a GCS using the vehicle's id
                         return
                     st.rx_packets += 1
                     st.last_packet_s = now
@@ -393,40 +433,16 @@ class MavlinkLink(VehicleLink):
                         self.signing_refused["unsigned"] += 1  # (ids pymavlink cannot verify)
                         continue
                     sysid = buf[5] if buf[0] == 0xFD else buf[3]
-                    if self._sysid is not None and sysid != self._sysid:
-                        st.foreign_packets += 1
-                    else:
+                    compid = buf[6] if buf[0] == 0xFD else buf[4]
+                    if self._sysid is None or self._admit(sysid, compid, None, addr, now):
                         st.rx_packets += 1
                         st.last_packet_s = now
                     continue
                 hdr = m._header
-                sysid = hdr.srcSystem
                 msgid = hdr.msgId
-                if sysid != self._sysid:
-                    if (
-                        self._sysid is None
-                        and hdr.srcComponent == _MAV_COMP_ID_AUTOPILOT1
-                        and not (msgid == MSG_HEARTBEAT and m.autopilot == 8)
-                    ):
-                        self._sysid = sysid
-                        st.sysid = sysid
-                        self._tx = None
-                    else:
-                        st.foreign_packets += 1
-                        continue
-                if msgid == MSG_HEARTBEAT and m.autopilot == 8:  # a GCS using the vehicle's id
-                    st.foreign_packets += 1
+                if not self._admit(hdr.srcSystem, hdr.srcComponent,
+                                   m if msgid == MSG_HEARTBEAT else None, addr, now):
                     continue
-                if addr != self._remote:
-                    if self.endpoint.listens:
-                        if self._remote is not None:
-                            log.info("%s: vehicle address changed %s -> %s", self.name,
-                                     self._remote, addr)
-                        self._remote = addr
-                        self._tx = None
-                    else:
-                        st.foreign_packets += 1
-                        continue
                 st.rx_packets += 1
                 st.last_packet_s = now
                 handler = self._handlers.get(msgid)
@@ -440,6 +456,120 @@ class MavlinkLink(VehicleLink):
                 f"{bad} (bad so far: {st.bad_packets})",
             )
             self._notify_state()
+
+    # -- identity and source (docs/links.md, "Identity, source and plausibility") -------------
+    def _admit(self, sysid: int, compid: int, hb: Any, addr: Any, now: float) -> bool:
+        """Whether one valid packet speaks for this link's vehicle (``hb``: the packet if it
+        is a HEARTBEAT). Its system id only: another vehicle's packets are refused, counted,
+        and kept for :meth:`identity_problem` when they come from a vehicle (a HEARTBEAT not
+        of a GCS, or a packet of an autopilot, compid 1, below id 245); a GCS's HEARTBEAT is
+        foreign. From the learned address only: a ``udpin`` link learns it from the first
+        packet of its vehicle's autopilot; :meth:`_relearned` is the one way to another."""
+        st = self.state
+        gcs_hb = hb is not None and hb.autopilot == _MAV_AUTOPILOT_INVALID
+        if sysid != self._sysid:
+            if self._sysid is None and compid == self.target_compid and not gcs_hb:
+                self._sysid = st.sysid = sysid  # unpinned: the first autopilot is it
+                self._tx = None
+            else:
+                st.foreign_packets += 1
+                if not gcs_hb:
+                    # another vehicle: a vehicle's HEARTBEAT, or its autopilot's packets
+                    # (not of ids 245-255, where ground stations live: their tools' packets
+                    # can come from compid 1 and be forwarded by PX4)
+                    if (hb.type != _MAV_TYPE_GCS if hb is not None
+                            else compid == _MAV_COMP_ID_AUTOPILOT1 and sysid < _GCS_IDS_FROM):
+                        heard = self._vehicles_heard.setdefault(sysid, set())
+                        if len(heard) < _HEARD_MAX:
+                            heard.add(addr)
+                    self._refuse_at_door("other_sysid", lambda: (
+                        f"a packet of system {sysid} from {_addr(addr)}; this link flies "
+                        f"system {self._sysid}"))
+                return False
+        if gcs_hb:
+            st.foreign_packets += 1  # a GCS using the vehicle's id
+            return False
+        if addr != self._remote:
+            if self._remote is None and self.endpoint.listens:
+                if compid != self.target_compid:
+                    return False  # learned from the autopilot only
+                self._remote = addr
+                self._tx = None
+                log.debug("%s: vehicle at %s", self.name, _addr(addr))
+            elif not self.pin_source:
+                pass  # the test switch: anyone may speak for the vehicle
+            elif not (hb is not None and compid == self.target_compid
+                      and self._relearned(addr, now)):
+                self._refuse_at_door("other_source", lambda: (
+                    f"system {sysid} from {_addr(addr)}, but the vehicle is at "
+                    f"{_addr(self._remote)}"))
+                return False
+        return True
+
+    def _relearned(self, addr: Any, now: float) -> bool:
+        """A HEARTBEAT of the vehicle's id from ``addr``, not its learned address: re-learn
+        ``addr`` once :data:`RELEARN_HEARTBEATS` came from it while the learned address has
+        been silent for :data:`RELEARN_SILENCE_S` (a modem that reconnected from another
+        port), logged; else remember it for :meth:`identity_problem` and refuse."""
+        last = self.state.last_packet_s
+        if (last is not None and now - last < RELEARN_SILENCE_S) or not self.endpoint.listens:
+            self._relearn = None
+            if len(self._sources_heard) < _HEARD_MAX:
+                self._sources_heard.add(addr)
+            return False
+        cand = self._relearn
+        if cand is None or cand[0] != addr or (last is not None and cand[1] < last):
+            self._relearn = cand = [addr, now, 0]  # (all of them after the old one's last)
+        cand[2] += 1
+        if cand[2] < RELEARN_HEARTBEATS:
+            return False
+        silent = "never heard" if last is None else f"silent for {now - last:.1f} s"
+        log.warning("%s: vehicle address re-learned: %s -> %s (%d HEARTBEATs of system %s from "
+                    "the new address in %.1f s while the old one was %s)", self.name,
+                    _addr(self._remote), _addr(addr), cand[2], self._sysid, now - cand[1],
+                    silent)
+        self._remote = addr
+        self._tx = None
+        self._relearn = None
+        self.state.source_changes += 1
+        return True
+
+    def identity_problem(self) -> str | None:
+        """Other vehicles heard on this port, or this vehicle's id from a second address while
+        the first one spoke: the port does not carry one vehicle (refused before arming, with
+        the likely cause)."""
+        me = self._sysid
+        problems = []
+        if self._vehicles_heard:
+            ids = sorted({*self._vehicles_heard, *([] if me is None else [me])})
+            froms = sorted({a for s in self._vehicles_heard.values() for a in s}, key=str)
+            problems.append(
+                f"its port hears {len(ids)} vehicles, systems "
+                f"{_id_list(ids)} (this link flies system {me}; the others from "
+                f"{', '.join(_addr(a) for a in froms[:4])}{' …' if len(froms) > 4 else ''}): "
+                + shared_port_cause([self.endpoint.port],
+                                    [a[1] for a in froms if isinstance(a, tuple)]))
+        if self._sources_heard:
+            others = sorted(self._sources_heard, key=str)
+            problems.append(
+                f"system {me} speaks from {len(others) + 1} addresses, {_addr(self._remote)} "
+                f"and {', '.join(_addr(a) for a in others[:4])}: two vehicles with one "
+                f"MAV_SYS_ID on this port, one vehicle's two MAVLink links (PX4 SITL's GCS "
+                f"link sends from 18570+i), or someone else sending as system {me}")
+        return "; ".join(problems) or None
+
+    def _refuse_at_door(self, kind: str, why: Callable[[], str]) -> None:
+        """Count a refusal of the identity/source rules; ``why()`` is made only when it is
+        warned about (at most every 5 s: a flood must not cost a formatted line each)."""
+        st = self.state
+        st.telemetry_refused[kind] += 1
+        key = "refused " + kind
+        last = self._warned_at.get(key)
+        if last is not None and time.monotonic() - last < _WARN_INTERVAL_S:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return
+        self._warn_limited(key, f"{self.name}: refused ({kind}): {why()} (refused so far: "
+                                f"{st.telemetry_refused[kind]})")
 
     # -- message handlers ------------------------------------------------------------------------
     def _on_heartbeat(self, m: Any, now: float) -> None:
@@ -473,6 +603,10 @@ class MavlinkLink(VehicleLink):
             self._notify_state()
 
     def _on_local_position(self, m: Any, now: float) -> None:
+        g = self._guard
+        if g is not None and not g.check_local(m.time_boot_ms, m.x, m.y, m.z, m.vx, m.vy, m.vz,
+                                               now):
+            return
         st = self.state
         st.time_boot_ms = m.time_boot_ms
         st.north_m = m.x
@@ -485,6 +619,11 @@ class MavlinkLink(VehicleLink):
         self._notify_position()
 
     def _on_global_position(self, m: Any, now: float) -> None:
+        g = self._guard
+        if g is not None and not g.check_global(m.time_boot_ms, m.lat * 1e-7, m.lon * 1e-7,
+                                                m.alt * 1e-3, m.vx * 0.01, m.vy * 0.01,
+                                                m.vz * 0.01, now):
+            return
         st = self.state
         st.lat_deg = m.lat * 1e-7
         st.lon_deg = m.lon * 1e-7
@@ -497,6 +636,8 @@ class MavlinkLink(VehicleLink):
     def _on_estimator_status(self, m: Any, now: float) -> None:
         acc = float(m.pos_horiz_accuracy)
         self.state.pos_accuracy_m = acc if math.isfinite(acc) and acc >= 0 else math.nan
+        if self._guard is not None:
+            self._guard.set_accuracy(self.state.pos_accuracy_m)
 
     def _on_gps_raw(self, m: Any, now: float) -> None:
         st = self.state
@@ -794,12 +935,22 @@ class MavlinkLink(VehicleLink):
                     raise LinkTimeout(
                         f"{self.name}: no HEARTBEAT within {timeout_s:.1f} s ({what}; "
                         f"{st.bad_packets} malformed, {st.foreign_packets} from others"
-                        f"{self._signing_note()})"
+                        f"{self._signing_note()}){self._other_ids_note()}"
                     ) from None
             if not self._streams_requested:
                 await self._request_streams(deadline)
                 self._streams_requested = True
             log.info("%s: connected", self.name)
+
+    def _other_ids_note(self) -> str:
+        """Why no HEARTBEAT came when other vehicles' did: the id is not the vehicle's."""
+        heard = sorted(self._vehicles_heard)
+        if not heard or self._sysid is None:
+            return ""
+        url = self.endpoint.transport_url
+        return (f"; heard system {_id_list(heard)} instead: this link flies system "
+                f"{self._sysid} (the endpoint's ?sysid=, PX4 SITL's 14540+i scheme or the "
+                f"slot's id); give the vehicle's id, e.g. {url}?sysid={heard[0]}")
 
     async def _request_streams(self, deadline: float | None = None) -> None:
         """SET_MESSAGE_INTERVAL for every stream (those turned off first), then REQUEST_MESSAGE
@@ -1030,6 +1181,7 @@ class MavlinkLink(VehicleLink):
         """ARM; retries TEMPORARILY_REJECTED (PX4 in its first ~3-4 s, pre-arm checks failing)
         every ``retry_interval_s`` until ``timeout_s``. Returns on ACCEPTED (the HEARTBEAT shows
         armed up to 1 s later)."""
+        self.check_identity()  # a port carrying other vehicles is refused before arming
         loop = asyncio.get_running_loop()
         t_start = loop.time()
         attempts = 0
@@ -1429,3 +1581,19 @@ class _SigningMAVLink(mavlink2.MAVLink):
             return True
         link.signing_refused[why] += 1
         return False
+
+
+def _addr(addr: Any) -> str:
+    """``127.0.0.1:14580`` for a UDP address tuple."""
+    if isinstance(addr, tuple) and len(addr) >= 2:
+        host = addr[0]
+        return f"[{host}]:{addr[1]}" if ":" in str(host) else f"{host}:{addr[1]}"
+    return str(addr)
+
+
+def _id_list(ids: Sequence[int]) -> str:
+    """``1, 2, 3 and 11`` (the first 12, then ``…``)."""
+    text = [str(i) for i in ids[:12]]
+    if len(ids) > 12:
+        return ", ".join(text) + f" … ({len(ids)} in all)"
+    return ", ".join(text[:-1]) + f" and {text[-1]}" if len(text) > 1 else text[0]

@@ -26,6 +26,16 @@
   :class:`LinkTimeout`); MAVSDK maps PX4's TEMPORARILY_REJECTED and DENIED both to
   COMMAND_DENIED, so :meth:`MavsdkLink.arm` retries COMMAND_DENIED until its deadline.
 
+* Identity and source (docs/links.md, "Identity, source and plausibility"): each link flies
+  one system id; MAVSDK merges a system's traffic from every connection and address and
+  cannot be told to refuse any, so the hub
+  *detects* instead: an autopilot system discovered that no link of the hub flies is a
+  :class:`~vtube_fleet.link.base.LinkConflict` before arming, and a system id that MAVSDK
+  reports from a second address (its log line ``New system on: IP:PORT (system ID: N)``) is
+  counted (``other_source``), a conflict before arming and a telemetry fault at once in flight.
+  The plausibility checks (:mod:`vtube_fleet.link.guard`) run on the positions MAVSDK hands
+  over, timed by their arrival (MAVSDK passes no time_boot_ms).
+
 Limits: the asyncio wrappers run blocking calls in the loop's default executor (a few threads),
 so commands to many vehicles at once queue there; ``system_status`` and ``time_boot_ms`` are not
 available through MAVSDK's telemetry (left "UNKNOWN"/None).
@@ -38,8 +48,10 @@ import concurrent.futures
 import json
 import logging
 import math
+import re
 import threading
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -55,7 +67,13 @@ from vtube_fleet.link.base import (
     VehicleLink,
     cancel_tasks,
 )
-from vtube_fleet.link.endpoints import Endpoint, px4_sitl_sysid
+from vtube_fleet.link.endpoints import (
+    Endpoint,
+    parse_endpoint,
+    px4_sitl_sysid,
+    shared_port_cause,
+)
+from vtube_fleet.link.guard import DEFAULT_BOUNDS, TelemetryBounds, TelemetryGuard
 
 __all__ = ["MavsdkHub", "MavsdkLink", "DEFAULT_WATCHDOG_S", "refuse_signing"]
 
@@ -104,6 +122,11 @@ def _import_mavsdk() -> Any:
 
 _mavsdk_log = logging.getLogger("mavsdk")
 _log_routed = False
+#: MAVSDK's log line for a new (address, system id) on a UDP connection (MAVSDK 4)
+_NEW_REMOTE = re.compile(
+    r"New system on: (?P<ip>[^ ]+):(?P<port>\d+) \(system ID: (?P<sysid>\d+)\)")
+#: the running hubs, told of every new remote MAVSDK logs (the log callback is per process)
+_HUBS: weakref.WeakSet[MavsdkHub] = weakref.WeakSet()
 
 
 def _route_mavsdk_log() -> None:
@@ -120,6 +143,12 @@ def _route_mavsdk_log() -> None:
 
     def forward(level: Any, message: str, file: str | None, line: int) -> bool:
         _mavsdk_log.log(levels.get(getattr(level, "name", ""), logging.INFO), "%s", message)
+        if message.startswith("New system on"):
+            m = _NEW_REMOTE.search(message)
+            if m is not None:
+                addr = (m["ip"], int(m["port"]))
+                for hub in list(_HUBS):
+                    hub._remote_logged(addr, int(m["sysid"]))
         return True  # suppress MAVSDK's default stdout output
 
     log_subscribe(forward)
@@ -150,6 +179,13 @@ class MavsdkHub:
         self._discovery_task: asyncio.Task[None] | None = None
         self._links: list[MavsdkLink] = []
         self._links_lock = threading.Lock()
+        #: system id -> the link that flies it (made by :meth:`link`)
+        self._flown: dict[int, MavsdkLink] = {}
+        #: autopilot systems MAVSDK discovered (HEARTBEATs of a vehicle, any connection)
+        self._autopilots: set[int] = set()
+        #: system id -> the addresses MAVSDK logged it from
+        self._remotes: dict[int, list[tuple[str, int]]] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._stopper = concurrent.futures.ThreadPoolExecutor(
@@ -167,6 +203,8 @@ class MavsdkHub:
             mavsdk_asyncio.ComponentType.GROUND_STATION
         )
         self._mavsdk = mavsdk_asyncio.Mavsdk(config)
+        self._loop = asyncio.get_running_loop()
+        _HUBS.add(self)
         self._discovery_task = asyncio.get_running_loop().create_task(
             self._discover(), name="mavsdk-discovery"
         )
@@ -176,6 +214,7 @@ class MavsdkHub:
         self._thread.start()
 
     async def close(self) -> None:
+        _HUBS.discard(self)
         with self._links_lock:
             links = list(self._links)
         for link in links:
@@ -206,7 +245,55 @@ class MavsdkHub:
     # -- connections and systems ---------------------------------------------------------------
     def link(self, endpoint: str | Endpoint, sysid: int | None = None, **kwargs: Any) -> MavsdkLink:
         """A link for the vehicle behind ``endpoint`` (not yet connected)."""
-        return MavsdkLink(self, endpoint, sysid, **kwargs)
+        link = MavsdkLink(self, endpoint, sysid, **kwargs)
+        assert link.state.sysid is not None
+        self._flown[link.state.sysid] = link
+        return link
+
+    # -- identity and source (docs/links.md) ---------------------------------------------------
+    def _remote_logged(self, addr: tuple[str, int], sysid: int) -> None:
+        """From MAVSDK's log thread: MAVSDK heard ``sysid`` from ``addr`` for the first time."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._remote_seen, addr, sysid)
+            except RuntimeError:  # the loop closed meanwhile
+                pass
+
+    def _remote_seen(self, addr: tuple[str, int], sysid: int) -> None:
+        seen = self._remotes.setdefault(sysid, [])
+        if addr in seen or len(seen) >= 8:
+            return
+        seen.append(addr)
+        link = self._flown.get(sysid)
+        if link is not None and len(seen) > 1:
+            link._second_source(seen)
+
+    def identity_problem(self, link: MavsdkLink) -> str | None:
+        """Vehicles discovered that no link of this hub flies (MAVSDK does not say on which
+        connection: with one endpoint, on that one), or ``link``'s id from two addresses."""
+        problems = []
+        extra = sorted(self._autopilots - set(self._flown))
+        if extra:
+            urls = ", ".join(self._urls) or link.endpoint.transport_url
+            froms = [a for s in extra for a in self._remotes.get(s, [])]
+            ids = sorted({*extra, *self._flown})
+            where = (f"its port hears {len(ids)} vehicles, systems "
+                     f"{', '.join(map(str, ids))}" if len(self._urls) <= 1 else
+                     f"the hub's connections ({urls}) hear systems "
+                     f"{', '.join(map(str, extra))} that no link flies")
+            problems.append(f"{where} (from {', '.join(f'{h}:{p}' for h, p in froms[:4])}"
+                            f"{' …' if len(froms) > 4 else ''}): " + shared_port_cause(
+                                [parse_endpoint(u).port for u in self._urls] or
+                                [link.endpoint.port], [p for _, p in froms]))
+        seen = self._remotes.get(link.state.sysid or -1, [])
+        if len(seen) > 1:
+            problems.append(
+                f"system {link.state.sysid} speaks from {len(seen)} addresses, "
+                f"{', '.join(f'{h}:{p}' for h, p in seen[:4])}: two vehicles with one "
+                f"MAV_SYS_ID, one vehicle's two MAVLink links (PX4 SITL's GCS link sends from "
+                f"18570+i), or someone else sending as system {link.state.sysid}")
+        return "; ".join(problems) or None
 
     async def add_endpoint(self, url: str) -> None:
         """``add_any_connection(url)`` once per URL (idempotent, concurrency-safe)."""
@@ -221,10 +308,14 @@ class MavsdkHub:
                 raise LinkError(f"mavsdk: cannot add connection {url}: {exc}") from None
 
     async def _refresh_systems(self) -> None:
+        if self._mavsdk is None:
+            return
         for system in await self._mavsdk.get_systems():
             sysid = await system.get_system_id()
             if sysid not in self._systems:
                 self._systems[sysid] = system
+            if sysid not in self._autopilots and await system.has_autopilot():
+                self._autopilots.add(sysid)
         async with self._systems_changed:
             self._systems_changed.notify_all()
 
@@ -302,10 +393,13 @@ class MavsdkLink(VehicleLink):
         position_rate_hz: float = 50.0,
         global_rate_hz: float = 10.0,
         signing: Any = None,
+        telemetry: TelemetryBounds | None = DEFAULT_BOUNDS,
+        pin_source: bool = True,
     ) -> None:
         super().__init__(endpoint, sysid)
         if signing is not None:
             refuse_signing(self.endpoint.url)
+        sysid = self.state.sysid  # (the endpoint's ?sysid= included)
         if sysid is None:
             sysid = px4_sitl_sysid(self.endpoint.port)
             if sysid is None:
@@ -335,6 +429,29 @@ class MavsdkLink(VehicleLink):
         self._yaw_hold_deg: float | None = None
         self._rtt_s: float | None = None
         self.watchdog_trips = 0
+        #: the plausibility checks (link/guard.py); None: off (a test switch)
+        self._guard: TelemetryGuard | None = (
+            None if telemetry is None else TelemetryGuard(self, self.state, telemetry))
+        #: a second address of the vehicle's id is a telemetry fault (MAVSDK cannot refuse
+        #: either); False: a test switch that only counts it
+        self.pin_source = bool(pin_source)
+
+    # -- identity (docs/links.md, "Identity, source and plausibility") ------------------------
+    def identity_problem(self) -> str | None:
+        return self.hub.identity_problem(self)
+
+    def _second_source(self, addrs: list[tuple[str, int]]) -> None:
+        """MAVSDK logged the vehicle's id from another address: counted; a fault (MAVSDK takes
+        both and sends to both; it cannot be told to refuse one) unless ``pin_source`` is off.
+        Before arming, :meth:`identity_problem` refuses the port."""
+        self.state.telemetry_refused["other_source"] += 1  # (MAVSDK took it: counted, per address)
+        log.warning("%s: a second source (other_source): MAVSDK hears system %s from %s:%s too",
+                    self.name, self.state.sysid, addrs[-1][0], addrs[-1][1])
+        if self.pin_source and self._guard is not None:
+            self._guard.declare_fault(
+                f"telemetry from two sources: system {self.state.sysid} speaks from "
+                f"{', '.join(f'{h}:{p}' for h, p in addrs[:4])} (MAVSDK takes both; it "
+                f"cannot be told to refuse one)")
 
     # -- watchdog hooks (called from the hub's threads) -------------------------------------------
     def _stall_s(self, now: float) -> float | None:
@@ -547,7 +664,7 @@ class MavsdkLink(VehicleLink):
                 return
             if self._closed:
                 raise LinkError(f"{self.name}: link is closed")
-            await self.hub.add_endpoint(self.endpoint.url)
+            await self.hub.add_endpoint(self.endpoint.transport_url)
             try:
                 system = await self.hub.system(self.state.sysid, timeout_s)  # type: ignore[arg-type]
             except LinkTimeout as exc:
@@ -645,14 +762,23 @@ class MavsdkLink(VehicleLink):
     def _on_position_velocity_ned(self, pv: Any) -> None:
         st = self.state
         p, v = pv.position, pv.velocity
+        now = time.monotonic()
+        g = self._guard
+        if g is not None and not g.check_local(None, p.north_m, p.east_m, p.down_m, v.north_m_s,
+                                               v.east_m_s, v.down_m_s, now):
+            return
         st.north_m, st.east_m, st.down_m = p.north_m, p.east_m, p.down_m
         st.vn_m_s, st.ve_m_s, st.vd_m_s = v.north_m_s, v.east_m_s, v.down_m_s
-        now = time.monotonic()
         st.last_position_s = st.last_packet_s = now
         st.rx_packets += 1
         self._notify_position()
 
     def _on_position(self, p: Any) -> None:
+        g = self._guard
+        if g is not None and not g.check_global(None, p.latitude_deg, p.longitude_deg,
+                                                p.absolute_altitude_m, 0.0, 0.0, 0.0,
+                                                time.monotonic()):
+            return
         st = self.state
         st.lat_deg, st.lon_deg = p.latitude_deg, p.longitude_deg
         st.alt_m, st.relative_alt_m = p.absolute_altitude_m, p.relative_altitude_m
@@ -717,6 +843,8 @@ class MavsdkLink(VehicleLink):
             return
         acc = float(json.loads(msg.fields_json).get("pos_horiz_accuracy", math.nan))
         self.state.pos_accuracy_m = acc if math.isfinite(acc) and acc >= 0 else math.nan
+        if self._guard is not None:
+            self._guard.set_accuracy(self.state.pos_accuracy_m)
 
     def _on_truth(self, msg: Any) -> None:
         if msg.system_id != self.state.sysid:
@@ -738,6 +866,7 @@ class MavsdkLink(VehicleLink):
         self._notify_state()
 
     async def _ready_tick(self, missing: list[str]) -> None:
+        await self.hub._refresh_systems()  # (autopilots discovered meanwhile: identity)
         if "no GPS global origin" in missing and self._telemetry is not None:
             try:
                 o = await self._telemetry.get_gps_global_origin()
@@ -750,6 +879,7 @@ class MavsdkLink(VehicleLink):
     async def wait_ready(self, timeout_s: float = 30.0) -> Any:
         if self._telemetry is not None and self.state.origin is None:
             await self._ready_tick(["no GPS global origin"])
+        await self.hub._refresh_systems()
         return await super().wait_ready(timeout_s)
 
     # -- commands ------------------------------------------------------------------------------
@@ -785,6 +915,8 @@ class MavsdkLink(VehicleLink):
     async def arm(self, timeout_s: float = 10.0, retry_interval_s: float = 0.5) -> None:
         """``action.arm()``; COMMAND_DENIED (PX4's TEMPORARILY_REJECTED right after boot) is
         retried every ``retry_interval_s`` until ``timeout_s``."""
+        await self.hub._refresh_systems()
+        self.check_identity()  # a port carrying other vehicles is refused before arming
         loop = asyncio.get_running_loop()
         t_start = loop.time()
         attempts = 0
@@ -881,3 +1013,4 @@ class MavsdkLink(VehicleLink):
                 except Exception:
                     pass
         self._wake_all_closed()
+

@@ -1020,24 +1020,24 @@ class AgentProcess:
         raise AgentAborted(f"vehicle {self.vehicle}: {why}; final phase {pilot.phase.value}")
 
     async def run(self) -> int:
-        from vtube_fleet.link import open_links
-        from vtube_fleet.link.endpoints import parse_endpoint, px4_sitl_sysid
+        from vtube_fleet.link import TelemetryBounds, endpoint_sysid, open_links
         from vtube_fleet.link.signing import slot_signing
 
         self.bus.add_command_listener(self._on_command)
-        sysid = None
+        # both backends fly one id: ?sysid=, PX4 SITL's 14540+i, else the slot's (issue 33)
+        sysid = endpoint_sysid(self.endpoint, self.vehicle)
         signing = slot_signing(self.mission, self.vehicle)  # its key file, checked before joining
-        if self.backend == "mavsdk":
-            sysid = px4_sitl_sysid(parse_endpoint(self.endpoint).port) or self.vehicle + 1
-            if signing is not None:
-                from vtube_fleet.link.mavsdk_link import refuse_signing
+        if self.backend == "mavsdk" and signing is not None:
+            from vtube_fleet.link.mavsdk_link import refuse_signing
 
-                refuse_signing(self.endpoint)
+            refuse_signing(self.endpoint)
         async with self.bus:
             await self.join()
             try:
                 async with open_links([self.endpoint], self.backend, sysids=[sysid],
-                                      signing=[signing]) as links:
+                                      signing=[signing],
+                                      telemetry=TelemetryBounds.for_mission(self.mission)
+                                      ) as links:
                     return await self.fly(links[0])
             except (AgentRefused, AgentAborted):
                 raise
