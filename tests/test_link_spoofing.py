@@ -215,8 +215,8 @@ async def test_an_agent_on_a_port_with_other_vehicles_is_refused_before_arming(
     first. Here agent 2 of three, on the port vehicles 0 and 1 send their GCS link to: it
     refuses the run naming the vehicles, the coordinator says so, nothing arms."""
     from broker import LocalBroker
-
     from vtube_fleet.fleet.distributed.agent import AgentProcess
+
     from vtube_fleet.link import LinkConflict
 
     mission = load_mission(PX4_SITL_3)
