@@ -135,6 +135,12 @@ async def test_the_unsigned_attack_is_refused_and_the_fleet_flies_true(
         assert all(r["other_source"] > 300 for r in refused), refused
         assert all(lk.state.telemetry_fault is None for lk in run.links)
         assert run.result.outcome == "completed", run.result.reason
+        # the run says what happened: the refusals counted in its summary and its reason
+        told = run.result.summary["telemetry"]
+        assert told["refused"]["other_source"] == sum(r["other_source"] for r in refused)
+        assert told["faults"] == []
+        assert run.result.reason.startswith("telemetry refused (not the vehicles'): "
+                                            "other_source "), run.result.reason
     else:
         # MAVSDK takes the fakes: the hub sees the second address (a fault: nothing can
         # refuse them), the plausibility checks refuse the positions
@@ -143,6 +149,7 @@ async def test_the_unsigned_attack_is_refused_and_the_fleet_flies_true(
         for lk in run.links:
             assert (lk.state.telemetry_fault or "").startswith(
                 f"telemetry from two sources: system {lk.sysid} speaks from "), lk.name
+        _held_and_said(run)
 
 
 async def test_a_spoofer_with_the_vehicles_address_meets_the_plausibility_checks(
@@ -160,6 +167,22 @@ async def test_a_spoofer_with_the_vehicles_address_meets_the_plausibility_checks
         assert r["position_jump"] > 300 and r["other_source"] == 0, (lk.name, dict(r))
         fault = lk.state.telemetry_fault or ""
         assert fault.startswith("telemetry from two sources: position jumped"), (lk.name, fault)
+    _held_and_said(run)
+
+
+def _held_and_said(run: SpoofedFlight) -> None:
+    """Telemetry in conflict beyond the window: the vehicle held (an obstacle for the others,
+    its event names why), and the run is not `completed`: exit 3, the vehicles and the reason
+    in its reason and its summary."""
+    assert run.result is not None and run.sup is not None
+    assert run.result.outcome in ("incomplete", "aborted"), run.result.reason
+    assert run.result.exit_code == 3
+    assert "telemetry not trustworthy: " in run.result.reason, run.result.reason
+    faults = run.result.summary["telemetry"]["faults"]
+    assert {f["vehicle"] for f in faults} == {p.vehicle_id for p in run.sup.pilots}
+    held = [e for e in run.result.summary["events"]
+            if "→ holding (telemetry not trustworthy: " in e["text"]]
+    assert held, [e["text"] for e in run.result.summary["events"]][-20:]
 
 
 async def test_without_the_defences_the_same_attack_moves_the_fleet(tmp_path: Path) -> None:
@@ -215,8 +238,8 @@ async def test_an_agent_on_a_port_with_other_vehicles_is_refused_before_arming(
     first. Here agent 2 of three, on the port vehicles 0 and 1 send their GCS link to: it
     refuses the run naming the vehicles, the coordinator says so, nothing arms."""
     from broker import LocalBroker
-    from vtube_fleet.fleet.distributed.agent import AgentProcess
 
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentProcess
     from vtube_fleet.link import LinkConflict
 
     mission = load_mission(PX4_SITL_3)

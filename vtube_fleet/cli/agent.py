@@ -22,6 +22,7 @@ from vtube_fleet.fleet.distributed.coordinator import (
     default_mission_id,
 )
 from vtube_fleet.fleet.distributed.vehicle_agent import AgentInterrupted, AgentProcess
+from vtube_fleet.link.backends import BACKEND_NAMES
 from vtube_fleet.outcome import EXIT_INTERRUPTED
 
 __all__ = [
@@ -79,7 +80,7 @@ def register(subparsers: Any) -> None:
     add_bus_args(p)
     p.add_argument(
         "--link",
-        choices=("mavlink", "mavsdk"),
+        choices=BACKEND_NAMES,
         default="mavlink",
         help="vehicle link backend (default mavlink)",
     )

@@ -22,13 +22,13 @@ from vtube_fleet.cli._args import (
 from vtube_fleet.cli._signals import interrupt_on_signals
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import (
-    BACKENDS,
     FleetCliError,
     fleet_supervisor,
     parse_endpoint_list,
 )
 from vtube_fleet.fleet.sitl import SitlFleet, instance_lines, sitl_fleet
 from vtube_fleet.fleet.supervisor import FleetResult
+from vtube_fleet.link.backends import BACKEND_NAMES
 
 __all__ = ["register"]
 
@@ -134,7 +134,7 @@ def register(subparsers: Any) -> None:
                     "PATH/TO/px4 one PX4 SITL instance per slot is started first (as `vtube-"
                     "fleet sitl` does) and stopped afterwards.")
     p.add_argument("mission", type=Path, help="mission file (scenario + [mission])")
-    p.add_argument("--backend", choices=BACKENDS, default="mavlink",
+    p.add_argument("--backend", choices=BACKEND_NAMES, default="mavlink",
                    help="vehicle link backend (default: mavlink)")
     p.add_argument("--endpoints", metavar="URL,URL,...",
                    help="vehicle endpoints in MAVSDK syntax, e.g. udpin://127.0.0.1:14540; "

@@ -22,7 +22,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.fleet.supervisor import FleetResult, Supervisor
 
 __all__ = [
-    "BACKENDS",
     "TICK_HZ_MAX",
     "TICK_HZ_MIN",
     "FleetCliError",
@@ -38,9 +37,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-BACKENDS = ("mavlink", "mavsdk")
 
 
 #: mavlink backend: streams the fleet does not use, switched off on connect (SET_MESSAGE_INTERVAL
@@ -246,7 +242,7 @@ async def fleet_supervisor(
     """The :class:`~vtube_fleet.fleet.supervisor.Supervisor` of ``mission`` over open links
     (an in-process mock fleet when ``endpoints`` is None); links and mock closed on exit."""
     from vtube_fleet.fleet.supervisor import Supervisor
-    from vtube_fleet.link import TelemetryBounds, endpoint_sysid, fleet_sysid, open_links
+    from vtube_fleet.link import BACKENDS, TelemetryBounds, endpoint_sysid, fleet_sysid, open_links
 
     async with contextlib.AsyncExitStack() as stack:
         if endpoints is None:
@@ -255,7 +251,8 @@ async def fleet_supervisor(
             endpoints = list(fleet.endpoints)
             if sysids is None:
                 sysids = [fleet_sysid(i) for i in range(len(endpoints))]
-        if backend not in BACKENDS:
+        kind = BACKENDS.get(backend)
+        if kind is None:
             raise FleetCliError(f"unknown backend {backend!r} (choose from "
                                 f"{', '.join(BACKENDS)})")
         if sysids is None:  # every link flies one id (docs/links.md, "Identity, source …")
@@ -263,7 +260,7 @@ async def fleet_supervisor(
         options = dict(link_options or {})
         # what the mission's vehicles can fly: the links refuse the rest (docs/security.md)
         options.setdefault("telemetry", TelemetryBounds.for_mission(mission))
-        if backend == "mavlink":
+        if kind.stream_rates:
             options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
         if mission.config.signing_key_file and "signing" not in options:
             from vtube_fleet.link.signing import fleet_signing  # docs/security.md

@@ -223,14 +223,17 @@ class VehiclePilot:
     # -- transitions the tick decides ----------------------------------------------------------
     def fault(self, action: str, reason: str) -> None:
         """A fault rule hit (:class:`~vtube_fleet.fleet.tick.FaultRule`): FAILED while arming;
-        else ``"lost"`` (:meth:`declare_lost`) or ``"land"`` (land in place: stopped, it is an
-        obstacle for everyone)."""
+        else ``"lost"`` (:meth:`declare_lost`), ``"land"`` (land in place) or ``"hold"`` (PX4
+        Hold in place): stopped, it is an obstacle for everyone."""
         if self.phase == Phase.ARMING:
             self.reason = reason
             self.set_phase(Phase.FAILED, reason)
         elif action == "land":
             self.reason = self.reason or reason
             self.begin_land(reason, level="warning")
+        elif action == "hold":
+            self.reason = self.reason or reason
+            self.begin_hold(reason)
         else:
             self.declare_lost(reason)
 

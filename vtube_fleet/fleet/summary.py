@@ -26,7 +26,7 @@ from vtube_fleet.state import Phase
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.fleet.supervisor import Supervisor
 
-__all__ = ["fleet_summary", "signing_summary"]
+__all__ = ["fleet_summary", "signing_summary", "telemetry_summary"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +38,24 @@ def signing_summary(sup: Supervisor) -> dict[str, Any]:
         for why, n in getattr(p.link, "signing_refused", {}).items():
             refused[why] = refused.get(why, 0) + int(n)
     return {"enabled": bool(sup.cfg.signing_key_file), "refused": refused}
+
+
+def telemetry_summary(sup: Supervisor) -> dict[str, Any]:
+    """What the links refused of the vehicles' telemetry, by reason (docs/security.md:
+    another system id, another source address, impossible speed or jump, time running
+    backwards or jumping), the vehicles whose telemetry the link stopped trusting (``faults``:
+    vehicle and why) and the addresses re-learned."""
+    refused: dict[str, int] = {}
+    faults = []
+    changes = 0
+    for p in sup.pilots:
+        s = p.link.state
+        for why, n in s.telemetry_refused.items():
+            refused[why] = refused.get(why, 0) + int(n)
+        if s.telemetry_fault is not None:
+            faults.append({"vehicle": p.vehicle_id, "reason": s.telemetry_fault})
+        changes += int(s.source_changes)
+    return {"refused": refused, "faults": faults, "source_changes": changes}
 
 
 def fleet_summary(sup: Supervisor) -> dict[str, Any]:
@@ -67,6 +85,7 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
         "onboard": dict(sup.onboard),  # the fence and the PX4 parameter audit
         "battery": sup.preflight.battery,  # the check before arming (fleet/preflight.py)
         "mavlink_signing": signing_summary(sup),
+        "telemetry": telemetry_summary(sup),
         "vehicles": len(sup.pilots),
         "lost": [p.vehicle_id for p in sup.pilots if p.phase == Phase.LOST],
         "r_s": sup.physical.r_s,

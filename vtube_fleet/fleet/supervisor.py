@@ -62,7 +62,7 @@ from vtube_fleet.fleet.preflight import (
     preflight_report,
     wait_accuracy,
 )
-from vtube_fleet.fleet.summary import fleet_summary
+from vtube_fleet.fleet.summary import fleet_summary, telemetry_summary
 from vtube_fleet.fleet.table import FleetTable
 from vtube_fleet.fleet.tick import ControlClock, Tick, TickResult
 from vtube_fleet.fleet.view import FleetStatus, FleetView
@@ -730,11 +730,29 @@ class Supervisor:
             if self._heap_frozen:
                 gc.unfreeze()
                 self._heap_frozen = False
+            self._judge_telemetry()
             self._judge()
             summary, path = await self._shutdown()
         if error is not None or self.outcome == "unsafe":
             self.event(f"{self.outcome}: {self.reason}", level="error")
         return FleetResult(self.outcome, self.reason, summary, path)
+
+    def _judge_telemetry(self) -> None:
+        """A run whose vehicles' telemetry the links stopped trusting is not ``completed``
+        (its positions were refused or in conflict: ``incomplete``, naming the vehicles and
+        why); refusals that never reached a vehicle's state (another id, another address) are
+        said in the reason of a completed run (docs/security.md)."""
+        t = telemetry_summary(self)
+        if t["faults"]:
+            why = "; ".join(f"{self.names[f['vehicle']]}: {f['reason']}" for f in t["faults"])
+            if self.outcome == "completed":
+                self.outcome = "incomplete"
+                self.reason = f"telemetry not trustworthy: {why}"
+            else:
+                self.reason += f"; telemetry not trustworthy: {why}"
+        elif t["refused"] and self.outcome == "completed":
+            self.reason = ("telemetry refused (not the vehicles'): " + ", ".join(
+                f"{k} {v}" for k, v in sorted(t["refused"].items())))
 
     def _say_not_down(self) -> None:
         """The run's reason names the vehicles not brought down (or left holding)."""

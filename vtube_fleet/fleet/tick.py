@@ -92,6 +92,8 @@ _LOST = PHASE_CODE[Phase.LOST]
 _OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
 _CHECKED_MASK = phase_mask(AIRBORNE_PHASES | {Phase.ARMING})
 _FLYING_TUBE_MASK = phase_mask({Phase.IN_TUBE, Phase.TAKEOFF})
+#: flying on our setpoints (arming, the climb, the tube, past the line)
+_FLYING_MASK = phase_mask(OFFBOARD_PHASES)
 _STOPPED_MASK = phase_mask(STOPPED_PHASES)
 
 #: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
@@ -222,12 +224,12 @@ FaultFind = Callable[[FaultContext], tuple[np.ndarray, Callable[[int], str]]]
 class FaultRule:
     """One in-flight fault rule, evaluated every tick for every vehicle (:func:`find_faults`):
     ``name``, ``find`` and the ``action`` on a vehicle that hits it: ``"lost"`` (stop commanding
-    it; a static obstacle for everyone at its last position) or ``"land"`` (it lands in place
-    and, stopped, becomes an obstacle)."""
+    it; a static obstacle for everyone at its last position), ``"land"`` (it lands in place and,
+    stopped, becomes an obstacle) or ``"hold"`` (PX4 Hold where it is: an obstacle too)."""
 
     name: str
     find: FaultFind
-    action: str = "lost"
+    action: str = "lost"  # "lost", "land" or "hold"
 
 
 @dataclass(frozen=True)
@@ -344,8 +346,19 @@ def _battery_low(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
 
 #: The in-flight fault rules, in order of precedence (a vehicle takes the first it hits). A
 #: rule added here acts for every vehicle of every process (supervisor and agents alike).
+def _untrusted_telemetry(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
+    """The link refused this vehicle's telemetry for longer than its window (forged, from two
+    sources, physically impossible: ``VehicleState.telemetry_fault``, docs/security.md): its
+    positions cannot be trusted, so it holds where it is and is an obstacle for everyone."""
+    states = ctx.links.states
+    faulted = np.fromiter((s.telemetry_fault is not None for s in states), bool, len(states))
+    flying = _FLYING_MASK[ctx.tab.phase]
+    return faulted & flying, lambda r: f"telemetry not trustworthy: {states[r].telemetry_fault}"
+
+
 FAULT_RULES: tuple[FaultRule, ...] = (
     FaultRule("no_telemetry", _no_telemetry),
+    FaultRule("untrusted_telemetry", _untrusted_telemetry, action="hold"),
     FaultRule("left_offboard", _left_offboard),
     FaultRule("disarmed_in_air", _disarmed_in_air),
     FaultRule("unresponsive", _unresponsive),

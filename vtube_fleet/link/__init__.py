@@ -1,4 +1,5 @@
-"""Vehicle links: one small interface (:class:`VehicleLink`), two backends.
+"""Vehicle links: one small interface (:class:`VehicleLink`), the backends of
+:data:`~vtube_fleet.link.backends.BACKENDS` (one table: name, opener, capabilities):
 
 * ``mavlink`` (default, :class:`~vtube_fleet.link.mavlink.MavlinkLink`): pymavlink codec on
   asyncio UDP, one socket per vehicle; every setpoint comes from our control loop, so a stalled
@@ -17,6 +18,8 @@ from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from typing import Any
 
+from vtube_fleet.link.backends import BACKEND_NAMES, BACKENDS, Backend
+from vtube_fleet.link.backends import backend as backend_named
 from vtube_fleet.link.base import (
     CommandRejected,
     GeoPoint,
@@ -42,6 +45,8 @@ from vtube_fleet.link.mavlink import MavlinkLink
 
 __all__ = [
     "BACKENDS",
+    "BACKEND_NAMES",
+    "Backend",
     "CommandRejected",
     "Endpoint",
     "EndpointError",
@@ -62,9 +67,6 @@ __all__ = [
     "endpoint_sysid",
 ]
 
-#: Backend names accepted by the fleet (``--link``).
-BACKENDS = ("mavlink", "mavsdk")
-
 
 @asynccontextmanager
 async def open_links(
@@ -75,7 +77,8 @@ async def open_links(
     watchdog_s: float | None = None,
     **options: Any,
 ) -> AsyncIterator[list[VehicleLink]]:
-    """Create (not connect) one link per endpoint with ``backend``; close them all on exit.
+    """Create (not connect) one link per endpoint with ``backend`` (a name of
+    :data:`~vtube_fleet.link.backends.BACKENDS`); close them all on exit.
 
     ``sysids`` (optional, one per endpoint) pins system ids; an endpoint's ``?sysid=N`` pins
     its own (a different id in ``sysids`` is an error); otherwise the mavsdk backend uses PX4
@@ -90,8 +93,7 @@ async def open_links(
     mavsdk backend refuses). Connecting is left to the caller (concurrently, with its own
     timeouts and error report).
     """
-    if backend not in BACKENDS:
-        raise LinkError(f"unknown link backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    kind = backend_named(backend)
     eps = [parse_endpoint(e) for e in endpoints]
     urls = [e.transport_url for e in eps]
     dupes = sorted({u for u in urls if urls.count(u) > 1})
@@ -111,14 +113,14 @@ async def open_links(
     if bad:
         raise LinkError(f"{bad[0][0]}: system id must be 1..255, got {bad[0][1]}"
                         + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
-    if backend == "mavsdk":
-        # one MAVSDK server holds every link and tells systems apart by id only
+    if kind.shared_ids:
+        # one server holds every link and tells systems apart by id only
         seen: dict[int, str] = {}
         for e, s in zip(eps, ids, strict=True):
             if s is not None and s in seen:
                 raise LinkError(
-                    f"system id {s} is used by {seen[s]} and {e.url}: the mavsdk backend "
-                    f"serves all links from one MAVSDK server, which needs unique ids "
+                    f"system id {s} is used by {seen[s]} and {e.url}: the {kind.name} backend "
+                    f"serves all links from one server, which needs unique ids "
                     f"(at most {MAX_VEHICLE_SYSIDS} vehicles); use --link mavlink, whose "
                     f"links are separate")
             if s is not None:
@@ -127,28 +129,9 @@ async def open_links(
     signings = list(signing) if isinstance(signing, (list, tuple)) else [signing] * len(eps)
     if len(signings) != len(eps):
         raise LinkError(f"{len(signings)} signing settings for {len(eps)} endpoints")
-    if backend == "mavsdk" and any(sg is not None for sg in signings):
-        from vtube_fleet.link.mavsdk_link import refuse_signing
-
-        refuse_signing(eps[0].url)
-    links: list[VehicleLink] = []
-    hub = None
-    try:
-        if backend == "mavlink":
-            links = [MavlinkLink(ep, sid, signing=sg, **options)
-                     for ep, sid, sg in zip(eps, ids, signings, strict=True)]
-        else:
-            from vtube_fleet.link.mavsdk_link import DEFAULT_WATCHDOG_S, MavsdkHub
-
-            hub = MavsdkHub(watchdog_s=watchdog_s or DEFAULT_WATCHDOG_S)
-            await hub.start()
-            links = [hub.link(ep, sid, **options) for ep, sid in zip(eps, ids, strict=True)]
+    if any(sg is not None for sg in signings):
+        kind.require_signing(eps[0].url)
+    if watchdog_s is not None:
+        options["watchdog_s"] = watchdog_s
+    async with kind.open(eps, ids, signings, options) as links:
         yield links
-    finally:
-        for link in links:
-            try:
-                await link.close()
-            except Exception:  # closing must not hide the original error
-                pass
-        if hub is not None:
-            await hub.close()

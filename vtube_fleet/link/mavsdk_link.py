@@ -75,7 +75,7 @@ from vtube_fleet.link.endpoints import (
 )
 from vtube_fleet.link.guard import DEFAULT_BOUNDS, TelemetryBounds, TelemetryGuard
 
-__all__ = ["MavsdkHub", "MavsdkLink", "DEFAULT_WATCHDOG_S", "refuse_signing"]
+__all__ = ["MavsdkHub", "MavsdkLink", "DEFAULT_WATCHDOG_S"]
 
 log = logging.getLogger(__name__)
 
@@ -101,13 +101,6 @@ _POLYGON_TYPES = {5001: "INCLUSION", 5002: "EXCLUSION"}
 _CIRCLE_TYPES = {5003: "INCLUSION", 5004: "EXCLUSION"}
 _FENCE_CMD = {**{("polygon", t): c for c, t in _POLYGON_TYPES.items()},
               **{("circle", t): c for c, t in _CIRCLE_TYPES.items()}}
-
-
-def refuse_signing(url: str) -> None:
-    """MAVSDK has no MAVLink 2 signing API: a mission that signs cannot fly this backend."""
-    raise LinkError(f"{url}: the mission requires MAVLink 2 signing ([mission].signing_key_file)"
-                    f", which the mavsdk backend cannot do (MAVSDK has no signing API); fly "
-                    f"it with the mavlink backend (run --backend mavlink, agent --link mavlink)")
 
 
 def _import_mavsdk() -> Any:
@@ -397,8 +390,10 @@ class MavsdkLink(VehicleLink):
         pin_source: bool = True,
     ) -> None:
         super().__init__(endpoint, sysid)
-        if signing is not None:
-            refuse_signing(self.endpoint.url)
+        if signing is not None:  # MAVSDK has no MAVLink 2 signing API
+            from vtube_fleet.link.backends import BACKENDS
+
+            BACKENDS["mavsdk"].require_signing(self.endpoint.url)
         sysid = self.state.sysid  # (the endpoint's ?sysid= included)
         if sysid is None:
             sysid = px4_sitl_sysid(self.endpoint.port)

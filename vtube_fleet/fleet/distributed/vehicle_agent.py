@@ -1020,17 +1020,15 @@ class AgentProcess:
         raise AgentAborted(f"vehicle {self.vehicle}: {why}; final phase {pilot.phase.value}")
 
     async def run(self) -> int:
-        from vtube_fleet.link import TelemetryBounds, endpoint_sysid, open_links
+        from vtube_fleet.link import TelemetryBounds, backend_named, endpoint_sysid, open_links
         from vtube_fleet.link.signing import slot_signing
 
         self.bus.add_command_listener(self._on_command)
         # both backends fly one id: ?sysid=, PX4 SITL's 14540+i, else the slot's (issue 33)
         sysid = endpoint_sysid(self.endpoint, self.vehicle)
         signing = slot_signing(self.mission, self.vehicle)  # its key file, checked before joining
-        if self.backend == "mavsdk" and signing is not None:
-            from vtube_fleet.link.mavsdk_link import refuse_signing
-
-            refuse_signing(self.endpoint)
+        if signing is not None:  # before joining: the refusal opening the link would give
+            backend_named(self.backend).require_signing(self.endpoint)
         async with self.bus:
             await self.join()
             try:
