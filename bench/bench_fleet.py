@@ -57,12 +57,12 @@ from missions import grid_mission  # noqa: E402
 from sim_stub.ports import free_port_scheme  # noqa: E402
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.budget import on_time_share  # noqa: E402
-from vtube_fleet.fleet.launch import UNUSED_STREAMS_OFF  # noqa: E402
 from vtube_fleet.fleet.supervisor import Supervisor  # noqa: E402
 from vtube_fleet.link import fleet_sysid, open_links  # noqa: E402
 from vtube_fleet.link.mavlink import (  # noqa: E402
     DEFAULT_MESSAGE_RATES_HZ,
     MSG_LOCAL_POSITION_NED,
+    UNUSED_STREAMS_OFF,  # noqa: E402
 )
 from vtube_fleet.state import Phase  # noqa: E402
 

@@ -61,7 +61,7 @@ FLY_WARMUP_S = 18.0  # boot, OFFBOARD + arm, spool-up 1 s, take-off ramp 2 s, th
 CLIMB_S = 6.0
 REQUESTS = {32: 50.0, 33: 10.0, 245: 5.0, 242: 1.0}  # msgid -> Hz (capture GCS)
 #: --lean: vtube_fleet.link.mavlink.DEFAULT_MESSAGE_RATES_HZ updated with
-#: vtube_fleet.fleet.launch.UNUSED_STREAMS_OFF and bench_fleet.LEAN_STREAMS_HZ (0 = off)
+#: vtube_fleet.link.mavlink.UNUSED_STREAMS_OFF and bench_fleet.LEAN_STREAMS_HZ (0 = off)
 LEAN_REQUESTS = {32: 25.0, 33: 2.0, 245: 5.0, 242: 1.0, 230: 2.0, 30: 0.0, 31: 0.0, 105: 0.0,
                  331: 0.0, 85: 0.0, 24: 1.0, 1: 2.0, 147: 0.0}  # fmt: skip
 #: --fence: (north, east) m from each vehicle's home, an inclusion polygon around its path (the

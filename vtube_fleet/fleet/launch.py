@@ -25,7 +25,6 @@ __all__ = [
     "TICK_HZ_MAX",
     "TICK_HZ_MIN",
     "FleetCliError",
-    "UNUSED_STREAMS_OFF",
     "fleet_supervisor",
     "fly",
     "gcs_link_mode",
@@ -39,10 +38,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-#: mavlink backend: streams the fleet does not use, switched off on connect (SET_MESSAGE_INTERVAL
-#: −1 via rate 0) to save link bandwidth and CPU on both ends: ATTITUDE (100 Hz in the
-#: captures), ATTITUDE_QUATERNION, HIGHRES_IMU, ODOMETRY, POSITION_TARGET_LOCAL_NED (10 Hz).
-UNUSED_STREAMS_OFF: dict[int, float] = {30: 0.0, 31: 0.0, 105: 0.0, 331: 0.0, 85: 0.0}
 
 
 class FleetCliError(UserError):
@@ -260,8 +255,6 @@ async def fleet_supervisor(
         options = dict(link_options or {})
         # what the mission's vehicles can fly: the links refuse the rest (docs/security.md)
         options.setdefault("telemetry", TelemetryBounds.for_mission(mission))
-        if kind.stream_rates:
-            options.setdefault("message_rates_hz", dict(UNUSED_STREAMS_OFF))
         if mission.config.signing_key_file and "signing" not in options:
             from vtube_fleet.link.signing import fleet_signing  # docs/security.md
 

@@ -75,6 +75,7 @@ async def open_links(
     *,
     sysids: Sequence[int | None] | None = None,
     watchdog_s: float | None = None,
+    trim_streams: bool = True,
     **options: Any,
 ) -> AsyncIterator[list[VehicleLink]]:
     """Create (not connect) one link per endpoint with ``backend`` (a name of
@@ -85,10 +86,12 @@ async def open_links(
     SITL's scheme (port 14540 + i → i + 1) and the mavlink link locks onto the first
     autopilot it hears (the fleet always pins: :func:`endpoint_sysid`). ``watchdog_s`` is the
     mavsdk backend's stall limit (ignored by ``mavlink``, whose stall is caught by PX4's own
-    failsafe). ``options`` go to the link constructor (e.g. ``command_timeout_s`` for
-    mavlink; ``telemetry``: the :class:`TelemetryBounds` of the plausibility checks, None
-    turns them off; ``pin_source=False`` accepts the vehicle's id from any address: both test
-    switches, docs/security.md). ``signing``: one
+    failsafe). ``trim_streams``: a backend that sets stream rates switches off the streams the
+    fleet does not use (:data:`~vtube_fleet.link.mavlink.UNUSED_STREAMS_OFF`; PX4's rates are
+    given back when the links close). ``options`` go to the link constructor (e.g.
+    ``command_timeout_s`` for mavlink; ``telemetry``: the :class:`TelemetryBounds` of the
+    plausibility checks, None turns them off; ``pin_source=False`` accepts the vehicle's id
+    from any address: both test switches, docs/security.md). ``signing``: one
     :class:`~vtube_fleet.link.signing.LinkSigning` (or None) per endpoint, mavlink only (the
     mavsdk backend refuses). Connecting is left to the caller (concurrently, with its own
     timeouts and error report).
@@ -133,5 +136,10 @@ async def open_links(
         kind.require_signing(eps[0].url)
     if watchdog_s is not None:
         options["watchdog_s"] = watchdog_s
+    if kind.stream_rates and trim_streams:
+        from vtube_fleet.link.mavlink import UNUSED_STREAMS_OFF
+
+        options["message_rates_hz"] = {**UNUSED_STREAMS_OFF,
+                                       **(options.get("message_rates_hz") or {})}
     async with kind.open(eps, ids, signings, options) as links:
         yield links

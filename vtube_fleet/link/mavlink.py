@@ -89,6 +89,7 @@ from vtube_fleet.link.wire import WireCodec, mcrf4xx
 __all__ = [
     "MavlinkLink",
     "DEFAULT_MESSAGE_RATES_HZ",
+    "UNUSED_STREAMS_OFF",
     "TYPE_MASK_VELOCITY",
     "TYPE_MASK_VELOCITY_YAW",
     "command_name",
@@ -151,6 +152,13 @@ DEFAULT_MESSAGE_RATES_HZ: Mapping[int, float] = {
     MSG_HOME_POSITION: 1.0,
     MSG_ESTIMATOR_STATUS: 2.0,  # the position accuracy of the safety budget
 }
+
+#: The streams the fleet does not use, switched off on connect (SET_MESSAGE_INTERVAL −1 via
+#: rate 0) to save link bandwidth and CPU on both ends: ATTITUDE (100 Hz in the captures),
+#: ATTITUDE_QUATERNION, HIGHRES_IMU, ODOMETRY, POSITION_TARGET_LOCAL_NED (10 Hz). A fleet's
+#: links (``open_links``) switch them off unless told otherwise; every stream a link changed is
+#: given back to PX4's own rate when it closes (:meth:`MavlinkLink.restore_streams`).
+UNUSED_STREAMS_OFF: Mapping[int, float] = {30: 0.0, 31: 0.0, 105: 0.0, 331: 0.0, 85: 0.0}
 
 _RESULT_ACCEPTED = 0
 _RESULT_TEMPORARILY_REJECTED = 1
@@ -222,6 +230,8 @@ class MavlinkLink(VehicleLink):
         rates = dict(DEFAULT_MESSAGE_RATES_HZ)
         rates.update(message_rates_hz or {})
         self.message_rates_hz = rates
+        #: the streams whose rate this link set (restored at :meth:`close`)
+        self.streams_changed: set[int] = set()
         self.command_tries = command_tries
         self.command_timeout_s = command_timeout_s
         self.heartbeat_period_s = heartbeat_period_s
@@ -958,12 +968,45 @@ class MavlinkLink(VehicleLink):
         rates = sorted(self.message_rates_hz.items(), key=lambda kv: kv[1] > 0)
         for msgid, rate in rates:
             interval_us = -1.0 if rate <= 0 else 1e6 / rate
+            self.streams_changed.add(msgid)  # (given back at close, acknowledged or not)
             await self._try_command(CMD_SET_MESSAGE_INTERVAL, float(msgid), interval_us,
                                     what=f"{_message_name(msgid)} at {rate:g} Hz",
                                     deadline=deadline)
         for msgid in (MSG_HOME_POSITION, MSG_GPS_GLOBAL_ORIGIN):
             await self._try_command(CMD_REQUEST_MESSAGE, float(msgid),
                                     what=_message_name(msgid), deadline=deadline)
+
+    #: Seconds :meth:`restore_streams` waits for the vehicle's acknowledgements at most.
+    RESTORE_S = 1.5
+
+    async def restore_streams(self) -> list[int]:
+        """Give every stream this link changed back to PX4's own rate (SET_MESSAGE_INTERVAL 0:
+        "the default rate"), all at once, one try each, within :attr:`RESTORE_S`; returns the
+        streams whose restoration was not acknowledged (warned about). Called by
+        :meth:`close` on every exit path."""
+        todo = sorted(self.streams_changed)
+        if not todo or self._closed or self._remote is None:
+            return []
+        self.streams_changed.clear()
+
+        async def one(msgid: int) -> int | None:
+            try:
+                result = await self.command_long(CMD_SET_MESSAGE_INTERVAL, float(msgid), 0.0,
+                                                 tries=1, raise_on_reject=False)
+            except LinkError:
+                return msgid
+            return None if result == "ACCEPTED" else msgid
+
+        try:
+            async with asyncio.timeout(self.RESTORE_S):
+                left = [m for m in await asyncio.gather(*(one(m) for m in todo)) if m is not None]
+        except TimeoutError:
+            left = todo
+        if left:
+            log.warning("%s: PX4's own rate not confirmed for %s (the vehicle keeps our rates "
+                        "until it reboots or a ground station sets them)", self.name,
+                        ", ".join(_message_name(m) for m in left))
+        return left
 
     async def _try_command(self, command: int, *params: float, what: str,
                            deadline: float | None = None) -> None:
@@ -1063,6 +1106,10 @@ class MavlinkLink(VehicleLink):
     async def close(self) -> None:
         if self._closed:
             return
+        try:
+            await self.restore_streams()  # PX4's stream rates as we found them
+        except Exception as exc:  # noqa: BLE001 - closing goes on whatever happens
+            log.warning("%s: restoring the stream rates failed: %s", self.name, exc)
         self._closed = True
         self._tx = None
         await cancel_tasks(self._tasks)
