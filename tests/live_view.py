@@ -237,6 +237,9 @@ def browser_screenshot(url: str, out: Path, *, wait_s: float = 20.0,
     with chromium(size) as (_proc, port):
         dt = DevTools(port)
         try:
+            w, h = (int(v) for v in size.split("x"))
+            dt.call("Emulation.setDeviceMetricsOverride", width=w, height=h,
+                    deviceScaleFactor=1, mobile=False)
             dt.call("Page.enable")
             dt.call("Page.navigate", url=url)
             time.sleep(wait_s)

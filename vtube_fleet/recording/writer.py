@@ -1680,8 +1680,10 @@ def open_recorder(
     kind: str = "sim",
     **options: Any,
 ) -> Recorder:
-    """A :class:`RerunRecorder`, or a :class:`NullRecorder` when both targets are ``None``."""
-    if save_path is None and connect is None:
+    """A :class:`RerunRecorder`, or a :class:`NullRecorder` when there is nowhere to record to
+    (no file, no viewer address, no ``serve_web``, no ``viewer``)."""
+    if (save_path is None and connect is None and options.get("serve_web") is None
+            and not options.get("viewer")):
         return NullRecorder()
     return RerunRecorder(save_path, connect=connect, app_id=app_id, decimate=decimate,
                          kind=kind, **options)
