@@ -790,9 +790,10 @@ class Supervisor:
         if on_time is not None:
             st.on_time = on_time
         st.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
-        if self.view is not None and self.view.tty:  # the per-vehicle table (terminal only)
+        if self.view is not None and self.view.wants_rows():  # the table / the worst vehicles
             sc = self.mission.scenario
-            st.rows = vehicle_rows(self.pilots, sc.tube, sc.obstacles, self.monitor.limits)
+            st.rows = vehicle_rows(self.pilots, sc.tube, sc.obstacles, self.monitor.limits,
+                                   partition=self.plan.partition)
         return st
 
     def _achieved_rate(self, window: int | None = None) -> float:
@@ -911,7 +912,8 @@ class Supervisor:
                                 mission=self.mission.config, meta={
             "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
             "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
-            "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
+            "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots],
+            "fence": self.fence})
 
     def _lookahead_problems(self, positions: np.ndarray, where: str) -> list[str]:
         """Vehicles that the apex look-ahead would start inside a triangle side's barrier."""
