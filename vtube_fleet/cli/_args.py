@@ -205,7 +205,8 @@ def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int
                         "browser on another computer)")
     g.add_argument("--rerun-viewer", "--viewer", action="store_true",
                    help="spawn the native rerun viewer and stream to it (it stays open after "
-                        "the run; needs a display)")
+                        "the run; needs a display); on the port --rerun-connect names, else "
+                        "9876; a viewer already listening there is used")
     g.add_argument("--rerun-decimate", metavar="N", type=bounded(COUNT), default=default_decimate,
                    help="record every N-th control tick / simulation step "
                         "(default: each command's own choice)")
@@ -253,7 +254,17 @@ def recorder_from_args(
     if serve is not None:
         options.update(serve_web=serve, serve_bind=getattr(args, "rerun_bind", DEFAULT_BIND))
     if getattr(args, "rerun_viewer", False):
-        options["viewer"] = True
+        # the viewer is spawned where --rerun-connect points (this machine; default port 9876)
+        from urllib.parse import urlparse
+
+        from vtube_fleet.recording.writer import normalize_connect_url
+
+        u = urlparse(normalize_connect_url(connect))
+        if u.hostname not in ("127.0.0.1", "localhost", "::1"):
+            raise RecordingError(f"--rerun-viewer starts the viewer on this machine: "
+                                 f"--rerun-connect {connect} is not a local address")
+        options.update(viewer=True, viewer_port=u.port or 9876)
+        connect = None
     rec = open_recorder(save, connect=connect, app_id=app_id, decimate=dec, kind=kind,
                         **options)
     web = getattr(rec, "web", None)
