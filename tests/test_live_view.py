@@ -24,6 +24,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 import live_view  # noqa: E402
+from mock_process import child_env, mock_process  # noqa: E402
 
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.onboard import fence_items  # noqa: E402
@@ -201,13 +202,15 @@ def test_no_display_no_viewer_and_the_run_records_anyway(tmp_path: Path,
 # ---------------------------------------------------------------------------------------------
 # real viewers during a real (mock) flight; killing them changes nothing
 # ---------------------------------------------------------------------------------------------
-def _start_run(out: Path, *extra: str, env: dict[str, str] | None = None
-               ) -> subprocess.Popen[str]:
+def _start_run(out: Path, endpoints: list[str], *extra: str,
+               env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    """``vtube-fleet run`` of the mock mission on a mock fleet of free ports (tests/
+    mock_process.py), with the ground truth."""
     return subprocess.Popen(
         [sys.executable, "-m", "vtube_fleet", "run", str(MISSION), "--out", str(out),
-         "--mock-boot-time-scale", "0.3", *extra],
+         "--endpoints", ",".join(endpoints), "--truth", *extra],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, **(env or {})})
+        env={**child_env(), **(env or {})})
 
 
 def _wait_for_line(proc: subprocess.Popen[str], pattern: str, lines: list[str],
@@ -266,12 +269,17 @@ def test_chromium_shows_the_live_map_and_closing_it_changes_nothing(tmp_path: Pa
     require("chromium", _have("chromium") or _have("chromium-browser"))
     port = live_view.free_port(2)
     out = tmp_path / "run"
-    run = _start_run(out, "--serve-web", str(port))
+    with mock_process(MISSION, 12) as (_mock, endpoints):
+        _browser_run(tmp_path, out, port, endpoints)
+
+
+def _browser_run(tmp_path: Path, out: Path, port: int, endpoints: list[str]) -> None:
+    run = _start_run(out, endpoints, "--serve-web", str(port))
     lines: list[str] = []
     try:
         url = _wait_for_line(run, r"live view: open (\S+) in a browser", lines).group(1)
         assert url.startswith(f"http://127.0.0.1:{port}/?url=")
-        _wait_for_line(run, r"stage: in_tube", lines)
+        _wait_for_line(run, r"stage: tube", lines)
         with live_view.chromium("1600x900") as (browser, dt_port):
             dt = live_view.DevTools(dt_port)
             dt.call("Emulation.setDeviceMetricsOverride", width=1600, height=900,
@@ -302,11 +310,11 @@ def test_native_viewer_live_under_xvfb_and_killing_it_changes_nothing(tmp_path: 
 
     out = tmp_path / "run"
     vport = live_view.free_port()
-    with live_view.xvfb("1600x900") as display:
+    with live_view.xvfb("1600x900") as display, mock_process(MISSION, 12) as (_, endpoints):
         env = {"DISPLAY": display, "VK_ICD_FILENAMES": str(LAVAPIPE)}
         # the run spawns the viewer on the port --rerun-connect names (the rerun default 9876
         # without it); here a free one, so that no other viewer on this machine is reused
-        run = _start_run(out, "--viewer", "--rerun-connect", str(vport), env=env)
+        run = _start_run(out, endpoints, "--viewer", "--rerun-connect", str(vport), env=env)
         lines: list[str] = []
         pid = None
         try:
@@ -314,7 +322,7 @@ def test_native_viewer_live_under_xvfb_and_killing_it_changes_nothing(tmp_path: 
                                     r"\(started, process (\d+)\)", lines)
             assert m.group(1) == f"rerun+http://127.0.0.1:{vport}/proxy"
             pid = int(m.group(2))
-            _wait_for_line(run, r"stage: in_tube", lines)
+            _wait_for_line(run, r"stage: tube", lines)
             time.sleep(8.0)  # the viewer draws what it received
             client = ViewerClient(m.group(1))
             state = client.get_state()
