@@ -107,8 +107,10 @@ def xvfb(size: str = "1920x1080") -> Iterator[str]:
 
 
 @contextlib.contextmanager
-def native_viewer(display: str) -> Iterator[tuple[Any, subprocess.Popen[bytes]]]:
-    """The rerun-sdk viewer on ``display`` and a free port: (ViewerClient, process)."""
+def native_viewer(display: str, size: str = "1600x900"
+                  ) -> Iterator[tuple[Any, subprocess.Popen[bytes]]]:
+    """The rerun-sdk viewer on ``display`` and a free port, its window ``size``:
+    (ViewerClient, process)."""
     from rerun.experimental import ViewerClient
 
     from vtube_fleet.recording.live import rerun_executable
@@ -120,8 +122,9 @@ def native_viewer(display: str) -> Iterator[tuple[Any, subprocess.Popen[bytes]]]
     if lvp.is_file():  # Vulkan on the CPU (the viewer refuses GL on llvmpipe: no R32Float)
         env["VK_ICD_FILENAMES"] = str(lvp)
     log = tempfile.TemporaryFile()
-    proc = subprocess.Popen([rerun_executable(), "--port", str(port), "--bind", "127.0.0.1"],
-                            env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen([rerun_executable(), "--port", str(port), "--bind", "127.0.0.1",
+                             "--window-size", size], env=env, stdout=log,
+                            stderr=subprocess.STDOUT)
     try:
         try:
             wait_port(port, 30.0, proc)
@@ -139,7 +142,7 @@ def viewer_screenshot(rrd: Path, out: Path, *, time_s: float | None = None,
                       size: str = "1920x1080", settle_s: float = 8.0) -> dict[str, Any]:
     """Render ``rrd`` in the native viewer under Xvfb and save the viewer's screenshot; returns
     the viewer's state (its views and what each failed to draw, if anything)."""
-    with xvfb(size) as display, native_viewer(display) as (client, _proc):
+    with xvfb(size) as display, native_viewer(display, size) as (client, _proc):
         client.open(str(Path(rrd).resolve()))
         deadline = time.monotonic() + 30.0
         state = client.get_state()

@@ -73,6 +73,9 @@ def rerun_executable() -> str:
 def _port_free(bind: str, port: int) -> bool:
     family = socket.AF_INET6 if ":" in bind else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as s:
+        # as the server binds (SO_REUSEADDR): a port whose last connections linger in
+        # TIME_WAIT is free, one a process listens on is not
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((bind or "0.0.0.0", port))
         except OSError:

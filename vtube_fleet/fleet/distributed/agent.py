@@ -855,7 +855,8 @@ class AgentProcess:
                                  "config_hash": self.hash, "broker": self.bus.url})
         self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
-                  "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles},
+                  "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles,
+                  "fence": self.fence},
         )
         self.bus.add_state_listener(rec.on_neighbour)
         self.recording = rec
