@@ -1133,13 +1133,14 @@ class RerunRecorder:
             return
         rr = self._rr
         idx = self._index(t[rows], ticks[rows])
-        cols = rr.LineStrips2D.columns(strips=strips, class_ids=np.array(strip_cls, np.uint16))
-        self._rec.send_columns(ent, idx, cols.partition(lens))
-        if geo is not None:
-            gcols = rr.GeoLineStrings.columns(
+        cols = list(rr.LineStrips2D.columns(strips=strips, class_ids=np.array(
+            strip_cls, np.uint16)).partition(lens))
+        if geo is not None:  # the same trail on the map, in the same send
+            cols += rr.GeoLineStrings.columns(
                 line_strings=geo_strips,
-                colors=np.array([class_color(c) for c in strip_cls], dtype=np.uint32))
-            self._rec.send_columns(ent, idx, gcols.partition(lens))
+                colors=np.array([class_color(c) for c in strip_cls], dtype=np.uint32)
+            ).partition(lens)
+        self._rec.send_columns(ent, idx, cols)
 
     def _send_rows_now(self, rows: list[_Row]) -> None:
         rr, pa = self._rr, self._pa
