@@ -172,6 +172,23 @@ def test_served_page_and_a_real_client_gets_the_stream(tmp_path: Path) -> None:
         urlopen(f"http://127.0.0.1:{port}/", timeout=2)
 
 
+def test_every_interface_when_asked(tmp_path: Path) -> None:
+    """``--rerun-bind 0.0.0.0``: both ports on every interface, the URL names this machine, and
+    the page's origin may read the data port (CORS)."""
+    import socket
+
+    port = live_view.free_port(2)
+    with open_recorder(None, kind="fleet", serve_web=port, serve_bind="0.0.0.0") as rec:
+        web = rec.web  # type: ignore[attr-defined]
+        host = socket.gethostname()
+        assert web.url.startswith(f"http://{host}:{port}/?url=rerun%2Bhttp%3A%2F%2F{host}%3A")
+        listening = subprocess.run(["ss", "-ltnH"], capture_output=True, text=True).stdout
+        for p in (port, port + 1):
+            assert re.search(rf"(0\.0\.0\.0|\*):{p}\b", listening), listening
+        args = Path(f"/proc/{web.pid}/cmdline").read_bytes().split(b"\0")
+        assert b"--cors-allow-origin" in args and f"http://*:{port}".encode() in args
+
+
 def test_a_port_in_use_is_one_error_before_the_run(tmp_path: Path) -> None:
     import socket
 
