@@ -191,9 +191,11 @@ def _machine_busy_s() -> float:
 
 
 async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str],
-              mock_pid: int, recorder: object = None) -> dict:
+              mock_pid: int, recorder: object = None, viewer_pid: int | None = None) -> dict:
     mission = load_mission(mission_path)
     window: dict[str, float] = {}
+    web = getattr(recorder, "web", None)
+    server_pid = -1 if web is None or web.pid is None else web.pid
     prof = cProfile.Profile() if args.profile_out else None
 
     def hook(tick: int, sup: Supervisor) -> None:
@@ -203,14 +205,16 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t0=time.monotonic(), cpu0=ru.ru_utime + ru.ru_stime,
                           k0=len(sup.tick_durations), mock0=_tree_cpu_s(mock_pid),
-                          busy0=_machine_busy_s())
+                          busy0=_machine_busy_s(), server0=_tree_cpu_s(server_pid),
+                          viewer0=_tree_cpu_s(viewer_pid))
             if prof is not None:
                 prof.enable()
         elif time.monotonic() - window["t0"] >= args.seconds and "t1" not in window:
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t1=time.monotonic(), cpu1=ru.ru_utime + ru.ru_stime,
                           k1=len(sup.tick_durations), mock1=_tree_cpu_s(mock_pid),
-                          busy1=_machine_busy_s())
+                          busy1=_machine_busy_s(), server1=_tree_cpu_s(server_pid),
+                          viewer1=_tree_cpu_s(viewer_pid))
             if prof is not None:
                 prof.disable()
                 prof.dump_stats(args.profile_out)
@@ -275,6 +279,8 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
                                  2),
         "mock_cpu_share": round((window["mock1"] - window["mock0"]) / wall, 3),
         "machine_busy_cores": round((window["busy1"] - window["busy0"]) / wall, 3),
+        "server_cpu_share": round((window["server1"] - window["server0"]) / wall, 3),
+        "live_viewer_cpu_share": round((window["viewer1"] - window["viewer0"]) / wall, 3),
         "machine_cores": os.cpu_count(),
         "vehicles_airborne_at_end": int(in_tube),
         "min_pair_distance_airborne_m": result.summary.get("min_pair_distance_airborne_m"),
@@ -365,7 +371,8 @@ def main() -> None:
                     raise SystemExit("error: --live-viewer needs --serve-web PORT")
                 viewer = start_live_viewer(args.live_viewer, recorder.web, Path(tmp),
                                            mock_cpus)
-            out = asyncio.run(run(args, path, endpoints, proc.pid, recorder))
+            out = asyncio.run(run(args, path, endpoints, proc.pid, recorder,
+                                  -1 if viewer is None else viewer.pid))
         finally:
             if recorder is not None:
                 recorder.close()

@@ -98,10 +98,18 @@ def _local_host(bind: str) -> str:
     return bind
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    """A child of ours ends with us even when we are killed outright (Linux PR_SET_PDEATHSIG),
-    in its own session (a Ctrl-C in the terminal reaches us, and we stop it after the flush)."""
+#: The web viewer server runs this much nicer than the run: on a busy computer the control loop
+#: gets the CPU first, the live view waits (``os.nice``).
+SERVER_NICE = 10
+
+
+def _server_child() -> None:  # pragma: no cover - runs in the child before exec
+    """The server ends with us even when we are killed outright (Linux PR_SET_PDEATHSIG), runs
+    in its own session (a Ctrl-C in the terminal reaches us, and we stop it after the flush)
+    and at a lower priority (:data:`SERVER_NICE`)."""
     os.setsid()
+    with contextlib.suppress(OSError):
+        os.nice(SERVER_NICE)
     if sys.platform.startswith("linux"):
         with contextlib.suppress(Exception):
             ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
@@ -189,7 +197,7 @@ class WebViewerServer:
         self._log = tempfile.TemporaryFile()
         self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=self._log,
                                      stderr=subprocess.STDOUT, env=_env(),
-                                     preexec_fn=_die_with_parent)
+                                     preexec_fn=_server_child)
         host = _local_host(self.bind)
         deadline = time.monotonic() + self.start_timeout_s
         while not (_answers(host, self.web_port) and _answers(host, self.grpc_port)):
