@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -37,7 +37,6 @@ from vtube_fleet.recording.layout import (
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.config.mission import MissionConfig
     from vtube_fleet.config.scenario import Scenario
-    from vtube_fleet.frames import TubeFrame
 
 __all__ = [
     "MAX_MAP_ZOOM",
@@ -81,7 +80,15 @@ class MapLayer:
     width_pt: float
 
 
-def to_lat_lon(frame: TubeFrame, strips: Sequence[np.ndarray]) -> list[np.ndarray]:
+class GeodeticFrame(Protocol):
+    """What the map needs of the mission's frame (``MissionConfig.frame``, a
+    :class:`vtube_fleet.frames.TubeFrame`)."""
+
+    def tube_to_geodetic(self, x_m: Any, y_m: Any, up_m: Any = 0.0
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+def to_lat_lon(frame: GeodeticFrame, strips: Sequence[np.ndarray]) -> list[np.ndarray]:
     """Tube-frame polylines → (K, 2) lat_deg, lon_deg each, in ONE vectorized conversion."""
     if not strips:
         return []
