@@ -727,7 +727,8 @@ class RerunRecorder:
                     colors=[OBSTACLE_COLOR], radii=rr.Radius.ui_points(0.7)), static=True)
             for layer in layers:
                 self._rec.log(layer.entity, rr.GeoLineStrings(
-                    lat_lon=layer.strips, colors=[layer.color] * len(layer.strips),
+                    lat_lon=layer.strips,
+                    colors=np.full(len(layer.strips), layer.color, dtype=np.uint32),
                     radii=[rr.Radius.ui_points(layer.width_pt)] * len(layer.strips)),
                     static=True)
             if partition is not None:
