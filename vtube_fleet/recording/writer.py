@@ -274,6 +274,13 @@ class RerunRecorder:
     ``display_period_s`` of wall time or ``display_max_ticks`` recorded ticks (what a live
     viewer lags behind at most; each send costs a chunk per vehicle in the file).
 
+    Live viewing (:mod:`vtube_fleet.recording.live`): ``serve_web`` = PORT starts the rerun web
+    viewer server (page on PORT, data on PORT + 1, bound to ``serve_bind``; its URL in
+    ``self.web.url``; stopped at close), ``viewer`` spawns the native viewer on ``viewer_port``
+    (or uses the one listening there; ``self.viewer_url``, ``self.viewer_pid``); each is one
+    more sink of the same stream. With a log_scene ``mission`` (a geodetic anchor) the recording
+    also has the map (``map/*``, GeoPoints on every vehicle; :mod:`vtube_fleet.recording.geo`).
+
     The recording is closed — buffer sent, sender joined, stream flushed, file closed — by
     :meth:`close` (idempotent), by the context manager, and at interpreter exit if the owner
     forgot. Recording errors are logged, never raised into the control loop.
