@@ -4,7 +4,7 @@
                                 [--processes N] [--spacing M] [--no-fence] [--profile-out FILE]
                                 [--lean-streams] [--position-hz HZ] [--mock-nice N] [--pin]
                                 [--tick-hz HZ] [--record] [--serve-web PORT]
-                                [--live-viewer {chromium,grpc}]
+                                [--live-viewer {chromium,grpc}] [--live-viewer-nice N]
 
 1. writes a mission with N slots (a wide straight tube, one obstacle, ``--spacing`` grid, 5 m;
    ``latency_s = 0.25`` fixed, so the in-flight budget watch does not end a run on a loaded
@@ -113,14 +113,16 @@ LEAN_STREAMS_HZ: dict[int, float] = {32: 25.0, 33: 2.0, 24: 1.0, 1: 2.0, 245: 1.
                                      242: 0.2, 147: 0.0, 436: 0.0}
 
 
-def start_live_viewer(kind: str, web: object, tmp: Path, cpus: set[int] | None
-                      ) -> subprocess.Popen[bytes]:
+def start_live_viewer(kind: str, web: object, tmp: Path, cpus: set[int] | None,
+                      nice: int = 0) -> subprocess.Popen[bytes]:
     """A live viewer of the served recording (module docstring), connected before the flight;
     waits until the page has loaded (chromium) or the client has connected (grpc)."""
     from vtube_fleet.recording.live import rerun_executable
 
     def child_setup() -> None:
         os.setsid()  # its own process group: stopped with all its helpers
+        if nice:
+            os.nice(nice)
         if cpus is not None:
             os.sched_setaffinity(0, cpus)
 
@@ -261,7 +263,8 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
         "fence": not args.no_fence,
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "recording": ("none" if not args.record else "file" if args.serve_web is None
-                      else f"file + served, live viewer: {args.live_viewer or 'none'}"),
+                      else f"file + served, live viewer: {args.live_viewer or 'none'}"
+                      + (f" (nice {args.live_viewer_nice})" if args.live_viewer_nice else "")),
         "recorder_dropped_ticks": getattr(recorder, "dropped_ticks", None),
         "backend": args.backend,
         "rate_hz": args.rate,
@@ -330,6 +333,9 @@ def main() -> None:
     ap.add_argument("--live-viewer", choices=("chromium", "grpc"), default=None,
                     help="attach a live viewer to --serve-web before the flight: a headless "
                          "Chromium on the page, or the rerun CLI as a gRPC client")
+    ap.add_argument("--live-viewer-nice", type=int, default=0, metavar="N",
+                    help="run the live viewer at this nice value (e.g. 10: a browser on the "
+                         "flight computer that yields the CPU to the control loop)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.processes is None:
@@ -370,7 +376,7 @@ def main() -> None:
                 if recorder is None or getattr(recorder, "web", None) is None:
                     raise SystemExit("error: --live-viewer needs --serve-web PORT")
                 viewer = start_live_viewer(args.live_viewer, recorder.web, Path(tmp),
-                                           mock_cpus)
+                                           mock_cpus, args.live_viewer_nice)
             out = asyncio.run(run(args, path, endpoints, proc.pid, recorder,
                                   -1 if viewer is None else viewer.pid))
         finally:
