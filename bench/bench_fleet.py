@@ -3,7 +3,8 @@
     python bench/bench_fleet.py [--count 200] [--seconds 30] [--rate 20] [--backend mavlink]
                                 [--processes N] [--spacing M] [--no-fence] [--profile-out FILE]
                                 [--lean-streams] [--position-hz HZ] [--mock-nice N] [--pin]
-                                [--tick-hz HZ]
+                                [--tick-hz HZ] [--record] [--serve-web PORT]
+                                [--live-viewer {chromium,grpc}] [--live-viewer-nice N]
 
 1. writes a mission with N slots (a wide straight tube, one obstacle, ``--spacing`` grid, 5 m;
    ``latency_s = 0.25`` fixed, so the in-flight budget watch does not end a run on a loaded
@@ -21,7 +22,13 @@
    ``--mock-nice 10`` runs the mocks at a lower priority (the supervisor first, as on a
    computer of its own), ``--pin`` puts this process on core 0 and the mocks on core 1,
    ``--tick-hz 50`` runs the mocks' scheduler at 50 Hz (less mock CPU);
-   if the run ends before the window, the ticks until then are printed;
+   if the run ends before the window, the ticks until then are printed; ``--record`` records
+   the flight as ``vtube-fleet run`` does (a temp .rrd), ``--serve-web PORT`` also serves it
+   live (``--rerun-serve-web``), and ``--live-viewer`` attaches a live viewer to that server
+   before the flight: ``chromium`` a real headless Chromium showing the web viewer page
+   (software WebGPU/WebGL on the CPU; with ``--pin`` on the mocks' core, as if on another
+   computer), ``grpc`` the rerun CLI as a gRPC client that receives the stream and saves it
+   (what a viewer reads, without drawing); the same window measures the tick with it;
 4. aborts (every vehicle holds), stops the mock processes, prints the numbers (and JSON with
    ``--json``; ``load_average`` is the machine's at the end). ``--profile-out FILE``: cProfile
    of this process (ticks and telemetry receive) over the measured window only (``python -m
@@ -106,6 +113,62 @@ LEAN_STREAMS_HZ: dict[int, float] = {32: 25.0, 33: 2.0, 24: 1.0, 1: 2.0, 245: 1.
                                      242: 0.2, 147: 0.0, 436: 0.0}
 
 
+def start_live_viewer(kind: str, web: object, tmp: Path, cpus: set[int] | None,
+                      nice: int = 0) -> subprocess.Popen[bytes]:
+    """A live viewer of the served recording (module docstring), connected before the flight;
+    waits until the page has loaded (chromium) or the client has connected (grpc)."""
+    from vtube_fleet.recording.live import rerun_executable
+
+    def child_setup() -> None:
+        os.setsid()  # its own process group: stopped with all its helpers
+        if nice:
+            os.nice(nice)
+        if cpus is not None:
+            os.sched_setaffinity(0, cpus)
+
+    if kind == "grpc":
+        args = [rerun_executable(), web.grpc_url, "--save", str(tmp / "client.rrd"),
+                "--port", str(web.grpc_port + 2), "--bind", "127.0.0.1"]
+    else:
+        import shutil
+
+        sys.path.insert(0, str(ROOT / "tests"))
+        from live_view import CHROMIUM_FLAGS
+
+        exe = shutil.which("chromium") or shutil.which("chromium-browser")
+        if exe is None:
+            raise SystemExit("error: --live-viewer chromium: chromium is not installed")
+        args = [exe, *CHROMIUM_FLAGS, f"--user-data-dir={tmp / 'chromium-profile'}",
+                "--window-size=1600,900", web.url]
+    viewer = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              env={**os.environ, "RERUN_APP_ONLY": "true"},
+                              preexec_fn=child_setup)
+    # connected: an established TCP connection to the server's gRPC port
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        out = subprocess.run(["ss", "-tnH", "state", "established"], capture_output=True,
+                             text=True).stdout
+        if f":{web.grpc_port} " in out or f":{web.grpc_port}\n" in out:
+            print(f"live viewer ({kind}) connected to port {web.grpc_port}", file=sys.stderr)
+            return viewer
+        if viewer.poll() is not None:
+            raise SystemExit(f"error: the live viewer exited ({viewer.returncode})")
+        time.sleep(0.5)
+    raise SystemExit("error: the live viewer did not connect within 60 s")
+
+
+def stop_live_viewer(viewer: subprocess.Popen[bytes]) -> None:
+    try:
+        os.killpg(viewer.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    try:
+        viewer.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        os.killpg(viewer.pid, signal.SIGKILL)
+        viewer.wait()
+
+
 def _tree_cpu_s(pid: int) -> float:
     """User + system CPU seconds of ``pid`` and its descendants (Linux /proc; 0 if gone)."""
     total, todo = 0.0, [pid]
@@ -130,9 +193,11 @@ def _machine_busy_s() -> float:
 
 
 async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str],
-              mock_pid: int) -> dict:
+              mock_pid: int, recorder: object = None, viewer_pid: int | None = None) -> dict:
     mission = load_mission(mission_path)
     window: dict[str, float] = {}
+    web = getattr(recorder, "web", None)
+    server_pid = -1 if web is None or web.pid is None else web.pid
     prof = cProfile.Profile() if args.profile_out else None
 
     def hook(tick: int, sup: Supervisor) -> None:
@@ -142,14 +207,16 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t0=time.monotonic(), cpu0=ru.ru_utime + ru.ru_stime,
                           k0=len(sup.tick_durations), mock0=_tree_cpu_s(mock_pid),
-                          busy0=_machine_busy_s())
+                          busy0=_machine_busy_s(), server0=_tree_cpu_s(server_pid),
+                          viewer0=_tree_cpu_s(viewer_pid))
             if prof is not None:
                 prof.enable()
         elif time.monotonic() - window["t0"] >= args.seconds and "t1" not in window:
             ru = resource.getrusage(resource.RUSAGE_SELF)
             window.update(t1=time.monotonic(), cpu1=ru.ru_utime + ru.ru_stime,
                           k1=len(sup.tick_durations), mock1=_tree_cpu_s(mock_pid),
-                          busy1=_machine_busy_s())
+                          busy1=_machine_busy_s(), server1=_tree_cpu_s(server_pid),
+                          viewer1=_tree_cpu_s(viewer_pid))
             if prof is not None:
                 prof.disable()
                 prof.dump_stats(args.profile_out)
@@ -164,7 +231,7 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
     options = {"message_rates_hz": rates} if args.backend == "mavlink" else {}
     async with open_links(endpoints, args.backend, sysids=sysids, **options) as links:
         sup = Supervisor(mission, links, backend=args.backend, tick_hook=hook,
-                         fence=not args.no_fence)
+                         fence=not args.no_fence, recorder=recorder)
         result = await sup.run()
     if "t1" not in window:
         # what the control clock did until the run ended (connect .. take-off), then the end
@@ -195,6 +262,10 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
                                  DEFAULT_MESSAGE_RATES_HZ[MSG_LOCAL_POSITION_NED]),
         "fence": not args.no_fence,
         "load_average": [round(x, 2) for x in os.getloadavg()],
+        "recording": ("none" if not args.record else "file" if args.serve_web is None
+                      else f"file + served, live viewer: {args.live_viewer or 'none'}"
+                      + (f" (nice {args.live_viewer_nice})" if args.live_viewer_nice else "")),
+        "recorder_dropped_ticks": getattr(recorder, "dropped_ticks", None),
         "backend": args.backend,
         "rate_hz": args.rate,
         "seconds": round(wall, 2),
@@ -211,6 +282,8 @@ async def run(args: argparse.Namespace, mission_path: Path, endpoints: list[str]
                                  2),
         "mock_cpu_share": round((window["mock1"] - window["mock0"]) / wall, 3),
         "machine_busy_cores": round((window["busy1"] - window["busy0"]) / wall, 3),
+        "server_cpu_share": round((window["server1"] - window["server0"]) / wall, 3),
+        "live_viewer_cpu_share": round((window["viewer1"] - window["viewer0"]) / wall, 3),
         "machine_cores": os.cpu_count(),
         "vehicles_airborne_at_end": int(in_tube),
         "min_pair_distance_airborne_m": result.summary.get("min_pair_distance_airborne_m"),
@@ -253,6 +326,16 @@ def main() -> None:
     ap.add_argument("--tick-hz", type=float, default=100.0, metavar="HZ",
                     help="the mock's scheduler tick (mock-fleet --tick-hz; default 100, 50 "
                          "takes about a third less mock CPU for large fleets)")
+    ap.add_argument("--record", action="store_true",
+                    help="record the flight to an .rrd (as `vtube-fleet run` does)")
+    ap.add_argument("--serve-web", type=int, default=None, metavar="PORT",
+                    help="also serve it live (the web viewer on PORT, its data on PORT + 1)")
+    ap.add_argument("--live-viewer", choices=("chromium", "grpc"), default=None,
+                    help="attach a live viewer to --serve-web before the flight: a headless "
+                         "Chromium on the page, or the rerun CLI as a gRPC client")
+    ap.add_argument("--live-viewer-nice", type=int, default=0, metavar="N",
+                    help="run the live viewer at this nice value (e.g. 10: a browser on the "
+                         "flight computer that yields the CPU to the control loop)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.processes is None:
@@ -281,9 +364,26 @@ def main() -> None:
             mock_cpus = {1}
         proc, endpoints = start_mock(path, args.count, args.profile, args.processes,
                                      args.mock_nice, mock_cpus, args.tick_hz)
+        recorder = None
+        viewer = None
         try:
-            out = asyncio.run(run(args, path, endpoints, proc.pid))
+            if args.record or args.serve_web is not None:
+                from vtube_fleet.recording import open_recorder
+
+                recorder = open_recorder(Path(tmp) / "recording.rrd", kind="fleet",
+                                         serve_web=args.serve_web)
+            if args.live_viewer is not None:
+                if recorder is None or getattr(recorder, "web", None) is None:
+                    raise SystemExit("error: --live-viewer needs --serve-web PORT")
+                viewer = start_live_viewer(args.live_viewer, recorder.web, Path(tmp),
+                                           mock_cpus, args.live_viewer_nice)
+            out = asyncio.run(run(args, path, endpoints, proc.pid, recorder,
+                                  -1 if viewer is None else viewer.pid))
         finally:
+            if recorder is not None:
+                recorder.close()
+            if viewer is not None:
+                stop_live_viewer(viewer)
             proc.send_signal(signal.SIGINT)
             try:
                 proc.wait(timeout=30)

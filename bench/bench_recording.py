@@ -12,6 +12,14 @@ Run by hand (numbers go into the docs / report, never into tests):
 
     python bench/bench_recording.py                 # 200 vehicles, 600 ticks per variant
     python bench/bench_recording.py --rate-hz 20 --ticks 300 --repeat 1   # like the fleet
+    python bench/bench_recording.py --rate-hz 20 --live --map             # live streaming
+
+``--map`` anchors the scene geodetically (the ``[mission]`` of configs/mock_fleet.toml), so the
+recorder also draws the map (WGS84: the outlines once, every vehicle's GeoPoints and trail).
+``--live`` measures only: recording to the file (the baseline), the same with the web viewer
+served (``serve_web``: the rerun server, no viewer), and served with a live viewer connected —
+the rerun CLI as a gRPC client of the server, receiving the stream as a viewer does (and saving
+it), without drawing.
 """
 
 from __future__ import annotations
@@ -51,7 +59,7 @@ def scene(m: int) -> tuple[Trapezoid, tuple[Obstacle, ...], ControllerParams, np
 
 
 def run(m: int, ticks: int, recorder_factory, dt: float = 0.05,
-        rate_hz: float | None = None) -> dict[str, float]:
+        rate_hz: float | None = None, mission: object = None) -> dict[str, float]:
     tube, obstacles, params, p = scene(m)
     part = partition(tube, obstacles, params)
     mon = SafetyMonitor.from_params(tube, obstacles, params)
@@ -65,8 +73,11 @@ def run(m: int, ticks: int, recorder_factory, dt: float = 0.05,
 
     scn = _Scn()
     scn.tube, scn.obstacles, scn.controller = tube, obstacles, params
-    scn.robots = type("R", (), {"count": m, "v_min": params.v_min, "v_max": params.v_max})()
-    rec.log_scene(scn, part, meta={"dt_s": dt})
+    scn.robots = type("R", (), {"count": m, "v_min": params.v_min, "v_max": params.v_max,
+                                "positions": p.copy(), "model": "single_integrator",
+                                "nid_distance": None})()
+    scn.source, scn.sim = "bench", None
+    rec.log_scene(scn, part, meta={"dt_s": dt}, mission=mission)
     tick_s: list[float] = []
     log_s: list[float] = []
     prev_tick = 0.0
@@ -98,6 +109,9 @@ def run(m: int, ticks: int, recorder_factory, dt: float = 0.05,
     t0 = time.perf_counter()
     rec.close()
     close_s = time.perf_counter() - t0
+    client = getattr(rec, "bench_client", None)
+    if client is not None:  # the live viewer ends with the server
+        client.wait(timeout=60)
     # process CPU (all threads, incl. the recorder's sender) and wall time per tick, close incl.
     cpu_ms = (time.process_time() - cpu0) / ticks * 1e3
     wall_ms = (time.perf_counter() - wall0) / ticks * 1e3
@@ -127,8 +141,35 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs per variant (median reported)")
     ap.add_argument("--rate-hz", type=float, default=None,
                     help="pace the loop like the fleet (e.g. 20); default: back to back (sim)")
+    ap.add_argument("--map", action="store_true",
+                    help="a geodetic anchor: the recorder draws the map too")
+    ap.add_argument("--live", action="store_true",
+                    help="file / served / served with a gRPC viewer (module docstring)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_recording_"))
+    mission = None
+    if args.map:
+        from vtube_fleet.config.mission import load_mission
+
+        mission = load_mission(Path(__file__).resolve().parents[1] / "configs"
+                               / "mock_fleet.toml").config
+
+    def served(client: bool) -> RerunRecorder:
+        import os
+        import subprocess
+
+        from vtube_fleet.recording.live import rerun_executable
+
+        port = 19700
+        rec = open_recorder(tmp / "w.rrd", kind="fleet", serve_web=port)
+        if client:
+            rec.bench_client = subprocess.Popen(  # type: ignore[attr-defined]
+                [rerun_executable(), rec.web.grpc_url, "--save", str(tmp / "client.rrd"),
+                 "--port", str(port + 2), "--bind", "127.0.0.1"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                env={**os.environ, "RERUN_APP_ONLY": "true"})
+        return rec  # type: ignore[return-value]
+
     variants = [
         ("no recording", lambda: NullRecorder()),
         ("recording, every tick", lambda: open_recorder(tmp / "d1.rrd", decimate=1)),
@@ -136,6 +177,12 @@ def main() -> None:
         ("recording, every tick, no sender thread",
          lambda: open_recorder(tmp / "s1.rrd", decimate=1, background=False)),
     ]
+    if args.live:
+        variants = [
+            ("recording to the file", lambda: open_recorder(tmp / "f.rrd", kind="fleet")),
+            ("+ served, no viewer", lambda: served(False)),
+            ("+ served, a gRPC viewer connected", lambda: served(True)),
+        ]
     pace = f"paced at {args.rate_hz:g} Hz" if args.rate_hz else "back to back"
     print(f"{args.vehicles} vehicles, {args.ticks} ticks per run ({pace}), median of "
           f"{args.repeat} runs")
@@ -144,10 +191,18 @@ def main() -> None:
           "tick over the run incl. close")
     print(f"{'variant':<38} {'tick mean':>9} {'median':>8} {'p99':>8} | {'log_tick mean':>13} "
           f"{'p99':>7} {'max':>7} | {'cpu':>7} {'wall':>7} | {'close':>7} {'file':>8}")
-    for name, factory in variants:
-        runs = [run(args.vehicles, args.ticks, factory, rate_hz=args.rate_hz)
-                for _ in range(args.repeat)]
+    # interleaved (a, b, c, a, b, c, ...): a machine whose load changes hits every variant
+    results: dict[str, list[dict[str, float]]] = {name: [] for name, _ in variants}
+    for _ in range(args.repeat):
+        for name, factory in variants:
+            results[name].append(run(args.vehicles, args.ticks, factory, rate_hz=args.rate_hz,
+                                     mission=mission))
+    for name, _ in variants:
+        runs = results[name]
         r = {k: statistics.median(x[k] for x in runs) for k in runs[0]}
+        if args.live:
+            print(f"{name}: tick p99 of each run " + ", ".join(
+                f"{x['tick_p99_ms']:.2f}" for x in runs) + " ms")
         print(f"{name:<38} {r['tick_mean_ms']:8.3f}ms {r['tick_median_ms']:7.3f}ms "
               f"{r['tick_p99_ms']:7.3f}ms | {r['log_mean_ms']:12.3f}ms {r['log_p99_ms']:6.3f}ms "
               f"{r['log_max_ms']:6.3f}ms | {r['cpu_ms']:5.3f}ms {r['wall_ms']:5.3f}ms | "

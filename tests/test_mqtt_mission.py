@@ -148,6 +148,19 @@ async def test_start_wait_writes_the_summary_from_the_agents_states(broker, tmp_
     assert r["min_obstacle_center_distance_m"] == pytest.approx(
         s["min_obstacle_center_distance_m"]
     )
+    # ... and holds the whole fleet on one map (WGS84): every vehicle, the outline, the fence
+    from rerun.chunk import RrdReader
+
+    rd = RrdReader(tmp_path / "recording.rrd")
+    geo: dict[str, int] = {}
+    for ch in rd.stream(store=rd.recordings()[0]).to_chunks():
+        rb = ch.to_record_batch()
+        for name in ("GeoPoints:positions", "GeoLineStrings:line_strings"):
+            if name in rb.schema.names:
+                path = str(ch.entity_path).lstrip("/")
+                geo[path] = geo.get(path, 0) + sum(1 for v in rb.column(name).to_pylist() if v)
+    assert all(geo.get(f"world/vehicles/{v}", 0) > 10 for v in range(3)), geo
+    assert geo.get("map/tube") and geo.get("map/fence") and geo.get("map/slots")
 
 
 async def test_an_agent_with_another_mission_file_refuses_and_start_fails(broker, tmp_path):

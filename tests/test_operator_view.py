@@ -453,10 +453,12 @@ def test_review_pair_curve_is_not_cut_at_the_search_radius(tmp_path: Path) -> No
 def _status(n: int = 3, **kw: Any) -> Any:
     from vtube_fleet.fleet.view import FleetStatus, VehicleRow
 
-    rows = [VehicleRow(vehicle_id=i, phase="in_tube", x_m=1.0 + i, y_m=0.5 * i, speed_m_s=1.5,
-                       neighbour_m=1.2, obstacle_m=3.0, obstacle_limit_m=1.15, leg_m=0.9,
-                       link_age_s=0.05, accuracy_m=0.02) for i in range(n)]
+    rows = [VehicleRow(vehicle_id=i, phase="in_tube", sub_tube=f"T_o{1 + i % 4}", x_m=1.0 + i,
+                       y_m=0.5 * i, speed_m_s=1.5, neighbour_m=1.2, obstacle_m=3.0,
+                       obstacle_limit_m=1.15, leg_m=0.9, link_age_s=0.05, accuracy_m=0.02)
+            for i in range(n)]
     base = dict(t_s=12.5, stage="in_tube", vehicles=n, connected=n, armed=n, in_tube=n,
+                phases={"in_tube": n},
                 min_pair_m=1.07, pair_limit_m=0.5, min_obstacle_m=1.6, obstacle_limit_m=1.15,
                 min_leg_m=0.43, leg_limit_m=0.25, delta_m=0.1, tick_p50_ms=0.4,
                 tick_p99_ms=1.2, rate_hz=20.0, on_time=0.998, latency_ms=3.0, rows=rows)
@@ -485,11 +487,31 @@ def test_plain_lines_when_stdout_is_not_a_terminal() -> None:
     view.close()
     lines = out.getvalue().splitlines()
     assert "\x1b" not in out.getvalue()  # no escape codes in a log
-    assert len(lines) == 4  # two status lines, the event, the final status
-    assert lines[0].startswith("t=   12.5s  in_tube") and "vehicles 3: connected 3" in lines[0]
-    assert lines[1] == "[ 1.0s] WARNING slot 2: setpoint not sent"
-    assert "pair 0.45 m (> 2 r_s = 0.50) BROKEN" in lines[2]
-    assert "BROKEN" not in lines[0]
+    # headline, clearance flown, worst vehicles; the event; the forced status; the final one
+    assert len(lines) == 3 + 1 + 3 + 3
+    assert lines[0] == ("t=12.5s in_tube: 3 vehicles (3 connected): 3 in tube | tick p99 1.20 "
+                        "ms, 20.00 Hz, on time 99.8%, link 3.00 ms")
+    assert lines[1].startswith("  flown: pair 1.07 m (> 0.50) · obstacle centre 1.60 m")
+    assert lines[2].startswith("  worst now: pair #0 1.20 m · obstacle #0 3.00 m · leg #0 0.90 m")
+    assert lines[3] == "[ 1.0s] WARNING slot 2: setpoint not sent"
+    assert "pair 0.45 m (> 0.50) BROKEN" in lines[5]
+    assert "BROKEN" not in "".join(lines[:3])
+    assert max(len(ln) for ln in lines) < 150  # was one line of ~350 characters
+
+
+def test_plain_lines_name_the_worst_vehicle_per_limit() -> None:
+    from vtube_fleet.fleet.view import FleetView
+
+    st = _status(12, truth_pair_m=1.1, truth_obstacle_m=1.5, truth_leg_m=0.4)
+    st.rows[7].neighbour_m = 0.45  # below 2 r_s = 0.5
+    st.rows[3].obstacle_m = 1.2  # within 20 % above r_o + r_s = 1.15
+    st.rows[5].leg_m = 0.5
+    st.rows[9].link_age_s = 0.8
+    st.rows[2].accuracy_m = 0.3
+    lines = FleetView.lines(st)
+    assert len(lines) == 4 and lines[2].startswith("  truth: pair 1.10 m")
+    assert lines[3] == ("  worst now: pair #7 0.45 m BROKEN · obstacle #3 1.20 m near its limit · "
+                        "leg #5 0.50 m · link age #9 0.80 s · accuracy #2 0.30 m")
 
 
 def test_table_one_row_per_vehicle_and_problems_stand_out() -> None:
@@ -502,15 +524,15 @@ def test_table_one_row_per_vehicle_and_problems_stand_out() -> None:
     st.rows[3].link_age_s = 3.2
     tab = FleetView.table(st)
     text = _plain(tab)
-    head = next(ln for ln in text.splitlines() if "phase" in ln)
-    for col in ("id", "phase", "x [m]", "y [m]", "v [m/s]", "neighbour [m]", "obstacle [m]",
-                "leg [m]", "link age [s]", "accuracy [m]"):
+    head = "\n".join(ln for ln in text.splitlines()[:2])
+    for col in ("id", "phase", "sub-", "tube", "x", "y", "v", "neighbour", "obstacle", "leg",
+                "link age", "accuracy", "[m]", "[m/s]", "[s]"):
         assert col in head
     assert "battery" not in head  # nobody reports one: no empty column
     body = [ln.split() for ln in text.splitlines() if ln.strip()[:1].isdigit()]
     assert [r[0] for r in body] == ["0", "1", "2", "3"]
-    assert body[1][:6] == ["1", "in_tube", "2.00", "0.50", "1.50", "0.45"]
-    cells = {str(c.header): c._cells for c in tab.columns}
+    assert body[1][:7] == ["1", "in_tube", "T_o2", "2.00", "0.50", "1.50", "0.45"]
+    cells = {str(c.header).replace("\n", " "): c._cells for c in tab.columns}
     assert cells["neighbour [m]"][1].style == "bold red"
     assert cells["neighbour [m]"][0].style == ""
     assert cells["leg [m]"][2].style == "yellow"
@@ -543,6 +565,28 @@ def test_fifty_vehicles_fit_problems_first() -> None:
     assert len(_plain(FleetView.table(_status(50))).splitlines()) <= 54  # all 50 fit on 60
 
 
+def test_the_table_fits_100_columns() -> None:
+    """Every column, with the widest values each takes (a 10-letter phase, 3-digit negative
+    coordinates, a battery), within 100 terminal columns and nothing cut."""
+    from vtube_fleet.fleet.view import COLUMNS, FleetView
+
+    st = _status(12)
+    for r in st.rows:
+        r.phase, r.x_m, r.y_m, r.speed_m_s = "connecting", -123.45, -99.99, 10.25
+        r.neighbour_m, r.obstacle_m, r.leg_m, r.link_age_s, r.accuracy_m = (
+            123.45, 123.45, 12.34, 12.34, 10.12)
+        r.battery, r.sub_tube = 0.55, "T_o12"
+    st.rows[0].vehicle_id = 999
+    text = _plain(FleetView.table(st), width=100)
+    lines = text.splitlines()
+    assert max(len(ln) for ln in lines) <= 100
+    assert len(lines) == 2 + 1 + 12  # two header lines, the rule, one line per vehicle
+    for v in ("connecting", "-123.45", "-99.99", "10.25", "123.45", "12.34", "10.12", "55 %",
+              "T_o12", "999"):
+        assert v in text
+    assert len(COLUMNS) == 12  # (a route adds its segment column: tests will say where)
+
+
 def test_live_table_on_a_terminal() -> None:
     from vtube_fleet.fleet.view import FleetView
 
@@ -553,8 +597,8 @@ def test_live_table_on_a_terminal() -> None:
     view.close()
     raw = out.getvalue()
     assert "\x1b[" in raw  # drawn in place, with colours
-    assert "neighbour [m]" in raw and "in_tube" in raw and "ABORT: link lost" in raw
-    assert raw.index("ABORT") < raw.rindex("neighbour [m]")  # the event above the table
+    assert "neighbour" in raw and "in_tube" in raw and "ABORT: link lost" in raw
+    assert raw.index("ABORT") < raw.rindex("neighbour")  # the event above the table
 
 
 def test_vehicle_rows_from_pilots() -> None:
@@ -576,9 +620,18 @@ def test_vehicle_rows_from_pilots() -> None:
               pilot(1, Phase.IN_TUBE, (8.0, 6.0), 99.5),
               pilot(2, Phase.READY, (5.0, 2.5), None),  # on the ground: no neighbour
               pilot(3, Phase.LANDING, (40.0, 6.0), 100.0)]  # out of the tube: no leg
-    rows = vehicle_rows(pilots, tube, [Obstacle(np.array([5.0, 5.0]), 1.0)],
-                        SafetyLimits(0.25, 1.0, 2.0),
-                        now_mono=100.0)
+    from vtube_fleet.core.params import ControllerParams
+    from vtube_fleet.core.partition import partition
+
+    obstacles = [Obstacle(np.array([5.0, 5.0]), 1.0)]
+    part = partition(tube, [Obstacle(np.array([15.0, 5.0]), 1.0)], ControllerParams(
+        r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5))
+    rows = vehicle_rows(pilots, tube, obstacles, SafetyLimits(0.25, 1.0, 2.0),
+                        now_mono=100.0, partition=part)
+    assert [r.sub_tube for r in rows] == [
+        part.sub_tubes[int(part.locate(np.array([5.0, 2.0])))].name,
+        part.sub_tubes[int(part.locate(np.array([8.0, 6.0])))].name, "", ""]
+    assert part.K > 1
     assert [r.phase for r in rows] == ["in_tube", "in_tube", "ready", "landing"]
     assert rows[0].speed_m_s == pytest.approx(5.0)
     assert rows[0].neighbour_m == pytest.approx(5.0) and math.isnan(rows[2].neighbour_m)

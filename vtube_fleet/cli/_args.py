@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -28,6 +29,7 @@ from vtube_fleet.recording.layout import (
     DEFAULT_RECORDING_NAME,
     SIM_MIN_PERIOD_S,
 )
+from vtube_fleet.recording.live import DEFAULT_BIND, DEFAULT_WEB_PORT
 from vtube_fleet.recording.writer import open_recorder
 
 __all__ = [
@@ -35,6 +37,7 @@ __all__ = [
     "DURATION",
     "INDEX",
     "PORT",
+    "WEB_PORT",
     "SCALE",
     "SEED",
     "OneLineParser",
@@ -62,6 +65,9 @@ COUNT = Key("count", "integer", "a count", bound=Bound(1, low_inclusive=True))
 INDEX = Key("index", "integer", "a 0-based index", bound=Bound(0, low_inclusive=True))
 #: A UDP port.
 PORT = Key("port", "integer", "a UDP port", bound=Bound(1, 65535, low_inclusive=True))
+#: The web viewer's TCP port (its data on the next port up).
+WEB_PORT = Key("port", "integer", "a TCP port (the next one up is used too)",
+               bound=Bound(1, 65534, low_inclusive=True))
 #: A random seed (numpy: 0 .. 2^32 - 1).
 SEED = Key("seed", "integer", "a random seed", bound=Bound(0, 2**32 - 1, low_inclusive=True))
 
@@ -247,7 +253,9 @@ def sitl_command_from_args(args: argparse.Namespace) -> InstanceCommand | None:
 
 def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int | None = None
                        ) -> None:
-    """Add ``--rerun-save``, ``--rerun-connect``, ``--rerun-decimate`` and ``--no-rerun``."""
+    """Add ``--rerun-save``, ``--rerun-connect``, ``--rerun-serve-web`` (alias ``--serve-web``),
+    ``--rerun-bind``, ``--rerun-viewer`` (alias ``--viewer``), ``--rerun-decimate`` and
+    ``--no-rerun``."""
     g = parser.add_argument_group("recording (rerun)")
     g.add_argument("--rerun-save", metavar="PATH", type=Path, default=None,
                    help=f"write the rerun recording here (default: OUT/{DEFAULT_RECORDING_NAME})")
@@ -255,6 +263,19 @@ def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int
                    default=None,
                    help="also stream to a live rerun viewer (default address "
                         f"{DEFAULT_CONNECT_URL}; HOST:PORT or a port also work)")
+    g.add_argument("--rerun-serve-web", "--serve-web", metavar="PORT", nargs="?",
+                   type=bounded(WEB_PORT), const=DEFAULT_WEB_PORT, default=None,
+                   help="serve the live view to a browser: the rerun web viewer on PORT "
+                        f"(default {DEFAULT_WEB_PORT}), its data (gRPC) on PORT + 1; the URL to "
+                        "open is printed at the start (docs/recording.md)")
+    g.add_argument("--rerun-bind", metavar="ADDR", default=DEFAULT_BIND,
+                   help="address --rerun-serve-web listens on (default "
+                        f"{DEFAULT_BIND}: this machine only; 0.0.0.0: every interface, for a "
+                        "browser on another computer)")
+    g.add_argument("--rerun-viewer", "--viewer", action="store_true",
+                   help="spawn the native rerun viewer and stream to it (it stays open after "
+                        "the run; needs a display); on the port --rerun-connect names, else "
+                        "9876; a viewer already listening there is used")
     g.add_argument("--rerun-decimate", metavar="N", type=bounded(COUNT), default=default_decimate,
                    help="record every N-th control tick / simulation step "
                         "(default: each command's own choice)")
@@ -298,5 +319,30 @@ def recorder_from_args(
         # The simulator is one CPU-bound thread: a sender thread would only fight it for the
         # GIL (measured: up to +0.5 s on the 1.2 s paper loop); sending in-line costs little.
         options.setdefault("background", False)
-    return open_recorder(save, connect=connect, app_id=app_id, decimate=dec, kind=kind,
-                         **options)
+    serve = getattr(args, "rerun_serve_web", None)
+    if serve is not None:
+        options.update(serve_web=serve, serve_bind=getattr(args, "rerun_bind", DEFAULT_BIND))
+    if getattr(args, "rerun_viewer", False):
+        # the viewer is spawned where --rerun-connect points (this machine; default port 9876)
+        from urllib.parse import urlparse
+
+        from vtube_fleet.recording.writer import normalize_connect_url
+
+        u = urlparse(normalize_connect_url(connect))
+        if u.hostname not in ("127.0.0.1", "localhost", "::1"):
+            raise RecordingError(f"--rerun-viewer starts the viewer on this machine: "
+                                 f"--rerun-connect {connect} is not a local address")
+        options.update(viewer=True, viewer_port=u.port or 9876)
+        connect = None
+    rec = open_recorder(save, connect=connect, app_id=app_id, decimate=dec, kind=kind,
+                        **options)
+    web = getattr(rec, "web", None)
+    if web is not None:
+        print(f"live view: open {web.url} in a browser (the rerun web viewer; the page on port "
+              f"{web.web_port}, its data on port {web.grpc_port}, listening on {web.bind})",
+              file=sys.stderr, flush=True)
+    if getattr(rec, "viewer_url", None) is not None:
+        print(f"live view: streaming to the rerun viewer at {rec.viewer_url}"  # type: ignore
+              + ("" if getattr(rec, "viewer_pid", None) is None
+                 else f" (started, process {rec.viewer_pid})"), file=sys.stderr, flush=True)
+    return rec

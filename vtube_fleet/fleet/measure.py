@@ -253,10 +253,12 @@ class FlightMeasurement:
         return out
 
     # -- the live status -------------------------------------------------------------------------
-    def status(self, status: FleetStatus, pilots: Sequence[Any], *, tty: bool,
+    def status(self, status: FleetStatus, pilots: Sequence[Any], *, rows: bool,
+               partition: Any = None,
                durations_s: Sequence[float], lateness_s: Sequence[float], period_s: float,
                rate_hz: float, delta_m: float) -> FleetStatus:
-        """Fill the live view's :class:`~vtube_fleet.fleet.view.FleetStatus`."""
+        """Fill the live view's :class:`~vtube_fleet.fleet.view.FleetStatus`; ``rows``: with the
+        per-vehicle rows (``partition``: for their sub-tube column)."""
         tab = self.table
         counts: dict[str, int] = {}
         for c in tab.phase.tolist():
@@ -301,9 +303,9 @@ class FlightMeasurement:
         if on_time is not None:
             status.on_time = on_time
         status.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
-        if tty:  # the per-vehicle table (terminal only)
+        if rows:  # the per-vehicle table / the worst vehicle per limit (the view wants them)
             sc = self.mission.scenario
-            status.rows = vehicle_rows(pilots, sc.tube, sc.obstacles, lim)
+            status.rows = vehicle_rows(pilots, sc.tube, sc.obstacles, lim, partition=partition)
         return status
 
 

@@ -22,7 +22,7 @@ from typing import TypeVar
 import numpy as np
 
 from vtube_fleet.config.mission import Mission
-from vtube_fleet.core.fence import FenceGeometry, tube_fence
+from vtube_fleet.core.fence import FenceGeometry
 from vtube_fleet.core.text import compact_number
 from vtube_fleet.errors import PROBLEMS_SHOWN
 from vtube_fleet.link.base import (
@@ -67,10 +67,9 @@ CMD_CIRCLE_EXCLUSION = 5004
 
 
 def fence_geometry(mission: Mission) -> FenceGeometry:
-    """The mission's fence in the tube frame (physical r_s, slots inside, exit_clear_m)."""
-    sc, cfg = mission.scenario, mission.config
-    return tube_fence(sc.tube, sc.obstacles, sc.controller.r_s, slots=mission.slots,
-                      margin_m=cfg.fence_margin_m, exit_clear_m=cfg.exit_clear_m)
+    """The mission's fence in the tube frame (physical r_s, slots inside, exit_clear_m):
+    :meth:`Mission.fence_geometry <vtube_fleet.config.mission.Mission.fence_geometry>`."""
+    return mission.fence_geometry()
 
 
 def fence_items(mission: Mission, geom: FenceGeometry | None = None) -> list[FenceItem]:

@@ -414,7 +414,8 @@ class Supervisor:
         st = FleetStatus(t_s=self.t_s(), stage=self.stage, vehicles=len(self.pilots))
         clock = self.clock
         return self.measurement.status(
-            st, self.pilots, tty=self.view is not None and self.view.tty,
+            st, self.pilots, rows=self.view is not None and self.view.wants_rows(),
+            partition=self.plan.partition,
             durations_s=clock.durations_s, lateness_s=clock.lateness_s,
             period_s=self.cfg.period_s, rate_hz=achieved_rate_hz(clock.starts_s[-40:]),
             delta_m=self.budget.delta_m)
@@ -500,7 +501,8 @@ class Supervisor:
                                 mission=self.mission.config, meta={
             "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
             "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
-            "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots]})
+            "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots],
+            "fence": self.fence})
 
     async def _margin_note(self, measured: LinkMeasurement) -> str:
         """"; " and which measured figure went past the margin ``check`` prints

@@ -1,14 +1,17 @@
 """The live terminal view of a fleet mission.
 
 On a terminal: a compact fleet header (time, stage, counts, clearance flown so far against its
-limits, tick time and control rate) over a table with one row per vehicle — id, phase, position
-in the tube frame, speed, distance to its nearest neighbour, to the nearest obstacle centre and
-to the nearest leg, link age, estimate accuracy (and battery, when a link reports it) — redrawn
-in place about twice a second by ``rich``'s refresh thread (:class:`rich.live.Live`; never on
-the control loop). Values that break their limit are red, those within 20 % of it yellow;
-events (phase changes, faults, errors) scroll above the table as single lines. When the output
-is not a terminal (CI logs, a pipe): one plain status line every ``log_every_s`` seconds plus
-the event lines, no escape codes. Errors are always one line.
+limits, tick time and control rate) over a table with one row per vehicle — id, phase, the
+sub-tube it flies, position in the tube frame, speed, distance to its nearest neighbour, to the
+nearest obstacle centre and to the nearest leg, link age, estimate accuracy (and battery, when a
+link reports it); the columns are declared once (:data:`COLUMNS`, a route's segment is one
+more) and fit a 100-column terminal — redrawn in place about twice a second by ``rich``'s
+refresh thread (:class:`rich.live.Live`; never on the control loop). Values that break their
+limit are red, those within 20 % of it yellow; events (phase changes, faults, errors) scroll
+above the table as single lines. When the output is not a terminal (CI logs, a pipe): every
+``log_every_s`` seconds a short fleet headline (stage, phase counts, control loop), the
+clearance flown so far against its limits and the worst vehicle now per limit
+(:meth:`FleetView.lines`), plus the event lines, no escape codes. Errors are always one line.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
@@ -27,7 +30,7 @@ import numpy as np
 from vtube_fleet.core.metrics import SafetyLimits
 from vtube_fleet.state import COUNTED_AIRBORNE_PHASES, Phase
 
-__all__ = ["FleetStatus", "FleetView", "VehicleRow", "vehicle_rows"]
+__all__ = ["COLUMNS", "Column", "FleetStatus", "FleetView", "VehicleRow", "vehicle_rows"]
 
 #: A value within this fraction of its limit (above it) is shown as a warning.
 NEAR_LIMIT = 0.2
@@ -43,6 +46,7 @@ class VehicleRow:
 
     vehicle_id: int
     phase: str
+    sub_tube: str = ""  #: the sub-tube the switching rule puts it in (in the tube only)
     x_m: float = math.nan
     y_m: float = math.nan
     speed_m_s: float = math.nan
@@ -90,12 +94,13 @@ class FleetStatus:
 
 def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
                  limits: SafetyLimits,
-                 now_mono: float | None = None) -> list[VehicleRow]:
+                 now_mono: float | None = None, *, partition: Any = None) -> list[VehicleRow]:
     """The table rows of the fleet's pilots (``VehiclePilot``: ``vehicle_id``, ``phase``,
     ``position()``, ``vel_xy``, ``link.state``, ``position_accuracy_m()``). Neighbour distances
     among the vehicles that count as airborne (:data:`~vtube_fleet.state.COUNTED_AIRBORNE_PHASES`),
-    the leg distance (:meth:`Trapezoid.d_Th` / :meth:`~Trapezoid.d_Tr`) for those in the tube;
-    each obstacle's limit is ``limits.obstacle_center_m`` (the physical r_s)."""
+    the leg distance (:meth:`Trapezoid.d_Th` / :meth:`~Trapezoid.d_Tr`) and, with the flight's
+    ``partition``, the sub-tube (:meth:`Partition.locate`, the switching rule) for those in the
+    tube; each obstacle's limit is ``limits.obstacle_center_m`` (the physical r_s)."""
     now = time.monotonic() if now_mono is None else now_mono
     m = len(pilots)
     pos = np.full((m, 2), np.nan)
@@ -139,6 +144,12 @@ def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
         for k, v in zip(np.flatnonzero(in_tube).tolist(), np.atleast_1d(legs).tolist(),
                         strict=True):
             rows[k].leg_m = v
+        if partition is not None and getattr(partition, "sub_tubes", ()):
+            names = [str(getattr(t, "name", f"T_o{j + 1}")) for j, t in
+                     enumerate(partition.sub_tubes)]
+            for k, j in zip(np.flatnonzero(in_tube).tolist(),
+                            np.atleast_1d(partition.locate(q)).tolist(), strict=True):
+                rows[k].sub_tube = names[int(j)]
     return rows
 
 
@@ -159,6 +170,95 @@ _STYLE = {"bad": "bold red", "near": "yellow", "ok": "", "": ""}
 _PHASE_STYLE = {"lost": "bold red", "failed": "bold red", "holding": "yellow",
                 "landing": "magenta", "in_tube": "cyan", "exited": "green", "landed": "dim",
                 "takeoff": "bright_yellow", "arming": "bright_yellow"}
+
+
+@dataclass(frozen=True)
+class Column:
+    """A column of the live table: its header (``name`` over ``unit``) and the cell of a row,
+    ``cell(row, status) -> (text, rich style, level)`` with level "bad" / "near" / "" (the
+    rows with a problem come first when the table is cut); shown when ``shown(status)``."""
+
+    name: str
+    unit: str
+    cell: Callable[[VehicleRow, FleetStatus], tuple[str, str, str]]
+    justify: str = "right"
+    shown: Callable[[FleetStatus], bool] = lambda s: True
+
+    @property
+    def header(self) -> str:
+        return f"{self.name}\n{self.unit}" if self.unit else self.name
+
+
+def _limit_cell(value: float, limit: float) -> tuple[str, str, str]:
+    lv = _level(value, limit)
+    return _m(value), _STYLE[lv], "" if lv == "ok" else lv
+
+
+def _age_cell(r: VehicleRow, s: FleetStatus) -> tuple[str, str, str]:
+    lv = ("bad" if r.link_age_s > LINK_AGE_BAD_S else "near"
+          if r.link_age_s > LINK_AGE_WARN_S else "")
+    return _m(r.link_age_s), _STYLE[lv], lv
+
+
+def _accuracy_cell(r: VehicleRow, s: FleetStatus) -> tuple[str, str, str]:
+    lv = ("near" if math.isfinite(s.delta_m) and math.isfinite(r.accuracy_m)
+          and r.accuracy_m > s.delta_m else "")
+    return _m(r.accuracy_m), _STYLE[lv], lv
+
+
+def _battery_cell(r: VehicleRow, s: FleetStatus) -> tuple[str, str, str]:
+    lv = "bad" if r.battery < 0.15 else "near" if r.battery < 0.3 else ""
+    return ("—" if not math.isfinite(r.battery) else f"{100 * r.battery:.0f} %"), _STYLE[lv], lv
+
+
+def _phase_cell(r: VehicleRow, s: FleetStatus) -> tuple[str, str, str]:
+    style = _PHASE_STYLE.get(r.phase, "")
+    return r.phase, style, "bad" if style == "bold red" else ""
+
+
+#: The table's columns, in order (a route's segment column goes before "sub-tube"); the two-line
+#: headers keep the table within 100 terminal columns (tests/test_operator_view.py).
+COLUMNS: tuple[Column, ...] = (
+    Column("id", "", lambda r, s: (str(r.vehicle_id), "", "")),
+    Column("phase", "", _phase_cell, justify="left"),
+    Column("sub-", "tube", lambda r, s: (r.sub_tube or "—", "", ""), justify="left"),
+    Column("x", "[m]", lambda r, s: (_m(r.x_m), "", "")),
+    Column("y", "[m]", lambda r, s: (_m(r.y_m), "", "")),
+    Column("v", "[m/s]", lambda r, s: (_m(r.speed_m_s), "", "")),
+    Column("neighbour", "[m]", lambda r, s: _limit_cell(r.neighbour_m, s.pair_limit_m)),
+    Column("obstacle", "[m]", lambda r, s: _limit_cell(r.obstacle_m, r.obstacle_limit_m)),
+    Column("leg", "[m]", lambda r, s: _limit_cell(r.leg_m, s.leg_limit_m)),
+    Column("link age", "[s]", _age_cell),
+    Column("accuracy", "[m]", _accuracy_cell),
+    Column("battery", "", _battery_cell,
+           shown=lambda s: any(math.isfinite(r.battery) for r in s.rows)),
+)
+
+
+def worst_line(s: FleetStatus) -> str:
+    """The worst vehicle now per limit, one short line ("" without rows): the nearest
+    neighbour, obstacle centre and leg, the oldest link, the worst accuracy (the lowest
+    battery), each marked BROKEN at or below its limit and near within 20 % above it."""
+    parts = []
+
+    def pick(name: str, key: Callable[[VehicleRow], float], unit: str, highest: bool = False,
+             limit: Callable[[VehicleRow], float] = lambda r: math.nan,
+             fmt: Callable[[float], str] = _m) -> None:
+        rows = [r for r in s.rows if math.isfinite(key(r))]
+        if not rows:
+            return
+        r = (max if highest else min)(rows, key=key)
+        lv = _level(key(r), limit(r))
+        tag = {"bad": " BROKEN", "near": " near its limit"}.get(lv, "")
+        parts.append(f"{name} #{r.vehicle_id} {fmt(key(r))}{unit}{tag}")
+
+    pick("pair", lambda r: r.neighbour_m, " m", limit=lambda r: s.pair_limit_m)
+    pick("obstacle", lambda r: r.obstacle_m, " m", limit=lambda r: r.obstacle_limit_m)
+    pick("leg", lambda r: r.leg_m, " m", limit=lambda r: s.leg_limit_m)
+    pick("link age", lambda r: r.link_age_s, " s", highest=True)
+    pick("accuracy", lambda r: r.accuracy_m, " m", highest=True)
+    pick("battery", lambda r: r.battery, " %", fmt=lambda v: f"{100 * v:.0f}")
+    return "  worst now: " + " · ".join(parts) if parts else ""
 
 
 class FleetView:
@@ -195,30 +295,36 @@ class FleetView:
 
     @staticmethod
     def lines(s: FleetStatus) -> list[str]:
-        """The plain status (the non-terminal log line, joined by " | ")."""
-        head = (f"t={s.t_s:7.1f}s  {s.stage:<11} vehicles {s.vehicles}: connected {s.connected}"
-                f"  armed {s.armed}  in tube {s.in_tube}  exited {s.exited}"
-                f"  lost {s.lost}  landed {s.landed}")
+        """The plain status (when the output is not a terminal): a fleet headline (time,
+        stage, phase counts, the control loop), the clearance flown so far against its limits
+        (and the truth's, with ``--truth``), and — when ``s.rows`` are given — the worst
+        vehicle now per limit (:func:`worst_line`). Each line well under 150 characters."""
 
         def mark(value: float, limit: float) -> str:
             return " BROKEN" if _level(value, limit) == "bad" else ""
 
-        verdict = "  UNSAFE: a limit was broken" if s.unsafe else ""
-        clear = (f"clearance flown: pair {_m(s.min_pair_m)} m (> 2 r_s = {_m(s.pair_limit_m)})"
-                 f"{mark(s.min_pair_m, s.pair_limit_m)}  obstacle centre {_m(s.min_obstacle_m)}"
-                 f" m (> {_m(s.obstacle_limit_m)}){mark(s.min_obstacle_m, s.obstacle_limit_m)}"
-                 f"  legs {_m(s.min_leg_m)} m (> {_m(s.leg_limit_m)})"
-                 f"{mark(s.min_leg_m, s.leg_limit_m)}  δ {_m(s.delta_m)} m{verdict}")
+        phases = ", ".join(f"{n} {p.replace('_', ' ')}" for p, n in sorted(
+            s.phases.items(), key=lambda kv: (-kv[1], kv[0])) if n) or "none yet"
+        on_time = "—" if not math.isfinite(s.on_time) else f"{100 * s.on_time:.1f}%"
+        head = (f"t={s.t_s:.1f}s {s.stage}: {s.vehicles} vehicles ({s.connected} connected): "
+                f"{phases} | tick p99 {_m(s.tick_p99_ms)} ms, {_m(s.rate_hz)} Hz, on time "
+                f"{on_time}, link {_m(s.latency_ms)} ms")
+        flown = (f"  flown: pair {_m(s.min_pair_m)} m (> {_m(s.pair_limit_m)})"
+                 f"{mark(s.min_pair_m, s.pair_limit_m)} · obstacle centre "
+                 f"{_m(s.min_obstacle_m)} m (> {_m(s.obstacle_limit_m)})"
+                 f"{mark(s.min_obstacle_m, s.obstacle_limit_m)} · legs {_m(s.min_leg_m)} m "
+                 f"(> {_m(s.leg_limit_m)}){mark(s.min_leg_m, s.leg_limit_m)} · δ {_m(s.delta_m)}"
+                 f" m{' · UNSAFE: a limit was broken' if s.unsafe else ''}")
+        out = [head, flown]
         if math.isfinite(s.truth_pair_m) or math.isfinite(s.truth_leg_m):
-            clear += (f" | truth: pair {_m(s.truth_pair_m)}{mark(s.truth_pair_m, s.pair_limit_m)}"
-                      f"  obstacle centre {_m(s.truth_obstacle_m)}"
-                      f"{mark(s.truth_obstacle_m, s.obstacle_limit_m)}  legs {_m(s.truth_leg_m)}"
-                      f"{mark(s.truth_leg_m, s.leg_limit_m)}")
-        loop = (f"tick p50 {_m(s.tick_p50_ms)} ms  p99 {_m(s.tick_p99_ms)} ms"
-                f"  rate {_m(s.rate_hz)} Hz  on time "
-                f"{'—' if not math.isfinite(s.on_time) else f'{100 * s.on_time:.1f}%'}"
-                f"  link latency {_m(s.latency_ms)} ms")
-        return [head, clear, loop]
+            out.append(f"  truth: pair {_m(s.truth_pair_m)} m"
+                       f"{mark(s.truth_pair_m, s.pair_limit_m)} · obstacle centre "
+                       f"{_m(s.truth_obstacle_m)} m{mark(s.truth_obstacle_m, s.obstacle_limit_m)}"
+                       f" · legs {_m(s.truth_leg_m)} m{mark(s.truth_leg_m, s.leg_limit_m)}")
+        worst = worst_line(s)
+        if worst:
+            out.append(worst)
+        return out
 
     # ----- the rich rendering ---------------------------------------------------------------
     @staticmethod
@@ -260,46 +366,26 @@ class FleetView:
 
     @staticmethod
     def table(s: FleetStatus, max_rows: int | None = None) -> Any:
-        """One row per vehicle (:class:`rich.table.Table`). With more vehicles than
-        ``max_rows``, the rows with a problem (red / yellow) first, then by id, and a last line
-        counting the others. The battery column only when some vehicle reports one."""
+        """One row per vehicle (:class:`rich.table.Table`), the columns of :data:`COLUMNS`
+        (headers: name over unit). With more vehicles than ``max_rows``, the rows with a
+        problem (red / yellow) first, then by id, and a last line counting the others. The
+        battery column only when some vehicle reports one."""
         from rich import box
         from rich.table import Table
         from rich.text import Text
 
-        battery = any(math.isfinite(r.battery) for r in s.rows)
-        tab = Table(box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False, show_edge=False,
+        cols = [c for c in COLUMNS if c.shown(s)]
+        # no padding: the box's own separator is one blank (100 terminal columns)
+        tab = Table(box=box.SIMPLE_HEAD, padding=(0, 0), pad_edge=False, show_edge=False,
                     header_style="bold")
-        for name in ("id", "phase", "x [m]", "y [m]", "v [m/s]", "neighbour [m]",
-                     "obstacle [m]", "leg [m]", "link age [s]", "accuracy [m]"):
-            tab.add_column(Text(name), justify="left" if name == "phase" else "right",
-                           no_wrap=True, overflow="ignore")  # Text: "[m]" is no markup
-        if battery:
-            tab.add_column(Text("battery"), justify="right", no_wrap=True,
-                           overflow="ignore")
+        for c in cols:  # Text: "[m]" is no markup
+            tab.add_column(Text(c.header), justify=c.justify, no_wrap=True, overflow="ignore")
 
         def cells(r: VehicleRow) -> tuple[list[Any], int]:
-            levels = [_level(r.neighbour_m, s.pair_limit_m),
-                      _level(r.obstacle_m, r.obstacle_limit_m), _level(r.leg_m, s.leg_limit_m)]
-            age = ("bad" if r.link_age_s > LINK_AGE_BAD_S else "near"
-                   if r.link_age_s > LINK_AGE_WARN_S else "")
-            acc = ("near" if math.isfinite(s.delta_m) and math.isfinite(r.accuracy_m)
-                   and r.accuracy_m > s.delta_m else "")
-            bat = ("bad" if r.battery < 0.15 else "near" if r.battery < 0.3 else "")
-            ph = _PHASE_STYLE.get(r.phase, "")
-            row = [Text(str(r.vehicle_id)), Text(r.phase, style=ph), Text(_m(r.x_m)),
-                   Text(_m(r.y_m)), Text(_m(r.speed_m_s)),
-                   Text(_m(r.neighbour_m), style=_STYLE[levels[0]]),
-                   Text(_m(r.obstacle_m), style=_STYLE[levels[1]]),
-                   Text(_m(r.leg_m), style=_STYLE[levels[2]]),
-                   Text(_m(r.link_age_s), style=_STYLE[age]),
-                   Text(_m(r.accuracy_m), style=_STYLE[acc])]
-            if battery:
-                row.append(Text("—" if not math.isfinite(r.battery)
-                                else f"{100 * r.battery:.0f} %", style=_STYLE[bat]))
-            flags = [*levels, age, acc, bat if battery else ""]
-            worst = 2 if "bad" in flags or ph == "bold red" else 1 if "near" in flags else 0
-            return row, worst
+            out = [c.cell(r, s) for c in cols]
+            levels = [lv for _, _, lv in out]
+            worst = 2 if "bad" in levels else 1 if "near" in levels else 0
+            return [Text(text, style=style) for text, style, _ in out], worst
 
         rendered = [(r.vehicle_id, *cells(r)) for r in s.rows]
         if max_rows is not None and len(rendered) > max_rows:
@@ -341,8 +427,16 @@ class FleetView:
         if not force and now - self._last < self.log_every_s:
             return
         self._last = now
-        self.stream.write(" | ".join(self.lines(status)) + "\n")
+        self.stream.write("\n".join(self.lines(status)) + "\n")
         self.stream.flush()
+
+    def wants_rows(self) -> bool:
+        """Whether the next :meth:`update` shows the per-vehicle rows (the caller builds them
+        only then): always on a terminal (the table), every ``log_every_s`` otherwise (the
+        worst-vehicle line)."""
+        if not self.enabled:
+            return False
+        return self.tty or time.monotonic() - self._last >= self.log_every_s
 
     def _current(self) -> Any:
         """What the refresh thread draws (never raises: a drawing bug must not kill it)."""

@@ -52,6 +52,10 @@ Layout of a recording (entity paths):
 ``world/vehicles/ID``  one entity per vehicle, drawn: a point (radius r_s, phase class), its
                         velocity arrow (``arrow_scale_s`` × v) and its trail (the last few
                         seconds of its path); cleared when the vehicle leaves the rows
+``world/vehicles/ID``   (with a geodetic anchor) also ``GeoPoints`` and a ``GeoLineStrings`` trail:
+                        the vehicle on the map
+``map/*``               static ``GeoLineStrings`` (WGS84): tube outline, obstacles, the uploaded
+                        fence, the start slots (:mod:`vtube_fleet.recording.geo`)
 ``world/commands``      Arrows2D of the velocity command, when given
 ``safety/main|center``  the exact (position, velocity) inputs of the run's safety metrics per
                         summary stream, when given (``log_tick(safety=...)``)
@@ -62,6 +66,10 @@ Layout of a recording (entity paths):
                         with a vehicle id; the id also as ``vtube_fleet.Event:vehicle_id``);
                         ``events/exits``: exit times (text only when no phase change told it)
 ======================  =========================================================
+
+Live viewing (:mod:`vtube_fleet.recording.live`): ``serve_web=PORT`` serves the rerun web viewer
+(page on PORT, data on PORT + 1, bound to ``serve_bind``), ``viewer=True`` spawns the native
+viewer; both are more sinks of the same stream, fed by the same sender thread.
 
 Timelines: ``mission_time`` (duration, seconds since the mission/simulation start) and ``tick``
 (the control tick / simulation step counter).

@@ -19,6 +19,11 @@ __all__ = [
     "E_AXES",
     "E_EXITS",
     "E_LEGEND",
+    "E_MAP",
+    "E_MAP_FENCE",
+    "E_MAP_OBSTACLES",
+    "E_MAP_OUTLINE",
+    "E_MAP_SLOTS",
     "E_META",
     "E_OBSTACLES",
     "E_OBSTACLES_EXT",
@@ -36,6 +41,11 @@ __all__ = [
     "LIMITS_PREFIX",
     "LIMIT_COLOR",
     "LOG_LEVELS",
+    "MAP_FENCE_COLOR",
+    "MAP_OBSTACLE_COLOR",
+    "MAP_OUTLINE_COLOR",
+    "MAP_POINT_RADIUS_PT",
+    "MAP_SLOT_COLOR",
     "LIMIT_PERIOD_S",
     "META_FORMAT",
     "META_VERSION",
@@ -62,6 +72,7 @@ __all__ = [
     "TRIANGLE_COLOR",
     "TUBE_COLOR",
     "VELOCITY_COLOR",
+    "class_color",
     "class_of",
     "metric_name",
     "metric_variants",
@@ -133,6 +144,29 @@ E_SUB_TUBES = "world/sub_tubes"
 
 
 E_TRIANGLES = "world/triangles"
+
+
+#: The map (WGS84): static outlines as ``GeoLineStrings``, converted from the tube frame with the
+#: mission's geodetic anchor (:class:`vtube_fleet.frames.TubeFrame`, the fence's geodesy). The
+#: vehicles are drawn on the map from their own entities (``world/vehicles/<id>`` carry
+#: ``GeoPoints`` and a ``GeoLineStrings`` trail beside the 2-D point), so one selection
+#: highlights a drone in both views.
+E_MAP = "map"
+
+
+#: The tube outline (one polyline per tube; a route of several segments adds one per segment).
+E_MAP_OUTLINE = "map/tube"
+
+
+E_MAP_OBSTACLES = "map/obstacles"
+
+
+#: The PX4 geofence the fleet uploads: its inclusion polygon and exclusion circles.
+E_MAP_FENCE = "map/fence"
+
+
+#: The start slots: a circle of radius r_s around each.
+E_MAP_SLOTS = "map/slots"
 
 
 #: The exact float64 state of every vehicle per tick (``vtube_fleet.VehicleState:*``, one row per
@@ -292,6 +326,7 @@ PHASE_CLASSES: tuple[tuple[int, str, str, int], ...] = (
 
 
 _CLASS_OF = {phase: cid for cid, phase, _, _ in PHASE_CLASSES}
+_CLASS_COLOR = {cid: color for cid, _, _, color in PHASE_CLASSES}
 
 
 def class_of(phase: str | None) -> int:
@@ -299,6 +334,23 @@ def class_of(phase: str | None) -> int:
     if phase is None:
         return 0
     return _CLASS_OF.get(phase, _CLASS_OF["?"])
+
+
+def class_color(cid: int) -> int:
+    """RGBA colour of an annotation class id (a phase's colour; unknown ids: "other")."""
+    return _CLASS_COLOR.get(int(cid), PHASE_CLASSES[-1][3])
+
+
+#: Colours of the map's outlines: they must read on the light map tiles and on the viewer's dark
+#: background when no tile can be fetched (offline), and differ from the phase colours.
+MAP_OUTLINE_COLOR = 0x3949ABFF
+MAP_FENCE_COLOR = 0xE53935FF
+MAP_OBSTACLE_COLOR = 0x757575FF
+MAP_SLOT_COLOR = 0x9E9D24FF
+
+
+#: Radius (UI points) of a vehicle's point on the map: r_s is a pixel or two at street zoom.
+MAP_POINT_RADIUS_PT = 5.0
 
 
 #: Colour (RGBA) of a vehicle by phase (``state.Phase`` values), from :data:`PHASE_CLASSES`.

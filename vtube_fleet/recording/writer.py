@@ -30,6 +30,9 @@ import numpy as np
 from vtube_fleet.artifacts import json_safe
 from vtube_fleet.recording.api import NullRecorder, Recorder, RecordingError
 from vtube_fleet.recording.events import ChangeDetector, merge_metric, phase_str
+from vtube_fleet.recording.geo import circle as _circle
+from vtube_fleet.recording.geo import closed as _closed
+from vtube_fleet.recording.geo import map_layers, map_zoom, to_lat_lon
 from vtube_fleet.recording.layout import (
     COMMAND_COLOR,
     DEFAULT_CONNECT_URL,
@@ -39,6 +42,7 @@ from vtube_fleet.recording.layout import (
     E_EXITS,
     E_JUNCTIONS,
     E_LEGEND,
+    E_MAP,
     E_META,
     E_OBSTACLES,
     E_OBSTACLES_EXT,
@@ -57,6 +61,7 @@ from vtube_fleet.recording.layout import (
     LIMIT_PERIOD_S,
     LIMITS_PREFIX,
     LOG_LEVELS,
+    MAP_POINT_RADIUS_PT,
     META_FORMAT,
     META_VERSION,
     METRIC_COLORS,
@@ -77,12 +82,19 @@ from vtube_fleet.recording.layout import (
     TRIANGLE_COLOR,
     TUBE_COLOR,
     VELOCITY_COLOR,
+    class_color,
     class_of,
     metric_name,
     metric_variants,
     stream_entity,
     vehicle_entity,
     vehicle_path_entity,
+)
+from vtube_fleet.recording.live import (
+    DEFAULT_BIND,
+    VIEWER_PORT,
+    WebViewerServer,
+    spawn_viewer,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -108,16 +120,6 @@ log = logging.getLogger(__name__)
 # ----------------------------------------------------------------------------------------------
 def _pt(p: np.ndarray) -> list[float]:
     return [float(p[0]), float(p[1])]
-
-
-def _circle(center: np.ndarray, radius: float, n: int = 48) -> np.ndarray:
-    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    return np.asarray(center, dtype=float) + radius * np.stack([np.cos(a), np.sin(a)], axis=-1)
-
-
-def _closed(poly: np.ndarray) -> np.ndarray:
-    poly = np.asarray(poly, dtype=float)
-    return np.vstack([poly, poly[:1]])
 
 
 def _present_rows(ids: np.ndarray, pos: Any, vel: Any
@@ -273,6 +275,13 @@ class RerunRecorder:
     ``display_period_s`` of wall time or ``display_max_ticks`` recorded ticks (what a live
     viewer lags behind at most; each send costs a chunk per vehicle in the file).
 
+    Live viewing (:mod:`vtube_fleet.recording.live`): ``serve_web`` = PORT starts the rerun web
+    viewer server (page on PORT, data on PORT + 1, bound to ``serve_bind``; its URL in
+    ``self.web.url``; stopped at close), ``viewer`` spawns the native viewer on ``viewer_port``
+    (or uses the one listening there; ``self.viewer_url``, ``self.viewer_pid``); each is one
+    more sink of the same stream. With a log_scene ``mission`` (a geodetic anchor) the recording
+    also has the map (``map/*``, GeoPoints on every vehicle; :mod:`vtube_fleet.recording.geo`).
+
     The recording is closed — buffer sent, sender joined, stream flushed, file closed — by
     :meth:`close` (idempotent), by the context manager, and at interpreter exit if the owner
     forgot. Recording errors are logged, never raised into the control loop.
@@ -300,12 +309,17 @@ class RerunRecorder:
         detect_exits: bool = True,
         display_period_s: float = 1.0,
         display_max_ticks: int = 256,
+        serve_web: int | None = None,
+        serve_bind: str = DEFAULT_BIND,
+        viewer: bool = False,
+        viewer_port: int = VIEWER_PORT,
     ) -> None:
         import pyarrow as pa
         import rerun as rr
 
-        if save_path is None and connect is None:
-            raise ValueError("RerunRecorder needs save_path and/or connect (else NullRecorder)")
+        if save_path is None and connect is None and serve_web is None and not viewer:
+            raise ValueError("RerunRecorder needs a file, a viewer address, a web server or a "
+                             "viewer to spawn (else NullRecorder)")
         if not (isinstance(decimate, int) and decimate >= 1):
             raise RecordingError(f"recording decimation must be an integer >= 1, got {decimate!r}")
         if batch_ticks < 1:
@@ -363,7 +377,7 @@ class RerunRecorder:
         # display state (sender thread): vehicles drawn, their trails, per-vehicle statics
         self._has_phases = False
         self._visible: set[int] = set()
-        self._trails: dict[int, list[tuple[float, float, float]]] = {}
+        self._trails: dict[int, list[tuple[float, float, float, float, float]]] = {}
         self._trail_next: dict[int, float] = {}
         # whole-flight paths (written at close): per vehicle, strips of x, y pairs
         self._paths: dict[int, list[array]] = {}
@@ -389,14 +403,32 @@ class RerunRecorder:
 
         if self.path is not None:
             _check_writable(self.path)
+        where = f"; recording to {self.path} only" if self.path else "; nothing recorded"
         if connect is not None:
             url = normalize_connect_url(connect)
             if _viewer_reachable(url, connect_timeout_s):
                 self.connect_url = url
             else:
-                where = f"; recording to {self.path} only" if self.path else "; nothing recorded"
                 log.warning("no rerun viewer answers at %s%s (start one with `rerun`)", url, where)
-        self._enabled = self.path is not None or self.connect_url is not None
+        #: ``serve_web``: the web viewer server (a child process; :mod:`.live`), its page URL
+        self.web: WebViewerServer | None = None
+        if serve_web is not None:
+            self.web = WebViewerServer(serve_bind, int(serve_web))
+            self.web.start()  # a RecordingError (port in use ...) before anything flies
+        #: ``viewer``: the native viewer streamed to, and its process id when we started it
+        self.viewer_url: str | None = None
+        self.viewer_pid: int | None = None
+        if viewer:
+            sv = spawn_viewer(viewer_port)
+            if sv.url is None:
+                log.warning("no rerun viewer could be started: %s%s", sv.problem, where)
+            self.viewer_url, self.viewer_pid = sv.url, sv.pid
+        self._live_urls = list(dict.fromkeys(
+            u for u in (self.connect_url, self.viewer_url,
+                        None if self.web is None else self.web.grpc_url) if u is not None))
+        self._geo_frame: Any = None  # the mission's TubeFrame once log_scene gave one (the map)
+        self._map_zoom: float | None = None
+        self._enabled = self.path is not None or bool(self._live_urls)
         self._background = background
         self._opened = False  # the sinks are opened by the first log call: no empty files
         self._blueprint_sent = False
@@ -417,9 +449,7 @@ class RerunRecorder:
         if not self._enabled:
             return False
         rr = self._rr
-        sinks: list[Any] = []
-        if self.connect_url is not None:
-            sinks.append(rr.GrpcSink(self.connect_url))
+        sinks: list[Any] = [rr.GrpcSink(url) for url in self._live_urls]
         if self.path is not None:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -451,7 +481,8 @@ class RerunRecorder:
             return
         self._rec.send_blueprint(
             default_blueprint(bounds, self.kind, limits=self._limits, metric_keys=keys or None,
-                              extremes=extremes, shapes=shapes),
+                              extremes=extremes, shapes=shapes,
+                              map_view=self._geo_frame is not None, map_zoom=self._map_zoom),
             make_active=make_active, make_default=True)
         self._blueprint_sent = True
         self._blueprint_state = state
@@ -466,7 +497,7 @@ class RerunRecorder:
             return
         if frame != self._tube_box:
             self._send_frame_keys(frame)
-        self._send_blueprint(self._view_bounds(frame), make_active=self.connect_url is None,
+        self._send_blueprint(self._view_bounds(frame), make_active=not self._live_urls,
                              final=True)
 
     def _send_paths(self) -> None:
@@ -477,12 +508,15 @@ class RerunRecorder:
             tail = self._path_tail.get(vid)
             if tail is not None:
                 _end_strip(strips[-1], tail)
-            pts = [np.frombuffer(a, dtype=np.float64).reshape(-1, 2).astype(np.float32)
+            pts = [np.frombuffer(a, dtype=np.float64).reshape(-1, 2)
                    for a in strips if len(a) >= 4]
             if pts:
+                geo = [] if self._geo_frame is None else [rr.GeoLineStrings(
+                    lat_lon=to_lat_lon(self._geo_frame, pts), colors=[PATH_COLOR],
+                    radii=[rr.Radius.ui_points(1.0)])]
                 self._rec.log(vehicle_path_entity(vid), rr.LineStrips2D(
-                    pts, colors=[PATH_COLOR], radii=[rr.Radius.ui_points(0.8)],
-                    draw_order=28.0), static=True)
+                    [q.astype(np.float32) for q in pts], colors=[PATH_COLOR],
+                    radii=[rr.Radius.ui_points(0.8)], draw_order=28.0), *geo, static=True)
 
     def _frame(self) -> tuple[float, float, float, float] | None:
         """The region a user should see: the tube ∪ everything flown so far."""
@@ -669,6 +703,11 @@ class RerunRecorder:
             lo, hi = poly.min(axis=0), poly.max(axis=0)
             self._tube_box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
             self._set_limits(r_s, obstacles, float(robots.v_min), float(robots.v_max))
+            layers = []
+            if mission is not None:  # a geodetic anchor: the map (recording/geo.py)
+                self._geo_frame = mission.frame
+                layers = map_layers(scenario, mission, fence=doc.get("fence", True) is not False)
+                self._map_zoom = map_zoom(layers)
             # no transform: the view shows the tube frame as it is (hover and selection read the
             # true x, y); rerun draws 2-D y downwards, which the axis key says in the view
             self._send_frame_keys(self._tube_box)
@@ -706,6 +745,12 @@ class RerunRecorder:
                 self._rec.log(E_OBSTACLES_EXT, rr.LineStrips2D(
                     [_circle(c, r + r_s) for c, r in zip(centers, radii, strict=True)],
                     colors=[OBSTACLE_COLOR], radii=rr.Radius.ui_points(0.7)), static=True)
+            for layer in layers:
+                self._rec.log(layer.entity, rr.GeoLineStrings(
+                    lat_lon=layer.strips,
+                    colors=np.full(len(layer.strips), layer.color, dtype=np.uint32),
+                    radii=[rr.Radius.ui_points(layer.width_pt)] * len(layer.strips)),
+                    static=True)
             if partition is not None:
                 self._log_partition_now(partition, t_s=0.0, tick=0)
 
@@ -1011,17 +1056,22 @@ class RerunRecorder:
         pos32 = pos.astype(np.float32)
         vec32 = (vel * self.arrow_scale_s).astype(np.float32)
         show = (self._robots or len(groups)) <= LABELS_MAX_VEHICLES
+        # the map: every position of the batch in WGS84, one vectorized conversion
+        geo = None if self._geo_frame is None else to_lat_lon(self._geo_frame, [pos])[0]
         for vid, sel in groups.items():
             ent = vehicle_entity(vid)
             if vid not in self._vehicle_static:
                 self._vehicle_static.add(vid)
                 radius = self._r_s if math.isfinite(self._r_s) else 0.25
+                geo_defaults = [] if geo is None else [
+                    rr.GeoPoints.from_fields(radii=[rr.Radius.ui_points(MAP_POINT_RADIUS_PT)]),
+                    rr.GeoLineStrings.from_fields(radii=[rr.Radius.ui_points(1.5)])]
                 self._rec.log(ent, rr.Points2D.from_fields(
                     radii=[radius], labels=[str(vid)], show_labels=show, draw_order=30.0),
                     rr.Arrows2D.from_fields(colors=[VELOCITY_COLOR], draw_order=31.0),
                     rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(1.2)],
                                                 show_labels=False, draw_order=29.0),
-                    static=True)
+                    *geo_defaults, static=True)
             rows_here = row_of[sel]
             present = np.zeros(n_rows, dtype=bool)
             present[rows_here] = True
@@ -1037,7 +1087,7 @@ class RerunRecorder:
             at = np.flatnonzero(send)
             lens = present[at].astype(np.int32)
             offs = _offsets(lens)
-            self._rec.send_columns(ent, self._index(t[at], ticks[at]), [
+            cols = [
                 rr.ComponentColumn(rr.Points2D.descriptor_positions(),
                                    comps.Position2DBatch(pos32[sel]), offsets=offs),
                 rr.ComponentColumn(rr.Points2D.descriptor_class_ids(),
@@ -1046,14 +1096,22 @@ class RerunRecorder:
                                    comps.Position2DBatch(pos32[sel]), offsets=offs),
                 rr.ComponentColumn(rr.Arrows2D.descriptor_vectors(),
                                    comps.Vector2DBatch(vec32[sel]), offsets=offs),
-            ])
-            self._send_trail(ent, vid, t, ticks, at, present, pos[sel], classes[sel])
+            ]
+            if geo is not None:  # the same point on the map, coloured by phase
+                cols += [rr.ComponentColumn(rr.GeoPoints.descriptor_positions(),
+                                            comps.LatLonBatch(geo[sel]), offsets=offs),
+                         rr.ComponentColumn(rr.GeoPoints.descriptor_class_ids(),
+                                            comps.ClassIdBatch(classes[sel]), offsets=offs)]
+            self._rec.send_columns(ent, self._index(t[at], ticks[at]), cols)
+            self._send_trail(ent, vid, t, ticks, at, present, pos[sel], classes[sel],
+                             None if geo is None else geo[sel])
 
     def _send_trail(self, ent: str, vid: int, t: np.ndarray, ticks: np.ndarray,
-                    at: np.ndarray, present: np.ndarray, p: np.ndarray, cls: np.ndarray
-                    ) -> None:
+                    at: np.ndarray, present: np.ndarray, p: np.ndarray, cls: np.ndarray,
+                    geo: np.ndarray | None = None) -> None:
         """The trail rows of one vehicle in one batch: a new strip whenever a sample is added,
-        an empty one where the vehicle disappears."""
+        an empty one where the vehicle disappears; with ``geo`` (the rows' lat, lon) the same
+        trail on the map (``GeoLineStrings`` in the phase's colour)."""
         trail = self._trails.setdefault(vid, [])
         nxt = self._trail_next.get(vid, -math.inf)
         path = self._paths.setdefault(vid, [array("d")])
@@ -1061,6 +1119,7 @@ class RerunRecorder:
         tail = self._path_tail.get(vid)
         rows: list[int] = []
         strips: list[np.ndarray] = []
+        geo_strips: list[np.ndarray] = []
         strip_cls: list[int] = []
         lens: list[int] = []
         k = 0
@@ -1077,6 +1136,8 @@ class RerunRecorder:
                 lens.append(0)
                 continue
             x, y = float(p[k, 0]), float(p[k, 1])
+            la, lo = (math.nan, math.nan) if geo is None else (float(geo[k, 0]),
+                                                                float(geo[k, 1]))
             c = int(cls[k])
             k += 1
             tr = float(t[r])
@@ -1086,7 +1147,7 @@ class RerunRecorder:
                 pnext = tr + PATH_STEP_S
             if tr < nxt:
                 continue
-            trail.append((tr, x, y))
+            trail.append((tr, x, y, la, lo))
             while trail and trail[0][0] < tr - TRAIL_S:
                 trail.pop(0)
             nxt = tr + TRAIL_STEP_S
@@ -1094,6 +1155,8 @@ class RerunRecorder:
                 rows.append(r)
                 lens.append(1)
                 strips.append(np.array([(q[1], q[2]) for q in trail], dtype=np.float32))
+                if geo is not None:
+                    geo_strips.append(np.array([(q[3], q[4]) for q in trail]))
                 strip_cls.append(c)
         self._trail_next[vid] = nxt
         self._path_next[vid] = pnext
@@ -1101,8 +1164,36 @@ class RerunRecorder:
         if not rows:
             return
         rr = self._rr
-        cols = rr.LineStrips2D.columns(strips=strips, class_ids=np.array(strip_cls, np.uint16))
-        self._rec.send_columns(ent, self._index(t[rows], ticks[rows]), cols.partition(lens))
+        comps = rr.components
+        idx = self._index(t[rows], ticks[rows])
+        offs = _offsets(np.asarray(lens, dtype=np.int32))
+        cls = np.array(strip_cls, np.uint16)
+        cols = [rr.ComponentColumn(rr.LineStrips2D.descriptor_strips(), comps.LineStrip2DBatch(
+                    self._strip_array(strips, comps.LineStrip2DBatch)), offsets=offs),
+                rr.ComponentColumn(rr.LineStrips2D.descriptor_class_ids(),
+                                   comps.ClassIdBatch(cls), offsets=offs)]
+        if geo is not None:  # the same trail on the map, in the same send
+            cols += [rr.ComponentColumn(rr.GeoLineStrings.descriptor_line_strings(),
+                                        comps.GeoLineStringBatch(self._strip_array(
+                                            geo_strips, comps.GeoLineStringBatch)), offsets=offs),
+                     rr.ComponentColumn(rr.GeoLineStrings.descriptor_colors(), comps.ColorBatch(
+                         np.array([class_color(c) for c in strip_cls], dtype=np.uint32)),
+                         offsets=offs)]
+        self._rec.send_columns(ent, idx, cols)
+
+    def _strip_array(self, strips: Sequence[np.ndarray], batch: Any) -> Any:
+        """Polylines → the arrow list array of ``batch``'s type in one go (rerun's own converter
+        walks the strips in Python: ~1 ms per call, once per vehicle and batch)."""
+        pa = self._pa
+        typ = batch._ARROW_DATATYPE
+        inner = typ.value_type  # fixed-size list of 2
+        flat = np.concatenate([np.asarray(q).reshape(-1, 2) for q in strips]) if strips else \
+            np.zeros((0, 2))
+        values = pa.FixedSizeListArray.from_arrays(
+            pa.array(flat.reshape(-1).astype(inner.value_type.to_pandas_dtype(), copy=False)),
+            type=inner)
+        offsets = _offsets(np.array([len(q) for q in strips], dtype=np.int32))
+        return pa.ListArray.from_arrays(pa.array(offsets), values, type=typ)
 
     def _send_rows_now(self, rows: list[_Row]) -> None:
         rr, pa = self._rr, self._pa
@@ -1381,6 +1472,13 @@ class RerunRecorder:
 
     @_never_raises
     def close(self) -> None:
+        try:
+            self._close()
+        finally:
+            if self.web is not None:  # after the flush: the server has had everything
+                self.web.stop()
+
+    def _close(self) -> None:
         with self._lock:
             if self.closed:
                 return
@@ -1442,8 +1540,7 @@ class RerunRecorder:
 
     def __repr__(self) -> str:
         where = [str(self.path)] if self.path else []
-        if self.connect_url:
-            where.append(self.connect_url)
+        where += self._live_urls
         return f"RerunRecorder({', '.join(where)}, decimate={self.decimate})"
 
 
@@ -1527,7 +1624,8 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
                       limits: Mapping[str, Sequence[float]] | None = None,
                       metric_keys: Sequence[str] | None = None,
                       extremes: Mapping[str, tuple[float, float]] | None = None,
-                      shapes: Mapping[str, Sequence[tuple[float, float]]] | None = None) -> Any:
+                      shapes: Mapping[str, Sequence[tuple[float, float]]] | None = None,
+                      map_view: bool = False, map_zoom: float | None = None) -> Any:
     """The default layout: the 2-D tube view (origin ``/world``, the tube frame as it is, y
     drawn downwards; framed on ``bounds`` = (x0, y0, x1, y1) when given) with the status table
     and the event log under it, the time series (Fig. 11 quantities with their limits, and for
@@ -1541,7 +1639,11 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
     no view shows get an "other metrics" view — without any, there is none. ``shapes`` (metric
     key → (t, value) points of its curve, the recorder's at close): each safety view's legend
     goes to the corner its curves and limit lines cross least (:func:`_legend_corner`; without
-    shapes: the top right)."""
+    shapes: the top right). ``map_view`` (a run with a geodetic anchor): a map (WGS84) of the
+    ``map/*`` outlines and the vehicles, between the tube view and the time series, centred on
+    everything drawn (rerun's map view follows the data) at zoom ``map_zoom``
+    (:func:`~vtube_fleet.recording.geo.map_zoom`; None: rerun's fit, which gives up beyond the
+    tiles' deepest zoom); it draws the geometry whether or not map tiles can be fetched."""
     import rerun.blueprint as rrb
     from rerun import TimeRange as rr_range
     from rerun import TimeRangeBoundary as rr_bound
@@ -1597,19 +1699,22 @@ def default_blueprint(bounds: tuple[float, float, float, float] | None = None,
         view_kw["visual_bounds"] = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[y0, y1])
     tube_view = rrb.Spatial2DView(origin=f"/{E_WORLD}", contents=["$origin/**"],
                                   name="tube (x →, y ↓ drawn downwards)", **view_kw)
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                tube_view,
-                rrb.Tabs(
-                    rrb.TextLogView(origin=f"/{E_EVENTS}", name="events"),
-                    rrb.TextDocumentView(origin=f"/{E_STATUS}", name="status"),
-                ),
-                row_shares=[3, 1],
-            ),
-            rrb.Grid(*series, grid_columns=2),
-            column_shares=[3, 2],
+    left = rrb.Vertical(
+        tube_view,
+        rrb.Tabs(
+            rrb.TextLogView(origin=f"/{E_EVENTS}", name="events"),
+            rrb.TextDocumentView(origin=f"/{E_STATUS}", name="status"),
         ),
+        row_shares=[3, 1],
+    )
+    columns: list[Any] = [left]
+    if map_view:
+        # the map's outlines and, from each vehicle's own entity, its GeoPoints and trail
+        columns.append(rrb.MapView(origin="/", contents=[f"/{E_MAP}/**", f"/{E_VEHICLES}/**"],
+                                   name="map (WGS84)", zoom=map_zoom))
+    columns.append(rrb.Grid(*series, grid_columns=2))
+    return rrb.Blueprint(
+        rrb.Horizontal(*columns, column_shares=[5, 3, 4] if map_view else [3, 2]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         # collapsed: the play controls and the time slider, without the streams tree
@@ -1629,8 +1734,10 @@ def open_recorder(
     kind: str = "sim",
     **options: Any,
 ) -> Recorder:
-    """A :class:`RerunRecorder`, or a :class:`NullRecorder` when both targets are ``None``."""
-    if save_path is None and connect is None:
+    """A :class:`RerunRecorder`, or a :class:`NullRecorder` when there is nowhere to record to
+    (no file, no viewer address, no ``serve_web``, no ``viewer``)."""
+    if (save_path is None and connect is None and options.get("serve_web") is None
+            and not options.get("viewer")):
         return NullRecorder()
     return RerunRecorder(save_path, connect=connect, app_id=app_id, decimate=decimate,
                          kind=kind, **options)

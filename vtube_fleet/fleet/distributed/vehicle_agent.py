@@ -966,7 +966,7 @@ class AgentProcess:
         self.recorder.log_scene(mission.scenario, None, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
                   "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles,
-                  **radii},  # review searches pairs within the radii the run flew
+                  "fence": self.fence, **radii},  # review: pairs within the flown radii
         )
         self.bus.add_state_listener(rec.on_neighbour)
         self.recording = rec
