@@ -363,7 +363,8 @@ class Mission:
     def expected_airborne_s(self) -> float:
         """How long each vehicle is in the air (s): ``expected_airborne_s`` when the mission
         says, else the climb (``altitude_m / climb_speed_m_s``) + the tube (the longest slot's
-        path to the finishing line, plus ``exit_clear_m``, at v_min: the controller never
+        path to the (last) finishing line along the route's segments, plus ``exit_clear_m``, at
+        v_min: the controller never
         commands less, paper note 9; at most ``mission_timeout_s``, after which the run ends)
         + the descent (``altitude_m`` at :data:`PX4_LAND_SPEED_M_S`). The fleet climbs and
         enters the tube together and lands once the last vehicle is out, so every vehicle is
@@ -372,8 +373,12 @@ class Mission:
         if cfg.expected_airborne_s is not None:
             return float(cfg.expected_airborne_s)
         sc = self.scenario
-        tube = sc.tube
-        path = float(np.max(tube.length - np.asarray(tube.xi(self.slots), float)))
+        corridor = sc.corridor  # a route: to its last finishing line, segment after segment
+        tubes = corridor.segments
+        start = np.asarray(corridor.start_segment_of(self.slots), int).reshape(-1)
+        path = max((tubes[s].length - float(tubes[s].xi(p))
+                    + sum(t.length for t in tubes[s + 1:]))
+                   for s, p in zip(start.tolist(), self.slots, strict=True))
         tube_s = min((max(path, 0.0) + cfg.exit_clear_m) / sc.robots.v_min,
                      cfg.mission_timeout_s)
         return (cfg.altitude_m / cfg.climb_speed_m_s + tube_s

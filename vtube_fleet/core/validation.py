@@ -447,26 +447,7 @@ def nearest_fixes(tube: Trapezoid, obstacles: Sequence[Obstacle], params: Contro
         return []
 
     def bisect(ok_at: float, bad_at: float, works: Callable[[float], bool]) -> float | None:
-        """The feasible value between bad_at and ok_at closest to bad_at: the first feasible
-        one of a scan from bad_at towards ok_at (steps doubling from 1/256 of the range),
-        then bisection back towards the last infeasible one (None: nothing feasible)."""
-        span = ok_at - bad_at
-        bad, good, step = bad_at, None, span / 256.0
-        while True:
-            x = bad + step if abs(step) < abs(ok_at - bad) else ok_at
-            if works(x):
-                good = x
-                break
-            if x == ok_at:
-                return None
-            bad, step = x, 2.0 * step
-        for _ in range(iterations):
-            mid = 0.5 * (good + bad)
-            if works(mid):
-                good = mid
-            else:
-                bad = mid
-        return good
+        return _nearest_working(works, bad_at, ok_at, iterations)
 
     out: list[Fix] = []
     if any(not isinstance(ob.apex_distance, str) for ob in obstacles):
@@ -671,19 +652,19 @@ def _renumber_robots(text: str, rows: np.ndarray) -> str:
         f"robots {rows[int(m.group(1))]} and {rows[int(m.group(3))]}"), text)
 
 
-def _smallest(works: Callable[[float], bool], lo: float, hi: float,
-              iterations: int = FIX_ITERATIONS) -> float | None:
-    """The smallest x in (lo, hi] for which ``works`` holds, found as :func:`nearest_fixes`
-    finds its values: a scan from lo with doubling steps to the first working value, then
-    bisection back towards the last failing one (None: nothing in the range works)."""
-    bad, step = lo, (hi - lo) / 256.0
-    good = None
+def _nearest_working(works: Callable[[float], bool], bad_at: float, ok_at: float,
+                     iterations: int = FIX_ITERATIONS) -> float | None:
+    """The working value between ``bad_at`` and ``ok_at`` (either order) closest to
+    ``bad_at``: the first working one of a scan from bad_at towards ok_at (steps doubling from
+    1/256 of the range), then bisection back towards the last failing one (None: nothing in
+    the range works). How :func:`nearest_fixes` and :func:`route_fixes` find their values."""
+    bad, good, step = bad_at, None, (ok_at - bad_at) / 256.0
     while True:
-        x = bad + step if bad + step < hi else hi
+        x = bad + step if abs(step) < abs(ok_at - bad) else ok_at
         if works(x):
             good = x
             break
-        if x >= hi:
+        if x == ok_at:
             return None
         bad, step = x, 2.0 * step
     for _ in range(iterations):
@@ -693,6 +674,12 @@ def _smallest(works: Callable[[float], bool], lo: float, hi: float,
         else:
             bad = mid
     return good
+
+
+def _smallest(works: Callable[[float], bool], lo: float, hi: float,
+              iterations: int = FIX_ITERATIONS) -> float | None:
+    """The smallest x in (lo, hi] for which ``works`` holds (:func:`_nearest_working`)."""
+    return _nearest_working(works, lo, hi, iterations)
 
 
 def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndarray | None,
