@@ -560,6 +560,8 @@ def test_live_table_on_a_terminal() -> None:
 def test_vehicle_rows_from_pilots() -> None:
     from types import SimpleNamespace
 
+    from vtube_fleet.core.params import ControllerParams
+    from vtube_fleet.core.route import Corridor, Route
     from vtube_fleet.core.tube import Obstacle, Trapezoid
     from vtube_fleet.fleet.view import vehicle_rows
 
@@ -576,9 +578,10 @@ def test_vehicle_rows_from_pilots() -> None:
               pilot(1, Phase.IN_TUBE, (8.0, 6.0), 99.5),
               pilot(2, Phase.READY, (5.0, 2.5), None),  # on the ground: no neighbour
               pilot(3, Phase.LANDING, (40.0, 6.0), 100.0)]  # out of the tube: no leg
-    rows = vehicle_rows(pilots, tube, [Obstacle(np.array([5.0, 5.0]), 1.0)],
-                        SafetyLimits(0.25, 1.0, 2.0),
-                        now_mono=100.0)
+    route = Route.plan(Corridor.single(tube, [Obstacle(np.array([5.0, 5.0]), 1.0)]),
+                       ControllerParams(r_s=0.25, r_a=0.5, v_min=1.0, v_max=2.0, v=1.5,
+                                        v_max_prime=0.5), strict=False)
+    rows = vehicle_rows(pilots, route, SafetyLimits(0.25, 1.0, 2.0), now_mono=100.0)
     assert [r.phase for r in rows] == ["in_tube", "in_tube", "ready", "landing"]
     assert rows[0].speed_m_s == pytest.approx(5.0)
     assert rows[0].neighbour_m == pytest.approx(5.0) and math.isnan(rows[2].neighbour_m)

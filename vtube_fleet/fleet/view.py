@@ -1,9 +1,10 @@
 """The live terminal view of a fleet mission.
 
 On a terminal: a compact fleet header (time, stage, counts, clearance flown so far against its
-limits, tick time and control rate) over a table with one row per vehicle — id, phase, position
-in the tube frame, speed, distance to its nearest neighbour, to the nearest obstacle centre and
-to the nearest leg, link age, estimate accuracy (and battery, when a link reports it) — redrawn
+limits, tick time and control rate) over a table with one row per vehicle — id, phase, the
+route segment it flies (a route of several segments), position in the tube frame, speed,
+distance to its nearest neighbour, to the nearest obstacle centre and to the nearest leg of its
+segment, link age, estimate accuracy (and battery, when a link reports it) — redrawn
 in place about twice a second by ``rich``'s refresh thread (:class:`rich.live.Live`; never on
 the control loop). Values that break their limit are red, those within 20 % of it yellow;
 events (phase changes, faults, errors) scroll above the table as single lines. When the output
@@ -49,10 +50,11 @@ class VehicleRow:
     neighbour_m: float = math.nan  #: distance to the nearest other airborne vehicle
     obstacle_m: float = math.nan  #: distance to the nearest obstacle centre
     obstacle_limit_m: float = math.nan  #: r_o + r_s of that obstacle
-    leg_m: float = math.nan  #: distance to the nearest leg of the tube (in the tube only)
+    leg_m: float = math.nan  #: distance to the nearest leg of its segment (in the tube only)
     link_age_s: float = math.nan  #: since the last packet from the vehicle
     accuracy_m: float = math.nan  #: the estimator's horizontal accuracy (1 σ)
     battery: float = math.nan  #: remaining charge, 0..1, when the link reports it
+    segment: int = -1  #: the route segment it flies (0-based; −1: not shown, one segment)
 
 
 @dataclass
@@ -88,14 +90,18 @@ class FleetStatus:
     rows: list[VehicleRow] = field(default_factory=list)  #: one per vehicle (the table)
 
 
-def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
-                 limits: SafetyLimits,
+def vehicle_rows(pilots: Sequence[Any], route: Any, limits: SafetyLimits,
+                 segments: np.ndarray | None = None,
                  now_mono: float | None = None) -> list[VehicleRow]:
     """The table rows of the fleet's pilots (``VehiclePilot``: ``vehicle_id``, ``phase``,
-    ``position()``, ``vel_xy``, ``link.state``, ``position_accuracy_m()``). Neighbour distances
-    among the vehicles that count as airborne (:data:`~vtube_fleet.state.COUNTED_AIRBORNE_PHASES`),
-    the leg distance (:meth:`Trapezoid.d_Th` / :meth:`~Trapezoid.d_Tr`) for those in the tube;
-    each obstacle's limit is ``limits.obstacle_center_m`` (the physical r_s)."""
+    ``position()``, ``vel_xy``, ``link.state``, ``position_accuracy_m()``) flying ``route`` (a
+    :class:`~vtube_fleet.core.route.Route`), ``segments[k]`` the segment pilot k flies (the
+    table's column; None: each position's start segment). Neighbour distances among the
+    vehicles that count as airborne (:data:`~vtube_fleet.state.COUNTED_AIRBORNE_PHASES`), the
+    nearest obstacle centre of the route's configured obstacles, the leg distance to the legs of
+    its own segment (:meth:`Route.leg_distances`) for those in the tube; each obstacle's limit is
+    ``limits.obstacle_center_m`` (the physical r_s)."""
+    obstacles = route.corridor.obstacles
     now = time.monotonic() if now_mono is None else now_mono
     m = len(pilots)
     pos = np.full((m, 2), np.nan)
@@ -130,15 +136,23 @@ def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
             for k, j, dist in zip(np.flatnonzero(ok).tolist(), near.tolist(),
                                   d[np.arange(len(near)), near].tolist(), strict=True):
                 rows[k].obstacle_m, rows[k].obstacle_limit_m = dist, float(lim[j])
-    in_tube = np.array([r.phase == Phase.IN_TUBE.value for r in rows], dtype=bool) \
-        & np.isfinite(pos).all(axis=1)
+    here = np.isfinite(pos).all(axis=1)
+    seg = (np.full(m, -1, np.intp) if segments is None
+           else np.asarray(segments, dtype=np.intp).reshape(m).copy())
+    unset = here & (seg < 0)
+    if unset.any():
+        seg[unset] = route.start_segments(pos[unset])
+    in_tube = np.array([r.phase == Phase.IN_TUBE.value for r in rows], dtype=bool) & here
     if in_tube.any():
         q = pos[in_tube]
-        legs = np.minimum(np.asarray(tube.d_Th(q), dtype=float), np.asarray(tube.d_Tr(q),
-                                                                             dtype=float))
+        dh, dr = route.leg_distances(q, seg[in_tube])
+        legs = np.minimum(dh, dr)
         for k, v in zip(np.flatnonzero(in_tube).tolist(), np.atleast_1d(legs).tolist(),
                         strict=True):
             rows[k].leg_m = v
+    if route.S > 1:
+        for k, s in enumerate(seg.tolist()):
+            rows[k].segment = s
     return rows
 
 
@@ -268,10 +282,12 @@ class FleetView:
         from rich.text import Text
 
         battery = any(math.isfinite(r.battery) for r in s.rows)
+        route = any(r.segment >= 0 for r in s.rows)  # a route of several segments
         tab = Table(box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False, show_edge=False,
                     header_style="bold")
-        for name in ("id", "phase", "x [m]", "y [m]", "v [m/s]", "neighbour [m]",
-                     "obstacle [m]", "leg [m]", "link age [s]", "accuracy [m]"):
+        for name in ("id", "phase", *(("segment",) if route else ()), "x [m]", "y [m]",
+                     "v [m/s]", "neighbour [m]", "obstacle [m]", "leg [m]", "link age [s]",
+                     "accuracy [m]"):
             tab.add_column(Text(name), justify="left" if name == "phase" else "right",
                            no_wrap=True, overflow="ignore")  # Text: "[m]" is no markup
         if battery:
@@ -287,7 +303,8 @@ class FleetView:
                    and r.accuracy_m > s.delta_m else "")
             bat = ("bad" if r.battery < 0.15 else "near" if r.battery < 0.3 else "")
             ph = _PHASE_STYLE.get(r.phase, "")
-            row = [Text(str(r.vehicle_id)), Text(r.phase, style=ph), Text(_m(r.x_m)),
+            seg = ([Text("—" if r.segment < 0 else f"S{r.segment + 1}")] if route else [])
+            row = [Text(str(r.vehicle_id)), Text(r.phase, style=ph), *seg, Text(_m(r.x_m)),
                    Text(_m(r.y_m)), Text(_m(r.speed_m_s)),
                    Text(_m(r.neighbour_m), style=_STYLE[levels[0]]),
                    Text(_m(r.obstacle_m), style=_STYLE[levels[1]]),
