@@ -306,3 +306,65 @@ def test_a_vehicle_slower_than_v_min_in_the_tube_becomes_an_obstacle(mission) ->
     # v_c + d̂ under the compensation): not lost
     tab, link = _in_tube(mission)
     assert not any(_fly_at(mission, tab, link, [0.0] * (3 * n), dt, moving=v_min))
+
+
+# -- a route ------------------------------------------------------------------------------------
+def test_a_routes_plan_exits_at_the_last_line_and_replans_the_segment_a_vehicle_stopped_in(
+        budget) -> None:
+    """configs/route_mock.toml (three segments): only a vehicle flying the LAST segment exits,
+    at its finishing line; the exit behaviour flies the last segment's n_c; a vehicle stopped
+    in S2 becomes an obstacle of S2 alone (S1's and S3's partitions are the same objects), one
+    stopped in the S1 → S2 junction's overlap of both, one past the route's finishing line of
+    none; commands are the controller's in each vehicle's own segment."""
+    from vtube_fleet.config.mission import load_mission
+
+    mission = load_mission(ROOT / "configs" / "route_mock.toml")
+    sc = mission.scenario
+    plan = FlightPlan.for_mission(mission, budget.inflate(sc.controller))
+    route = plan.route
+    assert route.S == 3 and plan.corridor is sc.corridor
+    last = sc.corridor.segments[-1]
+    eps = plan.flown.eps_0
+    at_end = 0.5 * (last.lh(last.length - eps / 2) + last.lr(last.length - eps / 2))[None]
+    assert plan.exited(at_end, np.array([2])).tolist() == [True]
+    assert plan.exited(at_end, np.array([1])).tolist() == [False]  # not flying the last one
+    assert route.beyond_finish_m(at_end)[0] == pytest.approx(-eps / 2)
+    v, _ = exit_velocities(plan, at_end, view_of([]), stop_distance_m=3.0)
+    np.testing.assert_allclose(v[0], plan.flown.v * last.n_c)
+    # a vehicle stopped in the middle of S2
+    s2 = sc.corridor.segments[1]
+    mid2 = 0.5 * (s2.lh(0.5 * s2.length) + s2.lr(0.5 * s2.length))
+    lost = lost_obstacles(view_of([st(3, *mid2, phase=Phase.HOLDING)]), plan.corridor, 0.8,
+                          plan.flown)
+    new = plan.with_lost(lost)
+    assert len(new.lost) == 1 and plan.with_lost(lost) is new
+    assert [len(s.obstacle_ids) for s in new.route.segments] == [1, 1, 1]
+    assert new.route.segments[1].obstacle_ids == (2,)  # route-numbered after #1, #2
+    assert new.route.segments[0].partition is route.segments[0].partition
+    assert new.route.segments[2].partition is route.segments[2].partition
+    assert new.segments_of_lost(0) == ["S2"]
+    # in the S1 → S2 overlap (on the mitre, 30 % of the way from its inner corner): an
+    # obstacle of both segments; in the middle of the mitre neither can be re-partitioned
+    # around it, and the refusal names the segment
+    inner, outer = sc.corridor.geometry.mitre_corners(0)
+    both = 0.7 * inner + 0.3 * outer
+    assert all(t.contains(both) for t in sc.corridor.segments[:2])
+    lost2 = lost_obstacles(view_of([st(4, *both, phase=Phase.LOST)]), plan.corridor, 0.8,
+                           plan.flown)
+    assert plan.with_lost(lost2).segments_of_lost(0) == ["S1", "S2"]
+    middle = lost_obstacles(view_of([st(4, *(0.5 * (inner + outer)), phase=Phase.LOST)]),
+                            plan.corridor, 0.8, plan.flown)
+    with pytest.raises(PartitionError, match=r"^segment S2: obstacle #3 at \(40.0, 0.0\)"):
+        plan.with_lost(middle)
+    # past the route's last finishing line: not an obstacle (Assumption 2)
+    gone = 0.5 * (last.lh(last.length + 3.0) + last.lr(last.length + 3.0))
+    assert lost_obstacles(view_of([st(5, *gone, phase=Phase.LOST)]), plan.corridor, 0.8,
+                          plan.flown) == ()
+    # commands: the controller's in each vehicle's own segment
+    p = np.array([mid2, [10.0, 0.0]])
+    seg = np.array([1, 0])
+    got = plan.commands(p, [0, 1], seg)
+    _, k = route.locate(p, seg)
+    assert route.segment_of[k].tolist() == [1, 0]
+    ref = velocity_command(p, k, plan.arrays, plan.flown)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)

@@ -359,7 +359,8 @@ class Supervisor:
         why = "; ".join(f"vehicle {p.vehicle_id}: {p.reason}" for p in self.pilots
                         if p.vehicle_id in ids and p.reason)
         self.request_abort(
-            f"cannot re-partition the tube around the lost vehicle(s) "
+            f"cannot re-partition the {'route' if self.plan.route.S > 1 else 'tube'} around "
+            f"the lost vehicle(s) "
             f"{', '.join(map(str, ids))} (in the air at their last known positions, "
             f"each an obstacle of radius r_s + lost_obstacle_margin_m"
             f"{'; ' + why if why else ''}): {exc}")
