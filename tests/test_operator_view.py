@@ -591,3 +591,46 @@ def test_vehicle_rows_from_pilots() -> None:
                                               tube.d_Tr(np.array([[5.0, 2.0]]))[0]))
     assert math.isnan(rows[3].leg_m) and math.isnan(rows[2].link_age_s)
     assert rows[0].link_age_s == pytest.approx(1.0) and rows[1].accuracy_m == 0.05
+
+
+def test_the_table_shows_each_vehicles_route_segment() -> None:
+    """A route of several segments: each row names the segment the vehicle flies (the fleet
+    table's column; a vehicle never sensed: where its position starts), its leg distance is to
+    that segment's legs; a one-segment route has no segment column."""
+    from types import SimpleNamespace
+
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.fleet.budget import SafetyBudget
+    from vtube_fleet.fleet.flight_plan import FlightPlan
+    from vtube_fleet.fleet.view import FleetStatus, FleetView, vehicle_rows
+
+    mission = load_mission(Path(__file__).resolve().parents[1] / "configs" / "route_mock.toml")
+    sc = mission.scenario
+    flown = SafetyBudget.compute(sc.controller, period_s=0.05, latency_s=0.02, dead_time_s=0.3,
+                                 t63_s=1.0).inflate(sc.controller)
+    route = FlightPlan.for_mission(mission, flown).route
+
+    def pilot(i: int, xy: tuple[float, float]) -> Any:
+        state = SimpleNamespace(last_packet_s=99.0, last_heartbeat_s=99.0)
+        return SimpleNamespace(vehicle_id=i, phase=Phase.IN_TUBE, position=lambda: np.array(xy),
+                               vel_xy=np.array([1.0, 0.0]), link=SimpleNamespace(state=state),
+                               position_accuracy_m=lambda: 0.3)
+
+    s2 = sc.corridor.segments[1]
+    mid2 = 0.5 * (s2.lh(10.0) + s2.lr(10.0))
+    pilots = [pilot(0, (10.0, 0.0)), pilot(1, tuple(mid2)), pilot(2, (20.0, 3.0))]
+    rows = vehicle_rows(pilots, route, SafetyLimits(0.3, 0.3, 1.6), np.array([0, 1, -1]),
+                        now_mono=100.0)
+    assert [r.segment for r in rows] == [0, 1, 0]
+    dh, dr = route.leg_distances(mid2[None], np.array([1]))
+    assert rows[1].leg_m == pytest.approx(min(dh[0], dr[0]))
+    tab = FleetView.table(FleetStatus(rows=rows, pair_limit_m=0.6, leg_limit_m=0.3))
+    text = _plain(tab)
+    assert "segment" in next(ln for ln in text.splitlines() if "phase" in ln)
+    body = [ln.split() for ln in text.splitlines() if ln.strip()[:1].isdigit()]
+    assert [r[2] for r in body] == ["S1", "S2", "S1"]
+    single = FlightPlan.for_mission(load_mission(
+        Path(__file__).resolve().parents[1] / "configs" / "mock_fleet.toml"), flown).route
+    rows = vehicle_rows(pilots[:1], single, SafetyLimits(0.3, 0.3, 1.6), now_mono=100.0)
+    assert rows[0].segment == -1
+    assert "segment" not in _plain(FleetView.table(FleetStatus(rows=rows)))
