@@ -146,10 +146,10 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
     sc = mission.scenario
     flown = flown_params(mission)
     r_lost = lost_radius(mission)
-    root = FlightPlan.build(sc.tube, sc.obstacles, flown, keep_out=mission.slots)
-    tri_h = {tr.obstacle: tr.h for tr in root.partition.triangles}
+    root = FlightPlan.for_mission(mission, flown)
+    tri_h = {tr.obstacle: tr.h for tr in root.route.segments[0].partition.triangles}
     fixed = tuple(dataclasses.replace(o, apex_distance=tri_h[i]) if i in tri_h else o
-                  for i, o in enumerate(root.obstacles))  # (as FlightPlan.with_lost)
+                  for i, o in enumerate(root.corridor.obstacles))  # (as Route.with_lost)
     t, pos = nominal_flight(mission, flown, every_s)
     lag = int(round(mission.config.lost_after_s / every_s))
     slope = math.tan(alpha_max(flown))

@@ -91,8 +91,7 @@ def main() -> None:
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml")
     flown = mission_budget(mission, LinkMeasurement(0.0, 0.0, 0.0)).inflate(
         mission.scenario.controller)
-    root = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles, flown,
-                            keep_out=mission.slots)
+    root = FlightPlan.for_mission(mission, flown)
     r_lost = mission.scenario.controller.r_s + mission.config.lost_obstacle_margin_m
     lost = (Obstacle(np.array([8.76, -1.94]), r_lost, LOST_APEX_FACTOR * h_min(r_lost, flown)),)
 
@@ -102,10 +101,11 @@ def main() -> None:
         return root.with_lost(lost)
 
     tmin, tmed, new = _time(replan, args.repeat)
-    how = (f"chosen by the planner: h = {new.partition.apex.h[-1]:.3f} m"
-           if new.partition.apex is not None else "fixed 1.05 h_min")
+    part = new.route.segments[0].partition
+    how = (f"chosen by the planner: h = {part.apex.h[-1]:.3f} m"
+           if part.apex is not None else "fixed 1.05 h_min")
     print(f"re-plan around 1 lost vehicle (mock mission, configured obstacle frozen): "
-          f"min {tmin:.1f} ms, median {tmed:.1f} ms ({new.partition.K} sub-tubes; lost "
+          f"min {tmin:.1f} ms, median {tmed:.1f} ms ({part.K} sub-tubes; lost "
           f"obstacle's h {how}; fixed would be {LOST_APEX_FACTOR * h_min(r_lost, flown):.3f} m)")
 
 

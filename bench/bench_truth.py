@@ -4,10 +4,13 @@ judged by the ground truth (``run --truth``: HIL_STATE_QUATERNION from every moc
     python bench/bench_truth.py                       # mock_fleet + px4_sitl_3, mavlink, 5 seeds
     python bench/bench_truth.py --backend mavsdk --seeds 3 --vehicles 4
     python bench/bench_truth.py --mission configs/px4_sitl_3.toml --seeds 10
+    python bench/bench_truth.py --mission configs/route_mock.toml --seeds 3   # a route
 
-One flight per (mission, seed), one after another (each flight uses the whole machine). Prints
-one line per flight and, per mission, the worst TRUE clearance against each limit: pair (2 r_s),
-legs (r_s), obstacle centre (r_o + r_s). Not part of the tests: it takes about a minute a flight.
+One flight per (mission, seed), one after another (each flight uses the whole machine), the mock
+vehicles on a free UDP port range (other runs may hold PX4's 14540 range). Prints one line per
+flight and, per mission, the worst TRUE clearance against each limit: pair (2 r_s), legs (r_s;
+on a route to the segment each vehicle flies), obstacle centre (r_o + r_s). Not part of the
+tests: it takes about a minute a flight (two and a half for the route).
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from fleet_ports import free_ports  # noqa: E402
 
 from vtube_fleet.config.mission import load_mission  # noqa: E402
 from vtube_fleet.fleet.launch import fly  # noqa: E402
@@ -42,11 +48,13 @@ async def one(path: Path, backend: str, seed: int, vehicles: int | None) -> dict
     with tempfile.TemporaryDirectory() as out:
         result = await fly(mission, backend=backend, out_dir=Path(out), truth=True,
                            mock_kwargs={"boot_time_scale": 0.3, "seed": seed,
-                                        "estimator": "px4-sih"})
+                                        "estimator": "px4-sih",
+                                        "port_scheme": free_ports(mission.count)})
     s = result.summary
     return {"outcome": result.outcome, "exit": result.exit_code, **{k: s.get(k) for k in KEYS},
             "violations": s.get("violations"), "truth_violations": s.get("truth_violations"),
             "delta": s["safety_budget"]["delta_m"], "robots": s.get("robots"),
+            "segments": s.get("segments"), "flight": s.get("flight_time_s"),
             "r_s": s.get("r_s"), "residual_p99": (s.get("estimate_compensation") or {}).get(
                 "residual_p99_m_s")}
 
@@ -69,7 +77,8 @@ def main() -> int:
             r = asyncio.run(one(path, args.backend, seed, args.vehicles))
             rows.append(r)
             print(f"{path.name} {args.backend} seed {seed}: {r['outcome']} (exit {r['exit']}), "
-                  f"{r['robots']} vehicles, δ {r['delta']:.3f} m; TRUE pair "
+                  f"{r['robots']} vehicles, {r['segments']} segment(s), flight "
+                  f"{_f(r['flight'])} s, δ {r['delta']:.3f} m; TRUE pair "
                   f"{_f(r['truth_min_pair_distance_m'])} (airborne "
                   f"{_f(r['truth_min_pair_distance_airborne_m'])}), legs "
                   f"{_f(r['truth_min_left_leg_distance_m'])} / "

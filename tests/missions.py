@@ -95,6 +95,41 @@ altitude_m = 3.0
 """
 
 
+#: A route of two segments: ``{first}`` m along x, a bend of ``{bend_deg}``° to the left, then
+#: ``{second}`` m, 20 m wide (half_width 10; the mitre at the bend); the vehicles of
+#: :data:`FLEET_BLOCK` in ``{positions}``; ``{extra}``: more ``[mission]`` lines.
+ROUTE_2 = """
+[route]
+[[route.waypoints]]
+position = [0.0, 0.0]
+half_width = 10.0
+
+[[route.waypoints]]
+position = [{first}, 0.0]
+half_width = 10.0
+
+[[route.waypoints]]
+position = [{end_x}, {end_y}]
+half_width = 10.0
+
+""" + FLEET_BLOCK + """heading_deg = {heading_deg}
+altitude_m = 3.0
+climb_speed_m_s = 1.5
+on_complete = "land"
+mission_timeout_s = 150.0
+{extra}"""
+
+
+def route_mission(first: float, bend_deg: float, second: float,
+                  positions: list[list[float]], *, heading_deg: float = 20.0,
+                  extra: str = "") -> str:
+    """:data:`ROUTE_2` filled in."""
+    a = math.radians(bend_deg)
+    return ROUTE_2.format(first=first, end_x=first + second * math.cos(a),
+                          end_y=second * math.sin(a), positions=positions,
+                          heading_deg=heading_deg, extra=extra)
+
+
 def straight_mission(length: float, positions: list[list[float]], *,
                      heading_deg: float = 20.0, on_complete: str = "land",
                      extra: str = "") -> str:

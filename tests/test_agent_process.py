@@ -27,17 +27,19 @@ import numpy as np
 import pytest
 from broker import LocalBroker, free_port, require_tool
 from fleet_ports import free_ports
-from missions import straight_mission
+from missions import route_mission, straight_mission
 
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.security import BusSetup, bus_setup
 from vtube_fleet.bus.validate import mission_state_limits
 from vtube_fleet.config.mission import Mission, load_mission
 from vtube_fleet.fleet.distributed.coordinator import (
+    bus_safety_budget,
     default_max_age_s,
     default_mission_id,
     run_cell_m,
 )
+from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.fleet.launch import mock_fleet
 from vtube_fleet.state import Phase
 
@@ -255,14 +257,36 @@ def all_in_tube_past(run: Run, n: int, x_m: float) -> bool:
     )
 
 
+def observed_segments(run: Run) -> list[np.ndarray]:
+    """The route segment each vehicle flies at each sample (0 for a tube): the route the
+    agents plan (the run's δ) with its hand-overs replayed on the states they published while
+    in the tube (``Route.advance``, as the coordinator and ``review`` replay them)."""
+    n = len(run.samples[0].phases) if run.samples else 0
+    sc = run.mission.scenario
+    if not sc.is_route:
+        return [np.zeros(n, np.intp) for _ in run.samples]
+    radii = bus_safety_budget(run.mission, None, default_max_age_s(run.mission)).inflate(
+        sc.controller)
+    route = FlightPlan.for_mission(run.mission, radii).route
+    seg = np.full(n, -1, np.intp)
+    out = []
+    for s in run.samples:
+        flying = np.array([p == "in_tube" for p in s.phases])
+        seg = route.advance(np.where(flying[:, None], s.pos, np.nan), seg)
+        out.append(np.maximum(seg, 0))
+    return out
+
+
 def check_safety(run: Run, *, speeds: bool = True, lost: tuple[int, ...] = ()) -> dict:
     """The fleet issue's safety figures from the mock's GROUND TRUTH (the agents see estimates
-    0.2-0.5 m off it, px4-sih); asserted; returned. The setpoints the vehicles received are
-    summarised (``sp_min``/``sp_max``): they are the controller's command plus the estimate
-    compensation d̂, so their bounds are not [v_min, v_max] — the commanded speeds are checked
-    in the agents' own summaries."""
+    0.2-0.5 m off it, px4-sih); asserted; returned. The legs are those of the segment each
+    vehicle flies (:func:`observed_segments`; a tube: its own). The setpoints the vehicles
+    received are summarised (``sp_min``/``sp_max``): they are the controller's command plus the
+    estimate compensation d̂, so their bounds are not [v_min, v_max] — the commanded speeds are
+    checked in the agents' own summaries."""
     sc = run.mission.scenario
-    r_s, tube = sc.robots.r_s, sc.tube
+    r_s, segs = sc.robots.r_s, sc.corridor.segments
+    flown = observed_segments(run)
     worst = {
         "pair": np.inf,
         "obstacle": np.inf,
@@ -274,7 +298,7 @@ def check_safety(run: Run, *, speeds: bool = True, lost: tuple[int, ...] = ()) -
     }
     prev: list[str | None] = []
     prev2: list[str | None] = []
-    for s in run.samples:
+    for s, seg in zip(run.samples, flown, strict=True):
         ph = np.array([p or "" for p in s.phases])
         truth = s.truth
         airborne = np.isin(ph, ["in_tube", "exited", "lost", "holding", "landing"]) & \
@@ -290,7 +314,11 @@ def check_safety(run: Run, *, speeds: bool = True, lost: tuple[int, ...] = ()) -
             for ob in sc.obstacles:
                 clear = np.hypot(*(p - ob.center).T) - ob.radius
                 worst["obstacle"] = min(worst["obstacle"], float(clear.min()))
-            worst["leg"] = min(worst["leg"], float(tube.d_Th(p).min()), float(tube.d_Tr(p).min()))
+            for k, tube in enumerate(segs):
+                q = p[seg[rows] == k]
+                if len(q):
+                    worst["leg"] = min(worst["leg"], float(tube.d_Th(q).min()),
+                                       float(tube.d_Tr(q).min()))
         # setpoints the vehicles held while in the tube for three samples in a row (the
         # first tube setpoint may arrive a tick after the phase is published)
         if prev2:
@@ -377,6 +405,56 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
         f"{s['flight_time_s']:.1f} s; agents' longest tick gap {1000 * gap:.0f} ms, in the "
         f"tube {1000 * tube_gap:.0f} ms"
     )
+
+
+#: Four vehicles on a route of two segments: 20 m, a 60° bend to the left, 18 m (20 m wide).
+ROUTE_4 = [[2.0, -4.5], [2.0, 0.0], [2.0, 4.5], [6.5, 0.0]]
+
+
+async def test_four_agent_processes_fly_a_route(tmp_path: Path) -> None:
+    """Issue 29: the MQTT agents fly a route (two segments, a 60° bend): every agent hands
+    over S1 → S2 on its own tick and exits at the route's LAST finishing line; judged by the
+    mock's ground truth against the segment each vehicle flies; the coordinator's summary
+    (its monitor replays the hand-overs on the states it heard) and each agent's say 0
+    violations; the coordinator's and an agent's recordings review to their summaries."""
+    from vtube_fleet.recording.review import review
+
+    path = tmp_path / "route_4.toml"
+    path.write_text(route_mission(20.0, 60.0, 18.0, ROUTE_4))
+    n = 4
+    async with fleet_run(tmp_path, n, path) as run:
+        code, err = await finish(await start_coordinator(run, n))
+        codes = [await p.wait() for p in run.agents]
+    assert code == 0, err + run.log_text(0)[-3000:]
+    assert codes == [0] * n, [run.log_text(i)[-1500:] for i, c in enumerate(codes) if c]
+    s = summary(run)
+    assert s["outcome"] == "completed" and s["exited"] == n and s["violations"] == 0
+    assert s["segments"] == 2
+    worst = check_safety(run)
+    # every vehicle flew S1, then S2 (the states it published, replayed), and exited past
+    # the route's last finishing line
+    segs = np.array(observed_segments(run))
+    in_tube = np.array([[p == "in_tube" for p in smp.phases] for smp in run.samples])
+    route = run.mission.scenario.corridor
+    for i in range(n):
+        flown = segs[in_tube[:, i], i]
+        assert flown[0] == 0 and flown[-1] == 1 and (np.diff(flown) >= 0).all(), i
+        out = [k for k in range(1, len(run.samples))  # its first state out of the tube
+               if run.samples[k].phases[i] != "in_tube"
+               and run.samples[k - 1].phases[i] == "in_tube"]
+        assert out and route.past_finish(run.samples[out[0]].pos[i],
+                                         run.mission.scenario.controller.eps_0)[0], i
+    for i in range(n):
+        a = agent_summary(run, i)
+        assert a["outcome"] == "completed" and a["violations"] == 0 and a["segments"] == 2
+    for rec in (run.out / "recording.rrd", tmp_path / "agent-2" / "recording.rrd"):
+        res = review(rec, plots=False)
+        assert res.differences == [], (rec, res.differences)
+        assert res.verdict.safe
+    print(f"\n4 agents on a route: pair {worst['pair']:.3f} m (2 r_s = {s['pair_limit_m']:.2f}), "
+          f"legs {worst['leg']:.3f} m (to each vehicle's segment); coordinator: min legs "
+          f"{s['min_left_leg_distance_m']:.3f} / {s['min_right_leg_distance_m']:.3f} m, flight "
+          f"{s['flight_time_s']:.1f} s")
 
 
 async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_path: Path) -> None:

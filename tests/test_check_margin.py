@@ -31,7 +31,6 @@ from vtube_fleet.fleet.budget import (
     budget_problems,
     mission_budget,
 )
-from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.fleet.launch import fly, mock_fleet
 from vtube_fleet.fleet.margin import margin_note, mission_margin, refusal_note
 from vtube_fleet.fleet.preflight import preflight_report
@@ -48,12 +47,9 @@ def run_refuses(mission: Mission, measured: LinkMeasurement) -> list[str]:
     sc = mission.scenario
     flown = mission_budget(mission, measured).inflate(sc.controller)
     names = [f"vehicle {i}" for i in range(mission.count)]
-    part, problems = preflight_report(mission, flown, mission.slots, names)
-    out += problems
-    if part is not None:
-        plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
-        out += [f"look-ahead {c}" for c in plan.lookahead_conflicts(mission.slots)]
-    elif not problems:
+    route, problems = preflight_report(mission, flown, mission.slots, names)
+    out += problems  # (the apex look-ahead's too)
+    if route is None and not problems:
         out.append("no partition")
     return out
 

@@ -42,7 +42,8 @@ def test_mock_fleet_fence_follows_the_legs_with_the_margin() -> None:
     L = m.scenario.tube.length
     assert g.widen_m == pytest.approx(w)
     assert g.exit_m == pytest.approx(L + m.config.exit_clear_m + w)
-    assert len(g.polygon) == 4  # straight legs: the extensions are collinear, dropped
+    assert len(g.polygons) == 1  # a [tube]: a route of one segment, one polygon
+    assert len(g.polygons[0]) == 4  # straight legs: the extensions are collinear, dropped
     assert g.contains(m.slots).all()
     # just inside / outside the widened left leg (y = 10 + w), mid-tube
     assert g.contains(np.array([20.0, 10.0 + w - 0.01]))
@@ -96,13 +97,82 @@ def test_fence_items_are_the_geometry_in_wgs84(tmp_path: Path) -> None:
                       + MISSION_TABLE + "fence_margin_m = 0.5\n")
     g = fence_geometry(m)
     items = fence_items(m, g)
-    k = len(g.polygon)
+    (poly,) = g.polygons
+    k = len(poly)
     assert [it.command for it in items] == [5001] * k + [5004]
     assert all(it.param1 == k for it in items[:k]) and items[-1].param1 == pytest.approx(0.8)
     x, y = m.frame.geodetic_to_tube(np.array([it.lat_deg for it in items[:k]]),
                                     np.array([it.lon_deg for it in items[:k]]),
                                     m.config.origin_alt_m)[:2]
-    np.testing.assert_allclose(np.column_stack([x, y]), g.polygon, atol=1e-6)
+    np.testing.assert_allclose(np.column_stack([x, y]), poly, atol=1e-6)
+
+
+ROUTE_MOCK = Path(__file__).resolve().parents[1] / "configs" / "route_mock.toml"
+
+
+def _route_points(m, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Random points (tube frame) inside the route's segments, away from the poles' circles,
+    and points outside every widened segment (w + 0.2 m beyond every leg and end) and not
+    past the route's finishing line (where the last polygon goes straight on, exit_m)."""
+    corridor = m.scenario.corridor
+    lo, hi = corridor.bounds()
+    pts = rng.uniform(lo - 8.0, hi + 8.0, size=(20000, 2))
+    r_s = m.scenario.controller.r_s
+    clear = np.ones(len(pts), bool)
+    for ob in corridor.obstacles:
+        clear &= np.hypot(*(pts - ob.center).T) > ob.radius + r_s + 0.01
+    inside = np.zeros(len(pts), bool)
+    far = np.ones(len(pts), bool)
+    w = r_s + m.config.fence_margin_m
+    for t in corridor.segments:
+        inside |= np.asarray(t.contains(pts), bool)
+        far &= ~np.asarray(t.contains(pts, tol=w + 0.2), bool)
+    last = corridor.segments[-1]
+    far &= np.asarray(last.xi(pts), float) < last.length
+    return pts[inside & clear], pts[far]
+
+
+async def test_a_routes_fence_is_one_polygon_per_segment_and_px4_allows_their_union() -> None:
+    """Issue 29: the fence of a route (configs/route_mock.toml, three segments) is one
+    inclusion polygon per segment, uploaded in order before the exclusion circles; the mock
+    vehicle (as PX4: inside ANY inclusion polygon and no exclusion) stores the three polygons
+    and allows every point of every segment — also those of S2 that no other polygon holds —
+    and refuses the points outside every widened segment."""
+    m = load_mission(ROUTE_MOCK)
+    g = fence_geometry(m)
+    items = fence_items(m, g)
+    assert len(g.polygons) == m.scenario.corridor.S == 3
+    sizes = [len(q) for q in g.polygons]
+    assert [it.command for it in items] == [5001] * sum(sizes) + [5004] * 2
+    k = 0
+    for n in sizes:  # each polygon's vertices carry its own count
+        assert [it.param1 for it in items[k:k + n]] == [n] * n
+        k += n
+    assert g.contains(m.slots).all() and g.problems(m.slots, [""] * m.count) == []
+    inside, outside = _route_points(m, np.random.default_rng(3))
+    s1, s2, s3 = (poly_fence.inside_polygon(inside) for poly_fence in g.segments)
+    only_s2 = s2 & ~s1 & ~s3
+    assert g.contains(inside).all() and only_s2.sum() > 100
+    assert not g.contains(outside).any() and len(outside) > 1000
+    assert "outside every segment's fence polygon" in g.problems(outside[:1], ["v"])[0]
+    async with one_vehicle() as (v, link):
+        await link.upload_fence(items)
+        polys, excl, c_in, c_out = v._fence_shapes
+        assert len(polys) == 3 and excl == [] and c_in == [] and len(c_out) == 2
+        lat0, lon0, alt0 = v.origin
+
+        def px4_allows(p: np.ndarray) -> np.ndarray:
+            n, e, _ = m.frame.tube_to_local_ned(p[:, 0], p[:, 1], np.zeros(len(p)),
+                                                lat0, lon0, alt0)
+            return np.array([sim_stub.fence.point_in_fence(float(a), float(b), polys, excl,
+                                                           c_in, c_out)
+                             for a, b in zip(np.atleast_1d(n), np.atleast_1d(e), strict=True)])
+
+        assert px4_allows(inside[only_s2][:300]).all()  # the union: S2 alone holds these
+        assert px4_allows(inside[:300]).all()
+        assert not px4_allows(outside[:300]).any()
+        for ob in m.scenario.obstacles:  # the poles' exclusion circles
+            assert not px4_allows(ob.center[None])[0]
 
 
 # -- sim_stub's protocol over UDP ---------------------------------------------------------------

@@ -169,7 +169,7 @@ def test_a_lasting_residual_above_d_warns_once_a_spike_does_not(mission) -> None
     from vtube_fleet.state import Phase
 
     sc = mission.scenario
-    plan = FlightPlan.build(sc.tube, sc.obstacles, sc.controller)
+    plan = FlightPlan.build(sc.corridor, sc.controller)
     tab = FleetTable([0], mission)
     tab.phase[0] = PHASE_CODE[Phase.IN_TUBE]
     link = _Link()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import gc
 import json
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,7 @@ def check_safety(mission: Mission, trace: list[TickTrace], *, lost: tuple[int, .
     """Recompute the safety figures from the telemetry trace; assert them; return them."""
     sc = mission.scenario
     r_s = sc.robots.r_s
-    tube = sc.tube
+    segs = sc.corridor.segments
     assert trace, "no tick recorded"
     worst = {"pair": np.inf, "obstacle": np.inf, "leg": np.inf, "cmd_min": np.inf,
              "cmd_max": -np.inf, "in_tube_ticks": 0}
@@ -63,7 +64,12 @@ def check_safety(mission: Mission, trace: list[TickTrace], *, lost: tuple[int, .
             for ob in sc.obstacles:
                 dist = np.hypot(*(p - ob.center).T) - ob.radius
                 worst["obstacle"] = min(worst["obstacle"], float(dist.min()))
-            worst["leg"] = min(worst["leg"], float(tube.d_Th(p).min()), float(tube.d_Tr(p).min()))
+            seg = tk.segment[rows]  # the legs of the segment each vehicle flies
+            for k, tube in enumerate(segs):
+                q = p[seg == k]
+                if len(q):
+                    worst["leg"] = min(worst["leg"], float(tube.d_Th(q).min()),
+                                       float(tube.d_Tr(q).min()))
             sp = np.hypot(*tk.cmd[rows].T)
             worst["cmd_min"] = min(worst["cmd_min"], float(sp.min()))
             worst["cmd_max"] = max(worst["cmd_max"], float(sp.max()))
@@ -162,6 +168,56 @@ async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) ->
     assert s["truth_min_pair_distance_m"] > 2 * mission.scenario.robots.r_s
     assert s["estimate_compensation"]["max_correction_m_s"] > 0.1  # px4-sih needs it
     report("mavlink x12", result, worst, truth)
+    _recording_reviews(path, tmp_path, 12)
+
+
+@pytest.mark.timeout(420)
+async def test_12_vehicles_fly_the_route_mission_judged_by_the_truth(tmp_path: Path) -> None:
+    """Issue 29: ``configs/route_mock.toml`` (three segments, bends of 60° and −30°, a pole in
+    S1 and in S3) on 12 mock vehicles with PX4 SITL's estimate errors: every vehicle flies
+    S1 → S2 → S3 in order and exits at the LAST finishing line; the mock's ground truth keeps
+    every limit, the legs judged against the segment each vehicle flies (truth.py); the
+    run's own telemetry and truth streams agree (0 violations); the fence uploaded is one
+    polygon per segment; the recording and ``review`` agree with the run."""
+    from vtube_fleet.fleet.onboard import fence_items
+
+    mission = load_mission(ROOT / "configs" / "route_mock.toml")
+    assert mission.count == 12 and mission.scenario.corridor.S == 3
+    path = tmp_path / "recording.rrd"
+    with open_recorder(path, kind="fleet") as rec:
+        result, sup, log = await fly_logged(mission, 11, tmp_path=tmp_path, truth=True,
+                                            recorder=rec)
+    assert result.exit_code == 0, result.reason
+    s = result.summary
+    assert result.outcome == "completed" and s["exited"] == 12 and s["segments"] == 3
+    assert [v["segment"] for v in s["vehicle_states"]] == ["S3"] * 12
+    assert [v["phase"] for v in s["vehicle_states"]] == ["landed"] * 12
+    # the hand-overs: S1, S2, S3 in this order, never back (from the slots, all in S1)
+    segs = np.array(log.segment)
+    for i in range(12):
+        seen = segs[:, i][segs[:, i] >= 0]
+        assert seen[np.r_[True, seen[1:] != seen[:-1]]].tolist() == [0, 1, 2], i
+    # exits at the route's last finishing line: each vehicle's position at its exit tick
+    route = sup.plan.route
+    eps = sup.plan.flown.eps_0
+    for tk_prev, tk in pairwise(sup.trace):
+        out = [i for i in range(12) if tk_prev.phases[i] == "in_tube"
+               and tk.phases[i] == "exited"]
+        for i in out:
+            assert tk.segment[i] == 2
+            assert route.beyond_finish_m(tk.pos[i])[0] >= -eps - 1e-6
+    # the fence: one inclusion polygon per segment, then the poles' circles
+    items = fence_items(mission)
+    assert s["onboard"]["fence"] == "uploaded" and s["onboard"]["fence_items"] == len(items)
+    groups, k = [], 0
+    while k < len(items) and items[k].command == 5001:
+        groups.append(int(items[k].param1))
+        k += groups[-1]
+    assert len(groups) == 3 and [it.command for it in items[k:]] == [5004, 5004]
+    worst = check_safety(mission, sup.trace)
+    truth = assert_true_clearance(log)
+    assert s["truth"] and s["truth_violations"] == 0 and s["violations"] == 0
+    report("route x12 (3 segments)", result, worst, truth)
     _recording_reviews(path, tmp_path, 12)
 
 

@@ -36,7 +36,7 @@ def budget(mission):
 @pytest.fixture()
 def plan(mission, budget):
     sc = mission.scenario
-    return FlightPlan.build(sc.tube, sc.obstacles, budget.inflate(sc.controller))
+    return FlightPlan.build(sc.corridor, budget.inflate(sc.controller))
 
 
 def st(i, x, y, phase=Phase.IN_TUBE, age=0.0, seq=1, vx=1.0, vy=0.0):
@@ -105,7 +105,7 @@ def test_commands_are_the_controller_output(plan) -> None:
     p = view.points()
     row = int(np.flatnonzero(view.ids() == 0)[0])
     got = plan.commands(p, [row])[0]
-    k = plan.locate(p)  # the flown switching rule: §5 with the apex look-ahead
+    _, k = plan.locate(p)  # the flown switching rule: §5 with the apex look-ahead
     ref = velocity_command(p, k, plan.arrays, plan.flown, rows=[row])[0]
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
     # the barrier acts: the command differs from the one without neighbours
@@ -117,12 +117,12 @@ def test_one_row_equals_the_same_row_of_many(plan) -> None:
     """A vehicle's command does not depend on which other rows are asked for: an MQTT agent
     (its own row) and the supervisor (every row) get the same bits."""
     rng = np.random.default_rng(7)
-    tube = plan.tube
+    tube = plan.corridor.segments[0]
     pts: list[np.ndarray] = []
     while len(pts) < 25:
         q = rng.uniform([0.5, -4.5], [18.5, 4.5])
         if tube.contains(q, tol=-1.0) and all(np.hypot(*(q - r)) > 1.0 for r in pts):
-            if not any(t.contains(q[None], tol=0.0)[0] for t in plan.partition.triangles):
+            if not any(t.contains(q[None], tol=0.0)[0] for t in plan.route.triangles):
                 pts.append(q)
     p = np.array(pts)
     view = view_of([st(i, *p[i]) for i in range(len(p))])
@@ -144,9 +144,10 @@ def test_speed_bounds(plan) -> None:
 
 
 def test_exit_condition(plan) -> None:
-    L = plan.tube.length
+    tube = plan.corridor.segments[0]
+    L = tube.length
     eps = plan.flown.eps_0
-    x_finish = float(plan.tube.p_r1[0])
+    x_finish = float(tube.p_r1[0])
     assert bool(plan.exited(np.array([x_finish - eps / 2, 0.0])))
     assert not bool(plan.exited(np.array([x_finish - 2 * eps, 0.0])))
     assert L == pytest.approx(x_finish)
@@ -154,20 +155,20 @@ def test_exit_condition(plan) -> None:
 
 def test_lost_neighbour_becomes_obstacle_and_repartitions(mission, budget) -> None:
     sc = mission.scenario
-    plan = FlightPlan.build(sc.tube, (), budget.inflate(sc.controller))
+    plan = FlightPlan.build(sc.corridor.with_obstacles(()), budget.inflate(sc.controller))
     view = view_of([st(5, 9.0, 1.0, age=2.0)])  # silent for 2 s > lost_after_s
     assert view.lost_ids.tolist() == [5]
-    new = plan.with_lost(lost_obstacles(view, plan.tube, 0.8, plan.flown))
+    new = plan.with_lost(lost_obstacles(view, plan.corridor, 0.8, plan.flown))
     assert new is not plan
     assert len(new.lost) == 1 and new.lost[0].radius == 0.8
     np.testing.assert_allclose(new.lost[0].center, [9.0, 1.0])
-    assert new.partition.K > plan.partition.K
+    assert new.route.K > plan.route.K
     # the same loss seen by another process: the cached plan, partitioned once
     said = view_of([st(5, 9.0, 1.0, phase=Phase.LOST)])
-    assert plan.with_lost(lost_obstacles(said, plan.tube, 0.8, plan.flown)) is new
+    assert plan.with_lost(lost_obstacles(said, plan.corridor, 0.8, plan.flown)) is new
     # lost outside the tube (past the finishing line): no obstacle, no new partition
     out = view_of([st(6, 25.0, 0.0, phase=Phase.LOST)])
-    assert lost_obstacles(out, plan.tube, 0.8, plan.flown) == ()
+    assert lost_obstacles(out, plan.corridor, 0.8, plan.flown) == ()
     assert plan.with_lost(()) is plan
 
 
@@ -176,14 +177,14 @@ def test_no_valid_partition_raises(plan) -> None:
     # (not even with the fallback: core/loss.py)
     view = view_of([st(5, 6.0, -2.5, phase=Phase.LOST), st(6, 6.0, 2.5, phase=Phase.LOST)])
     with pytest.raises(PartitionError, match="nor with the fallback"):
-        plan.with_lost(lost_obstacles(view, plan.tube, 0.8, plan.flown))
+        plan.with_lost(lost_obstacles(view, plan.corridor, 0.8, plan.flown))
 
 
 def test_exit_velocity_guard(plan) -> None:
     own = np.array([[20.0, 0.0]])
     v = plan.flown.v
     free, blocked = exit_velocities(plan, own, view_of([]), stop_distance_m=3.0)
-    np.testing.assert_allclose(free[0], v * plan.tube.n_c)
+    np.testing.assert_allclose(free[0], v * plan.corridor.segments[-1].n_c)
     assert not blocked[0]
     # a hovering vehicle 2 m ahead in the corridor → stop
     view = view_of([st(1, 22.0, 0.5, phase=Phase.HOLDING, vx=0.0)])
@@ -203,27 +204,28 @@ def test_apex_look_ahead_switches_before_the_barrier(plan) -> None:
     """Heading straight at a triangle's apex, §5 would switch only on the apex line (inside
     r_s' of the triangle side); the flown rule switches within (r_s' + r_a') / sin α ahead of
     it, where the distance to the side's extended line is still r_s' + r_a'."""
-    (z,) = plan.zones
-    part, prm = plan.partition, plan.flown
+    (z,) = plan.route.zones[0]
+    part, prm = plan.route.segments[0].partition, plan.flown
     tri = part.triangles[z.triangle]
-    n_c = plan.tube.n_c
+    n_c = plan.corridor.segments[0].n_c
     assert z.left is not None and z.right is not None
     depth = (prm.r_s + prm.r_a) / math.sin(tri.alpha)
     assert z.depth_m == pytest.approx(min(depth, z.xi_apex))
     for ahead in (0.05, 0.5 * z.depth_m, z.depth_m - 0.01):
         p = tri.p_oth - ahead * n_c  # on the apex's line, upstream of it
         k0 = int(part.locate(p))
-        k = int(plan.locate(p))
+        k = int(plan.locate(p)[1][0])
         assert k0 == z.before and k == z.left  # (a tie on the apex line: left, as §5)
         side = part.sub_tubes[k]
         assert float(side.d_Tr(p)) == pytest.approx(ahead * math.sin(tri.alpha), rel=1e-6)
     entry = tri.p_oth - (z.depth_m - 1e-6) * n_c
     assert float(part.sub_tubes[z.left].d_Tr(entry)) >= prm.r_s + prm.r_a - 1e-5
     before = tri.p_oth - (z.depth_m + 0.01) * n_c
-    assert int(plan.locate(before)) == z.before  # beyond the zone: §5 as printed
+    assert int(plan.locate(before)[1][0]) == z.before  # beyond the zone: §5 as printed
     # the paper's rule exactly when asked (the simulator's)
-    exact = FlightPlan.build(plan.tube, plan.obstacles, prm, lookahead=False)
-    assert exact.zones == () and int(exact.locate(tri.p_oth - 0.5 * n_c)) == z.before
+    exact = FlightPlan.build(plan.corridor, prm, lookahead=False)
+    assert exact.route.zones == ((),)
+    assert int(exact.locate(tri.p_oth - 0.5 * n_c)[1][0]) == z.before
 
 
 # -- a vehicle in offboard that slows below v_min in the tube: lost (an obstacle) ------------------
@@ -306,3 +308,69 @@ def test_a_vehicle_slower_than_v_min_in_the_tube_becomes_an_obstacle(mission) ->
     # v_c + d̂ under the compensation): not lost
     tab, link = _in_tube(mission)
     assert not any(_fly_at(mission, tab, link, [0.0] * (3 * n), dt, moving=v_min))
+
+
+# -- a route ------------------------------------------------------------------------------------
+def test_a_routes_plan_exits_at_the_last_line_and_replans_the_segment_a_vehicle_stopped_in(
+        budget) -> None:
+    """configs/route_mock.toml (three segments): only a vehicle flying the LAST segment exits,
+    at its finishing line; the exit behaviour flies the last segment's n_c; a vehicle stopped
+    in S2 becomes an obstacle of S2 alone (S1's and S3's partitions are the same objects), one
+    stopped in the S1 → S2 junction's overlap of both, one past the route's finishing line of
+    none; commands are the controller's in each vehicle's own segment."""
+    from vtube_fleet.config.mission import load_mission
+
+    mission = load_mission(ROOT / "configs" / "route_mock.toml")
+    sc = mission.scenario
+    plan = FlightPlan.for_mission(mission, budget.inflate(sc.controller))
+    route = plan.route
+    assert route.S == 3 and plan.corridor is sc.corridor
+    last = sc.corridor.segments[-1]
+    eps = plan.flown.eps_0
+    at_end = 0.5 * (last.lh(last.length - eps / 2) + last.lr(last.length - eps / 2))[None]
+    assert plan.exited(at_end, np.array([2])).tolist() == [True]
+    assert plan.exited(at_end, np.array([1])).tolist() == [False]  # not flying the last one
+    assert route.beyond_finish_m(at_end)[0] == pytest.approx(-eps / 2)
+    v, _ = exit_velocities(plan, at_end, view_of([]), stop_distance_m=3.0)
+    np.testing.assert_allclose(v[0], plan.flown.v * last.n_c)
+    # a vehicle stopped in the middle of S2
+    s2 = sc.corridor.segments[1]
+    mid2 = 0.5 * (s2.lh(0.5 * s2.length) + s2.lr(0.5 * s2.length))
+    lost = lost_obstacles(view_of([st(3, *mid2, phase=Phase.HOLDING)]), plan.corridor, 0.8,
+                          plan.flown)
+    new = plan.with_lost(lost)
+    assert len(new.lost) == 1 and plan.with_lost(lost) is new
+    assert [len(s.obstacle_ids) for s in new.route.segments] == [1, 1, 1]
+    assert new.route.segments[1].obstacle_ids == (2,)  # route-numbered after #1, #2
+    assert new.route.segments[0].partition is route.segments[0].partition
+    assert new.route.segments[2].partition is route.segments[2].partition
+    assert new.segments_of_lost(0) == ["S2"]
+    # in the S1 → S2 overlap (on the mitre, 30 % of the way from its inner corner): an
+    # obstacle of both segments; in the middle of the mitre the planner alone cannot
+    # re-partition around it, and the refusal names the segment; the fallback (core/loss.py,
+    # every plan's default) finds a partition whose every segment validates
+    inner, outer = sc.corridor.geometry.mitre_corners(0)
+    both = 0.7 * inner + 0.3 * outer
+    assert all(t.contains(both) for t in sc.corridor.segments[:2])
+    lost2 = lost_obstacles(view_of([st(4, *both, phase=Phase.LOST)]), plan.corridor, 0.8,
+                           plan.flown)
+    assert plan.with_lost(lost2).segments_of_lost(0) == ["S1", "S2"]
+    middle = lost_obstacles(view_of([st(4, *(0.5 * (inner + outer)), phase=Phase.LOST)]),
+                            plan.corridor, 0.8, plan.flown)
+    plain = FlightPlan.for_mission(mission, budget.inflate(sc.controller), replan=None)
+    with pytest.raises(PartitionError, match=r"^segment S2: obstacle #3 at \(40.0, 0.0\)"):
+        plain.with_lost(middle)
+    fallback = plan.with_lost(middle)
+    assert fallback.segments_of_lost(0) and fallback.route.K > route.K
+    # past the route's last finishing line: not an obstacle (Assumption 2)
+    gone = 0.5 * (last.lh(last.length + 3.0) + last.lr(last.length + 3.0))
+    assert lost_obstacles(view_of([st(5, *gone, phase=Phase.LOST)]), plan.corridor, 0.8,
+                          plan.flown) == ()
+    # commands: the controller's in each vehicle's own segment
+    p = np.array([mid2, [10.0, 0.0]])
+    seg = np.array([1, 0])
+    got = plan.commands(p, [0, 1], seg)
+    _, k = route.locate(p, seg)
+    assert route.segment_of[k].tolist() == [1, 0]
+    ref = velocity_command(p, k, plan.arrays, plan.flown)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)

@@ -282,6 +282,61 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     assert res.size == sum(a[1].table.residuals.residuals().size for a in agents) > 0
 
 
+#: nine vehicles in three rows 3 to 12 m before the bend of a route of two segments (14 m, a
+#: 60° bend to the left, 20 m)
+ROUTE_SLOTS = [[x, y] for x in (2.0, 6.5, 11.0) for y in (-4.5, 0.0, 4.5)]
+
+
+async def test_a_route_is_flown_alike_by_the_fleet_and_by_its_agents() -> None:
+    """A route (two segments, a 60° bend): the supervisor's tick over its fleet and one agent
+    per vehicle over a table of one row hand over at the same tick and send the same
+    setpoints, bit for bit, until every vehicle flies the second segment; each vehicle's
+    segment only ever goes forward (S1 → S2), its commands stay in [v_min, v_max], and none
+    exits before the LAST finishing line."""
+    from missions import route_mission
+
+    count, t0 = len(ROUTE_SLOTS), 7000.0
+    sup, links = memory_fleet(count, now_s=t0, text=route_mission(14.0, 60.0, 20.0,
+                                                                  ROUTE_SLOTS))
+    assert sup.plan.route.S == 2
+    agents = _agents(sup, count, t0)
+    a_links = [a[2] for a in agents]
+    period = sup.cfg.period_s
+    flown = sup.plan.flown
+    now = t0
+    jitter = np.random.default_rng(8)
+    segs = []
+    for k in range(700):
+        now += period * (1.0 + 0.3 * jitter.random())
+        for world in (links, a_links):
+            if k % 2 == 0:
+                fly_telemetry(world, 2 * period, now)
+        fleet = sup.ticker(now, now + WALL)
+        for tick, _pilot, _link, bus in agents:
+            bus.fleet = fleet.states
+            tick(now, now + WALL)
+        await asyncio.sleep(0)
+        assert [lk.v_ned for lk in links] == [lk.v_ned for lk in a_links], f"tick {k}"
+        seg = sup.table.segment.copy()
+        assert seg.tolist() == [int(a[1].table.segment[0]) for a in agents], f"tick {k}"
+        segs.append(seg)
+        cmd = [p.cmd_xy for p in sup.pilots if p.cmd_in_tube]
+        speed = np.hypot(*np.array(cmd).T) if cmd else np.zeros(0)
+        assert (speed >= flown.v_min - 1e-9).all() and (speed <= flown.v_max + 1e-9).all()
+        if (seg == 1).all():
+            break
+    segs = np.array(segs)
+    assert (segs[-1] == 1).all(), f"not every vehicle reached S2: {segs[-1].tolist()}"
+    assert (np.diff(segs, axis=0) >= 0).all() and set(np.unique(segs)) == {0, 1}
+    # each starts in the segment its slot lies in (the three slots deep in S2's prolonged
+    # start, 4.5 m left of the axis or 3 m from the waypoint, start in S2)
+    start = sup.plan.route.start_segments(np.array(ROUTE_SLOTS))
+    assert segs[0].tolist() == start.tolist() and 0 < start.sum() < count
+    assert all(p.phase == Phase.IN_TUBE for p in sup.pilots)  # not exited at the junction
+    handed = [int(np.argmax(segs[:, i] == 1)) for i in range(count)]
+    assert len(set(handed)) > 1  # each at its own tick, where its position says
+
+
 async def test_each_fault_rule_finds_its_vehicle() -> None:
     """One tick, many faults at once: every rule finds its vehicle, each takes the first rule
     it hits; a vehicle arming FAILS instead; holding vehicles on the ground are LANDED."""

@@ -123,16 +123,19 @@ def test_the_real_px4_sitl_loss_now_re_partitions():
 def test_flight_plan_with_lost_uses_the_fallback_once():
     """FlightPlan.with_lost calls the core function: the same partition, cached (every agent
     reacting to the same loss partitions once)."""
+    from vtube_fleet.core.route import Corridor
+
     sc, flown, r_lost = PX4
-    root = FlightPlan.build(sc.tube, sc.obstacles, flown)
+    root = FlightPlan.build(Corridor.single(sc.tube, sc.obstacles), flown)
     lost = (lost_at(15.60, -3.15, r_lost, flown),)
     new = root.with_lost(lost)
     ref = partition_around_lost(sc.tube, sc.obstacles, lost, flown)
-    assert new.lost == lost and new.partition.K == ref.K
-    for a, b in zip(new.partition.sub_tubes, ref.sub_tubes, strict=True):
+    part = new.route.segments[0].partition
+    assert new.lost == lost and part.K == ref.K
+    for a, b in zip(part.sub_tubes, ref.sub_tubes, strict=True):
         assert np.allclose(a.polygon(), b.polygon())
     assert root.with_lost(lost) is new
-    assert new.zones  # the apex look-ahead of the flown plan covers the new triangle
+    assert new.route.zones[0]  # the apex look-ahead of the flown plan covers the new triangle
 
 
 # ----------------------------------------------------------------------------------------------

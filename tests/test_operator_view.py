@@ -584,7 +584,7 @@ def test_the_table_fits_100_columns() -> None:
     for v in ("connecting", "-123.45", "-99.99", "10.25", "123.45", "12.34", "10.12", "55 %",
               "T_o12", "999"):
         assert v in text
-    assert len(COLUMNS) == 12  # (a route adds its segment column: tests will say where)
+    assert len(COLUMNS) == 13  # every column shown: a route's segment and a battery
 
 
 def test_live_table_on_a_terminal() -> None:
@@ -604,6 +604,8 @@ def test_live_table_on_a_terminal() -> None:
 def test_vehicle_rows_from_pilots() -> None:
     from types import SimpleNamespace
 
+    from vtube_fleet.core.params import ControllerParams
+    from vtube_fleet.core.route import Corridor, Route
     from vtube_fleet.core.tube import Obstacle, Trapezoid
     from vtube_fleet.fleet.view import vehicle_rows
 
@@ -620,18 +622,15 @@ def test_vehicle_rows_from_pilots() -> None:
               pilot(1, Phase.IN_TUBE, (8.0, 6.0), 99.5),
               pilot(2, Phase.READY, (5.0, 2.5), None),  # on the ground: no neighbour
               pilot(3, Phase.LANDING, (40.0, 6.0), 100.0)]  # out of the tube: no leg
-    from vtube_fleet.core.params import ControllerParams
-    from vtube_fleet.core.partition import partition
-
-    obstacles = [Obstacle(np.array([5.0, 5.0]), 1.0)]
-    part = partition(tube, [Obstacle(np.array([15.0, 5.0]), 1.0)], ControllerParams(
-        r_s=0.25, r_a=0.5, v_min=0.5, v_max=3.5, v=2.0, v_max_prime=1.5))
-    rows = vehicle_rows(pilots, tube, obstacles, SafetyLimits(0.25, 1.0, 2.0),
-                        now_mono=100.0, partition=part)
+    route = Route.plan(Corridor.single(tube, [Obstacle(np.array([5.0, 5.0]), 1.0)]),
+                       ControllerParams(r_s=0.25, r_a=0.5, v_min=1.0, v_max=2.0, v=1.5,
+                                        v_max_prime=0.5), strict=False)
+    rows = vehicle_rows(pilots, route, SafetyLimits(0.25, 1.0, 2.0), now_mono=100.0)
+    # the sub-tube the switching rule puts each vehicle in the tube in (by name)
+    assert route.K > 1
     assert [r.sub_tube for r in rows] == [
-        part.sub_tubes[int(part.locate(np.array([5.0, 2.0])))].name,
-        part.sub_tubes[int(part.locate(np.array([8.0, 6.0])))].name, "", ""]
-    assert part.K > 1
+        route.sub_tubes[int(route.locate(np.array([[5.0, 2.0]]))[1][0])].name,
+        route.sub_tubes[int(route.locate(np.array([[8.0, 6.0]]))[1][0])].name, "", ""]
     assert [r.phase for r in rows] == ["in_tube", "in_tube", "ready", "landing"]
     assert rows[0].speed_m_s == pytest.approx(5.0)
     assert rows[0].neighbour_m == pytest.approx(5.0) and math.isnan(rows[2].neighbour_m)
@@ -641,3 +640,51 @@ def test_vehicle_rows_from_pilots() -> None:
                                               tube.d_Tr(np.array([[5.0, 2.0]]))[0]))
     assert math.isnan(rows[3].leg_m) and math.isnan(rows[2].link_age_s)
     assert rows[0].link_age_s == pytest.approx(1.0) and rows[1].accuracy_m == 0.05
+
+
+def test_the_table_shows_each_vehicles_route_segment() -> None:
+    """A route of several segments: each row names the segment the vehicle flies (the fleet
+    table's column; a vehicle never sensed: where its position starts), its leg distance is to
+    that segment's legs; a one-segment route has no segment column."""
+    from types import SimpleNamespace
+
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.fleet.budget import SafetyBudget
+    from vtube_fleet.fleet.flight_plan import FlightPlan
+    from vtube_fleet.fleet.view import FleetStatus, FleetView, vehicle_rows
+
+    mission = load_mission(Path(__file__).resolve().parents[1] / "configs" / "route_mock.toml")
+    sc = mission.scenario
+    flown = SafetyBudget.compute(sc.controller, period_s=0.05, latency_s=0.02, dead_time_s=0.3,
+                                 t63_s=1.0).inflate(sc.controller)
+    route = FlightPlan.for_mission(mission, flown).route
+
+    def pilot(i: int, xy: tuple[float, float]) -> Any:
+        state = SimpleNamespace(last_packet_s=99.0, last_heartbeat_s=99.0)
+        return SimpleNamespace(vehicle_id=i, phase=Phase.IN_TUBE, position=lambda: np.array(xy),
+                               vel_xy=np.array([1.0, 0.0]), link=SimpleNamespace(state=state),
+                               position_accuracy_m=lambda: 0.3)
+
+    s2 = sc.corridor.segments[1]
+    mid2 = 0.5 * (s2.lh(10.0) + s2.lr(10.0))
+    pilots = [pilot(0, (10.0, 0.0)), pilot(1, tuple(mid2)), pilot(2, (20.0, 3.0))]
+    rows = vehicle_rows(pilots, route, SafetyLimits(0.3, 0.3, 1.6), np.array([0, 1, -1]),
+                        now_mono=100.0)
+    assert [r.segment for r in rows] == [0, 1, 0]
+    dh, dr = route.leg_distances(mid2[None], np.array([1]))
+    assert rows[1].leg_m == pytest.approx(min(dh[0], dr[0]))
+    tab = FleetView.table(FleetStatus(rows=rows, pair_limit_m=0.6, leg_limit_m=0.3))
+    text = _plain(tab)
+    head = text.splitlines()
+    assert "seg-" in head[0] and "ment" in head[1]  # the header: name over unit
+    body = [ln.split() for ln in text.splitlines() if ln.strip()[:1].isdigit()]
+    assert [r[2] for r in body] == ["S1", "S2", "S1"]
+    # the sub-tube within its segment (the switching rule of that segment's partition)
+    _, k = route.locate(np.array([[10.0, 0.0], mid2]), np.array([0, 1]))
+    assert [rows[0].sub_tube, rows[1].sub_tube] == [
+        route.sub_tubes[int(j)].name.split(".", 1)[-1] for j in k]
+    single = FlightPlan.for_mission(load_mission(
+        Path(__file__).resolve().parents[1] / "configs" / "mock_fleet.toml"), flown).route
+    rows = vehicle_rows(pilots[:1], single, SafetyLimits(0.3, 0.3, 1.6), now_mono=100.0)
+    assert rows[0].segment == -1
+    assert "seg-" not in _plain(FleetView.table(FleetStatus(rows=rows)))

@@ -705,8 +705,9 @@ def test_lost_vehicle_repartition_uses_the_planner():
     sc = mission.scenario
     flown = mission_budget(mission, LinkMeasurement(0.0, 0.0, 0.0)).inflate(sc.controller)
     configured = tuple(dataclasses.replace(o, apex_distance="auto") for o in sc.obstacles)
-    root = FlightPlan.build(sc.tube, configured, flown, keep_out=mission.slots)
-    h_root = root.partition.triangles[0].h
+    root = FlightPlan.build(sc.corridor.with_obstacles(configured), flown,
+                            keep_out=mission.slots)
+    h_root = root.route.triangles[0].h
     r = sc.controller.r_s + mission.config.lost_obstacle_margin_m
     fixed = LOST_APEX_FACTOR * h_min(r, flown)
     lost = (Obstacle(np.array([8.76, -1.94]), r, fixed),)
@@ -714,8 +715,9 @@ def test_lost_vehicle_repartition_uses_the_planner():
         partition(sc.tube, [dataclasses.replace(configured[0], apex_distance=h_root), *lost],
                   flown)
     new = root.with_lost(lost)
-    assert new.partition.apex is not None and new.partition.apex.feasible
-    tri = {t.obstacle: t for t in new.partition.triangles}
+    part = new.route.segments[0].partition
+    assert part.apex is not None and part.apex.feasible
+    tri = {t.obstacle: t for t in part.triangles}
     assert tri[0].h == h_root  # frozen
     assert h_min(r, flown) <= tri[1].h != fixed
     assert root.with_lost(lost) is new  # cached: every agent gets the same plan

@@ -433,10 +433,9 @@ def test_check_mission_uses_the_flown_radii(tmp_path, capsys):
     assert rep.budget.delta_m == budget.delta_m > 0
     assert rep.params.r_s == mission.scenario.controller.r_s + budget.delta_m
     assert rep.params.r_a == mission.scenario.controller.r_a + budget.delta_m
-    fleet = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles,
-                             budget.inflate(mission.scenario.controller), keep_out=mission.slots)
+    fleet = FlightPlan.for_mission(mission, budget.inflate(mission.scenario.controller))
     assert [t.polygon().tolist() for t in rep.partition.sub_tubes] == \
-        [t.polygon().tolist() for t in fleet.partition.sub_tubes]
+        [t.polygon().tolist() for t in fleet.route.sub_tubes]
 
     assert main(["check", str(MOCK_FLEET)]) == 0
     out = capsys.readouterr().out
@@ -474,9 +473,8 @@ def test_check_mission_with_auto_apex_flies_the_fleet_partition(tmp_path):
     assert rep.partition is not None and rep.partition.apex is not None, rep.violations
     flown = mission_budget(mission, LinkMeasurement(0.0, 0.0, 0.0)).inflate(
         mission.scenario.controller)
-    fleet = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles, flown,
-                             keep_out=mission.slots)
-    assert rep.partition.apex.h == fleet.partition.apex.h
+    fleet = FlightPlan.for_mission(mission, flown)
+    assert rep.partition.apex.h == fleet.route.segments[0].partition.apex.h
     assert any("(auto)" in line for line in rep.lines)
 
 
@@ -545,6 +543,7 @@ def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
     from vtube_fleet.check import check_file
     from vtube_fleet.fleet.budget import LinkMeasurement, mission_budget
     from vtube_fleet.fleet.flight_plan import FlightPlan
+    from vtube_fleet.fleet.margin import lookahead_violations
 
     mission = write_mission(tmp_path, TAPERED_TWO_OBSTACLES + MISSION_TABLE)
     rep = check_file(tmp_path / "mission.toml", latency_s=0.1, accuracy_m=0.31)
@@ -552,7 +551,6 @@ def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
     flown = mission_budget(mission, LinkMeasurement(0.1, 0.0, 0.31)).inflate(
         mission.scenario.controller)
     assert flown.r_s > 2.0
-    plan = FlightPlan.build(mission.scenario.tube, mission.scenario.obstacles, flown,
-                            keep_out=mission.slots)
-    assert plan.lookahead_conflicts(mission.slots) == []
-    assert [t.h for t in plan.partition.triangles] == [t.h for t in rep.partition.triangles]
+    plan = FlightPlan.for_mission(mission, flown)
+    assert lookahead_violations(plan.route, mission.slots) == []
+    assert [t.h for t in plan.route.triangles] == [t.h for t in rep.partition.triangles]

@@ -6,6 +6,14 @@ own origin) and converts it to the tube frame with the mission's frame. :func:`t
 then measures what the paper's limits are about, while a vehicle is airborne (more than 0.5 m
 up) and inside the tube's length: pair distance > 2 r_s, distance to each leg > r_s, distance to
 each obstacle's centre > r_o + r_s.
+
+On a route the leg distances are those of the TRUE position to the legs of the segment the
+vehicle flies (each tick's ``segment`` of the supervisor's table: which segment's controller,
+and so which trapezoid's guarantee, applies to it — a mode of the controller, not its position
+estimate): the paper's per-segment condition, not a lenient "some segment's legs". Only the
+route's ends bound the judged stretch — behind the first segment's start base and past the last
+one's finishing line (Assumption 2: exited) a vehicle is not judged, as for one tube —; in
+between every airborne vehicle is judged against its segment's legs wherever it is.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ class TruthLog:
     xy: list[np.ndarray] = field(default_factory=list)  # (M, 2) true tube-frame positions
     up: list[np.ndarray] = field(default_factory=list)  # (M,) true height above the origin
     phases: list[tuple[str, ...]] = field(default_factory=list)
+    segment: list[np.ndarray] = field(default_factory=list)  # (M,) the segment each flies
     supervisor: object = None
 
     def __call__(self, tick: int, sup: object) -> None:
@@ -40,17 +49,20 @@ class TruthLog:
         self.xy.append(np.stack((np.atleast_1d(x), np.atleast_1d(y)), axis=1))
         self.up.append(np.atleast_1d(up))
         self.phases.append(tuple(p.phase.value for p in sup.pilots))  # type: ignore[attr-defined]
+        self.segment.append(sup.table.segment.copy())  # type: ignore[attr-defined]
 
 
 def true_clearance(log: TruthLog, lost: tuple[int, ...] = ()) -> dict[str, float]:
     """The worst true clearances of the flight (see the module docstring): ``pair`` (m),
-    ``left_leg``/``right_leg`` (m), ``obstacle`` (centre distance − r_o, m), and how many
-    ticks counted. Vehicles in ``lost`` count as obstacles only while they still fly."""
+    ``left_leg``/``right_leg`` (m, to the legs of each vehicle's segment), ``obstacle``
+    (centre distance − r_o, m) and how many ticks counted. Vehicles in ``lost`` count as
+    obstacles only while they still fly."""
     sc = log.mission.scenario  # type: ignore[attr-defined]
-    tube = sc.tube
+    corridor = sc.corridor
+    segs = corridor.segments
     worst = {"pair": np.inf, "left_leg": np.inf, "right_leg": np.inf, "obstacle": np.inf,
              "ticks": 0}
-    for xy, up, ph in zip(log.xy, log.up, log.phases, strict=True):
+    for xy, up, ph, seg in zip(log.xy, log.up, log.phases, log.segment, strict=True):
         air = np.isin(np.array(ph), AIRBORNE) & (up > 0.5)
         if not air.any():
             continue
@@ -59,11 +71,22 @@ def true_clearance(log: TruthLog, lost: tuple[int, ...] = ()) -> dict[str, float
         if len(q) > 1:
             d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
             worst["pair"] = min(worst["pair"], float(d[np.triu_indices(len(q), 1)].min()))
-        xi = tube.xi(q)
-        inside = (xi >= 0.0) & (xi <= tube.length)
-        if inside.any():
-            worst["left_leg"] = min(worst["left_leg"], float(tube.d_Th(q[inside]).min()))
-            worst["right_leg"] = min(worst["right_leg"], float(tube.d_Tr(q[inside]).min()))
+        # each vehicle judged against its own segment (never assigned yet: where it starts)
+        s_air = np.where(seg[air] >= 0, seg[air], corridor.start_segment_of(q))
+        for s, tube in enumerate(segs):
+            mine = s_air == s
+            if not mine.any():
+                continue
+            p = q[mine]
+            xi = tube.xi(p)
+            inside = np.ones(len(p), bool)
+            if s == 0:
+                inside &= xi >= 0.0  # not behind the route's start base
+            if s == len(segs) - 1:
+                inside &= xi <= tube.length  # not past its finishing line (exited)
+            if inside.any():
+                worst["left_leg"] = min(worst["left_leg"], float(tube.d_Th(p[inside]).min()))
+                worst["right_leg"] = min(worst["right_leg"], float(tube.d_Tr(p[inside]).min()))
         for ob in sc.obstacles:
             worst["obstacle"] = min(worst["obstacle"],
                                     float((np.hypot(*(q - ob.center).T) - ob.radius).min()))

@@ -126,10 +126,10 @@ def _bounds(points: Iterable[Any], margin_m: float) -> tuple[float, float, float
 def mission_state_limits(mission: Any, vehicles: int | None = None, *,
                          margin_m: float = REGION_MARGIN_M) -> StateLimits:
     """The limits of a mission (a ``vtube_fleet.config.mission.Mission``): its slots
-    0..vehicles-1 (default all); as the region its tube and slots ± the larger of ``margin_m``
-    and v_max × ``mission_timeout_s``."""
-    tube = mission.scenario.tube
-    points = [tube.p_h0, tube.p_h1, tube.p_r0, tube.p_r1, *mission.slots]
+    0..vehicles-1 (default all); as the region its route (every segment's corners) and slots ±
+    the larger of ``margin_m`` and v_max × ``mission_timeout_s``."""
+    points = [q for t in mission.scenario.corridor.segments for q in t.polygon()]
+    points += list(mission.slots)
     n = mission.count if vehicles is None else int(vehicles)
     reach = float(mission.scenario.controller.v_max) * float(mission.config.mission_timeout_s)
     return StateLimits(vehicle_ids=frozenset(range(n)),

@@ -28,7 +28,7 @@ import numpy as np
 
 from vtube_fleet.config.keys import NON_NEGATIVE, POSITIVE, Bound, Key, markdown_table, show_value
 from vtube_fleet.config.scenario import PX4_MAX_HORIZONTAL_M_S, Scenario, load_scenario
-from vtube_fleet.core.fence import FenceGeometry, tube_fence
+from vtube_fleet.core.fence import RouteFence, route_fence
 from vtube_fleet.errors import ConfigError
 from vtube_fleet.frames import TubeFrame
 
@@ -397,13 +397,15 @@ class Mission:
         lat, lon, alt = self.frame.tube_to_geodetic(self.slots[:, 0], self.slots[:, 1], 0.0)
         return np.stack(np.broadcast_arrays(lat, lon, alt), axis=-1)
 
-    def fence_geometry(self) -> FenceGeometry:
-        """The mission's PX4 geofence in the tube frame (:func:`~vtube_fleet.core.fence.tube_fence`
-        with the physical r_s, every slot inside, ``fence_margin_m`` and ``exit_clear_m``): what
-        the fleet uploads (``fleet/onboard.py``) and what the recording's map draws."""
+    def fence_geometry(self) -> RouteFence:
+        """The mission's PX4 geofence in the tube frame: the route's outline, one inclusion
+        polygon per segment, and the obstacles' exclusion circles
+        (:func:`~vtube_fleet.core.fence.route_fence` with the physical r_s, every slot inside
+        the first segment, ``fence_margin_m`` and ``exit_clear_m`` past the last): what the fleet
+        uploads (``fleet/onboard.py``) and what the recording's map draws."""
         sc, cfg = self.scenario, self.config
-        return tube_fence(sc.tube, sc.obstacles, sc.controller.r_s, slots=self.slots,
-                          margin_m=cfg.fence_margin_m, exit_clear_m=cfg.exit_clear_m)
+        return route_fence(sc.corridor, sc.controller.r_s, slots=self.slots,
+                           margin_m=cfg.fence_margin_m, exit_clear_m=cfg.exit_clear_m)
 
     def with_vehicles(self, n: int) -> Mission:
         """The same mission flying only the first ``n`` slots."""

@@ -176,12 +176,56 @@ class RouteFence:
     def circle_radii(self) -> np.ndarray:
         return self.segments[0].circle_radii
 
-    def contains(self, x: np.ndarray) -> np.ndarray:
-        """Points (…, 2) the fence allows: inside some polygon, outside every circle."""
+    @property
+    def widen_m(self) -> float:
+        """w = r_s + margin: how far every leg is moved outwards."""
+        return self.segments[0].widen_m
+
+    @property
+    def back_m(self) -> float:
+        """How far the first polygon reaches behind the route's start base."""
+        return self.segments[0].back_m
+
+    @property
+    def exit_m(self) -> float:
+        """How far the last polygon reaches past the route's finishing line."""
+        return self.segments[-1].exit_m
+
+    @property
+    def vertices(self) -> int:
+        """Vertices of all inclusion polygons (PX4 stores each as one fence item)."""
+        return sum(len(f.polygon) for f in self.segments)
+
+    def inside_polygon(self, x: np.ndarray) -> np.ndarray:
+        """Points (…, 2) inside some inclusion polygon (their union, as PX4 judges them)."""
         inside = np.zeros(np.asarray(x).shape[:-1], dtype=bool)
         for f in self.segments:
             inside |= f.inside_polygon(x)
-        return inside & ~self.segments[0].inside_exclusion(x)
+        return inside
+
+    def contains(self, x: np.ndarray) -> np.ndarray:
+        """Points (…, 2) the fence allows: inside some polygon, outside every circle."""
+        return self.inside_polygon(x) & ~self.segments[0].inside_exclusion(x)
+
+    def problems(self, x: np.ndarray, names: Sequence[str]) -> list[str]:
+        """One line per point of ``x`` (M, 2) the fence would not allow (vehicles before
+        arming: PX4 would breach at once); one segment: :meth:`FenceGeometry.problems`."""
+        if len(self.segments) == 1:
+            return self.segments[0].problems(x, names)
+        pts = np.asarray(x, dtype=float).reshape(-1, 2)
+        out = []
+        poly_in = self.inside_polygon(pts)
+        excl = self.segments[0].inside_exclusion(pts)
+        for i, p in enumerate(pts):
+            if not poly_in[i]:
+                out.append(f"{names[i]} at {point_text(p)} is outside every segment's fence "
+                           f"polygon (legs widened by {compact_number(self.widen_m)} m, "
+                           f"{compact_number(self.back_m)} m behind the route's start base, "
+                           f"{compact_number(self.exit_m)} m past its finishing line)")
+            elif excl[i]:
+                out.append(f"{names[i]} at {point_text(p)} is inside an obstacle's exclusion "
+                           f"circle")
+        return out
 
 
 def route_fence(corridor: Any, r_s: float, *, slots: np.ndarray | None = None,

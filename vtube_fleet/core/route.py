@@ -66,6 +66,7 @@ __all__ = [
     "Corridor",
     "Junction",
     "JunctionCheck",
+    "ReplanFn",
     "Route",
     "RouteError",
     "RouteGeometry",
@@ -453,6 +454,31 @@ class Corridor:
         return np.where(inside.any(axis=1), inside.argmax(axis=1),
                         viol.argmin(axis=1)).astype(np.intp)
 
+    def inside(self, p: np.ndarray, eps_0: float | None = None) -> np.ndarray:
+        """(M,) whether each point (M, 2) lies in some segment's trapezoid (closed): in the
+        route. With ``eps_0``, a point of the last segment alone counts only before its
+        finishing line ((TraCondition) not yet met): a point the route's controller still
+        flies (a lost vehicle there is an obstacle; past the line, Assumption 2, it is not)."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        segs = self.segments
+        before = np.zeros(p.shape[0], bool)
+        for t in segs[:-1]:
+            before |= np.asarray(t.contains(p), bool).reshape(-1)
+        last = np.asarray(segs[-1].contains(p), bool).reshape(-1)
+        if eps_0 is not None:
+            last &= ~np.asarray(segs[-1].finished(p, eps_0), bool).reshape(-1)
+        return before | last
+
+    def past_finish(self, p: np.ndarray, eps_0: float) -> np.ndarray:
+        """(M,) (TraCondition) of the LAST segment met by points (M, 2) that lie in no earlier
+        segment: past the route's finishing line, by position alone (a judge that does not
+        know the vehicles' segments: an exit seen from outside)."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        done = np.asarray(self.last.finished(p, eps_0), bool).reshape(-1)
+        for t in self.segments[:-1]:
+            done &= ~np.asarray(t.contains(p), bool).reshape(-1)
+        return done
+
     def with_obstacles(self, obstacles: Sequence[Obstacle]) -> Corridor:
         return Corridor(self.geometry, tuple(obstacles))
 
@@ -740,6 +766,19 @@ class Route:
             return done
         return done & (np.asarray(segment).reshape(np.shape(done)) == self.S - 1)
 
+    @property
+    def exit_heading(self) -> np.ndarray:
+        """n_c of the LAST segment: the direction a vehicle past the route's finishing line
+        flies on (Assumption 2)."""
+        return self.segments[-1].tube.n_c
+
+    def beyond_finish_m(self, p: np.ndarray) -> np.ndarray:
+        """(M,) how far each point (M, 2) is past the LAST segment's finishing line along its
+        n_c (ξ − L of the last segment; < 0 before it)."""
+        last = self.segments[-1].tube
+        return np.asarray(last.xi(np.asarray(p, dtype=float).reshape(-1, 2)), float) \
+            - last.length
+
     # ----- the switching rule -----------------------------------------------------------
     def start_segments(self, p: np.ndarray) -> np.ndarray:
         """The segment each point (M, 2) starts in: the first segment whose trapezoid contains
@@ -823,9 +862,9 @@ class Route:
 
     def follow(self, pos: np.ndarray) -> np.ndarray:
         """(T, M) the segment of every point of a trajectory ``pos`` (T, M, 2) (NaN rows:
-        absent), the hand-overs replayed frame by frame from the segment each point starts in
-        (:meth:`start_segments` at its first frame): what ``review`` judges each leg distance
-        against."""
+        absent), the hand-overs replayed frame by frame (:meth:`advance`) from the segment each
+        point starts in (:meth:`start_segments` at its first frame): what ``review`` judges
+        each leg distance against."""
         pos = np.asarray(pos, dtype=float)
         T, M = pos.shape[:2]
         out = np.zeros((T, M), dtype=np.intp)
@@ -833,16 +872,29 @@ class Route:
             return out
         seg = np.full(M, -1, dtype=np.intp)
         for t in range(T):
-            p = pos[t]
-            here = np.isfinite(p).all(axis=1)
-            new = here & (seg < 0)
-            if new.any():
-                seg[new] = self.start_segments(p[new])
-            old = here & ~new
-            if old.any():
-                seg[old] = self.handover(p[old], seg[old])
+            seg = self.advance(pos[t], seg)
             out[t] = np.maximum(seg, 0)
         return out
+
+    def advance(self, p: np.ndarray, segment: np.ndarray) -> np.ndarray:
+        """One frame of :meth:`follow`: the segments (M,) after points p (M, 2) were seen
+        flying ``segment`` (M,; −1: not seen yet): a point seen for the first time starts in
+        :meth:`start_segments`, the others hand over (:meth:`handover`); absent points (NaN
+        rows) keep theirs. Returns a new array. The runtime's hand-over state (the fleet's
+        segment column, the coordinator's replay) advances by this."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        seg = np.array(segment, dtype=np.intp).reshape(-1)
+        if self.S == 1:
+            seg[np.isfinite(p).all(axis=1)] = 0
+            return seg
+        here = np.isfinite(p).all(axis=1)
+        new = here & (seg < 0)
+        if new.any():
+            seg[new] = self.start_segments(p[new])
+        old = here & ~new
+        if old.any():
+            seg[old] = self.handover(p[old], seg[old])
+        return seg
 
     def tracker(self, p0: np.ndarray) -> RouteTracker:
         """A :class:`RouteTracker` (the simulator's incremental :meth:`locate`)."""

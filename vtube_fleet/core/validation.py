@@ -581,35 +581,46 @@ class RouteValidation:
 
 def validate_route(corridor: Corridor, params: ControllerParams,
                    positions: np.ndarray | None = None, keep_out: np.ndarray | None = None,
-                   *, lookahead: bool = False) -> RouteValidation:
+                   *, lookahead: bool = False, route: Route | None = None) -> RouteValidation:
     """Check a route: for one segment exactly :func:`validate_scenario`; for several, the
     paper's conditions per segment (Constraint2, Assumption3, its partition with Remark 6's
     planner, Assumption3'/Constraint3 of its sub-tubes; messages name the segment and the
     obstacles by their route numbers), (pothk), Constraint1, the junction conditions
     Junction1–5 and Assumption 1 of ``positions`` each in the segment it starts in.
     ``lookahead``: the route is flown with the apex look-ahead (Junction2 keeps its zones
-    clear of the hand-over too)."""
+    clear of the hand-over too). ``route``: the route already planned for these parameters
+    (its partitions are not planned again: the fleet at altitude checks the flown positions
+    against the route it planned on the ground)."""
     keep = positions if keep_out is None else keep_out
+    planned = None if route is None else [s.partition for s in route.segments]
     if corridor.is_single:
         part, violations = validate_scenario(corridor.tube, corridor.obstacles, params,
-                                             positions, keep_out)
-        route = None if part is None else Route.from_partitions(corridor, params, [part],
-                                                                lookahead=lookahead)
-        return RouteValidation(route, tuple(violations))
+                                             positions, keep_out,
+                                             part=None if planned is None else planned[0])
+        if route is None and part is not None:
+            route = Route.from_partitions(corridor, params, [part], lookahead=lookahead)
+        return RouteValidation(None if part is None else route, tuple(violations))
     violations = _check_parameters(params)
     sane = not violations
     if all(math.isfinite(float(x)) for x in (params.v, params.v_max_prime, params.v_min,
                                             params.v_max)):
         violations += _check_constraint1(params)
-    route: Route | None = None
     checks: list[JunctionCheck] = []
-    if sane:
-        parts = []
+    if not sane:
+        route = None
+    else:
+        parts: list[Partition | None] = []
         for s, tube in enumerate(corridor.segments):
             label = f"segment S{s + 1}"
             violations += check_constraint2(tube, params, "Constraint2", label)
             violations += check_assumption3(tube, params, "Assumption3", label)
             ids, obs = corridor.segment_obstacles(s)
+            if planned is not None:
+                parts.append(planned[s])
+                violations += [dataclasses.replace(w, message=f"{label}: "
+                                                   + renumber_obstacles(w.message, ids))
+                               for w in planned[s].warnings]
+                continue
             try:
                 part = partition(tube, obs, params, strict=False,
                                  keep_out=segment_keep_out(corridor, s, params, keep))
@@ -624,8 +635,10 @@ def validate_route(corridor: Corridor, params: ControllerParams,
                 parts.append(part)
         violations += _check_pothk(corridor.obstacles, params)
         violations += obstacle_ownership(corridor, float(params.r_s))
-        if all(p is not None for p in parts):
-            route = Route.from_partitions(corridor, params, parts, lookahead=lookahead)
+        if route is None and all(p is not None for p in parts):
+            route = Route.from_partitions(corridor, params, parts,  # type: ignore[arg-type]
+                                          lookahead=lookahead)
+        if route is not None:
             checks = junction_checks(route)
             for c in checks:
                 violations += list(c.violations)

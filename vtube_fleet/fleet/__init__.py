@@ -1,7 +1,8 @@
 """The fleet: the control tick, pilots and the asyncio supervisor (``vtube-fleet run``).
 
 * :mod:`~vtube_fleet.config.mission`: mission files (a scenario plus ``[mission]``);
-* :mod:`~vtube_fleet.fleet.flight_plan`: the flight plan (tube, obstacles, flown radii, partition);
+* :mod:`~vtube_fleet.fleet.flight_plan`: the flight plan (the planned route: its segments,
+  obstacles, flown radii, partitions);
 * :mod:`~vtube_fleet.fleet.neighbour_view`: vehicle states as a table, the neighbour view;
 * :mod:`~vtube_fleet.fleet.table`: the tick state of the vehicles a process flies;
 * :mod:`~vtube_fleet.fleet.tick`: THE control tick (one vehicle or a thousand) and its clock;

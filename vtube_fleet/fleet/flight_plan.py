@@ -1,12 +1,18 @@
-"""The flight plan every vehicle of a mission shares: the tube, its obstacles, the flown radii
-and the partition into sub-tubes, re-planned around vehicles that stopped in it.
+"""The flight plan every vehicle of a mission shares: the planned route (each segment
+partitioned into sub-tubes around its obstacles, with the flown radii), re-planned around
+vehicles that stopped in it.
 
-:class:`FlightPlan` answers the tick's geometric questions (:mod:`vtube_fleet.fleet.tick`): the
-switching rule (ObstacleController) with the apex look-ahead (:meth:`FlightPlan.locate`), the
-controller's commands for any rows of the swarm (:meth:`FlightPlan.commands`, ModifiedVectorField),
-(TraCondition) on the main tube (:meth:`FlightPlan.exited`), and the partition with lost-vehicle
-obstacles (:meth:`FlightPlan.with_lost`, :func:`lost_obstacles`). :func:`exit_velocities` is what a
-vehicle past the finishing line flies (Assumption 2: it no longer follows the controller).
+:class:`FlightPlan` wraps one :class:`~vtube_fleet.core.route.Route` (a ``[tube]`` is a route of
+one segment: the same partition, switching, commands and exits as before routes, bit for bit)
+and answers the tick's geometric questions (:mod:`vtube_fleet.fleet.tick`) for any rows of the
+swarm, each with its segment — the hand-over state the caller keeps (the table's ``segment``
+column) and passes back: the hand-over (:meth:`FlightPlan.advance`), the switching rule
+(ObstacleController) with the apex look-ahead (:meth:`FlightPlan.locate`), the controller's
+commands (:meth:`FlightPlan.commands`, ModifiedVectorField), (TraCondition) on the route's
+LAST finishing line (:meth:`FlightPlan.exited`), and the route with lost-vehicle obstacles
+(:meth:`FlightPlan.with_lost`, :func:`lost_obstacles`: each in whichever segment it stopped).
+:func:`exit_velocities` is what a vehicle past the finishing line flies (Assumption 2: it no
+longer follows the controller; straight on along the last segment's n_c).
 
 The flown radii come from the safety budget (:mod:`vtube_fleet.fleet.budget`): the plan's
 ``flown`` parameters are the configured ones inflated by δ.
@@ -14,10 +20,8 @@ The flown radii come from the safety budget (:mod:`vtube_fleet.fleet.budget`): t
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -26,17 +30,12 @@ from vtube_fleet.core.controller import TubeArrays, velocity_command
 from vtube_fleet.core.loss import cannot_pass, partition_around_lost
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
-from vtube_fleet.core.partition import (
-    ApexZone,
-    Partition,
-    apex_lookahead,
-    apex_zones,
-    h_min,
-    partition,
-)
-from vtube_fleet.core.tube import Obstacle, Trapezoid
+from vtube_fleet.core.partition import h_min
+from vtube_fleet.core.route import Corridor, ReplanFn, Route
+from vtube_fleet.core.tube import Obstacle
 
 if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.config.mission import Mission
     from vtube_fleet.fleet.neighbour_view import NeighbourView
 
 __all__ = ["LOST_APEX_FACTOR", "FlightPlan", "exit_velocities", "lost_obstacles"]
@@ -46,80 +45,79 @@ _EMPTY_POS = np.zeros((0, 2))
 
 @dataclass(frozen=True, eq=False)
 class FlightPlan:
-    """What all agents share: the main tube, the configured obstacles, the obstacles left by
-    LOST vehicles, the controller parameters ``flown`` (r_s', r_a': the physical radii inflated
-    by the safety budget) and the partition of the tube around all obstacles (Section IV-A).
+    """What all agents share: the planned ``route`` (its corridor — segments and configured
+    obstacles —, the controller parameters ``flown`` (r_s', r_a': the physical radii inflated
+    by the safety budget) it was planned with, each segment's partition, the obstacles left by
+    LOST vehicles) and the controller ``kind``.
 
-    :meth:`with_lost` recomputes the partition online; results are cached per set of lost
-    obstacles and shared by every plan derived from the same root, so N agents reacting to the
-    same loss partition once.
+    :meth:`with_lost` re-plans the segments a lost vehicle's obstacle meets
+    (:meth:`Route.with_lost <vtube_fleet.core.route.Route.with_lost>`, each segment by
+    ``replan``; None: its default rule); results are cached per set of lost obstacles and
+    shared by every plan derived from the same root, so N agents reacting to the same loss
+    re-plan once.
     """
 
-    tube: Trapezoid
-    obstacles: tuple[Obstacle, ...]
-    flown: ControllerParams
-    partition: Partition
-    lost: tuple[Obstacle, ...] = ()
+    route: Route
     kind: str = "new"
     _cache: dict[tuple, FlightPlan] = field(default_factory=dict, repr=False)
-    #: the apex look-ahead zones of the switching rule (:func:`~vtube_fleet.core.partition.
-    #: apex_zones`; empty: the paper's §5 rule exactly)
-    zones: tuple[ApexZone, ...] = ()
-    lookahead: bool = True
+    #: the re-plan of one segment around lost vehicles (``Route.with_lost``'s ``replan``):
+    #: today's rules, then the grouping fallback (:func:`~vtube_fleet.core.loss.
+    #: partition_around_lost`)
+    replan: ReplanFn | None = partition_around_lost
 
     @classmethod
     def build(
         cls,
-        tube: Trapezoid,
-        obstacles: Sequence[Obstacle],
+        corridor: Corridor,
         params: ControllerParams,
         *,
         kind: str = "new",
-        part: Partition | None = None,
+        route: Route | None = None,
         lookahead: bool = True,
         keep_out: np.ndarray | None = None,
+        replan: ReplanFn | None = partition_around_lost,
     ) -> FlightPlan:
-        """Partition (raises :class:`~vtube_fleet.core.partition.PartitionError`) and wrap.
-        ``lookahead``: switch sub-tubes ahead of apexes (vehicles with response lag);
-        ``keep_out``: the points ``"auto"`` apex distances keep out of the triangles (the
-        mission's start slots, the same in every process)."""
-        obstacles = tuple(obstacles)
-        if part is None:
-            part = partition(tube, obstacles, params, keep_out=keep_out)
-        zones = apex_zones(part, params) if lookahead else ()
-        plan = cls(tube, obstacles, params, part, (), kind, zones=zones, lookahead=lookahead)
+        """Plan ``corridor`` with ``params`` (raises
+        :class:`~vtube_fleet.core.partition.PartitionError` naming the segment and the
+        obstacle) and wrap; ``route``: already planned (not planned again). ``lookahead``:
+        switch sub-tubes ahead of apexes (vehicles with response lag); ``keep_out``: the points
+        ``"auto"`` apex distances keep out of the triangles (the mission's start slots, the
+        same in every process)."""
+        if route is None:
+            route = Route.plan(corridor, params, keep_out=keep_out, lookahead=lookahead)
+        plan = cls(route, kind, replan=replan)
         plan._cache[()] = plan
         return plan
 
-    @cached_property
+    @classmethod
+    def for_mission(cls, mission: Mission, flown: ControllerParams, **kw: Any) -> FlightPlan:
+        """The plan of ``mission`` flown with ``flown``: its corridor, ``"auto"`` apex
+        distances planned on its start slots (every process of a run plans the same)."""
+        return cls.build(mission.scenario.corridor, flown, keep_out=mission.slots, **kw)
+
+    # -- what the plan is ----------------------------------------------------------------
+    @property
+    def flown(self) -> ControllerParams:
+        """The controller parameters flown (r_s', r_a')."""
+        return self.route.params
+
+    @property
+    def corridor(self) -> Corridor:
+        return self.route.corridor
+
+    @property
+    def lost(self) -> tuple[Obstacle, ...]:
+        """The obstacles left by lost vehicles (route-numbered after the configured ones)."""
+        return self.route.lost
+
+    @property
+    def lookahead(self) -> bool:
+        return self.route.lookahead
+
+    @property
     def arrays(self) -> TubeArrays:
-        """The partition's sub-tubes stacked for the controller (built once per plan)."""
-        return TubeArrays.from_tubes(self.partition.sub_tubes)
-
-    def locate(self, p: np.ndarray) -> np.ndarray:
-        """The sub-tube of points (..., 2): the switching rule (ObstacleController), with the
-        apex look-ahead of the flown plan."""
-        p = np.asarray(p, dtype=float)
-        k = np.asarray(self.partition.locate(p))
-        if not self.zones:
-            return k
-        return apex_lookahead(self.partition, self.zones, p, k).reshape(k.shape)
-
-    def lookahead_conflicts(self, p: np.ndarray) -> list[tuple[int, int, float]]:
-        """Points (M, 2) that the apex look-ahead puts into a side tube at most r_s (flown)
-        from its legs (they would start inside the barrier): (row, sub-tube, distance)."""
-        p = np.asarray(p, dtype=float).reshape(-1, 2)
-        if not self.zones or not p.shape[0]:
-            return []
-        k0 = np.asarray(self.partition.locate(p)).reshape(-1)
-        k1 = self.locate(p).reshape(-1)
-        out = []
-        for i in np.flatnonzero(k0 != k1):
-            t = self.partition.sub_tubes[int(k1[i])]
-            d = min(float(t.d_Th(p[i])), float(t.d_Tr(p[i])))
-            if d <= self.flown.r_s:
-                out.append((int(i), int(k1[i]), d))
-        return out
+        """Every segment's sub-tubes stacked for the controller (built once per route)."""
+        return self.route.arrays
 
     @property
     def neighbour_radius_m(self) -> float:
@@ -128,48 +126,34 @@ class FlightPlan:
 
     @property
     def all_obstacles(self) -> tuple[Obstacle, ...]:
-        return self.obstacles + self.lost
+        return self.route.obstacles
 
-    def with_lost(self, lost: Sequence[Obstacle]) -> FlightPlan:
-        """The plan with these lost-vehicle obstacles (replacing any previous ones).
+    # -- the hand-over and the switching rule ---------------------------------------------
+    def advance(self, p: np.ndarray, segment: np.ndarray) -> np.ndarray:
+        """The segments (M,) after points p (M, 2) flying ``segment`` (−1: not yet assigned:
+        the segment its position starts in) were seen here: the hand-over
+        (:meth:`Route.advance <vtube_fleet.core.route.Route.advance>`)."""
+        return self.route.advance(p, segment)
 
-        The configured obstacles keep the apex distances of this plan (``"auto"`` ones are not
-        re-planned under flying vehicles); a lost-vehicle obstacle gets
-        ``LOST_APEX_FACTOR`` × h_min, and only if that partition fails, h_k chosen by the
-        planner (core/plan.py), and only if that fails too, the lost vehicle grouped with the
-        obstacles near it (:func:`~vtube_fleet.core.loss.partition_around_lost`; all
-        deterministic, so every agent gets the same partition)."""
-        lost = tuple(lost)
-        key = tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
-                     round(float(o.radius), 6)) for o in lost)
-        hit = self._cache.get(key)
-        if hit is None:
-            tri_h = {t.obstacle: t.h for t in self.partition.triangles}
-            fixed = tuple(dataclasses.replace(ob, apex_distance=tri_h[i])
-                          if isinstance(ob.apex_distance, str) and i in tri_h else ob
-                          for i, ob in enumerate(self.obstacles))
-            part = partition_around_lost(self.tube, fixed, lost, self.flown)
-            zones = apex_zones(part, self.flown) if self.lookahead else ()
-            hit = FlightPlan(self.tube, self.obstacles, self.flown, part, lost, self.kind,
-                             self._cache, zones, self.lookahead)
-            self._cache[key] = hit
-        return hit
+    def locate(self, p: np.ndarray, segment: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(segment (M,), global sub-tube (M,)) of points (M, 2) flying ``segment`` (None:
+        the segments they start in): the hand-over, then the switching rule
+        (ObstacleController) of each one's segment, with the apex look-ahead of the flown
+        plan."""
+        return self.route.locate(p, segment)
 
-    def cannot_pass(self, p: np.ndarray) -> np.ndarray:
-        """Points (M, 2) inside the region this plan's partition takes around its obstacles
-        (:func:`~vtube_fleet.core.loss.cannot_pass`): no safe sub-tube for a vehicle there."""
-        p = np.asarray(p, dtype=float).reshape(-1, 2)
-        if not p.shape[0]:
-            return np.zeros(0, bool)
-        return cannot_pass(self.partition, p, self.zones)
+    def exited(self, p: np.ndarray, segment: np.ndarray | None = None) -> np.ndarray:
+        """(TraCondition) on the route's LAST finishing line, for points flying the last
+        segment: −n_cᵀ(p − p_r1) ≤ ε_0 → (M,) bool (``segment`` None: a one-segment route)."""
+        return self.route.finished(p, segment)
 
-    def exited(self, p: np.ndarray) -> np.ndarray:
-        """(TraCondition) on the MAIN tube: −n_cᵀ(p − p_r1) ≤ ε_0 → (…,) bool."""
-        return self.tube.finished(p, self.flown.eps_0)
-
-    def commands(self, p: np.ndarray, rows: Sequence[int] | np.ndarray) -> np.ndarray:
+    def commands(self, p: np.ndarray, rows: Sequence[int] | np.ndarray,
+                 segment: np.ndarray | None = None) -> np.ndarray:
         """The controller's commands (len(rows), 2) for robots ``rows`` of the swarm ``p``
-        (M, 2): sub-tubes by :meth:`Partition.locate`, then ``velocity_command``.
+        (M, 2), each flying ``segment[k]`` (len(rows),; None: the segment it starts in):
+        sub-tubes by :meth:`locate`, then ``velocity_command`` over the route's stacked
+        sub-tubes (pairs do not care about segments, paper note 6).
 
         The pair candidates are the pairs within r_s + r_a (:func:`pairs_within`, a k-d tree;
         u2 is exactly 0 beyond, (Vmij)): the same for one row (an MQTT agent) and for many (a
@@ -178,7 +162,8 @@ class FlightPlan:
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         if rows.size == 0:
             return _EMPTY_POS.copy()
-        k = np.asarray(self.locate(p), dtype=np.int64)
+        seg = None if segment is None else np.asarray(segment, dtype=np.intp).reshape(-1)
+        _, k = self.locate(p[rows], seg)
         extra: dict[str, Any] = {}
         if self.kind == "apf":
             extra["obstacles"] = self.all_obstacles
@@ -191,6 +176,51 @@ class FlightPlan:
             dtype=float,
         ).reshape(-1, 2)
 
+    # -- lost vehicles ---------------------------------------------------------------------
+    def with_lost(self, lost: Sequence[Obstacle]) -> FlightPlan:
+        """The plan with these lost-vehicle obstacles (replacing any previous ones): every
+        segment the obstacle's O' meets is re-partitioned (one stopped in a junction's overlap
+        belongs to both), by ``replan`` (default: :func:`~vtube_fleet.core.loss.
+        partition_around_lost`: the configured obstacles keep the apex distances of this plan
+        — ``"auto"`` ones are not re-planned under flying vehicles —, a lost-vehicle obstacle
+        gets ``LOST_APEX_FACTOR`` × h_min; if that partition fails, h_k chosen by the planner,
+        core/plan.py; if that fails too, the lost vehicle grouped with the obstacles near it:
+        all deterministic, so every agent gets the same partition)."""
+        lost = tuple(lost)
+        key = tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
+                     round(float(o.radius), 6)) for o in lost)
+        hit = self._cache.get(key)
+        if hit is None:
+            route = self.route.with_lost(lost, replan=self.replan)
+            hit = FlightPlan(route, self.kind, self._cache, self.replan)
+            self._cache[key] = hit
+        return hit
+
+    def cannot_pass(self, p: np.ndarray, segment: np.ndarray | None = None) -> np.ndarray:
+        """Points (M, 2) flying ``segment`` (M,) (None or −1: the segments they start in) inside the
+        region their segment's partition takes around its obstacles
+        (:func:`~vtube_fleet.core.loss.cannot_pass`): no safe sub-tube for a vehicle there."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        out = np.zeros(p.shape[0], bool)
+        if not p.shape[0]:
+            return out
+        seg = (np.full(p.shape[0], -1, np.intp) if segment is None
+               else np.asarray(segment, dtype=np.intp).reshape(-1).copy())
+        if (seg < 0).any():  # not yet assigned: the segment its position starts in
+            seg[seg < 0] = self.route.start_segments(p[seg < 0])
+        zones = self.route.zones
+        for s in np.unique(seg).tolist():
+            rows = np.flatnonzero(seg == s)
+            part = self.route.segments[int(s)].partition
+            out[rows] = cannot_pass(part, p[rows], zones[int(s)] if self.lookahead else ())
+        return out
+
+    def segments_of_lost(self, i: int) -> list[str]:
+        """The segments (``S2`` …) whose partition holds lost obstacle ``i`` (0-based among
+        :attr:`lost`)."""
+        gid = len(self.corridor.obstacles) + i
+        return [s.name for s in self.route.segments if gid in s.obstacle_ids]
+
 
 #: Apex distance of a lost vehicle's triangle: this × h_min (pothk). Smaller than the default
 #: 1.3 for configured obstacles so that the triangle fits more often between a vehicle lost
@@ -200,19 +230,20 @@ LOST_APEX_FACTOR = 1.05
 
 
 def lost_obstacles(
-    view: NeighbourView, tube: Trapezoid, radius_m: float, params: ControllerParams
+    view: NeighbourView, corridor: Corridor, radius_m: float, params: ControllerParams
 ) -> tuple[Obstacle, ...]:
     """Obstacles (radius ``radius_m``, apex distance ``LOST_APEX_FACTOR`` × h_min under
-    ``params``) for the lost vehicles inside the main tube (sorted by vehicle id); lost
-    vehicles outside it (e.g. past the finishing line) stay static points only."""
-    out = []
+    ``params``) for the lost vehicles inside the route (sorted by vehicle id; any segment:
+    :meth:`FlightPlan.with_lost` gives each to the segments it meets); lost vehicles outside it
+    (e.g. past the last finishing line) stay static points only."""
+    pts = np.asarray(view.lost_pos, dtype=float).reshape(-1, 2)
+    if not pts.shape[0]:
+        return ()
     apex = LOST_APEX_FACTOR * h_min(float(radius_m), params)
-    for p in view.lost_pos:
-        # past the finishing line: Assumption 2, the vehicle no longer counts
-        if bool(tube.contains(p)) and not bool(tube.finished(p, params.eps_0)):
-            out.append(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
-                                apex_distance=apex))
-    return tuple(out)
+    # past the finishing line: Assumption 2, the vehicle no longer counts
+    keep = corridor.inside(pts, params.eps_0)
+    return tuple(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
+                          apex_distance=apex) for p in pts[keep])
 
 
 def exit_velocities(
@@ -223,14 +254,14 @@ def exit_velocities(
     stop_distance_m: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """What vehicles past the finishing line fly (Assumption 2: they no longer follow the
-    tube's controller): straight on at v along the main tube's n_c, so vehicles that exited
+    tube's controller): straight on at v along the LAST segment's n_c, so vehicles that exited
     keep their spacing. ``own_xy`` (E, 2) the exited vehicles' positions; returns their
     velocities (E, 2) and ``blocked`` (E,): stop and hold instead, because a vehicle that is
     not flying on (static, lost or stopped — by its phase, not by its reported speed: PX4's
     velocity estimate can be 0.5 m/s off) lies ahead within ``stop_distance_m`` along n_c and
     within 2 r_s (flown) across, so a vehicle never runs into one that stopped ahead of it."""
     own = np.asarray(own_xy, dtype=float).reshape(-1, 2)
-    n_c = plan.tube.n_c
+    n_c = plan.route.exit_heading
     v = np.broadcast_to(float(plan.flown.v) * n_c, own.shape).copy()
     blocked = np.zeros(own.shape[0], bool)
     if view is None:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,6 +51,7 @@ from vtube_fleet.fleet.budget import (
 __all__ = [
     "BudgetMargin",
     "assumed_measurement",
+    "lookahead_violations",
     "margin_note",
     "mission_margin",
     "refusal_note",
@@ -80,10 +81,13 @@ def assumed_measurement(latency_s: float | None = None, accuracy_m: float | None
         accuracy_m=PX4_SITL_ACCURACY_M if accuracy_m is None else float(accuracy_m))
 
 
-def lookahead_violations(route: Route, positions: np.ndarray) -> list[Violation]:
-    """Slots that the apex look-ahead (a mission flies it) puts into a side tube at most r_s'
-    from its legs: they would start inside the barrier (the fleet's preflight refuses them)."""
-    if not len(positions):
+def lookahead_violations(route: Route, positions: np.ndarray,
+                         names: Sequence[str] | None = None) -> list[Violation]:
+    """Slots (or vehicles, ``names``) that the apex look-ahead (a mission flies it) puts into a
+    side tube at most r_s' from its legs: they would start inside the barrier (``check``'s
+    verdict and the fleet's preflight, on the ground and at altitude, refuse them)."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, 2)
+    if not len(positions) or not route.lookahead:
         return []
     flat = dataclasses.replace(route, lookahead=False)
     seg0, k0 = flat.locate(positions)
@@ -93,8 +97,9 @@ def lookahead_violations(route: Route, positions: np.ndarray) -> list[Violation]
         t = route.sub_tubes[int(k1[i])]
         d = min(float(t.d_Th(positions[i])), float(t.d_Tr(positions[i])))
         if d <= route.params.r_s:
+            who = f"slot {i}" if names is None else names[i]
             out.append(Violation("Assumption1", (
-                f"Assumption1 violated: slot {i} at ({positions[i, 0]:.3f}, "
+                f"Assumption1 violated: {who} at ({positions[i, 0]:.3f}, "
                 f"{positions[i, 1]:.3f}) is in the look-ahead zone of an apex: it would fly "
                 f"{t.name} with {d:.2f} m to its legs ≤ r_s' = {route.params.r_s:.2f} m (move "
                 f"the slot upstream or the obstacle downstream)")))

@@ -3,7 +3,8 @@
 :class:`FlightMeasurement` takes each :class:`~vtube_fleet.fleet.tick.TickResult` and
 
 * evaluates the safety conditions of Theorem 1 (:class:`~vtube_fleet.core.metrics.SafetyMonitor`
-  with the PHYSICAL limits) on the vehicles in the tube — from telemetry (the ``""`` stream:
+  with the PHYSICAL limits; on a route each vehicle's leg distances to the segment it flies,
+  the table's ``segment``) on the vehicles in the tube — from telemetry (the ``""`` stream:
   positions as reported, the controller's commanded velocities) and, with ``truth``, from the
   vehicles' ground truth (the ``"_truth"`` stream) — into the run's
   :class:`~vtube_fleet.core.metrics.SummaryAccumulator` (the simulator's own), noting the first
@@ -14,8 +15,9 @@
   flight holds the fleet (the supervisor's ``request_abort``);
 * records the tick (:class:`~vtube_fleet.recording.api.Recorder`) and updates the live view.
 
-"In the tube" means flying the controller this tick, or stopped inside the tube (lost at its
-last position, holding or landing while still in the air).
+"In the tube" means flying the controller this tick, or stopped inside the route (lost at its
+last position, holding or landing while still in the air; judged against the segment it last
+flew).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from vtube_fleet.core.metrics import (
     percentile_or_none,
 )
 from vtube_fleet.core.neighbours import pairs_within
+from vtube_fleet.core.route import Route
 from vtube_fleet.fleet.budget import BudgetWatch, SafetyBudget, on_time_share
 from vtube_fleet.fleet.table import PHASE_CODE, PHASE_VALUES, FleetTable, phase_mask
 from vtube_fleet.fleet.tick import AIRBORNE_UP_M, TickResult, used_ages, watch_budget
@@ -63,6 +66,7 @@ class TickTrace:
     in_tube: np.ndarray  # (M,) bool: commanded by the tube controller this tick
     phases: tuple[str, ...]
     truth: np.ndarray | None = None  # (M, 2) ground truth (truth=True), NaN = unknown
+    segment: np.ndarray | None = None  # (M,) the route segment each vehicle flies (0: a tube)
 
 
 class FlightMeasurement:
@@ -126,6 +130,7 @@ class FlightMeasurement:
         vel[~has] = np.nan
         cmd = np.where(tab.cmd_set[:, None], tab.cmd, np.nan)
         codes = tab.phase
+        seg = np.maximum(tab.segment, 0)  # (a row that never had a position is absent)
         inside = tab.cmd_in_tube.copy()
         tube_rows = inside.copy()
         started = tube_start_s is not None
@@ -136,8 +141,7 @@ class FlightMeasurement:
             stopped &= (codes == _LOST) | links.in_air | (up > AIRBORNE_UP_M)
             if stopped.any():
                 rows = np.flatnonzero(stopped)
-                tube_rows[rows] = np.asarray(self.mission.scenario.tube.contains(pos[rows]),
-                                             bool).reshape(-1)
+                tube_rows[rows] = self.mission.scenario.corridor.inside(pos[rows])
         airborne = _COUNTED_AIRBORNE_MASK[codes]
         lat = result.links.latency_s
         lat = lat[np.isfinite(lat)]
@@ -152,9 +156,9 @@ class FlightMeasurement:
             p_tube = np.where(tube_rows[:, None], pos, np.nan)
             commanded = inside & np.isfinite(cmd[:, 0])
             v_tube = np.where(commanded[:, None], cmd, np.nan)  # speeds: the controller's
-            sm = self.monitor.evaluate(p_tube, v_tube)
+            sm = self.monitor.evaluate(p_tube, v_tube, segment=seg)
             self.acc.add(t, sm)
-            self._note(t, "", sm, p_tube, v_tube, note)
+            self._note(t, "", sm, p_tube, v_tube, note, seg)
             safety = {"": (p_tube, v_tube)}
             for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
                         "min_left_leg_distance_m", "min_right_leg_distance_m",
@@ -166,9 +170,9 @@ class FlightMeasurement:
                 # the "_truth" stream: the same vehicles at their TRUE positions (no speeds:
                 # the speed bounds are the controller's, judged on the commands)
                 t_tube = np.where(tube_rows[:, None], truth, np.nan)
-                smt = self.monitor.evaluate(t_tube)
+                smt = self.monitor.evaluate(t_tube, segment=seg)
                 self.acc.add(t, smt, suffix="_truth")
-                self._note(t, "_truth", smt, t_tube, None, note)
+                self._note(t, "_truth", smt, t_tube, None, note, seg)
                 safety["_truth"] = (t_tube, np.full_like(t_tube, np.nan))
                 for key in ("min_pair_distance_m", "min_obstacle_center_distance_m",
                             "min_left_leg_distance_m", "min_right_leg_distance_m"):
@@ -204,7 +208,7 @@ class FlightMeasurement:
                                phases=logged, cmd=cmd, metrics=metrics, safety=safety)
         if self.keep_trace:
             self.trace.append(TickTrace(t, pos, vel, cmd, tube_rows & np.isfinite(cmd[:, 0]),
-                                        tuple(logged), truth))
+                                        tuple(logged), truth, seg))
         return pos, vel, cmd, logged
 
     def _watch(self, result: TickResult, budget: SafetyBudget, tick_gap_s: float,
@@ -227,9 +231,9 @@ class FlightMeasurement:
             request_hold(f"{hold}, so every vehicle in the tube holds")
 
     def _note(self, t: float, suffix: str, sm: Any, pos: np.ndarray, vel: np.ndarray | None,
-              note: Callable[[str, str, dict[str, Any]], None]) -> None:
+              note: Callable[[str, str, dict[str, Any]], None], segment: np.ndarray) -> None:
         """On the first tick that breaks a limit (telemetry or truth): tell ``note``."""
-        e = self.violations.note(t, suffix, sm, pos, vel, self.table.ids.tolist())
+        e = self.violations.note(t, suffix, sm, pos, vel, self.table.ids.tolist(), segment)
         if e is not None:
             note(suffix, e["source"], e)
 
@@ -254,11 +258,10 @@ class FlightMeasurement:
 
     # -- the live status -------------------------------------------------------------------------
     def status(self, status: FleetStatus, pilots: Sequence[Any], *, rows: bool,
-               partition: Any = None,
                durations_s: Sequence[float], lateness_s: Sequence[float], period_s: float,
-               rate_hz: float, delta_m: float) -> FleetStatus:
+               rate_hz: float, delta_m: float, route: Route) -> FleetStatus:
         """Fill the live view's :class:`~vtube_fleet.fleet.view.FleetStatus`; ``rows``: with the
-        per-vehicle rows (``partition``: for their sub-tube column)."""
+        per-vehicle rows, flying ``route`` (the flight plan's: its segments and sub-tubes)."""
         tab = self.table
         counts: dict[str, int] = {}
         for c in tab.phase.tolist():
@@ -304,8 +307,7 @@ class FlightMeasurement:
             status.on_time = on_time
         status.latency_ms = 1000 * (self.latencies[-1] if self.latencies else math.nan)
         if rows:  # the per-vehicle table / the worst vehicle per limit (the view wants them)
-            sc = self.mission.scenario
-            status.rows = vehicle_rows(pilots, sc.tube, sc.obstacles, lim, partition=partition)
+            status.rows = vehicle_rows(pilots, route, lim, tab.segment)
         return status
 
 

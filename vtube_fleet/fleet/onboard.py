@@ -1,10 +1,11 @@
-"""Defence in depth on the vehicle: PX4's own geofence from the tube, and the audit of the PX4
+"""Defence in depth on the vehicle: PX4's own geofence from the route, and the audit of the PX4
 parameters the mission relies on (``docs/fleet.md``, "The fence on the vehicle" and "The PX4
 parameter audit").
 
-* :func:`fence_items` turns :func:`vtube_fleet.core.fence.tube_fence` (the tube frame) into
-  PX4 fence items (WGS84); :func:`install_fence` sets GF_ACTION, uploads them, reads them back
-  and compares, on one link.
+* :func:`fence_items` turns :func:`vtube_fleet.core.fence.route_fence` (the tube frame: one
+  inclusion polygon per segment of the route, PX4 allows their union; the exclusion circles)
+  into PX4 fence items (WGS84); :func:`install_fence` sets GF_ACTION, uploads them, reads them
+  back and compares, on one link.
 * :func:`audit_rules` are the parameters checked with the mission's numbers;
   :func:`audit_fleet` reads them from every vehicle, returns the hard problems (refuse to arm),
   the warnings, and — with ``fix`` — sets them, returning the old values for
@@ -22,7 +23,7 @@ from typing import TypeVar
 import numpy as np
 
 from vtube_fleet.config.mission import Mission
-from vtube_fleet.core.fence import FenceGeometry
+from vtube_fleet.core.fence import RouteFence
 from vtube_fleet.core.text import compact_number
 from vtube_fleet.errors import PROBLEMS_SHOWN
 from vtube_fleet.link.base import (
@@ -66,21 +67,24 @@ CMD_POLYGON_INCLUSION = 5001
 CMD_CIRCLE_EXCLUSION = 5004
 
 
-def fence_geometry(mission: Mission) -> FenceGeometry:
-    """The mission's fence in the tube frame (physical r_s, slots inside, exit_clear_m):
+def fence_geometry(mission: Mission) -> RouteFence:
+    """The mission's fence in the tube frame (the route's outline, one polygon per segment):
     :meth:`Mission.fence_geometry <vtube_fleet.config.mission.Mission.fence_geometry>`."""
     return mission.fence_geometry()
 
 
-def fence_items(mission: Mission, geom: FenceGeometry | None = None) -> list[FenceItem]:
-    """PX4 fence items: one inclusion polygon (5001, param1 = vertex count) and one exclusion
-    circle (5004, param1 = radius) per obstacle, positions via the mission's tube frame."""
+def fence_items(mission: Mission, geom: RouteFence | None = None) -> list[FenceItem]:
+    """PX4 fence items: one inclusion polygon (5001, param1 = its vertex count) per segment
+    of the route, in order, then one exclusion circle (5004, param1 = radius) per obstacle,
+    positions via the mission's tube frame."""
     geom = fence_geometry(mission) if geom is None else geom
     frame = mission.frame
-    lat, lon, _ = frame.tube_to_geodetic(geom.polygon[:, 0], geom.polygon[:, 1], 0.0)
-    n = len(geom.polygon)
-    items = [FenceItem(CMD_POLYGON_INCLUSION, float(a), float(b), float(n))
-             for a, b in zip(np.atleast_1d(lat), np.atleast_1d(lon), strict=True)]
+    items = []
+    for poly in geom.polygons:
+        lat, lon, _ = frame.tube_to_geodetic(poly[:, 0], poly[:, 1], 0.0)
+        n = len(poly)
+        items += [FenceItem(CMD_POLYGON_INCLUSION, float(a), float(b), float(n))
+                  for a, b in zip(np.atleast_1d(lat), np.atleast_1d(lon), strict=True)]
     if geom.circle_radii.size:
         clat, clon, _ = frame.tube_to_geodetic(geom.circle_centers[:, 0],
                                                geom.circle_centers[:, 1], 0.0)

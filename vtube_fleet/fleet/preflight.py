@@ -10,9 +10,10 @@ agent's one vehicle) and reports through an event sink; every failure is a one-l
 3. :meth:`~Preflight.audit_params`: the PX4 parameters the mission relies on
    (:mod:`vtube_fleet.fleet.onboard`; ``--fix-params`` sets them);
 4. the safety budget: :func:`wait_accuracy`, :func:`measure_budget_links` (round trip, position
-   age, reported accuracy) and :func:`preflight_report` (the paper's conditions with the flown
-   radii and the vehicles' actual positions);
-5. :meth:`~Preflight.install_fences`: the tube as every vehicle's PX4 geofence;
+   age, reported accuracy) and :func:`preflight_report` (the paper's and the junctions'
+   conditions with the flown radii and the vehicles' actual positions, the apex look-ahead);
+5. :meth:`~Preflight.install_fences`: the route's outline as every vehicle's PX4 geofence (one
+   inclusion polygon per segment: PX4 takes their union);
 6. :meth:`~Preflight.check_batteries`: every vehicle's reported charge covers the mission
    (:func:`battery_problems`);
 7. :meth:`~Preflight.check_loop`: the control loop keeps its rate before anything arms.
@@ -34,7 +35,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vtube_fleet.config.mission import Mission
-from vtube_fleet.core.validation import flown_symbols, validate_scenario
+from vtube_fleet.core.route import Route
+from vtube_fleet.core.validation import flown_symbols, validate_route
 from vtube_fleet.errors import PROBLEMS_SHOWN, UserError, join_problems
 from vtube_fleet.fleet.budget import (
     LOOP_CHECK_S,
@@ -48,7 +50,6 @@ from vtube_fleet.fleet.budget import (
 from vtube_fleet.link.base import LinkTimeout, VehicleLink
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.fleet.flight_plan import FlightPlan
     from vtube_fleet.fleet.pilot import VehiclePilot
     from vtube_fleet.fleet.tick import ControlClock
 
@@ -224,21 +225,30 @@ def preflight_report(
     names: Sequence[str],
     *,
     where: str = "on the ground",
-    part: Any = None,
-) -> tuple[Any, list[str]]:
-    """Validate the (inflated) scenario with the vehicles' actual positions; ``flown``: the
-    parameters with the flown radii r_s', r_a' (the plan's ``flown``); ``part``: the partition
-    planned before (at altitude: only the positions are checked against it, nothing is
-    planned while the vehicles fly).
+    route: Route | None = None,
+) -> tuple[Route | None, list[str]]:
+    """Validate the (inflated) route with the vehicles' actual positions
+    (:func:`~vtube_fleet.core.validation.validate_route`: the paper's conditions per segment,
+    the junction conditions, Assumption 1 of each vehicle in the segment it starts in) and the
+    apex look-ahead the fleet flies (:func:`~vtube_fleet.fleet.margin.lookahead_violations`:
+    no vehicle starts inside a side tube's barrier) — ``check``'s conditions, on the vehicles'
+    positions; ``flown``: the parameters with the flown radii r_s', r_a' (the plan's
+    ``flown``); ``route``: the route planned before (at altitude: only the positions are
+    checked against it, nothing is planned while the vehicles fly).
 
-    Returns (partition or None, problems). Each problem is one line naming the vehicles
-    (``robot i`` of :func:`vtube_fleet.core.validation.validate_scenario` becomes ``vehicle i
-    (endpoint)``) with the numbers.
+    Returns (the planned route, with the look-ahead, or None; problems). Each problem is one
+    line naming the vehicles (``robot i`` / ``slot i`` becomes ``vehicle i (endpoint)``) with
+    the numbers.
     """
+    from vtube_fleet.fleet.margin import lookahead_violations
+
     sc = mission.scenario
-    part, violations = validate_scenario(sc.tube, sc.obstacles, flown, positions,
-                                         keep_out=mission.slots,  # "auto": plan on the slots
-                                         part=part)
+    res = validate_route(sc.corridor, flown, positions,
+                         keep_out=mission.slots,  # "auto": plan on the slots
+                         lookahead=True, route=route)
+    violations = list(res.violations)
+    if res.route is not None:
+        violations += lookahead_violations(res.route, positions, names)
 
     def one(text: str) -> str:
         i = int(text)
@@ -251,7 +261,7 @@ def preflight_report(
         msg = re.sub(r"\brobot (\d+)", lambda m: one(m.group(1)), msg)
         problems.append(f"{flown_symbols(msg)} ({where}, r_s' = {flown.r_s:.3f} m: the "
                         f"physical r_s = {sc.robots.r_s:g} m + δ)")
-    return part, problems
+    return res.route, problems
 
 
 
@@ -420,19 +430,6 @@ class Preflight:
             self.event("--fix-params: the PX4 parameters are restored")
         self.param_restore = []
 
-    # -- 4. the budget: see measure_budget_links / preflight_report; the look-ahead ------------
-    def lookahead_problems(self, plan: FlightPlan, positions: np.ndarray, where: str
-                           ) -> list[str]:
-        """Vehicles that the apex look-ahead would start inside a triangle side's barrier."""
-        out = []
-        for i, k, d in plan.lookahead_conflicts(positions):
-            out.append(f"{self.names[i]} at ({positions[i, 0]:.2f}, {positions[i, 1]:.2f}) is "
-                       f"in the look-ahead zone of an apex: it would fly "
-                       f"{plan.partition.sub_tubes[k].name} with {d:.2f} m to its legs ≤ "
-                       f"r_s' = {plan.flown.r_s:.2f} m ({where}; move the slot upstream "
-                       f"or the obstacle downstream)")
-        return out
-
     async def request_truth(self) -> None:
         """Ask every vehicle for its SITL ground truth (``--truth``); refusals are errors."""
         problems = await self.gather_named(
@@ -445,9 +442,10 @@ class Preflight:
 
     # -- 5. the fence ------------------------------------------------------------------------
     async def install_fences(self, fence: bool = True) -> None:
-        """The tube as every vehicle's geofence (GF_ACTION, upload, read back, compare);
-        a vehicle that refuses it keeps the fleet on the ground; ``fence`` False: none, with
-        :data:`~vtube_fleet.fleet.onboard.NO_FENCE_WARNING`."""
+        """The route's outline as every vehicle's geofence (GF_ACTION, upload, read back,
+        compare: one inclusion polygon per segment, their union; an exclusion circle per
+        obstacle); a vehicle that refuses it keeps the fleet on the ground; ``fence`` False:
+        none, with :data:`~vtube_fleet.fleet.onboard.NO_FENCE_WARNING`."""
         from vtube_fleet.fleet.onboard import (
             GF_ACTION_VALUES,
             NO_FENCE_WARNING,
@@ -484,8 +482,12 @@ class Preflight:
                                  f"{len(self.pilots)} vehicles refused the fence: "
                                  + self.listed(problems))
         self.onboard.update(fence="uploaded", fence_items=len(items), gf_action=action)
-        self.event(f"fence on {len(self.pilots)} vehicles: {len(geom.polygon)}-vertex polygon "
-                   f"(legs + {geom.widen_m:.2f} m, {geom.back_m:.2f} m behind the start, "
+        polys = geom.polygons
+        shape = (f"{len(polys[0])}-vertex polygon" if len(polys) == 1 else
+                 f"{len(polys)} inclusion polygons, one per segment ("
+                 + " + ".join(str(len(q)) for q in polys) + " vertices; PX4 allows their union)")
+        self.event(f"fence on {len(self.pilots)} vehicles: {shape} (legs + "
+                   f"{geom.widen_m:.2f} m, {geom.back_m:.2f} m behind the start, "
                    f"{geom.exit_m:.2f} m past the finish), {geom.circle_radii.size} exclusion "
                    f"circle(s); GF_ACTION = {GF_ACTION_VALUES[action]} ({action})")
 

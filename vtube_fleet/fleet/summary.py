@@ -65,8 +65,10 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
     mes = sup.measurement
     dur = np.asarray(clock.durations_s)
     flown = sup.plan.flown
+    route = sup.plan.route
+    segment = sup.table.segment
     vehicles = []
-    for p in sup.pilots:
+    for k, p in enumerate(sup.pilots):
         vehicles.append({
             "id": p.vehicle_id, "endpoint": p.link.endpoint.url, "phase": p.phase.value,
             "exit_s": finite_or_none(p.exit_time_s), "reason": p.reason,
@@ -75,6 +77,9 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
             "setpoints_sent": p.setpoints_sent,
             "battery_pct": finite_or_none(round(100.0 * p.link.state.battery_remaining, 1)),
         })
+        if route.S > 1:  # the segment it flew last (S1, S2 …; None: never had a position)
+            vehicles[-1]["segment"] = (f"S{int(segment[k]) + 1}" if segment[k] >= 0
+                                       else None)
     last_exit = [p.exit_time_s for p in sup.pilots if p.exit_time_s is not None]
     extra: dict[str, Any] = {
         "kind": "fleet",
@@ -92,9 +97,10 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
         "r_a": sup.physical.r_a,
         "r_s_flown": flown.r_s,
         "r_a_flown": flown.r_a,
+        "segments": route.S,  # of the route flown (1: a [tube])
         "apex_distances_m": [  # h_k of the configured obstacles flown ("auto": core/plan.py)
-            next((t.h for t in sup.plan.partition.triangles if t.obstacle == i), None)
-            for i in range(len(sup.mission.scenario.obstacles))],
+            next((t.h for t in route.triangles if t.obstacle == i), None)
+            for i in range(len(route.corridor.obstacles))],
         "pair_limit_m": mes.monitor.limits.pair_m,
         "safety_budget": sup.budget.as_dict(),
         "min_pair_distance_airborne_m": finite_or_none(mes.min_pair_airborne),

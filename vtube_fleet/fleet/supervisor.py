@@ -17,9 +17,12 @@ its own slot, which Assumption 1 keeps 2 r_s' apart), Assumption 1 checked again
 **tube**: every vehicle becomes IN_TUBE on the same tick; **end**: when every vehicle has exited
 (or is lost), ``on_complete`` (land / hold).
 
+The mission flies its route (a ``[tube]`` is a route of one segment): each vehicle hands over
+from segment to segment (the table's ``segment``), exits at the route's last finishing line.
+
 Faults: a LOST vehicle (the tick's fault rules) becomes a static obstacle of radius r_s +
-``lost_obstacle_margin_m`` at its last position and the tube is re-partitioned online; if no
-valid partition exists the others hold (OFFBOARD → Hold) and the mission aborts
+``lost_obstacle_margin_m`` at its last position and the segments it meets are re-partitioned
+online; if no valid partition exists the others hold (OFFBOARD → Hold) and the mission aborts
 (:class:`MissionAborted`, exit code 3). SIGINT / SIGTERM: every vehicle holds, then lands; the
 summary and the recording are complete (exit code 130).
 """
@@ -162,11 +165,12 @@ class Supervisor:
         self.budget: SafetyBudget = mission_budget(mission, None)
         flown = self.budget.inflate(self.physical)
         try:
-            plan = FlightPlan.build(sc.tube, sc.obstacles, flown, keep_out=mission.slots)
+            plan = FlightPlan.for_mission(mission, flown)
         except PartitionError as exc:
             raise PreflightError(
                 f"{mission.source}: with the safety budget {self.budget.describe(self.physical)}"
-                f" the tube cannot be partitioned: {exc}") from None
+                f" the {'route' if sc.is_route else 'tube'} cannot be partitioned: {exc}"
+            ) from None
         #: the fleet's tick state, vehicle i in row i (fleet/table.py)
         self.table = FleetTable(range(len(links)), mission, self.frame)
         self.pilots = [VehiclePilot(link, self.table, i, mission, frame=self.frame,
@@ -187,7 +191,7 @@ class Supervisor:
         # limits of the PHYSICAL r_s; pairs searched within r_s' + r_a' + 1 m
         self.measurement = FlightMeasurement(
             mission, self.table, [p.link for p in self.pilots],
-            SafetyMonitor.for_run(sc.tube, sc.obstacles, self.physical, flown),
+            SafetyMonitor.for_corridor(sc.corridor, self.physical, flown),
             frame=self.frame, recorder=recorder, truth=truth, keep_trace=keep_trace,
             warn=lambda text: self.event(text, level="warning"))
         self.tube_start_s: float | None = None
@@ -335,13 +339,14 @@ class Supervisor:
 
     def _on_replan(self, plan: FlightPlan, t: float) -> None:
         self.partitions += 1
+        multi = plan.route.S > 1
         where = ", ".join(f"({o.center[0]:.2f}, {o.center[1]:.2f}) r={o.radius:.2f}"
-                          for o in plan.lost)
-        self.event(f"re-partitioned around lost or stopped vehicle(s): "
-                   f"{len(plan.partition.sub_tubes)} "
-                   f"sub-tubes; lost obstacles {where or 'none inside the tube'}",
-                   level="warning")
-        self.recorder.log_partition(plan.partition, t)
+                          + (f" in {'/'.join(plan.segments_of_lost(i))}" if multi else "")
+                          for i, o in enumerate(plan.lost))
+        self.event(f"re-partitioned around lost or stopped vehicle(s): {plan.route.K} sub-tubes"
+                   + (f" in {plan.route.S} segments" if multi else "")
+                   + f"; lost obstacles {where or 'none inside the tube'}", level="warning")
+        self.recorder.log_partition(plan.route, t)
 
     def _on_replan_failed(self, exc: PartitionError, view: NeighbourView) -> None:
         if self._abort_reason is not None:
@@ -354,7 +359,8 @@ class Supervisor:
         why = "; ".join(f"vehicle {p.vehicle_id}: {p.reason}" for p in self.pilots
                         if p.vehicle_id in ids and p.reason)
         self.request_abort(
-            f"cannot re-partition the tube around the lost vehicle(s) "
+            f"cannot re-partition the {'route' if self.plan.route.S > 1 else 'tube'} around "
+            f"the lost vehicle(s) "
             f"{', '.join(map(str, ids))} (in the air at their last known positions, "
             f"each an obstacle of radius r_s + lost_obstacle_margin_m"
             f"{'; ' + why if why else ''}): {exc}")
@@ -415,10 +421,9 @@ class Supervisor:
         clock = self.clock
         return self.measurement.status(
             st, self.pilots, rows=self.view is not None and self.view.wants_rows(),
-            partition=self.plan.partition,
             durations_s=clock.durations_s, lateness_s=clock.lateness_s,
             period_s=self.cfg.period_s, rate_hz=achieved_rate_hz(clock.starts_s[-40:]),
-            delta_m=self.budget.delta_m)
+            delta_m=self.budget.delta_m, route=self.plan.route)
 
     # -- the procedure -------------------------------------------------------------------------
     async def _mission(self) -> None:
@@ -462,8 +467,7 @@ class Supervisor:
         self.budget = mission_budget(self.mission, measured)
         flown = self.budget.inflate(self.physical)
         sc = self.mission.scenario
-        self.measurement.rebuild(SafetyMonitor.for_run(sc.tube, sc.obstacles, self.physical,
-                                                       flown))
+        self.measurement.rebuild(SafetyMonitor.for_corridor(sc.corridor, self.physical, flown))
         acc = (f"worst reported position accuracy σ = {measured.accuracy_m:.2f} m"
                if math.isfinite(measured.accuracy_m) else "no accuracy reported")
         self.event(f"safety budget: {self.budget.describe(self.physical)} (measured: position "
@@ -472,10 +476,10 @@ class Supervisor:
         if self.truth:
             await pre.request_truth()
         positions = np.array([p.xy for p in self.pilots])
-        # the partition is planned here, before the climb ("auto" apex distances: a few
+        # the route is planned here, before the climb ("auto" apex distances: a few
         # hundred ms), in a worker thread: the control clock keeps ticking meanwhile
-        part, problems = await asyncio.to_thread(preflight_report, self.mission, flown,
-                                                 positions, self.names)
+        route, problems = await asyncio.to_thread(preflight_report, self.mission, flown,
+                                                  positions, self.names)
         for i, p in enumerate(self.pilots):
             slot = self.mission.slots[i]
             off = float(np.hypot(*(p.xy - slot)))
@@ -485,19 +489,15 @@ class Supervisor:
             prob = p.check_altitude_margin(MIN_CLIMB_M)
             if prob:
                 problems.append(prob)
-        if problems or part is None:
+        if problems or route is None:
             raise PreflightError(
                 f"preflight failed, nothing armed ({len(problems)} problem"
                 f"{'s' if len(problems) != 1 else ''}; {acc} → safety budget "
                 f"{self.budget.describe(self.physical)}): " + pre.listed(problems)
                 + await self._margin_note(measured))
-        plan = FlightPlan.build(sc.tube, sc.obstacles, flown, part=part)
-        problems = pre.lookahead_problems(plan, positions, "on the ground")
-        if problems:
-            raise PreflightError("preflight failed, nothing armed: " + pre.listed(problems)
-                                 + await self._margin_note(measured))
+        plan = FlightPlan.build(sc.corridor, flown, route=route)
         self.ticker.set_plan(plan)
-        self.recorder.log_scene(self.mission.scenario, plan.partition,
+        self.recorder.log_scene(self.mission.scenario, plan.route,
                                 mission=self.mission.config, meta={
             "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
             "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
@@ -541,8 +541,7 @@ class Supervisor:
         # the positions against the partition planned on the ground: nothing is planned
         # while the vehicles fly (a plan would stall the loop at the worst moment)
         _, problems = preflight_report(self.mission, self.plan.flown, positions, self.names,
-                                       where=where, part=self.ticker.root.partition)
-        problems += self.preflight.lookahead_problems(self.plan, positions, where)
+                                       where=where, route=self.ticker.root.route)
         if problems:
             raise MissionAborted("Assumption 1 broken at altitude: "
                                  + self.preflight.listed(problems))

@@ -69,13 +69,15 @@ class FleetTable:
     the others it is: :func:`~vtube_fleet.fleet.tick.own_states`), ``in_transition`` (a mode
     change in flight), ``standstill`` (stand still in the tube: zero velocity, no controller;
     the MQTT agent's broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none),
-    ``exit_s`` (mission time of the exit), ``setpoints_sent``, ``ever_sent`` and the published
-    state's ``seq``."""
+    ``exit_s`` (mission time of the exit), ``setpoints_sent``, ``ever_sent``, the published
+    state's ``seq`` and ``segment``: the route segment each vehicle flies (the hand-over state
+    the tick passes back to the plan every tick; −1 until its first position, then the segment
+    that position starts in; 0 for a one-segment route)."""
 
     _COLUMNS = ("xy", "vel", "up", "sample_s", "has", "cmd", "cmd_set", "cmd_in_tube", "lost",
                 "lost_set", "phase", "offboard_seen", "still_since_s", "still_xy", "stop_xy",
                 "stop_set", "in_transition", "standstill", "takeoff_xy", "exit_s", "setpoints_sent",
-                "ever_sent", "seq")
+                "ever_sent", "seq", "segment")
 
     def __init__(self, ids: Sequence[int], mission: Mission, frame: TubeFrame | None = None
                  ) -> None:
@@ -108,6 +110,7 @@ class FleetTable:
         self.setpoints_sent = np.zeros(n, np.int64)
         self.ever_sent = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
+        self.segment = np.full(n, -1, np.intp)
         self.to_ned, self.to_tube = _rotations(mission.frame if frame is None else frame)
         #: the estimate compensation (fleet/compensation.py); None: not compensated
         self.compensator = CompensatorBank(n) if cfg.compensate_estimate else None

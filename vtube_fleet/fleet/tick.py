@@ -7,7 +7,8 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
 
 1. **links** (:func:`read_links`): every link read ONCE; telemetry only arrives between ticks;
 2. **sense** (:func:`sense`): new local positions into the tube frame (one vectorized frame
-   conversion), the estimate compensator fed;
+   conversion), the estimate compensator fed; then each vehicle's route segment
+   (:func:`hand_over`: from its first position on, the hand-overs while it flies the tube);
 3. **faults** (:func:`find_faults` over :data:`FAULT_RULES`): every rule evaluated for every
    vehicle; a vehicle that hits one is LOST (a static obstacle at its last position) or lands
    where it is (a low battery: stopped, an obstacle until it is down), or FAILED while arming;
@@ -16,9 +17,10 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
    by an agent);
 5. **classify** (:func:`~vtube_fleet.fleet.neighbour_view.classify`): the own states plus those
    heard from others (an agent's bus) sorted into live / static / lost;
-6. **plan**: re-partition around lost and stopped vehicles
-   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.with_lost`), exits (TraCondition), then the
-   controller's commands for every vehicle still in the tube in ONE call
+6. **plan**: re-partition around lost and stopped vehicles, in whichever segment they stopped
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.with_lost`), exits (TraCondition on the
+   route's LAST finishing line), then the controller's commands for every vehicle still in the
+   tube in ONE call, each in its segment
    (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.commands`, ModifiedVectorField);
 7. **actuate** (:func:`actuate`): each vehicle's setpoint for its phase (arming, the climb, the
    tube plus the estimate compensation d̂, the exit behaviour, standing still), all sent in one
@@ -71,6 +73,7 @@ __all__ = [
     "TickResult",
     "actuate",
     "find_faults",
+    "hand_over",
     "own_states",
     "read_links",
     "sense",
@@ -183,6 +186,17 @@ def sense(tab: FleetTable, links: LinkColumns, frame: TubeFrame, mission: Missio
     if tab.compensator is not None:
         tab.compensator.add(rows, t, x, y, vx, vy)
     return rows, rows[(tab.phase[rows] == _TAKEOFF) & up_ok]
+
+
+def hand_over(tab: FleetTable, plan: FlightPlan) -> None:
+    """The route segment of every vehicle (the table's ``segment`` column, the hand-over state
+    :meth:`FlightPlan.locate` is given back every tick): a vehicle's first position assigns the
+    segment it starts in, and while it flies the tube (IN_TUBE) it hands over to the next one
+    where the route says (:meth:`~vtube_fleet.core.route.Route.advance`). A one-segment
+    route: 0."""
+    rows = np.flatnonzero(tab.has & ((tab.segment < 0) | (tab.phase == _IN_TUBE)))
+    if rows.size:
+        tab.segment[rows] = plan.advance(tab.xy[rows], tab.segment[rows])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -471,9 +485,9 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
       once airborne;
     * in the tube: the controller's command (rows ``cmd_rows`` get ``cmds``; the others zero)
       plus d̂, the altitude hold; a vehicle standing still (``standstill``) zero plus d̂;
-    * past the finishing line: :func:`~vtube_fleet.fleet.flight_plan.exit_velocities` plus d̂, or
-      zero and hold when blocked, or hold / land once ``exit_clear_m`` past it
-      (``after_exit``);
+    * past the (route's last) finishing line:
+      :func:`~vtube_fleet.fleet.flight_plan.exit_velocities` plus d̂, or zero and hold when
+      blocked, or hold / land once ``exit_clear_m`` past it (``after_exit``);
     * otherwise nothing (the command column cleared).
 
     Vehicles behind a closed link are skipped. The setpoints go to the links together
@@ -524,9 +538,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     if exited.any():
         r = np.flatnonzero(exited)
         still = tab.standstill[r]
-        tube_geom = plan.tube
-        past = np.where(tab.has[r], np.asarray(tube_geom.xi(tab.xy[r]), float) - tube_geom.length,
-                        0.0)
+        past = np.where(tab.has[r], plan.route.beyond_finish_m(tab.xy[r]), 0.0)
         stop = 2.0 * plan.flown.r_s + plan.flown.v * (
             cfg.tracking_dead_time_s + cfg.tracking_t63_s + cfg.period_s)
         v, blocked = exit_velocities(plan, tab.xy[r], view, stop_distance_m=stop)
@@ -657,8 +669,10 @@ class Tick:
         self.last_states: dict[int, Any] = {}
 
     def set_plan(self, plan: FlightPlan) -> None:
-        """Fly ``plan`` from now on (the root of later re-plans)."""
+        """Fly ``plan`` from now on (the root of later re-plans; before the flight: the
+        segments are assigned again from the positions, by its hand-over depths)."""
         self.root = self.plan = plan
+        self.table.segment[:] = -1
 
     def t_s(self, now_mono: float) -> float:
         """Mission time: seconds since :attr:`t0_s`."""
@@ -675,6 +689,7 @@ class Tick:
         # 1. links, 2. sense
         links = read_links(self.links)
         _, up = sense(tab, links, self.frame, mission)
+        hand_over(tab, self.plan)
         for r in up.tolist():
             if not pilots[r].at_altitude.is_set():
                 pilots[r].at_altitude.set()
@@ -735,14 +750,14 @@ class Tick:
                           self.cfg.neighbour_max_age_s)
 
     def _replan(self, view: NeighbourView, t: float) -> None:
-        """Re-partition if the set of lost-vehicle obstacles inside the tube changed, while a
+        """Re-partition if the set of lost-vehicle obstacles inside the route changed, while a
         vehicle here still flies (the climb or the tube)."""
         if not view.lost_ids.size and not self.plan.lost:
             return
         if not _FLYING_TUBE_MASK[self.table.phase].any():
             return  # nobody here left to fly the tube
         root = self.root
-        lost = lost_obstacles(view, root.tube, self.lost_radius_m, root.flown)
+        lost = lost_obstacles(view, root.corridor, self.lost_radius_m, root.flown)
         try:
             new = root.with_lost(lost)
         except PartitionError as exc:
@@ -765,7 +780,7 @@ class Tick:
         rows = np.flatnonzero(_FLYING_TUBE_MASK[tab.phase] & tab.has)
         if not rows.size:
             return
-        trapped = rows[plan.cannot_pass(tab.xy[rows])]
+        trapped = rows[plan.cannot_pass(tab.xy[rows], tab.segment[rows])]
         for r in trapped.tolist():
             x, y = tab.xy[r]
             pilot = self.pilots[r]
@@ -775,14 +790,16 @@ class Tick:
             pilot.begin_land(why, "warning")
 
     def _commands(self, view: NeighbourView | None, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Exits (TraCondition), then the controller's commands of every vehicle still in the
-        tube that the view holds: (rows, commands (k, 2))."""
+        """Exits (TraCondition on the route's last finishing line, for the vehicles flying the
+        last segment), then the controller's commands of every vehicle still in the tube that
+        the view holds, each in its segment: (rows, commands (k, 2))."""
         tab = self.table
         none = np.zeros(0, np.int64), np.zeros((0, 2))
         flying = np.flatnonzero((tab.phase == _IN_TUBE) & tab.has & ~tab.standstill)
         if not flying.size or view is None:
             return none
-        done = np.asarray(self.plan.exited(tab.xy[flying]), bool).reshape(-1)
+        done = np.asarray(self.plan.exited(tab.xy[flying], tab.segment[flying]),
+                          bool).reshape(-1)
         if done.any():
             out = flying[done]
             for r in out.tolist():
@@ -801,7 +818,7 @@ class Tick:
         rows = left[seen]
         if not rows.size:
             return none
-        return rows, self.plan.commands(view.points(), order[at[seen]])
+        return rows, self.plan.commands(view.points(), order[at[seen]], tab.segment[rows])
 
     def _warn_residual(self, r: int) -> None:
         """WARN: a limit crossed — the safety budget's D no longer covers the estimate."""

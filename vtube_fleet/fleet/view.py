@@ -4,14 +4,15 @@ On a terminal: a compact fleet header (time, stage, counts, clearance flown so f
 limits, tick time and control rate) over a table with one row per vehicle — id, phase, the
 sub-tube it flies, position in the tube frame, speed, distance to its nearest neighbour, to the
 nearest obstacle centre and to the nearest leg, link age, estimate accuracy (and battery, when a
-link reports it); the columns are declared once (:data:`COLUMNS`, a route's segment is one
-more) and fit a 100-column terminal — redrawn in place about twice a second by ``rich``'s
-refresh thread (:class:`rich.live.Live`; never on the control loop). Values that break their
-limit are red, those within 20 % of it yellow; events (phase changes, faults, errors) scroll
-above the table as single lines. When the output is not a terminal (CI logs, a pipe): every
-``log_every_s`` seconds a short fleet headline (stage, phase counts, control loop), the
-clearance flown so far against its limits and the worst vehicle now per limit
-(:meth:`FleetView.lines`), plus the event lines, no escape codes. Errors are always one line.
+link reports it); the columns are declared once (:data:`COLUMNS`; the route segment it flies is
+one more on a route of several segments) and fit a 100-column terminal — redrawn in place about
+twice a second by ``rich``'s refresh thread (:class:`rich.live.Live`; never on the control
+loop). Values that break their limit are red, those within 20 % of it yellow; events (phase
+changes, faults, errors) scroll above the table as single lines. When the output is not a
+terminal (CI logs, a pipe): every ``log_every_s`` seconds a short fleet headline (stage, phase
+counts, control loop), the clearance flown so far against its limits and the worst vehicle now
+per limit (:meth:`FleetView.lines`), plus the event lines, no escape codes. Errors are always
+one line.
 """
 
 from __future__ import annotations
@@ -53,10 +54,11 @@ class VehicleRow:
     neighbour_m: float = math.nan  #: distance to the nearest other airborne vehicle
     obstacle_m: float = math.nan  #: distance to the nearest obstacle centre
     obstacle_limit_m: float = math.nan  #: r_o + r_s of that obstacle
-    leg_m: float = math.nan  #: distance to the nearest leg of the tube (in the tube only)
+    leg_m: float = math.nan  #: distance to the nearest leg of its segment (in the tube only)
     link_age_s: float = math.nan  #: since the last packet from the vehicle
     accuracy_m: float = math.nan  #: the estimator's horizontal accuracy (1 σ)
     battery: float = math.nan  #: remaining charge, 0..1, when the link reports it
+    segment: int = -1  #: the route segment it flies (0-based; −1: not shown, one segment)
 
 
 @dataclass
@@ -92,15 +94,20 @@ class FleetStatus:
     rows: list[VehicleRow] = field(default_factory=list)  #: one per vehicle (the table)
 
 
-def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
-                 limits: SafetyLimits,
-                 now_mono: float | None = None, *, partition: Any = None) -> list[VehicleRow]:
+def vehicle_rows(pilots: Sequence[Any], route: Any, limits: SafetyLimits,
+                 segments: np.ndarray | None = None,
+                 now_mono: float | None = None) -> list[VehicleRow]:
     """The table rows of the fleet's pilots (``VehiclePilot``: ``vehicle_id``, ``phase``,
-    ``position()``, ``vel_xy``, ``link.state``, ``position_accuracy_m()``). Neighbour distances
-    among the vehicles that count as airborne (:data:`~vtube_fleet.state.COUNTED_AIRBORNE_PHASES`),
-    the leg distance (:meth:`Trapezoid.d_Th` / :meth:`~Trapezoid.d_Tr`) and, with the flight's
-    ``partition``, the sub-tube (:meth:`Partition.locate`, the switching rule) for those in the
-    tube; each obstacle's limit is ``limits.obstacle_center_m`` (the physical r_s)."""
+    ``position()``, ``vel_xy``, ``link.state``, ``position_accuracy_m()``) flying ``route`` (a
+    :class:`~vtube_fleet.core.route.Route`, the flight plan's: with the obstacles of lost
+    vehicles), ``segments[k]`` the segment pilot k flies (None: each position's start segment).
+    Neighbour distances among the vehicles that count as airborne
+    (:data:`~vtube_fleet.state.COUNTED_AIRBORNE_PHASES`), the nearest obstacle centre of the
+    route's configured obstacles; for those in the tube the leg distance to the legs of its own
+    segment (:meth:`Route.leg_distances`) and the sub-tube the switching rule puts it in
+    (:meth:`Route.locate`, named within its segment); each obstacle's limit is
+    ``limits.obstacle_center_m`` (the physical r_s)."""
+    obstacles = route.corridor.obstacles
     now = time.monotonic() if now_mono is None else now_mono
     m = len(pilots)
     pos = np.full((m, 2), np.nan)
@@ -135,21 +142,29 @@ def vehicle_rows(pilots: Sequence[Any], tube: Any, obstacles: Sequence[Any],
             for k, j, dist in zip(np.flatnonzero(ok).tolist(), near.tolist(),
                                   d[np.arange(len(near)), near].tolist(), strict=True):
                 rows[k].obstacle_m, rows[k].obstacle_limit_m = dist, float(lim[j])
-    in_tube = np.array([r.phase == Phase.IN_TUBE.value for r in rows], dtype=bool) \
-        & np.isfinite(pos).all(axis=1)
+    here = np.isfinite(pos).all(axis=1)
+    seg = (np.full(m, -1, np.intp) if segments is None
+           else np.asarray(segments, dtype=np.intp).reshape(m).copy())
+    unset = here & (seg < 0)
+    if unset.any():
+        seg[unset] = route.start_segments(pos[unset])
+    in_tube = np.array([r.phase == Phase.IN_TUBE.value for r in rows], dtype=bool) & here
     if in_tube.any():
         q = pos[in_tube]
-        legs = np.minimum(np.asarray(tube.d_Th(q), dtype=float), np.asarray(tube.d_Tr(q),
-                                                                             dtype=float))
+        dh, dr = route.leg_distances(q, seg[in_tube])
+        legs = np.minimum(dh, dr)
         for k, v in zip(np.flatnonzero(in_tube).tolist(), np.atleast_1d(legs).tolist(),
                         strict=True):
             rows[k].leg_m = v
-        if partition is not None and getattr(partition, "sub_tubes", ()):
-            names = [str(getattr(t, "name", f"T_o{j + 1}")) for j, t in
-                     enumerate(partition.sub_tubes)]
-            for k, j in zip(np.flatnonzero(in_tube).tolist(),
-                            np.atleast_1d(partition.locate(q)).tolist(), strict=True):
-                rows[k].sub_tube = names[int(j)]
+        _, k = route.locate(q, seg[in_tube])
+        names = route.sub_tubes
+        for r, j in zip(np.flatnonzero(in_tube).tolist(), np.atleast_1d(k).tolist(),
+                        strict=True):
+            name = str(getattr(names[int(j)], "name", ""))
+            rows[r].sub_tube = name.split(".", 1)[-1] if route.S > 1 else name
+    if route.S > 1:
+        for k, s in enumerate(seg.tolist()):
+            rows[k].segment = s
     return rows
 
 
@@ -221,6 +236,8 @@ def _phase_cell(r: VehicleRow, s: FleetStatus) -> tuple[str, str, str]:
 COLUMNS: tuple[Column, ...] = (
     Column("id", "", lambda r, s: (str(r.vehicle_id), "", "")),
     Column("phase", "", _phase_cell, justify="left"),
+    Column("seg-", "ment", lambda r, s: ("—" if r.segment < 0 else f"S{r.segment + 1}", "", ""),
+           shown=lambda s: any(r.segment >= 0 for r in s.rows)),
     Column("sub-", "tube", lambda r, s: (r.sub_tube or "—", "", ""), justify="left"),
     Column("x", "[m]", lambda r, s: (_m(r.x_m), "", "")),
     Column("y", "[m]", lambda r, s: (_m(r.y_m), "", "")),

@@ -100,10 +100,13 @@ def to_lat_lon(frame: GeodeticFrame, strips: Sequence[np.ndarray]) -> list[np.nd
 
 
 def outline_polylines(scenario: Scenario) -> list[tuple[str, np.ndarray]]:
-    """(name, closed tube-frame polyline) of every tube the vehicles fly: the main tube T today;
-    a route adds its segments here."""
-    tube = scenario.tube
-    return [(getattr(tube, "name", "") or "tube T", closed(tube.polygon()))]
+    """(name, closed tube-frame polyline) of every tube the vehicles fly: the tube T, or each
+    segment of a route (``S1`` …)."""
+    segments = scenario.corridor.segments
+    if len(segments) == 1:
+        tube = segments[0]
+        return [(getattr(tube, "name", "") or "tube T", closed(tube.polygon()))]
+    return [(f"S{s + 1}", closed(t.polygon())) for s, t in enumerate(segments)]
 
 
 def map_layers(scenario: Scenario, mission: MissionConfig, *, fence: bool = True
@@ -124,7 +127,9 @@ def map_layers(scenario: Scenario, mission: MissionConfig, *, fence: bool = True
                        MAP_OBSTACLE_COLOR, 2.0))
     if fence:
         geom = m.fence_geometry()
-        parts = [("fence polygon", closed(geom.polygon))]
+        multi = len(geom.polygons) > 1
+        parts = [(f"fence polygon S{s + 1}" if multi else "fence polygon", closed(poly))
+                 for s, poly in enumerate(geom.polygons)]
         parts += [(f"fence exclusion O{k + 1}", circle(c, float(r)))
                   for k, (c, r) in enumerate(zip(geom.circle_centers, geom.circle_radii,
                                                  strict=True))]

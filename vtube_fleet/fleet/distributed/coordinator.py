@@ -25,8 +25,10 @@ from vtube_fleet.bus.topics import validate_mission_id
 from vtube_fleet.bus.validate import mission_state_limits
 from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import verdict
+from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.distributed.monitor import RunMonitor
+from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.recording.api import NullRecorder, Recorder
 from vtube_fleet.state import (
     Phase,
@@ -469,10 +471,19 @@ class Coordinator:
         # searches them, and review of the recording searches the same (r_s_flown, r_a_flown)
         radii = bus_safety_budget(self.mission, None, self.max_age_s).inflate(
             self.mission.scenario.controller)
+        # the route the agents fly (each plans it so): the monitor replays its hand-overs to
+        # judge each vehicle against its segment; the recording keeps its apex distances
+        route = None
+        if self.mission.scenario.is_route:
+            try:  # (a few hundred ms with "auto" apex distances: not on the event loop)
+                route = (await asyncio.to_thread(FlightPlan.for_mission, self.mission,
+                                                 radii)).route
+            except PartitionError:  # the agents refuse this run too: judged without hand-overs
+                route = None
         mon = RunMonitor(self.mission, self.vehicles, recorder=recorder,
-                         t0_s=self.t_start_wall or time.time(), flown=radii)
+                         t0_s=self.t_start_wall or time.time(), flown=radii, route=route)
         fleet = self.mission.with_vehicles(self.vehicles)
-        recorder.log_scene(fleet.scenario, None, mission=fleet.config, meta={
+        recorder.log_scene(fleet.scenario, route, mission=fleet.config, meta={
             "kind": "mqtt", "rate_hz": cfg.rate_hz, "run_id": self.run_id,
             "broker": self.broker, "vehicles": self.vehicles, "r_s_flown": radii.r_s,
             "r_a_flown": radii.r_a})

@@ -45,6 +45,15 @@ class RunMonitor:
     r_s' + r_a' + 1 m), so ``min_pair_distance_m`` is reported although a fleet flying r_s'
     keeps its vehicles farther apart than the physical r_s + r_a (without ``flown`` only pairs
     within r_s + r_a are searched: none, ``null``). The limits stay the physical ones.
+
+    ``route``: the route the fleet flies (a :class:`~vtube_fleet.core.route.Route` planned with
+    the flown radii, as every agent plans it). On a route of several segments each vehicle's
+    leg distances are judged against the segment it flies, which the monitor derives from the
+    states themselves: the hand-overs replayed on the judged positions of every snapshot
+    (:meth:`Route.advance <vtube_fleet.core.route.Route.advance>`, what ``review`` replays on
+    the recording), not a segment the vehicles publish — the bus's state message stays as it
+    is, and the judge does not take a vehicle's word for the segment it is judged against.
+    Without ``route``: each position's start segment (no hand-overs).
     """
 
     mission: Any
@@ -63,14 +72,17 @@ class RunMonitor:
     t0_s: float = 0.0  # wall time the run started: the recording's mission time 0
     ticks: int = 0
     flown: Any = None  # r_s', r_a' flown (a ControllerParams), or None: see the docstring
+    route: Any = None  # the Route flown (its hand-overs replayed), or None: see the docstring
 
     def __post_init__(self) -> None:
         from vtube_fleet.core.metrics import SafetyMonitor, SummaryAccumulator, ViolationLog
 
         sc = self.mission.scenario
-        self.monitor = SafetyMonitor.for_run(sc.tube, sc.obstacles, sc.controller, self.flown)
+        self.monitor = SafetyMonitor.for_corridor(sc.corridor, sc.controller, self.flown)
         self.acc = SummaryAccumulator(self.vehicles)
         self.violations = ViolationLog(self.monitor)
+        #: each vehicle's segment as replayed from its judged positions (−1: not judged yet)
+        self.segment = np.full(self.vehicles, -1, np.intp)
 
     def on_state(self, state: NeighbourState, received_s: float, *, count_age: bool = True
                  ) -> None:
@@ -112,8 +124,26 @@ class RunMonitor:
                 self.recorder.log_exits(state.stamp_s - self.t0_s, self.ticks, [vid])
 
     def _past_finish(self, st: NeighbourState) -> bool:
+        """Past the route's last finishing line, by its position (:meth:`Corridor.past_finish
+        <vtube_fleet.core.route.Corridor.past_finish>`)."""
         sc = self.mission.scenario
-        return bool(sc.tube.finished(np.array([st.x_m, st.y_m]), sc.controller.eps_0))
+        return bool(sc.corridor.past_finish(np.array([st.x_m, st.y_m]),
+                                            sc.controller.eps_0)[0])
+
+    def _segments(self, pos: np.ndarray) -> np.ndarray:
+        """(M,) the segment each vehicle is judged against at this snapshot (its judged
+        position ``pos``, NaN: not judged): the route's hand-overs replayed (class
+        docstring)."""
+        corridor = self.mission.scenario.corridor
+        if corridor.is_single:
+            return np.zeros(self.vehicles, np.intp)
+        if self.route is not None:
+            self.segment = self.route.advance(pos, self.segment)
+        else:
+            here = np.isfinite(pos).all(axis=1) & (self.segment < 0)
+            if here.any():
+                self.segment[here] = corridor.start_segment_of(pos[here])
+        return np.maximum(self.segment, 0)
 
     def sample(self, states: dict[int, NeighbourState], now_s: float,
                cmd: dict[int, np.ndarray] | None = None) -> None:
@@ -126,7 +156,7 @@ class RunMonitor:
         m = self.vehicles
         pos = np.full((m, 2), np.nan)
         air = np.full((m, 2), np.nan)
-        tube = self.mission.scenario.tube
+        corridor = self.mission.scenario.corridor
         for vid, st in states.items():
             if not 0 <= vid < m:
                 continue
@@ -136,16 +166,17 @@ class RunMonitor:
             # judged in the tube: flying it, or stopped inside it (lost, holding, landing)
             if st.phase == Phase.IN_TUBE or (
                 (st.phase == Phase.LOST or st.phase in STOPPED_PHASES)
-                and bool(tube.contains(np.array(p)))
+                and bool(corridor.inside(np.array(p))[0])
             ):
                 pos[vid] = p
             if st.phase == Phase.IN_TUBE and now_s - st.stamp_s < 1.0:
                 sp = math.hypot(st.vx_m_s, st.vy_m_s)
                 self.measured_speed[0] = min(self.measured_speed[0], sp)
                 self.measured_speed[1] = max(self.measured_speed[1], sp)
-        sm = self.monitor.evaluate(pos, None)
+        seg = self._segments(pos)
+        sm = self.monitor.evaluate(pos, None, segment=seg)
         self.acc.add(now_s - self.t0_s, sm)
-        e = self.violations.note(now_s - self.t0_s, "", sm, pos, None, range(m))
+        e = self.violations.note(now_s - self.t0_s, "", sm, pos, None, range(m), seg)
         if e is not None:
             self.events.append({"t_s": e["t_s"], "vehicle": None, "level": "error",
                                 "text": f"LIMIT BROKEN ({e['source']}): {e['condition']} "
@@ -201,6 +232,7 @@ class RunMonitor:
             "r_s": params.r_s,
             "r_a": params.r_a,
             "pair_limit_m": self.monitor.limits.pair_m,
+            "segments": sc.corridor.S,  # of the route flown (1: a [tube])
             **({"r_s_flown": self.flown.r_s, "r_a_flown": self.flown.r_a}
                if self.flown is not None else {}),
             "min_pair_distance_airborne_m": finite_or_none(self.min_pair_airborne),

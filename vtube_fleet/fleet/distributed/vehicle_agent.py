@@ -364,18 +364,20 @@ class AgentRecording:
     def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
                  t0_s: float, out: Path | None = None,
                  meta: dict[str, Any] | None = None, flown: Any = None,
-                 wall_clock: Callable[[], float] = time.time) -> None:
+                 wall_clock: Callable[[], float] = time.time, route: Any = None) -> None:
         """``out``: where the interim summaries go (:meth:`after_tick`; None: none);
         ``meta``: keys every summary carries (mission and run id, config hash, broker, the
         clock); ``flown``: the radii the run flies (r_s', r_a'), where the monitor looks for
-        pairs; ``wall_clock``: the agent's."""
+        pairs; ``wall_clock``: the agent's; ``route``: the route it flies (the monitor replays
+        its hand-overs)."""
         from vtube_fleet.artifacts import SummaryPacer
         from vtube_fleet.fleet.distributed.monitor import RunMonitor
 
         self.vehicle = vehicle
         self.recorder = recorder
         self.wall_clock = wall_clock
-        self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s, flown=flown)
+        self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s, flown=flown,
+                                  route=route)
         self.out = out
         self.meta = dict(meta or {})
         self.pacer = SummaryPacer(-math.inf)  # the first interim summary at the first tick
@@ -742,12 +744,11 @@ class AgentProcess:
     def _plan(self, budget: SafetyBudget) -> FlightPlan:
         sc = self.mission.scenario
         try:
-            return FlightPlan.build(sc.tube, sc.obstacles, budget.inflate(sc.controller),
-                                    keep_out=self.mission.slots)
+            return FlightPlan.for_mission(self.mission, budget.inflate(sc.controller))
         except PartitionError as exc:
             raise self.refuse(
-                f"with the safety budget {budget.describe(sc.controller)} the tube cannot be "
-                f"partitioned: {exc}"
+                f"with the safety budget {budget.describe(sc.controller)} the "
+                f"{'route' if sc.is_route else 'tube'} cannot be partitioned: {exc}"
             ) from None
 
     async def measure_budget(self, control: AgentControl) -> None:
@@ -832,12 +833,12 @@ class AgentProcess:
                 pos[v] = (s.x_m, s.y_m)
         flown = self.budget.inflate(mission.scenario.controller)
         names = [f"vehicle {v}" for v in range(n)]
-        part, problems = preflight_report(mission, flown, pos, names)
+        route, problems = preflight_report(mission, flown, pos, names)
         mine = [p for p in problems if f"vehicle {self.vehicle}" in p or "vehicle" not in p]
         altitude = pilot.check_altitude_margin(1.0)
         if altitude:
             mine.append(altitude)
-        if mine or part is None:
+        if mine or route is None:
             raise self.refuse("preflight failed, nothing armed: " + "; ".join(mine or problems))
 
     # -- 3. fly ------------------------------------------------------------------------------
@@ -956,14 +957,17 @@ class AgentProcess:
         mission = self.mission.with_vehicles(cfg.vehicles)
         flown = (None if self.budget is None
                  else self.budget.inflate(mission.scenario.controller))
+        # the route this agent flies (its apex distances to the recording; a route's
+        # hand-overs replayed by the monitor)
+        route = control.tick.root.route if mission.scenario.is_route else None
         rec = AgentRecording(mission, cfg.vehicles, self.vehicle, self.recorder, t0,
                              out=self.out, meta={
                                  "mission_id": self.mission_id, "run_id": cfg.run_id,
                                  "config_hash": self.hash, "broker": self.bus.url,
                                  "clock": self.clock_summary},
-                             flown=flown, wall_clock=self.wall_clock)
+                             flown=flown, wall_clock=self.wall_clock, route=route)
         radii = ({} if flown is None else {"r_s_flown": flown.r_s, "r_a_flown": flown.r_a})
-        self.recorder.log_scene(mission.scenario, None, mission=mission.config,
+        self.recorder.log_scene(mission.scenario, route, mission=mission.config,
             meta={"kind": "agent", "vehicle": self.vehicle, "rate_hz": self.cfg.rate_hz,
                   "run_id": cfg.run_id, "broker": self.bus.url, "vehicles": cfg.vehicles,
                   "fence": self.fence, **radii},  # review: pairs within the flown radii
