@@ -75,3 +75,31 @@ async def test_one_agents_link_trims_and_restores_like_run() -> None:
         after = _intervals(v)
     assert all(during[name][0] == 0.0 for name in OFF), during
     assert all(now == default for now, default in after.values()), after
+
+
+async def test_a_fleet_says_once_which_vehicles_kept_our_rates(caplog) -> None:
+    """With many vehicles, the streams some did not confirm at close are one line for the
+    fleet (naming the vehicles and the streams), not one warning per vehicle."""
+    import logging
+    from types import SimpleNamespace
+
+    class Link:
+        def __init__(self, left: list[int]) -> None:
+            self.warn_unrestored, self._left, self.unrestored_streams = True, left, []
+
+        async def close(self) -> None:
+            assert self.warn_unrestored is False  # the fleet says it, not each link
+            self.unrestored_streams = self._left
+
+        @property
+        def unrestored_names(self) -> list[str]:
+            return [f"MSG{m}" for m in self.unrestored_streams]
+
+    pilots = [SimpleNamespace(vehicle_id=i, link=Link([30, 31] if i % 2 else []))
+              for i in range(30)]
+    with caplog.at_level(logging.WARNING):
+        await Supervisor._close_links(SimpleNamespace(pilots=pilots))
+    lines = [r.getMessage() for r in caplog.records if "not confirmed" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert "by 15 of 30 vehicle(s) (1, 3, 5," in lines[0] and "(15 in all)" in lines[0]
+    assert "MSG30, MSG31" in lines[0]

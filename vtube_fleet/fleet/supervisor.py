@@ -832,10 +832,27 @@ class Supervisor:
                 log.error("cannot write summary.json in %s: %s", self.out_dir, exc)
                 path = None
         self.recorder.close()
-        await asyncio.gather(*(p.link.close() for p in self.pilots), return_exceptions=True)
+        await self._close_links()
         if self.view is not None:
             self.view.close()
         return summary, path
+
+    async def _close_links(self) -> None:
+        """Close every link (each gives PX4 its own stream rates back) and say once, for the
+        whole fleet, which vehicles did not confirm that."""
+        for p in self.pilots:
+            if hasattr(p.link, "warn_unrestored"):
+                p.link.warn_unrestored = False
+        await asyncio.gather(*(p.link.close() for p in self.pilots), return_exceptions=True)
+        left = [p for p in self.pilots if getattr(p.link, "unrestored_streams", None)]
+        if left:
+            names = sorted({n for p in left for n in p.link.unrestored_names})
+            ids = [int(p.vehicle_id) for p in left]
+            shown = ", ".join(map(str, ids[:12])) + (f" … ({len(ids)} in all)"
+                                                    if len(ids) > 12 else "")
+            log.warning("PX4's own stream rates not confirmed by %d of %d vehicle(s) (%s) for "
+                        "%s: they keep our rates until they reboot or a ground station sets "
+                        "them", len(left), len(self.pilots), shown, ", ".join(names))
 
     # -- the summary -------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:

@@ -232,6 +232,11 @@ class MavlinkLink(VehicleLink):
         self.message_rates_hz = rates
         #: the streams whose rate this link set (restored at :meth:`close`)
         self.streams_changed: set[int] = set()
+        #: the streams :meth:`restore_streams` could not give back (their names:
+        #: :attr:`unrestored_names`); ``warn_unrestored`` False: the owner of many links says
+        #: it once for all (the supervisor)
+        self.unrestored_streams: list[int] = []
+        self.warn_unrestored = True
         self.command_tries = command_tries
         self.command_timeout_s = command_timeout_s
         self.heartbeat_period_s = heartbeat_period_s
@@ -1002,11 +1007,18 @@ class MavlinkLink(VehicleLink):
                 left = [m for m in await asyncio.gather(*(one(m) for m in todo)) if m is not None]
         except TimeoutError:
             left = todo
+        self.unrestored_streams = list(left)
         if left:
-            log.warning("%s: PX4's own rate not confirmed for %s (the vehicle keeps our rates "
-                        "until it reboots or a ground station sets them)", self.name,
-                        ", ".join(_message_name(m) for m in left))
+            log.log(logging.WARNING if self.warn_unrestored else logging.DEBUG,
+                    "%s: PX4's own rate not confirmed for %s (the vehicle keeps our rates "
+                    "until it reboots or a ground station sets them)", self.name,
+                    ", ".join(self.unrestored_names))
         return left
+
+    @property
+    def unrestored_names(self) -> list[str]:
+        """The names of :attr:`unrestored_streams`."""
+        return [_message_name(m) for m in self.unrestored_streams]
 
     async def _try_command(self, command: int, *params: float, what: str,
                            deadline: float | None = None) -> None:
