@@ -325,7 +325,7 @@ async def test_vehicle_lost_beside_the_obstacle_the_others_pass(tmp_path: Path) 
     then the planner) give no partition and the run aborted. The fallback (core/loss.py)
     groups the lost vehicle with the obstacle; nobody is inside the new region; the other two
     pass it and exit; the ground truth stays clean."""
-    from vtube_fleet.core.loss import cannot_pass, repartition_around_lost
+    from vtube_fleet.core.loss import repartition_around_lost
     from vtube_fleet.core.partition import PartitionError, partition
     from vtube_fleet.core.tube import APEX_AUTO, Obstacle
 
@@ -347,7 +347,7 @@ async def test_vehicle_lost_beside_the_obstacle_the_others_pass(tmp_path: Path) 
             if killed and sup.plan.lost and not inside:  # the re-partition, as it happens
                 flying = [q for q in sup.pilots if q.phase.value == "in_tube"]
                 xy = np.array([q.xy for q in flying])
-                hit = cannot_pass(sup.plan.partition, xy, sup.plan.zones)
+                hit = sup.plan.cannot_pass(xy)
                 inside.append([q.vehicle_id for q, h in zip(flying, hit, strict=True) if h])
 
         result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],

@@ -143,7 +143,7 @@ def test_sigint_lands_everyone_and_leaves_a_complete_summary(tmp_path: Path) -> 
         try:
             read_line(proc, "stderr", lambda s: "stage: tube" in s, 90)
             # the status line (every 5 s when stderr is not a terminal) shows them in the tube
-            read_line(proc, "stderr", lambda s: "in tube 3" in s, 30)
+            read_line(proc, "stderr", lambda s: ": 3 in tube" in s, 30)
             proc.send_signal(signal.SIGINT)
             tail = proc.stderr.read() if proc.stderr else ""
             rc = proc.wait(timeout=90)

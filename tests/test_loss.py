@@ -136,6 +136,11 @@ def test_flight_plan_with_lost_uses_the_fallback_once():
         assert np.allclose(a.polygon(), b.polygon())
     assert root.with_lost(lost) is new
     assert new.route.zones[0]  # the apex look-ahead of the flown plan covers the new triangle
+    # the group's circle is no obstacle of the route: its triangle is numbered after them
+    # (the summary looks triangles up by route number: an IndexError ended a real run here)
+    assert len(new.route.obstacles) == 2
+    assert [t.obstacle for t in new.route.triangles] == [2]
+    assert next((t.h for t in new.route.triangles if t.obstacle == 0), None) is None
 
 
 # ----------------------------------------------------------------------------------------------

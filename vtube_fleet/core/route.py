@@ -664,11 +664,20 @@ class Route:
 
     @cached_property
     def triangles(self) -> tuple[Triangle, ...]:
-        """Every circumscribed triangle, its ``obstacle`` the route index, in that order."""
+        """Every circumscribed triangle, its ``obstacle`` the route index, in that order. The
+        circle a re-partition drew around a lost vehicle and the obstacles nearest to it
+        (:mod:`~vtube_fleet.core.loss`, "grouped") is no obstacle of the route: its triangle
+        is numbered after them (``len(obstacles)`` on), one number per circle."""
         if self.S == 1 and not self.lost:
             return self.segments[0].partition.triangles
-        out = [dataclasses.replace(t, obstacle=seg.obstacle_ids[t.obstacle])
-               for seg in self.segments for t in seg.partition.triangles]
+        out, extra = [], len(self.obstacles)
+        for seg in self.segments:
+            for t in seg.partition.triangles:
+                if t.obstacle < len(seg.obstacle_ids):
+                    out.append(dataclasses.replace(t, obstacle=seg.obstacle_ids[t.obstacle]))
+                else:  # a grouped circle (its own number)
+                    out.append(dataclasses.replace(t, obstacle=extra))
+                    extra += 1
         return tuple(sorted(out, key=lambda t: t.obstacle))
 
     @cached_property
