@@ -358,6 +358,7 @@ def agent_summary(run: Run, i: int) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
 async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
     """Through the secured broker of `vtube-fleet bus-setup` (TLS, passwords, ACL)."""
     n = 8

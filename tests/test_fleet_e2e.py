@@ -143,6 +143,7 @@ async def fly_logged(mission: Mission, seed: int, *, backend: str = "mavlink",
 
 
 # ----------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
 async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) -> None:
     """The README's main job, and its recording gives back the fleet's own summary."""
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml")
@@ -171,6 +172,7 @@ async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) ->
     _recording_reviews(path, tmp_path, 12)
 
 
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
 @pytest.mark.timeout(420)
 async def test_12_vehicles_fly_the_route_mission_judged_by_the_truth(tmp_path: Path) -> None:
     """Issue 29: ``configs/route_mock.toml`` (three segments, bends of 60° and −30°, a pole in

@@ -280,6 +280,7 @@ def _png_has_map(png: Path) -> None:
     assert red.sum() > 200
 
 
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_chromium_shows_the_live_map_and_closing_it_changes_nothing(tmp_path: Path) -> None:
@@ -318,6 +319,7 @@ def _browser_run(tmp_path: Path, out: Path, port: int, endpoints: list[str]) -> 
     _assert_flight_unaffected(out, rc, lines)
 
 
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_native_viewer_live_under_xvfb_and_killing_it_changes_nothing(tmp_path: Path) -> None:
