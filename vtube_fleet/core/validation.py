@@ -74,6 +74,7 @@ __all__ = [
     "ScenarioError",
     "Violation",
     "binding_constraints",
+    "bisect_edge",
     "check_scenario",
     "flown_symbols",
     "further_failures",
@@ -680,12 +681,25 @@ def _nearest_working(works: Callable[[float], bool], bad_at: float, ok_at: float
         if x == ok_at:
             return None
         bad, step = x, 2.0 * step
-    for _ in range(iterations):
+    return bisect_edge(works, good, bad, iterations=iterations)
+
+
+def bisect_edge(works: Callable[[float], bool], good: float, bad: float, *,
+                iterations: int | None = None, tol: float | None = None) -> float:
+    """The edge between ``good`` (``works`` holds) and ``bad`` (it does not), either order, by
+    bisection: the working end after ``iterations`` halvings, or once the interval is at most
+    ``tol`` wide. The one bisection of the fixes (:func:`_nearest_working`) and the runtime's
+    margins (fleet/margin.py)."""
+    if (iterations is None) == (tol is None):
+        raise ValueError("bisect_edge needs exactly one of iterations and tol")
+    n = 0
+    while (n < iterations) if iterations is not None else (abs(bad - good) > tol):
         mid = 0.5 * (good + bad)
         if works(mid):
             good = mid
         else:
             bad = mid
+        n += 1
     return good
 
 

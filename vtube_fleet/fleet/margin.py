@@ -38,7 +38,12 @@ from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Violation
 from vtube_fleet.core.route import Route
-from vtube_fleet.core.validation import RouteValidation, flown_symbols, validate_route
+from vtube_fleet.core.validation import (
+    RouteValidation,
+    bisect_edge,
+    flown_symbols,
+    validate_route,
+)
 from vtube_fleet.fleet.budget import (
     PX4_SITL_ACCURACY_M,
     PX4_SITL_LATENCY_S,
@@ -143,13 +148,7 @@ def slot_violations(mission: Mission, measured: LinkMeasurement
 def _largest(valid: Callable[[float], bool], lo: float, hi: float) -> float:
     """The largest x in [lo, hi) found valid by bisection, given ``valid(lo)`` and not
     ``valid(hi)``."""
-    while hi - lo > _TOL:
-        mid = 0.5 * (lo + hi)
-        if valid(mid):
-            lo = mid
-        else:
-            hi = mid
-    return lo
+    return bisect_edge(valid, lo, hi, tol=_TOL)
 
 
 def _largest_step(valid: Callable[[float], bool], lo: float, hi: float) -> float:
