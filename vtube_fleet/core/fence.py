@@ -79,19 +79,10 @@ class FenceGeometry:
         """One line per point of ``x`` (M, 2) the fence would not allow (vehicles before
         arming: PX4 would breach at once)."""
         pts = np.asarray(x, dtype=float).reshape(-1, 2)
-        out = []
-        poly_in = self.inside_polygon(pts)
-        excl = self.inside_exclusion(pts)
-        for i, p in enumerate(pts):
-            if not poly_in[i]:
-                out.append(f"{names[i]} at {point_text(p)} is outside the fence polygon (legs "
-                           f"widened by {compact_number(self.widen_m)} m, "
-                           f"{compact_number(self.back_m)} m behind the start base, "
-                           f"{compact_number(self.exit_m)} m past the finishing line)")
-            elif excl[i]:
-                out.append(f"{names[i]} at {point_text(p)} is inside an obstacle's exclusion "
-                           f"circle")
-        return out
+        return _problems(pts, names, self.inside_polygon(pts), self.inside_exclusion(pts),
+                         f"the fence polygon (legs widened by {compact_number(self.widen_m)} m, "
+                         f"{compact_number(self.back_m)} m behind the start base, "
+                         f"{compact_number(self.exit_m)} m past the finishing line)")
 
 
 def _leg_point(p0: np.ndarray, t: np.ndarray, n_in: np.ndarray, n_c: np.ndarray,
@@ -213,19 +204,25 @@ class RouteFence:
         if len(self.segments) == 1:
             return self.segments[0].problems(x, names)
         pts = np.asarray(x, dtype=float).reshape(-1, 2)
-        out = []
-        poly_in = self.inside_polygon(pts)
-        excl = self.segments[0].inside_exclusion(pts)
-        for i, p in enumerate(pts):
-            if not poly_in[i]:
-                out.append(f"{names[i]} at {point_text(p)} is outside every segment's fence "
-                           f"polygon (legs widened by {compact_number(self.widen_m)} m, "
-                           f"{compact_number(self.back_m)} m behind the route's start base, "
-                           f"{compact_number(self.exit_m)} m past its finishing line)")
-            elif excl[i]:
-                out.append(f"{names[i]} at {point_text(p)} is inside an obstacle's exclusion "
-                           f"circle")
-        return out
+        return _problems(pts, names, self.inside_polygon(pts),
+                         self.segments[0].inside_exclusion(pts),
+                         f"every segment's fence polygon (legs widened by "
+                         f"{compact_number(self.widen_m)} m, {compact_number(self.back_m)} m "
+                         f"behind the route's start base, {compact_number(self.exit_m)} m past "
+                         f"its finishing line)")
+
+
+def _problems(pts: np.ndarray, names: Sequence[str], poly_in: np.ndarray, excl: np.ndarray,
+              polygon: str) -> list[str]:
+    """The lines of ``problems``: a point outside ``polygon`` (its description), or inside an
+    exclusion circle."""
+    out = []
+    for i, p in enumerate(pts):
+        if not poly_in[i]:
+            out.append(f"{names[i]} at {point_text(p)} is outside {polygon}")
+        elif excl[i]:
+            out.append(f"{names[i]} at {point_text(p)} is inside an obstacle's exclusion circle")
+    return out
 
 
 def route_fence(corridor: Any, r_s: float, *, slots: np.ndarray | None = None,
