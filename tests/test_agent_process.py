@@ -408,8 +408,9 @@ async def test_eight_agent_processes_fly_the_mock_fleet_mission(tmp_path: Path) 
     )
 
 
-#: Four vehicles on a route of two segments: 20 m, a 60° bend to the left, 18 m (20 m wide).
-ROUTE_4 = [[2.0, -4.5], [2.0, 0.0], [2.0, 4.5], [6.5, 0.0]]
+#: Four vehicles on a route of two segments: 20 m, a 60° bend to the left, 18 m (20 m wide);
+#: slots 5.5 m apart (the agents' budget reached 2 r_s' = 4.47 m on a loaded CI machine).
+ROUTE_4 = [[2.0, -5.5], [2.0, 0.0], [2.0, 5.5], [7.5, 0.0]]
 
 
 async def test_four_agent_processes_fly_a_route(tmp_path: Path) -> None:
