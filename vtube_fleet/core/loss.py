@@ -80,6 +80,7 @@ from vtube_fleet.core.partition import (
     Triangle,
     _area,
     _clip,
+    _dist_to_polygon,
     alpha_max,
     apex_lookahead,
     h_min,
@@ -261,22 +262,11 @@ def _clear_of_discs(part: Partition, tube: Trapezoid, centers: np.ndarray,
         sub = Trapezoid(t.p_h0, t.p_h1, t.p_r0, t.p_r1)
         for c, R in zip(centers, radii_ext, strict=True):
             inside = bool(sub.contains(c)) and bool(tube.contains(c))
-            d = 0.0 if inside else _dist_to_edges(c, poly)
+            d = 0.0 if inside else _dist_to_polygon(c, poly)
             if d < R - _DISC_TOL:
                 return (f"the disc at {point_text(c)} (radius {_num(float(R))} m) meets "
                         f"{t.name} ({_num(float(R) - d)} m inside)")
     return ""
-
-
-def _dist_to_edges(p: np.ndarray, poly: np.ndarray) -> float:
-    """Distance from ``p`` to the boundary of the polygon (clipping may repeat a vertex)."""
-    best = math.inf
-    for i in range(len(poly)):
-        a, e = poly[i], poly[(i + 1) % len(poly)] - poly[i]
-        ee = float(e @ e)
-        t = 0.0 if ee < 1e-24 else min(1.0, max(0.0, float((p - a) @ e) / ee))
-        best = min(best, float(np.hypot(*(p - (a + t * e)))))
-    return best
 
 
 def _footprint(part: Partition, tube: Trapezoid, n_obstacles: int) -> float:

@@ -758,11 +758,13 @@ class SubTubeNode:
 
 
 def _dist_to_polygon(p: np.ndarray, poly: np.ndarray) -> float:
+    """Distance from ``p`` to the boundary of the polygon (a repeated vertex, as clipping may
+    leave, is an edge of length 0)."""
     best = math.inf
     for i in range(len(poly)):
-        a, b = poly[i], poly[(i + 1) % len(poly)]
-        e = b - a
-        t = min(1.0, max(0.0, float((p - a) @ e) / float(e @ e)))
+        a, e = poly[i], poly[(i + 1) % len(poly)] - poly[i]
+        ee = float(e @ e)
+        t = 0.0 if ee < 1e-24 else min(1.0, max(0.0, float((p - a) @ e) / ee))
         best = min(best, float(np.hypot(*(p - (a + t * e)))))
     return best
 

@@ -487,10 +487,6 @@ class Corridor:
         pts = np.concatenate([t.polygon() for t in self.segments])
         return pts.min(axis=0), pts.max(axis=0)
 
-    def finish_threshold(self, eps_0: float) -> float:
-        """(TraCondition) of the LAST segment as a threshold on n_cᵀx."""
-        return self.last.finish_threshold(eps_0)
-
 
 # ----------------------------------------------------------------------------------------------
 # the planned route
@@ -757,13 +753,6 @@ class Route:
         tb = self._table
         return np.einsum("ij,ij->i", p, tb["n_c"][s]) - tb["x0"][s]
 
-    def contains(self, p: np.ndarray, segment: np.ndarray, tol: float = 0.0) -> np.ndarray:
-        """Each point inside its own segment's trapezoid (closed, ``tol`` metres)."""
-        dh, dr = self.leg_distances(p, segment)
-        xi = self.xi(p, segment)
-        L = self._table["L"][np.asarray(segment, dtype=np.intp).reshape(-1)]
-        return (dh >= -tol) & (dr >= -tol) & (xi >= -tol) & (xi <= L + tol)
-
     def finished(self, p: np.ndarray, segment: np.ndarray | None = None) -> np.ndarray:
         """(TraCondition) on the LAST segment's finishing line, for points flying the last
         segment (``segment``: each point's segment; ``None`` for a one-segment route)."""
@@ -1005,12 +994,14 @@ class RouteTracker:
             seg = self.segment
             if seg.shape[0] != p.shape[0]:
                 raise ValueError(f"{p.shape[0]} points for {seg.shape[0]} segments")
-            new = self.route.handover(p, seg)
-            if (new != seg).any():
-                new.setflags(write=False)
-                self.segment = new
-                self.handed = True
-            gap = self.route.entry_gap(p, self.segment)
+            gap = self.route.entry_gap(p, seg)
+            if (gap < 0.0).any():  # only a point inside an entry region can hand over
+                new = self.route.handover(p, seg)
+                if (new != seg).any():
+                    new.setflags(write=False)
+                    self.segment = new
+                    self.handed = True
+                    gap = self.route.entry_gap(p, new)
             self._slack = float(gap.min()) if gap.shape[0] else math.inf
         ks = [t.update(p, max_move) for t in self._trackers]
         if (self._ks is not None and self._seg_k is self.segment

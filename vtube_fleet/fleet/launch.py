@@ -246,8 +246,7 @@ async def fleet_supervisor(
             endpoints = list(fleet.endpoints)
             if sysids is None:
                 sysids = [fleet_sysid(i) for i in range(len(endpoints))]
-        kind = BACKENDS.get(backend)
-        if kind is None:
+        if backend not in BACKENDS:
             raise FleetCliError(f"unknown backend {backend!r} (choose from "
                                 f"{', '.join(BACKENDS)})")
         if sysids is None:  # every link flies one id (docs/links.md, "Identity, source …")

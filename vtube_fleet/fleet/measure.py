@@ -102,7 +102,6 @@ class FlightMeasurement:
         self.cmd_speed = [math.inf, -math.inf]
         self.min_pair_airborne = math.inf
         self.min_pair_airborne_truth = math.inf
-        self.truth_xy: np.ndarray | None = None  # (M, 2) ground truth, tube frame
         self.watch: BudgetWatch | None = None  # the in-flight budget check, once flying
         self._forgotten: set[int] = set()  # lost vehicles whose ages the watch dropped
 
@@ -216,7 +215,8 @@ class FlightMeasurement:
         """The budget watch (:func:`~vtube_fleet.fleet.tick.watch_budget`) and the position
         ages the summary reports (airborne, younger than ``neighbour_max_age_s``)."""
         tab = self.table
-        self.sample_ages.extend(used_ages(tab, result)[1].tolist())
+        used = used_ages(tab, result)
+        self.sample_ages.extend(used[1].tolist())
         if self.watch is None or self.watch.budget is not budget:
             self.watch = BudgetWatch(self.mission, budget)
             self._forgotten = set()
@@ -224,7 +224,7 @@ class FlightMeasurement:
         warning, hold = watch_budget(
             self.watch, tab, result, tick_gap_s,
             lambda rows: [links[r].state.accuracy_m() for r in rows.tolist()],
-            forgotten=self._forgotten)
+            forgotten=self._forgotten, used=used)
         if warning:
             self.warn(warning)
         if hold:
@@ -253,7 +253,6 @@ class FlightMeasurement:
                                                   np.array([s.truth_alt_m for s in st]))
             out[rows, 0] = np.atleast_1d(x)
             out[rows, 1] = np.atleast_1d(y)
-        self.truth_xy = out
         return out
 
     # -- the live status -------------------------------------------------------------------------

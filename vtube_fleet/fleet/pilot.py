@@ -169,15 +169,6 @@ class VehiclePilot:
             return math.inf
         return (now_mono - self.sample_s) + (self.link.latency_s or 0.0)
 
-    def airborne(self) -> bool:
-        """Off the ground: PX4 says IN_AIR, or more than 0.5 m up."""
-        return (self.link.state.landed_state == "IN_AIR"
-                or (math.isfinite(self.up_m) and self.up_m > 0.5))
-
-    def needs_landing(self) -> bool:
-        """Airborne under our responsibility (:data:`~vtube_fleet.state.AIRBORNE_PHASES`)."""
-        return self.phase in AIRBORNE_PHASES
-
     # -- naming / events ------------------------------------------------------------------------
     @property
     def name(self) -> str:

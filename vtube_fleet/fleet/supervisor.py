@@ -283,17 +283,17 @@ class Supervisor:
         self.event(f"stage: {stage}")
 
     # -- the control clock's tick ----------------------------------------------------------------
-    def _step(self, now_mono: float, now_wall: float, listening_since: float | None) -> None:
+    def _step(self, now_mono: float, now_wall: float, listening_since: float | None
+              ) -> TickResult:
         """One tick (:class:`~vtube_fleet.fleet.tick.Tick`), then its measurement."""
         result = self.ticker(now_mono, now_wall, listening_since)
         self._after_replan_check(now_mono, result)
         self._measure(result)
+        return result
 
     def _tick(self) -> TickResult:
         """One tick now, as the clock runs it (benchmarks, tests)."""
-        result = self.ticker(time.monotonic(), time.time(), self.clock.listening_since)
-        self._measure(result)
-        return result
+        return self._step(time.monotonic(), time.time(), self.clock.listening_since)
 
     def _measure(self, result: TickResult) -> None:
         durations = self.clock.durations_s

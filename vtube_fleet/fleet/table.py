@@ -74,11 +74,6 @@ class FleetTable:
     the tick passes back to the plan every tick; −1 until its first position, then the segment
     that position starts in; 0 for a one-segment route)."""
 
-    _COLUMNS = ("xy", "vel", "up", "sample_s", "has", "cmd", "cmd_set", "cmd_in_tube", "lost",
-                "lost_set", "phase", "offboard_seen", "still_since_s", "still_xy", "stop_xy",
-                "stop_set", "in_transition", "standstill", "takeoff_xy", "exit_s", "setpoints_sent",
-                "ever_sent", "seq", "segment")
-
     def __init__(self, ids: Sequence[int], mission: Mission, frame: TubeFrame | None = None
                  ) -> None:
         n = len(ids)
@@ -115,13 +110,6 @@ class FleetTable:
         #: the estimate compensation (fleet/compensation.py); None: not compensated
         self.compensator = CompensatorBank(n) if cfg.compensate_estimate else None
         self.residuals = ResidualTracker(n, cfg.period_s, cfg.disturbance_residual_m_s)
-
-    def row_of(self, vehicle_id: int) -> int:
-        """The row that flies ``vehicle_id`` (:class:`KeyError` if none)."""
-        hit = np.flatnonzero(self.ids == int(vehicle_id))
-        if not hit.size:
-            raise KeyError(vehicle_id)
-        return int(hit[0])
 
     def positions(self) -> np.ndarray:
         """(n, 2): where the others must see each vehicle: the frozen last position once LOST,

@@ -95,8 +95,6 @@ _LOST = PHASE_CODE[Phase.LOST]
 _OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
 _CHECKED_MASK = phase_mask(AIRBORNE_PHASES | {Phase.ARMING})
 _FLYING_TUBE_MASK = phase_mask({Phase.IN_TUBE, Phase.TAKEOFF})
-#: flying on our setpoints (arming, the climb, the tube, past the line)
-_FLYING_MASK = phase_mask(OFFBOARD_PHASES)
 _STOPPED_MASK = phase_mask(STOPPED_PHASES)
 
 #: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
@@ -366,7 +364,7 @@ def _untrusted_telemetry(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int],
     positions cannot be trusted, so it holds where it is and is an obstacle for everyone."""
     states = ctx.links.states
     faulted = np.fromiter((s.telemetry_fault is not None for s in states), bool, len(states))
-    flying = _FLYING_MASK[ctx.tab.phase]
+    flying = _OFFBOARD_MASK[ctx.tab.phase]  # on our setpoints (arming … past the line)
     return faulted & flying, lambda r: f"telemetry not trustworthy: {states[r].telemetry_fault}"
 
 
@@ -688,12 +686,12 @@ class Tick:
         t = self.t_s(now_mono)
         # 1. links, 2. sense
         links = read_links(self.links)
-        _, up = sense(tab, links, self.frame, mission)
+        new, up = sense(tab, links, self.frame, mission)
         hand_over(tab, self.plan)
         for r in up.tolist():
             if not pilots[r].at_altitude.is_set():
                 pilots[r].at_altitude.set()
-        for r in np.flatnonzero(tab.has).tolist():
+        for r in new[tab.has[new]].tolist():  # ``has`` changes only with a new sample
             if not pilots[r].sensed.is_set():
                 pilots[r].sensed.set()
         # 3. faults
@@ -847,17 +845,20 @@ def used_ages(tab: FleetTable, result: TickResult) -> tuple[np.ndarray, np.ndarr
 
 def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_gap_s: float,
                  accuracy_m: Callable[[np.ndarray], Sequence[float]], *,
-                 forgotten: set[int]) -> tuple[str | None, str | None]:
+                 forgotten: set[int],
+                 used: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> tuple[str | None, str | None]:
     """Feed the budget watch one tick (:class:`~vtube_fleet.fleet.budget.BudgetWatch`): the
     gap since the previous tick, the ages of the positions used (:func:`used_ages`), lost
     vehicles' ages dropped
     (``forgotten``: the rows already dropped); once a second judge L (worst uplink latency) and
     σ (``accuracy_m(rows in the tube)``). Does nothing while no vehicle is in the tube.
+    ``used``: :func:`used_ages` of this tick if the caller has it already.
     Returns ``(warning, hold)``."""
     ph = tab.phase
     if not (ph == _IN_TUBE).any():
         return None, None
-    rows, ages = used_ages(tab, result)
+    rows, ages = used_ages(tab, result) if used is None else used
     watch.add_tick_gap(tick_gap_s)
     watch.add_ages(result.t_s, ages, rows, tab.sample_s[rows])
     lost = set(np.flatnonzero(ph == _LOST).tolist()) - forgotten
