@@ -1,8 +1,11 @@
 """Free UDP port ranges for the fleet tests (other test runs on the same machine may be using
-PX4's 14540/14580 ranges)."""
+PX4's 14540/14580 ranges). Under pytest-xdist each worker picks from its own slice of
+15000-28000: two workers checking the same range free at the same moment and then both binding
+it is otherwise a race (it failed a suite run once)."""
 
 from __future__ import annotations
 
+import os
 import random
 import socket
 
@@ -10,13 +13,31 @@ from sim_stub import PortScheme
 
 __all__ = ["free_ports"]
 
+_LOW, _HIGH = 15000, 28000
+
+
+def _slice() -> tuple[int, int]:
+    """This process's [low, high) of the port range: the whole range, or its worker's share."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    k = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+    width = (_HIGH - _LOW) // max(count, 1)
+    low = _LOW + (k % max(count, 1)) * width
+    return low, low + width
+
 
 def free_ports(count: int) -> PortScheme:
-    """A port scheme whose 2·count UDP ports (GCS and vehicle side) are free now."""
+    """A port scheme whose 2·count UDP ports (GCS and vehicle side) are free now, in this
+    worker's slice (GCS ports in its first half, the vehicles' the same offset into its
+    second)."""
+    low, high = _slice()
+    half = (high - low) // 2
+    if count > half - 10:
+        raise RuntimeError(f"{count} vehicles do not fit in ports {low}-{high}")
     rng = random.Random()
     for _ in range(200):
-        gcs = rng.randrange(15000, 28000, 10)
-        veh = gcs + 2000
+        gcs = rng.randrange(low, low + half - count, 10)
+        veh = gcs + half
         socks = []
         try:
             for port in [*range(gcs, gcs + count), *range(veh, veh + count)]:
