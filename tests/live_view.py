@@ -172,8 +172,10 @@ def chromium_executable() -> str:
 
 
 @contextlib.contextmanager
-def chromium(size: str = "1920x1080") -> Iterator[tuple[subprocess.Popen[bytes], int]]:
-    """Headless Chromium with a fresh profile and a DevTools port: (process, port)."""
+def chromium(size: str = "1920x1080", *, nice: int = 0
+             ) -> Iterator[tuple[subprocess.Popen[bytes], int]]:
+    """Headless Chromium with a fresh profile and a DevTools port: (process, port); ``nice``
+    lowers the priority of it and every helper process it starts (the GPU process draws)."""
     port = free_port()
     w, h = size.split("x")
     with tempfile.TemporaryDirectory(prefix="chromium-") as profile:
@@ -181,7 +183,8 @@ def chromium(size: str = "1920x1080") -> Iterator[tuple[subprocess.Popen[bytes],
             [chromium_executable(), *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
              f"--remote-debugging-port={port}", "--remote-allow-origins=*",
              f"--window-size={w},{h}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+            preexec_fn=(lambda: os.nice(nice)) if nice else None)
         try:
             wait_port(port, 30.0, proc)
             yield proc, port
