@@ -338,6 +338,8 @@ def main() -> None:
                          "flight computer that yields the CPU to the control loop)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    # SIGTERM (kill, a job scheduler) unwinds like Ctrl-C: the mock processes are stopped
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if args.processes is None:
         args.processes = max(1, math.ceil(args.count / 250))
     if not 1 <= args.processes <= args.count:
