@@ -17,12 +17,18 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import pty
+import select
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 from missions import straight_mission
-from mock_process import mock_process, read_line, start_run
+from mock_process import child_env, mock_process, read_line, start_run
 
 from vtube_fleet.config.mission import load_mission
 from vtube_fleet.fleet.launch import fly
@@ -171,3 +177,49 @@ def test_sigint_lands_everyone_and_leaves_a_complete_summary(tmp_path: Path) -> 
     assert float(data.t_s[-1]) >= summary["wall_s"] - 1.0
     print(f"\nSIGINT: rc {rc}; phases {[v['phase'] for v in summary['vehicle_states']]}; "
           f"recorded ticks {len(data.t_s)}, summary ticks {summary['ticks']}")
+
+
+def _read_pty_until(master: int, proc: subprocess.Popen[bytes], text: bytes,
+                    timeout_s: float) -> bytes:
+    """Read the terminal's output (the pty's master side) until ``text`` appears."""
+    seen = b""
+    deadline = time.monotonic() + timeout_s
+    while text not in seen:
+        assert time.monotonic() < deadline and proc.poll() is None, seen[-2000:]
+        ready, _, _ = select.select([master], [], [], 1.0)
+        if ready:
+            seen += os.read(master, 65536)
+    return seen
+
+
+def test_a_closed_terminal_lands_everyone_like_ctrl_c(tmp_path: Path) -> None:
+    """The operator's terminal (an SSH session) goes away mid-tube: SIGHUP, and writes to the
+    terminal (the live table, the log lines) fail from then on. By default Python would end on
+    the spot and leave the vehicles in OFFBOARD to PX4's failsafe; the run brings them down as
+    for Ctrl-C and keeps its summary."""
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    out = tmp_path / "run"
+    master, slave = pty.openpty()
+    with mock_process(path, 2) as (_mock, endpoints):
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "vtube_fleet", "run", str(path), "--endpoints",
+             ",".join(endpoints), "--out", str(out)],
+            stdin=slave, stdout=slave, stderr=slave, env=child_env(), cwd=ROOT)
+        os.close(slave)
+        try:
+            _read_pty_until(master, proc, b"stage: tube", 90)
+            os.close(master)  # the terminal is gone: writes to it fail (EIO)
+            master = -1
+            proc.send_signal(signal.SIGHUP)
+            rc = proc.wait(timeout=90)
+        finally:
+            if master >= 0:
+                os.close(master)
+            if proc.poll() is None:
+                proc.kill()
+    summary = json.loads((out / "summary.json").read_text())
+    assert rc == 130, (rc, summary.get("outcome"), summary.get("reason"))
+    assert summary["outcome"] == "interrupted"
+    assert [v["phase"] for v in summary["vehicle_states"]] == ["landed"] * 2
+    assert any("SIGHUP" in e["text"] for e in summary["events"])

@@ -12,7 +12,7 @@ outcome         code  meaning
 ``aborted``     3     the run stopped in flight (take-off failure, no valid partition, timeout)
 ``failed``      2     the run could not start or a user error stopped it (nothing flown unsafe)
 ``unsafe``      4     a safety limit was broken (judged from the truth when it is known)
-``interrupted`` 130   SIGINT / SIGTERM: held, then landed
+``interrupted`` 130   SIGINT / SIGTERM / SIGHUP: held, then landed
 ==============  ====  ==========================================================================
 
 A :class:`~vtube_fleet.errors.UserError` carries its own code (2 by default) for ``failed``.
@@ -44,7 +44,7 @@ EXIT_INCOMPLETE = 3
 EXIT_UNSAFE = 4
 #: ``vtube-fleet sim``: robots remained in the tube or a safety condition was violated.
 EXIT_SIM_UNFINISHED = 1
-#: Interrupted by SIGINT / SIGTERM (128 + 2, as a shell reports it).
+#: Interrupted by SIGINT / SIGTERM / SIGHUP (128 + 2, as a shell reports it).
 EXIT_INTERRUPTED = 130
 
 #: Outcome word → exit code.
