@@ -162,3 +162,28 @@ def test_no_interim_summary_without_an_out_folder_and_a_bad_one_never_raises(
     rec = AgentRecording(compact_12(), 3, 0, NullRecorder(), t0_s=0.0, out=blocker / "sub")
     rec.after_tick(_pilot(), 0.0, 1.0)  # cannot write: a warning, the flight goes on
     assert "cannot write the interim summary.json" in caplog.text
+
+
+async def test_a_bug_of_ours_in_the_agents_flight_still_lands_its_vehicle() -> None:
+    """The agent's flight ends with an exception nobody expected (a bug, not a UserError): the
+    vehicle is brought down (the same landing as an abort's) and the agent aborts, naming it."""
+    import asyncio
+
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentAborted, AgentProcess
+
+    landed: list[str] = []
+
+    async def fly(**_kw):
+        raise RuntimeError("injected bug")
+
+    async def land_now(_control, why: str) -> None:
+        landed.append(why)
+
+    fake = SimpleNamespace(
+        vehicle=3, _abort=asyncio.Event(), _interrupt=asyncio.Event(),
+        _altitude_barrier=None, _exit_barrier=None, _land_now=land_now)
+    control = SimpleNamespace(pilot=SimpleNamespace(fly=fly))
+    with pytest.raises(AgentAborted, match="vehicle 3: internal error: RuntimeError: injected"):
+        await AgentProcess._fly_started(fake, control)  # type: ignore[arg-type]
+    assert landed == ["internal error: RuntimeError: injected bug (a bug: the traceback is in "
+                      "the log)"]

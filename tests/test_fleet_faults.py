@@ -223,3 +223,84 @@ def test_a_closed_terminal_lands_everyone_like_ctrl_c(tmp_path: Path) -> None:
     assert summary["outcome"] == "interrupted"
     assert [v["phase"] for v in summary["vehicle_states"]] == ["landed"] * 2
     assert any("SIGHUP" in e["text"] for e in summary["events"])
+
+
+async def test_a_bug_of_ours_in_flight_still_lands_everyone(tmp_path: Path) -> None:
+    """An exception nobody expected (here from the tick hook, outside the guarded tick) one
+    second into the tube: the run does not end with the vehicles in OFFBOARD; it aborts, every
+    vehicle lands, and the reason names the error."""
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    mission = load_mission(path)
+    log: dict = {}
+
+    def hook(tick: int, sup: Supervisor) -> None:
+        log.setdefault("sup", sup)
+        if sup.tube_start_s is not None and sup.t_s() - sup.tube_start_s >= 1.0:
+            log["raised"] = True
+            raise RuntimeError("injected bug")
+
+    with mock_process(path, 2) as (_mock, endpoints):
+        result = await fly(mission, endpoints=endpoints, sysids=[1, 2], out_dir=tmp_path,
+                           tick_hook=hook)
+    assert log.get("raised")
+    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
+    assert "RuntimeError: injected bug" in result.reason
+    assert [p.phase.value for p in log["sup"].pilots] == ["landed", "landed"]
+    assert [p.link.state.armed for p in log["sup"].pilots] == [False, False]
+
+
+async def test_a_control_clock_that_dies_in_flight_still_lands_everyone(tmp_path: Path) -> None:
+    """The clock itself ends with an exception (here its stall callback raises after a stall
+    one second into the tube): the mission aborts, the clock runs again to see the vehicles
+    down, and every vehicle lands."""
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    mission = load_mission(path)
+    log: dict = {}
+
+    def broken_on_stall(gap_s: float) -> None:
+        log["raised"] = True
+        raise RuntimeError("injected bug in the clock")
+
+    def hook(tick: int, sup: Supervisor):
+        log.setdefault("sup", sup)
+        if sup.tube_start_s is None or "stalled" in log:
+            return None
+        if sup.t_s() - sup.tube_start_s >= 1.0:
+            log["stalled"] = True
+            sup.clock.on_stall = broken_on_stall
+            return asyncio.sleep(0.5)  # a stall of our own loop: the callback runs next tick
+        return None
+
+    with mock_process(path, 2) as (_mock, endpoints):
+        result = await fly(mission, endpoints=endpoints, sysids=[1, 2], out_dir=tmp_path,
+                           tick_hook=hook)
+    assert log.get("raised")
+    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
+    assert "the control loop ended: RuntimeError: injected bug in the clock" in result.reason
+    assert [p.phase.value for p in log["sup"].pilots] == ["landed", "landed"]
+    assert [p.link.state.armed for p in log["sup"].pilots] == [False, False]
+
+
+async def test_a_bug_of_ours_after_the_tube_still_lands_everyone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An exception nobody expected in the procedure itself (here the finish after the tube,
+    the vehicles still in the air): the run aborts and brings every vehicle down instead of
+    ending with them airborne."""
+    path = tmp_path / "m.toml"
+    path.write_text(MISSION)
+    mission = load_mission(path)
+    log: dict = {}
+
+    async def broken_finish(self: Supervisor, how: str) -> None:
+        log["sup"] = self
+        raise RuntimeError("injected bug in the finish")
+
+    monkeypatch.setattr(Supervisor, "_finish", broken_finish)
+    with mock_process(path, 2) as (_mock, endpoints):
+        result = await fly(mission, endpoints=endpoints, sysids=[1, 2], out_dir=tmp_path)
+    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
+    assert "internal error: RuntimeError: injected bug in the finish" in result.reason
+    assert [p.phase.value for p in log["sup"].pilots] == ["landed", "landed"]
+    assert [p.link.state.armed for p in log["sup"].pilots] == [False, False]

@@ -211,6 +211,7 @@ class Supervisor:
         self._progress = asyncio.Event()
         self._interrupted: str | None = None
         self._clock_task: asyncio.Task[None] | None = None
+        self._clock_restarted = False
         self._clock_stop = asyncio.Event()
         self._main: asyncio.Task[None] | None = None
         self._pacer = SummaryPacer(SUMMARY_EVERY_S)
@@ -308,6 +309,24 @@ class Supervisor:
 
     def _on_stall(self, gap_s: float) -> None:
         self.event(f"control loop stalled for {gap_s:.2f} s", level="warning")
+
+    def _clock_ended(self, task: asyncio.Task[None]) -> None:
+        """The control clock ended before the run stopped it (a bug outside the guarded tick):
+        the mission aborts at once and every vehicle is brought down; the clock is started
+        again once, since the ticks are what see the vehicles touch down."""
+        if task.cancelled() or self._clock_stop.is_set():
+            return
+        exc = task.exception()
+        if exc is not None:
+            log.error("the control loop ended", exc_info=exc)
+        self.request_abort("the control loop ended" + (
+            f": {type(exc).__name__}: {exc} (a bug: the traceback is in the log)"
+            if exc is not None else ""))
+        if not self._clock_restarted:
+            self._clock_restarted = True
+            self._clock_task = asyncio.get_running_loop().create_task(
+                self.clock.run(self._clock_stop))
+            self._clock_task.add_done_callback(self._clock_ended)
 
     def _tick_failed(self, exc: Exception) -> None:
         log.exception("control tick failed", exc_info=exc)
@@ -432,6 +451,7 @@ class Supervisor:
         await pre.connect()
         self._clock_task = asyncio.get_running_loop().create_task(
             self.clock.run(self._clock_stop))
+        self._clock_task.add_done_callback(self._clock_ended)
         self._set_stage("ready")
         await pre.ready()
         await pre.audit_params(self.fix_params)
@@ -717,7 +737,13 @@ class Supervisor:
                 except asyncio.CancelledError:
                     pass
                 self._say_not_down()
-            except (MissionAborted, UserError) as exc:
+            except Exception as exc:  # MissionAborted, UserError, or a bug of ours
+                if not isinstance(exc, MissionAborted | UserError):
+                    # a bug of ours: the vehicles are brought down all the same; the
+                    # traceback is logged for the report
+                    log.error("internal error, every vehicle is brought down", exc_info=exc)
+                    exc = MissionAborted(f"internal error: {type(exc).__name__}: {exc} (a bug: "
+                                         f"the traceback is in the log)")
                 self.outcome = "aborted" if isinstance(exc, MissionAborted) else "failed"
                 self.reason = str(exc)
                 error = exc

@@ -885,7 +885,8 @@ class ControlClock:
     silence) and ``on_stall(gap_s)`` is told. The cyclic garbage collector waits while a tick
     runs (the setpoints go out first). ``guard(exc)``: a tick that raised (a bug must not leave
     vehicles without setpoints silently); ``after()``: called after each tick (it may return an
-    awaitable, which the clock awaits: fault injection in tests). Keeps every tick's start
+    awaitable, which the clock awaits: fault injection in tests); if it raises, ``guard`` is
+    told and the ticks go on without it. Keeps every tick's start
     (loop time), lateness, duration and the gap to the previous one."""
 
     def __init__(self, period_s: float, step: Callable[[float, float, float | None], Any], *,
@@ -944,9 +945,15 @@ class ControlClock:
                     gc.enable()
             self.durations_s.append(time.perf_counter() - t0)
             if self.after is not None:
-                pending = self.after()
-                if inspect.isawaitable(pending):
-                    await pending
+                try:
+                    pending = self.after()
+                    if inspect.isawaitable(pending):
+                        await pending
+                except Exception as exc:
+                    if self.guard is None:
+                        raise
+                    self.after = None  # the ticks go on without what failed after them
+                    self.guard(exc)
             self.ticks += 1
             next_t += period
             now = loop.time()

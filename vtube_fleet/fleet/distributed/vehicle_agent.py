@@ -1002,9 +1002,15 @@ class AgentProcess:
         if fly_task.done():
             try:
                 phase = fly_task.result()
-            except UserError as exc:  # take-off failed, timeouts ...
-                await self._land_now(control, str(exc))
-                raise AgentAborted(f"vehicle {self.vehicle}: {exc}") from None
+            except Exception as exc:  # UserError: take-off failed, timeouts ...; else a bug
+                why = str(exc)
+                if not isinstance(exc, UserError):  # a bug of ours: the vehicle comes down
+                    log.error("agent %d: internal error, its vehicle is brought down",
+                              self.vehicle, exc_info=exc)
+                    why = (f"internal error: {type(exc).__name__}: {exc} (a bug: the traceback "
+                           f"is in the log)")
+                await self._land_now(control, why)
+                raise AgentAborted(f"vehicle {self.vehicle}: {why}") from None
             ok = phase in (Phase.LANDED, Phase.HOLDING) and pilot.exit_time_s is not None
             why = "" if ok else (pilot.reason or f"did not exit (final phase {phase.value})")
             if why:
