@@ -318,6 +318,26 @@ def test_empty_endpoints_is_an_error_not_the_mock(tmp_path: Path, mission_file: 
         assert not out.exists()
 
 
+@pytest.mark.parametrize(("text", "expect"), [
+    (f"{DEAD_ENDPOINT},,udpin://127.0.0.1:10", "item 2 of 3 is empty"),
+    (f",{DEAD_ENDPOINT}", "item 1 of 2 is empty"),
+    (f"{DEAD_ENDPOINT},", "item 2 of 2 is empty"),
+    (f"{DEAD_ENDPOINT},{DEAD_ENDPOINT}", f"{DEAD_ENDPOINT} listed twice (slots 0, 1)"),
+])
+def test_an_empty_or_repeated_endpoint_is_an_error_not_a_slot_shift(
+        text: str, expect: str, tmp_path: Path, mission_file: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Endpoint i flies slot i: ``"$A,$B,$C"`` with an empty $B used to drop it silently, and
+    C then flew B's slot."""
+    out = tmp_path / "out"
+    rc = main(["run", str(mission_file), "--endpoints", text, "--out", str(out), "--no-rerun",
+               "-q"])
+    cap = capsys.readouterr()
+    assert rc == 2, cap.err
+    assert expect in one_error_line(cap.err)
+    assert not out.exists()
+
+
 def test_review_out_is_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from vtube_fleet.config.scenario import parse_scenario
     from vtube_fleet.recording.writer import open_recorder
