@@ -106,6 +106,27 @@ def test_waypoints_that_make_no_route_are_refused(wps: list, match: str) -> None
         RouteGeometry.from_waypoints([wp(x) for x in wps])
 
 
+@pytest.mark.parametrize(("pts", "w", "match"), [
+    # a spiral: S4 flies back down through S1
+    ([(0, 0), (40, 0), (40, 30), (20, 30), (20, -20)], 10.0,
+     r"segments S1 \(waypoints 1 → 2\) and S4 \(waypoints 4 → 5\) overlap: 400.0 m² of "
+     r"corridor around \(20.0, 0.0\)"),
+    # a U-turn whose legs come closer than the corridor is wide: S1 and S3 share a 2 m strip
+    ([(0, 0), (40, 0), (40, 14), (0, 14)], 8.0,
+     r"segments S1 \(waypoints 1 → 2\) and S3 \(waypoints 3 → 4\) overlap: .* must not "
+     r"cross or fold back onto itself"),
+])
+def test_a_route_that_crosses_or_folds_onto_itself_is_refused(pts: list, w: float,
+                                                               match: str) -> None:
+    """Found: check called a route valid whose fourth segment crossed its first (a vehicle
+    flying S4 knows neither S1's legs nor its obstacles)."""
+    with pytest.raises(RouteError, match=match):
+        RouteGeometry.from_waypoints([Waypoint(np.array(p, float), w) for p in pts])
+    # the same U-turn with room between its legs is a route
+    RouteGeometry.from_waypoints([Waypoint(np.array(p, float), 8.0)
+                                  for p in [(0, 0), (40, 0), (40, 17), (0, 17)]])
+
+
 # ----------------------------------------------------------------------------------------------
 # the junction conditions
 # ----------------------------------------------------------------------------------------------

@@ -47,6 +47,7 @@ from vtube_fleet.core.partition import (
     PartitionError,
     Triangle,
     Violation,
+    _area,
     _clip,
     _dist_to_polygon,
     apex_lookahead,
@@ -270,7 +271,33 @@ class RouteGeometry:
             except GeometryError as exc:
                 raise RouteError(f"segment S{k + 1} (waypoints {k + 1} → {k + 2}): {exc}"
                                  ) from None
-        return cls(tuple(segs), tuple(junctions), wps)
+        geo = cls(tuple(segs), tuple(junctions), wps)
+        geo._refuse_self_overlap()
+        return geo
+
+    def _refuse_self_overlap(self) -> None:
+        """Raise :class:`RouteError` when two segments that are not neighbours share
+        airspace: the corridor's pieces (:meth:`pieces`) of S_k and S_l, l ≥ k + 2, overlap
+        (the route crosses or folds back onto itself). Each segment knows only its own
+        obstacles and legs (Junction5), and the hand-over goes only to the next segment."""
+        pieces = self.pieces()
+        boxes = [(p.min(axis=0), p.max(axis=0)) if len(p) else None for p in pieces]
+        for k in range(self.S):
+            for m in range(k + 2, self.S):
+                if boxes[k] is None or boxes[m] is None or \
+                        np.any(boxes[k][0] > boxes[m][1]) or np.any(boxes[m][0] > boxes[k][1]):
+                    continue
+                both = _convex_intersection(pieces[k], pieces[m])
+                area = _area(both)
+                if area > _OVERLAP_AREA_M2:
+                    c = both.mean(axis=0)
+                    raise RouteError(
+                        f"segments S{k + 1} (waypoints {k + 1} → {k + 2}) and S{m + 1} "
+                        f"(waypoints {m + 1} → {m + 2}) overlap: {_num(area, 3)} m² of "
+                        f"corridor around ({_num(float(c[0]), 2)}, {_num(float(c[1]), 2)}) "
+                        f"belong to both; a route must not cross or fold back onto itself "
+                        f"(a segment's vehicles know only its own legs and obstacles): move "
+                        f"the waypoints so that the corridor does not meet itself")
 
     @property
     def S(self) -> int:
@@ -330,6 +357,28 @@ class RouteGeometry:
                 poly = _clip(poly, -nrm, -float(nrm @ p) - _TOL)
             out.append(poly)
         return out
+
+
+#: Two pieces of a route's corridor sharing more than this area (m²) overlap.
+_OVERLAP_AREA_M2 = 1e-6
+
+
+def _convex_intersection(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The intersection of the convex polygons ``p`` and ``q`` ((n, 2), either orientation):
+    ``p`` clipped to the inner side of each edge of ``q``."""
+    n = len(q)
+    if len(p) < 3 or n < 3:
+        return np.zeros((0, 2))
+    sgn = 1.0 if float(q[:, 0] @ np.roll(q[:, 1], -1) - q[:, 1] @ np.roll(q[:, 0], -1)) > 0 \
+        else -1.0
+    out = p
+    for i in range(n):
+        a, e = q[i], q[(i + 1) % n] - q[i]
+        nrm = sgn * np.array([-e[1], e[0]])
+        out = _clip(out, nrm, float(nrm @ a))
+        if len(out) < 3:
+            return np.zeros((0, 2))
+    return out
 
 
 def _mitre_prolongation(da: tuple, db: tuple, n_a: np.ndarray, n_b: np.ndarray,
