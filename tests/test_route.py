@@ -213,6 +213,26 @@ def test_an_obstacle_too_close_to_a_junction_is_refused_and_moved() -> None:
     assert validate_route(moved, MOCK).ok
 
 
+def test_the_move_out_of_a_junction_finds_a_narrow_window() -> None:
+    """Found: an obstacle 12 m past a 45° bend, flown with a mission's radii and the apex
+    look-ahead, works only moved 14.8–20 m downstream (nearer, its triangle and look-ahead zone
+    reach into the hand-over; further, the tube after it is too short). The scan with doubling
+    steps tried 13.9 m, then the end of the segment, and printed no fix at all."""
+    flown = ControllerParams(r_s=2.043, r_a=2.743, v_min=0.3, v_max=1.6, v=1.0,
+                             v_max_prime=0.5)
+    geo = bend(45.0, length=40.0)
+    b = geo.segments[1]
+    ob = Obstacle(geo.junctions[0].center + b.n_c * 12.0, 0.5)
+    corridor = Corridor(geo, (ob,))
+    res = validate_route(corridor, flown, lookahead=True)
+    assert [v.condition for v in res.violations] == ["Junction2"]
+    (fix,) = route_fixes(corridor, flown, None, res.violations, lookahead=True)
+    assert fix.text.startswith("move obstacle #1 ") and "m downstream" in fix.text
+    assert 14.0 < fix.value < 16.0
+    moved = Corridor(geo, (Obstacle(ob.center + b.n_c * fix.value, 0.5),))
+    assert validate_route(moved, flown, lookahead=True).ok
+
+
 def test_an_obstacle_in_a_junction_belongs_to_no_single_segment() -> None:
     geo = bend(60.0)
     centre = geo.junctions[0].center  # in both prolonged segments
