@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -217,7 +218,8 @@ def test_the_move_out_of_a_junction_finds_a_narrow_window() -> None:
     """Found: an obstacle 12 m past a 45° bend, flown with a mission's radii and the apex
     look-ahead, works only moved 14.8–20 m downstream (nearer, its triangle and look-ahead zone
     reach into the hand-over; further, the tube after it is too short). The scan with doubling
-    steps tried 13.9 m, then the end of the segment, and printed no fix at all."""
+    steps tried 13.9 m, then the end of the segment, and printed no fix at all; the violation
+    said 11.253 m."""
     flown = ControllerParams(r_s=2.043, r_a=2.743, v_min=0.3, v_max=1.6, v=1.0,
                              v_max_prime=0.5)
     geo = bend(45.0, length=40.0)
@@ -229,6 +231,11 @@ def test_the_move_out_of_a_junction_finds_a_narrow_window() -> None:
     (fix,) = route_fixes(corridor, flown, None, res.violations, lookahead=True)
     assert fix.text.startswith("move obstacle #1 ") and "m downstream" in fix.text
     assert 14.0 < fix.value < 16.0
+    # the violation says how far the triangle and its look-ahead zone reach in: the move needed
+    # (it said 11.253 m: the zone as cut at S2's start)
+    reach = float(re.search(r"reaches into the hand-over region by ([\d.]+) m",
+                            res.violations[0].message).group(1))
+    assert reach == pytest.approx(fix.value, abs=0.02)
     moved = Corridor(geo, (Obstacle(ob.center + b.n_c * fix.value, 0.5),))
     assert validate_route(moved, flown, lookahead=True).ok
 

@@ -52,6 +52,7 @@ from vtube_fleet.core.partition import (
     _dist_to_polygon,
     apex_lookahead,
     apex_zones,
+    lookahead_depth,
     partition,
 )
 from vtube_fleet.core.text import compact_number as _num
@@ -1231,16 +1232,22 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
         if s is not None:
             H = handover_region(a, b, r, s)
             if len(H):
-                zones = {z.triangle: z.depth_m for z in route.zones[j + 1]}
+                zones = {z.triangle: z for z in route.zones[j + 1]}
+                h_max = float(b.xi(H).max())
                 for tri in sb.partition.triangles:
-                    depth = zones.get(tri.obstacle, 0.0)
-                    m = float(b.xi(tri.p_oth)) - depth - float(b.xi(H).max())
+                    z = zones.get(tri.obstacle)
+                    apex = float(b.xi(tri.p_oth))
+                    m = apex - (0.0 if z is None else z.depth_m) - h_max
                     if m < clear:
-                        clear, who = m, ("b", sb.obstacle_ids[tri.obstacle])
+                        # the zone is cut where its before-tube starts (b's start for the
+                        # first triangle): how far it reaches in, uncut, is the move needed
+                        full = 0.0 if z is None else _uncut_depth(sb.partition, z, route.params)
+                        clear, who = m, (max(-m, h_max - (apex - full)),
+                                         sb.obstacle_ids[tri.obstacle])
                 if clear <= 0.0:
-                    _, ob = who
+                    reach, ob = who
                     txt = (f"the triangle of obstacle #{ob + 1} (S{j + 2}) reaches into the "
-                           f"hand-over region by {_num(-clear, 3)} m (its apex"
+                           f"hand-over region by {_num(reach, 3)} m (its apex"
                            f"{' and look-ahead zone' if route.lookahead else ''} must lie "
                            f"downstream of where vehicles enter S{j + 2})")
                     bad.append(Violation("Junction2", f"Junction2 violated at {where}: {txt}"))
@@ -1273,6 +1280,17 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
         out.append(JunctionCheck(jn, s, mu, clear, prog, corr,
                                  2.0 * p.v * math.sin(abs(jn.theta) / 2.0), tuple(bad)))
     return out
+
+
+def _uncut_depth(part: Partition, zone: ApexZone, params: ControllerParams) -> float:
+    """The depth of an apex look-ahead zone before it is cut at its before-tube's start
+    (:func:`~vtube_fleet.core.partition.lookahead_depth` with unlimited room)."""
+    sides = [part.sub_tubes[k].t_r for k in (zone.left,) if k is not None] + \
+            [part.sub_tubes[k].t_h for k in (zone.right,) if k is not None]
+    if not sides:
+        return zone.depth_m
+    full = lookahead_depth(sides, part.tube.n_c, params, math.inf)
+    return full if math.isfinite(full) else zone.depth_m
 
 
 def _polygon_margin(pts: np.ndarray, piece: np.ndarray) -> float:
