@@ -307,7 +307,7 @@ def validate_scenario(
             except PartitionError as e:
                 violations.append(Violation("Partition", f"Partition failed: {e}"))
         if part is not None:
-            violations += list(part.warnings)
+            violations += [_refused(w) for w in part.warnings]
     if positions is not None:
         p = np.asarray(positions, dtype=float)
         if p.ndim != 2 or p.shape[1] != 2:
@@ -623,7 +623,7 @@ def validate_route(corridor: Corridor, params: ControllerParams,
                 parts.append(planned[s])
                 violations += [dataclasses.replace(w, message=f"{label}: "
                                                    + renumber_obstacles(w.message, ids))
-                               for w in planned[s].warnings]
+                               for w in map(_refused, planned[s].warnings)]
                 continue
             try:
                 part = partition(tube, obs, params, strict=False,
@@ -635,7 +635,7 @@ def validate_route(corridor: Corridor, params: ControllerParams,
             else:
                 violations += [dataclasses.replace(w, message=f"{label}: "
                                                    + renumber_obstacles(w.message, ids))
-                               for w in part.warnings]
+                               for w in map(_refused, part.warnings)]
                 parts.append(part)
         violations += _check_pothk(corridor.obstacles, params)
         violations += obstacle_ownership(corridor, float(params.r_s))
@@ -667,6 +667,15 @@ def _renumber_robots(text: str, rows: np.ndarray) -> str:
     return re.sub(r"\brobots? (\d+)( and (\d+))?", lambda m: (
         f"robot {rows[int(m.group(1))]}" if m.group(2) is None else
         f"robots {rows[int(m.group(1))]} and {rows[int(m.group(3))]}"), text)
+
+
+def _refused(w: Violation) -> Violation:
+    """A warning of the lenient partition (an obstacle outside the tube, which it skips) as
+    the validation reports it: a reason to refuse, so not "ignored"."""
+    msg = w.message.removesuffix("; ignored")
+    if msg == w.message:
+        return w
+    return dataclasses.replace(w, message=f"{msg}: move it into the tube or leave it out")
 
 
 def _nearest_working(works: Callable[[float], bool], bad_at: float, ok_at: float,
