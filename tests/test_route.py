@@ -240,6 +240,27 @@ def test_the_move_out_of_a_junction_finds_a_narrow_window() -> None:
     assert validate_route(moved, flown, lookahead=True).ok
 
 
+@pytest.mark.parametrize(("pts", "widths", "why"), [
+    # 6 m segments between 20° bends: the mitres at both ends of S2 leave it too little room
+    ([(0, 0), (15, 0), (20.638, 2.052), (25.235, 5.909), (28.235, 11.105)], [10.0] * 5,
+     "S2 is too short for the bends at both its ends: the overlap reaches 0.618 m past its "
+     "other end; lengthen S2 or make the bends gentler"),
+    # a 90° bend where the corridor narrows: its legs meet at more than 90°
+    ([(0, 0), (40, 0), (40, 40)], [8.0, 10.0, 8.0],
+     "the legs meet at more than 90° where the corridor's width changes at the bend"),
+    ([(0, 0), (40, 0), (20, 34.641)], [10.0] * 3,
+     "beyond 90° the prolonged segments leave the corridor"),
+])
+def test_junction4_says_why_the_overlap_leaves_the_corridor(pts: list, widths: list,
+                                                            why: str) -> None:
+    """Found: a chain of short segments with 20° bends was refused 'beyond 90° or with an
+    overlap_m above the mitre', neither of which it had."""
+    geo = RouteGeometry.from_waypoints([Waypoint(np.array(p, float), w)
+                                        for p, w in zip(pts, widths, strict=True)])
+    msgs = [v.message for c in checks(geo) for v in c.violations if v.condition == "Junction4"]
+    assert msgs and why in msgs[0], msgs
+
+
 def test_an_obstacle_in_a_junction_belongs_to_no_single_segment() -> None:
     geo = bend(60.0)
     centre = geo.junctions[0].center  # in both prolonged segments

@@ -1268,15 +1268,31 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
                 continue
             m = _polygon_margin(part, piece)
             if m < corr:
-                corr, worst = m, (who, other)
+                # how far the overlap reaches past the other piece's far end (its next mitre)
+                far = j + 1 if sign > 0 else j - 1
+                past = 0.0
+                if 0 <= far < geo.S - 1:
+                    pf, nf = geo.mitre(far)
+                    past = float(np.max(sign * ((part - pf) @ nf)))
+                corr, worst = m, (who, other, past)
         if corr < -1e-6:
-            who, other = worst
+            who, other, past = worst
+            wp = geo.waypoints[jn.waypoint] if geo.waypoints else None
+            if abs(jn.theta_deg) > 90.0:
+                why = "beyond 90° the prolonged segments leave the corridor"
+            elif wp is not None and wp.overlap_m is not None:
+                why = "an overlap_m above the mitre takes the prolonged segments out of it"
+            elif past > 1e-6:
+                why = (f"S{other} is too short for the bends at both its ends: the overlap "
+                       f"reaches {_num(past, 3)} m past its other end; lengthen S{other} or "
+                       f"make the bends gentler")
+            else:
+                why = ("the legs meet at more than 90° where the corridor's width changes at "
+                       "the bend: make the bend gentler or keep the width")
             bad.append(Violation("Junction4", (
                 f"Junction4 violated at {where}: the overlap of S{who} reaches "
                 f"{_num(-corr, 3)} m outside S{other}'s part of the corridor (bend "
-                f"{_num(abs(jn.theta_deg), 1)}°, overlap {jn.overlap_text()}; beyond 90° or "
-                f"with an overlap_m above the mitre the prolonged segments leave the "
-                f"corridor)")))
+                f"{_num(abs(jn.theta_deg), 1)}°, overlap {jn.overlap_text()}; {why})")))
         out.append(JunctionCheck(jn, s, mu, clear, prog, corr,
                                  2.0 * p.v * math.sin(abs(jn.theta) / 2.0), tuple(bad)))
     return out
