@@ -318,6 +318,26 @@ def test_empty_endpoints_is_an_error_not_the_mock(tmp_path: Path, mission_file: 
         assert not out.exists()
 
 
+@pytest.mark.parametrize(("text", "expect"), [
+    (f"{DEAD_ENDPOINT},,udpin://127.0.0.1:10", "item 2 of 3 is empty"),
+    (f",{DEAD_ENDPOINT}", "item 1 of 2 is empty"),
+    (f"{DEAD_ENDPOINT},", "item 2 of 2 is empty"),
+    (f"{DEAD_ENDPOINT},{DEAD_ENDPOINT}", f"{DEAD_ENDPOINT} listed twice (slots 0, 1)"),
+])
+def test_an_empty_or_repeated_endpoint_is_an_error_not_a_slot_shift(
+        text: str, expect: str, tmp_path: Path, mission_file: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Endpoint i flies slot i: ``"$A,$B,$C"`` with an empty $B used to drop it silently, and
+    C then flew B's slot."""
+    out = tmp_path / "out"
+    rc = main(["run", str(mission_file), "--endpoints", text, "--out", str(out), "--no-rerun",
+               "-q"])
+    cap = capsys.readouterr()
+    assert rc == 2, cap.err
+    assert expect in one_error_line(cap.err)
+    assert not out.exists()
+
+
 def test_review_out_is_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from vtube_fleet.config.scenario import parse_scenario
     from vtube_fleet.recording.writer import open_recorder
@@ -343,6 +363,46 @@ def test_review_out_is_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         assert f"--out {out}" in line and why in line
     assert main(["review", str(rrd), "--out", str(tmp_path / "plots")]) == 0  # the control
     assert list((tmp_path / "plots").glob("*.png"))
+
+
+@pytest.mark.parametrize("where", ["file", "under_file", "proc"])
+def test_run_and_sim_refuse_an_unwritable_out_before_anything(
+        where: str, tmp_path: Path, mission_file: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """An --out that cannot hold the summary is one error line before anything connects or is
+    simulated (found: ``run --out /proc/x --no-rerun`` flew, then logged that summary.json could
+    not be written; ``sim --out /proc/x`` simulated, then died with a traceback), and the check
+    leaves nothing behind."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("not a folder\n")
+    out = {"file": blocker, "under_file": blocker / "sub" / "deeper",
+           "proc": Path("/proc/vtube-fleet-no-such-folder")}[where]
+    why = "exists and is not a folder" if where == "file" else "cannot write there"
+    for argv in (["run", str(mission_file), "--endpoints", DEAD_ENDPOINT, "--no-rerun", "-q"],
+                 ["sim", str(mission_file), "--no-rerun", "--quiet", "--no-plots"]):
+        rc = main([*argv, "--out", str(out)])
+        cap = capsys.readouterr()
+        assert rc == 2, (argv, cap.err)
+        err = "\n".join(x for x in cap.err.splitlines() if not x.startswith("note: "))
+        line = one_error_line(err)
+        assert f"--out {out}: {why}" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+    assert blocker.read_text() == "not a folder\n"
+
+
+def test_an_out_folder_to_be_made_is_checked_and_left_unmade(
+        tmp_path: Path, mission_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The write test of --out makes the missing folders and removes them again (a run refused
+    after it leaves no folder behind), and leaves an existing folder as it was."""
+    from vtube_fleet.cli._args import check_out_dir
+
+    out = tmp_path / "a" / "b"
+    check_out_dir(out)
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()
+    check_out_dir(tmp_path / "kept")
+    assert [p.name for p in tmp_path.iterdir()] == ["kept"]
+    assert list((tmp_path / "kept").iterdir()) == []
 
 
 def _slots_mission(tmp_path: Path, positions: list[list[float]]) -> Path:

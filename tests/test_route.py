@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +107,27 @@ def test_waypoints_that_make_no_route_are_refused(wps: list, match: str) -> None
         RouteGeometry.from_waypoints([wp(x) for x in wps])
 
 
+@pytest.mark.parametrize(("pts", "w", "match"), [
+    # a spiral: S4 flies back down through S1
+    ([(0, 0), (40, 0), (40, 30), (20, 30), (20, -20)], 10.0,
+     r"segments S1 \(waypoints 1 → 2\) and S4 \(waypoints 4 → 5\) overlap: 400.0 m² of "
+     r"corridor around \(20.0, 0.0\)"),
+    # a U-turn whose legs come closer than the corridor is wide: S1 and S3 share a 2 m strip
+    ([(0, 0), (40, 0), (40, 14), (0, 14)], 8.0,
+     r"segments S1 \(waypoints 1 → 2\) and S3 \(waypoints 3 → 4\) overlap: .* must not "
+     r"cross or fold back onto itself"),
+])
+def test_a_route_that_crosses_or_folds_onto_itself_is_refused(pts: list, w: float,
+                                                               match: str) -> None:
+    """Found: check called a route valid whose fourth segment crossed its first (a vehicle
+    flying S4 knows neither S1's legs nor its obstacles)."""
+    with pytest.raises(RouteError, match=match):
+        RouteGeometry.from_waypoints([Waypoint(np.array(p, float), w) for p in pts])
+    # the same U-turn with room between its legs is a route
+    RouteGeometry.from_waypoints([Waypoint(np.array(p, float), 8.0)
+                                  for p in [(0, 0), (40, 0), (40, 17), (0, 17)]])
+
+
 # ----------------------------------------------------------------------------------------------
 # the junction conditions
 # ----------------------------------------------------------------------------------------------
@@ -190,6 +212,53 @@ def test_an_obstacle_too_close_to_a_junction_is_refused_and_moved() -> None:
     assert fix.text.startswith("move obstacle #1 ") and "m downstream" in fix.text
     moved = Corridor(geo, (Obstacle(ob.center + b.n_c * fix.value, 1.5),))
     assert validate_route(moved, MOCK).ok
+
+
+def test_the_move_out_of_a_junction_finds_a_narrow_window() -> None:
+    """Found: an obstacle 12 m past a 45° bend, flown with a mission's radii and the apex
+    look-ahead, works only moved 14.8–20 m downstream (nearer, its triangle and look-ahead zone
+    reach into the hand-over; further, the tube after it is too short). The scan with doubling
+    steps tried 13.9 m, then the end of the segment, and printed no fix at all; the violation
+    said 11.253 m."""
+    flown = ControllerParams(r_s=2.043, r_a=2.743, v_min=0.3, v_max=1.6, v=1.0,
+                             v_max_prime=0.5)
+    geo = bend(45.0, length=40.0)
+    b = geo.segments[1]
+    ob = Obstacle(geo.junctions[0].center + b.n_c * 12.0, 0.5)
+    corridor = Corridor(geo, (ob,))
+    res = validate_route(corridor, flown, lookahead=True)
+    assert [v.condition for v in res.violations] == ["Junction2"]
+    (fix,) = route_fixes(corridor, flown, None, res.violations, lookahead=True)
+    assert fix.text.startswith("move obstacle #1 ") and "m downstream" in fix.text
+    assert 14.0 < fix.value < 16.0
+    # the violation says how far the triangle and its look-ahead zone reach in: the move needed
+    # (it said 11.253 m: the zone as cut at S2's start)
+    reach = float(re.search(r"reaches into the hand-over region by ([\d.]+) m",
+                            res.violations[0].message).group(1))
+    assert reach == pytest.approx(fix.value, abs=0.02)
+    moved = Corridor(geo, (Obstacle(ob.center + b.n_c * fix.value, 0.5),))
+    assert validate_route(moved, flown, lookahead=True).ok
+
+
+@pytest.mark.parametrize(("pts", "widths", "why"), [
+    # 6 m segments between 20° bends: the mitres at both ends of S2 leave it too little room
+    ([(0, 0), (15, 0), (20.638, 2.052), (25.235, 5.909), (28.235, 11.105)], [10.0] * 5,
+     "S2 is too short for the bends at both its ends: the overlap reaches 0.618 m past its "
+     "other end; lengthen S2 or make the bends gentler"),
+    # a 90° bend where the corridor narrows: its legs meet at more than 90°
+    ([(0, 0), (40, 0), (40, 40)], [8.0, 10.0, 8.0],
+     "the legs meet at more than 90° where the corridor's width changes at the bend"),
+    ([(0, 0), (40, 0), (20, 34.641)], [10.0] * 3,
+     "beyond 90° the prolonged segments leave the corridor"),
+])
+def test_junction4_says_why_the_overlap_leaves_the_corridor(pts: list, widths: list,
+                                                            why: str) -> None:
+    """Found: a chain of short segments with 20° bends was refused 'beyond 90° or with an
+    overlap_m above the mitre', neither of which it had."""
+    geo = RouteGeometry.from_waypoints([Waypoint(np.array(p, float), w)
+                                        for p, w in zip(pts, widths, strict=True)])
+    msgs = [v.message for c in checks(geo) for v in c.violations if v.condition == "Junction4"]
+    assert msgs and why in msgs[0], msgs
 
 
 def test_an_obstacle_in_a_junction_belongs_to_no_single_segment() -> None:

@@ -226,3 +226,11 @@ def test_file_errors(tmp_path: Path) -> None:
     binary.write_bytes(b"\xff\xfe\x00")
     with pytest.raises(ConfigError, match="not UTF-8"):
         load_scenario(binary)
+
+
+def test_a_byte_order_mark_is_read_past(tmp_path: Path) -> None:
+    """Found: a mission saved by a Windows editor (UTF-8 with a BOM) was refused 'invalid TOML:
+    Invalid statement (at line 1, column 1)', naming nothing the user could see."""
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + (ROOT / "configs" / "paper.toml").read_bytes())
+    assert load_scenario(path).robots.count == 120

@@ -20,6 +20,7 @@ from vtube_fleet.core.validation import (
     check_scenario,
     further_failures,
     nearest_fixes,
+    validate_route,
     validate_scenario,
 )
 from vtube_fleet.errors import UserError
@@ -554,3 +555,19 @@ def test_auto_apex_keeps_start_slots_out_of_the_apex_look_ahead(tmp_path):
     plan = FlightPlan.for_mission(mission, flown)
     assert lookahead_violations(plan.route, mission.slots) == []
     assert [t.h for t in plan.route.triangles] == [t.h for t in rep.partition.triangles]
+
+
+def test_an_obstacle_outside_the_tube_is_refused_not_ignored() -> None:
+    """Found: check refused (exit 2) an obstacle whose O' misses the tube with the lenient
+    partition's own words, "…; ignored". Refused, it says what to do; a route's segments too."""
+    from vtube_fleet.core.route import Corridor, RouteGeometry, Waypoint
+
+    far = Obstacle((10.0, 30.0), 0.5)
+    _, v = validate_scenario(RECT, [far], PARAMS)
+    corridor = Corridor(RouteGeometry.from_waypoints(
+        [Waypoint(np.array(p, float), 5.0) for p in [(0, 0), (20, 0), (40, 10)]]), (far,))
+    for msgs in ([x.message for x in v],
+                 [x.message for x in validate_route(corridor, PARAMS).violations]):
+        (msg,) = [m for m in msgs if "lies outside the tube" in m]
+        assert "ignored" not in msg
+        assert msg.endswith("m away from T: move it into the tube or leave it out"), msg

@@ -8,8 +8,10 @@ is refused with one line naming the option, the value and the bound, before anyt
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -43,6 +45,7 @@ __all__ = [
     "OneLineParser",
     "OptionType",
     "add_bus_args",
+    "check_out_dir",
     "add_fence_arg",
     "add_sitl_args",
     "sitl_command_from_args",
@@ -281,6 +284,36 @@ def add_recording_args(parser: argparse.ArgumentParser, *, default_decimate: int
                         "(default: each command's own choice)")
     g.add_argument("--no-rerun", action="store_true",
                    help="do not write a recording (and ignore --rerun-save)")
+
+
+def check_out_dir(out: str | os.PathLike[str], option: str = "--out") -> None:
+    """Raise :class:`~vtube_fleet.errors.UserError` unless ``out`` can hold a run's files: an
+    existing folder, or one that can be made, in which a file can be written. Tried for real
+    (missing folders made, a probe file written, then all of it removed again: nothing is
+    left behind by a run refused later), so that a command never finds out at its end that its
+    summary cannot be written (as root, ``os.access`` says yes to /proc)."""
+    from vtube_fleet.errors import UserError
+
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{option} {path}: exists and is not a folder")
+    made: list[Path] = []  # the folders made here, deepest first
+    p = path
+    while not p.exists() and p != p.parent:
+        made.append(p)
+        p = p.parent
+    try:
+        for d in reversed(made):
+            d.mkdir()
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".vtube-fleet-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UserError(f"{option} {path}: cannot write there: {exc.strerror or exc}") from None
+    finally:
+        for d in made:
+            with contextlib.suppress(OSError):
+                d.rmdir()
 
 
 def recorder_from_args(

@@ -15,6 +15,7 @@ from vtube_fleet.cli._args import (
     add_fence_arg,
     add_recording_args,
     bounded,
+    check_out_dir,
     recorder_from_args,
 )
 from vtube_fleet.cli._signals import interrupt_on_signals
@@ -37,6 +38,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
     mission_id = args.mission_id or default_mission_id(args.mission)
     out = (args.out if args.out is not None
            else Path("runs") / mission_id / f"agent-{args.vehicle}")
+    check_out_dir(out)  # before anything connects: every exit path writes its summary there
     # a bad --rerun-save / --rerun-connect fails here, before anything connects
     recorder = recorder_from_args(args, out, kind="fleet", app_id="vtube_fleet_agent",
                                   detect_exits=False)

@@ -16,6 +16,7 @@ from vtube_fleet.cli._args import (
     add_recording_args,
     add_sitl_args,
     bounded,
+    check_out_dir,
     recorder_from_args,
     sitl_command_from_args,
 )
@@ -50,6 +51,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                   f"0..{len(endpoints) - 1} only", file=sys.stderr)
             mission = mission.with_vehicles(len(endpoints))
     out = args.out if args.out is not None else Path("runs") / Path(args.mission).stem
+    check_out_dir(out)  # before anything connects: every exit path writes its summary there
     recorder = _recorder(args, out)
     view = FleetView(enabled=not args.quiet)
     mock_kwargs = {"boot_time_scale": args.mock_boot_time_scale,

@@ -9,10 +9,9 @@ from pathlib import Path
 from typing import Any
 
 from vtube_fleet.artifacts import write_sim_outputs
-from vtube_fleet.cli._args import COUNT, add_recording_args, bounded
+from vtube_fleet.cli._args import COUNT, add_recording_args, bounded, check_out_dir
 from vtube_fleet.config.scenario import scenario_key
 from vtube_fleet.core.integrate import INTEGRATORS
-from vtube_fleet.errors import UserError
 from vtube_fleet.outcome import EXIT_INTERRUPTED, EXIT_OK, EXIT_SIM_UNFINISHED
 
 __all__ = [
@@ -124,9 +123,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
               "fleet flies them inflated by its safety budget, see vtube-fleet check)",
               file=sys.stderr)
     out = Path(args.out) if args.out else _default_out(args.config, args.controller)
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out}: exists and is not a directory")
     from vtube_fleet.cli._args import recorder_from_args
+
+    check_out_dir(out)  # before simulating: the outputs are written at the end
 
     recorder = recorder_from_args(args, out, kind="sim")
     bar = None if args.quiet else ProgressBar(sys.stderr)

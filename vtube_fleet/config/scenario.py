@@ -364,8 +364,8 @@ def load_scenario(path: str | os.PathLike[str], extra_sections: Iterable[str] = 
         raise ConfigError(f"{source}: is a directory, expected a TOML file") from None
     except OSError as exc:
         raise ConfigError(f"{source}: cannot read: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8")
+    try:  # a leading byte-order mark (Windows editors write one) is not part of the text
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{source}: not UTF-8 text (byte {exc.start})") from None
     try:

@@ -47,10 +47,12 @@ from vtube_fleet.core.partition import (
     PartitionError,
     Triangle,
     Violation,
+    _area,
     _clip,
     _dist_to_polygon,
     apex_lookahead,
     apex_zones,
+    lookahead_depth,
     partition,
 )
 from vtube_fleet.core.text import compact_number as _num
@@ -270,7 +272,33 @@ class RouteGeometry:
             except GeometryError as exc:
                 raise RouteError(f"segment S{k + 1} (waypoints {k + 1} → {k + 2}): {exc}"
                                  ) from None
-        return cls(tuple(segs), tuple(junctions), wps)
+        geo = cls(tuple(segs), tuple(junctions), wps)
+        geo._refuse_self_overlap()
+        return geo
+
+    def _refuse_self_overlap(self) -> None:
+        """Raise :class:`RouteError` when two segments that are not neighbours share
+        airspace: the corridor's pieces (:meth:`pieces`) of S_k and S_l, l ≥ k + 2, overlap
+        (the route crosses or folds back onto itself). Each segment knows only its own
+        obstacles and legs (Junction5), and the hand-over goes only to the next segment."""
+        pieces = self.pieces()
+        boxes = [(p.min(axis=0), p.max(axis=0)) if len(p) else None for p in pieces]
+        for k in range(self.S):
+            for m in range(k + 2, self.S):
+                if boxes[k] is None or boxes[m] is None or \
+                        np.any(boxes[k][0] > boxes[m][1]) or np.any(boxes[m][0] > boxes[k][1]):
+                    continue
+                both = _convex_intersection(pieces[k], pieces[m])
+                area = _area(both)
+                if area > _OVERLAP_AREA_M2:
+                    c = both.mean(axis=0)
+                    raise RouteError(
+                        f"segments S{k + 1} (waypoints {k + 1} → {k + 2}) and S{m + 1} "
+                        f"(waypoints {m + 1} → {m + 2}) overlap: {_num(area, 3)} m² of "
+                        f"corridor around ({_num(float(c[0]), 2)}, {_num(float(c[1]), 2)}) "
+                        f"belong to both; a route must not cross or fold back onto itself "
+                        f"(a segment's vehicles know only its own legs and obstacles): move "
+                        f"the waypoints so that the corridor does not meet itself")
 
     @property
     def S(self) -> int:
@@ -330,6 +358,28 @@ class RouteGeometry:
                 poly = _clip(poly, -nrm, -float(nrm @ p) - _TOL)
             out.append(poly)
         return out
+
+
+#: Two pieces of a route's corridor sharing more than this area (m²) overlap.
+_OVERLAP_AREA_M2 = 1e-6
+
+
+def _convex_intersection(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The intersection of the convex polygons ``p`` and ``q`` ((n, 2), either orientation):
+    ``p`` clipped to the inner side of each edge of ``q``."""
+    n = len(q)
+    if len(p) < 3 or n < 3:
+        return np.zeros((0, 2))
+    sgn = 1.0 if float(q[:, 0] @ np.roll(q[:, 1], -1) - q[:, 1] @ np.roll(q[:, 0], -1)) > 0 \
+        else -1.0
+    out = p
+    for i in range(n):
+        a, e = q[i], q[(i + 1) % n] - q[i]
+        nrm = sgn * np.array([-e[1], e[0]])
+        out = _clip(out, nrm, float(nrm @ a))
+        if len(out) < 3:
+            return np.zeros((0, 2))
+    return out
 
 
 def _mitre_prolongation(da: tuple, db: tuple, n_a: np.ndarray, n_b: np.ndarray,
@@ -1182,16 +1232,22 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
         if s is not None:
             H = handover_region(a, b, r, s)
             if len(H):
-                zones = {z.triangle: z.depth_m for z in route.zones[j + 1]}
+                zones = {z.triangle: z for z in route.zones[j + 1]}
+                h_max = float(b.xi(H).max())
                 for tri in sb.partition.triangles:
-                    depth = zones.get(tri.obstacle, 0.0)
-                    m = float(b.xi(tri.p_oth)) - depth - float(b.xi(H).max())
+                    z = zones.get(tri.obstacle)
+                    apex = float(b.xi(tri.p_oth))
+                    m = apex - (0.0 if z is None else z.depth_m) - h_max
                     if m < clear:
-                        clear, who = m, ("b", sb.obstacle_ids[tri.obstacle])
+                        # the zone is cut where its before-tube starts (b's start for the
+                        # first triangle): how far it reaches in, uncut, is the move needed
+                        full = 0.0 if z is None else _uncut_depth(sb.partition, z, route.params)
+                        clear, who = m, (max(-m, h_max - (apex - full)),
+                                         sb.obstacle_ids[tri.obstacle])
                 if clear <= 0.0:
-                    _, ob = who
+                    reach, ob = who
                     txt = (f"the triangle of obstacle #{ob + 1} (S{j + 2}) reaches into the "
-                           f"hand-over region by {_num(-clear, 3)} m (its apex"
+                           f"hand-over region by {_num(reach, 3)} m (its apex"
                            f"{' and look-ahead zone' if route.lookahead else ''} must lie "
                            f"downstream of where vehicles enter S{j + 2})")
                     bad.append(Violation("Junction2", f"Junction2 violated at {where}: {txt}"))
@@ -1212,18 +1268,45 @@ def junction_checks(route: Route) -> list[JunctionCheck]:
                 continue
             m = _polygon_margin(part, piece)
             if m < corr:
-                corr, worst = m, (who, other)
+                # how far the overlap reaches past the other piece's far end (its next mitre)
+                far = j + 1 if sign > 0 else j - 1
+                past = 0.0
+                if 0 <= far < geo.S - 1:
+                    pf, nf = geo.mitre(far)
+                    past = float(np.max(sign * ((part - pf) @ nf)))
+                corr, worst = m, (who, other, past)
         if corr < -1e-6:
-            who, other = worst
+            who, other, past = worst
+            wp = geo.waypoints[jn.waypoint] if geo.waypoints else None
+            if abs(jn.theta_deg) > 90.0:
+                why = "beyond 90° the prolonged segments leave the corridor"
+            elif wp is not None and wp.overlap_m is not None:
+                why = "an overlap_m above the mitre takes the prolonged segments out of it"
+            elif past > 1e-6:
+                why = (f"S{other} is too short for the bends at both its ends: the overlap "
+                       f"reaches {_num(past, 3)} m past its other end; lengthen S{other} or "
+                       f"make the bends gentler")
+            else:
+                why = ("the legs meet at more than 90° where the corridor's width changes at "
+                       "the bend: make the bend gentler or keep the width")
             bad.append(Violation("Junction4", (
                 f"Junction4 violated at {where}: the overlap of S{who} reaches "
                 f"{_num(-corr, 3)} m outside S{other}'s part of the corridor (bend "
-                f"{_num(abs(jn.theta_deg), 1)}°, overlap {jn.overlap_text()}; beyond 90° or "
-                f"with an overlap_m above the mitre the prolonged segments leave the "
-                f"corridor)")))
+                f"{_num(abs(jn.theta_deg), 1)}°, overlap {jn.overlap_text()}; {why})")))
         out.append(JunctionCheck(jn, s, mu, clear, prog, corr,
                                  2.0 * p.v * math.sin(abs(jn.theta) / 2.0), tuple(bad)))
     return out
+
+
+def _uncut_depth(part: Partition, zone: ApexZone, params: ControllerParams) -> float:
+    """The depth of an apex look-ahead zone before it is cut at its before-tube's start
+    (:func:`~vtube_fleet.core.partition.lookahead_depth` with unlimited room)."""
+    sides = [part.sub_tubes[k].t_r for k in (zone.left,) if k is not None] + \
+            [part.sub_tubes[k].t_h for k in (zone.right,) if k is not None]
+    if not sides:
+        return zone.depth_m
+    full = lookahead_depth(sides, part.tube.n_c, params, math.inf)
+    return full if math.isfinite(full) else zone.depth_m
 
 
 def _polygon_margin(pts: np.ndarray, piece: np.ndarray) -> float:

@@ -307,7 +307,7 @@ def validate_scenario(
             except PartitionError as e:
                 violations.append(Violation("Partition", f"Partition failed: {e}"))
         if part is not None:
-            violations += list(part.warnings)
+            violations += [_refused(w) for w in part.warnings]
     if positions is not None:
         p = np.asarray(positions, dtype=float)
         if p.ndim != 2 or p.shape[1] != 2:
@@ -337,6 +337,9 @@ def check_scenario(
 # ----------------------------------------------------------------------------------------------
 #: bisection steps per parameter in :func:`nearest_fixes` (the bracket shrinks 2^-N)
 FIX_ITERATIONS = 12
+#: The largest step (m) of the scan that moves an obstacle out of a junction
+#: (:func:`route_fixes`): a window of working positions at least this wide is found.
+MOVE_SCAN_STEP_M = 0.5
 
 #: conditions a change of k_t, r_a, an obstacle's position or the apex distances can fix
 _FIXABLE = ("Partition", "Assumption3'", "Constraint3")
@@ -620,7 +623,7 @@ def validate_route(corridor: Corridor, params: ControllerParams,
                 parts.append(planned[s])
                 violations += [dataclasses.replace(w, message=f"{label}: "
                                                    + renumber_obstacles(w.message, ids))
-                               for w in planned[s].warnings]
+                               for w in map(_refused, planned[s].warnings)]
                 continue
             try:
                 part = partition(tube, obs, params, strict=False,
@@ -632,7 +635,7 @@ def validate_route(corridor: Corridor, params: ControllerParams,
             else:
                 violations += [dataclasses.replace(w, message=f"{label}: "
                                                    + renumber_obstacles(w.message, ids))
-                               for w in part.warnings]
+                               for w in map(_refused, part.warnings)]
                 parts.append(part)
         violations += _check_pothk(corridor.obstacles, params)
         violations += obstacle_ownership(corridor, float(params.r_s))
@@ -666,12 +669,23 @@ def _renumber_robots(text: str, rows: np.ndarray) -> str:
         f"robots {rows[int(m.group(1))]} and {rows[int(m.group(3))]}"), text)
 
 
+def _refused(w: Violation) -> Violation:
+    """A warning of the lenient partition (an obstacle outside the tube, which it skips) as
+    the validation reports it: a reason to refuse, so not "ignored"."""
+    msg = w.message.removesuffix("; ignored")
+    if msg == w.message:
+        return w
+    return dataclasses.replace(w, message=f"{msg}: move it into the tube or leave it out")
+
+
 def _nearest_working(works: Callable[[float], bool], bad_at: float, ok_at: float,
-                     iterations: int = FIX_ITERATIONS) -> float | None:
+                     iterations: int = FIX_ITERATIONS,
+                     max_step: float | None = None) -> float | None:
     """The working value between ``bad_at`` and ``ok_at`` (either order) closest to
     ``bad_at``: the first working one of a scan from bad_at towards ok_at (steps doubling from
-    1/256 of the range), then bisection back towards the last failing one (None: nothing in
-    the range works). How :func:`nearest_fixes` and :func:`route_fixes` find their values."""
+    1/256 of the range, at most ``max_step`` when given: a working window narrower than the
+    steps can be jumped over), then bisection back towards the last failing one (None: nothing
+    in the range works). How :func:`nearest_fixes` and :func:`route_fixes` find their values."""
     bad, good, step = bad_at, None, (ok_at - bad_at) / 256.0
     while True:
         x = bad + step if abs(step) < abs(ok_at - bad) else ok_at
@@ -681,6 +695,8 @@ def _nearest_working(works: Callable[[float], bool], bad_at: float, ok_at: float
         if x == ok_at:
             return None
         bad, step = x, 2.0 * step
+        if max_step is not None and abs(step) > max_step:
+            step = math.copysign(max_step, step)
     return bisect_edge(works, good, bad, iterations=iterations)
 
 
@@ -704,9 +720,9 @@ def bisect_edge(works: Callable[[float], bool], good: float, bad: float, *,
 
 
 def _smallest(works: Callable[[float], bool], lo: float, hi: float,
-              iterations: int = FIX_ITERATIONS) -> float | None:
+              iterations: int = FIX_ITERATIONS, max_step: float | None = None) -> float | None:
     """The smallest x in (lo, hi] for which ``works`` holds (:func:`_nearest_working`)."""
-    return _nearest_working(works, lo, hi, iterations)
+    return _nearest_working(works, lo, hi, iterations, max_step)
 
 
 def route_fixes(corridor: Corridor, params: ControllerParams, positions: np.ndarray | None,
@@ -843,7 +859,9 @@ def _move_obstacle_fix(corridor: Corridor, params: ControllerParams, i: int, jn:
         return not any(v.condition == cond or v.condition == "Partition"
                        for v in res.violations)
 
-    d = _smallest(works, 0.0, room)
+    # the obstacle's triangle must clear the junction and still fit before the segment's end:
+    # the positions that work are a window, which a doubling scan can jump over
+    d = _smallest(works, 0.0, room, max_step=MOVE_SCAN_STEP_M)
     if d is None:
         return []
     d = _round_up(d, works)

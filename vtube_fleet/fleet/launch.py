@@ -203,17 +203,25 @@ def _mock_error(exc: Exception) -> FleetCliError:
 def parse_endpoint_list(text: str, slots: int) -> list[str]:
     from vtube_fleet.link.endpoints import parse_endpoint
 
-    urls = [u.strip() for u in text.split(",") if u.strip()]
+    items = [u.strip() for u in text.split(",")]
+    urls = [u for u in items if u]
     if not urls:
         raise FleetCliError(f"--endpoints: no endpoint given (got {text!r}); leave "
                             f"--endpoints out to fly the built-in mock fleet")
+    if len(urls) != len(items):  # dropped, it would move every later endpoint to another slot
+        empty = [i + 1 for i, u in enumerate(items) if not u]
+        raise FleetCliError(f"--endpoints: item {', '.join(map(str, empty))} of {len(items)} "
+                            f"is empty (got {text!r}); endpoint i flies slot i, so remove the "
+                            f"extra comma or fill in the missing endpoint")
     if len(urls) > slots:
         raise FleetCliError(f"--endpoints: {len(urls)} endpoints but the mission has only "
                             f"{slots} slots (endpoint i flies slot i)")
     for u in urls:
         parse_endpoint(u)
-    if len(set(urls)) != len(urls):
-        raise FleetCliError("--endpoints: an endpoint is listed twice")
+    twice = sorted({u for u in urls if urls.count(u) > 1})
+    if twice:
+        raise FleetCliError(f"--endpoints: {', '.join(twice)} listed twice (slots "
+                            f"{', '.join(str(i) for i, u in enumerate(urls) if u in twice)})")
     return urls
 
 
