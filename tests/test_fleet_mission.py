@@ -102,3 +102,18 @@ def test_unicycle_rejected(tmp_path: Path) -> None:
 def test_scenario_errors_pass_through(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"\[robots\]\.r_s"):
         load_mission(write(tmp_path, (BASE + MISSION).replace("r_s = 0.3", 'r_s = "x"')))
+
+
+def test_a_mission_far_from_its_anchor_is_refused(tmp_path: Path) -> None:
+    """A tube reaching 20 km from the anchor (a sign or a unit wrong) is one error naming how
+    far; 10 km is the bound (config/mission.MAX_EXTENT_M), a shipped-size tube passes."""
+    from missions import straight_mission
+
+    far = tmp_path / "far.toml"
+    far.write_text(straight_mission(20_000.0, [[2.0, 0.0]]))
+    with pytest.raises(ConfigError, match=r"the tube reaches 20\.0 km from the mission's "
+                                          r"anchor .* within 10 km"):
+        load_mission(far)
+    near = tmp_path / "near.toml"
+    near.write_text(straight_mission(9_000.0, [[2.0, 0.0]]))
+    assert load_mission(near).scenario.geometry.segments[0].length == pytest.approx(9_000.0)

@@ -428,6 +428,12 @@ class Mission:
                             f"start slots (Assumption 1, r_s = {sc.robots.r_s:g} m): {text}")
 
 
+#: How far (m) a mission's tube or route may reach from its geodetic anchor: PX4's local frame
+#: and the fence's WGS84 corners are flat-Earth projections about an origin, and a multicopter
+#: fleet's flight is a few kilometres at most.
+MAX_EXTENT_M = 10_000.0
+
+
 def load_mission(path: str | os.PathLike[str]) -> Mission:
     """Read a mission file: a scenario plus ``[mission]``. Raises :class:`ConfigError`."""
     scenario = load_scenario(path, extra_sections=("mission",))
@@ -443,6 +449,13 @@ def load_mission(path: str | os.PathLike[str]) -> Mission:
         raise ConfigError(f"{source}: [robots].v_max: must be <= {PX4_MAX_HORIZONTAL_M_S:g} "
                           f"(PX4's MPC_XY_VEL_MAX default: faster setpoints are clipped), got "
                           f"{scenario.robots.v_max:g}")
+    far = max(float(np.hypot(*np.asarray(t.polygon(), float).T).max())
+              for t in scenario.geometry.segments)
+    if not far <= MAX_EXTENT_M:
+        raise ConfigError(f"{source}: the {'route' if scenario.is_route else 'tube'} reaches "
+                          f"{far / 1000.0:.1f} km from the mission's anchor (the tube frame's "
+                          f"origin); a mission must lie within {MAX_EXTENT_M / 1000.0:g} km of "
+                          f"it (a sign or a unit wrong in a waypoint or a corner?)")
     mission = Mission(scenario, parse_mission_config(scenario.extra["mission"], source))
     cfg = mission.config
     need = mission.battery_needed_pct
