@@ -225,3 +225,27 @@ async def test_no_tick_gap_at_tube_entry_on_an_auto_apex_mission(tmp_path: Path,
     assert result.summary["apex_distances_m"][0] is not None  # "auto": planned
     print(f"\nauto apex: {len(gaps)} ticks from take-off into the tube, longest gap "
           f"{1000 * max(gaps):.1f} ms <= T + L = {1000 * budget:.1f} ms")
+
+
+async def test_the_touch_down_report_does_not_count_a_lost_vehicle_as_down() -> None:
+    """The wait for touch-down waits for the LANDING vehicles only; a LOST one (frozen or
+    silent: maybe in the air) is not said to be on the ground. A probe flight (a vehicle frozen
+    at the route's bend) said "all vehicles on the ground" while it hovered at 3 m. Once its
+    fresh telemetry says disarmed on the ground, it is."""
+    import time
+
+    from memory_fleet import memory_fleet
+
+    sup, links = memory_fleet(3)
+    for p in sup.pilots[:2]:
+        p.set_phase(Phase.LANDING, "mission aborted")
+        p.landed.set()
+    sup.pilots[2].set_phase(Phase.LOST, "not following its setpoints")
+    await sup._wait_landed()
+    said = sup.events[-1]["text"]
+    assert said != "all vehicles on the ground", said
+    assert "2 landing vehicle(s) on the ground" in said and "lost: slot 2 (" in said, said
+    s = links[2].state
+    s.armed, s.landed_state, s.last_position_s = False, "ON_GROUND", time.monotonic()
+    await sup._wait_landed()
+    assert sup.events[-1]["text"] == "all vehicles on the ground", sup.events[-1]

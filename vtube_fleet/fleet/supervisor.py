@@ -595,7 +595,14 @@ class Supervisor:
             self.event(f"{len(left)} vehicle(s) not on the ground after land_timeout_s = "
                        f"{cfg.land_timeout_s:g} s: {', '.join(left)}", level="warning")
             return
-        self.event("all vehicles on the ground")
+        # only the landing ones were waited for: a lost vehicle (silent, or not answering)
+        # may still be in the air, so "all vehicles" would be untrue
+        lost = [p.name for p in self.pilots if p.phase == Phase.LOST
+                and not _seen_down(p, cfg.lost_after_s)]
+        self.event("all vehicles on the ground" if not lost else
+                   f"the {len(waiting)} landing vehicle(s) on the ground; not known to be "
+                   f"down: {len(lost)} lost: {', '.join(lost)}",
+                   level="info" if not lost else "warning")
 
     async def _emergency(self, why: str) -> None:
         """Everyone holds, then lands (Ctrl-C / SIGTERM)."""
@@ -866,6 +873,13 @@ class Supervisor:
                 first_violation=self.measurement.violations.first)
         except Exception:  # pragma: no cover - never block the verdict
             return {"violations": 0}
+
+
+def _seen_down(p: VehiclePilot, fresh_s: float) -> bool:
+    """The vehicle's telemetry, younger than ``fresh_s``, says disarmed on the ground."""
+    s = p.link.state
+    return (s.last_position_s is not None and time.monotonic() - s.last_position_s <= fresh_s
+            and not s.armed and s.landed_state == "ON_GROUND")
 
 
 def _offboard_airborne(p: VehiclePilot) -> bool:
