@@ -249,3 +249,26 @@ async def test_the_touch_down_report_does_not_count_a_lost_vehicle_as_down() -> 
     s.armed, s.landed_state, s.last_position_s = False, "ON_GROUND", time.monotonic()
     await sup._wait_landed()
     assert sup.events[-1]["text"] == "all vehicles on the ground", sup.events[-1]
+
+
+async def test_a_silent_lost_vehicle_is_named_in_the_reason_of_an_abort() -> None:
+    """A vehicle lost for silence cannot be landed by us: the run's reason (the last line of
+    `run`) names it, not only an error event in the middle of the output. A probe flight lost
+    a vehicle while the fleet held after an abort: it hovered on in Hold (PX4's NAV_DLL_ACT
+    off), and the closing `error:` line did not name it."""
+    import time
+
+    from memory_fleet import memory_fleet
+
+    sup, links = memory_fleet(3)
+    for p in sup.pilots[:2]:
+        p.set_phase(Phase.LANDED, "on the ground")
+        s = p.link.state
+        s.armed, s.landed_state, s.flight_mode = False, "ON_GROUND", "LAND"
+    sup.pilots[2].set_phase(Phase.LOST, "no telemetry for more than lost_after_s = 1 s")
+    links[2].state.last_packet_s = time.monotonic() - 5.0
+    await sup._land_again()
+    sup.reason = "safety budget exceeded in flight"
+    sup._say_not_down()
+    assert "NOT known to be down: 1 lost vehicle(s)" in sup.reason, sup.reason
+    assert "slot 2 (udpin://127.0.0.1:30002)" in sup.reason, sup.reason

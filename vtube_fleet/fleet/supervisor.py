@@ -763,10 +763,14 @@ class Supervisor:
                 f"{k} {v}" for k, v in sorted(t["refused"].items())))
 
     def _say_not_down(self) -> None:
-        """The run's reason names the vehicles not brought down (or left holding)."""
+        """The run's reason names the vehicles not brought down, the lost ones that cannot be
+        reached (silent: maybe still in the air) and those left holding."""
         if self.not_landed:
             self.reason += (f"; NOT on the ground: {len(self.not_landed)} vehicle(s): "
                             + ", ".join(self.not_landed))
+        if self.unreachable:
+            self.reason += (f"; NOT known to be down: {len(self.unreachable)} lost vehicle(s) "
+                            f"silent, PX4's failsafe decides: " + ", ".join(self.unreachable))
         if self.held_for_operator:
             self.reason += ("; left holding in the air (on_abort = hold): "
                             + ", ".join(self.held_for_operator))
