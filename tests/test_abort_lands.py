@@ -272,3 +272,44 @@ async def test_a_silent_lost_vehicle_is_named_in_the_reason_of_an_abort() -> Non
     sup._say_not_down()
     assert "NOT known to be down: 1 lost vehicle(s)" in sup.reason, sup.reason
     assert "slot 2 (udpin://127.0.0.1:30002)" in sup.reason, sup.reason
+
+
+async def test_a_quick_second_ctrl_c_still_sends_land_and_names_who_is_in_the_air(
+        tmp_path: Path) -> None:
+    """Two Ctrl-C in quick succession mid-tube (an operator's reflex). The second stops the
+    wait for touch-down, but not the LAND: it used to cancel the bring-down while the Holds
+    were still going out, leaving the vehicles hovering in Hold (a probe flight: all 12 in the
+    air at exit, and the run said "SIGINT: held, then landed" with exit 130 and no name).
+    Judged by the mock's TRUTH when `fly` returns: every vehicle landing (PX4 LAND) or on the
+    ground, none holding or in OFFBOARD; those in the air named in the reason and the summary."""
+    from vtube_fleet.fleet.launch import mock_fleet
+
+    mission = _mission(tmp_path)
+    log: dict = {}
+
+    def double_ctrl_c(tick: int, sup: Supervisor) -> None:
+        if sup.tube_start_s is None or sup.t_s() - sup.tube_start_s < 2.0:
+            return
+        if "first" not in log:
+            log["first"] = tick
+            sup.interrupt("SIGINT")
+        elif "second" not in log and tick > log["first"]:
+            log["second"] = tick  # the very next tick: the Holds are still in flight
+            sup.interrupt("SIGINT")
+
+    async with mock_fleet(mission, boot_time_scale=0.3, port_scheme=free_ports(3),
+                          seed=5) as fleet:
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],
+                           out_dir=tmp_path, tick_hook=double_ctrl_c)
+        modes = [v.mode_name for v in fleet.vehicles]
+        truth = _on_the_ground(fleet)
+    assert "second" in log, log
+    assert result.outcome == "interrupted" and result.exit_code == 130, result.reason
+    for mode, (_, where) in zip(modes, truth, strict=True):
+        assert where == "ON_GROUND" or mode == "AUTO.LAND", modes  # never left hovering
+    in_air = [f"slot {i} (" for i, (_, where) in enumerate(truth) if where == "IN_AIR"]
+    assert in_air, f"all down already: the test did not stop the wait ({modes})"
+    assert "still in the air" in result.reason, result.reason
+    for name in in_air:
+        assert name in result.reason, result.reason
+    assert len(result.summary["not_down"]) == len(in_air), result.summary["not_down"]

@@ -203,6 +203,8 @@ class Supervisor:
         self.held_for_operator: list[str] = []
         #: lost vehicles silent at the end: nothing can be sent to them (PX4's failsafe decides)
         self.unreachable: list[str] = []
+        #: after a second interrupt: the vehicles still in the air when the run stopped waiting
+        self.not_waited: list[str] = []
         self._landing_all = False  # _bring_down runs (a first interrupt does not cancel it)
         self.outcome = "failed"
         self.reason = ""
@@ -722,7 +724,7 @@ class Supervisor:
                 try:
                     await self._main
                 except asyncio.CancelledError:
-                    pass
+                    await self._land_without_waiting()
                 self._say_not_down()
             except (MissionAborted, UserError) as exc:
                 self.outcome = "aborted" if isinstance(exc, MissionAborted) else "failed"
@@ -732,7 +734,7 @@ class Supervisor:
                 try:
                     await self._main  # a second interrupt stops waiting for touch-down
                 except asyncio.CancelledError:
-                    pass
+                    await self._land_without_waiting()
                 self._say_not_down()
         finally:
             if self._heap_frozen:
@@ -744,6 +746,27 @@ class Supervisor:
         if error is not None or self.outcome == "unsafe":
             self.event(f"{self.outcome}: {self.reason}", level="error")
         return FleetResult(self.outcome, self.reason, summary, path)
+
+    async def _land_without_waiting(self) -> None:
+        """After a second interrupt (the bring-down cancelled wherever it was, maybe before
+        any LAND went out): every vehicle still airborne is sent LAND now (a holding one once
+        its Hold is answered; no wait for touch-down), and those still in the air are named
+        (:attr:`not_waited`). A third interrupt stops this too."""
+        name = self._interrupted or "interrupt"
+        airborne = [p for p in self.pilots if p.phase in AIRBORNE_PHASES]
+        self._main = asyncio.get_running_loop().create_task(self._gather_land(airborne))
+        try:
+            await self._main
+        except asyncio.CancelledError:
+            pass
+        self.not_waited = [p.name for p in self.pilots if p.phase in AIRBORNE_PHASES]
+        if self.not_waited:
+            self.event(f"second {name}: not waiting for touch-down of {len(self.not_waited)} "
+                       f"vehicle(s) still in the air: " + ", ".join(self.not_waited),
+                       level="error")
+
+    async def _gather_land(self, pilots: list[VehiclePilot]) -> None:
+        await asyncio.gather(*(p.land() for p in pilots), return_exceptions=True)
 
     def _judge_telemetry(self) -> None:
         """A run whose vehicles' telemetry the links stopped trusting is not ``completed``
@@ -768,6 +791,10 @@ class Supervisor:
         if self.not_landed:
             self.reason += (f"; NOT on the ground: {len(self.not_landed)} vehicle(s): "
                             + ", ".join(self.not_landed))
+        if self.not_waited:
+            self.reason += (f"; not waited for touch-down (second interrupt): "
+                            f"{len(self.not_waited)} vehicle(s) still in the air: "
+                            + ", ".join(self.not_waited))
         if self.unreachable:
             self.reason += (f"; NOT known to be down: {len(self.unreachable)} lost vehicle(s) "
                             f"silent, PX4's failsafe decides: " + ", ".join(self.unreachable))
