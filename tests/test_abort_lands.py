@@ -313,3 +313,29 @@ async def test_a_quick_second_ctrl_c_still_sends_land_and_names_who_is_in_the_ai
     for name in in_air:
         assert name in result.reason, result.reason
     assert len(result.summary["not_down"]) == len(in_air), result.summary["not_down"]
+
+
+async def test_a_lost_vehicle_that_answers_but_stays_up_is_landed_again_and_named() -> None:
+    """A lost vehicle that still answers gets LAND at the end; if it stays in the air (a probe
+    flight: the fence's Hold caught it again while it landed outside the fence, 0.67 m up) it
+    is sent LAND again until land_timeout_s and named, not left hovering unreported."""
+    import dataclasses
+    import time
+
+    from memory_fleet import memory_fleet
+
+    sup, links = memory_fleet(3)
+    sup.cfg = dataclasses.replace(sup.cfg, land_timeout_s=1.0)
+    for p in sup.pilots[:2]:
+        p.set_phase(Phase.LANDED, "on the ground")
+        s = p.link.state
+        s.armed, s.landed_state, s.flight_mode = False, "ON_GROUND", "LAND"
+    sup.pilots[2].set_phase(Phase.LOST, "left OFFBOARD unexpectedly (mode HOLD)")
+    s = links[2].state
+    s.armed, s.landed_state, s.flight_mode = True, "IN_AIR", "HOLD"
+    s.last_packet_s = time.monotonic() + 60.0  # it keeps answering (MemoryLink's land: no-op)
+    await sup._land_again()
+    red = [e["text"] for e in sup.events if e["level"] == "error"]
+    assert any(t.startswith("NOT BROUGHT DOWN") and "slot 2 (" in t and "lost, in HOLD" in t
+               for t in red), red
+    assert sup.not_landed == [sup.pilots[2].name], sup.not_landed

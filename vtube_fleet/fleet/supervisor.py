@@ -582,6 +582,7 @@ class Supervisor:
             return
         await gather("land", [p.land() for p in self.pilots])
         await self._wait_landed()
+        await self._land_again()  # e.g. a lost vehicle that answers but stays in the air
 
     async def _wait_landed(self) -> None:
         cfg = self.cfg
@@ -643,9 +644,14 @@ class Supervisor:
             return (not p.link.closed and last is not None
                     and time.monotonic() - last <= cfg.lost_after_s)
 
+        def lost_up(p: VehiclePilot) -> bool:  # lost, still answering, in the air
+            s = p.link.state
+            return p.phase == Phase.LOST and s.armed is True and s.landed_state != "ON_GROUND"
+
         def stuck() -> list[VehiclePilot]:
             return [p for p in self.pilots if heard(p) and (
-                _offboard_airborne(p) or (p.phase == Phase.LANDING and p.unanswered))]
+                _offboard_airborne(p) or (p.phase == Phase.LANDING and p.unanswered)
+                or (lost_up(p) and p.link.state.flight_mode != "LAND"))]
 
         silent = [p.name for p in self.pilots if not heard(p) and p.phase == Phase.LOST
                   and p.link.state.landed_state != "ON_GROUND"]
@@ -663,11 +669,22 @@ class Supervisor:
                                               pilots=left)
             # PX4 reports its mode once a second (HEARTBEAT): wait for the reports
             await asyncio.gather(*(p.link.wait_until(
-                lambda st: not (st.flight_mode == "OFFBOARD" and st.armed is True), 1.5,
-                "a mode other than OFFBOARD") for p in left), return_exceptions=True)
+                lambda st: st.flight_mode not in ("OFFBOARD", "HOLD") or st.armed is not True,
+                1.5, "a mode other than OFFBOARD or Hold") for p in left),
+                return_exceptions=True)
             left = stuck()
+        # the lost ones that took LAND: their touch-down, in what is left of land_timeout_s
+        coming = [p for p in self.pilots if heard(p) and lost_up(p) and p not in left]
+        if coming:
+            await asyncio.gather(*(p.link.wait_until(
+                lambda st: st.landed_state == "ON_GROUND" or st.armed is False,
+                max(deadline - loop.time(), 0.0), "on the ground") for p in coming),
+                return_exceptions=True)
+            left += [p for p in coming if lost_up(p)]
         if left:
-            names = [p.name + (f" ({p.unanswered})" if p.unanswered else "") for p in left]
+            names = [p.name + (f" ({p.unanswered})" if p.unanswered else
+                               f" (lost, in {p.link.state.flight_mode})" if lost_up(p) else "")
+                     for p in left]
             self.not_landed = sorted(set(self.not_landed) | {p.name for p in left})
             self.event(f"NOT BROUGHT DOWN: {len(left)} vehicle(s) still airborne after "
                        f"land_timeout_s = {cfg.land_timeout_s:g} s of LAND: "
@@ -710,6 +727,7 @@ class Supervisor:
                                        f"{p.name} {p.phase.value}"
                                        + (f" ({p.reason})" if p.reason else "")
                                        for p in self.pilots if p.exit_time_s is None))
+                    self._say_not_down()
                 elif self.not_landed:
                     self.outcome = "incomplete"
                     self.reason = (f"{len(self.not_landed)} vehicle(s) still airborne after "
