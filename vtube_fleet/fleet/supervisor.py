@@ -766,7 +766,7 @@ class Supervisor:
         return FleetResult(self.outcome, self.reason, summary, path)
 
     async def _land_without_waiting(self) -> None:
-        """After a second interrupt (the bring-down cancelled wherever it was, maybe before
+        """After an interrupt while landing (the bring-down cancelled wherever it was, maybe before
         any LAND went out): every vehicle still airborne is sent LAND now (a holding one once
         its Hold is answered; no wait for touch-down), and those still in the air are named
         (:attr:`not_waited`). A third interrupt stops this too."""
@@ -779,9 +779,9 @@ class Supervisor:
             pass
         self.not_waited = [p.name for p in self.pilots if p.phase in AIRBORNE_PHASES]
         if self.not_waited:
-            self.event(f"second {name}: not waiting for touch-down of {len(self.not_waited)} "
-                       f"vehicle(s) still in the air: " + ", ".join(self.not_waited),
-                       level="error")
+            self.event(f"{name}: LAND sent, not waiting for the touch-down of "
+                       f"{len(self.not_waited)} vehicle(s) still in the air: "
+                       + ", ".join(self.not_waited), level="error")
 
     async def _gather_land(self, pilots: list[VehiclePilot]) -> None:
         await asyncio.gather(*(p.land() for p in pilots), return_exceptions=True)
@@ -810,7 +810,7 @@ class Supervisor:
             self.reason += (f"; NOT on the ground: {len(self.not_landed)} vehicle(s): "
                             + ", ".join(self.not_landed))
         if self.not_waited:
-            self.reason += (f"; not waited for touch-down (second interrupt): "
+            self.reason += (f"; not waited for touch-down (interrupted while landing): "
                             f"{len(self.not_waited)} vehicle(s) still in the air: "
                             + ", ".join(self.not_waited))
         if self.unreachable:
