@@ -225,3 +225,117 @@ async def test_no_tick_gap_at_tube_entry_on_an_auto_apex_mission(tmp_path: Path,
     assert result.summary["apex_distances_m"][0] is not None  # "auto": planned
     print(f"\nauto apex: {len(gaps)} ticks from take-off into the tube, longest gap "
           f"{1000 * max(gaps):.1f} ms <= T + L = {1000 * budget:.1f} ms")
+
+
+async def test_the_touch_down_report_does_not_count_a_lost_vehicle_as_down() -> None:
+    """The wait for touch-down waits for the LANDING vehicles only; a LOST one (frozen or
+    silent: maybe in the air) is not said to be on the ground. A probe flight (a vehicle frozen
+    at the route's bend) said "all vehicles on the ground" while it hovered at 3 m. Once its
+    fresh telemetry says disarmed on the ground, it is."""
+    import time
+
+    from memory_fleet import memory_fleet
+
+    sup, links = memory_fleet(3)
+    for p in sup.pilots[:2]:
+        p.set_phase(Phase.LANDING, "mission aborted")
+        p.landed.set()
+    sup.pilots[2].set_phase(Phase.LOST, "not following its setpoints")
+    await sup._wait_landed()
+    said = sup.events[-1]["text"]
+    assert said != "all vehicles on the ground", said
+    assert "2 landing vehicle(s) on the ground" in said and "lost: slot 2 (" in said, said
+    s = links[2].state
+    s.armed, s.landed_state, s.last_position_s = False, "ON_GROUND", time.monotonic()
+    await sup._wait_landed()
+    assert sup.events[-1]["text"] == "all vehicles on the ground", sup.events[-1]
+
+
+async def test_a_silent_lost_vehicle_is_named_in_the_reason_of_an_abort() -> None:
+    """A vehicle lost for silence cannot be landed by us: the run's reason (the last line of
+    `run`) names it, not only an error event in the middle of the output. A probe flight lost
+    a vehicle while the fleet held after an abort: it hovered on in Hold (PX4's NAV_DLL_ACT
+    off), and the closing `error:` line did not name it."""
+    import time
+
+    from memory_fleet import memory_fleet
+
+    sup, links = memory_fleet(3)
+    for p in sup.pilots[:2]:
+        p.set_phase(Phase.LANDED, "on the ground")
+        s = p.link.state
+        s.armed, s.landed_state, s.flight_mode = False, "ON_GROUND", "LAND"
+    sup.pilots[2].set_phase(Phase.LOST, "no telemetry for more than lost_after_s = 1 s")
+    links[2].state.last_packet_s = time.monotonic() - 5.0
+    await sup._land_again()
+    sup.reason = "safety budget exceeded in flight"
+    sup._say_not_down()
+    assert "NOT known to be down: 1 lost vehicle(s)" in sup.reason, sup.reason
+    assert "slot 2 (udpin://127.0.0.1:30002)" in sup.reason, sup.reason
+
+
+async def test_a_quick_second_ctrl_c_still_sends_land_and_names_who_is_in_the_air(
+        tmp_path: Path) -> None:
+    """Two Ctrl-C in quick succession mid-tube (an operator's reflex). The second stops the
+    wait for touch-down, but not the LAND: it used to cancel the bring-down while the Holds
+    were still going out, leaving the vehicles hovering in Hold (a probe flight: all 12 in the
+    air at exit, and the run said "SIGINT: held, then landed" with exit 130 and no name).
+    Judged by the mock's TRUTH when `fly` returns: every vehicle landing (PX4 LAND) or on the
+    ground, none holding or in OFFBOARD; those in the air named in the reason and the summary."""
+    from vtube_fleet.fleet.launch import mock_fleet
+
+    mission = _mission(tmp_path)
+    log: dict = {}
+
+    def double_ctrl_c(tick: int, sup: Supervisor) -> None:
+        if sup.tube_start_s is None or sup.t_s() - sup.tube_start_s < 2.0:
+            return
+        if "first" not in log:
+            log["first"] = tick
+            sup.interrupt("SIGINT")
+        elif "second" not in log and tick > log["first"]:
+            log["second"] = tick  # the very next tick: the Holds are still in flight
+            sup.interrupt("SIGINT")
+
+    async with mock_fleet(mission, boot_time_scale=0.3, port_scheme=free_ports(3),
+                          seed=5) as fleet:
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],
+                           out_dir=tmp_path, tick_hook=double_ctrl_c)
+        modes = [v.mode_name for v in fleet.vehicles]
+        truth = _on_the_ground(fleet)
+    assert "second" in log, log
+    assert result.outcome == "interrupted" and result.exit_code == 130, result.reason
+    for mode, (_, where) in zip(modes, truth, strict=True):
+        assert where == "ON_GROUND" or mode == "AUTO.LAND", modes  # never left hovering
+    in_air = [f"slot {i} (" for i, (_, where) in enumerate(truth) if where == "IN_AIR"]
+    assert in_air, f"all down already: the test did not stop the wait ({modes})"
+    assert "still in the air" in result.reason, result.reason
+    for name in in_air:
+        assert name in result.reason, result.reason
+    assert len(result.summary["not_down"]) == len(in_air), result.summary["not_down"]
+
+
+async def test_a_lost_vehicle_that_answers_but_stays_up_is_landed_again_and_named() -> None:
+    """A lost vehicle that still answers gets LAND at the end; if it stays in the air (a probe
+    flight: the fence's Hold caught it again while it landed outside the fence, 0.67 m up) it
+    is sent LAND again until land_timeout_s and named, not left hovering unreported."""
+    import dataclasses
+    import time
+
+    from memory_fleet import memory_fleet
+
+    sup, links = memory_fleet(3)
+    sup.cfg = dataclasses.replace(sup.cfg, land_timeout_s=1.0)
+    for p in sup.pilots[:2]:
+        p.set_phase(Phase.LANDED, "on the ground")
+        s = p.link.state
+        s.armed, s.landed_state, s.flight_mode = False, "ON_GROUND", "LAND"
+    sup.pilots[2].set_phase(Phase.LOST, "left OFFBOARD unexpectedly (mode HOLD)")
+    s = links[2].state
+    s.armed, s.landed_state, s.flight_mode = True, "IN_AIR", "HOLD"
+    s.last_packet_s = time.monotonic() + 60.0  # it keeps answering (MemoryLink's land: no-op)
+    await sup._land_again()
+    red = [e["text"] for e in sup.events if e["level"] == "error"]
+    assert any(t.startswith("NOT BROUGHT DOWN") and "slot 2 (" in t and "lost, in HOLD" in t
+               for t in red), red
+    assert sup.not_landed == [sup.pilots[2].name], sup.not_landed

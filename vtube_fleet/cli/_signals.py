@@ -16,7 +16,7 @@ __all__ = ["interrupt_on_signals"]
 
 def _detach_from_terminal() -> None:
     """The terminal hung up: standard output and error that went to it go to /dev/null from
-    now on (a write to a terminal that is gone fails with EIO; the log file keeps everything)."""
+    now on (a write to a terminal that is gone fails with EIO; the summary keeps the events)."""
     devnull = os.open(os.devnull, os.O_WRONLY)
     try:
         for stream in (sys.stdout, sys.stderr):

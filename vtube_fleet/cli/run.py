@@ -91,7 +91,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         for fleet in holder:  # the last resort if the event loop died before the stop
             fleet.kill_now()
     print(_closing_line(result, out), file=sys.stderr)
-    if result.exit_code not in (0, 130) and result.reason:
+    # interrupted is no failure, unless it left vehicles in the air (or not known to be down)
+    if result.reason and (result.exit_code not in (0, 130) or result.summary.get("not_down")):
         red = "\x1b[31m" if sys.stderr.isatty() else ""
         print(f"{red}error: mission {result.outcome}: {' '.join(result.reason.split())}"
               f"{chr(27) + '[0m' if red else ''}", file=sys.stderr)

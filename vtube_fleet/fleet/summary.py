@@ -93,6 +93,9 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
         "telemetry": telemetry_summary(sup),
         "vehicles": len(sup.pilots),
         "lost": [p.vehicle_id for p in sup.pilots if p.phase == Phase.LOST],
+        # at the end: the vehicles not known to be on the ground (the reason says why)
+        "not_down": sorted(set(sup.not_landed) | set(sup.unreachable) | set(sup.not_waited)
+                           | set(sup.held_for_operator)),
         "r_s": sup.physical.r_s,
         "r_a": sup.physical.r_a,
         "r_s_flown": flown.r_s,

@@ -203,6 +203,8 @@ class Supervisor:
         self.held_for_operator: list[str] = []
         #: lost vehicles silent at the end: nothing can be sent to them (PX4's failsafe decides)
         self.unreachable: list[str] = []
+        #: after a second interrupt: the vehicles still in the air when the run stopped waiting
+        self.not_waited: list[str] = []
         self._landing_all = False  # _bring_down runs (a first interrupt does not cancel it)
         self.outcome = "failed"
         self.reason = ""
@@ -600,6 +602,7 @@ class Supervisor:
             return
         await gather("land", [p.land() for p in self.pilots])
         await self._wait_landed()
+        await self._land_again()  # e.g. a lost vehicle that answers but stays in the air
 
     async def _wait_landed(self) -> None:
         cfg = self.cfg
@@ -615,7 +618,14 @@ class Supervisor:
             self.event(f"{len(left)} vehicle(s) not on the ground after land_timeout_s = "
                        f"{cfg.land_timeout_s:g} s: {', '.join(left)}", level="warning")
             return
-        self.event("all vehicles on the ground")
+        # only the landing ones were waited for: a lost vehicle (silent, or not answering)
+        # may still be in the air, so "all vehicles" would be untrue
+        lost = [p.name for p in self.pilots if p.phase == Phase.LOST
+                and not _seen_down(p, cfg.lost_after_s)]
+        self.event("all vehicles on the ground" if not lost else
+                   f"the {len(waiting)} landing vehicle(s) on the ground; not known to be "
+                   f"down: {len(lost)} lost: {', '.join(lost)}",
+                   level="info" if not lost else "warning")
 
     async def _emergency(self, why: str) -> None:
         """Everyone holds, then lands (Ctrl-C / SIGTERM)."""
@@ -654,9 +664,14 @@ class Supervisor:
             return (not p.link.closed and last is not None
                     and time.monotonic() - last <= cfg.lost_after_s)
 
+        def lost_up(p: VehiclePilot) -> bool:  # lost, still answering, in the air
+            s = p.link.state
+            return p.phase == Phase.LOST and s.armed is True and s.landed_state != "ON_GROUND"
+
         def stuck() -> list[VehiclePilot]:
             return [p for p in self.pilots if heard(p) and (
-                _offboard_airborne(p) or (p.phase == Phase.LANDING and p.unanswered))]
+                _offboard_airborne(p) or (p.phase == Phase.LANDING and p.unanswered)
+                or (lost_up(p) and p.link.state.flight_mode != "LAND"))]
 
         silent = [p.name for p in self.pilots if not heard(p) and p.phase == Phase.LOST
                   and p.link.state.landed_state != "ON_GROUND"]
@@ -674,11 +689,22 @@ class Supervisor:
                                               pilots=left)
             # PX4 reports its mode once a second (HEARTBEAT): wait for the reports
             await asyncio.gather(*(p.link.wait_until(
-                lambda st: not (st.flight_mode == "OFFBOARD" and st.armed is True), 1.5,
-                "a mode other than OFFBOARD") for p in left), return_exceptions=True)
+                lambda st: st.flight_mode not in ("OFFBOARD", "HOLD") or st.armed is not True,
+                1.5, "a mode other than OFFBOARD or Hold") for p in left),
+                return_exceptions=True)
             left = stuck()
+        # the lost ones that took LAND: their touch-down, in what is left of land_timeout_s
+        coming = [p for p in self.pilots if heard(p) and lost_up(p) and p not in left]
+        if coming:
+            await asyncio.gather(*(p.link.wait_until(
+                lambda st: st.landed_state == "ON_GROUND" or st.armed is False,
+                max(deadline - loop.time(), 0.0), "on the ground") for p in coming),
+                return_exceptions=True)
+            left += [p for p in coming if lost_up(p)]
         if left:
-            names = [p.name + (f" ({p.unanswered})" if p.unanswered else "") for p in left]
+            names = [p.name + (f" ({p.unanswered})" if p.unanswered else
+                               f" (lost, in {p.link.state.flight_mode})" if lost_up(p) else "")
+                     for p in left]
             self.not_landed = sorted(set(self.not_landed) | {p.name for p in left})
             self.event(f"NOT BROUGHT DOWN: {len(left)} vehicle(s) still airborne after "
                        f"land_timeout_s = {cfg.land_timeout_s:g} s of LAND: "
@@ -721,6 +747,7 @@ class Supervisor:
                                        f"{p.name} {p.phase.value}"
                                        + (f" ({p.reason})" if p.reason else "")
                                        for p in self.pilots if p.exit_time_s is None))
+                    self._say_not_down()
                 elif self.not_landed:
                     self.outcome = "incomplete"
                     self.reason = (f"{len(self.not_landed)} vehicle(s) still airborne after "
@@ -735,7 +762,7 @@ class Supervisor:
                 try:
                     await self._main
                 except asyncio.CancelledError:
-                    pass
+                    await self._land_without_waiting()
                 self._say_not_down()
             except Exception as exc:  # MissionAborted, UserError, or a bug of ours
                 if not isinstance(exc, MissionAborted | UserError):
@@ -751,7 +778,7 @@ class Supervisor:
                 try:
                     await self._main  # a second interrupt stops waiting for touch-down
                 except asyncio.CancelledError:
-                    pass
+                    await self._land_without_waiting()
                 self._say_not_down()
         finally:
             if self._heap_frozen:
@@ -763,6 +790,27 @@ class Supervisor:
         if error is not None or self.outcome == "unsafe":
             self.event(f"{self.outcome}: {self.reason}", level="error")
         return FleetResult(self.outcome, self.reason, summary, path)
+
+    async def _land_without_waiting(self) -> None:
+        """After an interrupt while landing (the bring-down cancelled wherever it was, maybe before
+        any LAND went out): every vehicle still airborne is sent LAND now (a holding one once
+        its Hold is answered; no wait for touch-down), and those still in the air are named
+        (:attr:`not_waited`). A third interrupt stops this too."""
+        name = self._interrupted or "interrupt"
+        airborne = [p for p in self.pilots if p.phase in AIRBORNE_PHASES]
+        self._main = asyncio.get_running_loop().create_task(self._gather_land(airborne))
+        try:
+            await self._main
+        except asyncio.CancelledError:
+            pass
+        self.not_waited = [p.name for p in self.pilots if p.phase in AIRBORNE_PHASES]
+        if self.not_waited:
+            self.event(f"{name}: LAND sent, not waiting for the touch-down of "
+                       f"{len(self.not_waited)} vehicle(s) still in the air: "
+                       + ", ".join(self.not_waited), level="error")
+
+    async def _gather_land(self, pilots: list[VehiclePilot]) -> None:
+        await asyncio.gather(*(p.land() for p in pilots), return_exceptions=True)
 
     def _judge_telemetry(self) -> None:
         """A run whose vehicles' telemetry the links stopped trusting is not ``completed``
@@ -782,10 +830,18 @@ class Supervisor:
                 f"{k} {v}" for k, v in sorted(t["refused"].items())))
 
     def _say_not_down(self) -> None:
-        """The run's reason names the vehicles not brought down (or left holding)."""
+        """The run's reason names the vehicles not brought down, the lost ones that cannot be
+        reached (silent: maybe still in the air) and those left holding."""
         if self.not_landed:
             self.reason += (f"; NOT on the ground: {len(self.not_landed)} vehicle(s): "
                             + ", ".join(self.not_landed))
+        if self.not_waited:
+            self.reason += (f"; not waited for touch-down (interrupted while landing): "
+                            f"{len(self.not_waited)} vehicle(s) still in the air: "
+                            + ", ".join(self.not_waited))
+        if self.unreachable:
+            self.reason += (f"; NOT known to be down: {len(self.unreachable)} lost vehicle(s) "
+                            f"silent, PX4's failsafe decides: " + ", ".join(self.unreachable))
         if self.held_for_operator:
             self.reason += ("; left holding in the air (on_abort = hold): "
                             + ", ".join(self.held_for_operator))
@@ -892,6 +948,13 @@ class Supervisor:
                 first_violation=self.measurement.violations.first)
         except Exception:  # pragma: no cover - never block the verdict
             return {"violations": 0}
+
+
+def _seen_down(p: VehiclePilot, fresh_s: float) -> bool:
+    """The vehicle's telemetry, younger than ``fresh_s``, says disarmed on the ground."""
+    s = p.link.state
+    return (s.last_position_s is not None and time.monotonic() - s.last_position_s <= fresh_s
+            and not s.armed and s.landed_state == "ON_GROUND")
 
 
 def _offboard_airborne(p: VehiclePilot) -> bool:

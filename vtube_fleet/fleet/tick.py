@@ -105,6 +105,8 @@ TAKEOFF_XY_MAX_M_S = 0.5
 AIRBORNE_UP_M = 0.5
 #: The floor of :func:`slow_m_s`: below this a vehicle is still whatever v_min is.
 STILL_M_S = 0.05
+#: Estimate jitter (m) a still vehicle's position may show without counting as moving.
+STILL_POS_TOL_M = 0.1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -202,9 +204,9 @@ def hand_over(tab: FleetTable, plan: FlightPlan) -> None:
 # ----------------------------------------------------------------------------------------------
 def slow_m_s(mission: Mission) -> float:
     """max(v_min / 2, :data:`STILL_M_S`): a vehicle in the tube is always commanded at least
-    v_min (> 0, paper note 9) and PX4's steady shortfall is 10–20 %, so one whose measured
-    speed stays below half of v_min for :func:`unresponsive_s` has slowed below v_min in the
-    tube (issue 9): it is declared lost, an obstacle for everyone."""
+    v_min (> 0, paper note 9) and PX4's steady shortfall is 10–20 %, so one whose estimated
+    position moves slower than half of v_min for :func:`unresponsive_s` has slowed below v_min
+    in the tube (issue 9): it is declared lost, an obstacle for everyone."""
     return max(0.5 * mission.scenario.robots.v_min, STILL_M_S)
 
 
@@ -293,9 +295,12 @@ def _disarmed_in_air(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str
 
 
 def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
-    """In the tube, commanded, and slower than :func:`slow_m_s` for :func:`unresponsive_s`
-    while its estimated position did not move either (then the velocity estimate is off, not
-    the vehicle): not following its setpoints. Keeps the slow spells in the table
+    """In the tube and commanded, its estimated position moved less than :func:`slow_m_s` ×
+    the time for :func:`unresponsive_s`: not following its setpoints. Judged on the position,
+    not on the reported speed: PX4's velocity estimate can be 0.8 m/s off (a probe flight froze
+    a vehicle whose estimate kept saying 0.3 m/s: never caught, the others flew on to the
+    fence). A spell starts afresh whenever the position moved more than that (plus
+    :data:`STILL_POS_TOL_M` of estimate jitter). Keeps the spells in the table
     (``still_since_s``, ``still_xy``)."""
     tab, now = ctx.tab, ctx.now_s
     wait_s = unresponsive_s(ctx.mission)
@@ -307,27 +312,26 @@ def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
     watched = ctx.checked & (tab.phase == _IN_TUBE)
     speed = np.hypot(tab.vel[:, 0], tab.vel[:, 1])
     cmd_speed = np.where(tab.cmd_set, np.hypot(tab.cmd[:, 0], tab.cmd[:, 1]), 0.0)
-    slow_now = watched & (cmd_speed > 0.0) & (speed < slow)
-    tab.still_since_s[watched & ~slow_now] = np.nan
-    start = slow_now & np.isnan(tab.still_since_s)
+    commanded = watched & (cmd_speed > 0.0)
+    tab.still_since_s[~commanded] = np.nan
+    start = commanded & np.isnan(tab.still_since_s)
     tab.still_since_s[start] = now
     tab.still_xy[start] = tab.xy[start]
-    timing = slow_now & ~start
+    timing = commanded & ~start
     still = now - tab.still_since_s
-    timing &= still >= wait_s
     moved = np.hypot(tab.xy[:, 0] - tab.still_xy[:, 0], tab.xy[:, 1] - tab.still_xy[:, 1])
-    # the estimated position kept moving: the velocity estimate is off (with the compensation
-    # PX4 flies v_c + d̂, not v_c), not the vehicle; count afresh
-    again = timing & (moved >= slow * still)
+    # it moves (as fast as half of v_min, at least): count afresh from here
+    again = timing & (moved >= slow * still + STILL_POS_TOL_M)
     tab.still_since_s[again] = now
     tab.still_xy[again] = tab.xy[again]
-    hit = timing & ~again
+    hit = timing & ~again & (still >= wait_s)
     what = "v_min / 2" if slow > STILL_M_S else "still"
 
     def why(r: int) -> str:
-        return (f"not following its setpoints: measured speed < {slow:g} m/s ({what}) for "
-                f"{float(still[r]):.1f} s, moved {float(moved[r]):.2f} m, while commanded "
-                f"{float(cmd_speed[r]):.2f} m/s")
+        return (f"not following its setpoints: moved {float(moved[r]):.2f} m in "
+                f"{float(still[r]):.1f} s (< {slow:g} m/s ({what}) × the time), while "
+                f"commanded {float(cmd_speed[r]):.2f} m/s (reported speed "
+                f"{float(speed[r]):.2f} m/s)")
 
     return hit, why
 
