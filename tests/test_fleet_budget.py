@@ -444,3 +444,38 @@ async def test_an_agent_measures_again_before_it_refuses_the_runs_delta(slow: in
     assert pilot.link.measurements == MEASURE_TRIES
     assert f"more than the run's δ = {run_delta:.3f} m" in text
     assert "the same in 3 measurements of 1 s (L = 210, 210, 210 ms)" in text, text
+
+
+def test_flying_on_past_the_finish_stops_before_the_fence(mission) -> None:
+    """``after_exit = "continue"``: an exited vehicle flies on at v, but holds a stopping
+    distance before the fence's exit (core/fence.exit_room_m), not at PX4's fence failsafe
+    (a vehicle stuck in the tube kept the others flying on until the fence caught them)."""
+    from vtube_fleet.core.fence import exit_room_m
+    from vtube_fleet.fleet.flight_plan import FlightPlan
+    from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
+    from vtube_fleet.fleet.tick import actuate, read_links
+    from vtube_fleet.state import Phase
+
+    assert mission.config.after_exit == "continue"
+    sc = mission.scenario
+    plan = FlightPlan.build(sc.corridor, sc.controller)
+    tube = plan.route.segments[-1].tube
+    room = exit_room_m(tube.length, mission.config.exit_clear_m)
+    n_c = np.asarray(tube.n_c, float)
+    finish = 0.5 * (np.asarray(tube.p_h1, float) + np.asarray(tube.p_r1, float))
+
+    def fly_at(past_m: float) -> tuple[list, np.ndarray]:
+        tab = FleetTable([0], mission)
+        tab.phase[0] = PHASE_CODE[Phase.EXITED]
+        tab.xy[0] = finish + past_m * n_c
+        tab.has[0] = True
+        link = _Link()
+        act = actuate(tab, read_links([link]), [link], mission, plan, 0.0,
+                      np.zeros(0, np.int64), np.zeros((0, 2)), None)
+        return act.hold, tab.cmd[0].copy()
+
+    hold, cmd = fly_at(1.0)  # just past the line: flies on along n_c
+    assert hold == [] and float(cmd @ n_c) > 0.0
+    hold, cmd = fly_at(room - 0.5)  # within a stopping distance of the fence's exit: holds
+    assert len(hold) == 1 and hold[0][0] == 0
+    assert "before the fence's exit" in hold[0][1] and np.allclose(cmd, 0.0)

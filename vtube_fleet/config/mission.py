@@ -183,7 +183,8 @@ MISSION_KEYS: tuple[Key, ...] = (
         bound=Bound(0.0, POSITION_STREAM_HZ, why="the position stream rate the vehicles send: "
                     "LOCAL_POSITION_NED at 50 Hz")),
     Key("after_exit", "choice", "past the finishing line: `continue` (fly on at v along n_c "
-        "until everyone has exited), `hold` or `land` once `exit_clear_m` past the line",
+        "until everyone has exited, at most to a stopping distance before the fence's "
+        "exit), `hold` or `land` once `exit_clear_m` past the line",
         default="continue", choices=AFTER_EXIT),
     Key("on_complete", "choice", "when every vehicle has exited: `land` or `hold`",
         default="land", choices=ON_COMPLETE),

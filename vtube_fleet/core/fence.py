@@ -108,6 +108,13 @@ def _drop_collinear(poly: np.ndarray) -> np.ndarray:
     return np.array(keep)
 
 
+def exit_room_m(tube_length_m: float, exit_clear_m: float = 0.0) -> float:
+    """How far past the finishing line the fence's exit reaches inside its margin w (the
+    default ``exit_m`` of :func:`tube_fence` is this + w): the tube's length L plus
+    ``exit_clear_m``. A vehicle that flies on past the line must stop within it."""
+    return float(tube_length_m) + float(exit_clear_m)
+
+
 def tube_fence(tube: Trapezoid, obstacles: Sequence[Obstacle], r_s: float, *,
                slots: np.ndarray | None = None, margin_m: float = FENCE_MARGIN_M,
                exit_m: float | None = None, exit_clear_m: float = 0.0) -> FenceGeometry:
@@ -122,7 +129,7 @@ def tube_fence(tube: Trapezoid, obstacles: Sequence[Obstacle], r_s: float, *,
     w = float(r_s) + float(margin_m)
     L = tube.length
     if exit_m is None:
-        exit_m = L + float(exit_clear_m) + w
+        exit_m = exit_room_m(L, exit_clear_m) + w
     if not (np.isfinite(exit_m) and exit_m >= 0):
         raise ValueError(f"fence exit length must be >= 0 m, got {exit_m}")
     back_m = w

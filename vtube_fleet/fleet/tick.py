@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from vtube_fleet.config.mission import Mission
+from vtube_fleet.core.fence import exit_room_m
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.fleet.budget import BudgetWatch
 from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S
@@ -489,7 +490,9 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
       plus d̂, the altitude hold; a vehicle standing still (``standstill``) zero plus d̂;
     * past the (route's last) finishing line:
       :func:`~vtube_fleet.fleet.flight_plan.exit_velocities` plus d̂, or zero and hold when
-      blocked, or hold / land once ``exit_clear_m`` past it (``after_exit``);
+      blocked, or hold / land once ``exit_clear_m`` past it (``after_exit``); with
+      ``"continue"``, hold a stopping distance before the fence's exit
+      (:func:`~vtube_fleet.core.fence.exit_room_m`);
     * otherwise nothing (the command column cleared).
 
     Vehicles behind a closed link are skipped. The setpoints go to the links together
@@ -546,12 +549,22 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         v, blocked = exit_velocities(plan, tab.xy[r], view, stop_distance_m=stop)
         blocked &= tab.has[r]
         clear = (cfg.after_exit in ("hold", "land")) & (past >= cfg.exit_clear_m)
-        v[clear | blocked | still] = 0.0
+        # "continue" (until every vehicle has exited) ends at the fence: a vehicle holds a
+        # stopping distance before the fence's exit (one stuck in the tube must not send the
+        # others into PX4's fence failsafe)
+        room = exit_room_m(plan.route.segments[-1].tube.length, cfg.exit_clear_m)
+        far = (cfg.after_exit == "continue") & (past >= room - stop) & ~clear
+        v[clear | far | blocked | still] = 0.0
         vx[r], vy[r] = v[:, 0], v[:, 1]
-        comp[r] = still | ~(clear | blocked)  # standing still: zero for the ESTIMATED position
+        # standing still: zero for the ESTIMATED position
+        comp[r] = still | ~(clear | far | blocked)
         for j in np.flatnonzero(clear & ~still).tolist():
             why = f"{float(past[j]):.1f} m past the finishing line"
             (hold if cfg.after_exit == "hold" else land).append((int(r[j]), why))
+        for j in np.flatnonzero(far & ~still).tolist():
+            hold.append((int(r[j]), f"{float(past[j]):.1f} m past the finishing line, a "
+                                    f"stopping distance before the fence's exit "
+                                    f"({room:.1f} m past it)"))
         for j in np.flatnonzero(blocked & ~clear & ~still).tolist():
             hold.append((int(r[j]), "a stopped vehicle ahead past the finishing line"))
     rows = np.flatnonzero(send)
