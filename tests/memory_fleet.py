@@ -79,6 +79,9 @@ def memory_fleet(count: int, phase: str = "tube", spacing_m: float = 5.0,
         s.last_position_s = s.last_heartbeat_s = s.last_packet_s = now
         s.pos_accuracy_m = 0.29
     sup = Supervisor(mission, links, fence=False)
+    # re-partitions in the tick itself, as a test ticking by hand expects them (the runtime
+    # plans them in a worker thread: tests/test_fleet_tick.py has that case)
+    sup.ticker.replan_worker = None
     for p in sup.pilots:
         p.set_phase(Phase.TAKEOFF if phase == "takeoff" else Phase.IN_TUBE)
     sup.table.takeoff_xy[:] = slots[: count]

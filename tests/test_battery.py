@@ -203,7 +203,9 @@ async def test_a_low_battery_mid_tube_lands_and_the_others_pass(tmp_path: Path) 
     est = np.array([e for e, _ in seen])
     centre = np.array([c for _, c in seen])
     anchor = sup.ticker.anchor_m
-    assert float(np.hypot(*(est - centre).T).max()) <= anchor + 1e-9
+    # (+ what the estimate drifts while the new anchor's partition is planned off the loop:
+    # up to a few hundred ms at the landing's drift of at most 0.3 m/s)
+    assert float(np.hypot(*(est - centre).T).max()) <= anchor + 0.15
     steps = int((np.hypot(*np.diff(centre, axis=0).T) > 0).sum())
     path = float(np.hypot(*np.diff(est, axis=0).T).sum())
     assert steps <= path / anchor + 1  # each step: the estimate moved more than the anchor

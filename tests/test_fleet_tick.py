@@ -400,3 +400,43 @@ async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
     fleet = sup.ticker(now, now + WALL)
     assert fleet.view is not None and low <= set(fleet.view.lost_ids.tolist())
     assert (sup.table.phase == PHASE_CODE[Phase.LANDING]).sum() >= len(low)
+
+
+async def test_a_re_partition_is_planned_off_the_control_loop() -> None:
+    """With a worker (the supervisor and the agents): the tick that first sees a stopped
+    vehicle does not plan (the control loop goes on with the current plan, the stopped one a
+    point of the pair barrier); a tick after the worker is done adopts the plan, and lands
+    the vehicles it traps: the same outcome as planning in the tick itself."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    low = {2, 5}
+
+    def fleet():
+        sup, links = memory_fleet(12, now_s=100.0)
+        for i, link in enumerate(links):
+            link.state.battery_remaining = 0.1 if i in low else 0.9
+        return sup
+
+    now = 100.05
+    sup = fleet()
+    worker = ThreadPoolExecutor(1)
+    sup.ticker.replan_worker = worker
+    replans: list[float] = []
+    sup.ticker.on_replan = lambda plan, t: replans.append(t)
+    try:
+        sup.ticker(now, now + WALL)  # the low ones land: stopped, not yet a plan's obstacle
+        sup.ticker(now + 0.05, now + 0.05 + WALL)  # the re-partition is handed to the worker
+        assert sup.ticker.plan is sup.ticker.root and not replans
+        assert {p.vehicle_id for p in sup.pilots if p.phase == Phase.LANDING} == low
+        worker.submit(lambda: None).result()  # the worker is done with what it was given
+        sup.ticker(now + 0.10, now + 0.10 + WALL)
+        assert len(replans) == 1 and sup.ticker.plan is not sup.ticker.root
+    finally:
+        worker.shutdown()
+    # planned in the tick (after: the plans share their cache): the same vehicles land
+    inline = fleet()
+    inline.ticker(now, now + WALL)
+    inline.ticker(now + 0.05, now + 0.05 + WALL)
+    want = {p.vehicle_id for p in inline.pilots if p.phase == Phase.LANDING}
+    assert want > low and inline.ticker.plan is not inline.ticker.root
+    assert {p.vehicle_id for p in sup.pilots if p.phase == Phase.LANDING} == want

@@ -187,14 +187,25 @@ class FlightPlan:
         core/plan.py; if that fails too, the lost vehicle grouped with the obstacles near it:
         all deterministic, so every agent gets the same partition)."""
         lost = tuple(lost)
-        key = tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
-                     round(float(o.radius), 6)) for o in lost)
+        key = self.lost_key(lost)
         hit = self._cache.get(key)
         if hit is None:
             route = self.route.with_lost(lost, replan=self.replan)
             hit = FlightPlan(route, self.kind, self._cache, self.replan)
             self._cache[key] = hit
         return hit
+
+    @staticmethod
+    def lost_key(lost: Sequence[Obstacle]) -> tuple[tuple[float, float, float], ...]:
+        """What tells one set of lost-vehicle obstacles from another (centres and radii to the
+        micrometre): the key of :meth:`with_lost`'s plans."""
+        return tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
+                      round(float(o.radius), 6)) for o in lost)
+
+    def planned_with_lost(self, lost: Sequence[Obstacle]) -> FlightPlan | None:
+        """The plan :meth:`with_lost` has already built for these obstacles, else None (no
+        work done)."""
+        return self._cache.get(self.lost_key(tuple(lost)))
 
     def cannot_pass(self, p: np.ndarray, segment: np.ndarray | None = None) -> np.ndarray:
         """Points (M, 2) flying ``segment`` (M,) (None or −1: the segments they start in) inside the

@@ -36,6 +36,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -178,9 +179,11 @@ class Supervisor:
                        for i, link in enumerate(links)]
         self.names = [p.name for p in self.pilots]
         self.t0 = time.monotonic()
+        self._replan_worker = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.ticker = Tick(self.table, self.pilots, mission, plan, frame=self.frame,
                            on_exit=self._on_exit, on_replan=self._on_replan,
-                           on_replan_failed=self._on_replan_failed, t0_s=self.t0)
+                           on_replan_failed=self._on_replan_failed, t0_s=self.t0,
+                           replan_worker=self._replan_worker)
         self.clock = ControlClock(self.cfg.period_s, self._step, on_stall=self._on_stall,
                                   guard=self._tick_failed, after=self._after_tick)
         #: summary "onboard": the fence and the PX4 parameter audit (fleet/preflight.py)
@@ -687,10 +690,13 @@ class Supervisor:
                        + ", ".join(p.name for p in left), level="warning")
             await self.preflight.gather_named("land", [p.land_command() for p in left],
                                               pilots=left)
-            # PX4 reports its mode once a second (HEARTBEAT): wait for the reports
+            # PX4 reports its mode once a second (HEARTBEAT): wait for the reports of LAND
+            # (what was sent; any other mode, e.g. a failsafe's POSCTL, is still "stuck" and
+            # must not be answered by another LAND at once: that spammed the vehicle)
             await asyncio.gather(*(p.link.wait_until(
-                lambda st: st.flight_mode not in ("OFFBOARD", "HOLD") or st.armed is not True,
-                1.5, "a mode other than OFFBOARD or Hold") for p in left),
+                lambda st: (st.flight_mode == "LAND" or st.armed is not True
+                            or st.landed_state == "ON_GROUND"),
+                1.5, "LAND, or on the ground") for p in left),
                 return_exceptions=True)
             left = stuck()
         # the lost ones that took LAND: their touch-down, in what is left of land_timeout_s
@@ -900,6 +906,7 @@ class Supervisor:
                 await self._clock_task
             except BaseException as exc:  # noqa: BLE001 - report, never lose the summary
                 log.warning("control clock ended with %r", exc)
+        self._replan_worker.shutdown(wait=False, cancel_futures=True)
         for p in self.pilots:
             p.cancel_tasks()
         await self.preflight.restore_params()

@@ -42,6 +42,7 @@ import inspect
 import math
 import time
 from collections.abc import Awaitable, Callable, Sequence
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -60,6 +61,7 @@ from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_vel
 from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, STOPPED_PHASES, Phase
 
 if TYPE_CHECKING:  # pragma: no cover
+    from vtube_fleet.core.tube import Obstacle
     from vtube_fleet.fleet.pilot import VehiclePilot
 
 __all__ = [
@@ -658,6 +660,7 @@ class Tick:
         on_replan_failed: Callable[[PartitionError, NeighbourView], None] | None = None,
         rules: Sequence[FaultRule] = FAULT_RULES,
         t0_s: float | None = None,
+        replan_worker: Executor | None = None,
     ) -> None:
         if len(pilots) != table.n:
             raise ValueError(f"{len(pilots)} pilots for a table of {table.n} rows")
@@ -675,6 +678,11 @@ class Tick:
         self.on_replan_failed = on_replan_failed
         self.rules = tuple(rules)
         self.t0_s = t0_s
+        #: where re-partitions around lost vehicles are planned off the control loop (None:
+        #: in the tick itself): :meth:`_plan_with_lost`
+        self.replan_worker = replan_worker
+        self._replan_pending: tuple[tuple[Any, ...], Future[FlightPlan]] | None = None
+        self._replan_failed: tuple[tuple[Any, ...], PartitionError] | None = None
         #: the radius of the obstacle a lost vehicle becomes: physical r_s + margin
         self.lost_radius_m = (mission.scenario.controller.r_s
                               + self.cfg.lost_obstacle_margin_m)
@@ -774,16 +782,46 @@ class Tick:
         root = self.root
         lost = lost_obstacles(view, root.corridor, self.lost_radius_m, root.flown)
         try:
-            new = root.with_lost(lost)
+            new = self._plan_with_lost(root, lost)
         except PartitionError as exc:
             if self.on_replan_failed is not None:
                 self.on_replan_failed(exc, view)
             return
+        if new is None:
+            return  # being planned in the worker: the current plan flies on meanwhile
         if new is not self.plan:
             self.plan = new
             if self.on_replan is not None:
                 self.on_replan(new, t)
             self._land_the_trapped(new)
+
+    def _plan_with_lost(self, root: FlightPlan, lost: tuple[Obstacle, ...]
+                        ) -> FlightPlan | None:
+        """``root.with_lost(lost)``: at once when it was built before (or without
+        :attr:`replan_worker`); else planned in the worker thread (0.05-0.9 s that would stall
+        the control loop: the vehicles would fly on stale setpoints and the budget watch
+        would end the run) and None until it is done. Meanwhile the current plan flies on and
+        the lost vehicles stay points of the pair barrier (:class:`NeighbourView`), which keeps
+        everyone 2 r_s' from them, farther than their obstacle's O'. A failure is kept for its
+        obstacles (raised again, not planned again)."""
+        hit = root.planned_with_lost(lost)
+        if hit is not None or self.replan_worker is None:
+            return hit if hit is not None else root.with_lost(lost)
+        key = root.lost_key(lost)
+        if self._replan_failed is not None and self._replan_failed[0] == key:
+            raise self._replan_failed[1]
+        pending = self._replan_pending
+        if pending is None or pending[0] != key:
+            self._replan_pending = (key, self.replan_worker.submit(root.with_lost, lost))
+            return None
+        if not pending[1].done():
+            return None
+        self._replan_pending = None
+        try:
+            return pending[1].result()
+        except PartitionError as exc:
+            self._replan_failed = (key, exc)
+            raise
 
     def _land_the_trapped(self, plan: FlightPlan) -> None:
         """A vehicle of this table still flying the climb or the tube whose position lies

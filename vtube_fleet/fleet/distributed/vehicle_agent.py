@@ -15,6 +15,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -197,9 +198,11 @@ class AgentControl:
         self.broker_hold_limit_s = broker_hold_limit_s
         self.neighbours = BusNeighbours(mqtt, max_age_s=max_age_s,
                                         lost_after_s=cfg.lost_after_s, period_s=cfg.period_s)
+        self._replan_worker = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.tick = Tick(pilot.table, [pilot], mission, plan, frame=pilot.frame,
                          neighbours=self.neighbours, publish=mqtt.publish,
-                         on_exit=self._exited, on_replan_failed=self._replan_failed)
+                         on_exit=self._exited, on_replan_failed=self._replan_failed,
+                         replan_worker=self._replan_worker)
         self.clock = ControlClock(cfg.period_s, self.step, guard=self._tick_failed,
                                   wall_clock=wall_clock)
         self.bus_hold: str | None = None  # why the vehicle stands still for the bus
@@ -255,6 +258,7 @@ class AgentControl:
         if self._clock_task is not None:
             await self._clock_task
             self._clock_task = None
+        self._replan_worker.shutdown(wait=False, cancel_futures=True)
 
     def set_plan(self, plan: FlightPlan) -> None:
         self.tick.set_plan(plan)
