@@ -440,3 +440,32 @@ async def test_a_re_partition_is_planned_off_the_control_loop() -> None:
     want = {p.vehicle_id for p in inline.pilots if p.phase == Phase.LANDING}
     assert want > low and inline.ticker.plan is not inline.ticker.root
     assert {p.vehicle_id for p in sup.pilots if p.phase == Phase.LANDING} == want
+
+
+async def test_airborne_pairs_count_from_the_take_off_on() -> None:
+    """``min_pair_distance_airborne_m`` takes every airborne pair from the take-off on (docs/
+    fleet.md, summary keys), not only once the tube has started."""
+    sup, _links = memory_fleet(4, phase="takeoff", spacing_m=5.0, now_s=100.0)
+    assert sup.tube_start_s is None
+    sup._step(100.05, 100.05 + WALL, None)
+    got = sup.summary()["min_pair_distance_airborne_m"]
+    assert got is not None and got == pytest.approx(5.0, abs=0.01)
+
+
+def test_the_coordinators_airborne_pairs_count_from_the_take_off_on() -> None:
+    """The MQTT coordinator's judge (RunMonitor) takes airborne pairs from the take-off on
+    too, as ``run`` does: three vehicles climbing 4 m apart, no tube started yet."""
+    import tempfile
+    from pathlib import Path
+
+    from missions import COMPACT_12, write_mission
+
+    from vtube_fleet.fleet.distributed.monitor import RunMonitor
+
+    with tempfile.TemporaryDirectory() as tmp:
+        mission = write_mission(Path(tmp), COMPACT_12)
+    mon = RunMonitor(mission, 3)
+    states = {i: NeighbourState(i, 4.0 * i, 0.0, 0.0, 0.0, Phase.TAKEOFF, 10.0, 1)
+              for i in range(3)}
+    mon.sample(states, 10.05)
+    assert mon.tube_start_s is None and mon.min_pair_airborne == pytest.approx(4.0)

@@ -178,9 +178,6 @@ class FlightMeasurement:
                     val = float(getattr(smt, key)[0])
                     if math.isfinite(val):
                         metrics[f"truth_{key}"] = val
-                self.min_pair_airborne_truth = _min_pair(
-                    truth[airborne & np.isfinite(truth[:, 0])], flown_r_s,
-                    self.min_pair_airborne_truth)
             cs = np.hypot(*cmd[tube_rows & np.isfinite(cmd[:, 0])].T)
             if cs.size:
                 self.cmd_speed[0] = min(self.cmd_speed[0], float(cs.min()))
@@ -194,9 +191,14 @@ class FlightMeasurement:
                 if t - tube_start_s > self.settle_s:  # type: ignore[operator]
                     self.settled_speed[0] = min(self.settled_speed[0], float(ms.min()))
                     self.settled_speed[1] = max(self.settled_speed[1], float(ms.max()))
-            self.min_pair_airborne = _min_pair(pos[airborne & np.isfinite(pos[:, 0])],
-                                               flown_r_s, self.min_pair_airborne)
             self._watch(result, budget, tick_gap_s, request_hold)
+        # every airborne pair from the take-off on (not only once the tube has started)
+        self.min_pair_airborne = _min_pair(pos[airborne & np.isfinite(pos[:, 0])],
+                                           flown_r_s, self.min_pair_airborne)
+        if truth is not None:
+            self.min_pair_airborne_truth = _min_pair(
+                truth[airborne & np.isfinite(truth[:, 0])], flown_r_s,
+                self.min_pair_airborne_truth)
         if tick_duration_s is not None:
             metrics["tick_duration_s"] = tick_duration_s
         if math.isfinite(latency):

@@ -149,20 +149,26 @@ class RunMonitor:
                cmd: dict[int, np.ndarray] | None = None) -> None:
         """One snapshot of the latest states (the coordinator's tick). ``cmd``: commanded
         tube-frame velocities known for some vehicles (an agent knows its own), recorded."""
+        m = self.vehicles
+        air = np.full((m, 2), np.nan)  # every airborne pair from the take-off on
+        for vid, st in states.items():
+            if 0 <= vid < m and st.phase in COUNTED_AIRBORNE_PHASES:
+                air[vid] = (st.x_m, st.y_m)
+        q = air[np.isfinite(air[:, 0])]
+        if q.shape[0] > 1:
+            d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
+            d[np.diag_indices_from(d)] = np.inf
+            self.min_pair_airborne = min(self.min_pair_airborne, float(d.min()))
         if self.tube_start_s is None:
             if self.recorder is not None:
                 self._record_tick(states, now_s, cmd=cmd)
             return
-        m = self.vehicles
         pos = np.full((m, 2), np.nan)
-        air = np.full((m, 2), np.nan)
         corridor = self.mission.scenario.corridor
         for vid, st in states.items():
             if not 0 <= vid < m:
                 continue
             p = (st.x_m, st.y_m)
-            if st.phase in COUNTED_AIRBORNE_PHASES:
-                air[vid] = p
             # judged in the tube: flying it, or stopped inside it (lost, holding, landing)
             if st.phase == Phase.IN_TUBE or (
                 (st.phase == Phase.LOST or st.phase in STOPPED_PHASES)
@@ -185,11 +191,6 @@ class RunMonitor:
         if self.recorder is not None:
             self._record_tick(states, now_s, safety={"": (pos, np.full_like(pos, np.nan))},
                               cmd=cmd)
-        q = air[np.isfinite(air[:, 0])]
-        if q.shape[0] > 1:
-            d = np.hypot(*(q[:, None, :] - q[None, :, :]).transpose(2, 0, 1))
-            d[np.diag_indices_from(d)] = np.inf
-            self.min_pair_airborne = min(self.min_pair_airborne, float(d.min()))
 
     def _record_tick(
         self, states: dict[int, NeighbourState], now_s: float, safety: Any = None,
