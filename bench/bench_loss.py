@@ -274,7 +274,7 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
                 plan = sup.plan
                 rows = [q for q in sup.pilots if q.phase == Phase.IN_TUBE]
                 xy = np.array([q.xy for q in rows]).reshape(-1, 2)
-                trapped = loss.cannot_pass(plan.partition, xy, plan.zones) if len(rows) else []
+                trapped = plan.cannot_pass(xy) if len(rows) else []
                 ids = [q.vehicle_id for q, c in zip(rows, trapped, strict=True) if c]
                 flown_log["repartitions"].append(
                     {"t_s": round(sup.t_s(), 2), "plan": plan, "inside": ids})
@@ -285,9 +285,13 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
     for rp in flown_log["repartitions"]:  # (how: computed again, after the flight)
         plan = rp.pop("plan")
         rp["lost"] = [[round(float(v), 2) for v in o.center] for o in plan.lost]
+        root = seen_plan[0]  # the configured obstacles with the apex distances flown
+        tri_h = {t.obstacle: t.h for t in root.route.segments[0].partition.triangles}
+        fixed = tuple(dataclasses.replace(o, apex_distance=tri_h[i]) if i in tri_h else o
+                      for i, o in enumerate(root.corridor.obstacles))
         try:
             rp["step"] = loss.repartition_around_lost(
-                sc.tube, plan.obstacles, plan.lost, plan.flown).describe()
+                sc.tube, fixed, plan.lost, plan.flown).describe()
         except PartitionError:
             rp["step"] = "?"
     s = result.summary
