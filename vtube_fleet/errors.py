@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["PROBLEMS_SHOWN", "ConfigError", "UserError", "join_problems"]
+__all__ = ["PROBLEMS_SHOWN", "ConfigError", "UserError", "bug_text", "join_problems"]
 
 #: A one-line error shows at most this many per-vehicle problems and counts the rest (at 1,000
 #: vehicles a full list was 146 kB on one line); the caller keeps every one elsewhere.
@@ -28,6 +28,12 @@ class ConfigError(UserError):
     The message names the file and the key, e.g. ``paper.toml: [robots].r_s: expected a
     number, got 'abc'``.
     """
+
+
+def bug_text(exc: BaseException) -> str:
+    """How an exception nobody expected (a bug of ours, logged with its traceback) is named
+    in a reason: ``RuntimeError: … (a bug: the traceback is in the log)``."""
+    return f"{type(exc).__name__}: {exc} (a bug: the traceback is in the log)"
 
 
 def join_problems(problems: Sequence[str], shown: int = PROBLEMS_SHOWN,

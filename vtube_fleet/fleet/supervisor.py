@@ -52,7 +52,7 @@ from vtube_fleet.artifacts import (
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.metrics import SafetyMonitor, verdict
 from vtube_fleet.core.partition import PartitionError
-from vtube_fleet.errors import UserError
+from vtube_fleet.errors import UserError, bug_text
 from vtube_fleet.fleet.budget import LinkMeasurement, SafetyBudget, achieved_rate_hz, mission_budget
 from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.fleet.measure import FlightMeasurement, TickTrace
@@ -325,8 +325,7 @@ class Supervisor:
         if exc is not None:
             log.error("the control loop ended", exc_info=exc)
         self.request_abort("the control loop ended" + (
-            f": {type(exc).__name__}: {exc} (a bug: the traceback is in the log)"
-            if exc is not None else ""))
+            f": {bug_text(exc)}" if exc is not None else ""))
         if not self._clock_restarted:
             self._clock_restarted = True
             self._clock_task = asyncio.get_running_loop().create_task(
@@ -775,8 +774,7 @@ class Supervisor:
                     # a bug of ours: the vehicles are brought down all the same; the
                     # traceback is logged for the report
                     log.error("internal error, every vehicle is brought down", exc_info=exc)
-                    exc = MissionAborted(f"internal error: {type(exc).__name__}: {exc} (a bug: "
-                                         f"the traceback is in the log)")
+                    exc = MissionAborted(f"internal error: {bug_text(exc)}")
                 self.outcome = "aborted" if isinstance(exc, MissionAborted) else "failed"
                 self.reason = str(exc)
                 error = exc

@@ -27,7 +27,7 @@ from vtube_fleet.bus.validate import mission_state_limits
 from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import finite_or_none, percentile_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
-from vtube_fleet.errors import UserError
+from vtube_fleet.errors import UserError, bug_text
 from vtube_fleet.fleet.budget import BudgetWatch, LinkMeasurement, SafetyBudget
 from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
@@ -1011,8 +1011,7 @@ class AgentProcess:
                 if not isinstance(exc, UserError):  # a bug of ours: the vehicle comes down
                     log.error("agent %d: internal error, its vehicle is brought down",
                               self.vehicle, exc_info=exc)
-                    why = (f"internal error: {type(exc).__name__}: {exc} (a bug: the traceback "
-                           f"is in the log)")
+                    why = f"internal error: {bug_text(exc)}"
                 await self._land_now(control, why)
                 raise AgentAborted(f"vehicle {self.vehicle}: {why}") from None
             ok = phase in (Phase.LANDED, Phase.HOLDING) and pilot.exit_time_s is not None
