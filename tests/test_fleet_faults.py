@@ -225,6 +225,14 @@ def test_a_closed_terminal_lands_everyone_like_ctrl_c(tmp_path: Path) -> None:
     assert any("SIGHUP" in e["text"] for e in summary["events"])
 
 
+def _aborted_and_all_down(result, sup: Supervisor, why: str) -> None:
+    """The run aborted (exit 3) naming ``why``, and every vehicle landed and disarmed."""
+    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
+    assert why in result.reason
+    assert [p.phase.value for p in sup.pilots] == ["landed", "landed"]
+    assert [p.link.state.armed for p in sup.pilots] == [False, False]
+
+
 async def test_a_bug_of_ours_in_flight_still_lands_everyone(tmp_path: Path) -> None:
     """An exception nobody expected (here from the tick hook, outside the guarded tick) one
     second into the tube: the run does not end with the vehicles in OFFBOARD; it aborts, every
@@ -244,10 +252,7 @@ async def test_a_bug_of_ours_in_flight_still_lands_everyone(tmp_path: Path) -> N
         result = await fly(mission, endpoints=endpoints, sysids=[1, 2], out_dir=tmp_path,
                            tick_hook=hook)
     assert log.get("raised")
-    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
-    assert "RuntimeError: injected bug" in result.reason
-    assert [p.phase.value for p in log["sup"].pilots] == ["landed", "landed"]
-    assert [p.link.state.armed for p in log["sup"].pilots] == [False, False]
+    _aborted_and_all_down(result, log["sup"], "RuntimeError: injected bug")
 
 
 async def test_a_control_clock_that_dies_in_flight_still_lands_everyone(tmp_path: Path) -> None:
@@ -277,10 +282,8 @@ async def test_a_control_clock_that_dies_in_flight_still_lands_everyone(tmp_path
         result = await fly(mission, endpoints=endpoints, sysids=[1, 2], out_dir=tmp_path,
                            tick_hook=hook)
     assert log.get("raised")
-    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
-    assert "the control loop ended: RuntimeError: injected bug in the clock" in result.reason
-    assert [p.phase.value for p in log["sup"].pilots] == ["landed", "landed"]
-    assert [p.link.state.armed for p in log["sup"].pilots] == [False, False]
+    _aborted_and_all_down(result, log["sup"],
+                          "the control loop ended: RuntimeError: injected bug in the clock")
 
 
 async def test_a_bug_of_ours_after_the_tube_still_lands_everyone(
@@ -300,7 +303,5 @@ async def test_a_bug_of_ours_after_the_tube_still_lands_everyone(
     monkeypatch.setattr(Supervisor, "_finish", broken_finish)
     with mock_process(path, 2) as (_mock, endpoints):
         result = await fly(mission, endpoints=endpoints, sysids=[1, 2], out_dir=tmp_path)
-    assert result.outcome == "aborted" and result.exit_code == 3, result.reason
-    assert "internal error: RuntimeError: injected bug in the finish" in result.reason
-    assert [p.phase.value for p in log["sup"].pilots] == ["landed", "landed"]
-    assert [p.link.state.armed for p in log["sup"].pilots] == [False, False]
+    _aborted_and_all_down(result, log["sup"],
+                          "internal error: RuntimeError: injected bug in the finish")
