@@ -5,7 +5,9 @@ evaluation is not swallowed with the recording's problems (issue #10); the inter
 
 from __future__ import annotations
 
+import itertools
 import json
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -115,8 +117,11 @@ def test_the_interim_summary_is_rewritten_during_the_flight_and_the_final_is_com
     from vtube_fleet.state import NeighbourState
 
     meta = {"mission_id": "m", "run_id": "r1", "config_hash": "h", "broker": "mqtt://b"}
+    # each write takes 5 ms of the work clock: the pacer does not stretch (a real clock would
+    # on a loaded machine: a write > 20 ms postpones the next beyond SUMMARY_EVERY_S)
+    work = itertools.count(0.0, 0.005)
     rec = AgentRecording(compact_12(), 3, 0, NullRecorder(), t0_s=100.0, out=tmp_path,
-                         meta=meta)
+                         meta=meta, work_clock=lambda: next(work))
     path = tmp_path / "summary.json"
     pilot = _pilot()
 
@@ -187,3 +192,18 @@ async def test_a_bug_of_ours_in_the_agents_flight_still_lands_its_vehicle() -> N
         await AgentProcess._fly_started(fake, control)  # type: ignore[arg-type]
     assert landed == ["internal error: RuntimeError: injected bug (a bug: the traceback is in "
                       "the log)"]
+
+
+def test_the_summary_pacer_stretches_its_period_when_writing_is_slow() -> None:
+    """Writing an interim summary takes at most ~1 % of the time: a 5 ms write keeps the
+    period at ``SUMMARY_EVERY_S``; a 50 ms write postpones the next by 100 × 50 ms."""
+    from vtube_fleet.artifacts import SUMMARY_EVERY_S, SummaryPacer
+
+    pacer = SummaryPacer(-math.inf)
+    assert pacer.due(0.0)
+    pacer.written(10.0, 10.005)
+    assert not pacer.due(10.005 + SUMMARY_EVERY_S - 0.001)
+    assert pacer.due(10.005 + SUMMARY_EVERY_S + 0.001)
+    pacer.written(20.0, 20.05)
+    assert not pacer.due(20.05 + SUMMARY_EVERY_S + 2.9)
+    assert pacer.due(20.05 + 5.001)

@@ -368,18 +368,21 @@ class AgentRecording:
     def __init__(self, mission: Any, vehicles: int, vehicle: int, recorder: Any,
                  t0_s: float, out: Path | None = None,
                  meta: dict[str, Any] | None = None, flown: Any = None,
-                 wall_clock: Callable[[], float] = time.time, route: Any = None) -> None:
+                 wall_clock: Callable[[], float] = time.time, route: Any = None,
+                 work_clock: Callable[[], float] = time.perf_counter) -> None:
         """``out``: where the interim summaries go (:meth:`after_tick`; None: none);
         ``meta``: keys every summary carries (mission and run id, config hash, broker, the
         clock); ``flown``: the radii the run flies (r_s', r_a'), where the monitor looks for
         pairs; ``wall_clock``: the agent's; ``route``: the route it flies (the monitor replays
-        its hand-overs)."""
+        its hand-overs); ``work_clock``: times the writing of an interim summary (the pacer
+        stretches the period when writing is slow)."""
         from vtube_fleet.artifacts import SummaryPacer
         from vtube_fleet.fleet.distributed.monitor import RunMonitor
 
         self.vehicle = vehicle
         self.recorder = recorder
         self.wall_clock = wall_clock
+        self.work_clock = work_clock
         self.monitor = RunMonitor(mission, vehicles, recorder=recorder, t0_s=t0_s, flown=flown,
                                   route=route)
         self.out = out
@@ -473,9 +476,9 @@ class AgentRecording:
         (SIGKILL, a power cut) still leaves its last summary. Never raises."""
         if self.out is None or not self.pacer.due(now_mono):
             return
-        t_c = time.perf_counter()
+        t_c = self.work_clock()
         self.write_interim(pilot, now_wall)
-        self.pacer.written(now_mono, now_mono + time.perf_counter() - t_c)
+        self.pacer.written(now_mono, now_mono + self.work_clock() - t_c)
 
     def write_interim(self, pilot: AgentControl | None, now_wall: float | None = None) -> None:
         """The interim summary (``complete: false``, ``outcome: running``) to :attr:`out`."""
