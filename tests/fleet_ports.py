@@ -26,10 +26,11 @@ def _slice() -> tuple[int, int]:
     return low, low + width
 
 
-def free_ports(count: int) -> PortScheme:
+def free_ports(count: int, avoid: PortScheme | None = None) -> PortScheme:
     """A port scheme whose 2·count UDP ports (GCS and vehicle side) are free now, in this
     worker's slice (GCS ports in its first half, the vehicles' the same offset into its
-    second)."""
+    second). ``avoid``: a scheme already chosen (whose GCS ports may not be bound yet, as a
+    relay's fleet side before the run listens): never the same range."""
     low, high = _slice()
     half = (high - low) // 2
     if count > half - 10:
@@ -38,6 +39,8 @@ def free_ports(count: int) -> PortScheme:
     for _ in range(200):
         gcs = rng.randrange(low, low + half - count, 10)
         veh = gcs + half
+        if avoid is not None and abs(gcs - avoid.gcs_base) < 10 + count:
+            continue
         socks = []
         try:
             for port in [*range(gcs, gcs + count), *range(veh, veh + count)]:

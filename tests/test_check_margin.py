@@ -203,10 +203,10 @@ async def test_run_refuses_past_the_margin_as_check_predicts(tmp_path: Path) -> 
     measures L past the margin `check` printed and refuses before arming; the note names L."""
     mission = load_mission(PX4_SITL_3)
     margin = mission_margin(mission)
-    relay_to = free_ports(3)
     async with mock_fleet(mission, boot_time_scale=0.3, port_scheme=free_ports(3),
                           seed=5) as fleet:
         ports = fleet.ports
+        relay_to = free_ports(3, avoid=ports)  # the relay's fleet side: not the vehicles' GCS
         async with UdpRelay([ports.vehicle_port(i) for i in range(3)],
                             [ports.gcs_port(i) for i in range(3)],
                             [relay_to.gcs_port(i) for i in range(3)], delay_s=0.12) as relay:

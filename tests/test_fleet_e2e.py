@@ -426,9 +426,9 @@ async def test_a_150_ms_relay_is_refused_before_arming(tmp_path: Path) -> None:
     """Every datagram 150 ms late both ways (a UDP relay): the measured L (position age +
     setpoint delay) exceeds max_latency_s, so nothing arms, and the error says why."""
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml").with_vehicles(3)
-    relay_to = free_ports(3)
     async with mock_fleet(mission, **boot(3, seed=6)) as fleet:
         ports = fleet.ports
+        relay_to = free_ports(3, avoid=ports)  # the relay's fleet side: not the vehicles' GCS
         async with UdpRelay([ports.vehicle_port(i) for i in range(3)],
                             [ports.gcs_port(i) for i in range(3)],
                             [relay_to.gcs_port(i) for i in range(3)], delay_s=0.15) as relay:
