@@ -299,6 +299,7 @@ def _until_map(take: Callable[[], object], shot: Path, run: subprocess.Popen[str
 
 
 @pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
+@pytest.mark.solo  # and nothing else beside it: it draws in software on these cores
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_chromium_shows_the_live_map_and_closing_it_changes_nothing(tmp_path: Path) -> None:
@@ -339,6 +340,7 @@ def _browser_run(tmp_path: Path, out: Path, port: int, endpoints: list[str]) -> 
 
 
 @pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
+@pytest.mark.solo  # and nothing else beside it: it draws in software on these cores
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_native_viewer_live_under_xvfb_and_killing_it_changes_nothing(tmp_path: Path) -> None:
