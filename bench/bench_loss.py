@@ -19,7 +19,9 @@ where they are ``lost_after_s`` later, when the loss is declared. For each loss 
   planner: steps 1-2 of ``core/loss.py``) and with the fallback (step 3);
 * how many of the others are inside a new triangle (:func:`~vtube_fleet.core.loss.
   cannot_pass`: they cannot be given a safe sub-tube and must hold) — a loss after which
-  nobody is is one after which the rest can finish;
+  nobody is is one after which the rest can finish; and how many stay inside with a
+  partition of their own (:func:`~vtube_fleet.core.loss.partition_past`: the obstacles they
+  have passed left out, as the fleet does);
 * how many are within r_s' of a new triangle side (Assumption 1 to the letter);
 * for reference, how many have no path at all to the finishing line that keeps their centre
   out of every extended disc and r_s' inside the legs with a lateral slope ≤ tan α_max
@@ -178,11 +180,20 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
                 rp = None
             times.append(time.perf_counter() - t0)
             row["step"] = rp.step if rp is not None else None
+            row["inside_own"] = 0
             if rp is not None and len(others):
                 zones = apex_zones(rp.partition, flown)
                 d = loss.wall_clearance(rp.partition, others, zones)
                 row["inside"] = int(np.count_nonzero(d < 0.0))
                 row["within_rs"] = int(np.count_nonzero(d < flown.r_s))
+                for q in others[d < 0.0]:  # each trapped one: a partition of its own?
+                    try:
+                        own = loss.partition_past(sc.tube, fixed, lost, flown, q)
+                    except PartitionError:
+                        own = None
+                    if own is None or loss.wall_clearance(
+                            own, q[None], apex_zones(own, flown))[0] < 0.0:
+                        row["inside_own"] += 1
             else:
                 row["inside"] = row["within_rs"] = 0
             if len(others):
@@ -205,6 +216,7 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
         "repartition_today": len(today), "repartition_new": len(new),
         "rest_go_on_today": sum(r["inside"] == 0 for r in today),
         "rest_go_on_new": sum(r["inside"] == 0 for r in new),
+        "rest_go_on_own": sum(r["inside_own"] == 0 for r in new),
         "nobody_within_rs_new": sum(r["within_rs"] == 0 for r in new),
         "someone_has_no_path": sum(r["no_path"] > 0 for r in rows),
         "steps": {s: sum(r["step"] == s for r in rows) for s in
@@ -219,6 +231,8 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
           f"{share(out['repartition_new'])}")
     print(f"  nobody inside a new triangle (the rest can finish): today "
           f"{share(out['rest_go_on_today'])}, with the fallback {share(out['rest_go_on_new'])}")
+    print(f"  nobody inside, with partitions of their own for those past an obstacle "
+          f"(FlightPlan.past): {share(out['rest_go_on_own'])}")
     print(f"  nobody within r_s' of a new triangle side: {share(out['nobody_within_rs_new'])}")
     print(f"  someone with no admissible path at all (no partition can help): "
           f"{share(out['someone_has_no_path'])}")

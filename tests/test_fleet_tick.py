@@ -469,3 +469,48 @@ def test_the_coordinators_airborne_pairs_count_from_the_take_off_on() -> None:
               for i in range(3)}
     mon.sample(states, 10.05)
     assert mon.tube_start_s is None and mon.min_pair_airborne == pytest.approx(4.0)
+
+
+async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_own() -> None:
+    """Vehicles 2 and 5 land (low battery) and become obstacles; the common re-partition
+    takes vehicle 6, beside vehicle 5 and past vehicle 2, into its region. Vehicle 6 has
+    passed vehicle 2's O' (and every command moves it forward), so it is given a partition
+    without it (FlightPlan.past) and flies on to the finishing line instead of landing:
+    every command in [v_min, v_max], never within r_o + r_s of a stopped vehicle (the
+    physical radii). Vehicle 1, right behind vehicle 2, passed nothing: it lands."""
+    sup, links = memory_fleet(12, now_s=100.0)
+    low = {2, 5}
+    for i, link in enumerate(links):
+        link.state.battery_remaining = 0.1 if i in low else 0.9
+    p6 = sup.pilots[6]
+    sc = sup.mission.scenario
+    radius = sc.controller.r_s + sup.cfg.lost_obstacle_margin_m + sc.controller.r_s
+    period, now = sup.cfg.period_s, 100.0
+    own_seen, path, speeds = False, [], []
+    stopped: dict[int, np.ndarray] = {}
+    for _ in range(3000):  # (the tube is 104 m long)
+        now += period
+        for i, p in enumerate(sup.pilots):
+            if p.phase not in (Phase.IN_TUBE, Phase.EXITED):  # PX4 holds, then lands
+                links[i].v_ned = (0.0, 0.0, 0.0)
+                stopped.setdefault(i, sup.table.xy[i].copy())
+        fly_telemetry(links, period, now)
+        sup.ticker(now, now + WALL)
+        await asyncio.sleep(0)
+        own_seen |= 6 in sup.ticker.own_plans
+        if p6.phase != Phase.IN_TUBE:
+            break
+        path.append(sup.table.xy[6].copy())
+        if p6.cmd_xy is not None:
+            speeds.append(float(np.hypot(*p6.cmd_xy)))
+    assert own_seen and p6.phase == Phase.EXITED, (p6.phase, p6.reason)
+    assert sup.pilots[1].phase == Phase.LANDING
+    assert sup.pilots[1].reason.startswith("cannot pass the stopped vehicle")
+    assert not p6.reason or "cannot pass" not in p6.reason
+    assert any(e["vehicle"] == p6.vehicle_id and "flies on with a partition of its own" in
+               e["text"] and "past the obstacle(s) at (1.5, 2.5)" in e["text"]
+               for e in sup.events)
+    path_a = np.array(path)
+    for i in (1, 2, 5):
+        assert float(np.min(np.hypot(*(path_a - stopped[i]).T))) > radius, i
+    assert sc.controller.v_min - 1e-9 <= min(speeds) and max(speeds) <= sc.controller.v_max

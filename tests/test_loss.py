@@ -6,6 +6,7 @@ vehicles that cannot be given a safe sub-tube are told apart."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,7 +21,10 @@ from vtube_fleet.core.loss import (
     cannot_pass,
     extended_tube,
     group_obstacle,
+    moves_forward,
     partition_around_lost,
+    partition_past,
+    passed,
     repartition_around_lost,
     wall_clearance,
 )
@@ -310,3 +314,47 @@ def test_cannot_pass_inside_the_triangle_only():
         t = part.sub_tubes[int(k[j])]
         if j != 2:  # (the look-ahead does not move these two)
             assert d[j] == pytest.approx(min(float(t.d_Th(pts[j])), float(t.d_Tr(pts[j]))))
+
+
+# ----------------------------------------------------------------------------------------------
+# a partition of its own: the obstacles a vehicle has passed left out
+# ----------------------------------------------------------------------------------------------
+def test_a_follower_past_the_obstacle_gets_a_partition_of_its_own():
+    """px4_sitl_3 (the SITL budget): vehicle 0 lost at (26.3, −7.3) after passing obstacle #1
+    on its right, vehicle 1 following it at (22.8, −5.8). The common re-partition groups the
+    lost vehicle with obstacle #1 and vehicle 1 is inside the group's region; vehicle 1 has
+    passed obstacle #1 (its O' ends at ξ = 22.48 m), so its own partition leaves #1 out: it
+    is outside every region there, the lost vehicle's triangle keeps its number, and no point
+    of a sub-tube ahead of it (ξ ≥ its ξ) lies in any O' — the one left out included."""
+    sc, flown, r_lost = PX4
+    assert moves_forward(flown)  # v cos α_max = 0.875 > v'_max = 0.5
+    lost = lost_at(26.3, -7.3, r_lost, flown)
+    q = np.array([22.8, -5.8])
+    common = partition_around_lost(sc.tube, sc.obstacles, (lost,), flown)
+    assert cannot_pass(common, q[None], apex_zones(common, flown))[0]
+    assert passed(sc.tube, (*sc.obstacles, lost), flown, q).tolist() == [True, False]
+    own = partition_past(sc.tube, sc.obstacles, (lost,), flown, q)
+    assert own is not None
+    assert [t.obstacle for t in own.triangles] == [1]  # the lost disc: len(obstacles) + 0
+    assert not cannot_pass(own, q[None], apex_zones(own, flown))[0]
+    for t in own.sub_tubes:
+        assert check_assumption3(t, flown, "Assumption3'") == [], t
+        assert check_constraint2(t, flown, "Constraint3") == [], t
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([22.8, -10.0], [34.0, 10.0], size=(20000, 2))
+    free = np.stack([t.contains(pts) for t in own.sub_tubes]).any(axis=0)
+    for c, R in discs_of((*sc.obstacles, lost), flown):
+        assert not np.any(free & (np.hypot(*(pts - c).T) < R)), c
+
+
+def test_no_partition_of_its_own_before_an_obstacle_or_when_commands_may_turn_back():
+    """Nothing passed (upstream of obstacle #1, or beside it): None. With the paper's speeds
+    (v = 2, v'_max = 1.5: v cos α_max = 1.44 < v'_max) a command may move a vehicle back along
+    n_c, so nothing is ever left out."""
+    sc, flown, r_lost = PX4
+    lost = lost_at(26.3, -7.3, r_lost, flown)
+    for q in ([10.0, -5.0], [20.0, -5.0]):
+        assert partition_past(sc.tube, sc.obstacles, (lost,), flown, np.array(q)) is None
+    fast = dataclasses.replace(flown, v=2.0, v_max_prime=1.5, v_max=3.5)
+    assert not moves_forward(fast)
+    assert partition_past(sc.tube, sc.obstacles, (lost,), fast, np.array([22.8, -5.8])) is None

@@ -54,6 +54,14 @@ robot centre inside its sub-tube is outside every O' (Theorem 2's argument).
 is inside a new triangle has no sub-tube it is inside of, so none can be given to it safely;
 the runtime holds only those.
 
+**A partition of its own** (:func:`partition_past`): such a vehicle may have passed some of
+the obstacles already (their O' entirely behind it along n_c). When every command moves
+forward (:func:`moves_forward`: n_cᵀ v_c ≥ v cos α_max − v'_max > 0), it never comes back
+to them, so they need no triangle in *its* partition: the re-partition around the others
+often leaves it outside every region (a vehicle following the lost one past an obstacle).
+Obstacle safety is per vehicle (it keeps out of every O' it can still reach through its own
+sub-tube) and the pair barrier is partition-free, so the others keep the common partition.
+
 Everything here is deterministic and independent of where the other vehicles are, so every
 agent that sees the same lost discs builds the same partition. Pure numpy.
 """
@@ -100,7 +108,10 @@ __all__ = [
     "cannot_pass",
     "extended_tube",
     "group_obstacle",
+    "moves_forward",
     "partition_around_lost",
+    "partition_past",
+    "passed",
     "repartition_around_lost",
     "wall_clearance",
 ]
@@ -359,6 +370,61 @@ def repartition_around_lost(tube: Trapezoid, obstacles: Sequence[Obstacle],
         err.obstacle,
         f"{err.reason}; nor with the fallback (the lost vehicle(s) and the obstacles nearest "
         f"to them in one circle: {tried} partitions tried)", where)
+
+
+def moves_forward(params: ControllerParams) -> bool:
+    """Whether every command of the tube controller has a positive component along n_c:
+    ‖u1''‖ = v at most α_max from n_c (Constraint 3: every narrowing leg, and u1'' turns
+    between n_c and a leg's direction), the saturated rest ≤ v'_max (paper note 9), so
+    n_cᵀ v_c ≥ v cos α_max − v'_max, > 0 here. Then ξ only grows along a vehicle's path."""
+    return float(params.v) * math.cos(alpha_max(params)) > float(params.v_max_prime)
+
+
+def passed(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerParams,
+           p: np.ndarray) -> np.ndarray:
+    """(K,) bool: the obstacles whose extended disc O' (r_o + r_s) lies entirely behind the
+    point ``p`` along ``tube``'s n_c: ξ(p_o) + r_o + r_s < ξ(p). With the flown r_s' (the
+    safety budget: r_s plus the estimate and lag terms δ) a vehicle's true centre is then past
+    r_o + r_s of it too."""
+    if not len(obstacles):
+        return np.zeros(0, bool)
+    c = np.array([o.center for o in obstacles], dtype=float).reshape(-1, 2)
+    R = np.array([float(o.radius) for o in obstacles]) + float(params.r_s)
+    xi_p = float((np.asarray(p, dtype=float).reshape(2) - tube.p_h0) @ tube.n_c)
+    return (c - tube.p_h0) @ tube.n_c + R < xi_p
+
+
+def partition_past(tube: Trapezoid, obstacles: Sequence[Obstacle], lost: Sequence[Obstacle],
+                   params: ControllerParams, p: np.ndarray) -> Partition | None:
+    """The partition of ``tube`` for one vehicle at ``p`` (module docstring, "a partition of
+    its own"): :func:`repartition_around_lost` around the configured ``obstacles`` and the
+    ``lost`` discs it has not :func:`passed`, numbered as the full re-partition numbers them
+    (configured i keeps i, lost j is len(obstacles) + j, the g-th group's circle after all).
+    None when it passed none of them or when commands may move backwards
+    (:func:`moves_forward`): it has nothing of its own. Raises
+    :class:`~vtube_fleet.core.partition.PartitionError` when the rest cannot be partitioned.
+    Pure."""
+    obstacles, lost = tuple(obstacles), tuple(lost)
+    if not moves_forward(params):
+        return None
+    gone = passed(tube, obstacles + lost, params, p)
+    if not gone.any():
+        return None
+    n_o, n_l = len(obstacles), len(lost)
+    keep_o = [i for i in range(n_o) if not gone[i]]
+    keep_l = [j for j in range(n_l) if not gone[n_o + j]]
+    rp = repartition_around_lost(tube, [obstacles[i] for i in keep_o],
+                                 [lost[j] for j in keep_l], params)
+    k_o, k_l = len(keep_o), len(keep_l)
+    index = [*keep_o, *(n_o + j for j in keep_l)]
+
+    def renumber(k: int) -> int:
+        return index[k] if k < k_o + k_l else n_o + n_l + (k - k_o - k_l)
+
+    part = rp.partition
+    tris = tuple(sorted((dataclasses.replace(t, obstacle=renumber(t.obstacle))
+                         for t in part.triangles), key=lambda t: t.obstacle))
+    return dataclasses.replace(part, triangles=tris)
 
 
 def _levels(centers: np.ndarray, radii: np.ndarray, is_lost: np.ndarray

@@ -27,12 +27,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vtube_fleet.core.controller import TubeArrays, velocity_command
-from vtube_fleet.core.loss import cannot_pass, partition_around_lost
+from vtube_fleet.core.loss import cannot_pass, partition_around_lost, partition_past, passed
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
-from vtube_fleet.core.partition import h_min
-from vtube_fleet.core.route import Corridor, ReplanFn, Route
-from vtube_fleet.core.tube import Obstacle
+from vtube_fleet.core.partition import Partition, PartitionError, h_min
+from vtube_fleet.core.route import Corridor, ReplanFn, Route, replan_segment
+from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.config.mission import Mission
@@ -225,6 +225,43 @@ class FlightPlan:
             part = self.route.segments[int(s)].partition
             out[rows] = cannot_pass(part, p[rows], zones[int(s)] if self.lookahead else ())
         return out
+
+    def past(self, lost: Sequence[Obstacle], p: np.ndarray, segment: int = -1
+             ) -> tuple[FlightPlan, np.ndarray] | None:
+        """A plan of its own for one vehicle at ``p`` (2,) flying ``segment`` (−1: the one it
+        starts in) that :meth:`cannot_pass` under ``with_lost(lost)``: in its segment
+        the obstacles it has passed are left out (:func:`~vtube_fleet.core.loss.
+        partition_past`; the others re-planned as :meth:`with_lost` does) → (the plan, the
+        centres (P, 2) of the obstacles left out). None when it passed none, when the rest
+        cannot be partitioned, or when ``p`` is inside a region of that plan too. Called on
+        the root plan (no lost obstacles yet)."""
+        p = np.asarray(p, dtype=float).reshape(2)
+        seg = int(segment) if segment >= 0 else int(self.route.start_segments(p[None])[0])
+        mine = self.route.segments[seg].tube
+        common = self.replan or replan_segment
+        gone: list[np.ndarray] = []
+
+        def replan(tube: Trapezoid, fixed: Sequence[Obstacle], here: Sequence[Obstacle],
+                   params: ControllerParams) -> Partition:
+            if tube is mine:
+                own = partition_past(tube, fixed, here, params, p)
+                if own is not None:
+                    obs = (*fixed, *here)
+                    gone.extend(obs[i].center for i in
+                                np.flatnonzero(passed(tube, obs, params, p)).tolist())
+                    return own
+            return common(tube, fixed, here, params)
+
+        try:
+            route = self.route.with_lost(tuple(lost), replan=replan)
+        except PartitionError:
+            return None
+        if not gone:
+            return None
+        plan = FlightPlan(route, self.kind, {}, self.replan)
+        if plan.cannot_pass(p[None], np.array([seg]))[0]:
+            return None
+        return plan, np.array(gone, dtype=float).reshape(-1, 2)
 
     def segments_of_lost(self, i: int) -> list[str]:
         """The segments (``S2`` …) whose partition holds lost obstacle ``i`` (0-based among

@@ -51,6 +51,7 @@ import numpy as np
 from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.fence import exit_room_m
 from vtube_fleet.core.partition import PartitionError
+from vtube_fleet.core.text import point_text
 from vtube_fleet.fleet.budget import BudgetWatch
 from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S
 from vtube_fleet.fleet.flight_plan import FlightPlan, exit_velocities, lost_obstacles
@@ -633,6 +634,26 @@ class TickResult:
     max_age_s: float
 
 
+#: A re-plan around lost vehicles: the common plan, and the plans of their own of the vehicles
+#: it traps that have one (table row → (plan, centres of the obstacles it left out))
+Replanned = tuple[FlightPlan, dict[int, tuple[FlightPlan, np.ndarray]]]
+
+
+def replan_job(root: FlightPlan, lost: tuple[Obstacle, ...], rows: np.ndarray,
+               xy: np.ndarray, segment: np.ndarray) -> Replanned:
+    """``root.with_lost(lost)`` and, for each vehicle (table ``rows`` at ``xy`` flying
+    ``segment``, as the tick saw them) it traps, :meth:`FlightPlan.past`: what
+    :meth:`Tick._plan_with_lost` plans, in the worker thread or at once. Reads only."""
+    common = root.with_lost(lost)
+    own: dict[int, tuple[FlightPlan, np.ndarray]] = {}
+    if rows.size:
+        for k in np.flatnonzero(common.cannot_pass(xy, segment)).tolist():
+            mine = root.past(lost, xy[k], int(segment[k]))
+            if mine is not None:
+                own[int(rows[k])] = mine
+    return common, own
+
+
 class Tick:
     """The control tick of the vehicles of one table (module docstring): ``pilots[k]`` flies
     table row k.
@@ -681,7 +702,10 @@ class Tick:
         #: where re-partitions around lost vehicles are planned off the control loop (None:
         #: in the tick itself): :meth:`_plan_with_lost`
         self.replan_worker = replan_worker
-        self._replan_pending: tuple[tuple[Any, ...], Future[FlightPlan]] | None = None
+        self._replan_pending: tuple[tuple[Any, ...], Future[Replanned]] | None = None
+        #: table rows flying a plan of their own (:meth:`FlightPlan.past`): trapped in the
+        #: common re-partition, clear in one without the obstacles they have passed
+        self.own_plans: dict[int, FlightPlan] = {}
         self._replan_failed: tuple[tuple[Any, ...], PartitionError] | None = None
         #: the radius of the obstacle a lost vehicle becomes: physical r_s + margin
         self.lost_radius_m = (mission.scenario.controller.r_s
@@ -695,6 +719,7 @@ class Tick:
         """Fly ``plan`` from now on (the root of later re-plans; before the flight: the
         segments are assigned again from the positions, by its hand-over depths)."""
         self.root = self.plan = plan
+        self.own_plans = {}
         self.table.segment[:] = -1
 
     def t_s(self, now_mono: float) -> float:
@@ -782,53 +807,66 @@ class Tick:
         root = self.root
         lost = lost_obstacles(view, root.corridor, self.lost_radius_m, root.flown)
         try:
-            new = self._plan_with_lost(root, lost)
+            got = self._plan_with_lost(root, lost)
         except PartitionError as exc:
             if self.on_replan_failed is not None:
                 self.on_replan_failed(exc, view)
             return
-        if new is None:
+        if got is None:
             return  # being planned in the worker: the current plan flies on meanwhile
+        new, own = got
         if new is not self.plan:
             self.plan = new
+            self.own_plans = {}
             if self.on_replan is not None:
                 self.on_replan(new, t)
-            self._land_the_trapped(new)
+            self._land_the_trapped(new, own)
 
     def _plan_with_lost(self, root: FlightPlan, lost: tuple[Obstacle, ...]
-                        ) -> FlightPlan | None:
-        """``root.with_lost(lost)``: at once when it was built before (or without
-        :attr:`replan_worker`); else planned in the worker thread (0.05-0.9 s that would stall
-        the control loop: the vehicles would fly on stale setpoints and the budget watch
-        would end the run) and None until it is done. Meanwhile the current plan flies on and
-        the lost vehicles stay points of the pair barrier (:class:`NeighbourView`), which keeps
+                        ) -> Replanned | None:
+        """``root.with_lost(lost)`` and the plans of their own of the vehicles it traps
+        (:func:`replan_job`): at once without :attr:`replan_worker` (or when the plan is
+        already flown); else planned in the worker thread (0.05-0.9 s that would stall the
+        control loop: the vehicles would fly on stale setpoints and the budget watch would end
+        the run) and None until it is done. Meanwhile the current plan flies on and the lost
+        vehicles stay points of the pair barrier (:class:`NeighbourView`), which keeps
         everyone 2 r_s' from them, farther than their obstacle's O'. A failure is kept for its
         obstacles (raised again, not planned again)."""
         hit = root.planned_with_lost(lost)
-        if hit is not None or self.replan_worker is None:
-            return hit if hit is not None else root.with_lost(lost)
+        if hit is not None and hit is self.plan:
+            return hit, {}  # flown already (with its plans of their own)
+        tab = self.table
+        rows = np.flatnonzero(_FLYING_TUBE_MASK[tab.phase] & tab.has)
+        if self.replan_worker is None:
+            return replan_job(root, lost, rows, tab.xy[rows], tab.segment[rows])
         key = root.lost_key(lost)
         if self._replan_failed is not None and self._replan_failed[0] == key:
             raise self._replan_failed[1]
         pending = self._replan_pending
-        if pending is None or pending[0] != key:
-            self._replan_pending = (key, self.replan_worker.submit(root.with_lost, lost))
-            return None
-        if not pending[1].done():
-            return None
-        self._replan_pending = None
-        try:
-            return pending[1].result()
-        except PartitionError as exc:
-            self._replan_failed = (key, exc)
-            raise
+        if pending is not None and pending[0] == key:
+            if not pending[1].done():
+                return None
+            self._replan_pending = None
+            try:
+                return pending[1].result()
+            except PartitionError as exc:
+                self._replan_failed = (key, exc)
+                raise
+        if hit is not None:  # planned before: at once (nobody trapped gets a plan of its own)
+            return hit, {}
+        self._replan_pending = (key, self.replan_worker.submit(
+            replan_job, root, lost, rows, tab.xy[rows].copy(), tab.segment[rows].copy()))
+        return None
 
-    def _land_the_trapped(self, plan: FlightPlan) -> None:
+    def _land_the_trapped(self, plan: FlightPlan, own: dict[int, tuple[FlightPlan, np.ndarray]]
+                          ) -> None:
         """A vehicle of this table still flying the climb or the tube whose position lies
         inside the region the new partition takes around its obstacles has no safe sub-tube
-        (:meth:`FlightPlan.cannot_pass`): it lands where it is (stopped, it is an obstacle for
-        everyone at the next tick); the others fly on. Vehicles already past the lost one are
-        not in that region and finish."""
+        (:meth:`FlightPlan.cannot_pass`). If the plan of its own planned with it (``own``:
+        :meth:`FlightPlan.past`, without the obstacles it has passed) still has it outside
+        every region, it flies that one (:attr:`own_plans`); else it lands where it is
+        (stopped, it is an obstacle for everyone at the next tick). The others fly on.
+        Vehicles already past the lost one are not in that region and finish."""
         tab = self.table
         rows = np.flatnonzero(_FLYING_TUBE_MASK[tab.phase] & tab.has)
         if not rows.size:
@@ -837,6 +875,17 @@ class Tick:
         for r in trapped.tolist():
             x, y = tab.xy[r]
             pilot = self.pilots[r]
+            mine = own.get(r)
+            if mine is not None and not mine[0].cannot_pass(tab.xy[r:r + 1],
+                                                            tab.segment[r:r + 1])[0]:
+                self.own_plans[r] = mine[0]
+                passed = ", ".join(point_text(c) for c in mine[1])
+                pilot.event(f"flies on with a partition of its own: at ({x:.2f}, {y:.2f}), "
+                            f"inside the region the new partition takes around the stopped "
+                            f"vehicle(s), but past the obstacle(s) at {passed}, which it "
+                            f"never comes back to (every command moves it forward), so they "
+                            f"are left out of its partition", "warning")
+                continue
             why = (f"cannot pass the stopped vehicle(s): at ({x:.2f}, {y:.2f}), inside the "
                    f"region the new partition takes around them (no safe sub-tube)")
             pilot.reason = pilot.reason or why
@@ -871,7 +920,16 @@ class Tick:
         rows = left[seen]
         if not rows.size:
             return none
-        return rows, self.plan.commands(view.points(), order[at[seen]], tab.segment[rows])
+        idx, seg, points = order[at[seen]], tab.segment[rows], view.points()
+        mine = np.array([r in self.own_plans for r in rows.tolist()], bool)
+        if not mine.any():
+            return rows, self.plan.commands(points, idx, seg)
+        out = np.empty((rows.size, 2))
+        out[~mine] = self.plan.commands(points, idx[~mine], seg[~mine])
+        for k in np.flatnonzero(mine).tolist():  # each with its own partition
+            out[k] = self.own_plans[int(rows[k])].commands(points, idx[k:k + 1],
+                                                           seg[k:k + 1])[0]
+        return rows, out
 
     def _warn_residual(self, r: int) -> None:
         """WARN: a limit crossed — the safety budget's D no longer covers the estimate."""
