@@ -290,8 +290,9 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
                 xy = np.array([q.xy for q in rows]).reshape(-1, 2)
                 trapped = plan.cannot_pass(xy) if len(rows) else []
                 ids = [q.vehicle_id for q, c in zip(rows, trapped, strict=True) if c]
+                own = sorted(sup.pilots[r].vehicle_id for r in sup.ticker.own_plans)
                 flown_log["repartitions"].append(
-                    {"t_s": round(sup.t_s(), 2), "plan": plan, "inside": ids})
+                    {"t_s": round(sup.t_s(), 2), "plan": plan, "inside": ids, "own": own})
 
         result = await fly(mission, endpoints=fleet.endpoints,
                            sysids=[i + 1 for i in range(n)], out_dir=out_dir, truth=True,
@@ -341,6 +342,7 @@ def fly_cases(path: str, count: int, seed: int) -> dict[str, Any]:
               f"{row['exited']}/{row['others']} others exited, truth violations "
               f"{row['truth_violations']}, true pair {_m(row['truth_min_pair_m'])}"
               + (f"; re-partitioned ({rp['step']}), inside a new triangle: {rp['inside']}"
+                 f" (flying a partition of their own: {rp['own']})"
                  if rp else "; no re-partition")
               + ("" if rp or row["exit_code"] == 0 else f"; {row['reason'][-200:]}")
               + ("" if not row["first_violation"] else f"; first violation "

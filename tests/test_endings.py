@@ -431,8 +431,10 @@ def test_a_lost_vehicle_that_blocks_the_tube_cannot_re_partition(tmp_path: Path)
         tmp_path, BLOCKED, kill=(0, "silent"),
         when=lambda sup: sup.tube_start_s is not None and sup.t_s() - sup.tube_start_s >= 1.0)
     assert result.outcome == "aborted" and result.exit_code == 3, result.reason
-    assert result.reason.startswith("cannot re-partition the tube around the lost vehicle(s) 0 "
-                                    "(in the air at their last known positions"), result.reason
+    assert result.reason.startswith("cannot re-partition the tube around the lost or stopped "
+                                    "vehicle(s) 0 (each an obstacle of radius r_s + "
+                                    "lost_obstacle_margin_m where it was last heard or "
+                                    "stopped"), result.reason
     assert "vehicle 0: no telemetry" in result.reason and "link loss" not in result.reason
     run = json.loads((tmp_path / "summary.json").read_text())
     assert run["outcome"] == "aborted" and run["reason"] == result.reason

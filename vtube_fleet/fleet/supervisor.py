@@ -383,9 +383,9 @@ class Supervisor:
                         if p.vehicle_id in ids and p.reason)
         self.request_abort(
             f"cannot re-partition the {'route' if self.plan.route.S > 1 else 'tube'} around "
-            f"the lost vehicle(s) "
-            f"{', '.join(map(str, ids))} (in the air at their last known positions, "
-            f"each an obstacle of radius r_s + lost_obstacle_margin_m"
+            f"the lost or stopped vehicle(s) "
+            f"{', '.join(map(str, ids))} (each an obstacle of radius r_s + "
+            f"lost_obstacle_margin_m where it was last heard or stopped"
             f"{'; ' + why if why else ''}): {exc}")
 
     def _after_replan_check(self, now_mono: float, result: TickResult) -> None:

@@ -315,7 +315,7 @@ class AgentControl:
         self.mqtt.announce("online", stage="exited")  # every teammate hears it
 
     def _replan_failed(self, exc: Exception, view: Any) -> None:
-        why = f"cannot re-partition the tube around the lost vehicles: {exc}"
+        why = f"cannot re-partition the tube around the lost or stopped vehicles: {exc}"
         self.stop_for(why)
         self.pilot.begin_hold(why)
 
