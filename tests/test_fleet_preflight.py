@@ -106,6 +106,23 @@ async def test_the_measured_accuracy_refuses_a_tight_mission_before_arming(tmp_p
     print(f"\n{r}")
 
 
+async def test_a_port_in_use_is_named_at_once_not_as_a_timeout(tmp_path) -> None:
+    """An endpoint whose port another program holds (a ground station, another run): the
+    run fails at once ("could not connect", not "did not connect within connect_timeout_s")
+    and names the port and the cause."""
+    import socket
+
+    m = write_mission(tmp_path, COMPACT_12).with_vehicles(1)
+    port = free_ports(1).gcs_base
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as held:
+        held.bind(("127.0.0.1", port))
+        result = await fly(m, endpoints=[f"udpin://127.0.0.1:{port}"], sysids=[1],
+                           out_dir=tmp_path)
+    assert result.exit_code == 2 and result.outcome == "failed", result.reason
+    assert result.reason.startswith("1 of 1 vehicles could not connect: "), result.reason
+    assert f"cannot bind udpin://127.0.0.1:{port}: Address already in use" in result.reason
+
+
 async def test_connect_window_and_one_deadline_name_every_vehicle(tmp_path, monkeypatch) -> None:
     """Links connect at most CONNECT_WINDOW at a time, all within connect_timeout_s: silent
     endpoints end the run with one error naming each (waited for, or never reached)."""

@@ -514,3 +514,31 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
     for i in (1, 2, 5):
         assert float(np.min(np.hypot(*(path_a - stopped[i]).T))) > radius, i
     assert sc.controller.v_min - 1e-9 <= min(speeds) and max(speeds) <= sc.controller.v_max
+
+
+async def test_the_control_clock_switches_threads_often_while_it_runs() -> None:
+    """While a control clock runs, the interpreter switches threads every GIL_SWITCH_S (the
+    re-partition worker must not hold the loop back: bench/bench_gil.py); two clocks in one
+    process (agents in a test) keep it until the last one ends; then it is restored."""
+    import sys
+
+    from vtube_fleet.fleet.tick import GIL_SWITCH_S, ControlClock
+
+    before = sys.getswitchinterval()
+    assert before > GIL_SWITCH_S
+    seen: dict[str, list[float]] = {"a": [], "b": []}
+    stops = {"a": asyncio.Event(), "b": asyncio.Event()}
+
+    def step_of(name: str, ticks: int):
+        def step(now_mono: float, now_wall: float, listening: float | None) -> None:
+            seen[name].append(sys.getswitchinterval())
+            if len(seen[name]) >= ticks:
+                stops[name].set()
+        return step
+
+    a = asyncio.create_task(ControlClock(0.01, step_of("a", 12)).run(stops["a"]))
+    await ControlClock(0.01, step_of("b", 3)).run(stops["b"])  # ends first
+    await a
+    assert len(seen["a"]) == 12 and len(seen["b"]) == 3
+    assert all(x == pytest.approx(GIL_SWITCH_S) for x in seen["a"] + seen["b"])
+    assert sys.getswitchinterval() == before

@@ -380,8 +380,10 @@ class Preflight:
         problems = await self.gather_named("connect", [one(p.link) for p in self.pilots],
                                            limit=CONNECT_WINDOW)
         if problems:
-            raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles did not connect "
-                             f"within connect_timeout_s = {cfg.connect_timeout_s:g} s: "
+            # before the deadline: a link refused at once (a port in use, a bad address)
+            when = (f"did not connect within connect_timeout_s = {cfg.connect_timeout_s:g} s"
+                    if loop.time() >= deadline - 0.05 else "could not connect")
+            raise FleetError(f"{len(problems)} of {len(self.pilots)} vehicles {when}: "
                              + self.listed(problems))
         self.event(f"connected {len(self.pilots)} vehicles ({self.backend})")
 

@@ -40,6 +40,7 @@ import asyncio
 import gc
 import inspect
 import math
+import sys
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from concurrent.futures import Executor, Future
@@ -989,9 +990,23 @@ def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_g
 # ----------------------------------------------------------------------------------------------
 # the control clock
 # ----------------------------------------------------------------------------------------------
+#: The interpreter's thread switch interval while a control clock runs (``sys.
+#: setswitchinterval``; CPython's default is 5 ms). A re-partition planned in the worker thread
+#: runs Python and holds the interpreter lock, and the event loop needs it back after every
+#: wake-up (a datagram, the tick's timer): with 5 ms each wake-up could wait up to 5 ms and the
+#: loop fell behind (`bench/bench_gil.py`: 72 of 200 ticks, late p99 190 ms; with 0.1 ms 200 of
+#: 200, p99 6.7 ms, and the thread re-partitions as fast).
+GIL_SWITCH_S = 0.0001
+#: the switch interval before the first running clock of this process, then one entry per
+#: running clock (several agents' clocks may share a process, e.g. in tests)
+_RUNNING_CLOCKS: list[float | None] = []
+
+
 class ControlClock:
     """Calls ``step(now_mono, now_wall, listening_since)`` every ``period_s`` until stopped
-    (supervisor and agents alike). A tick more than a period late is not caught up.
+    (supervisor and agents alike). A tick more than a period late is not caught up. While it
+    runs, the interpreter switches threads every :data:`GIL_SWITCH_S` at most (the re-partition
+    worker does not hold the loop back).
 
     A gap of more than 2 T + 0.1 s between two ticks is a stall of our own loop:
     :attr:`listening_since` becomes the time it resumed (the links' backlog is not the vehicles'
@@ -1027,6 +1042,18 @@ class ControlClock:
         return gap
 
     async def run(self, stop: asyncio.Event) -> None:
+        if not _RUNNING_CLOCKS:
+            _RUNNING_CLOCKS.append(sys.getswitchinterval())  # the interval to restore
+            sys.setswitchinterval(min(_RUNNING_CLOCKS[0], GIL_SWITCH_S))
+        _RUNNING_CLOCKS.append(None)
+        try:
+            await self._run(stop)
+        finally:
+            _RUNNING_CLOCKS.pop()
+            if len(_RUNNING_CLOCKS) == 1:  # the last clock of this process ended
+                sys.setswitchinterval(_RUNNING_CLOCKS.pop())
+
+    async def _run(self, stop: asyncio.Event) -> None:
         loop = asyncio.get_running_loop()
         period = self.period_s
         next_t = loop.time()
