@@ -121,6 +121,9 @@ async def test_a_port_in_use_is_named_at_once_not_as_a_timeout(tmp_path) -> None
     assert result.exit_code == 2 and result.outcome == "failed", result.reason
     assert result.reason.startswith("1 of 1 vehicles could not connect: "), result.reason
     assert f"cannot bind udpin://127.0.0.1:{port}: Address already in use" in result.reason
+    texts = [e["text"] for e in result.summary["events"]]
+    assert any(t.endswith(": no vehicle is airborne") for t in texts), texts
+    assert not any("holds, then lands" in t for t in texts), texts
 
 
 async def test_connect_window_and_one_deadline_name_every_vehicle(tmp_path, monkeypatch) -> None:

@@ -642,8 +642,8 @@ class Supervisor:
         controller, minus PX4's braking) and a vertical descent keeps it: all land at once."""
         self._landing_all = True
         airborne = [p for p in self.pilots if p.phase in AIRBORNE_PHASES]
-        self.event(f"{why}: every vehicle holds, then lands in place"
-                   + (f" ({len(airborne)} airborne)" if airborne else ""), level="warning")
+        self.event(f"{why}: every vehicle holds, then lands in place ({len(airborne)} airborne)"
+                   if airborne else f"{why}: no vehicle is airborne", level="warning")
         for p in self.pilots:
             if p.exit_time_s is None and p.phase in AIRBORNE_PHASES:
                 p.reason = p.reason or f"{why}: held, then landed"
