@@ -18,10 +18,13 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
 5. **classify** (:func:`~vtube_fleet.fleet.neighbour_view.classify`): the own states plus those
    heard from others (an agent's bus) sorted into live / static / lost;
 6. **plan**: re-partition around lost and stopped vehicles, in whichever segment they stopped
-   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.with_lost`), exits (TraCondition on the
-   route's LAST finishing line), then the controller's commands for every vehicle still in the
-   tube in ONE call, each in its segment
-   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.commands`, ModifiedVectorField);
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.with_lost`, in the worker thread), a
+   partition of its own for a vehicle it traps that has passed some obstacles
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.past`; the others trapped land), exits
+   (TraCondition on the route's LAST finishing line), then the controller's commands for every
+   vehicle still in the tube in ONE call, each in its segment
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.commands`, ModifiedVectorField; one call
+   more per vehicle flying a partition of its own);
 7. **actuate** (:func:`actuate`): each vehicle's setpoint for its phase (arming, the climb, the
    tube plus the estimate compensation d̂, the exit behaviour, standing still), all sent in one
    batch (:func:`~vtube_fleet.link.base.send_velocities_ned`);
