@@ -542,3 +542,60 @@ async def test_the_control_clock_switches_threads_often_while_it_runs() -> None:
     assert len(seen["a"]) == 12 and len(seen["b"]) == 3
     assert all(x == pytest.approx(GIL_SWITCH_S) for x in seen["a"] + seen["b"])
     assert sys.getswitchinterval() == before
+
+
+async def test_a_plan_of_its_own_is_planned_again_when_the_stopped_ones_return_to_an_earlier_set(
+        ) -> None:
+    """With the worker: vehicles 2 and 5 land, vehicle 1 (trapped) lands too, vehicle 6 flies
+    a partition of its own. When vehicle 1 touches down it is no longer an obstacle and the
+    set of stopped vehicles is {2, 5} again, whose common plan is cached: vehicle 6's own
+    plan is planned again from where it is, and it flies on (it was landed when the cached
+    plan came back alone)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    sup, links = memory_fleet(12, now_s=100.0)
+    for i, link in enumerate(links):
+        link.state.battery_remaining = 0.1 if i in (2, 5) else 0.9
+    worker = ThreadPoolExecutor(1)
+    sup.ticker.replan_worker = worker
+    now = 100.0
+    plans = []
+    sup.ticker.on_replan = lambda plan, t: plans.append(plan)
+
+    async def step() -> None:
+        nonlocal now
+        now += 0.05
+        sup.ticker(now, now + WALL)
+        await asyncio.sleep(0)
+        worker.submit(lambda: None).result()  # the worker is done with what it was given
+
+    try:
+        for _ in range(6):
+            await step()
+        assert sup.pilots[1].phase == Phase.LANDING and 6 in sup.ticker.own_plans
+        assert len(plans) == 2  # around {2, 5}, then around {2, 5, 1}
+        links[1].state.landed_state, links[1].state.armed = "ON_GROUND", False
+        for _ in range(6):
+            await step()
+        assert sup.pilots[1].phase == Phase.LANDED
+        assert len(plans) == 3 and plans[2] is plans[0]  # {2, 5} again: the cached plan
+        assert sup.pilots[6].phase == Phase.IN_TUBE and 6 in sup.ticker.own_plans
+    finally:
+        worker.shutdown()
+
+
+async def test_a_climbing_vehicle_gets_no_plan_of_its_own() -> None:
+    """The same fleet as above, still climbing: vehicle 6 is trapped as before, but a climbing
+    vehicle flies towards its take-off spot (which may lie behind it along n_c), so nothing it
+    has passed may be left out: it lands."""
+    sup, links = memory_fleet(12, phase="takeoff", now_s=100.0)
+    for i, link in enumerate(links):
+        link.state.battery_remaining = 0.1 if i in (2, 5) else 0.9
+    now = 100.0
+    for _ in range(3):
+        now += 0.05
+        sup.ticker(now, now + WALL)
+        await asyncio.sleep(0)
+    assert not sup.ticker.own_plans
+    assert sup.pilots[6].phase == Phase.LANDING
+    assert sup.pilots[6].reason.startswith("cannot pass the stopped vehicle")

@@ -357,4 +357,24 @@ def test_no_partition_of_its_own_before_an_obstacle_or_when_commands_may_turn_ba
         assert partition_past(sc.tube, sc.obstacles, (lost,), flown, np.array(q)) is None
     fast = dataclasses.replace(flown, v=2.0, v_max_prime=1.5, v_max=3.5)
     assert not moves_forward(fast)
-    assert partition_past(sc.tube, sc.obstacles, (lost,), fast, np.array([22.8, -5.8])) is None
+    q = np.array([22.8, -5.8])
+    assert partition_past(sc.tube, sc.obstacles, (lost,), fast, q) is None
+    # nor when the estimate compensation's residual D may outrun the margin (0.375 m/s here)
+    assert moves_forward(flown, residual_m_s=0.25) and not moves_forward(flown, 0.4)
+    assert partition_past(sc.tube, sc.obstacles, (lost,), flown, q, residual_m_s=0.4) is None
+    # an obstacle the caller keeps (a route: it meets a later segment) is never left out
+    assert partition_past(sc.tube, sc.obstacles, (lost,), flown, q,
+                          keep=np.array([True, False])) is None
+
+
+def test_a_plan_of_its_own_only_for_the_papers_controller():
+    """FlightPlan.past: the follower of the first test gets a plan of its own (obstacle #1
+    left out) under the paper's controller, none under another law (the bound on the
+    commands that makes it sound is the paper's)."""
+    sc, flown, r_lost = PX4
+    mission = load_mission(PX4_SITL_3)
+    lost = (lost_at(26.3, -7.3, r_lost, flown),)
+    q = np.array([22.8, -5.8])
+    got = FlightPlan.for_mission(mission, flown).past(lost, q, residual_m_s=0.25)
+    assert got is not None and np.allclose(got[1], [[20.0, 0.5]])
+    assert FlightPlan.for_mission(mission, flown, kind="old").past(lost, q) is None

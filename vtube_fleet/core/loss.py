@@ -55,10 +55,11 @@ is inside a new triangle has no sub-tube it is inside of, so none can be given t
 the runtime holds only those.
 
 **A partition of its own** (:func:`partition_past`): such a vehicle may have passed some of
-the obstacles already (their O' entirely behind it along n_c). When every command moves
-forward (:func:`moves_forward`: n_cᵀ v_c ≥ v cos α_max − v'_max > 0), it never comes back
-to them, so they need no triangle in *its* partition: the re-partition around the others
-often leaves it outside every region (a vehicle following the lost one past an obstacle).
+the obstacles already (their O' entirely behind it along n_c). When it always advances
+along n_c (:func:`moves_forward`: n_cᵀ v_c ≥ v cos α_max − v'_max, more than the estimate
+compensation's residual D), it never comes back to them, so they need no triangle in *its*
+partition: the re-partition around the others often leaves it outside every region (a
+vehicle following the lost one past an obstacle).
 Obstacle safety is per vehicle (it keeps out of every O' it can still reach through its own
 sub-tube) and the pair barrier is partition-free, so the others keep the common partition.
 
@@ -372,12 +373,15 @@ def repartition_around_lost(tube: Trapezoid, obstacles: Sequence[Obstacle],
         f"to them in one circle: {tried} partitions tried)", where)
 
 
-def moves_forward(params: ControllerParams) -> bool:
-    """Whether every command of the tube controller has a positive component along n_c:
+def moves_forward(params: ControllerParams, residual_m_s: float = 0.0) -> bool:
+    """Whether a vehicle flying the tube controller always advances along n_c:
     ‖u1''‖ = v at most α_max from n_c (Constraint 3: every narrowing leg, and u1'' turns
     between n_c and a leg's direction), the saturated rest ≤ v'_max (paper note 9), so
-    n_cᵀ v_c ≥ v cos α_max − v'_max, > 0 here. Then ξ only grows along a vehicle's path."""
-    return float(params.v) * math.cos(alpha_max(params)) > float(params.v_max_prime)
+    n_cᵀ v_c ≥ v cos α_max − v'_max; the vehicle's (estimated) velocity differs from v_c by the
+    estimate compensation's residual, at most ``residual_m_s`` (the budget's D). True when
+    v cos α_max − v'_max > D: then ξ only grows along its path."""
+    return (float(params.v) * math.cos(alpha_max(params))
+            > float(params.v_max_prime) + float(residual_m_s))
 
 
 def passed(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerParams,
@@ -395,19 +399,23 @@ def passed(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerPar
 
 
 def partition_past(tube: Trapezoid, obstacles: Sequence[Obstacle], lost: Sequence[Obstacle],
-                   params: ControllerParams, p: np.ndarray) -> Partition | None:
+                   params: ControllerParams, p: np.ndarray, *, residual_m_s: float = 0.0,
+                   keep: np.ndarray | None = None) -> Partition | None:
     """The partition of ``tube`` for one vehicle at ``p`` (module docstring, "a partition of
     its own"): :func:`repartition_around_lost` around the configured ``obstacles`` and the
     ``lost`` discs it has not :func:`passed`, numbered as the full re-partition numbers them
     (configured i keeps i, lost j is len(obstacles) + j, the g-th group's circle after all).
-    None when it passed none of them or when commands may move backwards
-    (:func:`moves_forward`): it has nothing of its own. Raises
-    :class:`~vtube_fleet.core.partition.PartitionError` when the rest cannot be partitioned.
-    Pure."""
+    ``keep`` (len(obstacles) + len(lost),) bool: never left out (a route's caller: those
+    that also meet a later segment). None when it passed none of the others or when it may
+    move backwards (:func:`moves_forward` with the residual ``residual_m_s``): it has
+    nothing of its own. Raises :class:`~vtube_fleet.core.partition.PartitionError` when the
+    rest cannot be partitioned. Pure."""
     obstacles, lost = tuple(obstacles), tuple(lost)
-    if not moves_forward(params):
+    if not moves_forward(params, residual_m_s):
         return None
     gone = passed(tube, obstacles + lost, params, p)
+    if keep is not None:
+        gone &= ~np.asarray(keep, dtype=bool).reshape(-1)
     if not gone.any():
         return None
     n_o, n_l = len(obstacles), len(lost)

@@ -75,6 +75,7 @@ __all__ = [
     "RouteTracker",
     "Segment",
     "Waypoint",
+    "disc_meets",
     "handover_line",
     "handover_region",
     "junction_checks",
@@ -407,6 +408,13 @@ def _inside_margin(pts: np.ndarray, tube: Trapezoid) -> np.ndarray:
     half-planes (< 0 outside)."""
     xi = tube.xi(pts)
     return np.minimum.reduce([tube.d_Th(pts), tube.d_Tr(pts), xi, tube.length - xi])
+
+
+def disc_meets(tube: Trapezoid, ob: Obstacle, r_s: float) -> bool:
+    """Whether the extended disc O' of ``ob`` (radius r_o + ``r_s``) meets the trapezoid
+    ``tube``: the segments a lost obstacle belongs to (:meth:`Route.with_lost`)."""
+    return (_contains(tube, ob.center)
+            or _dist_to_polygon(ob.center, tube.polygon()) < float(ob.radius) + r_s)
 
 
 def _contains(tube: Trapezoid, p: np.ndarray, tol: float = _TOL) -> bool:
@@ -964,9 +972,7 @@ class Route:
         R_s = float(self.params.r_s)
         parts, lost_ids = [], []
         for s, seg in enumerate(self.segments):
-            here = [i for i, o in enumerate(lost)
-                    if _contains(seg.tube, o.center)
-                    or _dist_to_polygon(o.center, seg.tube.polygon()) < o.radius + R_s]
+            here = [i for i, o in enumerate(lost) if disc_meets(seg.tube, o, R_s)]
             ids_cfg, obs_cfg = self.corridor.segment_obstacles(s)
             tri_h = {t.obstacle: t.h for t in seg.partition.triangles}
             fixed = tuple(dataclasses.replace(ob, apex_distance=tri_h[j])

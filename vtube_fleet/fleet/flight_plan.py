@@ -31,7 +31,7 @@ from vtube_fleet.core.loss import cannot_pass, partition_around_lost, partition_
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Partition, PartitionError, h_min
-from vtube_fleet.core.route import Corridor, ReplanFn, Route, replan_segment
+from vtube_fleet.core.route import Corridor, ReplanFn, Route, disc_meets, replan_segment
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -226,29 +226,38 @@ class FlightPlan:
             out[rows] = cannot_pass(part, p[rows], zones[int(s)] if self.lookahead else ())
         return out
 
-    def past(self, lost: Sequence[Obstacle], p: np.ndarray, segment: int = -1
-             ) -> tuple[FlightPlan, np.ndarray] | None:
+    def past(self, lost: Sequence[Obstacle], p: np.ndarray, segment: int = -1, *,
+             residual_m_s: float = 0.0) -> tuple[FlightPlan, np.ndarray] | None:
         """A plan of its own for one vehicle at ``p`` (2,) flying ``segment`` (−1: the one it
         starts in) that :meth:`cannot_pass` under ``with_lost(lost)``: in its segment
         the obstacles it has passed are left out (:func:`~vtube_fleet.core.loss.
-        partition_past`; the others re-planned as :meth:`with_lost` does) → (the plan, the
-        centres (P, 2) of the obstacles left out). None when it passed none, when the rest
-        cannot be partitioned, or when ``p`` is inside a region of that plan too. Called on
-        the root plan (no lost obstacles yet)."""
+        partition_past`, ``residual_m_s``: the budget's D; the others re-planned as
+        :meth:`with_lost` does) → (the plan, the centres (P, 2) of the obstacles left out).
+        An obstacle whose O' also meets a later segment is kept (the hand-over into that
+        segment must not meet its region). None for a controller other than the paper's
+        ("new": the bound on its commands is what makes this sound), when it passed none,
+        when the rest cannot be partitioned, or when ``p`` is inside a region of that plan
+        too. Called on the root plan (no lost obstacles yet)."""
+        if self.kind != "new":
+            return None
         p = np.asarray(p, dtype=float).reshape(2)
         seg = int(segment) if segment >= 0 else int(self.route.start_segments(p[None])[0])
         mine = self.route.segments[seg].tube
+        later = [s.tube for s in self.route.segments[seg + 1:]]
         common = self.replan or replan_segment
         gone: list[np.ndarray] = []
 
         def replan(tube: Trapezoid, fixed: Sequence[Obstacle], here: Sequence[Obstacle],
                    params: ControllerParams) -> Partition:
             if tube is mine:
-                own = partition_past(tube, fixed, here, params, p)
+                obs = (*fixed, *here)
+                keep = np.array([any(disc_meets(t, o, params.r_s) for t in later) for o in obs],
+                                bool)
+                own = partition_past(tube, fixed, here, params, p,
+                                     residual_m_s=residual_m_s, keep=keep)
                 if own is not None:
-                    obs = (*fixed, *here)
-                    gone.extend(obs[i].center for i in
-                                np.flatnonzero(passed(tube, obs, params, p)).tolist())
+                    left_out = passed(tube, obs, params, p) & ~keep
+                    gone.extend(obs[i].center for i in np.flatnonzero(left_out).tolist())
                     return own
             return common(tube, fixed, here, params)
 

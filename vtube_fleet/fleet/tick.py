@@ -644,15 +644,16 @@ Replanned = tuple[FlightPlan, dict[int, tuple[FlightPlan, np.ndarray]]]
 
 
 def replan_job(root: FlightPlan, lost: tuple[Obstacle, ...], rows: np.ndarray,
-               xy: np.ndarray, segment: np.ndarray) -> Replanned:
-    """``root.with_lost(lost)`` and, for each vehicle (table ``rows`` at ``xy`` flying
-    ``segment``, as the tick saw them) it traps, :meth:`FlightPlan.past`: what
-    :meth:`Tick._plan_with_lost` plans, in the worker thread or at once. Reads only."""
+               xy: np.ndarray, segment: np.ndarray, residual_m_s: float) -> Replanned:
+    """``root.with_lost(lost)`` and, for each vehicle in the tube (table ``rows`` at ``xy``
+    flying ``segment``, as the tick saw them) it traps, :meth:`FlightPlan.past` (``residual_m_s``:
+    the budget's D): what :meth:`Tick._plan_with_lost` plans, in the worker thread or at once.
+    Reads only."""
     common = root.with_lost(lost)
     own: dict[int, tuple[FlightPlan, np.ndarray]] = {}
     if rows.size:
         for k in np.flatnonzero(common.cannot_pass(xy, segment)).tolist():
-            mine = root.past(lost, xy[k], int(segment[k]))
+            mine = root.past(lost, xy[k], int(segment[k]), residual_m_s=residual_m_s)
             if mine is not None:
                 own[int(rows[k])] = mine
     return common, own
@@ -798,6 +799,14 @@ class Tick:
             pilots[r].begin_land(why)
         for r in act.residual_over.tolist():
             self._warn_residual(r)
+            if r in self.own_plans:  # it may no longer advance along n_c: lands
+                why = ("flying a partition of its own, its estimate compensation's residual "
+                       f"exceeds disturbance_residual_m_s = "
+                       f"{self.cfg.disturbance_residual_m_s:g} m/s: it may move back "
+                       "towards the obstacles it left out")
+                del self.own_plans[r]
+                pilots[r].reason = pilots[r].reason or why
+                pilots[r].begin_land(why, "warning")
         return TickResult(links, states, rows, ages, view, untrusted, t,
                           self.cfg.neighbour_max_age_s)
 
@@ -840,9 +849,12 @@ class Tick:
         if hit is not None and hit is self.plan:
             return hit, {}  # flown already (with its plans of their own)
         tab = self.table
-        rows = np.flatnonzero(_FLYING_TUBE_MASK[tab.phase] & tab.has)
+        # (the plans of their own: only for vehicles in the tube; a climbing one's command
+        # is its take-off spot's, which may point back along n_c)
+        rows = np.flatnonzero((tab.phase == _IN_TUBE) & tab.has)
+        residual = float(self.cfg.disturbance_residual_m_s)
         if self.replan_worker is None:
-            return replan_job(root, lost, rows, tab.xy[rows], tab.segment[rows])
+            return replan_job(root, lost, rows, tab.xy[rows], tab.segment[rows], residual)
         key = root.lost_key(lost)
         if self._replan_failed is not None and self._replan_failed[0] == key:
             raise self._replan_failed[1]
@@ -856,10 +868,13 @@ class Tick:
             except PartitionError as exc:
                 self._replan_failed = (key, exc)
                 raise
-        if hit is not None:  # planned before: at once (nobody trapped gets a plan of its own)
-            return hit, {}
+        if pending is not None:
+            pending[1].cancel()  # replaced (if it has not started)
+        # planned even when the common plan is cached (a set of lost vehicles seen before):
+        # the plans of their own depend on where the vehicles are now
         self._replan_pending = (key, self.replan_worker.submit(
-            replan_job, root, lost, rows, tab.xy[rows].copy(), tab.segment[rows].copy()))
+            replan_job, root, lost, rows, tab.xy[rows].copy(), tab.segment[rows].copy(),
+            residual))
         return None
 
     def _land_the_trapped(self, plan: FlightPlan, own: dict[int, tuple[FlightPlan, np.ndarray]]
@@ -879,7 +894,7 @@ class Tick:
         for r in trapped.tolist():
             x, y = tab.xy[r]
             pilot = self.pilots[r]
-            mine = own.get(r)
+            mine = own.get(r) if tab.phase[r] == _IN_TUBE else None
             if mine is not None and not mine[0].cannot_pass(tab.xy[r:r + 1],
                                                             tab.segment[r:r + 1])[0]:
                 self.own_plans[r] = mine[0]
