@@ -599,3 +599,35 @@ async def test_a_climbing_vehicle_gets_no_plan_of_its_own() -> None:
     assert not sup.ticker.own_plans
     assert sup.pilots[6].phase == Phase.LANDING
     assert sup.pilots[6].reason.startswith("cannot pass the stopped vehicle")
+
+
+async def test_a_vehicle_flying_its_own_plan_lands_when_its_residual_exceeds_D(
+        monkeypatch) -> None:
+    """Vehicle 6 flies a partition of its own (the first test's fleet); then its estimate
+    compensation's residual exceeds the budget's D (the residual watch): it may no longer
+    advance along n_c, so it lands, and says why."""
+    import dataclasses as dc
+
+    import vtube_fleet.fleet.tick as tick_module
+
+    sup, links = memory_fleet(12, now_s=100.0)
+    for i, link in enumerate(links):
+        link.state.battery_remaining = 0.1 if i in (2, 5) else 0.9
+    now = 100.0
+    for _ in range(3):
+        now += 0.05
+        sup.ticker(now, now + WALL)
+        await asyncio.sleep(0)
+    assert 6 in sup.ticker.own_plans and sup.pilots[6].phase == Phase.IN_TUBE
+    real = tick_module.actuate
+
+    def residual_of_6(*a, **k):  # THE FAULT: vehicle 6's residual crosses D
+        return dc.replace(real(*a, **k), residual_over=np.array([6]))
+
+    monkeypatch.setattr(tick_module, "actuate", residual_of_6)
+    now += 0.05
+    sup.ticker(now, now + WALL)
+    await asyncio.sleep(0)
+    assert 6 not in sup.ticker.own_plans and sup.pilots[6].phase == Phase.LANDING
+    assert "flying a partition of its own, its estimate compensation's residual exceeds " \
+           "disturbance_residual_m_s" in sup.pilots[6].reason
