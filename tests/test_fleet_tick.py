@@ -29,6 +29,7 @@ from vtube_fleet.fleet.compensation import (
 )
 from vtube_fleet.fleet.neighbour_view import States, classify, states_of
 from vtube_fleet.fleet.pilot import VehiclePilot
+from vtube_fleet.fleet.supervisor import Supervisor
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
 from vtube_fleet.fleet.tick import FAULT_RULES, Tick
 from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, NeighbourState, Phase
@@ -584,11 +585,11 @@ async def test_a_plan_of_its_own_is_planned_again_when_the_stopped_ones_return_t
         worker.shutdown()
 
 
-async def test_a_climbing_vehicle_gets_no_plan_of_its_own() -> None:
-    """The same fleet as above, still climbing: vehicle 6 is trapped as before, but a climbing
-    vehicle flies towards its take-off spot (which may lie behind it along n_c), so nothing it
-    has passed may be left out: it lands."""
-    sup, links = memory_fleet(12, phase="takeoff", now_s=100.0)
+async def _two_stop(phase: str = "tube") -> tuple[Supervisor, float]:
+    """The 12-vehicle fleet of these tests (``phase``: in the tube or climbing) after three
+    ticks in which vehicles 2 and 5 land for a low battery and the tube is re-partitioned
+    around them (in the tick): (the supervisor, the time of the last tick)."""
+    sup, links = memory_fleet(12, phase=phase, now_s=100.0)
     for i, link in enumerate(links):
         link.state.battery_remaining = 0.1 if i in (2, 5) else 0.9
     now = 100.0
@@ -596,6 +597,14 @@ async def test_a_climbing_vehicle_gets_no_plan_of_its_own() -> None:
         now += 0.05
         sup.ticker(now, now + WALL)
         await asyncio.sleep(0)
+    return sup, now
+
+
+async def test_a_climbing_vehicle_gets_no_plan_of_its_own() -> None:
+    """The same fleet as above, still climbing: vehicle 6 is trapped as before, but a climbing
+    vehicle flies towards its take-off spot (which may lie behind it along n_c), so nothing it
+    has passed may be left out: it lands."""
+    sup, now = await _two_stop(phase="takeoff")
     assert not sup.ticker.own_plans
     assert sup.pilots[6].phase == Phase.LANDING
     assert sup.pilots[6].reason.startswith("cannot pass the stopped vehicle")
@@ -610,14 +619,7 @@ async def test_a_vehicle_flying_its_own_plan_lands_when_its_residual_exceeds_D(
 
     import vtube_fleet.fleet.tick as tick_module
 
-    sup, links = memory_fleet(12, now_s=100.0)
-    for i, link in enumerate(links):
-        link.state.battery_remaining = 0.1 if i in (2, 5) else 0.9
-    now = 100.0
-    for _ in range(3):
-        now += 0.05
-        sup.ticker(now, now + WALL)
-        await asyncio.sleep(0)
+    sup, now = await _two_stop()
     assert 6 in sup.ticker.own_plans and sup.pilots[6].phase == Phase.IN_TUBE
     real = tick_module.actuate
 
