@@ -11,9 +11,14 @@ import socket
 
 from sim_stub import PortScheme
 
-__all__ = ["free_ports"]
+__all__ = ["PX4_PORTS", "free_ports"]
 
 _LOW, _HIGH = 15000, 28000
+
+#: The xdist group of the tests that bind PX4 SITL's own ports (GCS 14540+i, vehicles
+#: 14580+i: the default port scheme, whose endpoints give the system ids): one at a time (two
+#: of them on two workers at once could not both bind; it failed a CI run once).
+PX4_PORTS = "px4-ports"
 
 
 def _slice() -> tuple[int, int]:

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 
 import pytest
+from fleet_ports import PX4_PORTS
 
 from vtube_fleet.link import MavlinkLink, VehicleLink
 from vtube_fleet.link.mavsdk_link import MavsdkHub, MavsdkLink
@@ -82,6 +83,7 @@ async def fly(link: VehicleLink, vehicle) -> None:
     )
 
 
+@pytest.mark.xdist_group(PX4_PORTS)  # one at a time: PX4 SITL's own ports
 async def test_both_backends_fly_the_mock() -> None:
     async with sim_stub.MockFleet(count=2, spacing_m=5.0) as fleet, MavsdkHub(
         watchdog_s=0.5

@@ -9,6 +9,7 @@ server and refuses repeats with one clear line.
 from __future__ import annotations
 
 import pytest
+from fleet_ports import PX4_PORTS
 
 import sim_stub
 from vtube_fleet.link import LinkError, MavlinkLink, fleet_sysid, open_links
@@ -37,6 +38,7 @@ async def test_out_of_range_id_is_an_error_not_a_traceback() -> None:
             pass
 
 
+@pytest.mark.xdist_group(PX4_PORTS)  # one at a time: PX4 SITL's own ports
 async def test_three_vehicles_with_one_id_on_separate_links() -> None:
     """Three mock vehicles all with sysid 1, each on its own UDP port pair: each link talks to
     its own vehicle only (arming one arms that one)."""
