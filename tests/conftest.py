@@ -8,10 +8,12 @@ the two cores most (12 vehicles, 8 agent processes, a rendering viewer) are mark
 the flights of CPU, and the runtime then measures link latencies its budget was not built for
 and rightly holds the fleet.
 
-A few flights draw a live view in software on these same cores (a browser, the native viewer);
-they are marked ``solo`` and run while no other test runs on any worker (:func:`_solo_lock`):
-with three other workers' flights beside them, their own flight's loop stalled past its budget
-and was rightly held (about one full run in five)."""
+A few tests are marked ``solo`` and run while no other test runs on any worker
+(:func:`_solo_lock`): the flights that draw a live view in software on these same cores (a
+browser, the native viewer: with three other workers' flights beside them their loop stalled
+past its budget and was rightly held, about one full run in five), the eight-agent flight
+(its agents measured a link too slow for the slots once) and the two tests that bind PX4
+SITL's own ports (tests/fleet_ports.PX4_PORTS)."""
 
 from __future__ import annotations
 

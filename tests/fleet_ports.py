@@ -16,8 +16,9 @@ __all__ = ["PX4_PORTS", "free_ports"]
 _LOW, _HIGH = 15000, 28000
 
 #: The xdist group of the tests that bind PX4 SITL's own ports (GCS 14540+i, vehicles
-#: 14580+i: the default port scheme, whose endpoints give the system ids): one at a time (two
-#: of them on two workers at once could not both bind; it failed a CI run once).
+#: 14580+i, GCS links 18570+i: the default port scheme, whose endpoints give the system ids):
+#: one at a time (two of them on two workers at once could not both bind; it failed a CI run
+#: once). They are ``solo`` too: a later run failed on 18570, bound by another worker.
 PX4_PORTS = "px4-ports"
 
 

@@ -83,7 +83,8 @@ async def fly(link: VehicleLink, vehicle) -> None:
     )
 
 
-@pytest.mark.xdist_group(PX4_PORTS)  # one at a time: PX4 SITL's own ports
+@pytest.mark.xdist_group(PX4_PORTS)  # PX4 SITL's own ports: one at a time, and
+@pytest.mark.solo  # nothing else beside it (another test's mock bound 18570 once)
 async def test_both_backends_fly_the_mock() -> None:
     async with sim_stub.MockFleet(count=2, spacing_m=5.0) as fleet, MavsdkHub(
         watchdog_s=0.5

@@ -38,7 +38,8 @@ async def test_out_of_range_id_is_an_error_not_a_traceback() -> None:
             pass
 
 
-@pytest.mark.xdist_group(PX4_PORTS)  # one at a time: PX4 SITL's own ports
+@pytest.mark.xdist_group(PX4_PORTS)  # PX4 SITL's own ports: one at a time, and
+@pytest.mark.solo  # nothing else beside it (another test's mock bound 18570 once)
 async def test_three_vehicles_with_one_id_on_separate_links() -> None:
     """Three mock vehicles all with sysid 1, each on its own UDP port pair: each link talks to
     its own vehicle only (arming one arms that one)."""
