@@ -109,6 +109,7 @@ __all__ = [
     "cannot_pass",
     "extended_tube",
     "group_obstacle",
+    "left_out",
     "moves_forward",
     "partition_around_lost",
     "partition_past",
@@ -398,6 +399,20 @@ def passed(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerPar
     return (c - tube.p_h0) @ tube.n_c + R < xi_p
 
 
+def left_out(tube: Trapezoid, obstacles: Sequence[Obstacle], params: ControllerParams,
+             p: np.ndarray, *, residual_m_s: float = 0.0, keep: np.ndarray | None = None
+             ) -> np.ndarray:
+    """(K,) bool: what a partition of its own for a vehicle at ``p`` leaves out
+    (:func:`partition_past`): the obstacles it has :func:`passed`, except those in ``keep``;
+    none when it may move backwards (:func:`moves_forward` with ``residual_m_s``)."""
+    if not moves_forward(params, residual_m_s):
+        return np.zeros(len(obstacles), bool)
+    gone = passed(tube, obstacles, params, p)
+    if keep is not None:
+        gone &= ~np.asarray(keep, dtype=bool).reshape(-1)
+    return gone
+
+
 def partition_past(tube: Trapezoid, obstacles: Sequence[Obstacle], lost: Sequence[Obstacle],
                    params: ControllerParams, p: np.ndarray, *, residual_m_s: float = 0.0,
                    keep: np.ndarray | None = None) -> Partition | None:
@@ -411,11 +426,7 @@ def partition_past(tube: Trapezoid, obstacles: Sequence[Obstacle], lost: Sequenc
     nothing of its own. Raises :class:`~vtube_fleet.core.partition.PartitionError` when the
     rest cannot be partitioned. Pure."""
     obstacles, lost = tuple(obstacles), tuple(lost)
-    if not moves_forward(params, residual_m_s):
-        return None
-    gone = passed(tube, obstacles + lost, params, p)
-    if keep is not None:
-        gone &= ~np.asarray(keep, dtype=bool).reshape(-1)
+    gone = left_out(tube, obstacles + lost, params, p, residual_m_s=residual_m_s, keep=keep)
     if not gone.any():
         return None
     n_o, n_l = len(obstacles), len(lost)

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vtube_fleet.core.controller import TubeArrays, velocity_command
-from vtube_fleet.core.loss import cannot_pass, partition_around_lost, partition_past, passed
+from vtube_fleet.core.loss import cannot_pass, left_out, partition_around_lost, partition_past
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Partition, PartitionError, h_min
@@ -256,8 +256,8 @@ class FlightPlan:
                 own = partition_past(tube, fixed, here, params, p,
                                      residual_m_s=residual_m_s, keep=keep)
                 if own is not None:
-                    left_out = passed(tube, obs, params, p) & ~keep
-                    gone.extend(obs[i].center for i in np.flatnonzero(left_out).tolist())
+                    out = left_out(tube, obs, params, p, residual_m_s=residual_m_s, keep=keep)
+                    gone.extend(obs[i].center for i in np.flatnonzero(out).tolist())
                     return own
             return common(tube, fixed, here, params)
 

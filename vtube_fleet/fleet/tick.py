@@ -902,8 +902,8 @@ class Tick:
                 pilot.event(f"flies on with a partition of its own: at ({x:.2f}, {y:.2f}), "
                             f"inside the region the new partition takes around the stopped "
                             f"vehicle(s), but past the obstacle(s) at {passed}, which it "
-                            f"never comes back to (every command moves it forward), so they "
-                            f"are left out of its partition", "warning")
+                            f"never comes back to (it always advances along the tube), so "
+                            f"they are left out of its partition", "warning")
                 continue
             why = (f"cannot pass the stopped vehicle(s): at ({x:.2f}, {y:.2f}), inside the "
                    f"region the new partition takes around them (no safe sub-tube)")
@@ -940,7 +940,9 @@ class Tick:
         if not rows.size:
             return none
         idx, seg, points = order[at[seen]], tab.segment[rows], view.points()
-        mine = np.array([r in self.own_plans for r in rows.tolist()], bool)
+        if not self.own_plans:  # (every tick: no per-row work unless someone flies its own)
+            return rows, self.plan.commands(points, idx, seg)
+        mine = np.isin(rows, np.fromiter(self.own_plans, np.int64, len(self.own_plans)))
         if not mine.any():
             return rows, self.plan.commands(points, idx, seg)
         out = np.empty((rows.size, 2))
