@@ -143,6 +143,44 @@ def no_path(tube: Trapezoid, centers: np.ndarray, radii: np.ndarray, starts: np.
     return ~alive
 
 
+def wait_and_step(tube: Trapezoid, fixed: tuple[Obstacle, ...], lost: Obstacle,
+                  others: np.ndarray, trapped: np.ndarray, flown: ControllerParams,
+                  r_lost: float) -> tuple[bool, int, str]:
+    """``on_trapped = "wait"`` on a snapshot: the ``trapped`` of ``others`` stop where they
+    are (obstacles); the re-partition around them may trap more (repeated until nobody new
+    is inside); once the rest has left, the waiting ones go front-most first, each stepping
+    aside (:func:`~vtube_fleet.core.loss.step_aside`) in the partition around the lost one
+    and those still waiting behind it. → (everyone finishes, how many waited, why not)."""
+    def obstacle(q: np.ndarray) -> Obstacle:
+        return Obstacle(np.asarray(q, float), r_lost, LOST_APEX_FACTOR * h_min(r_lost, flown))
+
+    waiting = np.asarray(trapped, bool).copy()
+    for _ in range(len(others) + 1):
+        stops = (lost, *(obstacle(q) for q in others[waiting]))
+        try:
+            part = loss.repartition_around_lost(tube, fixed, stops, flown).partition
+        except PartitionError:
+            return False, int(waiting.sum()), "no partition around the waiting ones"
+        d = loss.wall_clearance(part, others, apex_zones(part, flown))
+        new = (d < 0.0) & ~waiting
+        if not new.any():
+            break
+        waiting |= new
+    order = np.flatnonzero(waiting)
+    order = order[np.argsort(-tube.xi(others[order]), kind="stable")]
+    for j, w in enumerate(order.tolist()):
+        behind = (lost, *(obstacle(others[v]) for v in order[j + 1:].tolist()))
+        try:
+            part = loss.repartition_around_lost(tube, fixed, behind, flown).partition
+        except PartitionError:
+            return False, len(order), "no partition for one stepping aside"
+        q = loss.step_aside(tube, part, (*fixed, *behind), flown, others[w],
+                            zones=apex_zones(part, flown))
+        if q is None:
+            return False, len(order), "no step aside"
+    return True, len(order), ""
+
+
 def screen(path: str, every_s: float) -> dict[str, Any]:
     mission = load_mission(ROOT / path)
     sc = mission.scenario
@@ -181,12 +219,15 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
             times.append(time.perf_counter() - t0)
             row["step"] = rp.step if rp is not None else None
             row["inside_own"] = 0
+            row["wait_ok"], row["waited"], row["wait_why"] = rp is not None, 0, ""
             if rp is not None and len(others):
                 zones = apex_zones(rp.partition, flown)
                 d = loss.wall_clearance(rp.partition, others, zones)
                 row["inside"] = int(np.count_nonzero(d < 0.0))
                 row["within_rs"] = int(np.count_nonzero(d < flown.r_s))
-                for q in others[d < 0.0]:  # each trapped one: a partition of its own?
+                trapped = np.zeros(len(others), bool)
+                for j in np.flatnonzero(d < 0.0):  # each trapped one: a partition of its own?
+                    q = others[j]
                     try:
                         own = loss.partition_past(sc.tube, fixed, lost, flown, q)
                     except PartitionError:
@@ -194,6 +235,10 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
                     if own is None or loss.wall_clearance(
                             own, q[None], apex_zones(own, flown))[0] < 0.0:
                         row["inside_own"] += 1
+                        trapped[j] = True
+                if trapped.any():
+                    row["wait_ok"], row["waited"], row["wait_why"] = wait_and_step(
+                        sc.tube, fixed, lost[0], others, trapped, flown, r_lost)
             else:
                 row["inside"] = row["within_rs"] = 0
             if len(others):
@@ -217,6 +262,10 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
         "rest_go_on_today": sum(r["inside"] == 0 for r in today),
         "rest_go_on_new": sum(r["inside"] == 0 for r in new),
         "rest_go_on_own": sum(r["inside_own"] == 0 for r in new),
+        "rest_finish_wait": sum(r["wait_ok"] for r in new),
+        "wait_fails": {w: sum(not r["wait_ok"] and r["wait_why"] == w for r in new) for w in
+                       ("no partition around the waiting ones",
+                        "no partition for one stepping aside", "no step aside")},
         "nobody_within_rs_new": sum(r["within_rs"] == 0 for r in new),
         "someone_has_no_path": sum(r["no_path"] > 0 for r in rows),
         "steps": {s: sum(r["step"] == s for r in rows) for s in
@@ -233,6 +282,8 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
           f"{share(out['rest_go_on_today'])}, with the fallback {share(out['rest_go_on_new'])}")
     print(f"  nobody inside, with partitions of their own for those past an obstacle "
           f"(FlightPlan.past): {share(out['rest_go_on_own'])}")
+    print(f"  the rest finishes, those trapped waiting and then stepping aside (on_trapped = "
+          f"\"wait\"): {share(out['rest_finish_wait'])}; not: {out['wait_fails']}")
     print(f"  nobody within r_s' of a new triangle side: {share(out['nobody_within_rs_new'])}")
     print(f"  someone with no admissible path at all (no partition can help): "
           f"{share(out['someone_has_no_path'])}")
@@ -272,10 +323,12 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
     async with mock_fleet(mission, port_scheme=free_port_scheme(n), boot_time_scale=0.3,
                           seed=seed) as fleet:
         seen_plan: list[Any] = []
+        waited: set[int] = set()
 
         def hook(tick: int, sup: Any) -> None:
             if sup.tube_start_s is None:
                 return
+            waited.update(q.vehicle_id for q in sup.pilots if q.phase == Phase.WAITING)
             if not seen_plan:
                 seen_plan.append(sup.plan)
             p = sup.pilots[vehicle]
@@ -316,6 +369,7 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
         "outcome": result.outcome, "exit_code": result.exit_code,
         "reason": result.reason, "exited": s.get("exited"), "others": others,
         "lost": s.get("lost"), "repartitions": flown_log["repartitions"],
+        "waited": sorted(waited), "tube_s": s.get("flight_time_s"),
         "truth_violations": s.get("truth_violations"),
         "truth_min_pair_m": s.get("truth_min_pair_distance_m"),
         "violations": s.get("violations"),
@@ -327,8 +381,10 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
     }
 
 
-def fly_cases(path: str, count: int, seed: int) -> dict[str, Any]:
+def fly_cases(path: str, count: int, seed: int, on_trapped: str) -> dict[str, Any]:
     mission = load_mission(ROOT / path)
+    mission = dataclasses.replace(mission, config=dataclasses.replace(
+        mission.config, on_trapped=on_trapped))
     rows = []
     for k, (vehicle, at_s) in enumerate(flight_cases(mission, count)):
         t0 = time.monotonic()
@@ -341,6 +397,7 @@ def fly_cases(path: str, count: int, seed: int) -> dict[str, Any]:
               f"{_pt(row['killed_at'])}: {row['outcome']} (exit {row['exit_code']}), "
               f"{row['exited']}/{row['others']} others exited, truth violations "
               f"{row['truth_violations']}, true pair {_m(row['truth_min_pair_m'])}"
+              + (f", waited: {row['waited']}" if row["waited"] else "")
               + (f"; re-partitioned ({rp['step']}), inside a new triangle: {rp['inside']}"
                  f" (flying a partition of their own: {rp['own']})"
                  if rp else "; no re-partition")
@@ -380,6 +437,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             p.add_argument("--every", type=float, default=0.5, help="seconds between losses")
         else:
             p.add_argument("--rules", choices=("new", "today"), default="new")
+            p.add_argument("--on-trapped", choices=("wait", "land"), default="wait",
+                           help="the mission key on_trapped (default: wait)")
             p.add_argument("--cases", type=int, default=8, help="flights per mission")
             p.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
@@ -390,8 +449,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.cmd == "screen":
         results = [screen(m, args.every) for m in missions]
     else:
-        print(f"rules: {args.rules}")
-        results = [fly_cases(m, args.cases, args.seed) for m in missions]
+        print(f"rules: {args.rules}, on_trapped = {args.on_trapped}")
+        results = [fly_cases(m, args.cases, args.seed, args.on_trapped) for m in missions]
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=1, default=str))
     return 0

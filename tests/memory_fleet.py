@@ -51,17 +51,17 @@ class MemoryLink(VehicleLink):
 
 
 def memory_fleet(count: int, phase: str = "tube", spacing_m: float = 5.0,
-                 now_s: float | None = None, text: str | None = None
+                 now_s: float | None = None, text: str | None = None, mission_keys: str = ""
                  ) -> tuple[Supervisor, list[MemoryLink]]:
     """``count`` vehicles on :func:`~missions.grid_mission`'s grid (or in the slots of the
     mission ``text``, its ``[mission]`` table last), armed in OFFBOARD at the mission
     altitude, phase IN_TUBE (``"tube"``) or TAKEOFF (``"takeoff"``); their positions stamped
-    ``now_s`` (default: now)."""
+    ``now_s`` (default: now); ``mission_keys``: lines added to the ``[mission]`` table."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "tick.toml"
         body = grid_mission(count, 20.0, 60.0, spacing_m) if text is None else text
         path.write_text(body  # [mission] last: L, σ fixed
-                        + "latency_s = 0.25\nposition_accuracy_m = 0.29\n")
+                        + "latency_s = 0.25\nposition_accuracy_m = 0.29\n" + mission_keys)
         mission = load_mission(path)
     links = [MemoryLink(f"udpin://127.0.0.1:{30000 + i}", i % 255 + 1) for i in range(count)]
     f = mission.frame

@@ -101,3 +101,31 @@ def test_healthy_bus_without_a_hold_is_no_problem() -> None:
     mq = FakeMqtt()
     mq.states = {1: state(1, 0.0)}  # stale, but we are not holding: the lost rule decides
     assert problem(pilot(mq), 100.0) is None
+
+
+# ----------------------------------------------------------------------------------------------
+# the fleet-wide part of releasing a waiting vehicle (statuses reach every agent)
+# ----------------------------------------------------------------------------------------------
+def test_tube_stages_reads_every_teammates_status() -> None:
+    """A teammate not gone whose status stage is neither ``waiting`` nor past the tube counts
+    as flying among the others; ``waiting`` ones are listed; our own status, gone teammates
+    and statuses of another run do not count; without teammates (no run) nothing does."""
+    from vtube_fleet.bus.codec import Status
+
+    mq = FakeMqtt()
+    mq.vehicle_id, mq.run_id = 0, "run-1"
+    mq.statuses = {0: Status(0, "online", run_id="run-1", stage="waiting"),
+                   1: Status(1, "online", run_id="run-1", stage="waiting"),
+                   2: Status(2, "online", run_id="run-1", stage="exited"),
+                   3: Status(3, "online", run_id="run-1", stage="done"),
+                   4: Status(4, "online", run_id="run-1", stage="in_tube")}
+    gone = {4}
+    p = BusNeighbours(mq, max_age_s=0.15, lost_after_s=1.0, period_s=0.05,
+                      teammates=lambda: range(5), gone=lambda v: v in gone)
+    assert p.tube_stages(100.0) == (False, [1])
+    gone.clear()  # vehicle 4 flies the tube
+    assert p.tube_stages(100.0) == (True, [1])
+    mq.statuses[4] = Status(4, "online", run_id="run-0", stage="exited")  # an older run
+    assert p.tube_stages(100.0) == (True, [1])
+    p = BusNeighbours(mq, max_age_s=0.15, lost_after_s=1.0, period_s=0.05)
+    assert p.tube_stages(100.0) == (False, [])

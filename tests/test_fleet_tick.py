@@ -32,7 +32,7 @@ from vtube_fleet.fleet.pilot import VehiclePilot
 from vtube_fleet.fleet.supervisor import Supervisor
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
 from vtube_fleet.fleet.tick import FAULT_RULES, Tick
-from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, NeighbourState, Phase
+from vtube_fleet.state import AIRBORNE_PHASES, STOPPED_PHASES, TUBE_PHASES, NeighbourState, Phase
 
 WALL = 1.7e9  # wall clock = monotonic + WALL
 
@@ -211,7 +211,7 @@ def _agents(sup, count: int, t0: float):
         bus = _Bus(i)
 
         def hold(exc, view, pilot=pilot) -> None:  # as the supervisor's abort does
-            if pilot.phase in (Phase.IN_TUBE, Phase.EXITED):
+            if pilot.phase in TUBE_PHASES | {Phase.EXITED}:
                 pilot.reason = pilot.reason or f"mission aborted: {exc}"
                 pilot.begin_hold("mission aborted")
 
@@ -240,7 +240,7 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     """The same vehicles, the same telemetry: the supervisor's tick over its fleet table, and
     one agent per vehicle running the same tick over a table of one row with the others'
     states from a bus: the same setpoints, commands, phases and reasons, bit for bit, through
-    every fault rule, the re-partitions around them, the vehicles they trap (which land) and
+    every fault rule, the re-partitions around them, the vehicles they trap (which wait) and
     the abort when the tube can no longer be re-partitioned."""
     count, t0 = 10, 5000.0
     sup, links = memory_fleet(count, now_s=t0, spacing_m=6.0)
@@ -251,6 +251,7 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     period = sup.cfg.period_s
     now = t0
     jitter = np.random.default_rng(6)
+    waited: set[int] = set()
     for k in range(160):
         now += period * (1.0 + 0.3 * jitter.random())
         listening = now - 1.0 if k == 60 else None  # a stall of our own loop once
@@ -265,6 +266,7 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
             bus.fleet = fleet.states
             tick(now, now + WALL, listening)
         await asyncio.sleep(0)  # the hold's transition task
+        waited |= {i for i, x in enumerate(sup.pilots) if x.phase == Phase.WAITING}
         assert [lk.v_ned for lk in links] == [lk.v_ned for lk in a_links], f"tick {k}"
         assert [p.phase for p in sup.pilots] == [a[1].phase for a in agents], k
         assert [_why(p.reason) for p in sup.pilots] == [_why(a[1].reason) for a in agents], k
@@ -276,9 +278,8 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     assert p[9].phase == Phase.LOST and p[9].reason == "disarmed in the air"
     assert p[1].phase == Phase.LOST and p[1].reason.startswith("left OFFBOARD unexpectedly")
     assert p[7].phase == Phase.LOST and p[7].reason.startswith("not following its setpoints")
-    trapped = [x for x in p if x.phase == Phase.LANDING]
-    assert trapped and all(x.reason.startswith("cannot pass the stopped vehicle")
-                           for x in trapped)
+    # the vehicles the re-partitions trapped waited (then the abort held them)
+    assert waited and all(p[i].phase == Phase.HOLDING for i in waited)
     res = sup.table.residuals.residuals()
     assert res.size == sum(a[1].table.residuals.residuals().size for a in agents) > 0
 
@@ -388,11 +389,9 @@ async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
         tick(now, now + WALL)
     for group in (sup.pilots, [a[1] for a in agents]):
         landing = {p.vehicle_id for p in group if p.phase == Phase.LANDING}
-        assert low <= landing  # (and those they trap: inside the new partition's region)
+        assert low == landing  # (those they trap, inside the new partition's region, wait)
         assert all(p.reason.startswith("battery 10 % < battery_reserve_pct = 20 %: lands")
                    for p in group if p.vehicle_id in low)
-        assert all(p.reason.startswith("cannot pass the stopped vehicle")
-                   for p in group if p.vehicle_id in landing - low)
     assert ({p.vehicle_id for p in sup.pilots if p.phase == Phase.LANDING}
             == {a[1].vehicle_id for a in agents if a[1].phase == Phase.LANDING})
     await asyncio.sleep(0)
@@ -406,8 +405,8 @@ async def test_a_fault_rule_added_in_one_place_acts_for_every_vehicle() -> None:
 async def test_a_re_partition_is_planned_off_the_control_loop() -> None:
     """With a worker (the supervisor and the agents): the tick that first sees a stopped
     vehicle does not plan (the control loop goes on with the current plan, the stopped one a
-    point of the pair barrier); a tick after the worker is done adopts the plan, and lands
-    the vehicles it traps: the same outcome as planning in the tick itself."""
+    point of the pair barrier); a tick after the worker is done adopts the plan, and stops
+    the vehicles it traps (they wait): the same outcome as planning in the tick itself."""
     from concurrent.futures import ThreadPoolExecutor
 
     low = {2, 5}
@@ -438,9 +437,9 @@ async def test_a_re_partition_is_planned_off_the_control_loop() -> None:
     inline = fleet()
     inline.ticker(now, now + WALL)
     inline.ticker(now + 0.05, now + 0.05 + WALL)
-    want = {p.vehicle_id for p in inline.pilots if p.phase == Phase.LANDING}
-    assert want > low and inline.ticker.plan is not inline.ticker.root
-    assert {p.vehicle_id for p in sup.pilots if p.phase == Phase.LANDING} == want
+    want = {p.vehicle_id for p in inline.pilots if p.phase == Phase.WAITING}
+    assert want and inline.ticker.plan is not inline.ticker.root
+    assert {p.vehicle_id for p in sup.pilots if p.phase == Phase.WAITING} == want
 
 
 async def test_airborne_pairs_count_from_the_take_off_on() -> None:
@@ -478,7 +477,9 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
     passed vehicle 2's O' (and every command moves it forward), so it is given a partition
     without it (FlightPlan.past) and flies on to the finishing line instead of landing:
     every command in [v_min, v_max], never within r_o + r_s of a stopped vehicle (the
-    physical radii). Vehicle 1, right behind vehicle 2, passed nothing: it lands."""
+    physical radii). Vehicle 1, right behind vehicle 2, passed nothing: it waits; once
+    nobody else flies the tube it steps aside into a sub-tube and flies on to the finishing
+    line too, as far from the stopped ones."""
     sup, links = memory_fleet(12, now_s=100.0)
     low = {2, 5}
     for i, link in enumerate(links):
@@ -487,33 +488,52 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
     sc = sup.mission.scenario
     radius = sc.controller.r_s + sup.cfg.lost_obstacle_margin_m + sc.controller.r_s
     period, now = sup.cfg.period_s, 100.0
-    own_seen, path, speeds = False, [], []
+    own_seen, speeds = False, []
+    paths: dict[int, list[np.ndarray]] = {1: [], 6: []}
     stopped: dict[int, np.ndarray] = {}
-    for _ in range(3000):  # (the tube is 104 m long)
+    p1 = sup.pilots[1]
+    phases1: list[Phase] = []
+    flying = (Phase.IN_TUBE, Phase.EXITED, Phase.WAITING, Phase.STEPPING)
+    for _ in range(6000):  # (the tube is 104 m long)
         now += period
         for i, p in enumerate(sup.pilots):
-            if p.phase not in (Phase.IN_TUBE, Phase.EXITED):  # PX4 holds, then lands
+            if p.phase not in flying:  # PX4 holds, then lands
                 links[i].v_ned = (0.0, 0.0, 0.0)
                 stopped.setdefault(i, sup.table.xy[i].copy())
         fly_telemetry(links, period, now)
         sup.ticker(now, now + WALL)
         await asyncio.sleep(0)
         own_seen |= 6 in sup.ticker.own_plans
-        if p6.phase != Phase.IN_TUBE:
-            break
-        path.append(sup.table.xy[6].copy())
-        if p6.cmd_xy is not None:
+        if not phases1 or phases1[-1] != p1.phase:
+            phases1.append(p1.phase)
+        if p1.phase == Phase.WAITING:  # (an obstacle for 6 meanwhile)
+            stopped.setdefault(1, sup.table.xy[1].copy())
+        for i in (1, 6):
+            if sup.pilots[i].phase in (Phase.IN_TUBE, Phase.STEPPING):
+                paths[i].append(sup.table.xy[i].copy())
+        if p6.phase == Phase.IN_TUBE and p6.cmd_xy is not None:
             speeds.append(float(np.hypot(*p6.cmd_xy)))
-    assert own_seen and p6.phase == Phase.EXITED, (p6.phase, p6.reason)
-    assert sup.pilots[1].phase == Phase.LANDING
-    assert sup.pilots[1].reason.startswith("cannot pass the stopped vehicle")
+        if p1.phase not in (Phase.IN_TUBE, Phase.WAITING, Phase.STEPPING):
+            break
+        if p6.phase == Phase.IN_TUBE:  # (6 exits first: 1 is waiting meanwhile)
+            assert p1.phase in (Phase.IN_TUBE, Phase.WAITING)
+    # (6 exited, then held before the fence's exit while 1 was still in the tube)
+    assert own_seen and p6.exit_time_s is not None, (p6.phase, p6.reason)
     assert not p6.reason or "cannot pass" not in p6.reason
     assert any(e["vehicle"] == p6.vehicle_id and "flies on with a partition of its own" in
                e["text"] and "past the obstacle(s) at (1.5, 2.5)" in e["text"]
                for e in sup.events)
-    path_a = np.array(path)
-    for i in (1, 2, 5):
-        assert float(np.min(np.hypot(*(path_a - stopped[i]).T))) > radius, i
+    # vehicle 1 waited until every other vehicle had left the tube, then stepped aside
+    assert phases1 == [Phase.WAITING, Phase.STEPPING, Phase.IN_TUBE, Phase.EXITED], (
+        phases1, p1.reason)
+    assert all(p.phase not in (Phase.IN_TUBE, Phase.WAITING, Phase.STEPPING)
+               for p in sup.pilots)
+    assert any(e["vehicle"] == 1 and e["text"].startswith("steps aside") for e in sup.events)
+    assert not p1.reason
+    for v in (1, 6):
+        path_a = np.array(paths[v])
+        for i in (2, 5) if v == 1 else (1, 2, 5):
+            assert float(np.min(np.hypot(*(path_a - stopped[i]).T))) > radius, (v, i)
     assert sc.controller.v_min - 1e-9 <= min(speeds) and max(speeds) <= sc.controller.v_max
 
 
@@ -547,14 +567,15 @@ async def test_the_control_clock_switches_threads_often_while_it_runs() -> None:
 
 async def test_a_plan_of_its_own_is_planned_again_when_the_stopped_ones_return_to_an_earlier_set(
         ) -> None:
-    """With the worker: vehicles 2 and 5 land, vehicle 1 (trapped) lands too, vehicle 6 flies
+    """With the worker and ``on_trapped = "land"``: vehicles 2 and 5 land, vehicle 1
+    (trapped) lands too, vehicle 6 flies
     a partition of its own. When vehicle 1 touches down it is no longer an obstacle and the
     set of stopped vehicles is {2, 5} again, whose common plan is cached: vehicle 6's own
     plan is planned again from where it is, and it flies on (it was landed when the cached
     plan came back alone)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    sup, links = memory_fleet(12, now_s=100.0)
+    sup, links = memory_fleet(12, now_s=100.0, mission_keys='on_trapped = "land"\n')
     for i, link in enumerate(links):
         link.state.battery_remaining = 0.1 if i in (2, 5) else 0.9
     worker = ThreadPoolExecutor(1)
@@ -633,3 +654,30 @@ async def test_a_vehicle_flying_its_own_plan_lands_when_its_residual_exceeds_D(
     assert 6 not in sup.ticker.own_plans and sup.pilots[6].phase == Phase.LANDING
     assert "flying a partition of its own, its estimate compensation's residual exceeds " \
            "disturbance_residual_m_s" in sup.pilots[6].reason
+
+
+async def test_an_agent_releases_its_waiting_vehicle_only_when_the_fleet_lets_it() -> None:
+    """An agent's waiting vehicle (one row; the others heard on its bus, all past the tube)
+    is released only when its bus's fleet-wide statuses (``tube_stages``: states reach only
+    nearby cells) say nobody else flies the tube, and only if it has the smallest id of
+    those waiting; released, it steps aside (here 0 m: nothing stopped is left)."""
+    sup, _links = memory_fleet(4, now_s=100.0)
+    tick, pilot, _link, bus = _agents(sup, 4, 100.0)[1]
+    pilot.set_phase(Phase.WAITING)
+    others = sup.ticker(100.05, 100.05 + WALL).states
+    bus.fleet = States(others.ids, others.pos, others.vel,
+                       np.full(len(others), PHASE_CODE[Phase.EXITED], np.int8),
+                       others.stamps_s)
+    stages = {"now": (True, [])}
+    bus.tube_stages = lambda now_wall: stages["now"]
+    now = 100.1
+    for want, stage in ((Phase.WAITING, (True, [])),  # someone out of earshot flies
+                        (Phase.WAITING, (False, [0])),  # vehicle 0 waits too: it goes first
+                        (Phase.STEPPING, (False, [3]))):
+        stages["now"] = stage
+        tick(now, now + WALL)
+        now += 0.05
+        assert pilot.phase == want, stage
+    # the plan without it (here: nobody stopped) is flown: it is inside a sub-tube already
+    tick(now, now + WALL)
+    assert pilot.phase == Phase.IN_TUBE

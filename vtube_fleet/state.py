@@ -16,6 +16,7 @@ __all__ = [
     "Phase",
     "STOPPED_PHASES",
     "TUBE_DONE_PHASES",
+    "TUBE_PHASES",
 ]
 
 
@@ -33,23 +34,32 @@ class Phase(str, Enum):  # noqa: UP042 (str() and format() kept as in 3.10 seman
     LANDED = "landed"
     LOST = "lost"  # stopped answering / left offboard: a static obstacle for the others
     FAILED = "failed"
+    # (appended: a phase's code is its index, kept on the bus and in recordings)
+    WAITING = "waiting"  # in the tube, stopped: no way past stopped vehicles yet (an obstacle)
+    STEPPING = "stepping"  # released from waiting: moving aside, out of the region ahead
 
 
 #: "Airborne": in the air (or may be) under our responsibility, so it matters to the others.
 AIRBORNE_PHASES: frozenset[Phase] = frozenset(
-    {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING}
+    {Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.WAITING,
+     Phase.STEPPING}
 )
 #: What the summaries count as flying when they measure pair distances: airborne, or lost
 #: (nobody knows where a lost vehicle is; it is kept at its last position).
 COUNTED_AIRBORNE_PHASES: frozenset[Phase] = AIRBORNE_PHASES | {Phase.LOST}
-#: Airborne but no longer flying the tube's controller: it stops (PX4 Hold) or comes down.
-#: The others cannot rely on the pair barrier alone to pass such a vehicle (their speed never
-#: drops below v_min, paper note 9): inside the tube it is an obstacle like a LOST one.
-STOPPED_PHASES: frozenset[Phase] = frozenset({Phase.HOLDING, Phase.LANDING})
+#: Airborne but no longer flying the tube's controller: it stops (PX4 Hold, or waiting in
+#: OFFBOARD) or comes down. The others cannot rely on the pair barrier alone to pass such a
+#: vehicle (their speed never drops below v_min, paper note 9): inside the tube it is an
+#: obstacle like a LOST one.
+STOPPED_PHASES: frozenset[Phase] = frozenset({Phase.HOLDING, Phase.LANDING, Phase.WAITING})
 #: Phases in which we stream setpoints and expect PX4 to be in OFFBOARD.
 OFFBOARD_PHASES: frozenset[Phase] = frozenset(
-    {Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED}
+    {Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED, Phase.WAITING, Phase.STEPPING}
 )
+#: "In the tube": flying its controller, waiting there for a way past stopped vehicles, or
+#: stepping aside into one (docs/fleet.md, "Waiting for a way"). The tube stage lasts while a
+#: vehicle is in one of these.
+TUBE_PHASES: frozenset[Phase] = frozenset({Phase.IN_TUBE, Phase.WAITING, Phase.STEPPING})
 #: Phases after which a vehicle is done with the tube (for the end of a run).
 TUBE_DONE_PHASES: frozenset[Phase] = frozenset(
     {Phase.EXITED, Phase.HOLDING, Phase.LANDING, Phase.LANDED, Phase.LOST, Phase.FAILED}

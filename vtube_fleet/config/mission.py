@@ -75,6 +75,8 @@ PX4_LAND_SPEED_M_S = 0.7
 AFTER_EXIT: tuple[str, ...] = ("continue", "hold", "land")
 #: What every vehicle does once all have exited.
 ON_COMPLETE: tuple[str, ...] = ("land", "hold")
+#: What a vehicle the partition around stopped vehicles traps does (docs/fleet.md).
+ON_TRAPPED: tuple[str, ...] = ("wait", "land")
 #: PX4's geofence breach actions the mission may choose (GF_ACTION 2, 5, 3).
 FENCE_ACTIONS: tuple[str, ...] = ("hold", "land", "rtl")
 
@@ -92,6 +94,7 @@ class MissionConfig:
     after_exit: str = "continue"
     on_complete: str = "land"
     on_abort: str = "land"
+    on_trapped: str = "wait"
     exit_clear_m: float = 3.0
     climb_speed_m_s: float = 1.0
     max_vertical_speed_m_s: float = 1.0
@@ -192,6 +195,11 @@ MISSION_KEYS: tuple[Key, ...] = (
         "timeout, lost vehicles): `land` (every vehicle holds, then lands in place; the run "
         "waits for touch-down) or `hold` (left holding for an operator, said in red)",
         default="land", choices=ON_COMPLETE),
+    Key("on_trapped", "choice", "a vehicle in the tube that a re-partition around stopped "
+        "vehicles leaves inside a region (no safe sub-tube, none of its own): `wait` (it "
+        "stops there, an obstacle for the others, until nobody else flies the tube, then "
+        "steps aside into a sub-tube and flies on) or `land` (in place)",
+        default="wait", choices=ON_TRAPPED),
     Key("exit_clear_m", "number", "distance flown past the finishing line before `hold` / "
         "`land`", "m", 3.0, bound=NON_NEGATIVE),
     Key("climb_speed_m_s", "number", "offboard climb rate", "m/s", 1.0,

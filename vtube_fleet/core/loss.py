@@ -63,6 +63,14 @@ vehicle following the lost one past an obstacle).
 Obstacle safety is per vehicle (it keeps out of every O' it can still reach through its own
 sub-tube) and the pair barrier is partition-free, so the others keep the common partition.
 
+**Stepping aside** (:func:`step_aside`): a vehicle that cannot pass waits where it is (the
+runtime stops it: an obstacle for the others). Once nobody else flies the tube, it is
+released: a multicopter at rest can move sideways, across n_c, which no command of the
+controller does (its speed never drops below v_min). The nearest point across n_c, on
+either side, that is inside a sub-tube of the partition without it, reached on a straight
+path that keeps out of every O' and r_s inside the tube's legs, is where it goes before it
+flies the controller again from there.
+
 Everything here is deterministic and independent of where the other vehicles are, so every
 agent that sees the same lost discs builds the same partition. Pure numpy.
 """
@@ -115,6 +123,7 @@ __all__ = [
     "partition_past",
     "passed",
     "repartition_around_lost",
+    "step_aside",
     "wall_clearance",
 ]
 
@@ -829,3 +838,55 @@ def cannot_pass(part: Partition, positions: np.ndarray, zones: Sequence[ApexZone
     1 to the letter). NaN positions are not counted."""
     d = wall_clearance(part, positions, zones)
     return np.asarray(d < clearance_m, dtype=bool)
+
+
+# ----------------------------------------------------------------------------------------------
+# stepping aside
+# ----------------------------------------------------------------------------------------------
+#: Step of the search along the path across n_c (m).
+STEP_ASIDE_RES_M = 0.05
+#: How far inside its sub-tube a vehicle stepping aside stops (m), beyond the region's side:
+#: the estimate's jitter must not put it back inside.
+STEP_ASIDE_CLEARANCE_M = 0.3
+
+
+def step_aside(tube: Trapezoid, part: Partition, obstacles: Sequence[Obstacle],
+               params: ControllerParams, p: np.ndarray, *, zones: Sequence[ApexZone] = (),
+               clearance_m: float = STEP_ASIDE_CLEARANCE_M,
+               res_m: float = STEP_ASIDE_RES_M) -> np.ndarray | None:
+    """Where a vehicle at rest at ``p`` (2,) inside a region of ``part`` steps to (module
+    docstring, "stepping aside"): the point q = p + s·n_⊥ with the smallest |s| (either side
+    of n_c, ties to the left) such that :func:`wall_clearance` (q) ≥ ``clearance_m`` (inside
+    a sub-tube) and every point of the segment p→q (sampled every ``res_m``) is outside
+    every O' (‖x − p_o‖ > r_o + r_s of ``obstacles``) and at least r_s inside ``tube``'s
+    legs (a ``p`` already closer, by its estimate: no closer than it is). ``p`` itself when
+    it is already there; None when neither side has such a point. Pure."""
+    p = np.asarray(p, dtype=float).reshape(2)
+    side = np.array([-tube.n_c[1], tube.n_c[0]])  # n_⊥, to the left of n_c
+    r_s = float(params.r_s)
+    c = (np.array([o.center for o in obstacles], dtype=float).reshape(-1, 2)
+         if len(obstacles) else np.zeros((0, 2)))
+    R = np.array([float(o.radius) for o in obstacles]) + r_s
+    reach = abs(float(tube.width(float(tube.xi(p))))) + 2.0 * r_s
+    leg_min = min(r_s, float(min(tube.d_Th(p), tube.d_Tr(p))))
+    R = np.minimum(R, np.hypot(p[0] - c[:, 0], p[1] - c[:, 1]) - 1e-9) if c.shape[0] else R
+    s = np.arange(0.0, reach + res_m, res_m)
+    best: np.ndarray | None = None
+    best_s = math.inf
+    for sign in (1.0, -1.0):
+        x = p + (sign * s)[:, None] * side
+        ok = np.minimum(tube.d_Th(x), tube.d_Tr(x)) >= leg_min
+        if c.shape[0]:
+            d = np.hypot(x[:, None, 0] - c[None, :, 0], x[:, None, 1] - c[None, :, 1])
+            ok &= (d > R[None, :]).all(axis=1)
+        # the path is good up to the first bad sample
+        bad = np.flatnonzero(~ok)
+        n_ok = int(bad[0]) if bad.size else s.size
+        if not n_ok:
+            continue
+        there = wall_clearance(part, x[:n_ok], zones) >= clearance_m
+        if there.any():
+            k = int(np.flatnonzero(there)[0])
+            if s[k] < best_s:
+                best, best_s = x[k], float(s[k])
+    return best

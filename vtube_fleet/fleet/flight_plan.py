@@ -27,7 +27,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from vtube_fleet.core.controller import TubeArrays, velocity_command
-from vtube_fleet.core.loss import cannot_pass, left_out, partition_around_lost, partition_past
+from vtube_fleet.core.loss import (
+    cannot_pass,
+    left_out,
+    partition_around_lost,
+    partition_past,
+    step_aside,
+)
 from vtube_fleet.core.neighbours import pairs_within
 from vtube_fleet.core.params import ControllerParams
 from vtube_fleet.core.partition import Partition, PartitionError, h_min
@@ -225,6 +231,17 @@ class FlightPlan:
             part = self.route.segments[int(s)].partition
             out[rows] = cannot_pass(part, p[rows], zones[int(s)] if self.lookahead else ())
         return out
+
+    def step_aside(self, p: np.ndarray, segment: int = -1) -> np.ndarray | None:
+        """Where a vehicle at rest at ``p`` (2,) flying ``segment`` (−1: the one it starts in)
+        steps to, across its segment's n_c, to be inside a sub-tube of this plan
+        (:func:`~vtube_fleet.core.loss.step_aside`, every obstacle of the route, configured
+        and lost, kept out of), or None."""
+        p = np.asarray(p, dtype=float).reshape(2)
+        seg = int(segment) if segment >= 0 else int(self.route.start_segments(p[None])[0])
+        s = self.route.segments[seg]
+        zones = self.route.zones[seg] if self.lookahead else ()
+        return step_aside(s.tube, s.partition, self.all_obstacles, self.flown, p, zones=zones)
 
     def past(self, lost: Sequence[Obstacle], p: np.ndarray, segment: int = -1, *,
              residual_m_s: float = 0.0) -> tuple[FlightPlan, np.ndarray] | None:

@@ -52,7 +52,9 @@ __all__ = ["FlightMeasurement", "TickTrace"]
 _IN_TUBE = PHASE_CODE[Phase.IN_TUBE]
 _LOST = PHASE_CODE[Phase.LOST]
 _COUNTED_AIRBORNE_MASK = phase_mask(COUNTED_AIRBORNE_PHASES)
-_STOPPED_OR_LOST_MASK = phase_mask(STOPPED_PHASES | {Phase.LOST})
+#: in the tube without the controller's command (judged there while inside it): stopped,
+#: lost, or stepping aside out of a region (docs/fleet.md, "Waiting for a way")
+_STOPPED_OR_LOST_MASK = phase_mask(STOPPED_PHASES | {Phase.LOST, Phase.STEPPING})
 
 
 @dataclass

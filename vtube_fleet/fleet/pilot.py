@@ -42,7 +42,7 @@ from vtube_fleet.errors import UserError
 from vtube_fleet.fleet.table import PHASE_CODE, PHASES, FleetTable
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink
-from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, Phase
+from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, TUBE_PHASES, Phase
 
 __all__ = ["EventSink", "PilotError", "VehiclePilot"]
 
@@ -257,6 +257,25 @@ class VehiclePilot:
         if self.phase == Phase.TAKEOFF:
             self.set_phase(Phase.IN_TUBE)
 
+    def begin_wait(self, why: str) -> None:
+        """IN_TUBE → WAITING: stop where it is (still in OFFBOARD, zero velocity), an obstacle
+        for the others, until :meth:`begin_step` (docs/fleet.md, "Waiting for a way")."""
+        if self.phase == Phase.IN_TUBE:
+            self.table.step_set[self.row] = False
+            self.set_phase(Phase.WAITING, why, "warning")
+
+    def begin_step(self, why: str) -> None:
+        """WAITING → STEPPING: released; it steps aside once the plan without it is known."""
+        if self.phase == Phase.WAITING:
+            self.table.step_set[self.row] = False
+            self.set_phase(Phase.STEPPING, why)
+
+    def resume_tube(self, why: str) -> None:
+        """STEPPING → IN_TUBE: outside every region again, it flies the controller."""
+        if self.phase == Phase.STEPPING:
+            self.table.step_set[self.row] = False
+            self.set_phase(Phase.IN_TUBE, why)
+
     # -- mode changes (background) -------------------------------------------------------------
     def _run_transition(self, coro: Awaitable[None], what: str) -> None:
         async def run() -> None:
@@ -467,7 +486,7 @@ class VehiclePilot:
         if start is not None:
             await start()
         self.enter_tube()
-        await self.wait_phase(lambda ph: ph != Phase.IN_TUBE, cfg.mission_timeout_s,
+        await self.wait_phase(lambda ph: ph not in TUBE_PHASES, cfg.mission_timeout_s,
                               "the finishing line")
         if self.phase == Phase.EXITED and finish is not None:
             await finish()

@@ -72,7 +72,7 @@ from vtube_fleet.fleet.tick import ControlClock, Tick, TickResult
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
 from vtube_fleet.outcome import EXIT_INCOMPLETE, exit_code
-from vtube_fleet.state import AIRBORNE_PHASES, COUNTED_AIRBORNE_PHASES, Phase
+from vtube_fleet.state import AIRBORNE_PHASES, COUNTED_AIRBORNE_PHASES, TUBE_PHASES, Phase
 
 __all__ = [
     "FleetError",
@@ -431,9 +431,9 @@ class Supervisor:
         self._abort_reason = reason
         self.event(f"ABORT: {reason}", level="error")
         for p in self.pilots:
-            if p.phase in (Phase.IN_TUBE, Phase.EXITED, Phase.ARMING, Phase.TAKEOFF):
+            if p.phase in TUBE_PHASES | {Phase.EXITED, Phase.ARMING, Phase.TAKEOFF}:
                 p.reason = p.reason or f"mission aborted: {reason}"
-            if p.phase in (Phase.IN_TUBE, Phase.EXITED):
+            if p.phase in TUBE_PHASES | {Phase.EXITED}:
                 p.begin_hold("mission aborted")
         self._abort_event.set()
         self._progress.set()
@@ -579,12 +579,12 @@ class Supervisor:
         while True:
             if self._abort_reason is not None:
                 raise MissionAborted(self._abort_reason)
-            if not any(p.phase == Phase.IN_TUBE for p in self.pilots):
+            if not any(p.phase in TUBE_PHASES for p in self.pilots):
                 return
             self._progress.clear()
             remaining = deadline - asyncio.get_running_loop().time()
             if remaining <= 0:
-                left = [p.name for p in self.pilots if p.phase == Phase.IN_TUBE]
+                left = [p.name for p in self.pilots if p.phase in TUBE_PHASES]
                 raise MissionAborted(f"mission_timeout_s = {self.cfg.mission_timeout_s:g} s "
                                      f"reached with {len(left)} vehicle(s) still in the tube: "
                                      + ", ".join(left))

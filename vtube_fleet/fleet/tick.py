@@ -63,7 +63,13 @@ from vtube_fleet.fleet.neighbour_view import NeighbourView, States, classify
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable, phase_mask
 from vtube_fleet.frames import TubeFrame
 from vtube_fleet.link.base import LinkError, VehicleLink, VehicleState, send_velocities_ned
-from vtube_fleet.state import AIRBORNE_PHASES, OFFBOARD_PHASES, STOPPED_PHASES, Phase
+from vtube_fleet.state import (
+    AIRBORNE_PHASES,
+    OFFBOARD_PHASES,
+    STOPPED_PHASES,
+    TUBE_PHASES,
+    Phase,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.core.tube import Obstacle
@@ -100,9 +106,18 @@ _EXITED = PHASE_CODE[Phase.EXITED]
 _HOLDING = PHASE_CODE[Phase.HOLDING]
 _LANDING = PHASE_CODE[Phase.LANDING]
 _LOST = PHASE_CODE[Phase.LOST]
+_WAITING = PHASE_CODE[Phase.WAITING]
+_STEPPING = PHASE_CODE[Phase.STEPPING]
 _OFFBOARD_MASK = phase_mask(OFFBOARD_PHASES)
 _CHECKED_MASK = phase_mask(AIRBORNE_PHASES | {Phase.ARMING})
-_FLYING_TUBE_MASK = phase_mask({Phase.IN_TUBE, Phase.TAKEOFF})
+#: who may be trapped by a re-partition (the climb and the tube)
+_TRAPPABLE_MASK = phase_mask({Phase.IN_TUBE, Phase.TAKEOFF})
+#: who needs the plan around the stopped vehicles (those, and those waiting or stepping aside
+#: in the tube: a failed re-plan aborts them too)
+_FLYING_TUBE_MASK = phase_mask(TUBE_PHASES | {Phase.TAKEOFF})
+#: who flies among the others: while anyone does, no waiting vehicle is released
+_BUSY_MASK = phase_mask({Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.STEPPING})
+_IN_TUBE_MASK = phase_mask(TUBE_PHASES)
 _STOPPED_MASK = phase_mask(STOPPED_PHASES)
 
 #: Gain (1/s) and limit (m/s) of the horizontal position hold during the climb (on top of the
@@ -115,6 +130,11 @@ AIRBORNE_UP_M = 0.5
 STILL_M_S = 0.05
 #: Estimate jitter (m) a still vehicle's position may show without counting as moving.
 STILL_POS_TOL_M = 0.1
+#: Stepping aside (docs/fleet.md, "Waiting for a way"): the gain (1/s) and the speed cap (m/s)
+#: of the move to the point across n_c, and how near (m) counts as there.
+STEP_GAIN_1_S = 1.0
+STEP_MAX_M_S = 0.5
+STEP_ARRIVED_M = 0.1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -298,7 +318,7 @@ def _left_offboard(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]
 
 def _disarmed_in_air(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
     ph = ctx.tab.phase
-    return ((ph == _IN_TUBE) | (ph == _EXITED)) & ctx.links.disarmed, \
+    return (_IN_TUBE_MASK[ph] | (ph == _EXITED)) & ctx.links.disarmed, \
         lambda r: "disarmed in the air"
 
 
@@ -345,8 +365,8 @@ def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
 
 
 #: The phases a low battery lands from (landing already, nothing to change).
-_LANDS_MASK = phase_mask({Phase.ARMING, Phase.TAKEOFF, Phase.IN_TUBE, Phase.EXITED,
-                          Phase.HOLDING})
+_LANDS_MASK = phase_mask({Phase.ARMING, Phase.TAKEOFF, Phase.EXITED, Phase.HOLDING}
+                         | TUBE_PHASES)
 
 
 def _battery_low(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
@@ -471,6 +491,16 @@ def vertical_down_m_s(tab: FleetTable, mission: Mission, rows: np.ndarray,
     return np.where(np.isfinite(up), -np.where(u < lo, lo, np.where(u > hi, hi, u)), 0.0)
 
 
+def _toward(target: np.ndarray, xy: np.ndarray, ok: np.ndarray, gain_1_s: float,
+            max_m_s: float) -> np.ndarray:
+    """The velocities (k, 2) that bring points ``xy`` to ``target`` (k, 2): gain × the
+    offset, at most ``max_m_s``; zero where not ``ok`` or not finite."""
+    d = gain_1_s * (target - xy)
+    d = np.where((np.isfinite(d).all(axis=1) & ok)[:, None], d, 0.0)
+    norm = np.hypot(d[:, 0], d[:, 1])
+    return d * np.where(norm > max_m_s, max_m_s / np.where(norm > 0, norm, 1), 1.0)[:, None]
+
+
 @dataclass
 class Actuation:
     """What :func:`actuate` decided beyond the setpoints: the rows whose setpoint failed (with
@@ -494,7 +524,9 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     * the climb: a weak hold of the take-off spot, the climb-capped altitude hold, plus d̂
       once airborne;
     * in the tube: the controller's command (rows ``cmd_rows`` get ``cmds``; the others zero)
-      plus d̂, the altitude hold; a vehicle standing still (``standstill``) zero plus d̂;
+      plus d̂, the altitude hold; a vehicle standing still (``standstill``) or waiting zero
+      plus d̂; one stepping aside towards its point (``step_xy``, :data:`STEP_GAIN_1_S`,
+      at most :data:`STEP_MAX_M_S`) plus d̂, zero until it has one;
     * past the (route's last) finishing line:
       :func:`~vtube_fleet.fleet.flight_plan.exit_velocities` plus d̂, or zero and hold when
       blocked, or hold / land once ``exit_clear_m`` past it (``after_exit``); with
@@ -513,24 +545,22 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     zero = open_ & (tab.in_transition | (ph == _ARMING))
     climb = open_ & ~zero & (ph == _TAKEOFF)
     tube = open_ & ~zero & (ph == _IN_TUBE)
+    aside = open_ & ~zero & ((ph == _WAITING) | (ph == _STEPPING))
     exited = open_ & ~zero & (ph == _EXITED)
-    idle = open_ & ~(zero | climb | tube | exited)
+    idle = open_ & ~(zero | climb | tube | aside | exited)
     tab.cmd_set[idle] = False
     tab.cmd[idle] = np.nan
     vx = np.zeros(n)
     vy = np.zeros(n)
     comp = np.zeros(n, bool)  # add d̂
-    send = zero | climb | tube | exited
+    send = zero | climb | tube | aside | exited
     hold: list[tuple[int, str]] = []
     land: list[tuple[int, str]] = []
     # the climb: hold the take-off spot
     if climb.any():
         r = np.flatnonzero(climb)
-        d = TAKEOFF_XY_GAIN_1_S * (tab.takeoff_xy[r] - tab.xy[r])
-        d = np.where((np.isfinite(d).all(axis=1) & tab.has[r])[:, None], d, 0.0)
-        norm = np.hypot(d[:, 0], d[:, 1])
-        d *= np.where(norm > TAKEOFF_XY_MAX_M_S, TAKEOFF_XY_MAX_M_S / np.where(norm > 0, norm, 1),
-                      1.0)[:, None]
+        d = _toward(tab.takeoff_xy[r], tab.xy[r], tab.has[r], TAKEOFF_XY_GAIN_1_S,
+                    TAKEOFF_XY_MAX_M_S)
         vx[r], vy[r] = d[:, 0], d[:, 1]
         comp[r] = links.in_air[r] | (np.nan_to_num(tab.up[r], nan=-math.inf) > AIRBORNE_UP_M)
     # the tube: the controller's commands
@@ -546,6 +576,13 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         vx[r], vy[r] = c[:, 0], c[:, 1]
         comp[r] = True
         tab.cmd_in_tube[r] = controlled[r]
+    # waiting (zero) or stepping aside (to its point, once it has one)
+    if aside.any():
+        r = np.flatnonzero(aside)
+        go = (ph[r] == _STEPPING) & tab.step_set[r] & tab.has[r] & ~tab.standstill[r]
+        d = _toward(tab.step_xy[r], tab.xy[r], go, STEP_GAIN_1_S, STEP_MAX_M_S)
+        vx[r], vy[r] = d[:, 0], d[:, 1]
+        comp[r] = True
     # past the finishing line
     if exited.any():
         r = np.flatnonzero(exited)
@@ -619,6 +656,10 @@ class NeighbourSource(Protocol):
 
     def problem(self, now_wall: float) -> str | None:
         """Why those states cannot be trusted now (None: they can)."""
+
+    # (optional) ``tube_stages(now_wall) -> (bool, ids)``: whether a vehicle this source does
+    # not hear may fly among the others, and the ids of those waiting in the tube, fleet-wide
+    # (an agent's bus: the statuses every agent hears; states only reach nearby cells)
 
 
 @dataclass
@@ -767,10 +808,10 @@ class Tick:
         untrusted = None
         view: NeighbourView | None = None
         tab.standstill[:] = False
-        if self.neighbours is not None and bool(((ph == _IN_TUBE) | (ph == _EXITED)).any()):
+        if self.neighbours is not None and bool((_IN_TUBE_MASK[ph] | (ph == _EXITED)).any()):
             untrusted = self.neighbours.problem(now_wall)
         if untrusted is not None:
-            tab.standstill[(ph == _IN_TUBE) | (ph == _EXITED)] = True
+            tab.standstill[_IN_TUBE_MASK[ph] | (ph == _EXITED)] = True
         else:
             everyone = states
             lost_after: float | np.ndarray = math.inf  # own vehicles: lost by the fault rules
@@ -784,8 +825,9 @@ class Tick:
                          else now_wall - (now_mono - listening_since))
             view = classify(everyone, now_wall, max_age_s=self.cfg.neighbour_max_age_s,
                             lost_after_s=lost_after, heard_since_s=heard)
-            # 6. plan: re-partition around lost and stopped vehicles
-            self._replan(view, t)
+            # 6. plan: re-partition around lost and stopped vehicles; waiting ones released
+            current = self._replan(view, t)
+            self._waiting(everyone, view, current, now_wall)
         cmd_rows, cmds = self._commands(view, t)
         # 7. actuate
         act = actuate(tab, links, self.links, mission, self.plan, now_mono, cmd_rows, cmds, view)
@@ -810,13 +852,14 @@ class Tick:
         return TickResult(links, states, rows, ages, view, untrusted, t,
                           self.cfg.neighbour_max_age_s)
 
-    def _replan(self, view: NeighbourView, t: float) -> None:
+    def _replan(self, view: NeighbourView, t: float) -> bool:
         """Re-partition if the set of lost-vehicle obstacles inside the route changed, while a
-        vehicle here still flies (the climb or the tube)."""
+        vehicle here still flies (the climb or the tube, or steps aside). True when the plan
+        flown is the one for this view's stopped vehicles."""
         if not view.lost_ids.size and not self.plan.lost:
-            return
+            return True
         if not _FLYING_TUBE_MASK[self.table.phase].any():
-            return  # nobody here left to fly the tube
+            return False  # nobody here left to fly the tube
         root = self.root
         lost = lost_obstacles(view, root.corridor, self.lost_radius_m, root.flown)
         try:
@@ -824,16 +867,18 @@ class Tick:
         except PartitionError as exc:
             if self.on_replan_failed is not None:
                 self.on_replan_failed(exc, view)
-            return
+            return False
         if got is None:
-            return  # being planned in the worker: the current plan flies on meanwhile
+            return False  # being planned in the worker: the current plan flies on meanwhile
         new, own = got
         if new is not self.plan:
             self.plan = new
             self.own_plans = {}
+            self.table.step_set[self.table.phase == _STEPPING] = False  # (a new point)
             if self.on_replan is not None:
                 self.on_replan(new, t)
             self._land_the_trapped(new, own)
+        return True
 
     def _plan_with_lost(self, root: FlightPlan, lost: tuple[Obstacle, ...]
                         ) -> Replanned | None:
@@ -887,7 +932,7 @@ class Tick:
         (stopped, it is an obstacle for everyone at the next tick). The others fly on.
         Vehicles already past the lost one are not in that region and finish."""
         tab = self.table
-        rows = np.flatnonzero(_FLYING_TUBE_MASK[tab.phase] & tab.has)
+        rows = np.flatnonzero(_TRAPPABLE_MASK[tab.phase] & tab.has)
         if not rows.size:
             return
         trapped = rows[plan.cannot_pass(tab.xy[rows], tab.segment[rows])]
@@ -907,8 +952,72 @@ class Tick:
                 continue
             why = (f"cannot pass the stopped vehicle(s): at ({x:.2f}, {y:.2f}), inside the "
                    f"region the new partition takes around them (no safe sub-tube)")
+            if tab.phase[r] == _IN_TUBE and self.cfg.on_trapped == "wait":
+                pilot.begin_wait(why + "; waits there until nobody else flies the tube, then "
+                                       "steps aside into a sub-tube")
+                continue
             pilot.reason = pilot.reason or why
             pilot.begin_land(why, "warning")
+
+    def _waiting(self, everyone: States, view: NeighbourView, current: bool,
+                 now_wall: float) -> None:
+        """Waiting for a way (docs/fleet.md): a vehicle here stepping aside gets its point
+        once the plan without it is flown (``current``) (:meth:`FlightPlan.step_aside`; none:
+        it lands), and flies the controller again once there, outside every region; a
+        waiting one is released (→ STEPPING) when no vehicle flies among the others —
+        arming, climbing, in the tube or stepping aside: of those heard (``everyone``, the
+        silent ones of ``view`` aside) and, from an agent's bus, of the whole fleet
+        (``tube_stages``) — and it has the smallest id of those waiting: every process
+        decides alike, so one moves at a time."""
+        tab = self.table
+        ph = tab.phase
+        stepping = np.flatnonzero((ph == _STEPPING) & tab.has)
+        if stepping.size and current:
+            for r in stepping[~tab.step_set[stepping]].tolist():
+                self._step_point(r)
+            there = stepping[tab.step_set[stepping] & (np.hypot(
+                *(tab.step_xy[stepping] - tab.xy[stepping]).T) <= STEP_ARRIVED_M)]
+            if there.size:
+                free = there[~self.plan.cannot_pass(tab.xy[there], tab.segment[there])]
+                for r in free.tolist():
+                    x, y = tab.xy[r]
+                    self.pilots[r].resume_tube(f"at ({x:.2f}, {y:.2f}), inside a sub-tube: "
+                                               "flies the tube again")
+        if not (ph == _WAITING).any():
+            return
+        heard = ~np.isin(everyone.ids, view.lost_ids)
+        if _BUSY_MASK[everyone.phase[heard]].any():
+            return
+        waiting = everyone.ids[everyone.phase == _WAITING]
+        fleet = getattr(self.neighbours, "tube_stages", None)
+        if fleet is not None:
+            busy, also = fleet(now_wall)
+            if busy:
+                return
+            waiting = np.union1d(waiting, np.asarray(also, np.int64))
+        first = int(waiting.min())
+        for r in np.flatnonzero((tab.ids == first) & (ph == _WAITING)).tolist():
+            self.pilots[r].begin_step("released: nobody else flies the tube and it has the "
+                                      "smallest id of those waiting")
+
+    def _step_point(self, r: int) -> None:
+        """The point row ``r`` steps aside to under the current plan, or it lands."""
+        tab = self.table
+        x, y = tab.xy[r]
+        q = self.plan.step_aside(tab.xy[r], int(tab.segment[r]))
+        pilot = self.pilots[r]
+        if q is None:
+            why = (f"cannot step aside from ({x:.2f}, {y:.2f}) into a sub-tube: no straight "
+                   f"path across the tube keeps out of every obstacle's O' and r_s' inside "
+                   f"the legs")
+            pilot.reason = pilot.reason or why
+            pilot.begin_land(why, "warning")
+            return
+        tab.step_xy[r] = q
+        tab.step_set[r] = True
+        pilot.event(f"steps aside {float(np.hypot(q[0] - x, q[1] - y)):.2f} m from ({x:.2f}, "
+                    f"{y:.2f}) to ({q[0]:.2f}, {q[1]:.2f}), inside a sub-tube of the partition "
+                    f"without it")
 
     def _commands(self, view: NeighbourView | None, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Exits (TraCondition on the route's last finishing line, for the vehicles flying the

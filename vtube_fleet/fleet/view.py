@@ -184,7 +184,8 @@ def _level(value: float, limit: float) -> str:
 _STYLE = {"bad": "bold red", "near": "yellow", "ok": "", "": ""}
 _PHASE_STYLE = {"lost": "bold red", "failed": "bold red", "holding": "yellow",
                 "landing": "magenta", "in_tube": "cyan", "exited": "green", "landed": "dim",
-                "takeoff": "bright_yellow", "arming": "bright_yellow"}
+                "takeoff": "bright_yellow", "arming": "bright_yellow", "waiting": "yellow",
+                "stepping": "cyan"}
 
 
 @dataclass(frozen=True)

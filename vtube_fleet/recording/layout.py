@@ -307,7 +307,7 @@ COMMAND_COLOR = 0xBDBDBD90
 
 #: Annotation classes of the vehicle points and trails (``AnnotationContext`` at ``world``):
 #: (class id, phase value or ``""`` for a robot without phases (the simulator), legend label,
-#: RGBA colour). Class ids are stable (recordings keep their meaning).
+#: RGBA colour). Class ids are stable (recordings keep their meaning); "other" comes last.
 PHASE_CLASSES: tuple[tuple[int, str, str, int], ...] = (
     (0, "", "robot", 0x1E88E5FF),
     (1, "connecting", "connecting", 0xBDBDBDFF),
@@ -321,7 +321,9 @@ PHASE_CLASSES: tuple[tuple[int, str, str, int], ...] = (
     (9, "landed", "landed", 0xA1887FFF),
     (10, "lost", "LOST", 0xFF1744FF),
     (11, "failed", "FAILED", 0x880E4FFF),
-    (12, "?", "other", 0xFF6E40FF),
+    (13, "waiting", "waiting", 0xC6FF00FF),
+    (14, "stepping", "stepping aside", 0x006064FF),
+    (12, "?", "other", 0xFF6E40FF),  # (last: the colour of anything else)
 )
 
 

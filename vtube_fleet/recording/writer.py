@@ -537,7 +537,7 @@ class RerunRecorder:
     def _legend_class(self, cid: int) -> bool:
         """Which annotation classes the legend lists: the phases (fleet), none for the
         simulator (one colour, no phases)."""
-        return self.kind != "sim" and 0 < cid < PHASE_CLASSES[-1][0]
+        return self.kind != "sim" and 0 < cid != PHASE_CLASSES[-1][0]
 
     def _view_bounds(self, frame: tuple[float, float, float, float]
                      ) -> tuple[float, float, float, float]:

@@ -169,9 +169,10 @@ class RunMonitor:
             if not 0 <= vid < m:
                 continue
             p = (st.x_m, st.y_m)
-            # judged in the tube: flying it, or stopped inside it (lost, holding, landing)
+            # judged in the tube: flying it, or stopped (lost, holding, landing, waiting) or
+            # stepping aside inside it
             if st.phase == Phase.IN_TUBE or (
-                (st.phase == Phase.LOST or st.phase in STOPPED_PHASES)
+                (st.phase in (Phase.LOST, Phase.STEPPING) or st.phase in STOPPED_PHASES)
                 and bool(corridor.inside(np.array(p))[0])
             ):
                 pos[vid] = p

@@ -14,7 +14,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -54,7 +54,7 @@ from vtube_fleet.fleet.table import FleetTable
 from vtube_fleet.fleet.tick import ControlClock, Tick, watch_budget
 from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
 from vtube_fleet.recording.api import NullRecorder, Recorder
-from vtube_fleet.state import AIRBORNE_PHASES, NeighbourState, Phase
+from vtube_fleet.state import AIRBORNE_PHASES, TUBE_PHASES, NeighbourState, Phase
 
 __all__ = [
     "AgentAborted",
@@ -136,8 +136,11 @@ class BusNeighbours:
     plan alone."""
 
     def __init__(self, mqtt: Any, *, max_age_s: float, lost_after_s: float,
-                 period_s: float) -> None:
+                 period_s: float, teammates: Callable[[], Iterable[int]] | None = None,
+                 gone: Callable[[int], bool] | None = None) -> None:
         self.mqtt = mqtt
+        self.teammates = teammates
+        self.gone = gone
         self.max_age_s = float(max_age_s)
         self.lost_after_s = float(lost_after_s)
         self.period_s = float(period_s)
@@ -146,6 +149,27 @@ class BusNeighbours:
 
     def states(self, now_wall: float) -> States:
         return states_of(self.mqtt.latest().values())
+
+    def tube_stages(self, now_wall: float) -> tuple[bool, list[int]]:
+        """The fleet-wide part of releasing a waiting vehicle (Tick._waiting; states reach
+        only nearby cells, statuses every agent): whether a teammate that is not gone may fly
+        among the others (its status stage neither ``waiting`` nor past the tube: ``exited``
+        or ``done``), and the teammates waiting (stage ``waiting``). Without teammates (no
+        run): (False, [])."""
+        if self.teammates is None:
+            return False, []
+        own = getattr(self.mqtt, "vehicle_id", None)
+        busy, waiting = False, []
+        for v in self.teammates():
+            if v == own or (self.gone is not None and self.gone(v)):
+                continue
+            st = self.mqtt.statuses.get(v)
+            stage = st.stage if st is not None and st.run_id == self.mqtt.run_id else ""
+            if stage == "waiting":
+                waiting.append(v)
+            elif stage not in _OUT_STAGES:
+                busy = True
+        return busy, waiting
 
     def problem(self, now_wall: float) -> str | None:
         """Why neighbour information cannot be trusted now (None: it can)."""
@@ -190,14 +214,18 @@ class AgentControl:
 
     def __init__(self, pilot: VehiclePilot, mqtt: MqttBus, mission: Any, plan: FlightPlan, *,
                  max_age_s: float, broker_hold_limit_s: float = 30.0,
-                 wall_clock: Callable[[], float] = time.time) -> None:
+                 wall_clock: Callable[[], float] = time.time,
+                 teammates: Callable[[], Iterable[int]] | None = None,
+                 gone: Callable[[int], bool] | None = None) -> None:
         cfg = mission.config
         self.pilot = pilot
         self.mqtt = mqtt
         self.cfg = cfg
         self.broker_hold_limit_s = broker_hold_limit_s
         self.neighbours = BusNeighbours(mqtt, max_age_s=max_age_s,
-                                        lost_after_s=cfg.lost_after_s, period_s=cfg.period_s)
+                                        lost_after_s=cfg.lost_after_s, period_s=cfg.period_s,
+                                        teammates=teammates, gone=gone)
+        self._told_waiting = False  # the status stage says "waiting"
         self._replan_worker = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.tick = Tick(pilot.table, [pilot], mission, plan, frame=pilot.frame,
                          neighbours=self.neighbours, publish=mqtt.publish,
@@ -268,6 +296,7 @@ class AgentControl:
         try:
             result = self.tick(now_mono, now_wall, listening_since)
             self._bus_rule(now_mono, result.untrusted)
+            self._tell_waiting()
             if result.untrusted is None and self.watch is not None:
                 warning, hold = watch_budget(
                     self.watch, self.pilot.table, result, self.clock.take_recent_gap(),
@@ -311,6 +340,14 @@ class AgentControl:
             self.stop_for(why)
             pilot.begin_land(why)
 
+    def _tell_waiting(self) -> None:
+        """Every teammate hears (the status stage) when this vehicle starts and stops waiting
+        in the tube: the release of a waiting vehicle is fleet-wide (Tick._waiting)."""
+        waiting = self.pilot.phase == Phase.WAITING
+        if waiting != self._told_waiting:
+            self._told_waiting = waiting
+            self.mqtt.announce("online", stage="waiting" if waiting else "in_tube")
+
     def _exited(self, rows: np.ndarray, t_s: float) -> None:
         self.mqtt.announce("online", stage="exited")  # every teammate hears it
 
@@ -336,7 +373,7 @@ class AgentControl:
             self._aborted = True
             self.pilot.event(f"ABORT: {why}", "error")
         self.stop_for(why)
-        if self.pilot.phase in (Phase.IN_TUBE, Phase.EXITED):
+        if self.pilot.phase in TUBE_PHASES | {Phase.EXITED}:
             self.pilot.begin_hold("mission aborted")
 
 
@@ -906,6 +943,7 @@ class AgentProcess:
         pilot = VehiclePilot(link, table, 0, self.mission)
         pilot.fence = self.fence
         control = AgentControl(pilot, self.bus, self.mission, self._plan(budget),
+                               teammates=self._teammates, gone=self._gone,
                                max_age_s=self.max_age_s,
                                broker_hold_limit_s=self.broker_hold_limit_s,
                                wall_clock=self.wall_clock)
