@@ -321,6 +321,43 @@ async def test_vehicle_dies_mid_tube_and_the_others_pass(tmp_path: Path) -> None
           f"{clearance:.3f} m")
 
 
+async def test_a_vehicle_right_behind_a_lost_one_waits_steps_aside_and_finishes(
+        tmp_path: Path) -> None:
+    """Vehicle 1 flies 5 m behind vehicle 0 on the tube's axis; vehicle 0's link dies. Vehicle
+    1 is inside the lost vehicle's new region and no command of the controller could get it
+    out (the cone behind a stopped vehicle): it waits there (an obstacle for the others),
+    vehicle 2 passes and exits, then vehicle 1 is released, steps aside across the tube into
+    a sub-tube, and flies on to the finishing line. The rest of the fleet finishes, judged by
+    the ground truth."""
+    positions = [[9.0, 0.0], [4.0, 0.0], [2.0, 5.0]]
+    mission = mission_file(tmp_path, straight_mission(36.0, positions, on_complete="hold"))
+    killed: list[np.ndarray] = []
+    phases1: list[str] = []
+    async with mock_fleet(mission, **boot(3, seed=5)) as fleet:
+        log = TruthLog(fleet, mission)
+
+        def hook(tick: int, sup: Supervisor) -> None:
+            log(tick, sup)
+            p = sup.pilots[0]
+            if not killed and p.phase.value == "in_tube" and p.xy[0] > 14.0:
+                killed.append(p.xy.copy())
+                fleet.kill(0, "silent")
+            ph = sup.pilots[1].phase.value
+            if not phases1 or phases1[-1] != ph:
+                phases1.append(ph)
+
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3],
+                           out_dir=tmp_path, truth=True, tick_hook=hook)
+    assert killed, f"vehicle 0 never reached x = 14 m: {result.outcome}: {result.reason}"
+    s = result.summary
+    assert s["lost"] == [0] and s["exited"] == 2, (result.reason, phases1)
+    assert "in_tube,waiting,stepping,in_tube,exited" in ",".join(phases1), phases1
+    assert s["truth"] and s["truth_violations"] == 0 and s["violations"] == 0
+    truth = assert_true_clearance(log)
+    print(f"killed at ({killed[0][0]:.2f}, {killed[0][1]:.2f}); vehicle 1: "
+          f"{' → '.join(phases1)}; truth {truth}")
+
+
 async def test_vehicle_lost_beside_the_obstacle_the_others_pass(tmp_path: Path) -> None:
     """The fault real PX4 SITL flew (docs/fleet.md, "Losing a vehicle"): px4_sitl_3, vehicle
     1's link dies 15 m into the tube, beside obstacle #1, where today's rules (1.05 h_min,

@@ -659,8 +659,9 @@ async def test_a_vehicle_flying_its_own_plan_lands_when_its_residual_exceeds_D(
 async def test_an_agent_releases_its_waiting_vehicle_only_when_the_fleet_lets_it() -> None:
     """An agent's waiting vehicle (one row; the others heard on its bus, all past the tube)
     is released only when its bus's fleet-wide statuses (``tube_stages``: states reach only
-    nearby cells) say nobody else flies the tube, and only if it has the smallest id of
-    those waiting; released, it steps aside (here 0 m: nothing stopped is left)."""
+    nearby cells) say nobody else flies the tube, and — not hearing the others' states —
+    only if it has the smallest id of those waiting; released, it steps aside (here 0 m:
+    nothing stopped is left)."""
     sup, _links = memory_fleet(4, now_s=100.0)
     tick, pilot, _link, bus = _agents(sup, 4, 100.0)[1]
     pilot.set_phase(Phase.WAITING)

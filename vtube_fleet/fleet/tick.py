@@ -967,8 +967,10 @@ class Tick:
         waiting one is released (→ STEPPING) when no vehicle flies among the others —
         arming, climbing, in the tube or stepping aside: of those heard (``everyone``, the
         silent ones of ``view`` aside) and, from an agent's bus, of the whole fleet
-        (``tube_stages``) — and it has the smallest id of those waiting: every process
-        decides alike, so one moves at a time."""
+        (``tube_stages``) — and it is the waiting vehicle farthest along the route (ties: the
+        smallest id; it leaves the way free for those behind it); an agent that does not hear
+        every waiting vehicle (states reach nearby cells only) takes the smallest id
+        instead. Every process decides alike, so one moves at a time."""
         tab = self.table
         ph = tab.phase
         stepping = np.flatnonzero((ph == _STEPPING) & tab.has)
@@ -988,17 +990,28 @@ class Tick:
         heard = ~np.isin(everyone.ids, view.lost_ids)
         if _BUSY_MASK[everyone.phase[heard]].any():
             return
-        waiting = everyone.ids[everyone.phase == _WAITING]
+        w = np.flatnonzero((everyone.phase == _WAITING) & np.isfinite(everyone.pos).all(axis=1))
+        ids = everyone.ids[w]
+        unheard = np.zeros(0, np.int64)
         fleet = getattr(self.neighbours, "tube_stages", None)
         if fleet is not None:
             busy, also = fleet(now_wall)
             if busy:
                 return
-            waiting = np.union1d(waiting, np.asarray(also, np.int64))
-        first = int(waiting.min())
+            unheard = np.setdiff1d(np.asarray(also, np.int64), ids)
+        if not ids.size and not unheard.size:
+            return
+        if unheard.size:  # (an agent that does not hear every waiting vehicle)
+            first, how = int(np.union1d(ids, unheard).min()), "it has the smallest id"
+        else:
+            route = self.plan.route
+            seg = route.start_segments(everyone.pos[w])
+            xi = route.xi(everyone.pos[w], seg)
+            first = int(ids[np.lexsort((ids, -xi, -seg))[0]])
+            how = "it is the farthest along the tube"
         for r in np.flatnonzero((tab.ids == first) & (ph == _WAITING)).tolist():
-            self.pilots[r].begin_step("released: nobody else flies the tube and it has the "
-                                      "smallest id of those waiting")
+            self.pilots[r].begin_step(f"released: nobody else flies the tube and {how} of "
+                                      f"those waiting")
 
     def _step_point(self, r: int) -> None:
         """The point row ``r`` steps aside to under the current plan, or it lands."""
