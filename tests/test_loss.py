@@ -395,9 +395,9 @@ def _path_clear(p, q, obstacles, flown, tube) -> bool:
 def test_a_vehicle_behind_a_lost_one_steps_aside_into_a_sub_tube():
     """A vehicle at rest 3 m behind a lost one, on its axis (inside its triangle: it cannot
     pass, and no command of the controller gets it out: the cone behind a stopped vehicle):
-    the nearest point across n_c inside a sub-tube (by the clearance asked), on a straight
-    path outside every O' and r_s inside the legs; the left side on a tie; p itself when it
-    is already outside every region."""
+    the nearest point straight across n_c (no step back) inside a sub-tube (by the
+    clearance asked), on a path outside every O' and r_s inside the legs; the left side on a
+    tie; p itself when it is already outside every region."""
     _, flown, r_lost = PX4
     tube = Trapezoid((0.0, 10.0), (40.0, 10.0), (0.0, -10.0), (40.0, -10.0))
     lost = lost_at(20.0, 0.0, r_lost, flown)
@@ -405,23 +405,26 @@ def test_a_vehicle_behind_a_lost_one_steps_aside_into_a_sub_tube():
     zones = apex_zones(part, flown)
     p = np.array([17.0, 0.0])
     assert cannot_pass(part, p[None], zones)[0]
-    q = step_aside(tube, part, (lost,), flown, p, zones=zones)
-    assert q is not None and q[0] == pytest.approx(17.0) and q[1] > 0.0  # left, on a tie
+    via, q = step_aside(tube, part, (lost,), flown, p, zones=zones)
+    assert np.array_equal(via, p)
+    assert q[0] == pytest.approx(17.0) and q[1] > 0.0  # left, on a tie
     assert wall_clearance(part, q[None], zones)[0] >= 0.3
     assert _path_clear(p, q, (lost,), flown, tube)
     # the nearest: a step 5 cm shorter is still inside (or too near the side)
     back = q - 0.05 * np.array([0.0, 1.0])
     assert wall_clearance(part, back[None], zones)[0] < 0.3
     # off the axis: the nearer side
-    q2 = step_aside(tube, part, (lost,), flown, np.array([17.0, -0.4]), zones=zones)
-    assert q2 is not None and q2[1] < -0.4
+    _, q2 = step_aside(tube, part, (lost,), flown, np.array([17.0, -0.4]), zones=zones)
+    assert q2[1] < -0.4
     free = np.array([5.0, 6.0])
-    assert np.array_equal(step_aside(tube, part, (lost,), flown, free, zones=zones), free)
+    via, q = step_aside(tube, part, (lost,), flown, free, zones=zones)
+    assert np.array_equal(via, free) and np.array_equal(q, free)
 
 
-def test_no_step_aside_when_both_sides_are_closed():
+def test_stepping_aside_backs_away_first_when_across_is_closed():
     """The same vehicle with an obstacle on either side of it, whose O' it would enter on
-    its way out of the triangle (while still inside): None (the runtime lands it)."""
+    its way out of the triangle while still inside: it backs away along −n_c first (out of
+    the obstacles' reach), then crosses: the shortest such path, every leg of it clear."""
     _, flown, r_lost = PX4
     tube = Trapezoid((0.0, 10.0), (40.0, 10.0), (0.0, -10.0), (40.0, -10.0))
     lost = lost_at(20.0, 0.0, r_lost, flown)
@@ -429,15 +432,20 @@ def test_no_step_aside_when_both_sides_are_closed():
     zones = apex_zones(part, flown)
     p = np.array([17.0, 0.0])
     sides = tuple(Obstacle(np.array([17.0, y]), 0.5, None) for y in (3.5, -3.5))
-    assert step_aside(tube, part, (lost,), flown, p, zones=zones) is not None
-    assert step_aside(tube, part, (lost, *sides), flown, p, zones=zones) is None
-    assert step_aside(tube, part, (lost, sides[0]), flown, p, zones=zones)[1] < 0.0
+    obs = (lost, *sides)
+    via, q = step_aside(tube, part, obs, flown, p, zones=zones)
+    assert via[1] == pytest.approx(0.0) and via[0] < 17.0  # back along the axis first
+    assert q[0] == pytest.approx(via[0]) and abs(q[1]) > 0.0
+    assert wall_clearance(part, q[None], zones)[0] >= 0.3
+    assert _path_clear(p, via, obs, flown, tube) and _path_clear(via, q, obs, flown, tube)
+    # no way back either (nothing behind the start base): none
+    assert step_aside(tube, part, obs, flown, p, zones=zones, max_back_m=0.0) is None
 
 
 def test_the_flight_plan_steps_aside_in_the_vehicles_segment():
     """FlightPlan.step_aside: px4_sitl_3 re-planned around a vehicle lost behind obstacle #1
-    (the SITL budget); a vehicle waiting right behind the lost one gets a point inside a
-    sub-tube of that plan, on a path clear of every obstacle of the route."""
+    (the SITL budget); a vehicle waiting right behind the lost one gets a path into a
+    sub-tube of that plan, clear of every obstacle of the route."""
     from vtube_fleet.config.mission import load_mission as load
 
     mission = load(PX4_SITL_3)
@@ -447,6 +455,8 @@ def test_the_flight_plan_steps_aside_in_the_vehicles_segment():
     plan = root.with_lost((lost,))
     p = np.array([8.5, -6.0])
     assert plan.cannot_pass(p[None])[0]
-    q = plan.step_aside(p)
-    assert q is not None and not plan.cannot_pass(q[None])[0]
-    assert _path_clear(p, q, plan.all_obstacles, flown, plan.route.segments[0].tube)
+    via, q = plan.step_aside(p)
+    assert not plan.cannot_pass(q[None])[0]
+    tube = plan.route.segments[0].tube
+    assert _path_clear(p, via, plan.all_obstacles, flown, tube)
+    assert _path_clear(via, q, plan.all_obstacles, flown, tube)

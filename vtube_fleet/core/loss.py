@@ -65,11 +65,11 @@ sub-tube) and the pair barrier is partition-free, so the others keep the common 
 
 **Stepping aside** (:func:`step_aside`): a vehicle that cannot pass waits where it is (the
 runtime stops it: an obstacle for the others). Once nobody else flies the tube, it is
-released: a multicopter at rest can move sideways, across n_c, which no command of the
-controller does (its speed never drops below v_min). The nearest point across n_c, on
-either side, that is inside a sub-tube of the partition without it, reached on a straight
-path that keeps out of every O' and r_s inside the tube's legs, is where it goes before it
-flies the controller again from there.
+released: a multicopter at rest can move sideways, across n_c, or back, which no command of
+the controller does (its speed never drops below v_min). The shortest path — straight back
+along the tube (often no distance at all), then straight across it — to a point inside a
+sub-tube of the partition without it, that keeps out of every O' and r_s inside the tube's
+legs, is where it goes before it flies the controller again from there.
 
 Everything here is deterministic and independent of where the other vehicles are, so every
 agent that sees the same lost discs builds the same partition. Pure numpy.
@@ -848,45 +848,67 @@ STEP_ASIDE_RES_M = 0.05
 #: How far inside its sub-tube a vehicle stepping aside stops (m), beyond the region's side:
 #: the estimate's jitter must not put it back inside.
 STEP_ASIDE_CLEARANCE_M = 0.3
+#: The steps (m) of how far back along the tube a vehicle stepping aside may go first, and at
+#: most how far (m).
+STEP_ASIDE_BACK_STEP_M = 0.5
+STEP_ASIDE_MAX_BACK_M = 15.0
 
 
 def step_aside(tube: Trapezoid, part: Partition, obstacles: Sequence[Obstacle],
                params: ControllerParams, p: np.ndarray, *, zones: Sequence[ApexZone] = (),
                clearance_m: float = STEP_ASIDE_CLEARANCE_M,
-               res_m: float = STEP_ASIDE_RES_M) -> np.ndarray | None:
+               res_m: float = STEP_ASIDE_RES_M,
+               back_step_m: float = STEP_ASIDE_BACK_STEP_M,
+               max_back_m: float = STEP_ASIDE_MAX_BACK_M
+               ) -> tuple[np.ndarray, np.ndarray] | None:
     """Where a vehicle at rest at ``p`` (2,) inside a region of ``part`` steps to (module
-    docstring, "stepping aside"): the point q = p + s·n_⊥ with the smallest |s| (either side
-    of n_c, ties to the left) such that :func:`wall_clearance` (q) ≥ ``clearance_m`` (inside
-    a sub-tube) and every point of the segment p→q (sampled every ``res_m``) is outside
-    every O' (‖x − p_o‖ > r_o + r_s of ``obstacles``) and at least r_s inside ``tube``'s
-    legs (a ``p`` already closer, by its estimate: no closer than it is). ``p`` itself when
-    it is already there; None when neither side has such a point. Pure."""
+    docstring, "stepping aside"), as (via, q): straight back along −n_c from ``p`` to
+    ``via`` = p − b·n_c (b a multiple of ``back_step_m`` up to ``max_back_m``, ξ ≥ 0;
+    b = 0 first), then straight across n_c to q = via + s·n_⊥ (either side, ties to the
+    left), such that :func:`wall_clearance` (q) ≥ ``clearance_m`` (inside a sub-tube) and
+    every point of both legs of the path (sampled every ``res_m``) is outside every O'
+    (‖x − p_o‖ > r_o + r_s of ``obstacles``) and at least r_s inside ``tube``'s legs (no
+    closer than ``p`` already is, by its estimate): the shortest such path, b + |s|.
+    (``p``, ``p``) when it is already there; None when there is none. A region's apex is
+    upstream, so backing away is how a vehicle beside an obstacle that closes one passage
+    reaches the other. Pure."""
     p = np.asarray(p, dtype=float).reshape(2)
     side = np.array([-tube.n_c[1], tube.n_c[0]])  # n_⊥, to the left of n_c
     r_s = float(params.r_s)
     c = (np.array([o.center for o in obstacles], dtype=float).reshape(-1, 2)
          if len(obstacles) else np.zeros((0, 2)))
     R = np.array([float(o.radius) for o in obstacles]) + r_s
-    reach = abs(float(tube.width(float(tube.xi(p))))) + 2.0 * r_s
     leg_min = min(r_s, float(min(tube.d_Th(p), tube.d_Tr(p))))
     R = np.minimum(R, np.hypot(p[0] - c[:, 0], p[1] - c[:, 1]) - 1e-9) if c.shape[0] else R
-    s = np.arange(0.0, reach + res_m, res_m)
-    best: np.ndarray | None = None
-    best_s = math.inf
-    for sign in (1.0, -1.0):
-        x = p + (sign * s)[:, None] * side
+
+    def good(x: np.ndarray) -> int:
+        """How many of the path's samples ``x`` (k, 2), from its start, are good."""
         ok = np.minimum(tube.d_Th(x), tube.d_Tr(x)) >= leg_min
         if c.shape[0]:
             d = np.hypot(x[:, None, 0] - c[None, :, 0], x[:, None, 1] - c[None, :, 1])
             ok &= (d > R[None, :]).all(axis=1)
-        # the path is good up to the first bad sample
         bad = np.flatnonzero(~ok)
-        n_ok = int(bad[0]) if bad.size else s.size
-        if not n_ok:
-            continue
-        there = wall_clearance(part, x[:n_ok], zones) >= clearance_m
-        if there.any():
-            k = int(np.flatnonzero(there)[0])
-            if s[k] < best_s:
-                best, best_s = x[k], float(s[k])
+        return int(bad[0]) if bad.size else int(x.shape[0])
+
+    xi_p = float(tube.xi(p))
+    b_all = np.arange(0.0, min(max_back_m, max(xi_p, 0.0)) + res_m, res_m)
+    n_back = good(p - b_all[:, None] * tube.n_c)  # how far back the way is clear
+    best: tuple[np.ndarray, np.ndarray] | None = None
+    best_len = math.inf
+    for b in np.arange(0.0, b_all[n_back - 1] + 1e-9 if n_back else -1.0, back_step_m):
+        if b >= best_len:
+            break
+        via = p - b * tube.n_c
+        reach = abs(float(tube.width(float(tube.xi(via))))) + 2.0 * r_s
+        s = np.arange(0.0, reach + res_m, res_m)
+        for sign in (1.0, -1.0):
+            x = via + (sign * s)[:, None] * side
+            n_ok = good(x)
+            if not n_ok:
+                continue
+            there = wall_clearance(part, x[:n_ok], zones) >= clearance_m
+            if there.any():
+                k = int(np.flatnonzero(there)[0])
+                if b + s[k] < best_len:
+                    best, best_len = (via, x[k]), float(b + s[k])
     return best

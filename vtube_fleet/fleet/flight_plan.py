@@ -232,11 +232,13 @@ class FlightPlan:
             out[rows] = cannot_pass(part, p[rows], zones[int(s)] if self.lookahead else ())
         return out
 
-    def step_aside(self, p: np.ndarray, segment: int = -1) -> np.ndarray | None:
-        """Where a vehicle at rest at ``p`` (2,) flying ``segment`` (−1: the one it starts in)
-        steps to, across its segment's n_c, to be inside a sub-tube of this plan
-        (:func:`~vtube_fleet.core.loss.step_aside`, every obstacle of the route, configured
-        and lost, kept out of), or None."""
+    def step_aside(self, p: np.ndarray, segment: int = -1
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The path (via, q) a vehicle at rest at ``p`` (2,) flying ``segment`` (−1: the one
+        it starts in) steps aside on — back along its segment's n_c to ``via``, then across
+        it to ``q`` inside a sub-tube of this plan (:func:`~vtube_fleet.core.loss.
+        step_aside`, every obstacle of the route, configured and lost, kept out of) — or
+        None."""
         p = np.asarray(p, dtype=float).reshape(2)
         seg = int(segment) if segment >= 0 else int(self.route.start_segments(p[None])[0])
         s = self.route.segments[seg]

@@ -268,6 +268,7 @@ class VehiclePilot:
         """WAITING → STEPPING: released; it steps aside once the plan without it is known."""
         if self.phase == Phase.WAITING:
             self.table.step_set[self.row] = False
+            self.table.step_via[self.row] = np.nan
             self.set_phase(Phase.STEPPING, why)
 
     def resume_tube(self, why: str) -> None:

@@ -67,7 +67,8 @@ class FleetTable:
     ``offboard_seen`` (OFFBOARD confirmed once), ``still_since_s`` / ``still_xy`` (a slow spell
     being timed, and where it began), ``stop_xy`` / ``stop_set`` (where a stopped vehicle tells
     the others it is: :func:`~vtube_fleet.fleet.tick.own_states`), ``step_xy`` / ``step_set``
-    (where a vehicle released from waiting steps aside to, once the plan without it is known:
+    (where a vehicle released from waiting steps aside to, once the plan without it is known;
+    ``step_via``: the point back along the tube it goes to first, NaN once passed:
     :meth:`~vtube_fleet.fleet.tick.Tick.step_aside`), ``in_transition`` (a mode
     change in flight), ``standstill`` (stand still in the tube: zero velocity, no controller;
     the MQTT agent's broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none),
@@ -101,6 +102,7 @@ class FleetTable:
         self.stop_xy = np.full((n, 2), np.nan)
         self.stop_set = np.zeros(n, bool)
         self.step_xy = np.full((n, 2), np.nan)
+        self.step_via = np.full((n, 2), np.nan)
         self.step_set = np.zeros(n, bool)
         self.in_transition = np.zeros(n, bool)
         self.standstill = np.zeros(n, bool)

@@ -580,7 +580,9 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     if aside.any():
         r = np.flatnonzero(aside)
         go = (ph[r] == _STEPPING) & tab.step_set[r] & tab.has[r] & ~tab.standstill[r]
-        d = _toward(tab.step_xy[r], tab.xy[r], go, STEP_GAIN_1_S, STEP_MAX_M_S)
+        via = tab.step_via[r]
+        to = np.where(np.isfinite(via).all(axis=1)[:, None], via, tab.step_xy[r])
+        d = _toward(to, tab.xy[r], go, STEP_GAIN_1_S, STEP_MAX_M_S)
         vx[r], vy[r] = d[:, 0], d[:, 1]
         comp[r] = True
     # past the finishing line
@@ -977,8 +979,12 @@ class Tick:
         if stepping.size and current:
             for r in stepping[~tab.step_set[stepping]].tolist():
                 self._step_point(r)
-            there = stepping[tab.step_set[stepping] & (np.hypot(
-                *(tab.step_xy[stepping] - tab.xy[stepping]).T) <= STEP_ARRIVED_M)]
+            passed = stepping[np.hypot(*(tab.step_via[stepping] - tab.xy[stepping]).T)
+                              <= STEP_ARRIVED_M]  # (NaN: none, or passed)
+            tab.step_via[passed] = np.nan
+            there = stepping[tab.step_set[stepping] & ~np.isfinite(tab.step_via[stepping, 0])
+                             & (np.hypot(*(tab.step_xy[stepping] - tab.xy[stepping]).T)
+                                <= STEP_ARRIVED_M)]
             if there.size:
                 free = there[~self.plan.cannot_pass(tab.xy[there], tab.segment[there])]
                 for r in free.tolist():
@@ -1017,20 +1023,25 @@ class Tick:
         """The point row ``r`` steps aside to under the current plan, or it lands."""
         tab = self.table
         x, y = tab.xy[r]
-        q = self.plan.step_aside(tab.xy[r], int(tab.segment[r]))
+        path = self.plan.step_aside(tab.xy[r], int(tab.segment[r]))
         pilot = self.pilots[r]
-        if q is None:
-            why = (f"cannot step aside from ({x:.2f}, {y:.2f}) into a sub-tube: no straight "
-                   f"path across the tube keeps out of every obstacle's O' and r_s' inside "
-                   f"the legs")
+        if path is None:
+            why = (f"cannot step aside from ({x:.2f}, {y:.2f}) into a sub-tube: no path back "
+                   f"along the tube and then across it keeps out of every obstacle's O' and "
+                   f"r_s' inside the legs")
             pilot.reason = pilot.reason or why
             pilot.begin_land(why, "warning")
             return
+        via, q = path
+        back = float(np.hypot(via[0] - x, via[1] - y))
+        tab.step_via[r] = via if back > STEP_ARRIVED_M else np.nan
         tab.step_xy[r] = q
         tab.step_set[r] = True
-        pilot.event(f"steps aside {float(np.hypot(q[0] - x, q[1] - y)):.2f} m from ({x:.2f}, "
-                    f"{y:.2f}) to ({q[0]:.2f}, {q[1]:.2f}), inside a sub-tube of the partition "
-                    f"without it")
+        pilot.event(f"steps aside from ({x:.2f}, {y:.2f})"
+                    + (f" {back:.2f} m back along the tube to ({via[0]:.2f}, {via[1]:.2f}), "
+                       f"then" if back > STEP_ARRIVED_M else "")
+                    + f" {float(np.hypot(*(q - via))):.2f} m across it to ({q[0]:.2f}, "
+                      f"{q[1]:.2f}), inside a sub-tube of the partition without it")
 
     def _commands(self, view: NeighbourView | None, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Exits (TraCondition on the route's last finishing line, for the vehicles flying the
