@@ -129,3 +129,22 @@ def test_tube_stages_reads_every_teammates_status() -> None:
     assert p.tube_stages(100.0) == (True, [1])
     p = BusNeighbours(mq, max_age_s=0.15, lost_after_s=1.0, period_s=0.05)
     assert p.tube_stages(100.0) == (False, [])
+
+
+def test_an_agent_tells_everyone_when_its_vehicle_starts_and_stops_waiting() -> None:
+    """The status stage follows the vehicle's waiting: ``waiting`` once when it starts,
+    ``in_tube`` once when it stops (released to step aside, or anything else); nothing in
+    between or otherwise."""
+    from types import SimpleNamespace
+
+    from vtube_fleet.fleet.distributed.vehicle_agent import AgentControl
+
+    told: list[str] = []
+    ctl = SimpleNamespace(
+        pilot=SimpleNamespace(phase=Phase.IN_TUBE), _told_waiting=False,
+        mqtt=SimpleNamespace(announce=lambda status, stage: told.append(stage)))
+    for phase in (Phase.IN_TUBE, Phase.WAITING, Phase.WAITING, Phase.STEPPING,
+                  Phase.IN_TUBE, Phase.WAITING, Phase.LANDING, Phase.LANDED):
+        ctl.pilot.phase = phase
+        AgentControl._tell_waiting(ctl)
+    assert told == ["waiting", "in_tube", "waiting", "in_tube"]
