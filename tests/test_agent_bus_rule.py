@@ -107,44 +107,53 @@ def test_healthy_bus_without_a_hold_is_no_problem() -> None:
 # the fleet-wide part of releasing a waiting vehicle (statuses reach every agent)
 # ----------------------------------------------------------------------------------------------
 def test_tube_stages_reads_every_teammates_status() -> None:
-    """A teammate not gone whose status stage is neither ``waiting`` nor past the tube counts
-    as flying among the others; ``waiting`` ones are listed; our own status, gone teammates
-    and statuses of another run do not count; without teammates (no run) nothing does."""
+    """A teammate not gone whose status stage is neither waiting nor past the tube counts
+    as flying among the others; waiting ones are listed with how many times they were
+    released without a path (``waiting`` 0, ``waiting again`` 1); our own status, gone
+    teammates and statuses of another run do not count; without teammates (no run) nothing
+    does."""
     from vtube_fleet.bus.codec import Status
 
     mq = FakeMqtt()
     mq.vehicle_id, mq.run_id = 0, "run-1"
     mq.statuses = {0: Status(0, "online", run_id="run-1", stage="waiting"),
                    1: Status(1, "online", run_id="run-1", stage="waiting"),
+                   5: Status(5, "online", run_id="run-1", stage="waiting again"),
                    2: Status(2, "online", run_id="run-1", stage="exited"),
                    3: Status(3, "online", run_id="run-1", stage="done"),
                    4: Status(4, "online", run_id="run-1", stage="in_tube")}
     gone = {4}
     p = BusNeighbours(mq, max_age_s=0.15, lost_after_s=1.0, period_s=0.05,
-                      teammates=lambda: range(5), gone=lambda v: v in gone)
-    assert p.tube_stages(100.0) == (False, [1])
+                      teammates=lambda: range(6), gone=lambda v: v in gone)
+    assert p.tube_stages(100.0) == (False, {1: 0, 5: 1})
     gone.clear()  # vehicle 4 flies the tube
-    assert p.tube_stages(100.0) == (True, [1])
+    assert p.tube_stages(100.0) == (True, {1: 0, 5: 1})
     mq.statuses[4] = Status(4, "online", run_id="run-0", stage="exited")  # an older run
-    assert p.tube_stages(100.0) == (True, [1])
+    assert p.tube_stages(100.0) == (True, {1: 0, 5: 1})
     p = BusNeighbours(mq, max_age_s=0.15, lost_after_s=1.0, period_s=0.05)
-    assert p.tube_stages(100.0) == (False, [])
+    assert p.tube_stages(100.0) == (False, {})
 
 
 def test_an_agent_tells_everyone_when_its_vehicle_starts_and_stops_waiting() -> None:
-    """The status stage follows the vehicle's waiting: ``waiting`` once when it starts,
-    ``in_tube`` once when it stops (released to step aside, or anything else); nothing in
-    between or otherwise."""
+    """The status stage follows the vehicle's waiting: ``waiting`` once when it starts
+    (``waiting again`` after a release without a path), ``in_tube`` once when it stops
+    (released to step aside, or anything else); nothing in between or otherwise."""
     from types import SimpleNamespace
+
+    import numpy as np
 
     from vtube_fleet.fleet.distributed.vehicle_agent import AgentControl
 
     told: list[str] = []
     ctl = SimpleNamespace(
-        pilot=SimpleNamespace(phase=Phase.IN_TUBE), _told_waiting=False,
+        pilot=SimpleNamespace(phase=Phase.IN_TUBE, row=0,
+                              table=SimpleNamespace(step_tries=np.zeros(1, np.int64))),
+        _told_waiting=None,
         mqtt=SimpleNamespace(announce=lambda status, stage: told.append(stage)))
-    for phase in (Phase.IN_TUBE, Phase.WAITING, Phase.WAITING, Phase.STEPPING,
-                  Phase.IN_TUBE, Phase.WAITING, Phase.LANDING, Phase.LANDED):
+    for phase, tries in ((Phase.IN_TUBE, 0), (Phase.WAITING, 0), (Phase.WAITING, 0),
+                         (Phase.STEPPING, 0), (Phase.WAITING, 1), (Phase.STEPPING, 1),
+                         (Phase.IN_TUBE, 1), (Phase.LANDING, 1), (Phase.LANDED, 1)):
         ctl.pilot.phase = phase
+        ctl.pilot.table.step_tries[0] = tries
         AgentControl._tell_waiting(ctl)
-    assert told == ["waiting", "in_tube", "waiting", "in_tube"]
+    assert told == ["waiting", "in_tube", "waiting again", "in_tube"]

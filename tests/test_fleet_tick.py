@@ -660,8 +660,8 @@ async def test_an_agent_releases_its_waiting_vehicle_only_when_the_fleet_lets_it
     """An agent's waiting vehicle (one row; the others heard on its bus, all past the tube)
     is released only when its bus's fleet-wide statuses (``tube_stages``: states reach only
     nearby cells) say nobody else flies the tube, and — not hearing the others' states —
-    only if it has the smallest id of those waiting; released, it steps aside (here 0 m:
-    nothing stopped is left)."""
+    only if it has the smallest id of those released as few times before; released, it
+    steps aside (here 0 m: nothing stopped is left)."""
     sup, _links = memory_fleet(4, now_s=100.0)
     tick, pilot, _link, bus = _agents(sup, 4, 100.0)[1]
     pilot.set_phase(Phase.WAITING)
@@ -669,12 +669,12 @@ async def test_an_agent_releases_its_waiting_vehicle_only_when_the_fleet_lets_it
     bus.fleet = States(others.ids, others.pos, others.vel,
                        np.full(len(others), PHASE_CODE[Phase.EXITED], np.int8),
                        others.stamps_s)
-    stages = {"now": (True, [])}
+    stages = {"now": (True, {})}
     bus.tube_stages = lambda now_wall: stages["now"]
     now = 100.1
-    for want, stage in ((Phase.WAITING, (True, [])),  # someone out of earshot flies
-                        (Phase.WAITING, (False, [0])),  # vehicle 0 waits too: it goes first
-                        (Phase.STEPPING, (False, [3]))):
+    for want, stage in ((Phase.WAITING, (True, {})),  # someone out of earshot flies
+                        (Phase.WAITING, (False, {0: 0})),  # vehicle 0 waits too: first
+                        (Phase.STEPPING, (False, {0: 1, 3: 1}))):  # both released before
         stages["now"] = stage
         tick(now, now + WALL)
         now += 0.05
@@ -682,3 +682,27 @@ async def test_an_agent_releases_its_waiting_vehicle_only_when_the_fleet_lets_it
     # the plan without it (here: nobody stopped) is flown: it is inside a sub-tube already
     tick(now, now + WALL)
     assert pilot.phase == Phase.IN_TUBE
+
+
+async def test_a_released_vehicle_without_a_path_waits_again_once_then_lands(
+        monkeypatch) -> None:
+    """Released, a vehicle finds no path to step aside on (THE FAULT: the plan has none):
+    while others wait too it waits again (they may leave the way free; its agent would say
+    ``waiting again``), once; the second time, or when nobody else waits, it lands and says
+    why."""
+    from vtube_fleet.fleet.flight_plan import FlightPlan
+
+    monkeypatch.setattr(FlightPlan, "step_aside", lambda self, p, segment=-1: None)
+    sup, _links = memory_fleet(3, now_s=100.0)
+    tick, pilot = sup.ticker, sup.pilots[1]
+    for others_wait, want, tries in ((True, Phase.WAITING, 1), (True, Phase.LANDING, 1)):
+        pilot.set_phase(Phase.WAITING)
+        pilot.begin_step("a test")
+        tick._step_point(1, others_wait=others_wait)
+        assert pilot.phase == want and sup.table.step_tries[1] == tries
+    assert pilot.reason.startswith("cannot step aside from")
+    sup2, _ = memory_fleet(3, now_s=100.0)
+    sup2.pilots[1].set_phase(Phase.WAITING)
+    sup2.pilots[1].begin_step("a test")
+    sup2.ticker._step_point(1, others_wait=False)  # nobody else waits: it lands at once
+    assert sup2.pilots[1].phase == Phase.LANDING and sup2.table.step_tries[1] == 0

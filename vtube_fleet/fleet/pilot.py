@@ -258,9 +258,10 @@ class VehiclePilot:
             self.set_phase(Phase.IN_TUBE)
 
     def begin_wait(self, why: str) -> None:
-        """IN_TUBE → WAITING: stop where it is (still in OFFBOARD, zero velocity), an obstacle
-        for the others, until :meth:`begin_step` (docs/fleet.md, "Waiting for a way")."""
-        if self.phase == Phase.IN_TUBE:
+        """IN_TUBE (or STEPPING, with no path yet) → WAITING: stop where it is (still in
+        OFFBOARD, zero velocity), an obstacle for the others, until :meth:`begin_step`
+        (docs/fleet.md, "Waiting for a way")."""
+        if self.phase in (Phase.IN_TUBE, Phase.STEPPING):
             self.table.step_set[self.row] = False
             self.set_phase(Phase.WAITING, why, "warning")
 

@@ -68,7 +68,8 @@ class FleetTable:
     being timed, and where it began), ``stop_xy`` / ``stop_set`` (where a stopped vehicle tells
     the others it is: :func:`~vtube_fleet.fleet.tick.own_states`), ``step_xy`` / ``step_set``
     (where a vehicle released from waiting steps aside to, once the plan without it is known;
-    ``step_via``: the point back along the tube it goes to first, NaN once passed:
+    ``step_via``: the point back along the tube it goes to first, NaN once passed;
+    ``step_tries``: how many times it was released and found no path:
     :meth:`~vtube_fleet.fleet.tick.Tick.step_aside`), ``in_transition`` (a mode
     change in flight), ``standstill`` (stand still in the tube: zero velocity, no controller;
     the MQTT agent's broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none),
@@ -104,6 +105,7 @@ class FleetTable:
         self.step_xy = np.full((n, 2), np.nan)
         self.step_via = np.full((n, 2), np.nan)
         self.step_set = np.zeros(n, bool)
+        self.step_tries = np.zeros(n, np.int64)
         self.in_transition = np.zeros(n, bool)
         self.standstill = np.zeros(n, bool)
         self.takeoff_xy = np.full((n, 2), np.nan)

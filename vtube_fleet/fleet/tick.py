@@ -963,22 +963,39 @@ class Tick:
 
     def _waiting(self, everyone: States, view: NeighbourView, current: bool,
                  now_wall: float) -> None:
-        """Waiting for a way (docs/fleet.md): a vehicle here stepping aside gets its point
-        once the plan without it is flown (``current``) (:meth:`FlightPlan.step_aside`; none:
-        it lands), and flies the controller again once there, outside every region; a
-        waiting one is released (→ STEPPING) when no vehicle flies among the others —
-        arming, climbing, in the tube or stepping aside: of those heard (``everyone``, the
-        silent ones of ``view`` aside) and, from an agent's bus, of the whole fleet
-        (``tube_stages``) — and it is the waiting vehicle farthest along the route (ties: the
-        smallest id; it leaves the way free for those behind it); an agent that does not hear
-        every waiting vehicle (states reach nearby cells only) takes the smallest id
-        instead. Every process decides alike, so one moves at a time."""
+        """Waiting for a way (docs/fleet.md): a vehicle here stepping aside gets its path
+        once the plan without it is flown (``current``) (:meth:`FlightPlan.step_aside`;
+        none: it waits again, once, if others wait too, else it lands), and flies the
+        controller again once there, outside every region; a waiting one is released
+        (→ STEPPING) when no vehicle flies among the others — arming, climbing, in the tube
+        or stepping aside: of those heard (``everyone``, the silent ones of ``view`` aside)
+        and, from an agent's bus, of the whole fleet (``tube_stages``) — and it is, of the
+        waiting vehicles released fewest times before, the one farthest along the route
+        (ties: the smallest id; it leaves the way free for those behind it); an agent that
+        does not hear every such vehicle (states reach nearby cells only) takes the
+        smallest id instead. Every process decides alike, so one moves at a time."""
         tab = self.table
         ph = tab.phase
         stepping = np.flatnonzero((ph == _STEPPING) & tab.has)
+        if not stepping.size and not (ph == _WAITING).any():
+            return
+        # the fleet's waiting vehicles (id → how many times released without a path)
+        w = np.flatnonzero((everyone.phase == _WAITING) & np.isfinite(everyone.pos).all(axis=1))
+        tries = dict.fromkeys(everyone.ids[w].tolist(), 0)
+        own = np.flatnonzero(ph == _WAITING)
+        tries.update(zip(tab.ids[own].tolist(), tab.step_tries[own].tolist(), strict=True))
+        busy = bool(_BUSY_MASK[everyone.phase[~np.isin(everyone.ids, view.lost_ids)]].any())
+        unheard: set[int] = set()
+        fleet = getattr(self.neighbours, "tube_stages", None)
+        if fleet is not None:
+            far_busy, also = fleet(now_wall)
+            busy = busy or far_busy
+            for i, k in also.items():
+                tries[i] = max(tries.get(i, 0), k)
+            unheard = set(also) - set(everyone.ids[w].tolist())
         if stepping.size and current:
             for r in stepping[~tab.step_set[stepping]].tolist():
-                self._step_point(r)
+                self._step_point(r, others_wait=bool(set(tries) - {int(tab.ids[r])}))
             passed = stepping[np.hypot(*(tab.step_via[stepping] - tab.xy[stepping]).T)
                               <= STEP_ARRIVED_M]  # (NaN: none, or passed)
             tab.step_via[passed] = np.nan
@@ -991,36 +1008,27 @@ class Tick:
                     x, y = tab.xy[r]
                     self.pilots[r].resume_tube(f"at ({x:.2f}, {y:.2f}), inside a sub-tube: "
                                                "flies the tube again")
-        if not (ph == _WAITING).any():
+        if busy or not tries or not (tab.phase == _WAITING).any():
             return
-        heard = ~np.isin(everyone.ids, view.lost_ids)
-        if _BUSY_MASK[everyone.phase[heard]].any():
-            return
-        w = np.flatnonzero((everyone.phase == _WAITING) & np.isfinite(everyone.pos).all(axis=1))
-        ids = everyone.ids[w]
-        unheard = np.zeros(0, np.int64)
-        fleet = getattr(self.neighbours, "tube_stages", None)
-        if fleet is not None:
-            busy, also = fleet(now_wall)
-            if busy:
-                return
-            unheard = np.setdiff1d(np.asarray(also, np.int64), ids)
-        if not ids.size and not unheard.size:
-            return
-        if unheard.size:  # (an agent that does not hear every waiting vehicle)
-            first, how = int(np.union1d(ids, unheard).min()), "it has the smallest id"
+        level = min(tries.values())
+        cands = {i for i, k in tries.items() if k == level}
+        if cands & unheard:  # (an agent that does not hear every waiting vehicle)
+            first, how = min(cands), "it has the smallest id"
         else:
+            k = w[np.isin(everyone.ids[w], list(cands))]
+            ids = everyone.ids[k]
             route = self.plan.route
-            seg = route.start_segments(everyone.pos[w])
-            xi = route.xi(everyone.pos[w], seg)
+            seg = route.start_segments(everyone.pos[k])
+            xi = route.xi(everyone.pos[k], seg)
             first = int(ids[np.lexsort((ids, -xi, -seg))[0]])
             how = "it is the farthest along the tube"
-        for r in np.flatnonzero((tab.ids == first) & (ph == _WAITING)).tolist():
+        for r in np.flatnonzero((tab.ids == first) & (tab.phase == _WAITING)).tolist():
             self.pilots[r].begin_step(f"released: nobody else flies the tube and {how} of "
-                                      f"those waiting")
+                                      f"those waiting" + (" (again)" if level else ""))
 
-    def _step_point(self, r: int) -> None:
-        """The point row ``r`` steps aside to under the current plan, or it lands."""
+    def _step_point(self, r: int, others_wait: bool) -> None:
+        """The path row ``r`` steps aside on under the current plan; without one it waits
+        again (once, while ``others_wait``: they may leave the way free) or lands."""
         tab = self.table
         x, y = tab.xy[r]
         path = self.plan.step_aside(tab.xy[r], int(tab.segment[r]))
@@ -1029,6 +1037,10 @@ class Tick:
             why = (f"cannot step aside from ({x:.2f}, {y:.2f}) into a sub-tube: no path back "
                    f"along the tube and then across it keeps out of every obstacle's O' and "
                    f"r_s' inside the legs")
+            if others_wait and tab.step_tries[r] == 0:
+                tab.step_tries[r] = 1
+                pilot.begin_wait(why + " now; waits again until the others waiting have gone")
+                return
             pilot.reason = pilot.reason or why
             pilot.begin_land(why, "warning")
             return

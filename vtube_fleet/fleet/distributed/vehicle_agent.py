@@ -89,6 +89,9 @@ CLOCK_TIMEOUT_S = 1.0
 _UP_STAGES = ("at_altitude", "in_tube", "exited", "done")
 
 
+#: The status stages of an agent whose vehicle waits in the tube, by how many times it was
+#: released and found no path (docs/fleet.md, "Waiting for a way").
+WAITING_STAGES = ("waiting", "waiting again")
 #: Teammate stages that count as "past the finishing line" for the exit barrier.
 _OUT_STAGES = ("exited", "done")
 
@@ -150,23 +153,24 @@ class BusNeighbours:
     def states(self, now_wall: float) -> States:
         return states_of(self.mqtt.latest().values())
 
-    def tube_stages(self, now_wall: float) -> tuple[bool, list[int]]:
+    def tube_stages(self, now_wall: float) -> tuple[bool, dict[int, int]]:
         """The fleet-wide part of releasing a waiting vehicle (Tick._waiting; states reach
         only nearby cells, statuses every agent): whether a teammate that is not gone may fly
-        among the others (its status stage neither ``waiting`` nor past the tube: ``exited``
-        or ``done``), and the teammates waiting (stage ``waiting``). Without teammates (no
-        run): (False, [])."""
+        among the others (its status stage neither waiting nor past the tube: ``exited`` or
+        ``done``), and the teammates waiting with how many times each was released without
+        a path (stage ``waiting``: 0, ``waiting again``: 1). Without teammates (no run):
+        (False, {})."""
         if self.teammates is None:
-            return False, []
+            return False, {}
         own = getattr(self.mqtt, "vehicle_id", None)
-        busy, waiting = False, []
+        busy, waiting = False, {}
         for v in self.teammates():
             if v == own or (self.gone is not None and self.gone(v)):
                 continue
             st = self.mqtt.statuses.get(v)
             stage = st.stage if st is not None and st.run_id == self.mqtt.run_id else ""
-            if stage == "waiting":
-                waiting.append(v)
+            if stage in WAITING_STAGES:
+                waiting[v] = WAITING_STAGES.index(stage)
             elif stage not in _OUT_STAGES:
                 busy = True
         return busy, waiting
@@ -225,7 +229,7 @@ class AgentControl:
         self.neighbours = BusNeighbours(mqtt, max_age_s=max_age_s,
                                         lost_after_s=cfg.lost_after_s, period_s=cfg.period_s,
                                         teammates=teammates, gone=gone)
-        self._told_waiting = False  # the status stage says "waiting"
+        self._told_waiting: str | None = None  # the waiting stage told (None: none)
         self._replan_worker = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.tick = Tick(pilot.table, [pilot], mission, plan, frame=pilot.frame,
                          neighbours=self.neighbours, publish=mqtt.publish,
@@ -343,10 +347,13 @@ class AgentControl:
     def _tell_waiting(self) -> None:
         """Every teammate hears (the status stage) when this vehicle starts and stops waiting
         in the tube: the release of a waiting vehicle is fleet-wide (Tick._waiting)."""
-        waiting = self.pilot.phase == Phase.WAITING
-        if waiting != self._told_waiting:
-            self._told_waiting = waiting
-            self.mqtt.announce("online", stage="waiting" if waiting else "in_tube")
+        pilot = self.pilot
+        stage = (WAITING_STAGES[min(int(pilot.table.step_tries[pilot.row]), 1)]
+                 if pilot.phase == Phase.WAITING else None)
+        if stage != self._told_waiting:
+            if stage is not None or self._told_waiting is not None:
+                self.mqtt.announce("online", stage=stage or "in_tube")
+            self._told_waiting = stage
 
     def _exited(self, rows: np.ndarray, t_s: float) -> None:
         self.mqtt.announce("online", stage="exited")  # every teammate hears it
