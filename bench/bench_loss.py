@@ -150,7 +150,8 @@ def wait_and_step(tube: Trapezoid, fixed: tuple[Obstacle, ...], lost: Obstacle,
     are (obstacles); the re-partition around them may trap more (repeated until nobody new
     is inside); once the rest has left, the waiting ones go front-most first, each stepping
     aside (:func:`~vtube_fleet.core.loss.step_aside`) in the partition around the lost one
-    and those still waiting behind it. → (everyone finishes, how many waited, why not)."""
+    and those still waiting; one without a path waits again, once, while others wait (the
+    runtime's rule). → (everyone finishes, how many waited, why not)."""
     def obstacle(q: np.ndarray) -> Obstacle:
         return Obstacle(np.asarray(q, float), r_lost, LOST_APEX_FACTOR * h_min(r_lost, flown))
 
@@ -167,18 +168,24 @@ def wait_and_step(tube: Trapezoid, fixed: tuple[Obstacle, ...], lost: Obstacle,
             break
         waiting |= new
     order = np.flatnonzero(waiting)
-    order = order[np.argsort(-tube.xi(others[order]), kind="stable")]
-    for j, w in enumerate(order.tolist()):
-        behind = (lost, *(obstacle(others[v]) for v in order[j + 1:].tolist()))
+    queue = [(int(v), 0) for v in order[np.argsort(-tube.xi(others[order]), kind="stable")]]
+    n = len(queue)
+    while queue:  # the farthest along first; one without a path waits again, once
+        queue.sort(key=lambda e: e[1])  # (stable: those released fewer times first)
+        w, tries = queue.pop(0)
+        rest = (lost, *(obstacle(others[v]) for v, _ in queue))
         try:
-            part = loss.repartition_around_lost(tube, fixed, behind, flown).partition
+            part = loss.repartition_around_lost(tube, fixed, rest, flown).partition
         except PartitionError:
-            return False, len(order), "no partition for one stepping aside"
-        q = loss.step_aside(tube, part, (*fixed, *behind), flown, others[w],
-                            zones=apex_zones(part, flown))
-        if q is None:
-            return False, len(order), "no step aside"
-    return True, len(order), ""
+            return False, n, "no partition for one stepping aside"
+        path = loss.step_aside(tube, part, (*fixed, *rest), flown, others[w],
+                               zones=apex_zones(part, flown))
+        if path is None:
+            if tries == 0 and queue:
+                queue.append((w, 1))
+                continue
+            return False, n, "no step aside"
+    return True, n, ""
 
 
 def screen(path: str, every_s: float) -> dict[str, Any]:
