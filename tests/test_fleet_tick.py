@@ -478,8 +478,9 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
     without it (FlightPlan.past) and flies on to the finishing line instead of landing:
     every command in [v_min, v_max], never within r_o + r_s of a stopped vehicle (the
     physical radii). Vehicle 1, right behind vehicle 2, passed nothing: it waits; once
-    nobody else flies the tube it steps aside into a sub-tube and flies on to the finishing
-    line too, as far from the stopped ones."""
+    nobody flies the tube behind it or within reach (those ahead only move away) it steps
+    aside into a sub-tube and flies on to the finishing line too, as far from the stopped
+    ones."""
     sup, links = memory_fleet(12, now_s=100.0)
     low = {2, 5}
     for i, link in enumerate(links):
@@ -493,6 +494,7 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
     stopped: dict[int, np.ndarray] = {}
     p1 = sup.pilots[1]
     phases1: list[Phase] = []
+    stepped_with_others = False
     flying = (Phase.IN_TUBE, Phase.EXITED, Phase.WAITING, Phase.STEPPING)
     for _ in range(6000):  # (the tube is 104 m long)
         now += period
@@ -515,8 +517,11 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
             speeds.append(float(np.hypot(*p6.cmd_xy)))
         if p1.phase not in (Phase.IN_TUBE, Phase.WAITING, Phase.STEPPING):
             break
-        if p6.phase == Phase.IN_TUBE:  # (6 exits first: 1 is waiting meanwhile)
-            assert p1.phase in (Phase.IN_TUBE, Phase.WAITING)
+        if p1.phase == Phase.STEPPING:  # everyone still flying the tube is ahead, out of reach
+            xi = sup.plan.route.xi(sup.table.xy, np.zeros(12, np.intp))
+            ahead = [xi[i] - xi[1] for i, q in enumerate(sup.pilots) if q.phase == Phase.IN_TUBE]
+            assert all(d > sup.plan.neighbour_radius_m for d in ahead), ahead
+            stepped_with_others |= bool(ahead)
     # (6 exited, then held before the fence's exit while 1 was still in the tube)
     assert own_seen and p6.exit_time_s is not None, (p6.phase, p6.reason)
     assert not p6.reason or "cannot pass" not in p6.reason
@@ -526,6 +531,7 @@ async def test_a_vehicle_past_the_stopped_ones_flies_on_with_a_partition_of_its_
     # vehicle 1 waited until every other vehicle had left the tube, then stepped aside
     assert phases1 == [Phase.WAITING, Phase.STEPPING, Phase.IN_TUBE, Phase.EXITED], (
         phases1, p1.reason)
+    assert stepped_with_others  # (released while those ahead still flew the tube)
     assert all(p.phase not in (Phase.IN_TUBE, Phase.WAITING, Phase.STEPPING)
                for p in sup.pilots)
     assert any(e["vehicle"] == 1 and e["text"].startswith("steps aside") for e in sup.events)

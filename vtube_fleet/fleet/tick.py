@@ -967,9 +967,11 @@ class Tick:
         once the plan without it is flown (``current``) (:meth:`FlightPlan.step_aside`;
         none: it waits again, once, if others wait too, else it lands), and flies the
         controller again once there, outside every region; a waiting one is released
-        (→ STEPPING) when no vehicle flies among the others — arming, climbing, in the tube
-        or stepping aside: of those heard (``everyone``, the silent ones of ``view`` aside)
-        and, from an agent's bus, of the whole fleet (``tube_stages``) — and it is, of the
+        (→ STEPPING) when no vehicle flies among the others — arming, climbing or stepping
+        aside, or in the tube unless farther ahead than r_s' + r_a' along the route (it only
+        moves away: :func:`~vtube_fleet.core.loss.moves_forward`): of those heard
+        (``everyone``, the silent ones of ``view`` aside) and, from an agent's bus, of the
+        whole fleet (``tube_stages``: any teammate in the tube) — and it is, of the
         waiting vehicles released fewest times before, the one farthest along the route
         (ties: the smallest id; it leaves the way free for those behind it); an agent that
         does not hear every such vehicle (states reach nearby cells only) takes the
@@ -982,9 +984,13 @@ class Tick:
         # the fleet's waiting vehicles (id → how many times released without a path)
         w = np.flatnonzero((everyone.phase == _WAITING) & np.isfinite(everyone.pos).all(axis=1))
         tries = dict.fromkeys(everyone.ids[w].tolist(), 0)
-        own = np.flatnonzero(ph == _WAITING)
+        where = dict(zip(everyone.ids[w].tolist(), everyone.pos[w], strict=True))
+        own = np.flatnonzero((ph == _WAITING) & tab.has)
         tries.update(zip(tab.ids[own].tolist(), tab.step_tries[own].tolist(), strict=True))
-        busy = bool(_BUSY_MASK[everyone.phase[~np.isin(everyone.ids, view.lost_ids)]].any())
+        where.update(zip(tab.ids[own].tolist(), tab.xy[own], strict=True))
+        heard = ~np.isin(everyone.ids, view.lost_ids)
+        flying = heard & (everyone.phase == _IN_TUBE)  # (may be far enough ahead: below)
+        busy = bool(_BUSY_MASK[everyone.phase[heard & ~flying]].any())
         unheard: set[int] = set()
         fleet = getattr(self.neighbours, "tube_stages", None)
         if fleet is not None:
@@ -992,7 +998,7 @@ class Tick:
             busy = busy or far_busy
             for i, k in also.items():
                 tries[i] = max(tries.get(i, 0), k)
-            unheard = set(also) - set(everyone.ids[w].tolist())
+            unheard = set(also) - set(where)
         if stepping.size and current:
             for r in stepping[~tab.step_set[stepping]].tolist():
                 self._step_point(r, others_wait=bool(set(tries) - {int(tab.ids[r])}))
@@ -1010,21 +1016,31 @@ class Tick:
                                                "flies the tube again")
         if busy or not tries or not (tab.phase == _WAITING).any():
             return
+        route = self.plan.route
         level = min(tries.values())
         cands = {i for i, k in tries.items() if k == level}
         if cands & unheard:  # (an agent that does not hear every waiting vehicle)
             first, how = min(cands), "it has the smallest id"
         else:
-            k = w[np.isin(everyone.ids[w], list(cands))]
-            ids = everyone.ids[k]
-            route = self.plan.route
-            seg = route.start_segments(everyone.pos[k])
-            xi = route.xi(everyone.pos[k], seg)
+            ids = np.array(sorted(cands), np.int64)
+            pos = np.array([where[i] for i in ids.tolist()]).reshape(-1, 2)
+            seg = route.start_segments(pos)
+            xi = route.xi(pos, seg)
             first = int(ids[np.lexsort((ids, -xi, -seg))[0]])
             how = "it is the farthest along the tube"
         for r in np.flatnonzero((tab.ids == first) & (tab.phase == _WAITING)).tolist():
-            self.pilots[r].begin_step(f"released: nobody else flies the tube and {how} of "
-                                      f"those waiting" + (" (again)" if level else ""))
+            if flying.any():  # every vehicle flying the tube must be ahead, out of reach
+                f = np.flatnonzero(flying)
+                seg_f = route.start_segments(everyone.pos[f])
+                seg_w = int(route.start_segments(tab.xy[r:r + 1])[0])
+                xi_w = float(route.xi(tab.xy[r:r + 1], np.array([seg_w]))[0])
+                gap = route.xi(everyone.pos[f], seg_f) - xi_w
+                if not np.all((seg_f > seg_w) | ((seg_f == seg_w)
+                                                 & (gap > self.plan.neighbour_radius_m))):
+                    return
+            self.pilots[r].begin_step(f"released: nobody else flies the tube behind it or "
+                                      f"within reach and {how} of those waiting"
+                                      + (" (again)" if level else ""))
 
     def _step_point(self, r: int, others_wait: bool) -> None:
         """The path row ``r`` steps aside on under the current plan; without one it waits
