@@ -392,18 +392,24 @@ def _path_clear(p, q, obstacles, flown, tube) -> bool:
     return bool(np.all(np.minimum(tube.d_Th(xs), tube.d_Tr(xs)) >= flown.r_s - 1e-9))
 
 
+def _behind_a_lost_one():
+    """A 20 m wide tube, a vehicle lost on its axis at x = 20 (the SITL budget), its
+    partition, and a point 3 m behind it on the axis: (flown, tube, lost, partition, zones,
+    point)."""
+    _, flown, r_lost = PX4
+    tube = Trapezoid((0.0, 10.0), (40.0, 10.0), (0.0, -10.0), (40.0, -10.0))
+    lost = lost_at(20.0, 0.0, r_lost, flown)
+    part = partition_around_lost(tube, (), (lost,), flown)
+    return flown, tube, lost, part, apex_zones(part, flown), np.array([17.0, 0.0])
+
+
 def test_a_vehicle_behind_a_lost_one_steps_aside_into_a_sub_tube():
     """A vehicle at rest 3 m behind a lost one, on its axis (inside its triangle: it cannot
     pass, and no command of the controller gets it out: the cone behind a stopped vehicle):
     the nearest point straight across n_c (no step back) inside a sub-tube (by the
     clearance asked), on a path outside every O' and r_s inside the legs; the left side on a
     tie; p itself when it is already outside every region."""
-    _, flown, r_lost = PX4
-    tube = Trapezoid((0.0, 10.0), (40.0, 10.0), (0.0, -10.0), (40.0, -10.0))
-    lost = lost_at(20.0, 0.0, r_lost, flown)
-    part = partition_around_lost(tube, (), (lost,), flown)
-    zones = apex_zones(part, flown)
-    p = np.array([17.0, 0.0])
+    flown, tube, lost, part, zones, p = _behind_a_lost_one()
     assert cannot_pass(part, p[None], zones)[0]
     via, q = step_aside(tube, part, (lost,), flown, p, zones=zones)
     assert np.array_equal(via, p)
@@ -425,12 +431,7 @@ def test_stepping_aside_backs_away_first_when_across_is_closed():
     """The same vehicle with an obstacle on either side of it, whose O' it would enter on
     its way out of the triangle while still inside: it backs away along −n_c first (out of
     the obstacles' reach), then crosses: the shortest such path, every leg of it clear."""
-    _, flown, r_lost = PX4
-    tube = Trapezoid((0.0, 10.0), (40.0, 10.0), (0.0, -10.0), (40.0, -10.0))
-    lost = lost_at(20.0, 0.0, r_lost, flown)
-    part = partition_around_lost(tube, (), (lost,), flown)
-    zones = apex_zones(part, flown)
-    p = np.array([17.0, 0.0])
+    flown, tube, lost, part, zones, p = _behind_a_lost_one()
     sides = tuple(Obstacle(np.array([17.0, y]), 0.5, None) for y in (3.5, -3.5))
     obs = (lost, *sides)
     via, q = step_aside(tube, part, obs, flown, p, zones=zones)
