@@ -955,8 +955,8 @@ class Tick:
             why = (f"cannot pass the stopped vehicle(s): at ({x:.2f}, {y:.2f}), inside the "
                    f"region the new partition takes around them (no safe sub-tube)")
             if tab.phase[r] == _IN_TUBE and self.cfg.on_trapped == "wait":
-                pilot.begin_wait(why + "; waits there until nobody else flies the tube, then "
-                                       "steps aside into a sub-tube")
+                pilot.begin_wait(why + "; waits there until nobody flies the tube behind it "
+                                       "or within reach, then steps aside into a sub-tube")
                 continue
             pilot.reason = pilot.reason or why
             pilot.begin_land(why, "warning")
