@@ -1505,11 +1505,6 @@ class RerunRecorder:
                 self._send_rows()
             finally:
                 worker = self._worker
-        # a Ctrl-C between a `with self._lock` acquiring and its block starting (CPython checks
-        # signals there) leaves the lock held by this thread: the sender would wait for it
-        # forever, and close for the sender (a CI run once saw close take over 60 s)
-        while self._lock._is_owned():  # type: ignore[attr-defined]
-            self._lock.release()
         if worker is not None:  # outside the lock: the sender takes it per job
             self._queue.put(None)
             worker.join(timeout=self.flush_timeout_s + 30.0)
