@@ -267,7 +267,11 @@ def test_null_recorder_and_protocol(tmp_path: Path) -> None:
 def _child(tmp_path: Path, body: str) -> subprocess.Popen[str]:
     script = tmp_path / "child.py"
     script.write_text(textwrap.dedent("""
-        import sys, time
+        import signal, sys, time
+        # Ctrl-C as a terminal gives it: a process started with SIGINT ignored (a test
+        # worker that ignores it) would keep that, and Python would never raise
+        # KeyboardInterrupt (CI saw this test hang for 60 s so)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         import numpy as np
         sys.path.insert(0, {tests!r})
         from test_recording import scenario, motion
