@@ -54,7 +54,7 @@ _LOST = PHASE_CODE[Phase.LOST]
 _COUNTED_AIRBORNE_MASK = phase_mask(COUNTED_AIRBORNE_PHASES)
 #: in the tube without the controller's command (judged there while inside it): stopped,
 #: lost, or stepping aside out of a region (docs/fleet.md, "Waiting for a way")
-_STOPPED_OR_LOST_MASK = phase_mask(STOPPED_PHASES | {Phase.LOST, Phase.STEPPING})
+_OFF_CONTROLLER_MASK = phase_mask(STOPPED_PHASES | {Phase.LOST, Phase.STEPPING})
 
 
 @dataclass
@@ -137,7 +137,7 @@ class FlightMeasurement:
         started = tube_start_s is not None
         if started:
             links = result.links
-            stopped = ~inside & has & _STOPPED_OR_LOST_MASK[codes]
+            stopped = ~inside & has & _OFF_CONTROLLER_MASK[codes]
             up = np.nan_to_num(tab.up, nan=-math.inf)
             stopped &= (codes == _LOST) | links.in_air | (up > AIRBORNE_UP_M)
             if stopped.any():

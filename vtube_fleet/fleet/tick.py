@@ -491,6 +491,12 @@ def vertical_down_m_s(tab: FleetTable, mission: Mission, rows: np.ndarray,
     return np.where(np.isfinite(up), -np.where(u < lo, lo, np.where(u > hi, hi, u)), 0.0)
 
 
+def _progress(route: Any, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far along ``route`` points (k, 2) are: (segment they start in, ξ in it)."""
+    seg = route.start_segments(p)
+    return seg, route.xi(p, seg)
+
+
 def _toward(target: np.ndarray, xy: np.ndarray, ok: np.ndarray, gain_1_s: float,
             max_m_s: float) -> np.ndarray:
     """The velocities (k, 2) that bring points ``xy`` to ``target`` (k, 2): gain × the
@@ -1024,19 +1030,16 @@ class Tick:
         else:
             ids = np.array(sorted(cands), np.int64)
             pos = np.array([where[i] for i in ids.tolist()]).reshape(-1, 2)
-            seg = route.start_segments(pos)
-            xi = route.xi(pos, seg)
+            seg, xi = _progress(route, pos)
             first = int(ids[np.lexsort((ids, -xi, -seg))[0]])
             how = "it is the farthest along the tube"
         for r in np.flatnonzero((tab.ids == first) & (tab.phase == _WAITING)).tolist():
             if flying.any():  # every vehicle flying the tube must be ahead, out of reach
                 f = np.flatnonzero(flying)
-                seg_f = route.start_segments(everyone.pos[f])
-                seg_w = int(route.start_segments(tab.xy[r:r + 1])[0])
-                xi_w = float(route.xi(tab.xy[r:r + 1], np.array([seg_w]))[0])
-                gap = route.xi(everyone.pos[f], seg_f) - xi_w
-                if not np.all((seg_f > seg_w) | ((seg_f == seg_w)
-                                                 & (gap > self.plan.neighbour_radius_m))):
+                seg_f, xi_f = _progress(route, everyone.pos[f])
+                seg_w, xi_w = _progress(route, tab.xy[r:r + 1])
+                if not np.all((seg_f > seg_w) | ((seg_f == seg_w) & (
+                        xi_f - xi_w > self.plan.neighbour_radius_m))):
                     return
             self.pilots[r].begin_step(f"released: nobody else flies the tube behind it or "
                                       f"within reach and {how} of those waiting"
