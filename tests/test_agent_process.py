@@ -29,6 +29,7 @@ from broker import LocalBroker, free_port, require_tool
 from fleet_ports import free_ports
 from missions import route_mission, straight_mission
 
+from sim_stub.dynamics import DynamicsParams
 from vtube_fleet.bus.mqtt import MqttBus
 from vtube_fleet.bus.security import BusSetup, bus_setup
 from vtube_fleet.bus.validate import mission_state_limits
@@ -478,6 +479,7 @@ async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_
             "every vehicle stopped (true velocity)",
         )
         held = [v.global_position for v in vehicles[:n]]
+        held_speed_m_s = np.array([math.hypot(*v.velocity_ned[:2]) for v in vehicles[:n]])
         await asyncio.sleep(max(0.0, 3.0 - (time.monotonic() - killed_at)))  # the outage
         still = [v.global_position for v in vehicles[:n]]
         run.broker.restart(wait=False)
@@ -502,11 +504,22 @@ async def test_broker_killed_for_3_s_mid_flight_everyone_holds_and_recovers(tmp_
     frame = run.mission.frame
     a = np.array(frame.geodetic_to_tube(*np.array(held).T)[:2]).T
     b = np.array(frame.geodetic_to_tube(*np.array(still).T)[:2]).T
-    drift = float(np.hypot(*(b - a).T).max())
-    assert drift < 0.3, f"a holding vehicle drifted {drift:.2f} m"
+    drift_m = np.hypot(*(b - a).T)
+    # no farther than coasting to a stop under a zero command from the speed it had (< 0.2
+    # m/s): the mock's response (command delay and filter, then its slow part, the PX4 tail
+    # the captures show) carries it at most speed × their time constants, plus 0.1 m for the
+    # estimate compensation; a vehicle still flying a tube command (≥ v_min) goes far beyond
+    dyn = DynamicsParams()
+    coast_m = held_speed_m_s * (dyn.xy_delay_s + dyn.xy_cmd_tau_s + dyn.xy_slow_tau_s) + 0.1
+    assert (drift_m < coast_m).all(), (
+        f"a holding vehicle drifted farther than it coasts: {drift_m.round(3).tolist()} m, "
+        f"bounds {coast_m.round(3).tolist()} m (speeds {held_speed_m_s.round(3).tolist()} m/s)")
+    drift = float(drift_m.max())
     worst = check_safety(run, speeds=False)
     print(
-        f"\nbroker outage: held, drift during the hold {drift:.3f} m; pair "
+        f"\nbroker outage: held, drift during the hold {drift:.3f} m (speeds when stopped "
+        f"{held_speed_m_s.max():.3f} m/s at most, coast bounds {coast_m.min():.3f} m at "
+        f"least); pair "
         f"{worst['pair']:.3f} m, obstacle clearance {worst['obstacle']:.3f} m, legs "
         f"{worst['leg']:.3f} m"
     )

@@ -22,8 +22,10 @@ processes where PX4 is not installed.
    ``answer_timeout_s`` is named with its log file;
 4. on exit, whatever the path (error, cancellation, a second Ctrl-C), stop every instance:
    SIGTERM to its process group, SIGKILL after ``stop_grace_s``, and SIGKILL to the group
-   again once its leader is gone (whatever it left behind). :meth:`SitlFleet.kill_now` is the
-   synchronous last resort for a caller whose event loop died.
+   again once its leader is gone (whatever it left behind); then wait until no live member of
+   the group is left (a SIGKILLed process dies when the kernel next schedules it, not when
+   ``kill`` returns). :meth:`SitlFleet.kill_now` is the synchronous last resort for a caller
+   whose event loop died.
 
 Instance i flies slot i on ``udpin://127.0.0.1:{api_port + i}`` (PX4: 14540+i, system id i+1).
 """
@@ -231,6 +233,24 @@ def _killpg(pid: int, sig: signal.Signals) -> bool:
         return False
     except PermissionError:  # pragma: no cover - a group id now someone else's
         return False
+
+
+#: Seconds :meth:`SitlFleet.stop` waits for the SIGKILLed members of a group to die.
+GROUP_DEATH_TIMEOUT_S = 5.0
+
+
+def _live_group_members(pgids: set[int]) -> list[int]:
+    """The pids of processes, zombies excepted, whose process group is one of ``pgids`` (from
+    /proc; empty where there is no /proc)."""
+    live = []
+    for entry in Path("/proc").glob("[0-9]*"):
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if fields[0] != "Z" and int(fields[2]) in pgids:
+            live.append(int(entry.name))
+    return live
 
 
 def _last_line(path: Path, limit: int = 160) -> str:
@@ -470,6 +490,13 @@ class SitlFleet:
             if p.returncode is None:
                 with contextlib.suppress(asyncio.CancelledError):
                     await p.wait()
+        pgids = {p.pid for p in procs}
+        deadline = time.monotonic() + GROUP_DEATH_TIMEOUT_S
+        try:
+            while _live_group_members(pgids) and time.monotonic() < deadline:
+                await asyncio.sleep(0.02)  # no event tells a grandparent that they died
+        except asyncio.CancelledError as exc:
+            cancelled = cancelled or exc
         if cancelled is not None:
             raise cancelled
 
