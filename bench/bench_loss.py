@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import dataclasses
 import json
 import math
@@ -143,15 +144,31 @@ def no_path(tube: Trapezoid, centers: np.ndarray, radii: np.ndarray, starts: np.
     return ~alive
 
 
+def flies_own(tube: Trapezoid, fixed: tuple[Obstacle, ...], stops: Sequence[Obstacle],
+              flown: ControllerParams, q: np.ndarray) -> bool:
+    """Whether a vehicle at ``q`` inside a region of the partition around ``stops`` has a
+    partition of its own (:func:`~vtube_fleet.core.loss.partition_past`) it is outside every
+    region of: it flies on with that one (the runtime's rule)."""
+    try:
+        own = loss.partition_past(tube, fixed, stops, flown, q)
+    except PartitionError:
+        return False
+    return own is not None and loss.wall_clearance(own, q[None], apex_zones(own, flown))[0] >= 0.0
+
+
 def wait_and_step(tube: Trapezoid, fixed: tuple[Obstacle, ...], lost: Obstacle,
                   others: np.ndarray, trapped: np.ndarray, flown: ControllerParams,
-                  r_lost: float) -> tuple[bool, int, str]:
+                  r_lost: float, apart: bool = True) -> tuple[bool, int, str]:
     """``on_trapped = "wait"`` on a snapshot: the ``trapped`` of ``others`` stop where they
-    are (obstacles); the re-partition around them may trap more (repeated until nobody new
-    is inside); once the rest has left, the waiting ones go front-most first, each stepping
-    aside (:func:`~vtube_fleet.core.loss.step_aside`) in the partition around the lost one
-    and those still waiting; one without a path waits again, once, while others wait (the
-    runtime's rule). → (everyone finishes, how many waited, why not)."""
+    are (obstacles); the re-partition around them may trap more, those without a partition
+    of their own (:func:`flies_own`; repeated until nobody new is inside); once the rest
+    has left, the waiting ones go front-most first, each stepping aside
+    (:func:`~vtube_fleet.core.loss.step_aside`) in the partition around the lost one and
+    those still waiting; one without a path waits again, once, while others wait (the
+    runtime's rule). ``apart``: where there is no common partition, each vehicle flies one
+    of its own or waits, and one stepping aside steps straight across into its own (the
+    runtime's "no common partition"); else that ends the run. → (everyone finishes, how
+    many waited, why not)."""
     def obstacle(q: np.ndarray) -> Obstacle:
         return Obstacle(np.asarray(q, float), r_lost, LOST_APEX_FACTOR * h_min(r_lost, flown))
 
@@ -160,10 +177,15 @@ def wait_and_step(tube: Trapezoid, fixed: tuple[Obstacle, ...], lost: Obstacle,
         stops = (lost, *(obstacle(q) for q in others[waiting]))
         try:
             part = loss.repartition_around_lost(tube, fixed, stops, flown).partition
+            d = loss.wall_clearance(part, others, apex_zones(part, flown))
+            new = (d < 0.0) & ~waiting
         except PartitionError:
-            return False, int(waiting.sum()), "no partition around the waiting ones"
-        d = loss.wall_clearance(part, others, apex_zones(part, flown))
-        new = (d < 0.0) & ~waiting
+            if not apart:
+                return False, int(waiting.sum()), "no partition around the waiting ones"
+            new = ~waiting
+        for j in np.flatnonzero(new):  # past some of them: flies a partition of its own
+            if flies_own(tube, fixed, stops, flown, others[j]):
+                new[j] = False
         if not new.any():
             break
         waiting |= new
@@ -174,12 +196,19 @@ def wait_and_step(tube: Trapezoid, fixed: tuple[Obstacle, ...], lost: Obstacle,
         queue.sort(key=lambda e: e[1])  # (stable: those released fewer times first)
         w, tries = queue.pop(0)
         rest = (lost, *(obstacle(others[v]) for v, _ in queue))
+        back = 15.0
         try:
             part = loss.repartition_around_lost(tube, fixed, rest, flown).partition
         except PartitionError:
-            return False, n, "no partition for one stepping aside"
+            own = None
+            if apart:
+                with contextlib.suppress(PartitionError):
+                    own = loss.partition_past(tube, fixed, rest, flown, others[w])
+            if own is None:
+                return False, n, "no partition for one stepping aside"
+            part, back = own, 0.0  # (its own: straight across only)
         path = loss.step_aside(tube, part, (*fixed, *rest), flown, others[w],
-                               zones=apex_zones(part, flown))
+                               zones=apex_zones(part, flown), max_back_m=back)
         if path is None:
             if tries == 0 and queue:
                 queue.append((w, 1))
@@ -227,6 +256,7 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
             row["step"] = rp.step if rp is not None else None
             row["inside_own"] = 0
             row["wait_ok"], row["waited"], row["wait_why"] = rp is not None, 0, ""
+            row["wait_ok_no_apart"] = rp is not None
             if rp is not None and len(others):
                 zones = apex_zones(rp.partition, flown)
                 d = loss.wall_clearance(rp.partition, others, zones)
@@ -234,18 +264,15 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
                 row["within_rs"] = int(np.count_nonzero(d < flown.r_s))
                 trapped = np.zeros(len(others), bool)
                 for j in np.flatnonzero(d < 0.0):  # each trapped one: a partition of its own?
-                    q = others[j]
-                    try:
-                        own = loss.partition_past(sc.tube, fixed, lost, flown, q)
-                    except PartitionError:
-                        own = None
-                    if own is None or loss.wall_clearance(
-                            own, q[None], apex_zones(own, flown))[0] < 0.0:
+                    if not flies_own(sc.tube, fixed, lost, flown, others[j]):
                         row["inside_own"] += 1
                         trapped[j] = True
                 if trapped.any():
                     row["wait_ok"], row["waited"], row["wait_why"] = wait_and_step(
                         sc.tube, fixed, lost[0], others, trapped, flown, r_lost)
+                    row["wait_ok_no_apart"] = wait_and_step(
+                        sc.tube, fixed, lost[0], others, trapped, flown, r_lost,
+                        apart=False)[0]
             else:
                 row["inside"] = row["within_rs"] = 0
             if len(others):
@@ -270,6 +297,7 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
         "rest_go_on_new": sum(r["inside"] == 0 for r in new),
         "rest_go_on_own": sum(r["inside_own"] == 0 for r in new),
         "rest_finish_wait": sum(r["wait_ok"] for r in new),
+        "rest_finish_wait_no_apart": sum(r["wait_ok_no_apart"] for r in new),
         "wait_fails": {w: sum(not r["wait_ok"] and r["wait_why"] == w for r in new) for w in
                        ("no partition around the waiting ones",
                         "no partition for one stepping aside", "no step aside")},
@@ -290,7 +318,9 @@ def screen(path: str, every_s: float) -> dict[str, Any]:
     print(f"  nobody inside, with partitions of their own for those past an obstacle "
           f"(FlightPlan.past): {share(out['rest_go_on_own'])}")
     print(f"  the rest finishes, those trapped waiting and then stepping aside (on_trapped = "
-          f"\"wait\"): {share(out['rest_finish_wait'])}; not: {out['wait_fails']}")
+          f"\"wait\"): {share(out['rest_finish_wait'])}; not: {out['wait_fails']}; without "
+          f"partitions of their own where there is no common one: "
+          f"{share(out['rest_finish_wait_no_apart'])}")
     print(f"  nobody within r_s' of a new triangle side: {share(out['nobody_within_rs_new'])}")
     print(f"  someone with no admissible path at all (no partition can help): "
           f"{share(out['someone_has_no_path'])}")
