@@ -416,19 +416,21 @@ def test_a_timeout_aborts_and_the_review_agrees(tmp_path: Path, stage: str) -> N
 #: An 8 m wide tube, two vehicles in a file: with the mock's budget (δ ≈ 1.67 m: r_s' ≈ 1.97 m)
 #: the lead lost in the middle leaves no passage a robot fits through — neither with today's
 #: rules nor with the fallback that groups it with the obstacles near it (core/loss.py).
-BLOCKED = straight_mission(26.0, [[8.0, 0.0], [2.0, 0.0]], heading_deg=90.0).replace(
-    ", 10.0]", ", 4.0]").replace(", -10.0]", ", -4.0]")
+def _blocked(on_trapped: str) -> str:
+    return straight_mission(26.0, [[8.0, 0.0], [2.0, 0.0]], heading_deg=90.0,
+                            extra=f'on_trapped = "{on_trapped}"').replace(
+        ", 10.0]", ", 4.0]").replace(", -10.0]", ", -4.0]")
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(90)
 def test_a_lost_vehicle_that_blocks_the_tube_cannot_re_partition(tmp_path: Path) -> None:
-    """Vehicle 0's link dies 1 s into the tube; vehicle 1 still answers, so it is a lost
-    vehicle (not link loss) and the tube cannot be partitioned around it: ``aborted``, the
-    reason says "cannot re-partition" (not "cannot reach anyone") and why vehicle 0 is lost;
-    the review agrees."""
+    """``on_trapped = "land"``: vehicle 0's link dies 1 s into the tube; vehicle 1 still
+    answers, so it is a lost vehicle (not link loss) and the tube cannot be partitioned
+    around it: ``aborted``, the reason says "cannot re-partition" (not "cannot reach
+    anyone") and why vehicle 0 is lost; the review agrees."""
     result, res = _fly_recorded(
-        tmp_path, BLOCKED, kill=(0, "silent"),
+        tmp_path, _blocked("land"), kill=(0, "silent"),
         when=lambda sup: sup.tube_start_s is not None and sup.t_s() - sup.tube_start_s >= 1.0)
     assert result.outcome == "aborted" and result.exit_code == 3, result.reason
     assert result.reason.startswith("cannot re-partition the tube around the lost or stopped "
@@ -445,3 +447,24 @@ def test_a_lost_vehicle_that_blocks_the_tube_cannot_re_partition(tmp_path: Path)
     assert res.data.summary is not None and res.differences == [], res.differences
     assert res.summary["steps"] == run["steps"]
     print(f"\npartition failure: {result.reason}")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_a_lost_vehicle_that_blocks_the_tube_leaves_the_one_behind_waiting_then_landing(
+        tmp_path: Path) -> None:
+    """``on_trapped = "wait"`` (the default), the same blocked tube: no common partition, so
+    vehicle 1, with none of its own (it passed nothing), waits instead of an abort; released
+    (nobody else flies), it finds no way into a sub-tube and lands where it is: the run ends
+    ``incomplete`` (not aborted), vehicle 1 landed, its reason says why; the review agrees."""
+    result, res = _fly_recorded(
+        tmp_path, _blocked("wait"), kill=(0, "silent"),
+        when=lambda sup: sup.tube_start_s is not None and sup.t_s() - sup.tube_start_s >= 1.0)
+    assert result.outcome == "incomplete" and result.exit_code == 3, result.reason
+    run = json.loads((tmp_path / "summary.json").read_text())
+    states = run["vehicle_states"]
+    assert states[0]["phase"] == "lost"
+    assert states[1]["phase"] == "landed", states[1]
+    assert states[1]["reason"].startswith("cannot step aside from ("), states[1]
+    assert run["violations"] == 0
+    assert res.data.summary is not None and res.differences == [], res.differences

@@ -187,6 +187,8 @@ class _Bus:
     def __init__(self, own: int) -> None:
         self.own = own
         self.fleet: States = States.empty()
+        #: the waiting teammates' status stages: id → times released without a path
+        self.waiting: dict[int, int] = {}
 
     def states(self, now_wall: float) -> States:
         keep = self.fleet.ids != self.own
@@ -195,6 +197,10 @@ class _Bus:
 
     def problem(self, now_wall: float) -> str | None:
         return None
+
+    def tube_stages(self, now_wall: float) -> tuple[bool, dict[int, int]]:
+        """Every teammate's state is heard here, so only the waiting stages add anything."""
+        return False, {i: k for i, k in self.waiting.items() if i != self.own}
 
 
 def _agents(sup, count: int, t0: float):
@@ -240,8 +246,9 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     """The same vehicles, the same telemetry: the supervisor's tick over its fleet table, and
     one agent per vehicle running the same tick over a table of one row with the others'
     states from a bus: the same setpoints, commands, phases and reasons, bit for bit, through
-    every fault rule, the re-partitions around them, the vehicles they trap (which wait) and
-    the abort when the tube can no longer be re-partitioned."""
+    every fault rule, the re-partitions around them, the vehicles they trap (which wait), and
+    once the tube can no longer be re-partitioned, those that fly partitions of their own,
+    the releases one at a time and the landings of those with no way out."""
     count, t0 = 10, 5000.0
     sup, links = memory_fleet(count, now_s=t0, spacing_m=6.0)
     agents = _agents(sup, count, t0)
@@ -252,6 +259,8 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     now = t0
     jitter = np.random.default_rng(6)
     waited: set[int] = set()
+    flew_own: set[int] = set()
+    apart = False
     for k in range(160):
         now += period * (1.0 + 0.3 * jitter.random())
         listening = now - 1.0 if k == 60 else None  # a stall of our own loop once
@@ -262,11 +271,16 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
                 fly_telemetry(world, 2 * period, now)
             _inject(k, world)
         fleet = sup.ticker(now, now + WALL, listening)
+        stages = {i: int(a[0].table.step_tries[0]) for i, a in enumerate(agents)
+                  if a[1].phase == Phase.WAITING}  # (as the agents announced them)
         for tick, _pilot, _link, bus in agents:
-            bus.fleet = fleet.states
+            bus.fleet, bus.waiting = fleet.states, stages
             tick(now, now + WALL, listening)
         await asyncio.sleep(0)  # the hold's transition task
         waited |= {i for i, x in enumerate(sup.pilots) if x.phase == Phase.WAITING}
+        if sup.ticker.apart is not None:
+            apart = True
+            flew_own |= set(sup.ticker.own_plans)
         assert [lk.v_ned for lk in links] == [lk.v_ned for lk in a_links], f"tick {k}"
         assert [p.phase for p in sup.pilots] == [a[1].phase for a in agents], k
         assert [_why(p.reason) for p in sup.pilots] == [_why(a[1].reason) for a in agents], k
@@ -278,8 +292,12 @@ async def test_an_agents_one_row_tick_sends_what_the_fleet_tick_sends() -> None:
     assert p[9].phase == Phase.LOST and p[9].reason == "disarmed in the air"
     assert p[1].phase == Phase.LOST and p[1].reason.startswith("left OFFBOARD unexpectedly")
     assert p[7].phase == Phase.LOST and p[7].reason.startswith("not following its setpoints")
-    # the vehicles the re-partitions trapped waited (then the abort held them)
-    assert waited and all(p[i].phase == Phase.HOLDING for i in waited)
+    # the vehicles the re-partitions trapped waited; the tube then could no longer be
+    # re-partitioned: those past the stopped ones flew partitions of their own, the waiting
+    # ones were released one at a time, found no way into a sub-tube (twice) and landed
+    assert apart and flew_own
+    assert waited and all(p[i].phase == Phase.LANDING for i in waited)
+    assert all(p[i].phase in (Phase.IN_TUBE, Phase.EXITED) for i in flew_own)
     res = sup.table.residuals.residuals()
     assert res.size == sum(a[1].table.residuals.residuals().size for a in agents) > 0
 
@@ -698,7 +716,7 @@ async def test_a_released_vehicle_without_a_path_waits_again_once_then_lands(
     why."""
     from vtube_fleet.fleet.flight_plan import FlightPlan
 
-    monkeypatch.setattr(FlightPlan, "step_aside", lambda self, p, segment=-1: None)
+    monkeypatch.setattr(FlightPlan, "step_aside", lambda self, p, segment=-1, **_: None)
     sup, _links = memory_fleet(3, now_s=100.0)
     tick, pilot = sup.ticker, sup.pilots[1]
     for others_wait, want, tries in ((True, Phase.WAITING, 1), (True, Phase.LANDING, 1)):
@@ -712,3 +730,39 @@ async def test_a_released_vehicle_without_a_path_waits_again_once_then_lands(
     sup2.pilots[1].begin_step("a test")
     sup2.ticker._step_point(1, others_wait=False)  # nobody else waits: it lands at once
     assert sup2.pilots[1].phase == Phase.LANDING and sup2.table.step_tries[1] == 0
+
+
+def test_with_no_common_partition_each_vehicle_gets_one_of_its_own_or_none(tmp_path) -> None:
+    """A lost vehicle across a 3 m wide tube blocks it: no common partition. With
+    ``apart`` (on_trapped = "wait") the re-plan job says so with the plans of their own: the
+    vehicle past the lost one has one (the lost one left out), whichever its phase (one
+    stepping aside may still be inside a region of it); the one behind it, which passed
+    nothing, has none. Without ``apart`` it is the plain partition error (the abort)."""
+    from missions import straight_mission
+
+    from vtube_fleet.config.mission import load_mission
+    from vtube_fleet.core.partition import PartitionError, h_min
+    from vtube_fleet.core.tube import Obstacle
+    from vtube_fleet.fleet.flight_plan import LOST_APEX_FACTOR, FlightPlan
+    from vtube_fleet.fleet.tick import NoCommonPartition, replan_job
+
+    path = tmp_path / "narrow.toml"
+    path.write_text(straight_mission(26.0, [[8.0, 0.0], [2.0, 0.0]], heading_deg=90.0)
+                    .replace(", 10.0]", ", 1.5]").replace(", -10.0]", ", -1.5]"))
+    mission = load_mission(path)
+    root = FlightPlan.for_mission(mission, mission.scenario.controller)
+    r = mission.scenario.controller.r_s + mission.config.lost_obstacle_margin_m
+    lost = (Obstacle(np.array([12.0, 0.0]), r, LOST_APEX_FACTOR * h_min(r, root.flown)),)
+    rows, xy, seg = np.array([3, 5]), np.array([[6.0, 0.0], [16.0, 0.5]]), np.array([0, 0])
+    for stepping in (np.array([False, True]), np.array([False, False])):
+        with pytest.raises(NoCommonPartition) as info:
+            replan_job(root, lost, rows, xy, seg, 0.0, stepping, apart=True)
+        own = info.value.own
+        assert set(own) == {5}, own
+        plan, left_out = own[5]
+        np.testing.assert_allclose(left_out, [[12.0, 0.0]])
+        assert not plan.cannot_pass(xy[1:], seg[1:])[0]  # outside every region of its own
+        assert "blocks the tube" in str(info.value)
+    with pytest.raises(PartitionError) as info:
+        replan_job(root, lost, rows, xy, seg, 0.0, np.array([False, False]), apart=False)
+    assert not isinstance(info.value, NoCommonPartition)

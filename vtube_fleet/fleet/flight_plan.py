@@ -232,21 +232,24 @@ class FlightPlan:
             out[rows] = cannot_pass(part, p[rows], zones[int(s)] if self.lookahead else ())
         return out
 
-    def step_aside(self, p: np.ndarray, segment: int = -1
+    def step_aside(self, p: np.ndarray, segment: int = -1, *, back: bool = True
                    ) -> tuple[np.ndarray, np.ndarray] | None:
         """The path (via, q) a vehicle at rest at ``p`` (2,) flying ``segment`` (−1: the one
-        it starts in) steps aside on — back along its segment's n_c to ``via``, then across
-        it to ``q`` inside a sub-tube of this plan (:func:`~vtube_fleet.core.loss.
-        step_aside`, every obstacle of the route, configured and lost, kept out of) — or
-        None."""
+        it starts in) steps aside on — back along its segment's n_c to ``via`` (not with
+        ``back`` False: straight across only), then across it to ``q`` inside a sub-tube of
+        this plan (:func:`~vtube_fleet.core.loss.step_aside`, every obstacle of the route,
+        configured and lost, kept out of) — or None."""
         p = np.asarray(p, dtype=float).reshape(2)
         seg = int(segment) if segment >= 0 else int(self.route.start_segments(p[None])[0])
         s = self.route.segments[seg]
         zones = self.route.zones[seg] if self.lookahead else ()
-        return step_aside(s.tube, s.partition, self.all_obstacles, self.flown, p, zones=zones)
+        extra = {} if back else {"max_back_m": 0.0}
+        return step_aside(s.tube, s.partition, self.all_obstacles, self.flown, p, zones=zones,
+                          **extra)
 
     def past(self, lost: Sequence[Obstacle], p: np.ndarray, segment: int = -1, *,
-             residual_m_s: float = 0.0) -> tuple[FlightPlan, np.ndarray] | None:
+             residual_m_s: float = 0.0, outside: bool = True
+             ) -> tuple[FlightPlan, np.ndarray] | None:
         """A plan of its own for one vehicle at ``p`` (2,) flying ``segment`` (−1: the one it
         starts in) that :meth:`cannot_pass` under ``with_lost(lost)``: in its segment
         the obstacles it has passed are left out (:func:`~vtube_fleet.core.loss.
@@ -256,7 +259,8 @@ class FlightPlan:
         segment must not meet its region). None for a controller other than the paper's
         ("new": the bound on its commands is what makes this sound), when it passed none,
         when the rest cannot be partitioned, or when ``p`` is inside a region of that plan
-        too. Called on the root plan (no lost obstacles yet)."""
+        too (unless ``outside`` is False: a vehicle about to step aside into one of its
+        sub-tubes). Called on the root plan (no lost obstacles yet)."""
         if self.kind != "new":
             return None
         p = np.asarray(p, dtype=float).reshape(2)
@@ -287,7 +291,7 @@ class FlightPlan:
         if not gone:
             return None
         plan = FlightPlan(route, self.kind, {}, self.replan)
-        if plan.cannot_pass(p[None], np.array([seg]))[0]:
+        if outside and plan.cannot_pass(p[None], np.array([seg]))[0]:
             return None
         return plan, np.array(gone, dtype=float).reshape(-1, 2)
 

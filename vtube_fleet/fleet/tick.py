@@ -20,7 +20,9 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
 6. **plan**: re-partition around lost and stopped vehicles, in whichever segment they stopped
    (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.with_lost`, in the worker thread), a
    partition of its own for a vehicle it traps that has passed some obstacles
-   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.past`; the others trapped land), exits
+   (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.past`; the others trapped wait or land;
+   when no common partition exists, each vehicle in the tube flies one of its own or waits:
+   :class:`NoCommonPartition`), exits
    (TraCondition on the route's LAST finishing line), then the controller's commands for every
    vehicle still in the tube in ONE call, each in its segment
    (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.commands`, ModifiedVectorField; one call
@@ -83,6 +85,7 @@ __all__ = [
     "FaultRule",
     "LinkColumns",
     "NeighbourSource",
+    "NoCommonPartition",
     "Tick",
     "TickResult",
     "actuate",
@@ -692,14 +695,43 @@ class TickResult:
 Replanned = tuple[FlightPlan, dict[int, tuple[FlightPlan, np.ndarray]]]
 
 
+class NoCommonPartition(PartitionError):
+    """The route cannot be re-partitioned around the stopped vehicles, with what each vehicle
+    in the tube can fly instead (``on_trapped = "wait"``, docs/fleet.md "No common
+    partition"): ``own`` (table row → (plan, centres left out)), the plan of its own
+    (:meth:`FlightPlan.past`) of each that has one — for one stepping aside, even if it is
+    still inside a region of it."""
+
+    def __init__(self, error: PartitionError,
+                 own: dict[int, tuple[FlightPlan, np.ndarray]]) -> None:
+        super().__init__(error.obstacle, error.reason)
+        self.args = error.args
+        self.own = own
+
+
 def replan_job(root: FlightPlan, lost: tuple[Obstacle, ...], rows: np.ndarray,
-               xy: np.ndarray, segment: np.ndarray, residual_m_s: float) -> Replanned:
+               xy: np.ndarray, segment: np.ndarray, residual_m_s: float,
+               stepping: np.ndarray | None = None, apart: bool = False) -> Replanned:
     """``root.with_lost(lost)`` and, for each vehicle in the tube (table ``rows`` at ``xy``
     flying ``segment``, as the tick saw them) it traps, :meth:`FlightPlan.past` (``residual_m_s``:
     the budget's D): what :meth:`Tick._plan_with_lost` plans, in the worker thread or at once.
-    Reads only."""
-    common = root.with_lost(lost)
+    When there is no common plan and ``apart``: :class:`NoCommonPartition` with the plan of
+    its own of every row that has one (those ``stepping`` aside: even if inside a region of
+    it). Reads only."""
+    try:
+        common = root.with_lost(lost)
+    except PartitionError as exc:
+        if not apart:
+            raise
+        steps = np.zeros(rows.size, bool) if stepping is None else stepping
+        mine = {int(rows[k]): root.past(lost, xy[k], int(segment[k]),
+                                        residual_m_s=residual_m_s, outside=not steps[k])
+                for k in range(rows.size)}
+        raise NoCommonPartition(exc, {r: m for r, m in mine.items() if m is not None}
+                                ) from exc
     own: dict[int, tuple[FlightPlan, np.ndarray]] = {}
+    if stepping is not None:  # (one stepping aside flies the common plan when there is one)
+        rows, xy, segment = rows[~stepping], xy[~stepping], segment[~stepping]
     if rows.size:
         for k in np.flatnonzero(common.cannot_pass(xy, segment)).tolist():
             mine = root.past(lost, xy[k], int(segment[k]), residual_m_s=residual_m_s)
@@ -761,6 +793,8 @@ class Tick:
         #: common re-partition, clear in one without the obstacles they have passed
         self.own_plans: dict[int, FlightPlan] = {}
         self._replan_failed: tuple[tuple[Any, ...], PartitionError] | None = None
+        #: the failed re-partition the vehicles here fly apart after (None: a common plan)
+        self.apart: NoCommonPartition | None = None
         #: the radius of the obstacle a lost vehicle becomes: physical r_s + margin
         self.lost_radius_m = (mission.scenario.controller.r_s
                               + self.cfg.lost_obstacle_margin_m)
@@ -872,6 +906,13 @@ class Tick:
         lost = lost_obstacles(view, root.corridor, self.lost_radius_m, root.flown)
         try:
             got = self._plan_with_lost(root, lost)
+        except NoCommonPartition as exc:
+            if self.cfg.on_trapped == "wait":
+                self._fly_apart(exc)
+                return True
+            if self.on_replan_failed is not None:
+                self.on_replan_failed(exc, view)
+            return False
         except PartitionError as exc:
             if self.on_replan_failed is not None:
                 self.on_replan_failed(exc, view)
@@ -879,8 +920,9 @@ class Tick:
         if got is None:
             return False  # being planned in the worker: the current plan flies on meanwhile
         new, own = got
-        if new is not self.plan:
+        if new is not self.plan or self.apart is not None:
             self.plan = new
+            self.apart = None
             self.own_plans = {}
             self.table.step_set[self.table.phase == _STEPPING] = False  # (a new point)
             if self.on_replan is not None:
@@ -904,13 +946,20 @@ class Tick:
         tab = self.table
         # (the plans of their own: only for vehicles in the tube; a climbing one's command
         # is its take-off spot's, which may point back along n_c)
-        rows = np.flatnonzero((tab.phase == _IN_TUBE) & tab.has)
+        rows = np.flatnonzero(((tab.phase == _IN_TUBE) | (tab.phase == _STEPPING)) & tab.has)
+        stepping = tab.phase[rows] == _STEPPING
         residual = float(self.cfg.disturbance_residual_m_s)
-        if self.replan_worker is None:
-            return replan_job(root, lost, rows, tab.xy[rows], tab.segment[rows], residual)
+        apart = self.cfg.on_trapped == "wait"
         key = root.lost_key(lost)
         if self._replan_failed is not None and self._replan_failed[0] == key:
             raise self._replan_failed[1]
+        if self.replan_worker is None:
+            try:
+                return replan_job(root, lost, rows, tab.xy[rows], tab.segment[rows],
+                                  residual, stepping, apart)
+            except PartitionError as exc:
+                self._replan_failed = (key, exc)
+                raise
         pending = self._replan_pending
         if pending is not None and pending[0] == key:
             if not pending[1].done():
@@ -927,7 +976,7 @@ class Tick:
         # the plans of their own depend on where the vehicles are now
         self._replan_pending = (key, self.replan_worker.submit(
             replan_job, root, lost, rows, tab.xy[rows].copy(), tab.segment[rows].copy(),
-            residual))
+            residual, stepping, apart))
         return None
 
     def _land_the_trapped(self, plan: FlightPlan, own: dict[int, tuple[FlightPlan, np.ndarray]]
@@ -966,6 +1015,50 @@ class Tick:
                 continue
             pilot.reason = pilot.reason or why
             pilot.begin_land(why, "warning")
+
+    def _fly_apart(self, exc: NoCommonPartition) -> None:
+        """No common plan around the stopped vehicles (docs/fleet.md, "No common partition";
+        ``on_trapped = "wait"``): each vehicle here in the tube flies the plan of its own
+        ``exc.own`` holds if it is outside every region of it (it has passed the obstacles
+        left out, which it never comes back to); else it waits, a stopped vehicle, released
+        as any waiting one; one stepping aside steps into its own plan's sub-tube; a
+        climbing one lands (no plan to enter the tube by). Once per failure: its plans
+        replace those of an earlier one."""
+        tab = self.table
+        before = set(self.own_plans) if self.apart is not None else set()
+        if self.apart is not exc:
+            self.apart = exc
+            self.own_plans = {}
+            tab.step_set[tab.phase == _STEPPING] = False  # (a new point, in its own plan)
+            for r, (mine, _) in exc.own.items():
+                if tab.phase[r] == _STEPPING:
+                    self.own_plans[r] = mine
+        why = (f"the {'route' if self.root.route.S > 1 else 'tube'} cannot be re-partitioned "
+               f"around the stopped vehicle(s) ({exc})")
+        for r in np.flatnonzero(_TRAPPABLE_MASK[tab.phase] & tab.has).tolist():
+            if r in self.own_plans:
+                continue
+            x, y = tab.xy[r]
+            pilot = self.pilots[r]
+            if tab.phase[r] != _IN_TUBE:
+                pilot.reason = pilot.reason or why
+                pilot.begin_land(why + "; cannot enter it", "warning")
+                continue
+            mine = exc.own.get(r)
+            if mine is not None and not mine[0].cannot_pass(tab.xy[r:r + 1],
+                                                            tab.segment[r:r + 1])[0]:
+                self.own_plans[r] = mine[0]
+                if r in before:  # (flew one after the failure before: said already)
+                    continue
+                passed = ", ".join(point_text(c) for c in mine[1])
+                pilot.event(f"flies on with a partition of its own: {why}, but at ({x:.2f}, "
+                            f"{y:.2f}) it is past the obstacle(s) at {passed}, which it never "
+                            f"comes back to, and outside every region without them",
+                            "warning")
+                continue
+            pilot.begin_wait(f"{why}: at ({x:.2f}, {y:.2f}), with no partition of its own; "
+                             "waits there until nobody flies the tube behind it or within "
+                             "reach, then steps aside into a sub-tube")
 
     def _waiting(self, everyone: States, view: NeighbourView, current: bool,
                  now_wall: float) -> None:
@@ -1014,12 +1107,12 @@ class Tick:
             there = stepping[tab.step_set[stepping] & ~np.isfinite(tab.step_via[stepping, 0])
                              & (np.hypot(*(tab.step_xy[stepping] - tab.xy[stepping]).T)
                                 <= STEP_ARRIVED_M)]
-            if there.size:
-                free = there[~self.plan.cannot_pass(tab.xy[there], tab.segment[there])]
-                for r in free.tolist():
-                    x, y = tab.xy[r]
-                    self.pilots[r].resume_tube(f"at ({x:.2f}, {y:.2f}), inside a sub-tube: "
-                                               "flies the tube again")
+            for r in there.tolist():
+                if self._plan_of(r).cannot_pass(tab.xy[r:r + 1], tab.segment[r:r + 1])[0]:
+                    continue
+                x, y = tab.xy[r]
+                self.pilots[r].resume_tube(f"at ({x:.2f}, {y:.2f}), inside a sub-tube: "
+                                           "flies the tube again")
         if busy or not tries or not (tab.phase == _WAITING).any():
             return
         route = self.plan.route
@@ -1045,12 +1138,21 @@ class Tick:
                                       f"within reach and {how} of those waiting"
                                       + (" (again)" if level else ""))
 
+    def _plan_of(self, r: int) -> FlightPlan:
+        """The plan row ``r`` flies: its own (:attr:`own_plans`) or the common one."""
+        return self.own_plans.get(r, self.plan)
+
     def _step_point(self, r: int, others_wait: bool) -> None:
         """The path row ``r`` steps aside on under the current plan; without one it waits
         again (once, while ``others_wait``: they may leave the way free) or lands."""
         tab = self.table
         x, y = tab.xy[r]
-        path = self.plan.step_aside(tab.xy[r], int(tab.segment[r]))
+        mine = self.own_plans.get(r)
+        # (with a plan of its own: straight across only; backing away could bring what it
+        # left out ahead of it again; with no plan at all: no path)
+        path = (None if mine is None and self.apart is not None
+                else (mine or self.plan).step_aside(tab.xy[r], int(tab.segment[r]),
+                                                    back=mine is None))
         pilot = self.pilots[r]
         if path is None:
             why = (f"cannot step aside from ({x:.2f}, {y:.2f}) into a sub-tube: no path back "
