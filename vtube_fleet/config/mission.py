@@ -198,7 +198,9 @@ MISSION_KEYS: tuple[Key, ...] = (
     Key("on_trapped", "choice", "a vehicle in the tube that a re-partition around stopped "
         "vehicles leaves inside a region (no safe sub-tube, none of its own): `wait` (it "
         "stops there, an obstacle for the others, until nobody else flies the tube, then "
-        "steps aside into a sub-tube and flies on) or `land` (in place)",
+        "steps aside into a sub-tube and flies on; when no partition around all the stopped "
+        "vehicles exists, each vehicle flies one of its own or waits) or `land` (in place; "
+        "a failed re-partition aborts the mission)",
         default="wait", choices=ON_TRAPPED),
     Key("exit_clear_m", "number", "distance flown past the finishing line before `hold` / "
         "`land`", "m", 3.0, bound=NON_NEGATIVE),
