@@ -172,6 +172,30 @@ def test_lost_neighbour_becomes_obstacle_and_repartitions(mission, budget) -> No
     assert plan.with_lost(()) is plan
 
 
+def test_a_vehicle_stopped_just_past_the_finishing_line_is_an_obstacle(plan) -> None:
+    """A stopped (holding) vehicle past the last finishing line whose extended disc O'
+    reaches back across it — the tail of a queue of exited vehicles — is an obstacle for the
+    vehicles still in the tube (they cannot stop under the controller); farther past the line,
+    or beside the tube, it is not; a plan around it builds and keeps the tube's vehicles out of
+    its O'."""
+    L = plan.corridor.segments[0].length
+    reach = 0.8 + plan.flown.r_s
+    near = view_of([st(7, L + reach - 0.05, 1.0, phase=Phase.HOLDING)])
+    got = lost_obstacles(near, plan.corridor, 0.8, plan.flown)
+    assert len(got) == 1
+    np.testing.assert_allclose(got[0].center, [L + reach - 0.05, 1.0])
+    for x, y in ((L + reach + 0.05, 1.0), (L + 0.5, 40.0)):
+        far = view_of([st(7, x, y, phase=Phase.HOLDING)])
+        assert lost_obstacles(far, plan.corridor, 0.8, plan.flown) == (), (x, y)
+    # 1 m past the line: its O' reaches 1.8 m back into the tube; a vehicle there is inside
+    # the region around it (no sub-tube: it waits), one beside it is not
+    tail = lost_obstacles(view_of([st(7, L + 1.0, 1.0, phase=Phase.HOLDING)]),
+                          plan.corridor, 0.8, plan.flown)
+    new = plan.with_lost(tail)
+    assert new.cannot_pass(np.array([[L - 1.0, 1.0]]))[0]
+    assert not new.cannot_pass(np.array([[L - 1.0, -4.0]]))[0]
+
+
 def test_no_valid_partition_raises(plan) -> None:
     # two lost side by side in the 10 m wide tube: no passage is wide enough for a robot
     # (not even with the fallback: core/loss.py)

@@ -314,14 +314,29 @@ def lost_obstacles(
 ) -> tuple[Obstacle, ...]:
     """Obstacles (radius ``radius_m``, apex distance ``LOST_APEX_FACTOR`` × h_min under
     ``params``) for the lost vehicles inside the route (sorted by vehicle id; any segment:
-    :meth:`FlightPlan.with_lost` gives each to the segments it meets); lost vehicles outside it
-    (e.g. past the last finishing line) stay static points only."""
+    :meth:`FlightPlan.with_lost` gives each to the segments it meets), and for those stopped
+    just past the last finishing line whose extended disc O' (``radius_m`` + r_s) reaches
+    back across it; the others outside (farther past the line) stay static points only.
+
+    Assumption 2 lets a robot that has exited vanish; ours do not: with ``after_exit =
+    "continue"`` an exited vehicle holds when a stopped one is ahead in its lane, so when every
+    vehicle leaves through one passage the queue can grow back to the finishing line, and a
+    vehicle still in the tube, which the controller cannot stop (v_min), would fly into its
+    tail (a mock flight after a loss: 0.12 m true). As an obstacle, the tail is partitioned
+    around, or the vehicle behind it waits."""
     pts = np.asarray(view.lost_pos, dtype=float).reshape(-1, 2)
     if not pts.shape[0]:
         return ()
     apex = LOST_APEX_FACTOR * h_min(float(radius_m), params)
-    # past the finishing line: Assumption 2, the vehicle no longer counts
     keep = corridor.inside(pts, params.eps_0)
+    last = corridor.last
+    past = np.asarray(last.xi(pts), float) - last.length
+    reach = float(radius_m) + float(params.r_s)
+    near = ~keep & (past >= 0.0) & (past < reach)
+    if near.any():  # (its foot on the finishing line inside the legs)
+        foot = pts - (past[:, None] + 1e-9) * last.n_c
+        near &= np.asarray(last.contains(foot), bool).reshape(-1)
+    keep = keep | near
     return tuple(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
                           apex_distance=apex) for p in pts[keep])
 
