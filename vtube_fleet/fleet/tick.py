@@ -996,16 +996,9 @@ class Tick:
         for r in trapped.tolist():
             x, y = tab.xy[r]
             pilot = self.pilots[r]
-            mine = own.get(r) if tab.phase[r] == _IN_TUBE else None
-            if mine is not None and not mine[0].cannot_pass(tab.xy[r:r + 1],
-                                                            tab.segment[r:r + 1])[0]:
-                self.own_plans[r] = mine[0]
-                passed = ", ".join(point_text(c) for c in mine[1])
-                pilot.event(f"flies on with a partition of its own: at ({x:.2f}, {y:.2f}), "
-                            f"inside the region the new partition takes around the stopped "
-                            f"vehicle(s), but past the obstacle(s) at {passed}, which it "
-                            f"never comes back to (it always advances along the tube), so "
-                            f"they are left out of its partition", "warning")
+            if tab.phase[r] == _IN_TUBE and self._fly_own(
+                    r, own.get(r), lambda: "inside the region the new partition takes around "
+                                           "the stopped vehicle(s)"):
                 continue
             why = (f"cannot pass the stopped vehicle(s): at ({x:.2f}, {y:.2f}), inside the "
                    f"region the new partition takes around them (no safe sub-tube)")
@@ -1033,32 +1026,45 @@ class Tick:
             for r, (mine, _) in exc.own.items():
                 if tab.phase[r] == _STEPPING:
                     self.own_plans[r] = mine
-        why = (f"the {'route' if self.root.route.S > 1 else 'tube'} cannot be re-partitioned "
-               f"around the stopped vehicle(s) ({exc})")
+        def why() -> str:  # (built only for an event: the loop runs this every tick)
+            return (f"the {'route' if self.root.route.S > 1 else 'tube'} cannot be "
+                    f"re-partitioned around the stopped vehicle(s) ({exc})")
+
         for r in np.flatnonzero(_TRAPPABLE_MASK[tab.phase] & tab.has).tolist():
             if r in self.own_plans:
                 continue
-            x, y = tab.xy[r]
             pilot = self.pilots[r]
             if tab.phase[r] != _IN_TUBE:
-                pilot.reason = pilot.reason or why
-                pilot.begin_land(why + "; cannot enter it", "warning")
+                pilot.reason = pilot.reason or why()
+                pilot.begin_land(why() + "; cannot enter it", "warning")
                 continue
-            mine = exc.own.get(r)
-            if mine is not None and not mine[0].cannot_pass(tab.xy[r:r + 1],
-                                                            tab.segment[r:r + 1])[0]:
-                self.own_plans[r] = mine[0]
-                if r in before:  # (flew one after the failure before: said already)
-                    continue
-                passed = ", ".join(point_text(c) for c in mine[1])
-                pilot.event(f"flies on with a partition of its own: {why}, but at ({x:.2f}, "
-                            f"{y:.2f}) it is past the obstacle(s) at {passed}, which it never "
-                            f"comes back to, and outside every region without them",
-                            "warning")
+            # (flew one after the failure before: said already)
+            if self._fly_own(r, exc.own.get(r), None if r in before else why):
                 continue
-            pilot.begin_wait(f"{why}: at ({x:.2f}, {y:.2f}), with no partition of its own; "
+            x, y = tab.xy[r]
+            pilot.begin_wait(f"{why()}: at ({x:.2f}, {y:.2f}), with no partition of its own; "
                              "waits there until nobody flies the tube behind it or within "
                              "reach, then steps aside into a sub-tube")
+
+    def _fly_own(self, r: int, mine: tuple[FlightPlan, np.ndarray] | None,
+                 why: Callable[[], str] | None) -> bool:
+        """Row ``r`` (in the tube, trapped) flies ``mine`` (:meth:`FlightPlan.past`: its plan
+        of its own, the centres left out) if it is outside every region of it (True): it has
+        passed the obstacles left out, which it never comes back to (it always advances
+        along the tube). The event says so, after ``why()`` (None: said already)."""
+        tab = self.table
+        if mine is None or mine[0].cannot_pass(tab.xy[r:r + 1], tab.segment[r:r + 1])[0]:
+            return False
+        self.own_plans[r] = mine[0]
+        if why is not None:
+            x, y = tab.xy[r]
+            passed = ", ".join(point_text(c) for c in mine[1])
+            self.pilots[r].event(f"flies on with a partition of its own: {why()}, but at "
+                                 f"({x:.2f}, {y:.2f}) it is past the obstacle(s) at {passed}, "
+                                 f"which it never comes back to (it always advances along "
+                                 f"the tube), so they are left out of its partition",
+                                 "warning")
+        return True
 
     def _waiting(self, everyone: States, view: NeighbourView, current: bool,
                  now_wall: float) -> None:
