@@ -418,15 +418,25 @@ async def fly_one(mission: Mission, vehicle: int, at_s: float, seed: int,
     }
 
 
-def fly_cases(path: str, count: int, seed: int, on_trapped: str) -> dict[str, Any]:
+def fly_cases(path: str, count: int, seed: int, on_trapped: str, only: Sequence[int] = (),
+              keep: Path | None = None) -> dict[str, Any]:
+    """Fly the first ``count`` cases of :func:`flight_cases` (only those numbered ``only``,
+    when given), case k with seed ``seed`` + k; each run's output in ``keep``/case<k> (None:
+    a temporary folder)."""
     mission = load_mission(ROOT / path)
     mission = dataclasses.replace(mission, config=dataclasses.replace(
         mission.config, on_trapped=on_trapped))
     rows = []
     for k, (vehicle, at_s) in enumerate(flight_cases(mission, count)):
+        if only and k not in only:
+            continue
         t0 = time.monotonic()
-        with tempfile.TemporaryDirectory() as d:
-            row = asyncio.run(fly_one(mission, vehicle, at_s, seed + k, Path(d)))
+        with contextlib.ExitStack() as stack:
+            if keep is None:
+                d = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+            else:
+                d = keep / f"{Path(path).stem}_case{k}"
+            row = asyncio.run(fly_one(mission, vehicle, at_s, seed + k, d))
         row["wall_s"] = round(time.monotonic() - t0, 1)
         rows.append(row)
         rp = row["repartitions"][0] if row["repartitions"] else None
@@ -478,6 +488,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                            help="the mission key on_trapped (default: wait)")
             p.add_argument("--cases", type=int, default=8, help="flights per mission")
             p.add_argument("--seed", type=int, default=0)
+            p.add_argument("--only", type=int, action="append", default=[],
+                           help="fly only case K of the --cases (repeatable)")
+            p.add_argument("--keep", type=Path, default=None,
+                           help="keep each flight's output folder here")
     args = ap.parse_args(argv)
     os.nice(10)
     if args.cmd == "fly" and args.rules == "today":
@@ -487,7 +501,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         results = [screen(m, args.every) for m in missions]
     else:
         print(f"rules: {args.rules}, on_trapped = {args.on_trapped}")
-        results = [fly_cases(m, args.cases, args.seed, args.on_trapped) for m in missions]
+        results = [fly_cases(m, args.cases, args.seed, args.on_trapped, args.only, args.keep)
+                   for m in missions]
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=1, default=str))
     return 0

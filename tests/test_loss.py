@@ -405,13 +405,15 @@ def _behind_a_lost_one():
 
 def test_a_vehicle_behind_a_lost_one_steps_aside_into_a_sub_tube():
     """A vehicle at rest 3 m behind a lost one, on its axis (inside its triangle: it cannot
-    pass, and no command of the controller gets it out: the cone behind a stopped vehicle):
-    the nearest point straight across n_c (no step back) inside a sub-tube (by the
-    clearance asked), on a path outside every O' and r_s inside the legs; the left side on a
-    tie; p itself when it is already outside every region."""
+    pass, and no command of the controller gets it out: the cone behind a stopped vehicle).
+    Straight across only (no step back): the nearest point across n_c inside a sub-tube (by
+    the clearance asked), on a path outside every O' and r_s inside the legs; the left side
+    on a tie. With steps back allowed: the straight line back and across is shorter (the
+    triangle narrows towards its apex) and clear, so it takes that. p itself when it is
+    already outside every region."""
     flown, tube, lost, part, zones, p = _behind_a_lost_one()
     assert cannot_pass(part, p[None], zones)[0]
-    via, q = step_aside(tube, part, (lost,), flown, p, zones=zones)
+    via, q = step_aside(tube, part, (lost,), flown, p, zones=zones, max_back_m=0.0)
     assert np.array_equal(via, p)
     assert q[0] == pytest.approx(17.0) and q[1] > 0.0  # left, on a tie
     assert wall_clearance(part, q[None], zones)[0] >= 0.3
@@ -419,6 +421,12 @@ def test_a_vehicle_behind_a_lost_one_steps_aside_into_a_sub_tube():
     # the nearest: a step 5 cm shorter is still inside (or too near the side)
     back = q - 0.05 * np.array([0.0, 1.0])
     assert wall_clearance(part, back[None], zones)[0] < 0.3
+    across_m = float(np.hypot(*(q - p)))
+    via, q = step_aside(tube, part, (lost,), flown, p, zones=zones)
+    assert np.array_equal(via, p) and q[0] < 17.0 and q[1] > 0.0
+    assert float(np.hypot(*(q - p))) < across_m
+    assert wall_clearance(part, q[None], zones)[0] >= 0.3
+    assert _path_clear(p, q, (lost,), flown, tube)
     # off the axis: the nearer side
     _, q2 = step_aside(tube, part, (lost,), flown, np.array([17.0, -0.4]), zones=zones)
     assert q2[1] < -0.4
@@ -429,16 +437,26 @@ def test_a_vehicle_behind_a_lost_one_steps_aside_into_a_sub_tube():
 
 def test_stepping_aside_backs_away_first_when_across_is_closed():
     """The same vehicle with an obstacle on either side of it, whose O' it would enter on
-    its way out of the triangle while still inside: it backs away along −n_c first (out of
-    the obstacles' reach), then crosses: the shortest such path, every leg of it clear."""
+    its way straight across while still inside: it backs away (the straight line back and
+    across, clear of them). With two more obstacles that the straight line would pass too
+    near, it backs away along −n_c first (out of their reach), then crosses: every leg of
+    the path clear. No way back (nothing behind the start base): none."""
     flown, tube, lost, part, zones, p = _behind_a_lost_one()
     sides = tuple(Obstacle(np.array([17.0, y]), 0.5, None) for y in (3.5, -3.5))
     obs = (lost, *sides)
+    via, q = step_aside(tube, part, obs, flown, p, zones=zones)
+    assert np.array_equal(via, p) and q[0] < 17.0
+    assert wall_clearance(part, q[None], zones)[0] >= 0.3
+    assert _path_clear(p, q, obs, flown, tube)
+    corner = tuple(Obstacle(np.array([15.0, y]), 0.3, None) for y in (2.5, -2.5))
+    assert not _path_clear(p, q, (*obs, *corner), flown, tube)
+    obs = (*obs, *corner)
     via, q = step_aside(tube, part, obs, flown, p, zones=zones)
     assert via[1] == pytest.approx(0.0) and via[0] < 17.0  # back along the axis first
     assert q[0] == pytest.approx(via[0]) and abs(q[1]) > 0.0
     assert wall_clearance(part, q[None], zones)[0] >= 0.3
     assert _path_clear(p, via, obs, flown, tube) and _path_clear(via, q, obs, flown, tube)
+    assert not _path_clear(p, q, obs, flown, tube)  # (the straight line is not)
     # no way back either (nothing behind the start base): none
     assert step_aside(tube, part, obs, flown, p, zones=zones, max_back_m=0.0) is None
 

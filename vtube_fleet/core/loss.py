@@ -868,10 +868,11 @@ def step_aside(tube: Trapezoid, part: Partition, obstacles: Sequence[Obstacle],
     left), such that :func:`wall_clearance` (q) ≥ ``clearance_m`` (inside a sub-tube) and
     every point of both legs of the path (sampled every ``res_m``) is outside every O'
     (‖x − p_o‖ > r_o + r_s of ``obstacles``) and at least r_s inside ``tube``'s legs (no
-    closer than ``p`` already is, by its estimate): the shortest such path, b + |s|.
-    (``p``, ``p``) when it is already there; None when there is none. A region's apex is
-    upstream, so backing away is how a vehicle beside an obstacle that closes one passage
-    reaches the other. Pure."""
+    closer than ``p`` already is, by its estimate). The straight line p → q of such a q
+    (via = ``p``: no corner) counts too when every point of it is so: the shortest path,
+    b + |s| or ‖q − p‖. (``p``, ``p``) when it is already there; None when there is none.
+    A region's apex is upstream, so backing away is how a vehicle beside an obstacle that
+    closes one passage reaches the other. Pure."""
     p = np.asarray(p, dtype=float).reshape(2)
     side = np.array([-tube.n_c[1], tube.n_c[0]])  # n_⊥, to the left of n_c
     r_s = float(params.r_s)
@@ -909,6 +910,12 @@ def step_aside(tube: Trapezoid, part: Partition, obstacles: Sequence[Obstacle],
             there = wall_clearance(part, x[:n_ok], zones) >= clearance_m
             if there.any():
                 k = int(np.flatnonzero(there)[0])
+                q = x[k]
                 if b + s[k] < best_len:
-                    best, best_len = (via, x[k]), float(b + s[k])
+                    best, best_len = (via, q), float(b + s[k])
+                if b > 0.0:  # the diagonal p → q: shorter, and no corner, when it is clear
+                    direct = float(np.hypot(*(q - p)))
+                    t = np.append(np.arange(0.0, direct, res_m), direct) / direct
+                    if direct < best_len and good(p + t[:, None] * (q - p)) == t.size:
+                        best, best_len = (p.copy(), q), direct
     return best

@@ -1162,8 +1162,8 @@ class Tick:
         pilot = self.pilots[r]
         if path is None:
             why = (f"cannot step aside from ({x:.2f}, {y:.2f}) into a sub-tube: no path back "
-                   f"along the tube and then across it keeps out of every obstacle's O' and "
-                   f"r_s' inside the legs")
+                   f"along the tube and then across it (or straight there) keeps out of every "
+                   f"obstacle's O' and r_s' inside the legs")
             if others_wait and tab.step_tries[r] == 0:
                 tab.step_tries[r] = 1
                 pilot.begin_wait(why + " now; waits again until the others waiting have gone")
@@ -1179,8 +1179,10 @@ class Tick:
         pilot.event(f"steps aside from ({x:.2f}, {y:.2f})"
                     + (f" {back:.2f} m back along the tube to ({via[0]:.2f}, {via[1]:.2f}), "
                        f"then" if back > STEP_ARRIVED_M else "")
-                    + f" {float(np.hypot(*(q - via))):.2f} m across it to ({q[0]:.2f}, "
-                      f"{q[1]:.2f}), inside a sub-tube of the partition without it")
+                    + f" {float(np.hypot(*(q - via))):.2f} m "
+                    + ("across it" if back > STEP_ARRIVED_M else "in a straight line")
+                    + f" to ({q[0]:.2f}, {q[1]:.2f}), inside a sub-tube of the partition "
+                      "without it")
 
     def _commands(self, view: NeighbourView | None, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Exits (TraCondition on the route's last finishing line, for the vehicles flying the
