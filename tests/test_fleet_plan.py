@@ -196,6 +196,25 @@ def test_a_vehicle_stopped_just_past_the_finishing_line_is_an_obstacle(plan) -> 
     assert not new.cannot_pass(np.array([[L - 1.0, -4.0]]))[0]
 
 
+def test_a_plan_holds_stopped_vehicles_that_moved_less_than_their_margin(plan) -> None:
+    """FlightPlan.holds: a plan built around a stopped vehicle still holds it (its body, a
+    disc of r_s, inside the obstacle) after it moved less than the obstacle's margin; not
+    after it moved more, nor a vehicle it has no obstacle for; no stopped vehicle: held."""
+    view = view_of([st(5, 9.0, 1.0, phase=Phase.LOST)])
+    new = plan.with_lost(lost_obstacles(view, plan.corridor, 0.8, plan.flown))
+    body = 0.3  # → margin 0.5 m
+
+    def at(*xy: tuple[float, float]):
+        return lost_obstacles(view_of([st(5 + k, x, y, phase=Phase.LOST)
+                                       for k, (x, y) in enumerate(xy)]),
+                              plan.corridor, 0.8, plan.flown)
+
+    assert new.holds(at((9.3, 1.3)), body)  # 0.42 m
+    assert not new.holds(at((9.4, 1.4)), body)  # 0.57 m
+    assert not new.holds(at((9.0, 1.0), (3.0, -2.0)), body)  # a second one
+    assert new.holds((), body) and not plan.holds(at((9.0, 1.0)), body)
+
+
 def test_no_valid_partition_raises(plan) -> None:
     # two lost side by side in the 10 m wide tube: no passage is wide enough for a robot
     # (not even with the fallback: core/loss.py)

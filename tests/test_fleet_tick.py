@@ -645,6 +645,47 @@ async def _two_stop(phase: str = "tube") -> tuple[Supervisor, float]:
     return sup, now
 
 
+async def test_a_stopped_vehicle_moving_within_its_obstacle_keeps_the_plan_flown(
+        monkeypatch) -> None:
+    """The fleet above re-partitioned around vehicles 2 and 5 (landing) and 1 (waiting);
+    then vehicle 2 drifts and the re-partition around where it is now fails (THE FAULT).
+    While it has moved less than its obstacle's margin (radius − r_s) the plan flown still
+    holds its body: everyone flies on as before, nobody waits. Once it has moved farther, there is
+    no common partition: the vehicles fly apart (on_trapped = "wait")."""
+    from vtube_fleet.core.partition import PartitionError
+    from vtube_fleet.fleet.flight_plan import FlightPlan
+
+    sup, now = await _two_stop()
+    plan = sup.ticker.plan
+    assert len(plan.lost) == 3 and sup.ticker.apart is None  # (2, 5 and 1, waiting)
+    phases = [p.phase for p in sup.pilots]
+    tried = []
+
+    def fails(self, lost):  # THE FAULT: no partition around the vehicles where they are now
+        tried.append(len(lost))
+        raise PartitionError(0, "a test")
+
+    monkeypatch.setattr(FlightPlan, "with_lost", fails)
+    margin = sup.mission.config.lost_obstacle_margin_m
+    links = [p.link for p in sup.pilots]
+    start = links[2].state.north_m
+    for moved, holds in ((0.6 * margin, True), (1.4 * margin, False)):
+        links[2].state.north_m = start + moved
+        for _ in range(2):
+            now += 0.05
+            for link in links:
+                link.state.last_position_s = now
+            sup.ticker(now, now + WALL)
+            await asyncio.sleep(0)
+        assert tried, "no re-partition was tried"
+        if holds:
+            assert sup.ticker.plan is plan and sup.ticker.apart is None
+            assert [p.phase for p in sup.pilots] == phases
+        else:
+            assert sup.ticker.apart is not None
+        tried.clear()
+
+
 async def test_a_climbing_vehicle_gets_no_plan_of_its_own() -> None:
     """The same fleet as above, still climbing: vehicle 6 is trapped as before, but a climbing
     vehicle flies towards its take-off spot (which may lie behind it along n_c), so nothing it

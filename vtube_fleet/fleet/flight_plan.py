@@ -208,6 +208,23 @@ class FlightPlan:
         return tuple((round(float(o.center[0]), 6), round(float(o.center[1]), 6),
                       round(float(o.radius), 6)) for o in lost)
 
+    def holds(self, lost: Sequence[Obstacle], body_m: float) -> bool:
+        """Whether this plan's lost-vehicle obstacles (:attr:`lost`) still hold the stopped
+        vehicles ``lost`` describes: each one's body (a disc of radius ``body_m`` around its
+        centre) inside one of them — it moved less than its obstacle's margin (radius −
+        ``body_m``) since this plan was built. This plan then keeps the paper's guarantee
+        for them as it is (every sub-tube and O' is built on those discs)."""
+        new = np.array([o.center for o in lost], dtype=float).reshape(-1, 2)
+        if not new.shape[0]:
+            return True
+        mine = self.lost
+        if not mine:
+            return False
+        old = np.array([o.center for o in mine], dtype=float).reshape(-1, 2)
+        r_old = np.array([float(o.radius) for o in mine])
+        d = np.hypot(new[:, None, 0] - old[None, :, 0], new[:, None, 1] - old[None, :, 1])
+        return bool((d + float(body_m) <= r_old[None, :] + 1e-9).any(axis=1).all())
+
     def planned_with_lost(self, lost: Sequence[Obstacle]) -> FlightPlan | None:
         """The plan :meth:`with_lost` has already built for these obstacles, else None (no
         work done)."""

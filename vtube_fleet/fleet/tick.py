@@ -798,6 +798,8 @@ class Tick:
         #: the radius of the obstacle a lost vehicle becomes: physical r_s + margin
         self.lost_radius_m = (mission.scenario.controller.r_s
                               + self.cfg.lost_obstacle_margin_m)
+        #: a vehicle's physical radius r_s: what of a stopped one its obstacle must hold
+        self.body_m = float(mission.scenario.controller.r_s)
         #: how far a stopped vehicle moves before the others see it move (:func:`own_states`)
         self.anchor_m = stop_anchor_m(mission)
         #: what the own vehicles published last (one message per row with a position)
@@ -897,7 +899,9 @@ class Tick:
     def _replan(self, view: NeighbourView, t: float) -> bool:
         """Re-partition if the set of lost-vehicle obstacles inside the route changed, while a
         vehicle here still flies (the climb or the tube, or steps aside). True when the plan
-        flown is the one for this view's stopped vehicles."""
+        flown is the one for this view's stopped vehicles, or still holds them when there is
+        none around where they are now (:meth:`FlightPlan.holds`: each moved less than its
+        obstacle's margin since it was built — a stopped multicopter still drifts)."""
         if not view.lost_ids.size and not self.plan.lost:
             return True
         if not _FLYING_TUBE_MASK[self.table.phase].any():
@@ -906,17 +910,10 @@ class Tick:
         lost = lost_obstacles(view, root.corridor, self.lost_radius_m, root.flown)
         try:
             got = self._plan_with_lost(root, lost)
-        except NoCommonPartition as exc:
-            if self.cfg.on_trapped == "wait":
-                self._fly_apart(exc)
-                return True
-            if self.on_replan_failed is not None:
-                self.on_replan_failed(exc, view)
-            return False
         except PartitionError as exc:
-            if self.on_replan_failed is not None:
-                self.on_replan_failed(exc, view)
-            return False
+            if self.apart is None and self.plan.holds(lost, self.body_m):
+                return True  # (they moved less than their obstacles' margin: it still holds)
+            return self._replan_failed_now(exc, view)
         if got is None:
             return False  # being planned in the worker: the current plan flies on meanwhile
         new, own = got
@@ -929,6 +926,18 @@ class Tick:
                 self.on_replan(new, t)
             self._land_the_trapped(new, own)
         return True
+
+    def _replan_failed_now(self, exc: PartitionError, view: NeighbourView) -> bool:
+        """No plan around the stopped vehicles that the plan flown does not hold: with
+        ``on_trapped = "wait"`` each flies apart (:meth:`_fly_apart`; True: that is current),
+        else the owner decides (False)."""
+        if isinstance(exc, NoCommonPartition):
+            if self.cfg.on_trapped == "wait":
+                self._fly_apart(exc)
+                return True
+        if self.on_replan_failed is not None:
+            self.on_replan_failed(exc, view)
+        return False
 
     def _plan_with_lost(self, root: FlightPlan, lost: tuple[Obstacle, ...]
                         ) -> Replanned | None:
