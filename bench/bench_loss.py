@@ -3,7 +3,7 @@
     python bench/bench_loss.py screen [--mission configs/px4_sitl_3.toml ...] [--every 0.5]
                                       [--json]
     python bench/bench_loss.py fly    [--mission ...] [--cases 8] [--rules new|today]
-                                      [--seed 0] [--json]
+                                      [--seed 0] [--only K ...] [--keep DIR] [--json]
 
 For the shipped missions (default ``configs/px4_sitl_3.toml`` and ``configs/mock_fleet.toml``)
 a single vehicle is lost at many places and times in the tube:
