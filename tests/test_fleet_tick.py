@@ -807,3 +807,38 @@ def test_with_no_common_partition_each_vehicle_gets_one_of_its_own_or_none(tmp_p
     with pytest.raises(PartitionError) as info:
         replan_job(root, lost, rows, xy, seg, 0.0, np.array([False, False]), apart=False)
     assert not isinstance(info.value, NoCommonPartition)
+
+
+def test_the_exit_room_is_checked_for_a_one_lane_queue() -> None:
+    """With ``after_exit = "continue"`` the exit area must hold the rest of the fleet in one
+    lane (a loss that leaves one passage sends them all there), each a stopping distance
+    behind the one ahead, the tail out of reach of the finishing line: exit_queue counts how
+    many fit and what exit_clear_m holds them; the supervisor warns before arming when they
+    do not fit, and not when they do."""
+    import dataclasses as dc
+    from pathlib import Path
+
+    from vtube_fleet.fleet.flight_plan import exit_queue, exit_stop_m
+
+    text = (Path(__file__).resolve().parents[1] / "configs" / "mock_fleet.toml").read_text()
+    sup, _ = memory_fleet(12, now_s=100.0, text=text)
+    cfg, plan = sup.cfg, sup.ticker.plan
+    assert cfg.after_exit == "continue" and cfg.exit_clear_m == 25.0
+    stop = exit_stop_m(plan, cfg)
+    reach = sup.ticker.lost_radius_m + plan.flown.r_s
+    length = plan.route.segments[-1].tube.length
+    fits, need_m = exit_queue(plan, cfg, sup.ticker.lost_radius_m, 11)
+    # the k-th vehicle (1-based) holds L + exit_clear_m − k·stop past the line
+    assert fits == math.floor((length + cfg.exit_clear_m - reach) / stop)
+    assert need_m == pytest.approx(11 * stop + reach - length)
+    assert fits >= 11 and need_m <= 25.0  # (the shipped mission holds them)
+    assert exit_queue(plan, dc.replace(cfg, exit_clear_m=need_m + 1e-6),
+                      sup.ticker.lost_radius_m, 11)[0] >= 11
+    for clear_m, warned in ((0.0, True), (need_m + 0.1, False)):
+        sup.cfg = dc.replace(cfg, exit_clear_m=clear_m)
+        sup.events.clear()
+        sup._warn_exit_room(plan)
+        said = [e["text"] for e in sup.events if e["text"].startswith("exit room:")]
+        assert bool(said) == warned, (clear_m, said)
+        if warned:
+            assert f"exit_clear_m = {math.ceil(need_m)} m holds them" in said[0], said

@@ -41,10 +41,11 @@ from vtube_fleet.core.route import Corridor, ReplanFn, Route, disc_meets, replan
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.config.mission import Mission
+    from vtube_fleet.config.mission import Mission, MissionConfig
     from vtube_fleet.fleet.neighbour_view import NeighbourView
 
-__all__ = ["LOST_APEX_FACTOR", "FlightPlan", "exit_velocities", "lost_obstacles"]
+__all__ = ["LOST_APEX_FACTOR", "FlightPlan", "exit_queue", "exit_stop_m", "exit_velocities",
+           "lost_obstacles"]
 
 _EMPTY_POS = np.zeros((0, 2))
 
@@ -356,6 +357,30 @@ def lost_obstacles(
     keep = keep | near
     return tuple(Obstacle(center=np.array(p, dtype=float), radius=float(radius_m),
                           apex_distance=apex) for p in pts[keep])
+
+
+def exit_stop_m(plan: FlightPlan, config: MissionConfig) -> float:
+    """The stopping distance (m) of an exited vehicle — how far behind a stopped vehicle
+    ahead it holds, and before the fence's exit: 2 r_s' + v (τ_d + t63 + T), flown values."""
+    return 2.0 * float(plan.flown.r_s) + float(plan.flown.v) * (
+        config.tracking_dead_time_s + config.tracking_t63_s + config.period_s)
+
+
+def exit_queue(plan: FlightPlan, config: MissionConfig, lost_radius_m: float, count: int
+               ) -> tuple[int, float]:
+    """With ``after_exit = "continue"``: how many exited vehicles can hold in one lane, the
+    first a stopping distance before the fence's exit (L + ``exit_clear_m`` past the last
+    finishing line) and each one :func:`exit_stop_m` behind the one ahead, before the
+    queue's tail is within reach of the line (r_lost + r_s': then it is an obstacle for the
+    vehicles in the tube, :func:`lost_obstacles`) → (that number, the ``exit_clear_m`` that
+    holds ``count``)."""
+    from vtube_fleet.core.fence import exit_room_m
+
+    length = plan.route.segments[-1].tube.length
+    stop = exit_stop_m(plan, config)
+    reach = float(lost_radius_m) + float(plan.flown.r_s)
+    fits = max(0, int((exit_room_m(length, config.exit_clear_m) - reach) // stop))
+    return fits, max(0.0, count * stop + reach - length)
 
 
 def exit_velocities(

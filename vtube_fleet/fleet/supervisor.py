@@ -54,7 +54,7 @@ from vtube_fleet.core.metrics import SafetyMonitor, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError, bug_text
 from vtube_fleet.fleet.budget import LinkMeasurement, SafetyBudget, achieved_rate_hz, mission_budget
-from vtube_fleet.fleet.flight_plan import FlightPlan
+from vtube_fleet.fleet.flight_plan import FlightPlan, exit_queue, exit_stop_m
 from vtube_fleet.fleet.measure import FlightMeasurement, TickTrace
 from vtube_fleet.fleet.neighbour_view import NeighbourView
 from vtube_fleet.fleet.pilot import VehiclePilot
@@ -521,12 +521,31 @@ class Supervisor:
                 + await self._margin_note(measured))
         plan = FlightPlan.build(sc.corridor, flown, route=route)
         self.ticker.set_plan(plan)
+        self._warn_exit_room(plan)
         self.recorder.log_scene(self.mission.scenario, plan.route,
                                 mission=self.mission.config, meta={
             "kind": "fleet", "rate_hz": cfg.rate_hz, "backend": self.backend,
             "safety_budget": self.budget.as_dict(), "r_s_flown": flown.r_s,
             "r_a_flown": flown.r_a, "endpoints": [p.link.endpoint.url for p in self.pilots],
             "fence": self.fence})
+
+    def _warn_exit_room(self, plan: FlightPlan) -> None:
+        """With ``after_exit = "continue"``, say so when the exit area cannot hold the fleet in
+        one lane (:func:`~vtube_fleet.fleet.flight_plan.exit_queue`): after a loss that
+        leaves one passage every later vehicle exits there, and a queue's tail within reach
+        of the finishing line is an obstacle that can strand vehicles still in the tube."""
+        if self.cfg.after_exit != "continue":
+            return
+        queue = len(self.pilots) - 1
+        fits, need_m = exit_queue(plan, self.cfg, self.ticker.lost_radius_m, queue)
+        if fits < queue:
+            self.event(f"exit room: exit_clear_m = {self.cfg.exit_clear_m:g} m holds {fits} "
+                       f"exited vehicle(s) in one lane, {exit_stop_m(plan, self.cfg):.1f} m "
+                       f"apart, before the queue's tail is within reach of the finishing "
+                       f"line; after a loss that leaves one passage up to {queue} may queue "
+                       f"there, and the tail is then an obstacle that can strand vehicles "
+                       f"still in the tube: exit_clear_m = {math.ceil(need_m)} m holds them",
+                       level="warning")
 
     async def _margin_note(self, measured: LinkMeasurement) -> str:
         """"; " and which measured figure went past the margin ``check`` prints

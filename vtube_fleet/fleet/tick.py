@@ -60,7 +60,7 @@ from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.core.text import point_text
 from vtube_fleet.fleet.budget import BudgetWatch
 from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S
-from vtube_fleet.fleet.flight_plan import FlightPlan, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.flight_plan import FlightPlan, exit_stop_m, exit_velocities, lost_obstacles
 from vtube_fleet.fleet.neighbour_view import NeighbourView, States, classify
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable, phase_mask
 from vtube_fleet.frames import TubeFrame
@@ -599,8 +599,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         r = np.flatnonzero(exited)
         still = tab.standstill[r]
         past = np.where(tab.has[r], plan.route.beyond_finish_m(tab.xy[r]), 0.0)
-        stop = 2.0 * plan.flown.r_s + plan.flown.v * (
-            cfg.tracking_dead_time_s + cfg.tracking_t63_s + cfg.period_s)
+        stop = exit_stop_m(plan, cfg)
         v, blocked = exit_velocities(plan, tab.xy[r], view, stop_distance_m=stop)
         blocked &= tab.has[r]
         clear = (cfg.after_exit in ("hold", "land")) & (past >= cfg.exit_clear_m)
