@@ -827,11 +827,12 @@ def test_the_exit_room_is_checked_for_a_one_lane_queue() -> None:
     stop = exit_stop_m(plan, cfg)
     reach = sup.ticker.lost_radius_m + plan.flown.r_s
     length = plan.route.segments[-1].tube.length
-    fits, need_m = exit_queue(plan, cfg, sup.ticker.lost_radius_m, 11)
+    fits, need_m, stop_m = exit_queue(plan, cfg, sup.ticker.lost_radius_m, 11)
     # the k-th vehicle (1-based) holds L + exit_clear_m − k·stop past the line
     assert fits == math.floor((length + cfg.exit_clear_m - reach) / stop)
     assert need_m == pytest.approx(11 * stop + reach - length)
     assert fits >= 11 and need_m <= 25.0  # (the shipped mission holds them)
+    assert stop_m == stop
     assert exit_queue(plan, dc.replace(cfg, exit_clear_m=need_m + 1e-6),
                       sup.ticker.lost_radius_m, 11)[0] >= 11
     for clear_m, warned in ((0.0, True), (need_m + 0.1, False)):

@@ -44,8 +44,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from vtube_fleet.config.mission import Mission, MissionConfig
     from vtube_fleet.fleet.neighbour_view import NeighbourView
 
-__all__ = ["LOST_APEX_FACTOR", "FlightPlan", "exit_queue", "exit_stop_m", "exit_velocities",
-           "lost_obstacles"]
+__all__ = ["LOST_APEX_FACTOR", "FlightPlan", "exit_queue", "exit_room_of", "exit_stop_m",
+           "exit_velocities", "lost_obstacles"]
 
 _EMPTY_POS = np.zeros((0, 2))
 
@@ -366,21 +366,27 @@ def exit_stop_m(plan: FlightPlan, config: MissionConfig) -> float:
         config.tracking_dead_time_s + config.tracking_t63_s + config.period_s)
 
 
-def exit_queue(plan: FlightPlan, config: MissionConfig, lost_radius_m: float, count: int
-               ) -> tuple[int, float]:
-    """With ``after_exit = "continue"``: how many exited vehicles can hold in one lane, the
-    first a stopping distance before the fence's exit (L + ``exit_clear_m`` past the last
-    finishing line) and each one :func:`exit_stop_m` behind the one ahead, before the
-    queue's tail is within reach of the line (r_lost + r_s': then it is an obstacle for the
-    vehicles in the tube, :func:`lost_obstacles`) → (that number, the ``exit_clear_m`` that
-    holds ``count``)."""
+def exit_room_of(plan: FlightPlan, config: MissionConfig) -> float:
+    """How far past the route's last finishing line the fence's exit is (m): its length plus
+    ``exit_clear_m`` (:func:`~vtube_fleet.core.fence.exit_room_m`)."""
     from vtube_fleet.core.fence import exit_room_m
 
-    length = plan.route.segments[-1].tube.length
+    return exit_room_m(plan.route.segments[-1].tube.length, config.exit_clear_m)
+
+
+def exit_queue(plan: FlightPlan, config: MissionConfig, lost_radius_m: float, count: int
+               ) -> tuple[int, float, float]:
+    """With ``after_exit = "continue"``: how many exited vehicles can hold in one lane, the
+    first a stopping distance before the fence's exit (:func:`exit_room_of`) and each one
+    :func:`exit_stop_m` behind the one ahead, before the queue's tail is within reach of the
+    line (r_lost + r_s': then it is an obstacle for the vehicles in the tube,
+    :func:`lost_obstacles`) → (that number, the ``exit_clear_m`` that holds ``count``, the
+    stopping distance)."""
     stop = exit_stop_m(plan, config)
     reach = float(lost_radius_m) + float(plan.flown.r_s)
-    fits = max(0, int((exit_room_m(length, config.exit_clear_m) - reach) // stop))
-    return fits, max(0.0, count * stop + reach - length)
+    fits = max(0, int((exit_room_of(plan, config) - reach) // stop))
+    need = max(0.0, count * stop + reach - plan.route.segments[-1].tube.length)
+    return fits, need, stop
 
 
 def exit_velocities(

@@ -54,7 +54,7 @@ from vtube_fleet.core.metrics import SafetyMonitor, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError, bug_text
 from vtube_fleet.fleet.budget import LinkMeasurement, SafetyBudget, achieved_rate_hz, mission_budget
-from vtube_fleet.fleet.flight_plan import FlightPlan, exit_queue, exit_stop_m
+from vtube_fleet.fleet.flight_plan import FlightPlan, exit_queue
 from vtube_fleet.fleet.measure import FlightMeasurement, TickTrace
 from vtube_fleet.fleet.neighbour_view import NeighbourView
 from vtube_fleet.fleet.pilot import VehiclePilot
@@ -537,10 +537,10 @@ class Supervisor:
         if self.cfg.after_exit != "continue":
             return
         queue = len(self.pilots) - 1
-        fits, need_m = exit_queue(plan, self.cfg, self.ticker.lost_radius_m, queue)
+        fits, need_m, stop_m = exit_queue(plan, self.cfg, self.ticker.lost_radius_m, queue)
         if fits < queue:
             self.event(f"exit room: exit_clear_m = {self.cfg.exit_clear_m:g} m holds {fits} "
-                       f"exited vehicle(s) in one lane, {exit_stop_m(plan, self.cfg):.1f} m "
+                       f"exited vehicle(s) in one lane, {stop_m:.1f} m "
                        f"apart, before the queue's tail is within reach of the finishing "
                        f"line; after a loss that leaves one passage up to {queue} may queue "
                        f"there, and the tail is then an obstacle that can strand vehicles "

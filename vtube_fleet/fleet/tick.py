@@ -55,12 +55,17 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from vtube_fleet.config.mission import Mission
-from vtube_fleet.core.fence import exit_room_m
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.core.text import point_text
 from vtube_fleet.fleet.budget import BudgetWatch
 from vtube_fleet.fleet.compensation import RESIDUAL_WINDOW_S
-from vtube_fleet.fleet.flight_plan import FlightPlan, exit_stop_m, exit_velocities, lost_obstacles
+from vtube_fleet.fleet.flight_plan import (
+    FlightPlan,
+    exit_room_of,
+    exit_stop_m,
+    exit_velocities,
+    lost_obstacles,
+)
 from vtube_fleet.fleet.neighbour_view import NeighbourView, States, classify
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable, phase_mask
 from vtube_fleet.frames import TubeFrame
@@ -606,7 +611,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         # "continue" (until every vehicle has exited) ends at the fence: a vehicle holds a
         # stopping distance before the fence's exit (one stuck in the tube must not send the
         # others into PX4's fence failsafe)
-        room = exit_room_m(plan.route.segments[-1].tube.length, cfg.exit_clear_m)
+        room = exit_room_of(plan, cfg)
         far = (cfg.after_exit == "continue") & (past >= room - stop) & ~clear
         v[clear | far | blocked | still] = 0.0
         vx[r], vy[r] = v[:, 0], v[:, 1]
