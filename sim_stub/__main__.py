@@ -138,7 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="[I:]KEY=VAL,...",
         help="fault for vehicle I (or all): loss=PCT, latency=S, gps_noise=M, "
-        "die_at=S, die_how=silent|freeze, push_north/push_east=M_S, push_at=S, push_for=S; "
+        "die_at=S, die_how=silent|freeze, push_north/push_east=M_S, push_at=S, push_for=S, "
+        "slow=GAIN, slow_at=S; "
         "its battery: battery=PCT (the full pack), drain=PCT_PER_MIN (while armed; default "
         "100 as PX4 SITL), battery_floor=PCT (default 50), battery_low=PCT and "
         "battery_low_at=S (the pack drops to PCT then); repeatable",

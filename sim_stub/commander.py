@@ -503,6 +503,9 @@ class CommanderMixin:
             if now >= self._push_until:
                 self._push_until = None
                 self._sched.push[self.slot] = 0.0
+        if (f.slow_at_s is not None and up >= f.slow_at_s
+                and self._sched.xy_gain[self.slot] != f.slow_gain):
+            self._sched.slow(self.slot, f.slow_gain)
         if self.stage < _N_BOOT_STAGES:
             self._boot_stages(now, up)
         # offboard signal (COM_OF_LOSS_T)

@@ -41,6 +41,9 @@ class Faults:
     (no COMMAND_ACK: the link retries, then gives up) or ``"deny"``-ed (COMMAND_ACK DENIED);
     NAV_LAND and everything else still work (the vehicle that would not hold, seen on real PX4
     SITL when its acks were lost).
+    ``slow_gain`` from ``slow_at_s`` (after the vehicle's start) on: the vehicle follows only
+    that share of every horizontal velocity it is commanded, whatever mode commands it (a heavy
+    payload, a weak motor: PX4's response slower than it was when the mission started).
 
     The battery (:mod:`sim_stub.battery`; defaults: PX4 SITL's): ``battery_pct`` the charge of
     the full pack (at start, and again whenever disarmed), ``drain_pct_per_min`` the drain while
@@ -59,6 +62,8 @@ class Faults:
     push_at_s: float | None = None
     push_for_s: float = 1.0
     mode_fault: str = ""
+    slow_gain: float = 1.0
+    slow_at_s: float | None = None
     battery_pct: float = 100.0
     drain_pct_per_min: float = 100.0  # PX4 SITL: SIM_BAT_DRAIN = 60 s for 100 %
     battery_floor_pct: float = 50.0  # PX4 SITL: SIM_BAT_MIN_PCT
@@ -87,6 +92,10 @@ class Faults:
             raise SimStubError(f"fault push_at_s must be >= 0 s, got {self.push_at_s}")
         if not 0.0 < self.push_for_s <= 3600.0:
             raise SimStubError(f"fault push_for_s must be in (0, 3600] s, got {self.push_for_s}")
+        if not 0.0 < self.slow_gain <= 1.0:
+            raise SimStubError(f"fault slow_gain must be in (0, 1], got {self.slow_gain}")
+        if self.slow_at_s is not None and not self.slow_at_s >= 0.0:
+            raise SimStubError(f"fault slow_at_s must be >= 0 s, got {self.slow_at_s}")
         for name in ("battery_pct", "battery_floor_pct"):
             v = getattr(self, name)
             if not 0.0 <= v <= 100.0:
@@ -122,6 +131,8 @@ _KEYS = {
     "push_at": ("push_at_s", float),
     "push_for": ("push_for_s", float),
     "mode_fault": ("mode_fault", str),
+    "slow": ("slow_gain", float),
+    "slow_at": ("slow_at_s", float),
     "battery": ("battery_pct", float),
     "drain": ("drain_pct_per_min", float),
     "battery_floor": ("battery_floor_pct", float),
@@ -138,8 +149,9 @@ def parse_fault_spec(spec: str) -> tuple[int | None, Faults]:
     Example: ``"2:loss=5,latency=0.05,die_at=30,die_how=freeze"``; without ``I:`` it applies to
     every vehicle. Keys: loss (percent), latency (s), gps_noise (m), die_at (s), die_how,
     push_north / push_east (m/s), push_at (s), push_for (s), mode_fault (drop / deny),
-    battery (% of the full pack), drain (%/min while armed), battery_floor (%), battery_low (%)
-    and battery_low_at (s).
+    slow (the share of the commanded velocity followed) and slow_at (s), battery (% of the
+    full pack), drain (%/min while armed), battery_floor (%), battery_low (%) and
+    battery_low_at (s).
     """
     index: int | None = None
     body = spec.strip()

@@ -89,6 +89,8 @@ class Scheduler:
         self.yaw_rate_sp = np.zeros(n)
         self.noise = np.zeros((n, 3))
         self.push = np.zeros((n, 3))  # fault: carried along at this NED velocity (m/s)
+        self.xy_gain = np.ones(n)  # fault: the share of the horizontal command followed
+        self._slow_on = False
         self.noise_sigma = np.zeros(n)
         self._noise_on = False  # noise_sigma.any(): a GPS noise fault somewhere
         self._noise_rng = np.random.default_rng(0)
@@ -135,7 +137,14 @@ class Scheduler:
                 self.airborne[slot] = False
                 self.frozen[slot] = False
                 self.push[slot] = 0.0
+                self.xy_gain[slot] = 1.0
                 self.est.release(slot)
+
+    def slow(self, slot: int, gain: float) -> None:
+        """From now on the vehicle in ``slot`` follows ``gain`` of its horizontal command
+        (:class:`~sim_stub.faults.Faults` ``slow_*``)."""
+        self.xy_gain[slot] = gain
+        self._slow_on = bool((self.xy_gain != 1.0).any())
 
     # --- sockets ---------------------------------------------------------------------------
     def add_reader(self, sock: socket.socket, on_readable: Callable[[], None]) -> None:
@@ -305,6 +314,8 @@ class Scheduler:
             frozen = self.frozen
             est.step(dt, self.airborne, frozen, bool(frozen.any()))
             u = self.u - est.e_v  # PX4 tracks the estimated velocity: the truth flies u − e_v
+            if self._slow_on:  # Faults.slow_*: a vehicle that follows less than it is told
+                u[:, :2] = self.u[:, :2] * self.xy_gain[:, None] - est.e_v[:, :2]
             self.dyn.step(dt, u, self.airborne, frozen, self.yaw_sp, self.yaw_rate_sp)
             push_on = bool(self.push.any())
             if push_on:

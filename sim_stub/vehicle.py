@@ -449,6 +449,14 @@ class MockVehicle(CommanderMixin, FenceMixin, TelemetryMixin):
         self._sched.push[self.slot] = (north_m_s, east_m_s, 0.0)
         self._push_until = self._now() + duration_s
 
+    def slow(self, gain: float) -> None:
+        """From now on the vehicle follows only ``gain`` (0, 1] of every horizontal velocity it
+        is commanded: fault injection on demand, like :class:`~sim_stub.faults.Faults`
+        ``slow_*``."""
+        if not 0.0 < gain <= 1.0:
+            raise SimStubError(f"slow needs a gain in (0, 1], got {gain}")
+        self._sched.slow(self.slot, gain)
+
     def set_battery(self, pct: float) -> None:
         """The battery holds at most ``pct`` % from now on (also after disarming): the
         ``battery_low`` fault on demand (:mod:`sim_stub.battery`)."""
