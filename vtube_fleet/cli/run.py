@@ -99,6 +99,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return int(result.exit_code)
 
 
+def _m(v: float | None) -> str:
+    return "—" if v is None else f"{v:.2f} m"
+
+
 def _closing_line(result: Any, out: Path) -> str:
     s = result.summary
 
@@ -116,6 +120,9 @@ def _closing_line(result: Any, out: Path) -> str:
             f"{f('min_measured_speed_settled_m_s', 'm/s')}..); "
             f"rate {f('achieved_rate_hz', 'Hz')}, tick p99 "
             f"{f('tick_duration_p99_s', 'ms', 1000)}"
+            + (f"; tracking error p99 {_m(tracking.get('error_p99_m'))}, max "
+               f"{_m(tracking.get('error_max_m'))} (e = {_m(tracking.get('budgeted_m'))})"
+               if (tracking := s.get("reference_tracking") or {}) else "")
             + (f"; TRUE clearance: pair {f('truth_min_pair_distance_m')} (airborne "
                f"{f('truth_min_pair_distance_airborne_m')}), obstacle centre "
                f"{f('truth_min_obstacle_center_distance_m')}, legs "

@@ -24,6 +24,15 @@ So the controller is flown with
 
     δ = (v'_max + D)·(T + L + τ_d + t63) + k σ,    r_s' = r_s + δ,    r_a' = r_a + δ
 
+With **reference tracking** (``tracking = "reference"``) the controller works on reference
+positions r, each vehicle's commands integrated, which are the paper's single integrator (up
+to the period T and the neighbours' age L); a position loop holds each vehicle's estimate p̂
+to its own r, and |p̂ − r| is measured every tick against its budgeted bound e
+(``tracking_error_m``: the tube holds beyond it). PX4's response and the estimate disturbance
+then no longer enter as assumed lags; they are inside the measured e:
+
+    δ = v'_max·(T + L) + e + k σ
+
 (2 r_s' between two vehicles leaves 2 r_s after both err; a leg clearance r_s' leaves r_s; an
 obstacle clearance r_o + r_s' leaves r_o + r_s). The inflated scenario must itself satisfy the
 paper's conditions; the runtime checks that before arming and refuses with the numbers.
@@ -57,6 +66,7 @@ __all__ = [
     "PX4_SITL_ACCURACY_M",
     "PX4_SITL_LATENCY_S",
     "SafetyBudget",
+    "TRACKING_PERSIST_TICKS",
     "achieved_rate_hz",
     "budget_latency_s",
     "budget_problems",
@@ -88,7 +98,8 @@ class SafetyBudget:
     ``period_s`` T, ``latency_s`` L (position age + setpoint delay), ``dead_time_s`` τ_d and
     ``t63_s`` of PX4's velocity tracking, ``v_max_prime`` of the controller, ``accuracy_m`` σ
     (the worst reported horizontal accuracy), ``accuracy_factor`` k, ``disturbance_m_s`` D;
-    ``delta_m`` the inflation used.
+    ``delta_m`` the inflation used; ``tracking_error_m`` e with reference tracking (None:
+    velocity tracking, the module docstring's first formula).
     """
 
     period_s: float
@@ -102,10 +113,18 @@ class SafetyBudget:
     disturbance_m_s: float = 0.0
     overridden: bool = False
     override_source: str = "safety_margin_m from the mission file"
+    tracking_error_m: float | None = None
+
+    @property
+    def reference(self) -> bool:
+        """Reference tracking: e is budgeted instead of PX4's response (module docstring)."""
+        return self.tracking_error_m is not None
 
     @property
     def delay_s(self) -> float:
-        """The effective delay T + L + τ_d + t63."""
+        """The effective delay T + L + τ_d + t63 (reference tracking: T + L)."""
+        if self.reference:
+            return self.period_s + self.latency_s
         return self.period_s + self.latency_s + self.dead_time_s + self.t63_s
 
     @property
@@ -119,6 +138,11 @@ class SafetyBudget:
     @property
     def disturbance_m(self) -> float:
         return self.disturbance_m_s * self.delay_s
+
+    @property
+    def tracking_m(self) -> float:
+        """e (0 with velocity tracking)."""
+        return self.tracking_error_m or 0.0
 
     @classmethod
     def compute(
@@ -134,19 +158,30 @@ class SafetyBudget:
         disturbance_m_s: float = 0.0,
         override_m: float | None = None,
         override_source: str = "safety_margin_m from the mission file",
+        tracking_error_m: float | None = None,
     ) -> SafetyBudget:
+        """δ of the module docstring: velocity tracking, or reference tracking when
+        ``tracking_error_m`` (e) is given (then τ_d, t63 and D are not budgeted: they act
+        inside the measured e)."""
         for name, value in (("period_s", period_s), ("latency_s", latency_s),
                             ("dead_time_s", dead_time_s), ("t63_s", t63_s),
                             ("accuracy_m", accuracy_m), ("accuracy_factor", accuracy_factor),
-                            ("disturbance_m_s", disturbance_m_s)):
+                            ("disturbance_m_s", disturbance_m_s),
+                            ("tracking_error_m", tracking_error_m or 0.0)):
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"safety budget: {name} must be finite and >= 0, got {value}")
-        delay = period_s + latency_s + dead_time_s + t63_s
         vmp = float(params.v_max_prime)
-        delta = ((vmp + disturbance_m_s) * delay + accuracy_factor * accuracy_m
-                 if override_m is None else float(override_m))
+        if tracking_error_m is not None:
+            dead_time_s = t63_s = disturbance_m_s = 0.0
+            delta = vmp * (period_s + latency_s) + tracking_error_m + accuracy_factor * accuracy_m
+        else:
+            delay = period_s + latency_s + dead_time_s + t63_s
+            delta = (vmp + disturbance_m_s) * delay + accuracy_factor * accuracy_m
+        if override_m is not None:
+            delta = float(override_m)
         return cls(period_s, latency_s, dead_time_s, t63_s, vmp, delta, accuracy_m,
-                   accuracy_factor, disturbance_m_s, override_m is not None, override_source)
+                   accuracy_factor, disturbance_m_s, override_m is not None, override_source,
+                   tracking_error_m)
 
     def inflate(self, params: ControllerParams) -> ControllerParams:
         """The controller parameters actually flown: r_s' = r_s + δ, r_a' = r_a + δ."""
@@ -157,6 +192,12 @@ class SafetyBudget:
         """One line with the formula and the numbers."""
         if self.overridden:
             text = f"δ = {self.delta_m:.3f} m ({self.override_source})"
+        elif self.reference:
+            text = (
+                f"δ = v'_max·(T + L) + e + k σ = {self.v_max_prime:g}·({self.period_s:.3f} + "
+                f"{self.latency_s:.3f}) + {self.tracking_m:.3f} + {self.accuracy_factor:g}·"
+                f"{self.accuracy_m:.3f} = {self.delta_m:.3f} m (reference tracking)"
+            )
         else:
             text = (
                 f"δ = (v'_max + D)·(T + L + τ_d + t63) + k σ = ({self.v_max_prime:g} + "
@@ -183,6 +224,8 @@ class SafetyBudget:
             "accuracy_m": self.accuracy_m,
             "accuracy_factor": self.accuracy_factor,
             "disturbance_m_s": self.disturbance_m_s,
+            "tracking": "reference" if self.reference else "velocity",
+            "tracking_error_m": self.tracking_error_m,
             "overridden": self.overridden,
         }
 
@@ -243,7 +286,8 @@ def mission_budget(mission: Mission, measured: LinkMeasurement | None = None, *,
         mission.scenario.controller, period_s=cfg.period_s,
         latency_s=latency + extra_latency_s, dead_time_s=cfg.tracking_dead_time_s,
         t63_s=cfg.tracking_t63_s, accuracy_m=sigma, accuracy_factor=cfg.accuracy_factor,
-        disturbance_m_s=cfg.disturbance_residual_m_s, override_m=cfg.safety_margin_m)
+        disturbance_m_s=cfg.disturbance_residual_m_s, override_m=cfg.safety_margin_m,
+        tracking_error_m=cfg.tracking_error_m if cfg.tracking == "reference" else None)
 
 
 def budget_problems(mission: Mission, measured: LinkMeasurement) -> list[str]:
@@ -325,6 +369,14 @@ def loop_problem(starts_s: Sequence[float], lateness_s: Sequence[float],
             f"rate_hz")
 
 
+#: Reference tracking: the ticks in a row a vehicle may be further than e from its reference
+#: before the tube holds (one tick over may be a single late or jumping sample).
+TRACKING_PERSIST_TICKS = 2
+#: … and the resolution (m) and range of the tracking errors kept for the summary.
+TRACKING_BIN_M = 0.01
+TRACKING_BINS = 500
+
+
 class BudgetWatch:
     """The in-flight check of a budget's inputs (supervisor and MQTT agent alike; pure).
 
@@ -364,6 +416,12 @@ class BudgetWatch:
         self._over = 0
         self._worst_gap_s = 0.0  # the longest tick gap since the last check
         self.longest_tick_gap_s = -math.inf  # … and ever (the summaries' loop health)
+        # reference tracking: ticks in a row with a vehicle beyond e, and every error seen
+        # (a histogram of TRACKING_BIN_M bins: a thousand vehicles for an hour stay small)
+        self._track_over = 0
+        self.tracking_counts = np.zeros(TRACKING_BINS, np.int64)
+        self.tracking_max_m = math.nan
+        self.tracking_max_at: tuple[float, int] | None = None  # (mission time, vehicle)
 
     def add_ages(self, t_s: float, ages: Sequence[float],
                  vehicle_ids: Sequence[int] | None = None,
@@ -445,6 +503,45 @@ class BudgetWatch:
             over.append(f"reported position accuracy σ = {sigma:.2f} m > budgeted "
                         f"{b.accuracy_m:.2f} m (+25 %)")
         return self._judge(over)
+
+    def check_tracking(self, errors_m: np.ndarray, vehicle_ids: np.ndarray,
+                       t_s: float = math.nan) -> str | None:
+        """Reference tracking, every tick (mission time ``t_s``): the in-tube vehicles'
+        |p̂ − r| (m; NaN: none) with their ids. Returns a hold reason once a vehicle has been
+        further than the budgeted e for :data:`TRACKING_PERSIST_TICKS` ticks in a row (its
+        true position may then be outside what δ covers), else None; every finite error is
+        kept for the summary."""
+        e = self.budget.tracking_error_m
+        ok = np.isfinite(errors_m)
+        if e is None or not ok.any():
+            return None
+        err, ids = errors_m[ok], vehicle_ids[ok]
+        self.tracking_counts += np.bincount(
+            np.minimum((err / TRACKING_BIN_M).astype(np.int64), TRACKING_BINS - 1),
+            minlength=TRACKING_BINS)
+        k = int(np.argmax(err))
+        worst = float(err[k])
+        if not worst <= self.tracking_max_m:
+            self.tracking_max_m, self.tracking_max_at = worst, (t_s, int(ids[k]))
+        if worst <= e:
+            self._track_over = 0
+            return None
+        self._track_over += 1
+        if self._track_over < TRACKING_PERSIST_TICKS:
+            return None
+        return (f"safety budget exceeded in flight: vehicle {int(ids[k])} is {worst:.2f} m "
+                f"from its reference > the budgeted tracking error e = {e:.2f} m "
+                f"({TRACKING_PERSIST_TICKS} ticks in a row; PX4 follows more slowly than the "
+                f"partition was built for)")
+
+    def tracking_percentile_m(self, q: float) -> float:
+        """The ``q`` percentile of the tracking errors seen (to :data:`TRACKING_BIN_M`, the
+        upper edge of its bin); NaN: none."""
+        total = int(self.tracking_counts.sum())
+        if not total:
+            return math.nan
+        k = int(np.searchsorted(np.cumsum(self.tracking_counts), q / 100.0 * total))
+        return min((k + 1) * TRACKING_BIN_M, self.tracking_max_m)
 
     def _settled_ages(self, newest_sample_s: np.ndarray | None) -> np.ndarray:
         """The window's ages whose samples have been superseded (or carry no vehicle)."""

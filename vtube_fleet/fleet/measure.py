@@ -102,6 +102,9 @@ class FlightMeasurement:
         self.settled_speed = [math.inf, -math.inf]
         self.settle_s = self.cfg.tracking_dead_time_s + 3.0 * self.cfg.tracking_t63_s
         self.cmd_speed = [math.inf, -math.inf]
+        #: reference tracking on the mock: the largest |p − r| of the TRUE positions (the
+        #: budget covers e + k σ of it)
+        self.truth_reference_max_m = math.nan
         self.min_pair_airborne = math.inf
         self.min_pair_airborne_truth = math.inf
         self.watch: BudgetWatch | None = None  # the in-flight budget check, once flying
@@ -180,6 +183,12 @@ class FlightMeasurement:
                     val = float(getattr(smt, key)[0])
                     if math.isfinite(val):
                         metrics[f"truth_{key}"] = val
+            if truth is not None:  # reference tracking: how far the TRUTH is from r
+                refd = np.isfinite(tab.ref_xy[:, 0]) & np.isfinite(truth[:, 0])
+                if refd.any():
+                    off = np.hypot(*(truth[refd] - tab.ref_xy[refd]).T)
+                    self.truth_reference_max_m = float(np.fmax(self.truth_reference_max_m,
+                                                               off.max()))
             cs = np.hypot(*cmd[tube_rows & np.isfinite(cmd[:, 0])].T)
             if cs.size:
                 self.cmd_speed[0] = min(self.cmd_speed[0], float(cs.min()))

@@ -154,6 +154,20 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
             "residual_p99_m_s": finite_or_none(percentile_or_none(res, 99)),
             "residual_max_m_s": finite_or_none(max(res) if res else math.nan),
             "budgeted_m_s": sup.budget.disturbance_m_s}
+    watch = mes.watch
+    if sup.budget.reference and watch is not None:
+        extra["reference_tracking"] = {
+            "error_p50_m": finite_or_none(watch.tracking_percentile_m(50)),
+            "error_p99_m": finite_or_none(watch.tracking_percentile_m(99)),
+            "error_max_m": finite_or_none(watch.tracking_max_m),
+            "error_max_at": (None if watch.tracking_max_at is None else
+                             {"t_s": round(watch.tracking_max_at[0], 2),
+                              "vehicle": watch.tracking_max_at[1]}),
+            "budgeted_m": sup.budget.tracking_error_m,
+            # the mock's truth: |p − r| ≤ e + k σ is what δ counts on
+            "truth_offset_max_m": finite_or_none(mes.truth_reference_max_m),
+            "budgeted_with_estimate_m": sup.budget.tracking_m + sup.budget.estimate_m,
+            "gain_1_s": cfg.tracking_gain_1_s}
     try:
         out = mes.acc.summary(**extra)
     except Exception as exc:  # never lose the summary

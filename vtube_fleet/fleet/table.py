@@ -19,6 +19,7 @@ rotations between a vehicle's local NED and the tube frame (the same for every v
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -76,7 +77,13 @@ class FleetTable:
     ``exit_s`` (mission time of the exit), ``setpoints_sent``, ``ever_sent``, the published
     state's ``seq`` and ``segment``: the route segment each vehicle flies (the hand-over state
     the tick passes back to the plan every tick; −1 until its first position, then the segment
-    that position starts in; 0 for a one-segment route)."""
+    that position starts in; 0 for a one-segment route). With reference tracking
+    (:func:`~vtube_fleet.fleet.tick.track_references`): ``ref_xy`` (n, 2) each in-tube vehicle's
+    reference position r (its commands integrated; NaN: none), ``ref_vel`` (n, 2) the velocity
+    it flies along r until the next tick, ``ref_since_s`` (n,) the monotonic time r (re)started
+    from the estimate, ``track_off`` (n, 2) r − p̂ at
+    the last sample's time and ``track_err_m`` (n,) its norm (NaN: none), ``ref_s`` the
+    monotonic time r was last advanced to."""
 
     def __init__(self, ids: Sequence[int], mission: Mission, frame: TubeFrame | None = None
                  ) -> None:
@@ -114,6 +121,12 @@ class FleetTable:
         self.ever_sent = np.zeros(n, bool)
         self.seq = np.zeros(n, np.int64)
         self.segment = np.full(n, -1, np.intp)
+        self.ref_xy = np.full((n, 2), np.nan)
+        self.ref_vel = np.full((n, 2), np.nan)
+        self.ref_since_s = np.full(n, np.nan)
+        self.track_off = np.full((n, 2), np.nan)
+        self.track_err_m = np.full(n, np.nan)
+        self.ref_s = math.nan
         self.to_ned, self.to_tube = _rotations(mission.frame if frame is None else frame)
         #: the estimate compensation (fleet/compensation.py); None: not compensated
         self.compensator = CompensatorBank(n) if cfg.compensate_estimate else None

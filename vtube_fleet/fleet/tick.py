@@ -28,7 +28,9 @@ vehicle) — keeps their state in a :class:`~vtube_fleet.fleet.table.FleetTable`
    (:meth:`~vtube_fleet.fleet.flight_plan.FlightPlan.commands`, ModifiedVectorField; one call
    more per vehicle flying a partition of its own);
 7. **actuate** (:func:`actuate`): each vehicle's setpoint for its phase (arming, the climb, the
-   tube plus the estimate compensation d̂, the exit behaviour, standing still), all sent in one
+   tube plus the estimate compensation d̂ — with reference tracking plus the position loop to
+   each vehicle's reference, :func:`track_references` after step 2 —, the exit behaviour,
+   standing still), all sent in one
    batch (:func:`~vtube_fleet.link.base.send_velocities_ned`);
 8. **measure** is the caller's: the supervisor judges the fleet
    (:mod:`vtube_fleet.fleet.measure`), an agent records what it heard; both feed the budget
@@ -143,6 +145,14 @@ STILL_POS_TOL_M = 0.1
 STEP_GAIN_1_S = 1.0
 STEP_MAX_M_S = 0.5
 STEP_ARRIVED_M = 0.1
+#: Reference tracking: the cap (m/s) of the position loop's correction K (r − p̂) added to the
+#: command (a vehicle further off than this correction can close is held by the watch anyway).
+TRACKING_CORRECTION_MAX_M_S = 1.0
+#: … and the start ramp (s): a reference (re)started from the hover flies its commands scaled
+#: up from 0 to 1 over this time (:func:`reference_velocities`). PX4's velocity response to a
+#: 1 m/s step from the hover leaves a vehicle ~0.6 m behind its reference; ramped over 3 s,
+#: ~0.3 m (docs/fleet.md, reference tracking).
+TRACKING_RAMP_S = 3.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -233,6 +243,57 @@ def hand_over(tab: FleetTable, plan: FlightPlan) -> None:
     rows = np.flatnonzero(tab.has & ((tab.segment < 0) | (tab.phase == _IN_TUBE)))
     if rows.size:
         tab.segment[rows] = plan.advance(tab.xy[rows], tab.segment[rows])
+
+
+def track_references(tab: FleetTable, links: LinkColumns, now_mono: float) -> None:
+    """Reference tracking (``tracking = "reference"``, docs/fleet.md): each in-tube vehicle's
+    reference r advances by the velocity it was sent to fly since the last tick (``ref_vel``:
+    the controller's command on the start ramp, :func:`reference_velocities`), so r is the
+    integral of the controller's commands: the paper's single integrator. A vehicle that did
+    not fly the controller's command last tick (entering the tube, standing still, back from
+    waiting) starts again from its estimate (``ref_since_s`` now); others have none. Then the
+    offset r − p̂ at the sample's time (r moved back over the sample's age) ``track_off`` and
+    its norm ``track_err_m``."""
+    dt = now_mono - tab.ref_s if math.isfinite(tab.ref_s) else 0.0
+    tab.ref_s = now_mono
+    flew = tab.cmd_in_tube & np.isfinite(tab.ref_xy[:, 0]) & np.isfinite(tab.ref_vel[:, 0])
+    tab.ref_xy[flew] += tab.ref_vel[flew] * dt
+    go = (tab.phase == _IN_TUBE) & tab.has & ~tab.standstill
+    start = go & ~flew
+    tab.ref_xy[start] = tab.xy[start]
+    tab.ref_vel[start] = 0.0
+    tab.ref_since_s[start] = now_mono
+    tab.ref_xy[~go] = np.nan
+    tab.ref_vel[~go] = np.nan
+    tab.ref_since_s[~go] = np.nan
+    tab.track_off[:] = np.nan
+    keep = np.flatnonzero(go & flew)
+    if keep.size:
+        age = (now_mono - tab.sample_s[keep]) + np.nan_to_num(links.latency_s[keep], nan=0.0)
+        tab.track_off[keep] = tab.ref_xy[keep] - tab.ref_vel[keep] * age[:, None] - tab.xy[keep]
+    tab.track_err_m = np.hypot(tab.track_off[:, 0], tab.track_off[:, 1])
+
+
+def reference_velocities(tab: FleetTable, rows: np.ndarray, cmds: np.ndarray, now_mono: float
+                         ) -> np.ndarray:
+    """What ``rows`` fly along their references (k, 2): the controller's commands ``cmds``
+    scaled by the start ramp s = min(1, time since the reference started /
+    :data:`TRACKING_RAMP_S`), kept in ``ref_vel`` for the next :func:`track_references`.
+    Vehicles that start together share s(t): the same paths as the paper's, flown slower at
+    first (a common time scale), so that no vehicle is asked for a step from the hover."""
+    s = np.clip((now_mono - tab.ref_since_s[rows]) / TRACKING_RAMP_S, 0.0, 1.0)
+    v = np.where(np.isfinite(s)[:, None], np.nan_to_num(s)[:, None] * cmds, 0.0)
+    tab.ref_vel[rows] = v
+    return v
+
+
+def tracking_corrections(tab: FleetTable, rows: np.ndarray, gain_1_s: float) -> np.ndarray:
+    """The position loop of reference tracking for ``rows`` (k, 2): K (r − p̂) at the sample's
+    time (:func:`track_references`), at most :data:`TRACKING_CORRECTION_MAX_M_S`; zero where
+    a row has no reference."""
+    off = tab.track_off[rows]
+    return _toward(tab.xy[rows] + off, tab.xy[rows], np.isfinite(off).all(axis=1), gain_1_s,
+                   TRACKING_CORRECTION_MAX_M_S)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -466,7 +527,9 @@ def own_states(tab: FleetTable, links: LinkColumns, now_mono: float, now_wall: f
     lands with a slow drift: the estimate's wander would otherwise make every process
     re-partition the tube every tick, each at a slightly different moment); the stamp the
     wall-clock time its position was measured (its age: since it arrived plus the one-way link
-    latency). Returns the states, their table rows and their ages (s)."""
+    latency). With reference tracking an in-tube vehicle is told at its reference r, moving
+    at its command (:func:`track_references`). Returns the states, their table rows and their
+    ages (s)."""
     stopped = _STOPPED_MASK[tab.phase] & tab.has
     tab.stop_set &= stopped
     if stopped.any():
@@ -477,8 +540,12 @@ def own_states(tab: FleetTable, links: LinkColumns, now_mono: float, now_wall: f
     rows = np.flatnonzero(np.isfinite(tab.sample_s))
     lost = tab.lost_set[rows, None]
     anchored = tab.stop_set[rows, None]
-    pos = np.where(lost, tab.lost[rows], np.where(anchored, tab.stop_xy[rows], tab.xy[rows]))
-    vel = np.where(lost | anchored, 0.0, tab.vel[rows])
+    # with reference tracking an in-tube vehicle is told at its reference, moving at its command
+    refd = np.isfinite(tab.ref_xy[rows, :1])
+    here = np.where(refd, tab.ref_xy[rows], tab.xy[rows])
+    pos = np.where(lost, tab.lost[rows], np.where(anchored, tab.stop_xy[rows], here))
+    moving = np.where(refd, np.nan_to_num(tab.ref_vel[rows]), tab.vel[rows])
+    vel = np.where(lost | anchored, 0.0, moving)
     ages = (now_mono - tab.sample_s[rows]) + np.nan_to_num(links.latency_s[rows], nan=0.0)
     return States(tab.ids[rows], pos, vel, tab.phase[rows], now_wall - ages), rows, ages
 
@@ -538,7 +605,10 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     * the climb: a weak hold of the take-off spot, the climb-capped altitude hold, plus d̂
       once airborne;
     * in the tube: the controller's command (rows ``cmd_rows`` get ``cmds``; the others zero)
-      plus d̂, the altitude hold; a vehicle standing still (``standstill``) or waiting zero
+      plus d̂, the altitude hold; with reference tracking the command on its start ramp plus
+      the position loop K (r − p̂) (:func:`reference_velocities`,
+      :func:`tracking_corrections`; the table keeps the controller's command); a vehicle
+      standing still (``standstill``) or waiting zero
       plus d̂; one stepping aside towards its point (``step_xy``, :data:`STEP_GAIN_1_S`,
       at most :data:`STEP_MAX_M_S`) plus d̂, zero until it has one;
     * past the (route's last) finishing line:
@@ -640,6 +710,16 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         corr = np.stack((bank.dx_m_s[rows], bank.dy_m_s[rows]), axis=1)
         sx = np.where(c_rows, sx + corr[:, 0], sx)
         sy = np.where(c_rows, sy + corr[:, 1], sy)
+    if cfg.tracking == "reference":  # the ramp and the position loop (not in tab.cmd)
+        fly = controlled[rows] & tube[rows]
+        if fly.any():
+            at = rows[fly]
+            c = np.stack((vx[at], vy[at]), axis=1)
+            v = reference_velocities(tab, at, c, now_mono)
+            v += tracking_corrections(tab, at, cfg.tracking_gain_1_s) - c
+            sx, sy = sx.copy(), sy.copy()
+            sx[fly] += v[:, 0]
+            sy[fly] += v[:, 1]
     down = vertical_down_m_s(tab, mission, rows, climb[rows])
     down[ph[rows] == _ARMING] = 0.0
     a, b, c, d = tab.to_ned
@@ -832,6 +912,8 @@ class Tick:
         links = read_links(self.links)
         new, up = sense(tab, links, self.frame, mission)
         hand_over(tab, self.plan)
+        if self.cfg.tracking == "reference":
+            track_references(tab, links, now_mono)
         for r in up.tolist():
             if not pilots[r].at_altitude.is_set():
                 pilots[r].at_altitude.set()
@@ -1273,12 +1355,19 @@ def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_g
     gap since the previous tick, the ages of the positions used (:func:`used_ages`), lost
     vehicles' ages dropped
     (``forgotten``: the rows already dropped); once a second judge L (worst uplink latency) and
-    σ (``accuracy_m(rows in the tube)``). Does nothing while no vehicle is in the tube.
+    σ (``accuracy_m(rows in the tube)``); with reference tracking, every tick, each in-tube
+    vehicle's |p̂ − r| against e (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_tracking`).
+    Does nothing while no vehicle is in the tube.
     ``used``: :func:`used_ages` of this tick if the caller has it already.
     Returns ``(warning, hold)``."""
     ph = tab.phase
     if not (ph == _IN_TUBE).any():
         return None, None
+    if watch.budget.reference:  # every tick: |p̂ − r| against e
+        tube = np.flatnonzero(ph == _IN_TUBE)
+        hold = watch.check_tracking(tab.track_err_m[tube], tab.ids[tube], result.t_s)
+        if hold is not None:
+            return None, hold
     rows, ages = used_ages(tab, result) if used is None else used
     watch.add_tick_gap(tick_gap_s)
     watch.add_ages(result.t_s, ages, rows, tab.sample_s[rows])
