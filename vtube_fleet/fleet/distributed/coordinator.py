@@ -27,6 +27,7 @@ from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError
+from vtube_fleet.fleet.distributed import unsupported
 from vtube_fleet.fleet.distributed.monitor import RunMonitor
 from vtube_fleet.fleet.flight_plan import FlightPlan
 from vtube_fleet.recording.api import NullRecorder, Recorder
@@ -172,6 +173,9 @@ class Coordinator:
 
         self.path = Path(mission_path)
         self.mission = load_mission(self.path)
+        why = unsupported(self.mission)
+        if why is not None:
+            raise MissionRunError(f"{self.path.name}: {why}")
         self.mission_id = mission_id or default_mission_id(self.path)
         validate_mission_id(self.mission_id)
         self.config_hash = self.mission.config_hash

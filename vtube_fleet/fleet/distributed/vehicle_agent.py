@@ -29,6 +29,7 @@ from vtube_fleet.core.metrics import finite_or_none, percentile_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError, bug_text
 from vtube_fleet.fleet.budget import BudgetWatch, LinkMeasurement, SafetyBudget
+from vtube_fleet.fleet.distributed import unsupported
 from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
     ASSUMED_LINK_LATENCY_S,
@@ -593,6 +594,9 @@ class AgentProcess:
 
         self.path = Path(mission_path)
         self.mission = load_mission(self.path)
+        why = unsupported(self.mission)
+        if why is not None:
+            raise AgentRefused(f"{self.path.name}: {why}")
         if not 0 <= vehicle < self.mission.count:
             raise AgentRefused(
                 f"--vehicle {vehicle}: {self.path.name} has slots 0..{self.mission.count - 1}"
