@@ -505,3 +505,74 @@ async def test_a_loop_that_cannot_keep_up_is_refused_before_arming(tmp_path: Pat
     assert any("judging the next 5 s once more" in e["text"] for e in events)
     assert (tmp_path / "summary.json").is_file()
     print(f"\nslow loop: {result.reason}")
+
+
+# ----------------------------------------------------------------------------------------------
+# reference tracking (docs/fleet.md, "Reference tracking")
+# ----------------------------------------------------------------------------------------------
+def reference_mission(tmp_path: Path, vehicles: int | None = None) -> Mission:
+    """The shipped mock mission flown with ``tracking = "reference"``."""
+    text = (ROOT / "configs" / "mock_fleet.toml").read_text()
+    mission = mission_file(tmp_path, text.replace("[mission]\n",
+                                                  '[mission]\ntracking = "reference"\n', 1))
+    return mission.with_vehicles(vehicles) if vehicles else mission
+
+
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
+async def test_reference_tracking_flies_the_mock_fleet_mission_judged_by_the_truth(
+        tmp_path: Path) -> None:
+    """12 vehicles, px4-sih, reference tracking: a smaller δ than velocity tracking's for the
+    same measurement, every vehicle within e of its reference in flight, the TRUE positions
+    within e + k σ of the references (what δ counts on), and the truth clean."""
+    mission = reference_mission(tmp_path)
+    result, sup, log = await fly_logged(mission, 11, tmp_path=tmp_path, truth=True)
+    assert result.exit_code == 0, result.reason
+    s = result.summary
+    b, rt = s["safety_budget"], s["reference_tracking"]
+    assert b["tracking"] == "reference" and b["accuracy_factor"] == 3.0
+    velocity = (0.5 + 0.25) * (b["period_s"] + b["latency_s"] + 0.3 + 1.0) + 2 * b["accuracy_m"]
+    assert b["delta_m"] < velocity - 0.1
+    assert 0 < rt["error_p50_m"] <= rt["error_p99_m"] <= rt["error_max_m"] <= rt["budgeted_m"]
+    assert rt["truth_offset_max_m"] <= rt["budgeted_with_estimate_m"]
+    worst = check_safety(mission, sup.trace)
+    truth = assert_true_clearance(log)
+    assert s["truth"] and s["truth_violations"] == 0
+    report("reference tracking, mock_fleet", result, worst, truth)
+    print(f"δ {b['delta_m']:.3f} m (velocity tracking: {velocity:.3f} m); tracking error p99 "
+          f"{rt['error_p99_m']:.2f} m, max {rt['error_max_m']:.3f} m (e = {rt['budgeted_m']} m); "
+          f"TRUE |p − r| max {rt['truth_offset_max_m']:.3f} m (e + k σ = "
+          f"{rt['budgeted_with_estimate_m']:.3f} m)")
+
+
+@pytest.mark.xdist_group("heavy")
+async def test_a_vehicle_that_follows_slowly_makes_the_tube_hold(tmp_path: Path) -> None:
+    """Reference tracking; 4 s into the tube vehicle 0 starts following only 30 % of its
+    command (the mock's ``slow`` fault): it falls behind its reference beyond e, so every
+    vehicle in the tube holds, the mission aborts naming it, and every vehicle lands."""
+    mission = reference_mission(tmp_path, 4)
+    holder: list[Supervisor] = []
+    slowed: list[float] = []
+    async with mock_fleet(mission, **boot(4, seed=6)) as fleet:
+        log = TruthLog(fleet, mission)
+
+        def hook(tick: int, sup: Supervisor) -> None:
+            if not holder:
+                holder.append(sup)
+            log(tick, sup)
+            start = sup.tube_start_s
+            if not slowed and start is not None and sup.t_s() > start + 4.0:
+                slowed.append(sup.t_s())
+                fleet.vehicles[0].slow(0.3)
+
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3, 4],
+                           out_dir=tmp_path, truth=True, tick_hook=hook)
+    assert slowed, "the tube never started"
+    assert result.outcome == "aborted" and result.exit_code != 0
+    assert "vehicle 0 is" in result.reason and "from its reference > the budgeted tracking " \
+        "error e = 0.60 m" in result.reason, result.reason
+    s = result.summary
+    assert s["reference_tracking"]["error_max_m"] > 0.6
+    assert [v["phase"] for v in s["vehicle_states"]] == ["landed"] * 4
+    assert s["truth_violations"] == 0
+    assert_true_clearance(log)
+    print(f"\nslowed at {slowed[0]:.1f} s: {result.reason}")

@@ -12,7 +12,7 @@ from vtube_fleet.config.mission import load_mission, parse_mission_config
 from vtube_fleet.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ("mock_fleet.toml", "px4_sitl_3.toml")
+CONFIGS = ("mock_fleet.toml", "px4_sitl_3.toml", "mock_fleet_rtk.toml")
 
 BASE = NARROWING
 MISSION = MISSION_TABLE
