@@ -7,6 +7,11 @@
     python bench/bench_density.py fly --family 6 --seeds 3     # a family mission, 6 vehicles
     python bench/bench_density.py fly --seeds 3 --fault push   # the mock's disturbance fault
     python bench/bench_density.py fly --seeds 3 --fault latency
+    python bench/bench_density.py geometry --tracking reference                # reference tracking
+    python bench/bench_density.py geometry --tracking reference --sigma 0.02   # … RTK (σ 0.02 m)
+    python bench/bench_density.py fly --tracking reference --seeds 10
+    python bench/bench_density.py fly --tracking reference --estimator rtk --seeds 5
+    python bench/bench_density.py fly --tracking reference --seeds 3 --fault slow
 
 ``geometry``: for the shipped missions and a family of N-vehicle missions (a straight tube 40 m
 long with a pole at x = 22 m, the vehicles on a grid of ⌈√N⌉ columns (even) from x = 3 m), the δ the
@@ -18,7 +23,12 @@ on the in-process mock (px4-sih, ground truth from the mock's HIL_STATE_QUATERNI
 --truth``), one after another, each on free ports, printing δ, the outcome and the TRUE
 clearances per flight and the worst over the seeds; ``--fault push`` gives every vehicle a 1 s
 gust of 0.8 m/s across the tube 30 s after its start (the disturbance it holds against),
-``--fault latency`` 40 ms more one-way delay on every link (plus 5 % loss).
+``--fault latency`` 40 ms more one-way delay on every link (plus 5 % loss), ``--fault slow``
+vehicle 0 following only 40 % of its horizontal command from 30 s after its start (PX4's response
+slower than the partition was built for: with reference tracking the tube holds).
+``--tracking reference`` flies (and judges the geometry of) every mission with reference tracking
+(docs/fleet.md), its own default k; ``--sigma`` the σ the geometry assumes, ``--estimator`` the
+mock's estimate error profile in flight (``rtk``: σ = 0.02 m).
 
 ``--tree PATH`` runs it with another checkout's ``vtube_fleet`` (the budget before a change):
 each part runs in a child process with that tree first on its path. Not part of the tests:
@@ -105,6 +115,14 @@ def family_text(n: int, spacing: float, width: float) -> str:
     return FAMILY_TEMPLATE.format(half=round(width / 2.0, 4), positions=json.dumps(pos))
 
 
+def with_tracking(text: str, tracking: str) -> str:
+    """A mission's text flown with ``tracking`` (its own line replaced, or one added to
+    ``[mission]``)."""
+    lines = [x for x in text.splitlines() if not x.strip().startswith("tracking =")]
+    at = lines.index("[mission]") + 1
+    return "\n".join(lines[:at] + [f'tracking = "{tracking}"'] + lines[at:]) + "\n"
+
+
 def _child(tree: Path | None, *args: str) -> Any:
     """Run this script's hidden ``args`` mode in a child whose ``vtube_fleet`` comes from
     ``tree`` (default: this checkout); its last stdout line is JSON."""
@@ -124,21 +142,25 @@ def _child(tree: Path | None, *args: str) -> Any:
 # ----------------------------------------------------------------------------------------------
 # geometry (in the child)
 # ----------------------------------------------------------------------------------------------
-def _geometry_child(missions: list[str]) -> dict[str, Any]:
+def _geometry_child(tracking: str, sigma: float, missions: list[str]) -> dict[str, Any]:
     from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleet.budget import LinkMeasurement
     from vtube_fleet.fleet.margin import slot_violations
 
-    measured = LinkMeasurement(MOCK_L_S, 0.0, MOCK_SIGMA_M)
+    measured = LinkMeasurement(MOCK_L_S, 0.0, sigma)
 
     def judge(path: Path) -> tuple[float, list[str]]:
+        if tracking != "as-is":
+            path.write_text(with_tracking(path.read_text(), tracking))
         budget, _, _, viol = slot_violations(load_mission(path), measured)
         return budget.delta_m, [v.message for v in viol]
 
     out: dict[str, Any] = {"missions": {}, "family": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for m in missions:
-            delta, viol = judge(Path(m))
+            copy = Path(tmp) / Path(m).name
+            copy.write_text(Path(m).read_text())
+            delta, viol = judge(copy)
             out["missions"][Path(m).name] = {"delta_m": delta, "accepted": not viol,
                                              "first_problem": viol[0] if viol else None}
         for n in FAMILY:
@@ -178,7 +200,8 @@ KEYS = ("truth_min_pair_distance_m", "truth_min_left_leg_distance_m",
         "min_pair_distance_m", "truth_violations", "violations")
 
 
-def _fly_child(mission: str, backend: str, seed: int, fault: str, vehicles: int) -> dict:
+def _fly_child(mission: str, backend: str, seed: int, fault: str, vehicles: int,
+               tracking: str, estimator: str) -> dict:
     import asyncio
 
     sys.path.insert(0, str(ROOT / "tests"))
@@ -188,27 +211,31 @@ def _fly_child(mission: str, backend: str, seed: int, fault: str, vehicles: int)
     from vtube_fleet.config.mission import load_mission
     from vtube_fleet.fleet.launch import fly
 
-    m = load_mission(mission)
-    if vehicles and vehicles < m.count:
-        m = m.with_vehicles(vehicles)
-    kw: dict[str, Any] = {"boot_time_scale": 0.3, "seed": seed, "estimator": "px4-sih",
-                          "port_scheme": free_ports(m.count)}
-    if fault == "push":  # a 1 s gust of 0.8 m/s across the tube (east: tube −y), 30 s in
-        kw["faults"] = Faults(push_east_m_s=0.8, push_at_s=30.0, push_for_s=1.0)
-    elif fault == "latency":
-        kw["faults"] = Faults(latency_s=0.04, loss_pct=5.0)
-    t0 = time.monotonic()
     with tempfile.TemporaryDirectory() as out:
+        path = Path(mission)
+        if tracking != "as-is":
+            path = Path(out) / Path(mission).name
+            path.write_text(with_tracking(Path(mission).read_text(), tracking))
+        m = load_mission(path)
+        if vehicles and vehicles < m.count:
+            m = m.with_vehicles(vehicles)
+        kw: dict[str, Any] = {"boot_time_scale": 0.3, "seed": seed, "estimator": estimator,
+                              "port_scheme": free_ports(m.count)}
+        if fault == "push":  # a 1 s gust of 0.8 m/s across the tube (east: tube −y), 30 s in
+            kw["faults"] = Faults(push_east_m_s=0.8, push_at_s=30.0, push_for_s=1.0)
+        elif fault == "latency":
+            kw["faults"] = Faults(latency_s=0.04, loss_pct=5.0)
+        elif fault == "slow":  # vehicle 0 follows 40 % of its command from 30 s on
+            kw["faults"] = [Faults(slow_gain=0.4, slow_at_s=30.0)] + [None] * (m.count - 1)
+        t0 = time.monotonic()
         r = asyncio.run(fly(m, backend=backend, out_dir=Path(out), truth=True,
                             mock_kwargs=kw))
     s = r.summary
-    trk = s.get("tracking") or {}
+    trk = s.get("reference_tracking") or {}
     return {"outcome": r.outcome, "exit": r.exit_code, "reason": r.reason[:300],
             "delta_m": s["safety_budget"]["delta_m"], "robots": s.get("robots"),
-            "r_s": s.get("r_s"), "tracking_max_m": trk.get("max_m"),
-            "identification_max_m": max((x["tracking_error_m"] or 0.0
-                                         for x in trk.get("identification") or []),
-                                        default=None),
+            "r_s": s.get("r_s"), "tracking_max_m": trk.get("error_max_m"),
+            "truth_offset_max_m": trk.get("truth_offset_max_m"),
             "wall_s": round(time.monotonic() - t0, 1), **{k: s.get(k) for k in KEYS}}
 
 
@@ -220,10 +247,11 @@ def _f(x: Any) -> str:
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] in ("_geometry", "_fly"):
         if sys.argv[1] == "_geometry":
-            print(json.dumps(_geometry_child(sys.argv[2:])))
+            print(json.dumps(_geometry_child(sys.argv[2], float(sys.argv[3]), sys.argv[4:])))
         else:
-            _, _, mission, backend, seed, fault, vehicles = sys.argv
-            print(json.dumps(_fly_child(mission, backend, int(seed), fault, int(vehicles))))
+            _, _, mission, backend, seed, fault, vehicles, tracking, estimator = sys.argv
+            print(json.dumps(_fly_child(mission, backend, int(seed), fault, int(vehicles),
+                                        tracking, estimator)))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -233,6 +261,12 @@ def main() -> int:
         p.add_argument("--tree", type=Path, default=None,
                        help="a checkout whose vtube_fleet to use (default: this one)")
         p.add_argument("--json", type=Path, default=None, help="also write the results here")
+        p.add_argument("--tracking", choices=("as-is", "velocity", "reference"),
+                       default="as-is", help="fly / judge every mission with this tracking "
+                       "(default: as each mission says)")
+    g.add_argument("--sigma", type=float, default=MOCK_SIGMA_M,
+                   help=f"the σ the budget is built on (default {MOCK_SIGMA_M}: px4-sih)")
+    f.add_argument("--estimator", choices=("px4-sih", "rtk"), default="px4-sih")
     f.add_argument("--mission", type=Path, default=ROOT / "configs" / "mock_fleet.toml")
     f.add_argument("--family", type=int, default=None,
                    help="fly the family mission of N vehicles at its smallest accepted "
@@ -241,15 +275,16 @@ def main() -> int:
     f.add_argument("--seeds", type=int, default=5)
     f.add_argument("--first-seed", type=int, default=100)
     f.add_argument("--vehicles", type=int, default=0, help="fly only the first N slots")
-    f.add_argument("--fault", choices=("none", "push", "latency"), default="none")
+    f.add_argument("--fault", choices=("none", "push", "latency", "slow"), default="none")
     args = ap.parse_args()
     results: dict[str, Any] = {"tree": str(args.tree or ROOT), "what": args.what}
     if args.what == "geometry":
         shipped = [str(ROOT / "configs" / "mock_fleet.toml"),
                    str(ROOT / "configs" / "px4_sitl_3.toml")]
-        geo = _child(args.tree, "_geometry", *shipped)
+        geo = _child(args.tree, "_geometry", args.tracking, str(args.sigma), *shipped)
         results.update(geo)
-        print(f"tree {results['tree']}: σ = {MOCK_SIGMA_M} m, L = {MOCK_L_S} s")
+        print(f"tree {results['tree']}: σ = {args.sigma} m, L = {MOCK_L_S} s, tracking "
+              f"{args.tracking}")
         for name, r in geo["missions"].items():
             print(f"  {name}: δ = {r['delta_m']:.3f} m, "
                   + ("accepted" if r["accepted"] else f"REFUSED: {r['first_problem']}"))
@@ -263,7 +298,9 @@ def main() -> int:
         mission = args.mission
         tmp = None
         if args.family:
-            geo = _child(args.tree, "_geometry")["family"][str(args.family)]
+            geo = _child(args.tree, "_geometry", args.tracking,
+                         str(0.02 if args.estimator == "rtk" else MOCK_SIGMA_M)
+                         )["family"][str(args.family)]
             if geo["spacing_m"] is None:
                 raise SystemExit(f"error: the family mission of {args.family} vehicles is "
                                  f"accepted at no spacing")
@@ -276,7 +313,7 @@ def main() -> int:
         rows = []
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             r = _child(args.tree, "_fly", str(mission), args.backend, str(seed), args.fault,
-                       str(args.vehicles))
+                       str(args.vehicles), args.tracking, args.estimator)
             rows.append({"seed": seed, **r})
             print(f"{mission.name} {args.backend} seed {seed} fault {args.fault}: {r['outcome']} "
                   f"(exit {r['exit']}), {r['robots']} vehicles, δ {r['delta_m']:.3f} m; TRUE "
@@ -284,8 +321,8 @@ def main() -> int:
                   f"{_f(r['truth_min_left_leg_distance_m'])} / "
                   f"{_f(r['truth_min_right_leg_distance_m'])}, obstacle centre "
                   f"{_f(r['truth_min_obstacle_center_distance_m'])}; violations truth "
-                  f"{r['truth_violations']} telemetry {r['violations']}; tracking max "
-                  f"{_f(r['tracking_max_m'])} (identification {_f(r['identification_max_m'])})"
+                  f"{r['truth_violations']} telemetry {r['violations']}; tracking error max "
+                  f"{_f(r['tracking_max_m'])}, TRUE |p − r| max {_f(r['truth_offset_max_m'])}"
                   f"; {r['wall_s']:.0f} s" + ("" if r["exit"] == 0 else f"; {r['reason']}"),
                   flush=True)
 
