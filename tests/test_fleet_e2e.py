@@ -518,30 +518,47 @@ def reference_mission(tmp_path: Path, vehicles: int | None = None) -> Mission:
     return mission.with_vehicles(vehicles) if vehicles else mission
 
 
-@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
-async def test_reference_tracking_flies_the_mock_fleet_mission_judged_by_the_truth(
-        tmp_path: Path) -> None:
-    """12 vehicles, px4-sih, reference tracking: a smaller δ than velocity tracking's for the
-    same measurement, every vehicle within e of its reference in flight, the TRUE positions
-    within e + k σ of the references (what δ counts on), and the truth clean."""
-    mission = reference_mission(tmp_path)
-    result, sup, log = await fly_logged(mission, 11, tmp_path=tmp_path, truth=True)
+async def fly_reference(tmp_path: Path, mission: Mission, seed: int, estimator: str,
+                        name: str) -> tuple[dict, dict]:
+    """Fly a reference-tracking mission judged by the truth: completed, every vehicle within
+    e of its reference, the TRUE positions within e + k σ of the references (what δ counts
+    on), the truth clean. Returns the summary's safety budget and reference tracking."""
+    result, sup, log = await fly_logged(mission, seed, estimator=estimator, tmp_path=tmp_path,
+                                        truth=True)
     assert result.exit_code == 0, result.reason
     s = result.summary
     b, rt = s["safety_budget"], s["reference_tracking"]
     assert b["tracking"] == "reference" and b["accuracy_factor"] == 3.0
-    velocity = (0.5 + 0.25) * (b["period_s"] + b["latency_s"] + 0.3 + 1.0) + 2 * b["accuracy_m"]
-    assert b["delta_m"] < velocity - 0.1
     assert 0 < rt["error_p50_m"] <= rt["error_p99_m"] <= rt["error_max_m"] <= rt["budgeted_m"]
     assert rt["truth_offset_max_m"] <= rt["budgeted_with_estimate_m"]
     worst = check_safety(mission, sup.trace)
     truth = assert_true_clearance(log)
     assert s["truth"] and s["truth_violations"] == 0
-    report("reference tracking, mock_fleet", result, worst, truth)
-    print(f"δ {b['delta_m']:.3f} m (velocity tracking: {velocity:.3f} m); tracking error p99 "
-          f"{rt['error_p99_m']:.2f} m, max {rt['error_max_m']:.3f} m (e = {rt['budgeted_m']} m); "
-          f"TRUE |p − r| max {rt['truth_offset_max_m']:.3f} m (e + k σ = "
-          f"{rt['budgeted_with_estimate_m']:.3f} m)")
+    report(name, result, worst, truth)
+    print(f"δ {b['delta_m']:.3f} m; tracking error p99 {rt['error_p99_m']:.2f} m, max "
+          f"{rt['error_max_m']:.3f} m (e = {rt['budgeted_m']} m); TRUE |p − r| max "
+          f"{rt['truth_offset_max_m']:.3f} m (e + k σ = {rt['budgeted_with_estimate_m']:.3f} m)")
+    return b, rt
+
+
+@pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
+async def test_reference_tracking_flies_the_mock_fleet_mission_judged_by_the_truth(
+        tmp_path: Path) -> None:
+    """12 vehicles, px4-sih, reference tracking (:func:`fly_reference`), with a smaller δ than
+    velocity tracking's for the same measurement."""
+    b, _ = await fly_reference(tmp_path, reference_mission(tmp_path), 11, "px4-sih",
+                               "reference tracking, mock_fleet")
+    velocity = (0.5 + 0.25) * (b["period_s"] + b["latency_s"] + 0.3 + 1.0) + 2 * b["accuracy_m"]
+    assert b["delta_m"] < velocity - 0.1
+
+
+@pytest.mark.xdist_group("heavy")
+async def test_the_rtk_mission_flies_its_12_m_tube_judged_by_the_truth(tmp_path: Path) -> None:
+    """configs/mock_fleet_rtk.toml (12 vehicles, a 12 m tube, slots 2.5 m apart: refused with
+    velocity tracking) with RTK estimates (:func:`fly_reference`): δ under 0.85 m."""
+    mission = load_mission(ROOT / "configs" / "mock_fleet_rtk.toml")
+    b, _ = await fly_reference(tmp_path, mission, 12, "rtk", "mock_fleet_rtk (rtk)")
+    assert b["delta_m"] < 0.85 and b["accuracy_m"] == pytest.approx(0.02, abs=0.005)
 
 
 @pytest.mark.xdist_group("heavy")
@@ -550,17 +567,14 @@ async def test_a_vehicle_that_follows_slowly_makes_the_tube_hold(tmp_path: Path)
     command (the mock's ``slow`` fault): it falls behind its reference beyond e, so every
     vehicle in the tube holds, the mission aborts naming it, and every vehicle lands."""
     mission = reference_mission(tmp_path, 4)
-    holder: list[Supervisor] = []
     slowed: list[float] = []
     async with mock_fleet(mission, **boot(4, seed=6)) as fleet:
         log = TruthLog(fleet, mission)
 
         def hook(tick: int, sup: Supervisor) -> None:
-            if not holder:
-                holder.append(sup)
-            log(tick, sup)
-            start = sup.tube_start_s
-            if not slowed and start is not None and sup.t_s() > start + 4.0:
+            log(tick, sup)  # the truth every tick; 4 s into the tube, vehicle 0 slows down
+            late = sup.tube_start_s is not None and sup.t_s() > sup.tube_start_s + 4.0
+            if late and not slowed:
                 slowed.append(sup.t_s())
                 fleet.vehicles[0].slow(0.3)
 
