@@ -20,6 +20,7 @@ rotations between a vehicle's local NED and the tube frame (the same for every v
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -57,6 +58,11 @@ def _rotations(frame: TubeFrame) -> tuple[tuple[float, float, float, float],
             (float(x[0]), float(x[1]), float(y[0]), float(y[1])))
 
 
+#: Reference tracking: the ticks of references kept (0.5 s at 20 Hz: longer than a sample's
+#: age, so that p̂ is compared with r at the sample's time).
+REF_HISTORY = 10
+
+
 class FleetTable:
     """The tick state of ``len(ids)`` vehicles of one mission (module docstring).
 
@@ -83,7 +89,8 @@ class FleetTable:
     it flies along r until the next tick, ``ref_since_s`` (n,) the monotonic time r (re)started
     from the estimate, ``track_off`` (n, 2) r − p̂ at
     the last sample's time and ``track_err_m`` (n,) its norm (NaN: none), ``ref_s`` the
-    monotonic time r was last advanced to."""
+    monotonic time r was last advanced to, ``ref_hist`` the last :data:`REF_HISTORY` ticks
+    (time, ``ref_xy``), to judge a sample against r at its own time."""
 
     def __init__(self, ids: Sequence[int], mission: Mission, frame: TubeFrame | None = None
                  ) -> None:
@@ -127,6 +134,7 @@ class FleetTable:
         self.track_off = np.full((n, 2), np.nan)
         self.track_err_m = np.full(n, np.nan)
         self.ref_s = math.nan
+        self.ref_hist: deque[tuple[float, np.ndarray]] = deque(maxlen=REF_HISTORY)
         self.to_ned, self.to_tube = _rotations(mission.frame if frame is None else frame)
         #: the estimate compensation (fleet/compensation.py); None: not compensated
         self.compensator = CompensatorBank(n) if cfg.compensate_estimate else None

@@ -252,8 +252,8 @@ def track_references(tab: FleetTable, links: LinkColumns, now_mono: float) -> No
     integral of the controller's commands: the paper's single integrator. A vehicle that did
     not fly the controller's command last tick (entering the tube, standing still, back from
     waiting) starts again from its estimate (``ref_since_s`` now); others have none. Then the
-    offset r − p̂ at the sample's time (r moved back over the sample's age) ``track_off`` and
-    its norm ``track_err_m``."""
+    offset r − p̂ at the sample's time (r then: :func:`reference_at`) ``track_off`` and its
+    norm ``track_err_m``."""
     dt = now_mono - tab.ref_s if math.isfinite(tab.ref_s) else 0.0
     tab.ref_s = now_mono
     flew = tab.cmd_in_tube & np.isfinite(tab.ref_xy[:, 0]) & np.isfinite(tab.ref_vel[:, 0])
@@ -266,12 +266,34 @@ def track_references(tab: FleetTable, links: LinkColumns, now_mono: float) -> No
     tab.ref_xy[~go] = np.nan
     tab.ref_vel[~go] = np.nan
     tab.ref_since_s[~go] = np.nan
+    tab.ref_hist.append((now_mono, tab.ref_xy.copy()))
     tab.track_off[:] = np.nan
     keep = np.flatnonzero(go & flew)
     if keep.size:
         age = (now_mono - tab.sample_s[keep]) + np.nan_to_num(links.latency_s[keep], nan=0.0)
-        tab.track_off[keep] = tab.ref_xy[keep] - tab.ref_vel[keep] * age[:, None] - tab.xy[keep]
+        then = reference_at(tab, keep, now_mono - age)
+        late = ~np.isfinite(then[:, 0])  # older than the history: r moved back at ref_vel
+        then[late] = tab.ref_xy[keep[late]] - tab.ref_vel[keep[late]] * age[late, None]
+        tab.track_off[keep] = then - tab.xy[keep]
     tab.track_err_m = np.hypot(tab.track_off[:, 0], tab.track_off[:, 1])
+
+
+def reference_at(tab: FleetTable, rows: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """The references of ``rows`` (k, 2) at monotonic times ``t_s`` (k,), interpolated in the
+    history the ticks kept (``ref_hist``); NaN where ``t_s`` is older than it or a row had no
+    reference then."""
+    out = np.full((rows.size, 2), np.nan)
+    hist = tab.ref_hist
+    if len(hist) < 2:
+        return out
+    ts = np.fromiter((t for t, _ in hist), float, len(hist))
+    refs = np.stack([r[rows] for _, r in hist])  # (H, k, 2)
+    j = np.clip(np.searchsorted(ts, t_s), 1, ts.size - 1)
+    t0, t1 = ts[j - 1], ts[j]
+    w = np.clip((t_s - t0) / np.where(t1 > t0, t1 - t0, 1.0), 0.0, 1.0)[:, None]
+    k = np.arange(rows.size)
+    got = refs[j - 1, k] * (1.0 - w) + refs[j, k] * w
+    return np.where((t_s >= ts[0])[:, None], got, np.nan)
 
 
 def reference_velocities(tab: FleetTable, rows: np.ndarray, cmds: np.ndarray, now_mono: float
