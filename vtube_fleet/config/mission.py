@@ -89,7 +89,7 @@ FENCE_ACTIONS: tuple[str, ...] = ("hold", "land", "rtl")
 #: controller works on and closes a position loop on it (its measured error is budgeted).
 TRACKING_MODES: tuple[str, ...] = ("velocity", "reference")
 #: ``tracking_error_m`` by default: the bound e of |p̂ − r| (docs/fleet.md, reference tracking).
-DEFAULT_TRACKING_ERROR_M = 0.6
+DEFAULT_TRACKING_ERROR_M = 0.7
 
 
 @dataclass(frozen=True)
