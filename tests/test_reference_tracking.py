@@ -242,3 +242,33 @@ def test_the_rtk_mission_is_accepted_with_rtk_estimates_only(tmp_path) -> None:
     velocity = write_mission(tmp_path, text.replace('tracking = "reference"',
                                                     'tracking = "velocity"'))
     assert slot_violations(velocity, rtk)[3]  # velocity tracking: refused even with RTK
+
+
+def test_a_route_with_reference_tracking_is_refused_for_now(tmp_path) -> None:
+    from missions import ROOT
+
+    text = (ROOT / "configs" / "route_mock.toml").read_text()
+    with pytest.raises(ConfigError, match=r'tracking = "reference" is not flown on a \[route\]'):
+        write_mission(tmp_path, text.replace("[mission]\n", '[mission]\ntracking = "reference"\n',
+                                             1))
+
+
+def test_a_sample_older_than_a_restart_is_judged_against_the_restart(mission) -> None:
+    tab = in_tube(mission, [[0.0, 0.0]])
+    lk = links(1)
+    track_references(tab, lk, 1.0)
+    tab.cmd_in_tube[:] = True
+    tab.ref_vel[:] = [[1.0, 0.0]]
+    tab.sample_s[:] = 2.0
+    tab.xy[:] = [[1.0, 0.0]]
+    track_references(tab, lk, 2.0)  # r = (1, 0), on p̂
+    assert tab.track_err_m[0] == pytest.approx(0.0)
+    tab.cmd_in_tube[:] = False  # a tick without the controller: r restarts from p̂
+    tab.xy[:] = [[5.0, 0.0]]
+    track_references(tab, lk, 2.5)
+    assert tab.ref_xy[0] == pytest.approx([5.0, 0.0])
+    tab.cmd_in_tube[:] = True
+    tab.ref_vel[:] = [[0.0, 0.0]]
+    tab.sample_s[:] = 2.25  # measured before the restart: not against the old r of 2.25 s
+    track_references(tab, lk, 2.6)
+    assert tab.track_err_m[0] == pytest.approx(0.0)

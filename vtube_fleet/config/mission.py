@@ -498,6 +498,11 @@ def load_mission(path: str | os.PathLike[str]) -> Mission:
                           f"it (a sign or a unit wrong in a waypoint or a corner?)")
     mission = Mission(scenario, parse_mission_config(scenario.extra["mission"], source))
     cfg = mission.config
+    if cfg.tracking == "reference" and scenario.is_route:
+        raise ConfigError(f"{source}: [mission].tracking = \"reference\" is not flown on a "
+                          f"[route] yet (its hand-overs and exits are judged on the estimate, "
+                          f"the commands on the reference): use a [tube], or tracking = "
+                          f"\"velocity\"")
     need = mission.battery_needed_pct
     if need > 100.0:
         raise ConfigError(f"{source}: [mission].battery_reserve_pct: the reserve "

@@ -507,13 +507,15 @@ class BudgetWatch:
     def check_tracking(self, errors_m: np.ndarray, vehicle_ids: np.ndarray,
                        t_s: float = math.nan) -> str | None:
         """Reference tracking, every tick (mission time ``t_s``): the in-tube vehicles'
-        |p̂ − r| (m; NaN: none) with their ids. Returns a hold reason once a vehicle has been
-        further than the budgeted e for :data:`TRACKING_PERSIST_TICKS` ticks in a row (its
-        true position may then be outside what δ covers), else None; every finite error is
-        kept for the summary."""
+        |p̂ − r| (m; NaN: none) with their ids. Returns a hold reason once some vehicle has been
+        further than the budgeted e in :data:`TRACKING_PERSIST_TICKS` ticks in a row (its
+        true position may then be outside what δ covers; the reason names the worst of the
+        last tick), else None; every finite error is kept for the summary (to 5 m: the
+        percentiles of larger errors say 5 m, the maximum is exact)."""
         e = self.budget.tracking_error_m
         ok = np.isfinite(errors_m)
         if e is None or not ok.any():
+            self._track_over = 0
             return None
         err, ids = errors_m[ok], vehicle_ids[ok]
         self.tracking_counts += np.bincount(

@@ -184,7 +184,7 @@ class FlightMeasurement:
                     if math.isfinite(val):
                         metrics[f"truth_{key}"] = val
             if truth is not None:  # reference tracking: how far the TRUTH is from r
-                refd = np.isfinite(tab.ref_xy[:, 0]) & np.isfinite(truth[:, 0])
+                refd = inside & np.isfinite(tab.ref_xy[:, 0]) & np.isfinite(truth[:, 0])
                 if refd.any():
                     off = np.hypot(*(truth[refd] - tab.ref_xy[refd]).T)
                     self.truth_reference_max_m = float(np.fmax(self.truth_reference_max_m,

@@ -271,7 +271,8 @@ def track_references(tab: FleetTable, links: LinkColumns, now_mono: float) -> No
     keep = np.flatnonzero(go & flew)
     if keep.size:
         age = (now_mono - tab.sample_s[keep]) + np.nan_to_num(links.latency_s[keep], nan=0.0)
-        then = reference_at(tab, keep, now_mono - age)
+        # (a sample older than the reference's restart: against r at the restart)
+        then = reference_at(tab, keep, np.maximum(now_mono - age, tab.ref_since_s[keep]))
         late = ~np.isfinite(then[:, 0])  # older than the history: r moved back at ref_vel
         then[late] = tab.ref_xy[keep[late]] - tab.ref_vel[keep[late]] * age[late, None]
         tab.track_off[keep] = then - tab.xy[keep]
@@ -431,7 +432,9 @@ def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
     watched = ctx.checked & (tab.phase == _IN_TUBE)
     speed = np.hypot(tab.vel[:, 0], tab.vel[:, 1])
     cmd_speed = np.where(tab.cmd_set, np.hypot(tab.cmd[:, 0], tab.cmd[:, 1]), 0.0)
-    commanded = watched & (cmd_speed > 0.0)
+    # on the start ramp of reference tracking it flies less than its command: not yet judged
+    ramping = np.nan_to_num(now - tab.ref_since_s, nan=math.inf) < TRACKING_RAMP_S
+    commanded = watched & (cmd_speed > 0.0) & ~ramping
     tab.still_since_s[~commanded] = np.nan
     start = commanded & np.isnan(tab.still_since_s)
     tab.still_since_s[start] = now
