@@ -544,10 +544,11 @@ async def fly_reference(tmp_path: Path, mission: Mission, seed: int, estimator: 
 @pytest.mark.xdist_group("heavy")  # one at a time (tests/conftest.py)
 async def test_reference_tracking_flies_the_mock_fleet_mission_judged_by_the_truth(
         tmp_path: Path) -> None:
-    """12 vehicles, px4-sih, reference tracking (:func:`fly_reference`), its budget made of
-    the measured L and σ and the default e."""
-    b, _ = await fly_reference(tmp_path, reference_mission(tmp_path), 11, "px4-sih",
-                               "reference tracking, mock_fleet")
+    """The mock mission's first 4 slots, px4-sih, reference tracking (:func:`fly_reference`;
+    12 vehicles: bench_density.py fly --tracking reference), its budget made of the measured
+    L and σ and the default e."""
+    b, _ = await fly_reference(tmp_path, reference_mission(tmp_path, 4), 11, "px4-sih",
+                               "reference tracking, mock_fleet (4 vehicles)")
     assert b["tracking_error_m"] == 0.7 and b["accuracy_m"] == pytest.approx(0.29, abs=0.01)
     assert b["delta_m"] == pytest.approx(0.5 * (b["period_s"] + b["latency_s"]) + 0.7
                                          + 3 * b["accuracy_m"])
