@@ -205,7 +205,10 @@ def test_a_closed_terminal_lands_everyone_like_ctrl_c(tmp_path: Path) -> None:
         proc = subprocess.Popen(
             [sys.executable, "-m", "vtube_fleet", "run", str(path), "--endpoints",
              ",".join(endpoints), "--out", str(out)],
-            stdin=slave, stdout=slave, stderr=slave, env=child_env(), cwd=ROOT)
+            stdin=slave, stdout=slave, stderr=slave, env=child_env(), cwd=ROOT,
+            # SIGHUP as an operator's shell leaves it, also when the suite itself runs under
+            # nohup (ignored SIGHUP is inherited, and run rightly flies on then)
+            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
         os.close(slave)
         try:
             _read_pty_until(master, proc, b"stage: tube", 90)
