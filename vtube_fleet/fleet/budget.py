@@ -170,18 +170,14 @@ class SafetyBudget:
                             ("tracking_error_m", tracking_error_m or 0.0)):
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"safety budget: {name} must be finite and >= 0, got {value}")
-        vmp = float(params.v_max_prime)
         if tracking_error_m is not None:
             dead_time_s = t63_s = disturbance_m_s = 0.0
-            delta = vmp * (period_s + latency_s) + tracking_error_m + accuracy_factor * accuracy_m
-        else:
-            delay = period_s + latency_s + dead_time_s + t63_s
-            delta = (vmp + disturbance_m_s) * delay + accuracy_factor * accuracy_m
-        if override_m is not None:
-            delta = float(override_m)
-        return cls(period_s, latency_s, dead_time_s, t63_s, vmp, delta, accuracy_m,
-                   accuracy_factor, disturbance_m_s, override_m is not None, override_source,
-                   tracking_error_m)
+        b = cls(period_s, latency_s, dead_time_s, t63_s, float(params.v_max_prime), 0.0,
+                accuracy_m, accuracy_factor, disturbance_m_s, override_m is not None,
+                override_source, tracking_error_m)
+        delta = (b.lag_m + b.disturbance_m + b.tracking_m + b.estimate_m
+                 if override_m is None else float(override_m))
+        return dataclasses.replace(b, delta_m=delta)
 
     def inflate(self, params: ControllerParams) -> ControllerParams:
         """The controller parameters actually flown: r_s' = r_s + δ, r_a' = r_a + δ."""

@@ -433,7 +433,7 @@ def _unresponsive(ctx: FaultContext) -> tuple[np.ndarray, Callable[[int], str]]:
     speed = np.hypot(tab.vel[:, 0], tab.vel[:, 1])
     cmd_speed = np.where(tab.cmd_set, np.hypot(tab.cmd[:, 0], tab.cmd[:, 1]), 0.0)
     # on the start ramp of reference tracking it flies less than its command: not yet judged
-    ramping = np.nan_to_num(now - tab.ref_since_s, nan=math.inf) < TRACKING_RAMP_S
+    ramping = (now - tab.ref_since_s) < TRACKING_RAMP_S  # (NaN: no reference, False)
     commanded = watched & (cmd_speed > 0.0) & ~ramping
     tab.still_since_s[~commanded] = np.nan
     start = commanded & np.isnan(tab.still_since_s)
@@ -565,11 +565,12 @@ def own_states(tab: FleetTable, links: LinkColumns, now_mono: float, now_wall: f
     rows = np.flatnonzero(np.isfinite(tab.sample_s))
     lost = tab.lost_set[rows, None]
     anchored = tab.stop_set[rows, None]
-    # with reference tracking an in-tube vehicle is told at its reference, moving at its command
+    here, moving = tab.xy[rows], tab.vel[rows]
     refd = np.isfinite(tab.ref_xy[rows, :1])
-    here = np.where(refd, tab.ref_xy[rows], tab.xy[rows])
+    if refd.any():  # reference tracking: an in-tube vehicle is told at r, moving at its command
+        here = np.where(refd, tab.ref_xy[rows], here)
+        moving = np.where(refd, np.nan_to_num(tab.ref_vel[rows]), moving)
     pos = np.where(lost, tab.lost[rows], np.where(anchored, tab.stop_xy[rows], here))
-    moving = np.where(refd, np.nan_to_num(tab.ref_vel[rows]), tab.vel[rows])
     vel = np.where(lost | anchored, 0.0, moving)
     ages = (now_mono - tab.sample_s[rows]) + np.nan_to_num(links.latency_s[rows], nan=0.0)
     return States(tab.ids[rows], pos, vel, tab.phase[rows], now_wall - ages), rows, ages
