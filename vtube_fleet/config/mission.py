@@ -125,6 +125,7 @@ class MissionConfig:
     tracking: str = "velocity"
     tracking_error_m: float = DEFAULT_TRACKING_ERROR_M
     tracking_gain_1_s: float = 2.0
+    response_check: bool = True
     latency_s: float | None = None
     latency_headroom_s: float = 0.05
     max_latency_s: float = 0.25
@@ -256,6 +257,10 @@ MISSION_KEYS: tuple[Key, ...] = (
         "loop's gain (setpoint v_c + K (r − p̂) + d̂)", "1/s", 2.0,
         bound=Bound(0.0, 3.0, low_inclusive=False,
                     why="above it the loop rings with PX4's ~0.5 s velocity response")),
+    Key("response_check", "flag", "after the climb, every vehicle flies a step of the cruise "
+        "speed v and back to zero; one slower than the budget's T + L + τ_d + t63 to 63 % "
+        "aborts the mission before the tube (docs/fleet.md, the response check)",
+        default=True),
     Key("latency_s", "number", "L of the safety budget: position age + setpoint delay",
         "s", None, bound=NON_NEGATIVE,
         default_text="measured (round trip + `latency_headroom_s`)"),

@@ -154,6 +154,8 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
             "residual_p99_m_s": finite_or_none(percentile_or_none(res, 99)),
             "residual_max_m_s": finite_or_none(max(res) if res else math.nan),
             "budgeted_m_s": sup.budget.disturbance_m_s}
+    if sup.response is not None:
+        extra["response_check"] = sup.response.as_dict()
     watch = mes.watch
     if sup.budget.reference and watch is not None:
         extra["reference_tracking"] = {

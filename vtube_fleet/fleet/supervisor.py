@@ -66,8 +66,17 @@ from vtube_fleet.fleet.preflight import (
     preflight_report,
     wait_accuracy,
 )
+from vtube_fleet.fleet.response_check import (
+    ResponseProbe,
+    ResponseReport,
+    allowed_lag_s,
+    hold_s,
+    reach_m,
+    run_response_check,
+    tolerance_s,
+)
 from vtube_fleet.fleet.summary import fleet_summary, telemetry_summary
-from vtube_fleet.fleet.table import FleetTable
+from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
 from vtube_fleet.fleet.tick import ControlClock, Tick, TickResult
 from vtube_fleet.fleet.view import FleetStatus, FleetView
 from vtube_fleet.link.base import VehicleLink
@@ -221,6 +230,9 @@ class Supervisor:
         self._main: asyncio.Task[None] | None = None
         self._pacer = SummaryPacer(SUMMARY_EVERY_S)
         self._heap_frozen = False  # _freeze_heap
+        #: the response check's report (fleet/response_check.py); None: not run
+        self.response: ResponseReport | None = None
+        self._probe: ResponseProbe | None = None
 
     # -- what the others read --------------------------------------------------------------------
     @property
@@ -293,6 +305,8 @@ class Supervisor:
               ) -> TickResult:
         """One tick (:class:`~vtube_fleet.fleet.tick.Tick`), then its measurement."""
         result = self.ticker(now_mono, now_wall, listening_since)
+        if self._probe is not None:
+            self._probe.on_tick(now_mono)
         self._after_replan_check(now_mono, result)
         self._measure(result)
         return result
@@ -579,6 +593,7 @@ class Supervisor:
         if problems:
             raise MissionAborted(f"take-off failed for {len(problems)} of {len(self.pilots)} "
                                  f"vehicles: " + self.preflight.listed(problems))
+        await self._check_response()
         positions = np.array([p.xy for p in self.pilots])
         where = f"at {self.cfg.altitude_m:g} m"
         # the positions against the partition planned on the ground: nothing is planned
@@ -588,6 +603,48 @@ class Supervisor:
         if problems:
             raise MissionAborted("Assumption 1 broken at altitude: "
                                  + self.preflight.listed(problems))
+
+    async def _check_response(self) -> None:
+        """The response check (:mod:`~vtube_fleet.fleet.response_check`): every hovering
+        vehicle flies a step of the cruise speed along the first segment and back to zero; one
+        that lags behind it more than the budget's model aborts the mission (every vehicle
+        lands).
+        Skipped, and said, when ``response_check = false`` or when the room ahead does not
+        hold the fleet."""
+        budget = self.budget
+        step = float(self.physical.v)
+        rows = np.flatnonzero(self.table.phase == PHASE_CODE[Phase.TAKEOFF])
+        report = ResponseReport(step, allowed_lag_s(budget), tolerance_s(budget, step),
+                                self.table.ids[rows].tolist())
+        self.response = report
+        if not self.cfg.response_check:
+            report.skipped = "response_check = false in the mission"
+            self.event(report.describe(), level="warning")
+            return
+        u = np.asarray(self.ticker.root.route.segments[0].tube.n_c, float)
+        reach = reach_m(budget, step)
+        ahead = np.array([p.xy for p in self.pilots]) + reach * u
+        _, problems = await asyncio.to_thread(
+            preflight_report, self.mission, self.plan.flown, ahead, self.names,
+            where=f"{reach:.1f} m ahead", route=self.ticker.root.route)
+        if problems:
+            report.skipped = (f"the fleet moved {reach:.1f} m ahead (the step's reach) breaks "
+                              f"the partition: " + self.preflight.listed(problems))
+            self.event(report.describe(), level="warning")
+            return
+        self._set_stage("response check")
+
+        def attach(probe: ResponseProbe | None) -> None:
+            self._probe = probe
+
+        self.response = report = await run_response_check(
+            ResponseProbe(self.table, rows, u, hold_s(budget)), report, attach,
+            lambda: self._abort_reason is not None)
+        if self._abort_reason is not None:
+            raise MissionAborted(self._abort_reason)
+        self.event(report.describe(), level="info" if report.skipped is None else "warning")
+        if report.skipped is None and report.refused():
+            raise MissionAborted(report.refusal(self.names, budget))
 
     async def _fly_tube(self) -> None:
         self._set_stage("tube")

@@ -80,6 +80,8 @@ class FleetTable:
     :meth:`~vtube_fleet.fleet.tick.Tick.step_aside`), ``in_transition`` (a mode
     change in flight), ``standstill`` (stand still in the tube: zero velocity, no controller;
     the MQTT agent's broker rule), ``takeoff_xy`` (the spot held during the climb, NaN: none),
+    ``probe_vel`` (n, 2) the velocity a hovering vehicle flies instead of holding that spot
+    during the response check (NaN: none; :mod:`~vtube_fleet.fleet.response_check`),
     ``exit_s`` (mission time of the exit), ``setpoints_sent``, ``ever_sent``, the published
     state's ``seq`` and ``segment``: the route segment each vehicle flies (the hand-over state
     the tick passes back to the plan every tick; −1 until its first position, then the segment
@@ -123,6 +125,7 @@ class FleetTable:
         self.in_transition = np.zeros(n, bool)
         self.standstill = np.zeros(n, bool)
         self.takeoff_xy = np.full((n, 2), np.nan)
+        self.probe_vel = np.full((n, 2), np.nan)
         self.exit_s = np.full(n, np.nan)
         self.setpoints_sent = np.zeros(n, np.int64)
         self.ever_sent = np.zeros(n, bool)

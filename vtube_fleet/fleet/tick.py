@@ -628,8 +628,8 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
 
     * a mode change in flight, or arming: zero horizontal velocity (altitude hold; none while
       arming) — streaming before OFFBOARD / until PX4 confirms;
-    * the climb: a weak hold of the take-off spot, the climb-capped altitude hold, plus d̂
-      once airborne;
+    * the climb: a weak hold of the take-off spot (or, during the response check, the step's
+      velocity ``probe_vel``), the climb-capped altitude hold, plus d̂ once airborne;
     * in the tube: the controller's command (rows ``cmd_rows`` get ``cmds``; the others zero)
       plus d̂, the altitude hold; with reference tracking the command on its start ramp plus
       the position loop K (r − p̂) (:func:`reference_velocities`,
@@ -671,6 +671,8 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         r = np.flatnonzero(climb)
         d = _toward(tab.takeoff_xy[r], tab.xy[r], tab.has[r], TAKEOFF_XY_GAIN_1_S,
                     TAKEOFF_XY_MAX_M_S)
+        probe = tab.probe_vel[r]
+        d = np.where(np.isfinite(probe).all(axis=1)[:, None], probe, d)
         vx[r], vy[r] = d[:, 0], d[:, 1]
         comp[r] = links.in_air[r] | (np.nan_to_num(tab.up[r], nan=-math.inf) > AIRBORNE_UP_M)
     # the tube: the controller's commands

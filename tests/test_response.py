@@ -1,0 +1,114 @@
+"""core/response.py: a velocity step's lag and crossings, against closed forms (pure, fast)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vtube_fleet.core.response import (
+    model_lag_s,
+    share_crossing,
+    step_lag_s,
+    step_response,
+)
+
+
+def first_order(t: np.ndarray, delay_s: float, t63_s: float, gain: float = 1.0) -> np.ndarray:
+    """Share of a unit step at t = 0: nothing for ``delay_s``, then a first order."""
+    return gain * np.where(t > delay_s, -np.expm1(-(t - delay_s) / t63_s), 0.0)
+
+
+def test_model_lag_closed_form() -> None:
+    assert model_lag_s(0.2, 0.3, 1.0) == pytest.approx(0.2)  # within the delay: all of it
+    assert model_lag_s(2.0, 0.5, 1.0) == pytest.approx(0.5 + 1.0 - math.exp(-1.5))
+    assert model_lag_s(100.0, 0.3, 1.0) == pytest.approx(1.3)  # long window: τ_d + t63
+    assert model_lag_s(2.0, 0.4, 0.0) == pytest.approx(0.4)
+
+
+def test_lag_of_a_first_order_matches_the_model_for_many_vehicles() -> None:
+    t = np.arange(0.0, 2.5, 0.05)
+    delays = np.array([0.2, 0.3, 0.5])
+    t63s = np.array([0.5, 1.0, 1.5])
+    share = np.stack([first_order(t, d, c) for d, c in zip(delays, t63s, strict=True)], axis=1)
+    tt = np.repeat(t[:, None], 3, axis=1)
+    lag = step_lag_s(tt, share, 0.0, 2.0)
+    want = [model_lag_s(2.0, d, c) for d, c in zip(delays, t63s, strict=True)]
+    np.testing.assert_allclose(lag, want, atol=0.01)
+
+
+def test_one_vehicle_is_a_table_of_one_column() -> None:
+    t = np.arange(0.0, 2.5, 0.05)
+    v = first_order(t, 0.3, 1.0)
+    one = step_response(t, v, 0.0, 0.0, 1.0, 2.0)
+    many = step_response(np.repeat(t[:, None], 4, 1), np.repeat(v[:, None], 4, 1), 0.0, 0.0,
+                         1.0, 2.0)
+    assert one.lag_s.shape == (1,)
+    np.testing.assert_allclose(many.lag_s, one.lag_s[0])
+
+
+def test_crossings_and_the_share_reached() -> None:
+    t = np.arange(0.0, 3.0, 0.02)
+    v = 2.0 * first_order(t, 0.3, 1.0)  # a 0 → 2 m/s step
+    r = step_response(t, v, 0.0, 0.0, 2.0, 3.0, smooth=1)
+    assert r.rise_s[0] == pytest.approx(1.3, abs=0.02)  # τ_d + t63
+    assert r.dead_time_s[0] == pytest.approx(0.3 + -math.log(0.95), abs=0.02)
+    assert r.share_end[0] == pytest.approx(1 - math.exp(-(t[-1] - 0.3)), abs=0.01)
+
+
+def test_a_slow_vehicle_lags_more_and_never_reaches_63_percent() -> None:
+    t = np.arange(0.0, 2.5, 0.05)
+    v = np.stack([first_order(t, 0.3, 1.0), first_order(t, 0.3, 1.0, gain=0.4)], axis=1)
+    r = step_response(np.repeat(t[:, None], 2, 1), v, 0.0, 0.0, 1.0, 2.16)
+    assert math.isnan(r.rise_s[1]) and math.isfinite(r.rise_s[0])
+    assert r.lag_s[1] > r.lag_s[0] + 0.6
+
+
+def test_a_stop_is_measured_against_the_command() -> None:
+    """A stop from 1 m/s: the share is (1 − v) / 1; a vehicle that does not slow lags the
+    whole window."""
+    t = np.arange(0.0, 2.0, 0.05)
+    slowing = 1.0 - first_order(t, 0.2, 0.5)
+    flying_on = np.ones_like(t)
+    r = step_response(np.repeat(t[:, None], 2, 1), np.stack([slowing, flying_on], axis=1),
+                      0.0, 1.0, 0.0, 1.9)
+    assert r.lag_s[0] == pytest.approx(model_lag_s(1.9, 0.2, 0.5), abs=0.01)
+    assert r.lag_s[1] == pytest.approx(1.9, abs=1e-9)
+
+
+def test_missing_samples_and_samples_outside_the_window() -> None:
+    t = np.arange(-0.5, 3.0, 0.05)
+    v = first_order(t, 0.3, 1.0)
+    v_gappy = v.copy()
+    v_gappy[(t > 0.8) & (t < 1.0)] = np.nan  # a few lost samples barely change the integral
+    tt = np.repeat(t[:, None], 3, 1)
+    vv = np.stack([v, v_gappy, np.full_like(v, np.nan)], axis=1)
+    r = step_response(tt, vv, 0.0, 0.0, 1.0, 2.0)
+    assert r.lag_s[1] == pytest.approx(r.lag_s[0], abs=0.02)
+    assert r.lag_s[0] == pytest.approx(model_lag_s(2.0, 0.3, 1.0), abs=0.01)
+    assert math.isnan(r.lag_s[2]) and math.isnan(r.rise_s[2])
+
+
+def test_the_crossing_is_interpolated_between_samples() -> None:
+    t = np.array([[0.0], [1.0], [2.0]])
+    s = np.array([[0.0], [0.5], [1.0]])
+    assert share_crossing(t, s, 0.75)[0] == pytest.approx(1.5)
+    assert math.isnan(share_crossing(t, s, 1.5)[0])
+
+
+def test_noise_averages_out_of_the_lag() -> None:
+    """The lag is an integral: 0.05 m/s of white noise on the samples moves it by far less
+    than it moves a single crossing."""
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 2.2, 0.05)
+    clean = first_order(t, 0.3, 1.0)
+    noisy = clean[:, None] + rng.normal(0.0, 0.05, (t.size, 200))
+    r = step_response(np.repeat(t[:, None], 200, 1), noisy, 0.0, 0.0, 1.0, 2.16)
+    assert np.std(r.lag_s) < 0.02
+    assert abs(np.mean(r.lag_s) - model_lag_s(2.16, 0.3, 1.0)) < 0.02
+
+
+def test_a_step_needs_a_change() -> None:
+    with pytest.raises(ValueError, match="non-zero change"):
+        step_response(np.zeros(3), np.zeros(3), 0.0, 1.0, 1.0, 1.0)

@@ -1,0 +1,262 @@
+"""The response check: PX4's answer to a velocity step, measured per vehicle in the hover
+before the tube (docs/fleet.md, "The response check").
+
+The safety budget's lag term models PX4's answer to a commanded velocity change as nothing for
+T + L + τ_d after the tick that sends it, then a first order with t63. After the climb, every
+hovering vehicle flies the same steps at once: zero for :data:`SETTLE_S` (a still start), the
+cruise speed v along the first segment's n_c for :func:`hold_s`, then zero for as long. The tick
+samples how fast each estimated position moves along n_c (:meth:`ResponseProbe.moving_m_s`),
+and :func:`~vtube_fleet.core.response.step_response` reads each step's lag: how far, in
+seconds of the change, the vehicle fell behind the commanded path over the step. A vehicle
+whose lag on either step exceeds the model's over the same window
+(:func:`~vtube_fleet.core.response.model_lag_s`) by more than the estimate can tell apart
+(:func:`tolerance_s`) is refused, with the numbers, and the mission
+aborts (every vehicle lands) before any enters the tube. Otherwise the vehicles hover where
+the steps left them, and the tube starts from there.
+
+All vehicles fly the same command, so the pairs keep their spacing up to their differences in
+response; the room ahead (every vehicle moved by :func:`reach_m`) is checked against the
+partition first, and without it the check is skipped, said in the events and the summary.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vtube_fleet.core.response import StepResponse, model_lag_s, step_response
+from vtube_fleet.fleet.budget import SafetyBudget
+from vtube_fleet.fleet.table import FleetTable
+
+__all__ = ["RESPONSE_MARGIN_S", "SETTLE_S", "ResponseProbe", "ResponseReport", "allowed_lag_s",
+           "hold_s", "reach_m", "run_response_check", "tolerance_s"]
+
+#: Each step is held this long past the budget's response time T + L + τ_d + t63: the lag is
+#: read over the whole hold.
+RESPONSE_MARGIN_S = 0.7
+#: The hover is first made still: zero (plus d̂) for this long before the step, so that the
+#: step starts from a settled velocity (after the climb PX4's estimate still converges and the
+#: take-off spot's hold chases it).
+SETTLE_S = 1.5
+#: Extra seconds a step may wait for its ticks before the check gives up (a stalled loop).
+TICK_WAIT_EXTRA_S = 5.0
+
+
+def hold_s(budget: SafetyBudget) -> float:
+    """How long each of the two steps is held: T + L + τ_d + t63 + :data:`RESPONSE_MARGIN_S`."""
+    return budget.response_s + RESPONSE_MARGIN_S
+
+
+def allowed_lag_s(budget: SafetyBudget) -> tuple[float, float]:
+    """The budget model's lag (delay T + L + τ_d, then t63:
+    :func:`~vtube_fleet.core.response.model_lag_s`) on the start step over its hold H, and on
+    the stop step that follows it: 2 lag(H) − lag(2 H) (the model's start response goes on
+    under the stop's)."""
+    h = hold_s(budget)
+    delay = budget.period_s + budget.latency_s + budget.dead_time_s
+    one = model_lag_s(h, delay, budget.t63_s)
+    return one, 2.0 * one - model_lag_s(2.0 * h, delay, budget.t63_s)
+
+
+def tolerance_s(budget: SafetyBudget, step_m_s: float) -> float:
+    """What the check cannot tell from the estimate's own drift: σ of position over the step
+    (the estimate error moves by about σ / 3 over a hold on the mock's px4-sih profile)."""
+    sigma = budget.accuracy_m if math.isfinite(budget.accuracy_m) else 0.0
+    return sigma / step_m_s
+
+
+def reach_m(budget: SafetyBudget, step_m_s: float) -> float:
+    """How far ahead the check may take a vehicle: the step's speed over both holds (an upper
+    bound: PX4 does not overshoot the command by more than it lags it)."""
+    return 2.0 * step_m_s * hold_s(budget)
+
+
+@dataclass
+class ResponseProbe:
+    """Samples, after each tick, the velocity along ``direction`` of the table's ``rows``; the
+    first tick after :meth:`start` is the step's time (the tick that sends it)."""
+
+    table: FleetTable
+    rows: np.ndarray
+    direction: np.ndarray
+    hold_s: float
+    step_at_s: float | None = None
+    done: asyncio.Event = field(default_factory=asyncio.Event)
+    _t: list[np.ndarray] = field(default_factory=list)
+    _v: list[np.ndarray] = field(default_factory=list)
+
+    def start(self, velocity_m_s: np.ndarray) -> None:
+        """Send ``velocity_m_s`` (2,) to every row from the next tick on; samples restart."""
+        self.table.probe_vel[self.rows] = velocity_m_s
+        self.step_at_s = None
+        self.done.clear()
+        self._t.clear()
+        self._v.clear()
+
+    def on_tick(self, now_mono: float) -> None:
+        """The supervisor's hook after each tick (the tick has just sent the step)."""
+        if self.step_at_s is None:
+            self.step_at_s = now_mono
+        tab = self.table
+        self._t.append(tab.sample_s[self.rows].copy())
+        self._v.append(self.moving_m_s())
+        if now_mono - self.step_at_s >= self.hold_s:
+            self.done.set()
+
+    def moving_m_s(self) -> np.ndarray:
+        """How fast each row's estimated position moves along the direction: PX4's velocity
+        estimate v̂ less the estimate disturbance d̂ (fleet/compensation.py: v̂ − d̂ ≈ dp̂/dt;
+        PX4 drives v̂ to the setpoint plus d̂, so this is what follows the command)."""
+        tab = self.table
+        v = tab.vel[self.rows]
+        bank = tab.compensator
+        if bank is not None:
+            v = v - np.stack((bank.dx_m_s[self.rows], bank.dy_m_s[self.rows]), axis=1)
+        return v @ self.direction
+
+    def response(self, v_from_m_s: float, v_to_m_s: float) -> StepResponse:
+        """This step's response (:func:`~vtube_fleet.core.response.step_response`) over the
+        hold, against the commanded change."""
+        if not self._t or self.step_at_s is None:
+            nan = np.full(self.rows.size, np.nan)
+            return StepResponse(nan, nan.copy(), nan.copy(), nan.copy())
+        return step_response(np.stack(self._t), np.stack(self._v), self.step_at_s,
+                             v_from_m_s, v_to_m_s, self.hold_s)
+
+    def finish(self) -> None:
+        """Stop sending the step: each row holds the spot it is at now."""
+        tab = self.table
+        tab.probe_vel[self.rows] = np.nan
+        tab.takeoff_xy[self.rows] = np.where(tab.has[self.rows, None], tab.xy[self.rows],
+                                             tab.takeoff_xy[self.rows])
+
+
+@dataclass
+class ResponseReport:
+    """What the check measured: per checked vehicle (``ids``) the start and the stop step's
+    response, against ``allowed_s`` (the budget model's lags on the two steps,
+    :func:`allowed_lag_s`) plus ``tolerance_s`` (:func:`tolerance_s`); or why it was
+    skipped."""
+
+    step_m_s: float
+    allowed_s: tuple[float, float]
+    tolerance_s: float
+    ids: list[int]
+    start: StepResponse | None = None
+    stop: StepResponse | None = None
+    skipped: str | None = None
+
+    def over_s(self) -> np.ndarray:
+        """Per vehicle: by how much the worse of its two steps lags more than the model
+        (inf: a step without samples; NaN: not measured)."""
+        if self.start is None or self.stop is None:
+            return np.full(len(self.ids), np.nan)
+        a = np.where(np.isnan(self.start.lag_s), np.inf, self.start.lag_s - self.allowed_s[0])
+        b = np.where(np.isnan(self.stop.lag_s), np.inf, self.stop.lag_s - self.allowed_s[1])
+        return np.maximum(a, b)
+
+    def refused(self) -> list[int]:
+        """The indices (into ``ids``) of the vehicles that lag more than the model and the
+        tolerance."""
+        if self.skipped is not None:
+            return []
+        return np.flatnonzero(self.over_s() > self.tolerance_s).tolist()
+
+    def describe(self) -> str:
+        """One line for the events: the ranges measured against the budget."""
+        if self.skipped is not None:
+            return f"response check skipped: {self.skipped}"
+        assert self.start is not None and self.stop is not None
+        return (f"response check: {len(self.ids)} vehicle(s), a {self.step_m_s:g} m/s step: lag "
+                f"{_span(self.start.lag_s)} (start; the budget's model "
+                f"{self.allowed_s[0]:.2f} s), {_span(self.stop.lag_s)} (stop; model "
+                f"{self.allowed_s[1]:.2f} s), tolerance {self.tolerance_s:.2f} s; 63 % after "
+                f"{_span(self.start.rise_s)}, 5 % after {_span(self.start.dead_time_s)}")
+
+    def refusal(self, names: Sequence[str], budget: SafetyBudget) -> str:
+        """The abort's text: each refused vehicle with its numbers, and the budget's."""
+        assert self.start is not None and self.stop is not None
+        parts = []
+        for k in self.refused():
+            a, b = float(self.start.lag_s[k]), float(self.stop.lag_s[k])
+            share = float(self.start.share_end[k])
+            parts.append(f"{names[self.ids[k]]}: lag {_s(a)} (start; at {share:.0%} of the step "
+                         f"after {hold_s(budget):.2f} s), {_s(b)} (stop)")
+        return (f"response check failed before the tube: {len(parts)} of {len(self.ids)} "
+                f"vehicle(s) follow a {self.step_m_s:g} m/s velocity step more slowly than the "
+                f"safety budget assumes: its model (T + L + τ_d = {budget.period_s:.2f} + "
+                f"{budget.latency_s:.2f} + {budget.dead_time_s:g} s, then t63 = "
+                f"{budget.t63_s:g} s: tracking_dead_time_s, tracking_t63_s) lags "
+                f"{self.allowed_s[0]:.2f} s (start) and {self.allowed_s[1]:.2f} s (stop) over "
+                f"{hold_s(budget):.2f} s, plus {self.tolerance_s:.2f} s the estimate cannot tell "
+                f"apart (σ / step): " + "; ".join(parts))
+
+    def as_dict(self) -> dict[str, Any]:
+        """The summary's ``response_check``."""
+
+        def col(r: StepResponse | None, name: str) -> list[float | None]:
+            if r is None:
+                return []
+            return [round(float(v), 3) if math.isfinite(v) else None for v in getattr(r, name)]
+
+        return {"step_m_s": self.step_m_s,
+                "allowed_lag_s": [round(self.allowed_s[0], 3), round(self.allowed_s[1], 3)],
+                "tolerance_s": round(self.tolerance_s, 3),
+                "vehicles": self.ids, "skipped": self.skipped,
+                "lag_start_s": col(self.start, "lag_s"), "lag_stop_s": col(self.stop, "lag_s"),
+                "rise_s": col(self.start, "rise_s"), "dead_time_s": col(self.start, "dead_time_s"),
+                "share_end": col(self.start, "share_end"),
+                "refused": [self.ids[k] for k in self.refused()]}
+
+
+def _s(x: float) -> str:
+    return f"{x:.2f} s" if math.isfinite(x) else "no sample"
+
+
+def _span(x: np.ndarray) -> str:
+    f = x[np.isfinite(x)]
+    if f.size == 0:
+        return "not reached"
+    lo, hi = float(f.min()), float(f.max())
+    out = f"{lo:.2f} s" if hi - lo < 0.005 else f"{lo:.2f}-{hi:.2f} s"
+    return out + ("" if f.size == x.size else f" ({x.size - f.size} not reached)")
+
+
+async def run_response_check(probe: ResponseProbe, report: ResponseReport,
+                             attach: Callable[[ResponseProbe | None], None],
+                             aborted: Callable[[], bool]) -> ResponseReport:
+    """Fly the steps (module docstring) with ``probe`` attached to the tick (``attach``), then
+    detach it, filling ``report``; stops early when ``aborted()`` (the report then says it was
+    skipped)."""
+    step_m_s = report.step_m_s
+    attach(probe)
+    try:
+        steps = []
+        u, step_hold_s = probe.direction, probe.hold_s
+        for v_from, v_to, hold in ((None, 0.0, SETTLE_S), (0.0, step_m_s, step_hold_s),
+                                   (step_m_s, 0.0, step_hold_s)):
+            probe.hold_s = hold
+            probe.start(v_to * u)
+            try:
+                async with asyncio.timeout(hold + TICK_WAIT_EXTRA_S):
+                    await probe.done.wait()
+            except TimeoutError:
+                report.skipped = (f"the control loop did not tick for "
+                                  f"{hold + TICK_WAIT_EXTRA_S:.1f} s")
+                return report
+            if aborted():
+                report.skipped = "the mission aborted meanwhile"
+                return report
+            if v_from is not None:
+                steps.append(probe.response(v_from, v_to))
+        report.start, report.stop = steps
+        return report
+    finally:
+        probe.hold_s = step_hold_s
+        attach(None)
+        probe.finish()
