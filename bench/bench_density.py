@@ -12,6 +12,7 @@
     python bench/bench_density.py fly --tracking reference --seeds 10
     python bench/bench_density.py fly --tracking reference --estimator rtk --seeds 5
     python bench/bench_density.py fly --tracking reference --seeds 3 --fault slow
+    python bench/bench_density.py fly --seeds 5 --fault slow-start  # refused in the hover
 
 ``geometry``: for the shipped missions and a family of N-vehicle missions (a straight tube 40 m
 long with a pole at x = 22 m, the vehicles on a grid of ⌈√N⌉ columns (even) from x = 3 m), the δ the
@@ -25,7 +26,9 @@ clearances per flight and the worst over the seeds; ``--fault push`` gives every
 gust of 0.8 m/s across the tube 30 s after its start (the disturbance it holds against),
 ``--fault latency`` 40 ms more one-way delay on every link (plus 5 % loss), ``--fault slow``
 vehicle 0 following only 40 % of its horizontal command from 30 s after its start (PX4's response
-slower than the partition was built for: with reference tracking the tube holds).
+slower than the partition was built for: with reference tracking the tube holds),
+``--fault slow-start`` the same from its start (the response check refuses it in the hover,
+before the tube; every flight prints the check's worst lag against its model).
 ``--tracking reference`` flies (and judges the geometry of) every mission with reference tracking
 (docs/fleet.md), its own default k; ``--sigma`` the σ the geometry assumes, ``--estimator`` the
 mock's estimate error profile in flight (``rtk``: σ = 0.02 m).
@@ -227,12 +230,20 @@ def _fly_child(mission: str, backend: str, seed: int, fault: str, vehicles: int,
             kw["faults"] = Faults(latency_s=0.04, loss_pct=5.0)
         elif fault == "slow":  # vehicle 0 follows 40 % of its command from 30 s on
             kw["faults"] = [Faults(slow_gain=0.4, slow_at_s=30.0)] + [None] * (m.count - 1)
+        elif fault == "slow-start":  # vehicle 0 follows 40 % of its command from the start
+            kw["faults"] = [Faults(slow_gain=0.4, slow_at_s=0.0)] + [None] * (m.count - 1)
         t0 = time.monotonic()
         r = asyncio.run(fly(m, backend=backend, out_dir=Path(out), truth=True,
                             mock_kwargs=kw))
     s = r.summary
     trk = s.get("reference_tracking") or {}
+    rc = s.get("response_check") or {}
+    lags = [x for x in rc.get("lag_start_s", []) + rc.get("lag_stop_s", []) if x is not None]
     return {"outcome": r.outcome, "exit": r.exit_code, "reason": r.reason[:300],
+            "response_lag_start_s": rc.get("lag_start_s"), "response_allowed_s":
+            rc.get("allowed_lag_s"), "response_tolerance_s": rc.get("tolerance_s"),
+            "response_refused": rc.get("refused"), "response_skipped": rc.get("skipped"),
+            "response_lag_max_s": max(lags) if lags else None,
             "delta_m": s["safety_budget"]["delta_m"], "robots": s.get("robots"),
             "r_s": s.get("r_s"), "tracking_max_m": trk.get("error_max_m"),
             "truth_offset_max_m": trk.get("truth_offset_max_m"),
@@ -275,7 +286,8 @@ def main() -> int:
     f.add_argument("--seeds", type=int, default=5)
     f.add_argument("--first-seed", type=int, default=100)
     f.add_argument("--vehicles", type=int, default=0, help="fly only the first N slots")
-    f.add_argument("--fault", choices=("none", "push", "latency", "slow"), default="none")
+    f.add_argument("--fault", choices=("none", "push", "latency", "slow", "slow-start"),
+                   default="none")
     args = ap.parse_args()
     results: dict[str, Any] = {"tree": str(args.tree or ROOT), "what": args.what}
     if args.what == "geometry":
@@ -323,6 +335,9 @@ def main() -> int:
                   f"{_f(r['truth_min_obstacle_center_distance_m'])}; violations truth "
                   f"{r['truth_violations']} telemetry {r['violations']}; tracking error max "
                   f"{_f(r['tracking_max_m'])}, TRUE |p − r| max {_f(r['truth_offset_max_m'])}"
+                  f"; response lag max {_f(r['response_lag_max_s'])} s (model "
+                  f"{r['response_allowed_s']}, tolerance {r['response_tolerance_s']}, refused "
+                  f"{r['response_refused']})"
                   f"; {r['wall_s']:.0f} s" + ("" if r["exit"] == 0 else f"; {r['reason']}"),
                   flush=True)
 

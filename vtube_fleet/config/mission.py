@@ -258,9 +258,9 @@ MISSION_KEYS: tuple[Key, ...] = (
         bound=Bound(0.0, 3.0, low_inclusive=False,
                     why="above it the loop rings with PX4's ~0.5 s velocity response")),
     Key("response_check", "flag", "after the climb, every vehicle flies a step of the cruise "
-        "speed v and back to zero; one slower than the budget's T + L + τ_d + t63 to 63 % "
-        "aborts the mission before the tube (docs/fleet.md, the response check)",
-        default=True),
+        "speed v and back to zero; one that lags behind it more than the budget's τ_d, t63 "
+        "model (plus σ / v) aborts the mission before the tube (docs/fleet.md, the response "
+        "check)", default=True),
     Key("latency_s", "number", "L of the safety budget: position age + setpoint delay",
         "s", None, bound=NON_NEGATIVE,
         default_text="measured (round trip + `latency_headroom_s`)"),
