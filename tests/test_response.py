@@ -1,4 +1,5 @@
-"""core/response.py: a velocity step's lag and crossings, against closed forms (pure, fast)."""
+"""core/response.py: a velocity step's lag and crossings, against closed forms; the response
+check's model and rule (fleet/response_check.py) — pure, fast."""
 
 from __future__ import annotations
 
@@ -8,11 +9,13 @@ import numpy as np
 import pytest
 
 from vtube_fleet.core.response import (
+    StepResponse,
     model_lag_s,
     share_crossing,
     step_lag_s,
     step_response,
 )
+from vtube_fleet.fleet.response_check import ResponseModel, ResponseReport
 
 
 def first_order(t: np.ndarray, delay_s: float, t63_s: float, gain: float = 1.0) -> np.ndarray:
@@ -112,3 +115,67 @@ def test_noise_averages_out_of_the_lag() -> None:
 def test_a_step_needs_a_change() -> None:
     with pytest.raises(ValueError, match="non-zero change"):
         step_response(np.zeros(3), np.zeros(3), 0.0, 1.0, 1.0, 1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# fleet/response_check.py: the model, the rule and its texts (no flight)
+# ----------------------------------------------------------------------------------------------
+def _model(sigma_m: float = 0.29) -> ResponseModel:
+    return ResponseModel(period_s=0.05, latency_s=0.11, dead_time_s=0.3, t63_s=1.0,
+                         sigma_m=sigma_m)
+
+
+def test_the_model_holds_each_step_past_its_response_and_allows_its_own_lag() -> None:
+    m = _model()
+    assert m.delay_s == pytest.approx(0.46)
+    assert m.hold_s == pytest.approx(0.46 + 1.0 + 0.7)
+    start, stop = m.allowed_lag_s()
+    assert start == pytest.approx(model_lag_s(m.hold_s, 0.46, 1.0))
+    # the stop follows the start: 2 lag(H) − lag(2H), less than the start's
+    assert stop == pytest.approx(2 * start - model_lag_s(2 * m.hold_s, 0.46, 1.0))
+    assert 0 < stop < start
+    assert m.tolerance_s(1.0) == pytest.approx(0.29) and m.tolerance_s(2.0) == pytest.approx(0.145)
+    assert m.reach_m(1.0) == pytest.approx(2 * m.hold_s)
+
+
+def test_the_model_lags_what_a_first_order_vehicle_would() -> None:
+    """A vehicle that is exactly the model, flown through the start and the stop steps, lags
+    the model's allowances (the rule refuses only what is slower)."""
+    m = _model()
+    h, dt = m.hold_s, 0.01
+    t = np.arange(0.0, 2 * h + dt / 2, dt)
+    y = first_order(t, m.delay_s, m.t63_s) - first_order(t - h, m.delay_s, m.t63_s)
+    start = step_lag_s(t[:, None], y[:, None], 0.0, h)
+    stop = step_lag_s(t[:, None], (1.0 - y)[:, None], h, h)
+    np.testing.assert_allclose([start[0], stop[0]], m.allowed_lag_s(), atol=0.005)
+
+
+def _report(start_lag: list[float], stop_lag: list[float]) -> ResponseReport:
+    n = len(start_lag)
+    nan = np.full(n, np.nan)
+    r = ResponseReport(1.0, _model(), list(range(n)))
+    r.start = StepResponse(np.array(start_lag, float), nan, nan, np.full(n, 0.5))
+    r.stop = StepResponse(np.array(stop_lag, float), nan, nan, nan)
+    return r
+
+
+def test_a_vehicle_is_refused_beyond_the_model_and_the_tolerance_on_either_step() -> None:
+    start, stop = _model().allowed_lag_s()
+    r = _report([1.0, start + 0.28, start + 0.30, 1.0, math.nan],
+                [0.6, 0.6, 0.6, stop + 0.30, 0.6])
+    assert r.refused() == [2, 3, 4]  # a step without samples is refused too
+    text = r.refusal([f"slot {i}" for i in range(5)])
+    assert text.startswith("response check failed before the tube: 3 of 5 vehicle(s)")
+    assert "slot 2: lag" in text and "slot 0:" not in text and "no sample" in text
+    assert "tracking_dead_time_s, tracking_t63_s" in text and "0.29 s the estimate" in text
+    d = r.as_dict()
+    assert d["refused"] == [2, 3, 4] and d["lag_start_s"][4] is None
+    assert d["allowed_lag_s"] == [round(start, 3), round(stop, 3)]
+
+
+def test_a_skipped_check_refuses_nobody_and_says_why() -> None:
+    r = ResponseReport(1.0, _model(), [0, 1])
+    r.skipped = "response_check = false in the mission"
+    assert r.refused() == []
+    assert r.describe() == "response check skipped: response_check = false in the mission"
+    assert r.as_dict()["lag_start_s"] == [] and r.as_dict()["skipped"] == r.skipped

@@ -121,17 +121,11 @@ class SafetyBudget:
         return self.tracking_error_m is not None
 
     @property
-    def response_s(self) -> float:
-        """T + L + τ_d + t63: by when, after the tick that sends it, a vehicle must be seen at
-        63 % of a commanded velocity change (the response check measures it)."""
-        return self.period_s + self.latency_s + self.dead_time_s + self.t63_s
-
-    @property
     def delay_s(self) -> float:
         """The effective delay T + L + τ_d + t63 (reference tracking: T + L)."""
         if self.reference:
             return self.period_s + self.latency_s
-        return self.response_s
+        return self.period_s + self.latency_s + self.dead_time_s + self.t63_s
 
     @property
     def lag_m(self) -> float:

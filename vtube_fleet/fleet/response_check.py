@@ -2,21 +2,22 @@
 before the tube (docs/fleet.md, "The response check").
 
 The safety budget's lag term models PX4's answer to a commanded velocity change as nothing for
-T + L + τ_d after the tick that sends it, then a first order with t63. After the climb, every
-hovering vehicle flies the same steps at once: zero for :data:`SETTLE_S` (a still start), the
-cruise speed v along the first segment's n_c for :func:`hold_s`, then zero for as long. The tick
-samples how fast each estimated position moves along n_c (:meth:`ResponseProbe.moving_m_s`),
-and :func:`~vtube_fleet.core.response.step_response` reads each step's lag: how far, in
-seconds of the change, the vehicle fell behind the commanded path over the step. A vehicle
-whose lag on either step exceeds the model's over the same window
-(:func:`~vtube_fleet.core.response.model_lag_s`) by more than the estimate can tell apart
-(:func:`tolerance_s`) is refused, with the numbers, and the mission
-aborts (every vehicle lands) before any enters the tube. Otherwise the vehicles hover where
-the steps left them, and the tube starts from there.
+T + L + τ_d after the tick that sends it, then a first order with t63 (:class:`ResponseModel`).
+After the climb, every hovering vehicle flies the same steps at once: zero for
+:data:`SETTLE_S` (a still start), the cruise speed v along the first segment's n_c for a hold
+H (:attr:`ResponseModel.hold_s`), then zero for as long. The tick samples how fast each
+estimated position moves along n_c (:meth:`ResponseProbe.moving_m_s`), and
+:func:`~vtube_fleet.core.response.step_response` reads each step's lag: how far, in seconds of
+the change, the vehicle fell behind the commanded path over the step. A vehicle whose lag on
+either step exceeds the model's over the same window (:meth:`ResponseModel.allowed_lag_s`) by
+more than the estimate can tell apart (:meth:`ResponseModel.tolerance_s`) is refused, with the
+numbers, and the mission aborts (every vehicle lands) before any enters the tube. Otherwise the
+vehicles hover where the steps left them, and the tube starts from there.
 
 All vehicles fly the same command, so the pairs keep their spacing up to their differences in
-response; the room ahead (every vehicle moved by :func:`reach_m`) is checked against the
-partition first, and without it the check is skipped, said in the events and the summary.
+response; the room ahead (every vehicle moved by :meth:`ResponseModel.reach_m`) is checked
+against the partition first, and without it the check is skipped, said in the events and the
+summary.
 """
 
 from __future__ import annotations
@@ -29,12 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from vtube_fleet.config.mission import MissionConfig
 from vtube_fleet.core.response import StepResponse, model_lag_s, step_response
 from vtube_fleet.fleet.budget import SafetyBudget
 from vtube_fleet.fleet.table import FleetTable
 
-__all__ = ["RESPONSE_MARGIN_S", "SETTLE_S", "ResponseProbe", "ResponseReport", "allowed_lag_s",
-           "hold_s", "reach_m", "run_response_check", "tolerance_s"]
+__all__ = ["RESPONSE_MARGIN_S", "SETTLE_S", "ResponseModel", "ResponseProbe", "ResponseReport",
+           "run_response_check"]
 
 #: Each step is held this long past the budget's response time T + L + τ_d + t63: the lag is
 #: read over the whole hold.
@@ -47,33 +49,58 @@ SETTLE_S = 1.5
 TICK_WAIT_EXTRA_S = 5.0
 
 
-def hold_s(budget: SafetyBudget) -> float:
-    """How long each of the two steps is held: T + L + τ_d + t63 + :data:`RESPONSE_MARGIN_S`."""
-    return budget.response_s + RESPONSE_MARGIN_S
+@dataclass(frozen=True)
+class ResponseModel:
+    """The budget's model of PX4's answer to a velocity change: nothing for ``delay_s`` = T + L
+    + τ_d after the tick that sends it, then a first order with ``t63_s``; ``sigma_m`` the
+    reported accuracy σ. τ_d and t63 are the mission's (``tracking_dead_time_s``,
+    ``tracking_t63_s``), also with reference tracking, whose budget does not count them."""
 
+    period_s: float
+    latency_s: float
+    dead_time_s: float
+    t63_s: float
+    sigma_m: float
 
-def allowed_lag_s(budget: SafetyBudget) -> tuple[float, float]:
-    """The budget model's lag (delay T + L + τ_d, then t63:
-    :func:`~vtube_fleet.core.response.model_lag_s`) on the start step over its hold H, and on
-    the stop step that follows it: 2 lag(H) − lag(2 H) (the model's start response goes on
-    under the stop's)."""
-    h = hold_s(budget)
-    delay = budget.period_s + budget.latency_s + budget.dead_time_s
-    one = model_lag_s(h, delay, budget.t63_s)
-    return one, 2.0 * one - model_lag_s(2.0 * h, delay, budget.t63_s)
+    @classmethod
+    def of(cls, budget: SafetyBudget, cfg: MissionConfig) -> ResponseModel:
+        return cls(budget.period_s, budget.latency_s, cfg.tracking_dead_time_s,
+                   cfg.tracking_t63_s,
+                   budget.accuracy_m if math.isfinite(budget.accuracy_m) else 0.0)
 
+    @property
+    def delay_s(self) -> float:
+        return self.period_s + self.latency_s + self.dead_time_s
 
-def tolerance_s(budget: SafetyBudget, step_m_s: float) -> float:
-    """What the check cannot tell from the estimate's own drift: σ of position over the step
-    (the estimate error moves by about σ / 3 over a hold on the mock's px4-sih profile)."""
-    sigma = budget.accuracy_m if math.isfinite(budget.accuracy_m) else 0.0
-    return sigma / step_m_s
+    @property
+    def hold_s(self) -> float:
+        """How long each of the two steps is held: T + L + τ_d + t63 +
+        :data:`RESPONSE_MARGIN_S`."""
+        return self.delay_s + self.t63_s + RESPONSE_MARGIN_S
 
+    def allowed_lag_s(self) -> tuple[float, float]:
+        """The model's lag (:func:`~vtube_fleet.core.response.model_lag_s`) on the start step
+        over its hold H, and on the stop step that follows it: 2 lag(H) − lag(2 H) (the
+        model's start response goes on under the stop's)."""
+        h = self.hold_s
+        one = model_lag_s(h, self.delay_s, self.t63_s)
+        return one, 2.0 * one - model_lag_s(2.0 * h, self.delay_s, self.t63_s)
 
-def reach_m(budget: SafetyBudget, step_m_s: float) -> float:
-    """How far ahead the check may take a vehicle: the step's speed over both holds (an upper
-    bound: PX4 does not overshoot the command by more than it lags it)."""
-    return 2.0 * step_m_s * hold_s(budget)
+    def tolerance_s(self, step_m_s: float) -> float:
+        """What the check cannot tell from the estimate's own drift: σ of position over the
+        step (the estimate error moves by about σ / 3 over a hold on the mock's px4-sih
+        profile)."""
+        return self.sigma_m / step_m_s
+
+    def reach_m(self, step_m_s: float) -> float:
+        """How far ahead the check may take a vehicle: the step's speed over both holds (an
+        upper bound: PX4 does not overshoot the command by more than it lags it)."""
+        return 2.0 * step_m_s * self.hold_s
+
+    def describe(self) -> str:
+        return (f"T + L + τ_d = {self.period_s:.2f} + {self.latency_s:.2f} + "
+                f"{self.dead_time_s:g} s, then t63 = {self.t63_s:g} s: tracking_dead_time_s, "
+                f"tracking_t63_s")
 
 
 @dataclass
@@ -139,17 +166,23 @@ class ResponseProbe:
 @dataclass
 class ResponseReport:
     """What the check measured: per checked vehicle (``ids``) the start and the stop step's
-    response, against ``allowed_s`` (the budget model's lags on the two steps,
-    :func:`allowed_lag_s`) plus ``tolerance_s`` (:func:`tolerance_s`); or why it was
-    skipped."""
+    response, against the ``model``'s lags on the two steps plus its tolerance for a
+    ``step_m_s`` step; or why it was skipped."""
 
     step_m_s: float
-    allowed_s: tuple[float, float]
-    tolerance_s: float
+    model: ResponseModel
     ids: list[int]
     start: StepResponse | None = None
     stop: StepResponse | None = None
     skipped: str | None = None
+
+    @property
+    def allowed_s(self) -> tuple[float, float]:
+        return self.model.allowed_lag_s()
+
+    @property
+    def tolerance_s(self) -> float:
+        return self.model.tolerance_s(self.step_m_s)
 
     def over_s(self) -> np.ndarray:
         """Per vehicle: by how much the worse of its two steps lags more than the model
@@ -178,23 +211,22 @@ class ResponseReport:
                 f"{self.allowed_s[1]:.2f} s), tolerance {self.tolerance_s:.2f} s; 63 % after "
                 f"{_span(self.start.rise_s)}, 5 % after {_span(self.start.dead_time_s)}")
 
-    def refusal(self, names: Sequence[str], budget: SafetyBudget) -> str:
-        """The abort's text: each refused vehicle with its numbers, and the budget's."""
+    def refusal(self, names: Sequence[str]) -> str:
+        """The abort's text: each refused vehicle with its numbers, and the model's."""
         assert self.start is not None and self.stop is not None
+        hold = self.model.hold_s
         parts = []
         for k in self.refused():
             a, b = float(self.start.lag_s[k]), float(self.stop.lag_s[k])
             share = float(self.start.share_end[k])
             parts.append(f"{names[self.ids[k]]}: lag {_s(a)} (start; at {share:.0%} of the step "
-                         f"after {hold_s(budget):.2f} s), {_s(b)} (stop)")
+                         f"after {hold:.2f} s), {_s(b)} (stop)")
         return (f"response check failed before the tube: {len(parts)} of {len(self.ids)} "
                 f"vehicle(s) follow a {self.step_m_s:g} m/s velocity step more slowly than the "
-                f"safety budget assumes: its model (T + L + τ_d = {budget.period_s:.2f} + "
-                f"{budget.latency_s:.2f} + {budget.dead_time_s:g} s, then t63 = "
-                f"{budget.t63_s:g} s: tracking_dead_time_s, tracking_t63_s) lags "
+                f"safety budget assumes: its model ({self.model.describe()}) lags "
                 f"{self.allowed_s[0]:.2f} s (start) and {self.allowed_s[1]:.2f} s (stop) over "
-                f"{hold_s(budget):.2f} s, plus {self.tolerance_s:.2f} s the estimate cannot tell "
-                f"apart (σ / step): " + "; ".join(parts))
+                f"{hold:.2f} s, plus {self.tolerance_s:.2f} s the estimate cannot tell apart "
+                f"(σ / step): " + "; ".join(parts))
 
     def as_dict(self) -> dict[str, Any]:
         """The summary's ``response_check``."""

@@ -67,13 +67,10 @@ from vtube_fleet.fleet.preflight import (
     wait_accuracy,
 )
 from vtube_fleet.fleet.response_check import (
+    ResponseModel,
     ResponseProbe,
     ResponseReport,
-    allowed_lag_s,
-    hold_s,
-    reach_m,
     run_response_check,
-    tolerance_s,
 )
 from vtube_fleet.fleet.summary import fleet_summary, telemetry_summary
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
@@ -614,15 +611,16 @@ class Supervisor:
         budget = self.budget
         step = float(self.physical.v)
         rows = np.flatnonzero(self.table.phase == PHASE_CODE[Phase.TAKEOFF])
-        report = ResponseReport(step, allowed_lag_s(budget), tolerance_s(budget, step),
-                                self.table.ids[rows].tolist())
+        model = ResponseModel.of(budget, self.cfg)
+        report = ResponseReport(step, model, self.table.ids[rows].tolist())
         self.response = report
-        if not self.cfg.response_check:
-            report.skipped = "response_check = false in the mission"
+        if not self.cfg.response_check or rows.size == 0:
+            report.skipped = ("response_check = false in the mission"
+                              if not self.cfg.response_check else "no vehicle hovers")
             self.event(report.describe(), level="warning")
             return
         u = np.asarray(self.ticker.root.route.segments[0].tube.n_c, float)
-        reach = reach_m(budget, step)
+        reach = model.reach_m(step)
         ahead = np.array([p.xy for p in self.pilots]) + reach * u
         _, problems = await asyncio.to_thread(
             preflight_report, self.mission, self.plan.flown, ahead, self.names,
@@ -638,13 +636,13 @@ class Supervisor:
             self._probe = probe
 
         self.response = report = await run_response_check(
-            ResponseProbe(self.table, rows, u, hold_s(budget)), report, attach,
+            ResponseProbe(self.table, rows, u, model.hold_s), report, attach,
             lambda: self._abort_reason is not None)
         if self._abort_reason is not None:
             raise MissionAborted(self._abort_reason)
         self.event(report.describe(), level="info" if report.skipped is None else "warning")
         if report.skipped is None and report.refused():
-            raise MissionAborted(report.refusal(self.names, budget))
+            raise MissionAborted(report.refusal(self.names))
 
     async def _fly_tube(self) -> None:
         self._set_stage("tube")
