@@ -168,7 +168,15 @@ async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) ->
     assert s["truth"] and s["truth_violations"] == 0 and s["violations"] == 0
     assert s["truth_min_pair_distance_m"] > 2 * mission.scenario.robots.r_s
     assert s["estimate_compensation"]["max_correction_m_s"] > 0.1  # px4-sih needs it
+    # the response check flew in the hover, refused nobody, and brought everyone back
+    rc = s["response_check"]
+    assert rc["skipped"] is None and rc["refused"] == [] and rc["vehicles"] == list(range(12))
+    assert all(0.0 < x <= rc["allowed_lag_s"][0] + rc["tolerance_s"] for x in rc["lag_start_s"])
+    assert rc["return_s"] is not None
     report("mavlink x12", result, worst, truth)
+    print(f"response check: start lag {min(rc['lag_start_s']):.2f}-{max(rc['lag_start_s']):.2f}"
+          f" s (model {rc['allowed_lag_s'][0]:.2f} s + {rc['tolerance_s']:.2f} s), back after "
+          f"{rc['return_s']:.1f} s")
     _recording_reviews(path, tmp_path, 12)
 
 

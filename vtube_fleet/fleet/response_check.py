@@ -11,8 +11,10 @@ estimated position moves along n_c (:meth:`ResponseProbe.moving_m_s`), and
 the change, the vehicle fell behind the commanded path over the step. A vehicle whose lag on
 either step exceeds the model's over the same window (:meth:`ResponseModel.allowed_lag_s`) by
 more than the estimate can tell apart (:meth:`ResponseModel.tolerance_s`) is refused, with the
-numbers, and the mission aborts (every vehicle lands) before any enters the tube. Otherwise the
-vehicles hover where the steps left them, and the tube starts from there.
+numbers, and the mission aborts (every vehicle lands) before any enters the tube. Otherwise
+every vehicle flies back to its take-off spot (:data:`RETURN_GAIN_1_S`, at most v, until each
+is within :data:`RETURN_TOL_M`): the steps move the vehicles apart by their differences in
+lag, and the tube starts from the formation the preflight validated.
 
 All vehicles fly the same command, so the pairs keep their spacing up to their differences in
 response; the room ahead (every vehicle moved by :meth:`ResponseModel.reach_m`) is checked
@@ -34,6 +36,7 @@ from vtube_fleet.config.mission import MissionConfig
 from vtube_fleet.core.response import StepResponse, model_lag_s, step_response
 from vtube_fleet.fleet.budget import SafetyBudget
 from vtube_fleet.fleet.table import FleetTable
+from vtube_fleet.fleet.tick import toward_m_s
 
 __all__ = ["RESPONSE_MARGIN_S", "SETTLE_S", "ResponseModel", "ResponseProbe", "ResponseReport",
            "run_response_check"]
@@ -45,6 +48,12 @@ RESPONSE_MARGIN_S = 0.7
 #: step starts from a settled velocity (after the climb PX4's estimate still converges and the
 #: take-off spot's hold chases it).
 SETTLE_S = 1.5
+#: The way back to the take-off spots: gain (1/s) on the offset, at most the step's speed, until
+#: every vehicle is within RETURN_TOL_M of its spot, or RETURN_TIMEOUT_S have passed (then
+#: Assumption 1 at altitude judges where they are).
+RETURN_GAIN_1_S = 1.0
+RETURN_TOL_M = 0.2
+RETURN_TIMEOUT_S = 10.0
 #: Extra seconds a step may wait for its ticks before the check gives up (a stalled loop).
 TICK_WAIT_EXTRA_S = 5.0
 
@@ -113,6 +122,8 @@ class ResponseProbe:
     direction: np.ndarray
     hold_s: float
     step_at_s: float | None = None
+    #: flying back to the take-off spots at most this fast (None: a step)
+    return_m_s: float | None = None
     done: asyncio.Event = field(default_factory=asyncio.Event)
     _t: list[np.ndarray] = field(default_factory=list)
     _v: list[np.ndarray] = field(default_factory=list)
@@ -125,8 +136,27 @@ class ResponseProbe:
         self._t.clear()
         self._v.clear()
 
+    def start_return(self, max_m_s: float) -> None:
+        """Fly every row back to its take-off spot from the next tick on (:meth:`on_tick`)."""
+        self.return_m_s = max_m_s
+        self.done.clear()
+        self._steer_back()
+
+    def _steer_back(self) -> bool:
+        """Set each row's velocity towards its take-off spot; True once all are there."""
+        tab, r = self.table, self.rows
+        assert self.return_m_s is not None
+        tab.probe_vel[r] = toward_m_s(tab.takeoff_xy[r], tab.xy[r], tab.has[r], RETURN_GAIN_1_S,
+                                      self.return_m_s)
+        off = np.hypot(*(tab.xy[r] - tab.takeoff_xy[r]).T)
+        return bool(np.all(~tab.has[r] | (off <= RETURN_TOL_M)))
+
     def on_tick(self, now_mono: float) -> None:
         """The supervisor's hook after each tick (the tick has just sent the step)."""
+        if self.return_m_s is not None:
+            if self._steer_back():
+                self.done.set()
+            return
         if self.step_at_s is None:
             self.step_at_s = now_mono
         tab = self.table
@@ -156,11 +186,9 @@ class ResponseProbe:
                              v_from_m_s, v_to_m_s, self.hold_s)
 
     def finish(self) -> None:
-        """Stop sending the step: each row holds the spot it is at now."""
-        tab = self.table
-        tab.probe_vel[self.rows] = np.nan
-        tab.takeoff_xy[self.rows] = np.where(tab.has[self.rows, None], tab.xy[self.rows],
-                                             tab.takeoff_xy[self.rows])
+        """Stop: each row holds its take-off spot again (the climb's hold)."""
+        self.table.probe_vel[self.rows] = np.nan
+        self.return_m_s = None
 
 
 @dataclass
@@ -175,6 +203,9 @@ class ResponseReport:
     start: StepResponse | None = None
     stop: StepResponse | None = None
     skipped: str | None = None
+    #: seconds the way back to the take-off spots took (None: not flown, or not all within
+    #: RETURN_TOL_M after RETURN_TIMEOUT_S)
+    return_s: float | None = None
 
     @property
     def allowed_s(self) -> tuple[float, float]:
@@ -209,7 +240,12 @@ class ResponseReport:
                 f"{_span(self.start.lag_s)} (start; the budget's model "
                 f"{self.allowed_s[0]:.2f} s), {_span(self.stop.lag_s)} (stop; model "
                 f"{self.allowed_s[1]:.2f} s), tolerance {self.tolerance_s:.2f} s; 63 % after "
-                f"{_span(self.start.rise_s)}, 5 % after {_span(self.start.dead_time_s)}")
+                f"{_span(self.start.rise_s)}, 5 % after {_span(self.start.dead_time_s)}"
+                + ("" if self.refused() else
+                   f"; back at the take-off spots after {self.return_s:.1f} s"
+                   if self.return_s is not None else
+                   f"; not all back within {RETURN_TOL_M:g} m of their take-off spots after "
+                   f"{RETURN_TIMEOUT_S:g} s"))
 
     def refusal(self, names: Sequence[str]) -> str:
         """The abort's text: each refused vehicle with its numbers, and the model's."""
@@ -243,6 +279,7 @@ class ResponseReport:
                 "lag_start_s": col(self.start, "lag_s"), "lag_stop_s": col(self.stop, "lag_s"),
                 "rise_s": col(self.start, "rise_s"), "dead_time_s": col(self.start, "dead_time_s"),
                 "share_end": col(self.start, "share_end"),
+                "return_s": None if self.return_s is None else round(self.return_s, 2),
                 "refused": [self.ids[k] for k in self.refused()]}
 
 
@@ -287,6 +324,16 @@ async def run_response_check(probe: ResponseProbe, report: ResponseReport,
             if v_from is not None:
                 steps.append(probe.response(v_from, v_to))
         report.start, report.stop = steps
+        if report.refused():
+            return report  # the mission aborts: every vehicle lands where it is
+        t0 = asyncio.get_running_loop().time()
+        probe.start_return(step_m_s)
+        try:
+            async with asyncio.timeout(RETURN_TIMEOUT_S):
+                await probe.done.wait()
+            report.return_s = asyncio.get_running_loop().time() - t0
+        except TimeoutError:
+            pass
         return report
     finally:
         probe.hold_s = step_hold_s

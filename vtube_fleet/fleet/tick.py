@@ -104,6 +104,7 @@ __all__ = [
     "slow_m_s",
     "stop_anchor_m",
     "unresponsive_s",
+    "toward_m_s",
     "used_ages",
     "vertical_down_m_s",
     "watch_budget",
@@ -315,7 +316,7 @@ def tracking_corrections(tab: FleetTable, rows: np.ndarray, gain_1_s: float) -> 
     time (:func:`track_references`), at most :data:`TRACKING_CORRECTION_MAX_M_S`; zero where
     a row has no reference."""
     off = tab.track_off[rows]
-    return _toward(tab.xy[rows] + off, tab.xy[rows], np.isfinite(off).all(axis=1), gain_1_s,
+    return toward_m_s(tab.xy[rows] + off, tab.xy[rows], np.isfinite(off).all(axis=1), gain_1_s,
                    TRACKING_CORRECTION_MAX_M_S)
 
 
@@ -598,7 +599,7 @@ def _progress(route: Any, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return seg, route.xi(p, seg)
 
 
-def _toward(target: np.ndarray, xy: np.ndarray, ok: np.ndarray, gain_1_s: float,
+def toward_m_s(target: np.ndarray, xy: np.ndarray, ok: np.ndarray, gain_1_s: float,
             max_m_s: float) -> np.ndarray:
     """The velocities (k, 2) that bring points ``xy`` to ``target`` (k, 2): gain × the
     offset, at most ``max_m_s``; zero where not ``ok`` or not finite."""
@@ -669,7 +670,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     # the climb: hold the take-off spot
     if climb.any():
         r = np.flatnonzero(climb)
-        d = _toward(tab.takeoff_xy[r], tab.xy[r], tab.has[r], TAKEOFF_XY_GAIN_1_S,
+        d = toward_m_s(tab.takeoff_xy[r], tab.xy[r], tab.has[r], TAKEOFF_XY_GAIN_1_S,
                     TAKEOFF_XY_MAX_M_S)
         probe = tab.probe_vel[r]
         d = np.where(np.isfinite(probe).all(axis=1)[:, None], probe, d)
@@ -694,7 +695,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
         go = (ph[r] == _STEPPING) & tab.step_set[r] & tab.has[r] & ~tab.standstill[r]
         via = tab.step_via[r]
         to = np.where(np.isfinite(via).all(axis=1)[:, None], via, tab.step_xy[r])
-        d = _toward(to, tab.xy[r], go, STEP_GAIN_1_S, STEP_MAX_M_S)
+        d = toward_m_s(to, tab.xy[r], go, STEP_GAIN_1_S, STEP_MAX_M_S)
         vx[r], vy[r] = d[:, 0], d[:, 1]
         comp[r] = True
     # past the finishing line
