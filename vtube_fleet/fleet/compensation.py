@@ -83,6 +83,10 @@ class CompensatorBank:
         self.clipped = np.zeros(m, dtype=np.int64)  #: estimates larger than ``limit_m_s``
         self.max_m_s = np.zeros(m)  #: the largest |d̂| seen
 
+    def d_hat_m_s(self, rows: np.ndarray) -> np.ndarray:
+        """d̂ (k, 2) of ``rows`` (m/s, tube frame)."""
+        return np.stack((self.dx_m_s[rows], self.dy_m_s[rows]), axis=1)
+
     def reset(self, rows: np.ndarray) -> None:
         """Forget the history of ``rows`` (after a jump of the estimate, a mode change, …)."""
         self._count[rows] = 0

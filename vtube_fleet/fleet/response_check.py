@@ -115,12 +115,13 @@ class ResponseModel:
 @dataclass
 class ResponseProbe:
     """Samples, after each tick, the velocity along ``direction`` of the table's ``rows``; the
-    first tick after :meth:`start` is the step's time (the tick that sends it)."""
+    first tick after :meth:`start` is the step's time (the tick that sends it), ``hold_s``
+    the current phase's length."""
 
     table: FleetTable
     rows: np.ndarray
     direction: np.ndarray
-    hold_s: float
+    hold_s: float = 0.0
     step_at_s: float | None = None
     #: flying back to the take-off spots at most this fast (None: a step)
     return_m_s: float | None = None
@@ -128,8 +129,10 @@ class ResponseProbe:
     _t: list[np.ndarray] = field(default_factory=list)
     _v: list[np.ndarray] = field(default_factory=list)
 
-    def start(self, velocity_m_s: np.ndarray) -> None:
-        """Send ``velocity_m_s`` (2,) to every row from the next tick on; samples restart."""
+    def start(self, velocity_m_s: np.ndarray, hold_s: float) -> None:
+        """Send ``velocity_m_s`` (2,) to every row from the next tick on, for ``hold_s``
+        (:attr:`done` then); samples restart."""
+        self.hold_s = hold_s
         self.table.probe_vel[self.rows] = velocity_m_s
         self.step_at_s = None
         self.done.clear()
@@ -173,7 +176,7 @@ class ResponseProbe:
         v = tab.vel[self.rows]
         bank = tab.compensator
         if bank is not None:
-            v = v - np.stack((bank.dx_m_s[self.rows], bank.dy_m_s[self.rows]), axis=1)
+            v = v - bank.d_hat_m_s(self.rows)
         return v @ self.direction
 
     def response(self, v_from_m_s: float, v_to_m_s: float) -> StepResponse:
@@ -298,34 +301,33 @@ def _span(x: np.ndarray) -> str:
 
 async def run_response_check(probe: ResponseProbe, report: ResponseReport,
                              attach: Callable[[ResponseProbe | None], None],
-                             aborted: Callable[[], bool]) -> ResponseReport:
+                             aborted: Callable[[], bool]) -> None:
     """Fly the steps (module docstring) with ``probe`` attached to the tick (``attach``), then
     detach it, filling ``report``; stops early when ``aborted()`` (the report then says it was
     skipped)."""
     step_m_s = report.step_m_s
+    step_hold_s = report.model.hold_s
     attach(probe)
     try:
         steps = []
-        u, step_hold_s = probe.direction, probe.hold_s
         for v_from, v_to, hold in ((None, 0.0, SETTLE_S), (0.0, step_m_s, step_hold_s),
                                    (step_m_s, 0.0, step_hold_s)):
-            probe.hold_s = hold
-            probe.start(v_to * u)
+            probe.start(v_to * probe.direction, hold)
             try:
                 async with asyncio.timeout(hold + TICK_WAIT_EXTRA_S):
                     await probe.done.wait()
             except TimeoutError:
                 report.skipped = (f"the control loop did not tick for "
                                   f"{hold + TICK_WAIT_EXTRA_S:.1f} s")
-                return report
+                return
             if aborted():
                 report.skipped = "the mission aborted meanwhile"
-                return report
+                return
             if v_from is not None:
                 steps.append(probe.response(v_from, v_to))
         report.start, report.stop = steps
         if report.refused():
-            return report  # the mission aborts: every vehicle lands where it is
+            return  # the mission aborts: every vehicle lands where it is
         t0 = asyncio.get_running_loop().time()
         probe.start_return(step_m_s)
         try:
@@ -334,8 +336,6 @@ async def run_response_check(probe: ResponseProbe, report: ResponseReport,
             report.return_s = asyncio.get_running_loop().time() - t0
         except TimeoutError:
             pass
-        return report
     finally:
-        probe.hold_s = step_hold_s
         attach(None)
         probe.finish()

@@ -635,9 +635,8 @@ class Supervisor:
         def attach(probe: ResponseProbe | None) -> None:
             self._probe = probe
 
-        self.response = report = await run_response_check(
-            ResponseProbe(self.table, rows, u, model.hold_s), report, attach,
-            lambda: self._abort_reason is not None)
+        await run_response_check(ResponseProbe(self.table, rows, u), report, attach,
+                                 lambda: self._abort_reason is not None)
         if self._abort_reason is not None:
             raise MissionAborted(self._abort_reason)
         self.event(report.describe(), level="info" if report.skipped is None else "warning")

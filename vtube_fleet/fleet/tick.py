@@ -103,8 +103,8 @@ __all__ = [
     "sense",
     "slow_m_s",
     "stop_anchor_m",
-    "unresponsive_s",
     "toward_m_s",
+    "unresponsive_s",
     "used_ages",
     "vertical_down_m_s",
     "watch_budget",
@@ -316,8 +316,8 @@ def tracking_corrections(tab: FleetTable, rows: np.ndarray, gain_1_s: float) -> 
     time (:func:`track_references`), at most :data:`TRACKING_CORRECTION_MAX_M_S`; zero where
     a row has no reference."""
     off = tab.track_off[rows]
-    return toward_m_s(tab.xy[rows] + off, tab.xy[rows], np.isfinite(off).all(axis=1), gain_1_s,
-                   TRACKING_CORRECTION_MAX_M_S)
+    return toward_m_s(tab.xy[rows] + off, tab.xy[rows], np.isfinite(off).all(axis=1),
+                      gain_1_s, TRACKING_CORRECTION_MAX_M_S)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -600,7 +600,7 @@ def _progress(route: Any, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def toward_m_s(target: np.ndarray, xy: np.ndarray, ok: np.ndarray, gain_1_s: float,
-            max_m_s: float) -> np.ndarray:
+               max_m_s: float) -> np.ndarray:
     """The velocities (k, 2) that bring points ``xy`` to ``target`` (k, 2): gain × the
     offset, at most ``max_m_s``; zero where not ``ok`` or not finite."""
     d = gain_1_s * (target - xy)
@@ -736,7 +736,7 @@ def actuate(tab: FleetTable, links: LinkColumns, link_list: Sequence[VehicleLink
     corr = None
     if bank is not None:
         c_rows = comp[rows]
-        corr = np.stack((bank.dx_m_s[rows], bank.dy_m_s[rows]), axis=1)
+        corr = bank.d_hat_m_s(rows)
         sx = np.where(c_rows, sx + corr[:, 0], sx)
         sy = np.where(c_rows, sy + corr[:, 1], sy)
     if cfg.tracking == "reference":  # the ramp and the position loop (not in tab.cmd)
