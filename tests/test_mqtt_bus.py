@@ -319,3 +319,20 @@ async def test_a_hung_broker_shows_as_echo_silence_before_the_keepalive(broker):
         finally:
             stop.set()
             await ticker
+
+
+async def test_a_waiter_cancelled_as_the_bus_changes_stays_cancelled():
+    """A task waiting in ``wait_for`` that is cancelled in the same loop iteration as a bus
+    change wakes it (an agent's barrier when the coordinator's abort arrives with a teammate's
+    status) ends cancelled: it must not fly on. Python 3.11's ``asyncio.wait_for`` returned
+    normally there and dropped the cancellation (an agent then flew the tube after an abort)."""
+    bus = MqttBus("mqtt://127.0.0.1:1", MISSION)  # never connected: only its waiters
+    done = {"v": False}
+    waiter = asyncio.ensure_future(bus.wait_for(lambda: done["v"], None, poll_s=60.0))
+    while bus._changed is None:  # the waiter is parked on its change event
+        await asyncio.sleep(0)
+    bus._changed.set()  # a change and the cancellation, in the same iteration
+    waiter.cancel()
+    done["v"] = True
+    with pytest.raises(asyncio.CancelledError):
+        await waiter

@@ -470,8 +470,11 @@ class MqttBus:
                     raise TimeoutError
                 if self._changed is None:
                     self._changed = asyncio.Event()
+                # (asyncio.timeout, not wait_for: Python 3.11's wait_for drops a cancellation
+                # that arrives together with a change, and the waiting task flies on)
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._changed.wait(), min(poll_s, remaining))
+                    async with asyncio.timeout(min(poll_s, remaining)):
+                        await self._changed.wait()
         finally:
             self._waiters -= 1
 
@@ -679,7 +682,8 @@ class MqttBus:
                 break
             self.backoff_s = backoff
             with contextlib.suppress(TimeoutError):  # the back-off wait; close() ends it early
-                await asyncio.wait_for(self._stop.wait(), backoff * random.uniform(0.8, 1.2))
+                async with asyncio.timeout(backoff * random.uniform(0.8, 1.2)):
+                    await self._stop.wait()
             backoff = min(backoff * 2.0, self.backoff_max_s)
 
     async def _serve(self, client: MqttClient) -> None:
