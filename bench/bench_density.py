@@ -238,12 +238,14 @@ def _fly_child(mission: str, backend: str, seed: int, fault: str, vehicles: int,
     s = r.summary
     trk = s.get("reference_tracking") or {}
     rc = s.get("response_check") or {}
+    rw = s.get("response_watch") or {}
     lags = [x for x in rc.get("lag_start_s", []) + rc.get("lag_stop_s", []) if x is not None]
     return {"outcome": r.outcome, "exit": r.exit_code, "reason": r.reason[:300],
             "response_lag_start_s": rc.get("lag_start_s"), "response_allowed_s":
             rc.get("allowed_lag_s"), "response_tolerance_s": rc.get("tolerance_s"),
             "response_refused": rc.get("refused"), "response_skipped": rc.get("skipped"),
             "response_lag_max_s": max(lags) if lags else None,
+            "watch_max_m": rw.get("max_m"), "watch_tolerance_m": rw.get("tolerance_m"),
             "delta_m": s["safety_budget"]["delta_m"], "robots": s.get("robots"),
             "r_s": s.get("r_s"), "tracking_max_m": trk.get("error_max_m"),
             "truth_offset_max_m": trk.get("truth_offset_max_m"),
@@ -337,7 +339,8 @@ def main() -> int:
                   f"{_f(r['tracking_max_m'])}, TRUE |p − r| max {_f(r['truth_offset_max_m'])}"
                   f"; response lag max {_f(r['response_lag_max_s'])} s (model "
                   f"{r['response_allowed_s']}, tolerance {r['response_tolerance_s']}, refused "
-                  f"{r['response_refused']})"
+                  f"{r['response_refused']}); response watch max {_f(r['watch_max_m'])} m "
+                  f"(tolerance {_f(r['watch_tolerance_m'])} m)"
                   f"; {r['wall_s']:.0f} s" + ("" if r["exit"] == 0 else f"; {r['reason']}"),
                   flush=True)
 

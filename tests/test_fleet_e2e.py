@@ -173,10 +173,14 @@ async def test_mavlink_12_vehicles_fly_the_mock_fleet_mission(tmp_path: Path) ->
     assert rc["skipped"] is None and rc["refused"] == [] and rc["vehicles"] == list(range(12))
     assert all(0.0 < x <= rc["allowed_lag_s"][0] + rc["tolerance_s"] for x in rc["lag_start_s"])
     assert rc["return_s"] is not None
+    # the response watch judged the tube and stayed within its tolerance
+    rw = s["response_watch"]
+    assert 0.0 < rw["max_m"] <= rw["tolerance_m"], rw
     report("mavlink x12", result, worst, truth)
     print(f"response check: start lag {min(rc['lag_start_s']):.2f}-{max(rc['lag_start_s']):.2f}"
           f" s (model {rc['allowed_lag_s'][0]:.2f} s + {rc['tolerance_s']:.2f} s), back after "
-          f"{rc['return_s']:.1f} s")
+          f"{rc['return_s']:.1f} s; response watch max {rw['max_m']:.2f} m (tolerance "
+          f"{rw['tolerance_m']:.2f} m)")
     _recording_reviews(path, tmp_path, 12)
 
 
@@ -596,6 +600,43 @@ async def test_a_vehicle_that_follows_slowly_makes_the_tube_hold(tmp_path: Path)
         "error e = 0.70 m" in result.reason, result.reason
     s = result.summary
     assert s["reference_tracking"]["error_max_m"] > 0.7
+    assert [v["phase"] for v in s["vehicle_states"]] == ["landed"] * 4
+    assert s["truth_violations"] == 0
+    assert_true_clearance(log)
+    print(f"\nslowed at {slowed[0]:.1f} s: {result.reason}")
+
+
+@pytest.mark.xdist_group("heavy")
+async def test_a_vehicle_that_slows_in_the_tube_makes_the_response_watch_hold(
+        tmp_path: Path) -> None:
+    """Velocity tracking (the shipped mission's first 4 slots, px4-sih); 4 s into the tube
+    vehicle 0 starts following only 30 % of its command (the mock's ``slow`` fault: it still
+    moves faster than the lost-vehicle rule's v_min / 2). Its estimated path leaves the one
+    the budget's τ_d, t63 model gives its commands by more than D H + σ, so every vehicle in
+    the tube holds, the mission aborts naming it, and every vehicle lands; the truth stays
+    clean."""
+    mission = load_mission(ROOT / "configs" / "mock_fleet.toml").with_vehicles(4)
+    slowed: list[float] = []
+    async with mock_fleet(mission, **boot(4, seed=6)) as fleet:
+        log = TruthLog(fleet, mission)
+
+        def hook(tick: int, sup: Supervisor) -> None:
+            log(tick, sup)
+            late = sup.tube_start_s is not None and sup.t_s() > sup.tube_start_s + 4.0
+            if late and not slowed:
+                slowed.append(sup.t_s())
+                fleet.vehicles[0].slow(0.3)
+
+        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3, 4],
+                           out_dir=tmp_path, truth=True, tick_hook=hook)
+    assert slowed, "the tube never started"
+    assert result.outcome == "aborted" and result.exit_code != 0
+    assert "vehicle 0 flew" in result.reason and "off the path PX4's budgeted response " \
+        "gives its commands" in result.reason, result.reason
+    s = result.summary
+    rw = s["response_watch"]
+    assert rw["max_m"] > rw["tolerance_m"] and rw["max_at"]["vehicle"] == 0
+    assert rw["max_at"]["t_s"] > slowed[0]
     assert [v["phase"] for v in s["vehicle_states"]] == ["landed"] * 4
     assert s["truth_violations"] == 0
     assert_true_clearance(log)

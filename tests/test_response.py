@@ -1,5 +1,6 @@
-"""core/response.py: a velocity step's lag and crossings, against closed forms; the response
-check's model and rule (fleet/response_check.py) — pure, fast."""
+"""core/response.py: a velocity step's lag and crossings and the model's first order, against
+closed forms; the response check's model and rule (fleet/response_check.py) and the response
+watch (fleet/budget.py) — pure, fast."""
 
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ import pytest
 
 from vtube_fleet.core.response import (
     StepResponse,
+    model_follow,
     model_lag_s,
     share_crossing,
     step_lag_s,
     step_response,
 )
-from vtube_fleet.fleet.response_check import ResponseModel, ResponseReport
+from vtube_fleet.fleet.budget import RESPONSE_PERSIST_TICKS, ResponseModel, ResponseWatch
+from vtube_fleet.fleet.response_check import ResponseReport
 
 
 def first_order(t: np.ndarray, delay_s: float, t63_s: float, gain: float = 1.0) -> np.ndarray:
@@ -179,3 +182,101 @@ def test_a_skipped_check_refuses_nobody_and_says_why() -> None:
     assert r.refused() == []
     assert r.describe() == "response check skipped: response_check = false in the mission"
     assert r.as_dict()["lag_start_s"] == [] and r.as_dict()["skipped"] == r.skipped
+
+
+# ----------------------------------------------------------------------------------------------
+# the model's first order and the response watch (fleet/budget.py)
+# ----------------------------------------------------------------------------------------------
+def test_model_follow_is_the_exact_first_order_in_any_steps() -> None:
+    y1, dx = model_follow(np.zeros((1, 2)), np.array([[1.0, -2.0]]), 0.5, 1.0)
+    a = -math.expm1(-0.5)
+    np.testing.assert_allclose(y1, [[a, -2 * a]])
+    np.testing.assert_allclose(dx, [[0.5 - a, -2 * (0.5 - a)]])  # ∫ (1 − e^(−t)) dt
+    y, x = np.zeros((1, 2)), np.zeros((1, 2))
+    for _ in range(50):  # the same half second in 50 steps
+        y, d = model_follow(y, np.array([[1.0, -2.0]]), 0.01, 1.0)
+        x += d
+    np.testing.assert_allclose(y, y1, atol=1e-12)
+    np.testing.assert_allclose(x, dx, atol=1e-12)
+    y0, d0 = model_follow(np.zeros((1, 2)), np.array([[1.0, 0.0]]), 0.2, 0.0)
+    np.testing.assert_allclose(y0, [[1.0, 0.0]])  # t63 = 0: at once
+    np.testing.assert_allclose(d0, [[0.2, 0.0]])
+
+
+def _watch_model() -> ResponseModel:
+    return ResponseModel(period_s=0.05, latency_s=0.11, dead_time_s=0.3, t63_s=1.0,
+                         sigma_m=0.29, disturbance_m_s=0.25)
+
+
+def _fly(watch: ResponseWatch, gains: list[float], *, seconds: float = 12.0,
+         watched_from_s: float = 1.0, dead: list[float] | None = None) -> list[str]:
+    """Vehicles hover, then from ``watched_from_s`` are sent 1 m/s along x (turning to y at
+    6 s); vehicle i answers as the model with a steady ``gains[i]`` (and its own dead
+    time); returns the hold reasons."""
+    m = watch.model
+    n = len(gains)
+    dt = m.period_s
+    delays = dead or [m.delay_s] * n
+    hist: list[tuple[float, np.ndarray]] = []
+    y = np.zeros((n, 2))
+    xy = np.zeros((n, 2))
+    ids = np.arange(10, 10 + n)
+    out = []
+    for k in range(int(seconds / dt)):
+        t = k * dt
+        if hist:  # the vehicles: each its own delay, then the first order, times its gain
+            u = np.zeros((n, 2))
+            for i in range(n):
+                old = [c for (tc, c) in hist if tc <= t - delays[i]]
+                u[i] = gains[i] * old[-1][i] if old else 0.0
+            y, d = model_follow(y, u, dt, m.t63_s)
+            xy = xy + d
+        sent = np.zeros((n, 2))
+        if t >= watched_from_s:
+            sent[:, 0 if t < 6.0 else 1] = 1.0
+        hist.append((t, sent))
+        why = watch.update(t, sent, xy, np.full(n, t >= watched_from_s), ids)
+        if why:
+            out.append(why)
+    return out
+
+
+def test_the_response_watch_leaves_a_vehicle_that_answers_as_the_model_alone() -> None:
+    w = ResponseWatch(_watch_model(), 2)
+    assert w.window_s == pytest.approx(_watch_model().hold_s)
+    assert w.tolerance_m == pytest.approx(0.25 * w.window_s + 0.29)
+    assert _fly(w, [1.0, 1.0]) == []
+    assert w.max_m < 0.02  # one tick of the sampled delay at most
+    assert w.as_dict()["max_at"]["t_s"] > 1.0 + w.window_s  # not judged before a whole window
+
+
+def test_the_response_watch_holds_a_vehicle_that_follows_forty_percent() -> None:
+    w = ResponseWatch(_watch_model(), 3)
+    reasons = _fly(w, [1.0, 0.4, 1.0])
+    assert reasons, "a vehicle following 40 % of its commands must hold the tube"
+    assert reasons[0].startswith("safety budget exceeded in flight: vehicle 11 flew ")
+    assert f"{RESPONSE_PERSIST_TICKS} ticks in a row" in reasons[0]
+    assert "τ_d = 0.3 s, t63 = 1 s" in reasons[0]
+    assert w.max_at is not None and w.max_at[1] == 11
+
+
+def test_the_response_watch_holds_a_vehicle_with_a_longer_dead_time_but_not_a_bit_longer() -> None:
+    m = _watch_model()
+    assert _fly(ResponseWatch(m, 1), [1.0], dead=[m.delay_s + 0.3]) == []
+    assert _fly(ResponseWatch(m, 1), [1.0], dead=[m.delay_s + 1.2]) != []
+
+
+def test_the_response_watch_judges_only_whole_watched_windows() -> None:
+    w = ResponseWatch(_watch_model(), 1)
+    ids = np.array([0])
+    # a vehicle that never moves, watched for less than a window at a time: never judged
+    for k in range(200):
+        t = k * 0.05
+        watched = np.array([(k // 30) % 2 == 0])  # 1.5 s on, 1.5 s off
+        assert w.update(t, np.array([[1.0, 0.0]]), np.zeros((1, 2)), watched, ids) is None
+    assert math.isnan(w.max_m)
+    # without a position (NaN) it is not watched either
+    for k in range(200, 300):
+        assert w.update(k * 0.05, np.array([[1.0, 0.0]]), np.full((1, 2), np.nan),
+                        np.array([True]), ids) is None
+    assert math.isnan(w.max_m)

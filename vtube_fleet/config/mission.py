@@ -126,6 +126,7 @@ class MissionConfig:
     tracking_error_m: float = DEFAULT_TRACKING_ERROR_M
     tracking_gain_1_s: float = 2.0
     response_check: bool = True
+    response_watch: bool = True
     latency_s: float | None = None
     latency_headroom_s: float = 0.05
     max_latency_s: float = 0.25
@@ -261,6 +262,10 @@ MISSION_KEYS: tuple[Key, ...] = (
         "speed v and back to zero; one that lags behind it more than the budget's τ_d, t63 "
         "model (plus σ / v) aborts the mission before the tube (docs/fleet.md, the response "
         "check)", default=True),
+    Key("response_watch", "flag", "with `tracking = \"velocity\"`, in flight: a vehicle whose "
+        "estimated path leaves the path the budget's τ_d, t63 model gives its commands by more "
+        "than D H + σ over the last H holds the tube (docs/fleet.md, the response watch)",
+        default=True),
     Key("latency_s", "number", "L of the safety budget: position age + setpoint delay",
         "s", None, bound=NON_NEGATIVE,
         default_text="measured (round trip + `latency_headroom_s`)"),

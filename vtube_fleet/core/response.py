@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DEAD_SHARE", "RISE_SHARE", "StepResponse", "model_lag_s", "share_crossing",
-           "step_lag_s", "step_response"]
+__all__ = ["DEAD_SHARE", "RISE_SHARE", "StepResponse", "model_follow", "model_lag_s",
+           "share_crossing", "step_lag_s", "step_response"]
 
 #: The share of a step that marks the end of the dead time τ_d.
 DEAD_SHARE = 0.05
@@ -58,6 +58,17 @@ def model_lag_s(window_s: float, delay_s: float, t63_s: float) -> float:
     if t63_s <= 0:
         return float(delay_s)
     return float(delay_s + t63_s * -np.expm1(-(window_s - delay_s) / t63_s))
+
+
+def model_follow(y: np.ndarray, u: np.ndarray, dt_s: float, t63_s: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The model's first order over ``dt_s`` with the (already delayed) command ``u`` held:
+    the new velocity y' = u + (y − u) e^(−dt/t63) and the distance flown meanwhile, exactly
+    u dt − t63 (y' − y) (both (N, 2); t63 = 0: y' = u at once)."""
+    if t63_s <= 0:
+        return u.copy(), u * dt_s
+    y1 = u + (y - u) * np.exp(-dt_s / t63_s)
+    return y1, u * dt_s - t63_s * (y1 - y)
 
 
 def step_lag_s(t_s: np.ndarray, share: np.ndarray, step_at_s: np.ndarray | float,

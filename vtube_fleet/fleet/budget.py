@@ -52,9 +52,10 @@ import numpy as np
 
 from vtube_fleet.config.mission import DEFAULT_ACCURACY_FACTOR
 from vtube_fleet.core.params import ControllerParams
+from vtube_fleet.core.response import model_follow, model_lag_s
 
 if TYPE_CHECKING:  # pragma: no cover
-    from vtube_fleet.config.mission import Mission
+    from vtube_fleet.config.mission import Mission, MissionConfig
 
 __all__ = [
     "BudgetWatch",
@@ -65,6 +66,10 @@ __all__ = [
     "LinkMeasurement",
     "PX4_SITL_ACCURACY_M",
     "PX4_SITL_LATENCY_S",
+    "RESPONSE_MARGIN_S",
+    "RESPONSE_PERSIST_TICKS",
+    "ResponseModel",
+    "ResponseWatch",
     "SafetyBudget",
     "TRACKING_PERSIST_TICKS",
     "achieved_rate_hz",
@@ -226,6 +231,166 @@ class SafetyBudget:
         }
 
 
+#: Each step of the response check is held this long past the budget's response time T + L +
+#: τ_d + t63 (the lag is read over the whole hold); the response watch's window is as long.
+RESPONSE_MARGIN_S = 0.7
+#: The response watch: ticks in a row some vehicle may be off the model's path by more than
+#: the tolerance before the tube holds (one tick over may be a single jumping sample).
+RESPONSE_PERSIST_TICKS = 2
+
+
+@dataclass(frozen=True)
+class ResponseModel:
+    """The budget's model of PX4's answer to a velocity change: nothing for ``delay_s`` = T + L
+    + τ_d after the tick that sends it, then a first order with ``t63_s``; ``sigma_m`` the
+    reported accuracy σ, ``disturbance_m_s`` the budget's D. τ_d and t63 are the mission's
+    (``tracking_dead_time_s``, ``tracking_t63_s``), also with reference tracking, whose budget
+    does not count them."""
+
+    period_s: float
+    latency_s: float
+    dead_time_s: float
+    t63_s: float
+    sigma_m: float
+    disturbance_m_s: float = 0.0
+
+    @classmethod
+    def of(cls, budget: SafetyBudget, cfg: MissionConfig) -> ResponseModel:
+        return cls(budget.period_s, budget.latency_s, cfg.tracking_dead_time_s,
+                   cfg.tracking_t63_s,
+                   budget.accuracy_m if math.isfinite(budget.accuracy_m) else 0.0,
+                   cfg.disturbance_residual_m_s)
+
+    @property
+    def delay_s(self) -> float:
+        return self.period_s + self.latency_s + self.dead_time_s
+
+    @property
+    def hold_s(self) -> float:
+        """H = T + L + τ_d + t63 + :data:`RESPONSE_MARGIN_S`: how long each step of the
+        response check is held, and the response watch's window."""
+        return self.delay_s + self.t63_s + RESPONSE_MARGIN_S
+
+    def allowed_lag_s(self) -> tuple[float, float]:
+        """The model's lag (:func:`~vtube_fleet.core.response.model_lag_s`) on the start step
+        over its hold H, and on the stop step that follows it: 2 lag(H) − lag(2 H) (the
+        model's start response goes on under the stop's)."""
+        h = self.hold_s
+        one = model_lag_s(h, self.delay_s, self.t63_s)
+        return one, 2.0 * one - model_lag_s(2.0 * h, self.delay_s, self.t63_s)
+
+    def tolerance_s(self, step_m_s: float) -> float:
+        """What the check cannot tell from the estimate's own drift: σ of position over the
+        step (the estimate error moves by about σ / 3 over a hold on the mock's px4-sih
+        profile)."""
+        return self.sigma_m / step_m_s
+
+    def watch_tolerance_m(self) -> float:
+        """How far, over a window H, a vehicle's estimated path may leave the model's answer
+        to its commands in flight: D H (the compensation's residual the budget allows) + σ
+        (the estimate's own drift, as in :meth:`tolerance_s`)."""
+        return self.disturbance_m_s * self.hold_s + self.sigma_m
+
+    def reach_m(self, step_m_s: float) -> float:
+        """How far ahead the check may take a vehicle: the step's speed over both holds (an
+        upper bound: PX4 does not overshoot the command by more than it lags it)."""
+        return 2.0 * step_m_s * self.hold_s
+
+    def describe(self) -> str:
+        return (f"T + L + τ_d = {self.period_s:.2f} + {self.latency_s:.2f} + "
+                f"{self.dead_time_s:g} s, then t63 = {self.t63_s:g} s: tracking_dead_time_s, "
+                f"tracking_t63_s")
+
+
+class ResponseWatch:
+    """The response watch (velocity tracking, in flight; docs/fleet.md, "The response watch"):
+    every tick, the model's answer (:class:`ResponseModel`) to the velocities each vehicle was
+    sent is flown as a path of its own (:func:`~vtube_fleet.core.response.model_follow`, the
+    commands ``delay_s`` late), and each watched vehicle's estimated displacement over the
+    last H (:attr:`ResponseModel.hold_s`) is compared with the model path's over the same
+    ticks. PX4 answering more slowly than the budget's τ_d and t63 (a weaker motor, a heavier
+    payload) leaves the model behind; the lag term then no longer covers the vehicle.
+    :meth:`update` returns the hold reason once some vehicle has been further off than
+    :meth:`ResponseModel.watch_tolerance_m` for :data:`RESPONSE_PERSIST_TICKS` ticks in a row.
+
+    A vehicle is judged only on a window it was watched through (in the tube, flying the
+    controller's commands, with fresh samples: a silent vehicle is the lost-vehicle rule's);
+    the model runs for every row all the time (the hover before the tube is its start).
+    Vectorized over the ``n`` rows of a table; pure (no I/O)."""
+
+    def __init__(self, model: ResponseModel, n: int) -> None:
+        self.model = model
+        self.window_s = model.hold_s
+        self.tolerance_m = model.watch_tolerance_m()
+        self._cmds: deque[tuple[float, np.ndarray]] = deque()  # (time, velocities sent)
+        self._y = np.zeros((n, 2))  # the model's velocity
+        self._x = np.zeros((n, 2))  # … and its path
+        self._t = math.nan
+        self._hist: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (t, path, p̂)
+        self._since = np.full(n, np.nan)  # when each row's watched spell began
+        self._over = 0
+        self.offset_m = np.full(n, np.nan)  #: each row's offset at the last tick (NaN: unjudged)
+        self.max_m = math.nan  #: the largest offset judged
+        self.max_at: tuple[float, int] | None = None  #: (time, vehicle) of it
+
+    def update(self, t_s: float, sent_m_s: np.ndarray, xy: np.ndarray, watched: np.ndarray,
+               vehicle_ids: np.ndarray) -> str | None:
+        """One tick at time ``t_s`` (s): the velocities sent (n, 2; NaN: none, flown as
+        zero: PX4 holds), the estimated positions (n, 2) and which rows are ``watched``."""
+        if math.isfinite(self._t) and t_s > self._t:
+            dt = t_s - self._t
+            cut = t_s - self.model.delay_s
+            while len(self._cmds) > 1 and self._cmds[1][0] <= cut:
+                self._cmds.popleft()
+            u = (self._cmds[0][1] if self._cmds and self._cmds[0][0] <= cut
+                 else np.zeros_like(self._y))
+            self._y, dx = model_follow(self._y, u, dt, self.model.t63_s)
+            self._x = self._x + dx
+        self._t = t_s
+        self._cmds.append((t_s, np.nan_to_num(np.asarray(sent_m_s, float))))
+        ok = watched & np.isfinite(xy).all(axis=1)
+        self._since[~ok] = np.nan
+        self._since[ok & np.isnan(self._since)] = t_s
+        self._hist.append((t_s, self._x.copy(), np.asarray(xy, float).copy()))
+        cut = t_s - self.window_s
+        while len(self._hist) > 1 and self._hist[1][0] <= cut:
+            self._hist.popleft()
+        t0, x0, p0 = self._hist[0]
+        judged = ok & (self._since <= t0) & (t0 <= cut)
+        self.offset_m[:] = np.nan
+        if not judged.any():
+            self._over = 0
+            return None
+        rows = np.flatnonzero(judged)
+        off = (xy[rows] - p0[rows]) - (self._x[rows] - x0[rows])
+        dev = np.hypot(off[:, 0], off[:, 1])
+        self.offset_m[rows] = dev
+        k = int(np.argmax(dev))
+        worst = float(dev[k])
+        if not worst <= self.max_m:
+            self.max_m, self.max_at = worst, (t_s, int(vehicle_ids[rows[k]]))
+        if worst <= self.tolerance_m:
+            self._over = 0
+            return None
+        self._over += 1
+        if self._over < RESPONSE_PERSIST_TICKS:
+            return None
+        m = self.model
+        return (f"safety budget exceeded in flight: vehicle {int(vehicle_ids[rows[k]])} flew "
+                f"{worst:.2f} m off the path PX4's budgeted response gives its commands over the "
+                f"last {self.window_s:.1f} s > {self.tolerance_m:.2f} m (D·H + σ = "
+                f"{m.disturbance_m_s:g}·{self.window_s:.2f} + {m.sigma_m:.2f}; "
+                f"{RESPONSE_PERSIST_TICKS} ticks in a row; PX4 follows more slowly than "
+                f"τ_d = {m.dead_time_s:g} s, t63 = {m.t63_s:g} s, which the partition was "
+                f"built for)")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"window_s": round(self.window_s, 3), "tolerance_m": round(self.tolerance_m, 3),
+                "max_m": None if not math.isfinite(self.max_m) else round(self.max_m, 3),
+                "max_at": (None if self.max_at is None else
+                           {"t_s": round(self.max_at[0], 2), "vehicle": self.max_at[1]})}
+
+
 @dataclass(frozen=True)
 class LinkMeasurement:
     """What the safety budget needs from the links, measured before arming.
@@ -383,7 +548,8 @@ class BudgetWatch:
     control period over, σ more than 25 % (+2 cm) over. It returns ``(warning, hold)``: a
     warning text the first second over, and a hold reason after ``persist_s`` seconds in a row.
     Overridden budgets and the mission's own ``latency_s`` / ``position_accuracy_m`` are not
-    second-guessed.
+    second-guessed. With velocity tracking, :meth:`check_response` feeds the response watch
+    (:class:`ResponseWatch`; its model from ``response_budget`` when given).
 
     A vehicle that falls silent is a fault, not a slow link: the lost-vehicle path handles
     it. So an age counts only once the sample it was measured on has been superseded (the
@@ -399,7 +565,7 @@ class BudgetWatch:
     """
 
     def __init__(self, mission: Mission, budget: SafetyBudget, *, window_s: float = 3.0,
-                 persist_s: int = 2) -> None:
+                 persist_s: int = 2, response_budget: SafetyBudget | None = None) -> None:
         self.cfg = mission.config
         self.budget = budget
         self.window_s = window_s
@@ -418,6 +584,15 @@ class BudgetWatch:
         self.tracking_counts = np.zeros(TRACKING_BINS, np.int64)
         self.tracking_max_m = math.nan
         self.tracking_max_at: tuple[float, int] | None = None  # (mission time, vehicle)
+        # velocity tracking: PX4's answer to the commands against the budget's model (created
+        # at the first tick, for the table's rows; None with reference tracking, which
+        # watches e, and for an override, which is not second-guessed)
+        # (``response_budget``: the vehicle's own link, when ``budget``'s L has more in it:
+        # an MQTT agent's neighbour age)
+        self._response_model = (None if budget.reference or budget.overridden
+                                or not self.cfg.response_watch
+                                else ResponseModel.of(response_budget or budget, self.cfg))
+        self.response: ResponseWatch | None = None
 
     def add_ages(self, t_s: float, ages: Sequence[float],
                  vehicle_ids: Sequence[int] | None = None,
@@ -531,6 +706,16 @@ class BudgetWatch:
                 f"from its reference > the budgeted tracking error e = {e:.2f} m "
                 f"({TRACKING_PERSIST_TICKS} ticks in a row; PX4 follows more slowly than the "
                 f"partition was built for)")
+
+    def check_response(self, t_s: float, sent_m_s: np.ndarray, xy: np.ndarray,
+                       watched: np.ndarray, vehicle_ids: np.ndarray) -> str | None:
+        """Velocity tracking, every tick: :meth:`ResponseWatch.update` (the velocities sent,
+        the estimated positions, the rows watched, their ids); None when not watched."""
+        if self._response_model is None:
+            return None
+        if self.response is None:
+            self.response = ResponseWatch(self._response_model, len(vehicle_ids))
+        return self.response.update(t_s, sent_m_s, xy, watched, vehicle_ids)
 
     def tracking_percentile_m(self, q: float) -> float:
         """The ``q`` percentile of the tracking errors seen (to :data:`TRACKING_BIN_M`, the

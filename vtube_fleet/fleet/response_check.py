@@ -32,18 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from vtube_fleet.config.mission import MissionConfig
-from vtube_fleet.core.response import StepResponse, model_lag_s, step_response
-from vtube_fleet.fleet.budget import SafetyBudget
+from vtube_fleet.core.response import StepResponse, step_response
+from vtube_fleet.fleet.budget import ResponseModel
 from vtube_fleet.fleet.table import FleetTable
 from vtube_fleet.fleet.tick import toward_m_s
 
-__all__ = ["RESPONSE_MARGIN_S", "SETTLE_S", "ResponseModel", "ResponseProbe", "ResponseReport",
-           "run_response_check"]
+__all__ = ["SETTLE_S", "ResponseProbe", "ResponseReport", "run_response_check"]
 
-#: Each step is held this long past the budget's response time T + L + τ_d + t63: the lag is
-#: read over the whole hold.
-RESPONSE_MARGIN_S = 0.7
 #: The hover is first made still: zero (plus d̂) for this long before the step, so that the
 #: step starts from a settled velocity (after the climb PX4's estimate still converges and the
 #: take-off spot's hold chases it).
@@ -56,60 +51,6 @@ RETURN_TOL_M = 0.2
 RETURN_TIMEOUT_S = 10.0
 #: Extra seconds a step may wait for its ticks before the check gives up (a stalled loop).
 TICK_WAIT_EXTRA_S = 5.0
-
-
-@dataclass(frozen=True)
-class ResponseModel:
-    """The budget's model of PX4's answer to a velocity change: nothing for ``delay_s`` = T + L
-    + τ_d after the tick that sends it, then a first order with ``t63_s``; ``sigma_m`` the
-    reported accuracy σ. τ_d and t63 are the mission's (``tracking_dead_time_s``,
-    ``tracking_t63_s``), also with reference tracking, whose budget does not count them."""
-
-    period_s: float
-    latency_s: float
-    dead_time_s: float
-    t63_s: float
-    sigma_m: float
-
-    @classmethod
-    def of(cls, budget: SafetyBudget, cfg: MissionConfig) -> ResponseModel:
-        return cls(budget.period_s, budget.latency_s, cfg.tracking_dead_time_s,
-                   cfg.tracking_t63_s,
-                   budget.accuracy_m if math.isfinite(budget.accuracy_m) else 0.0)
-
-    @property
-    def delay_s(self) -> float:
-        return self.period_s + self.latency_s + self.dead_time_s
-
-    @property
-    def hold_s(self) -> float:
-        """How long each of the two steps is held: T + L + τ_d + t63 +
-        :data:`RESPONSE_MARGIN_S`."""
-        return self.delay_s + self.t63_s + RESPONSE_MARGIN_S
-
-    def allowed_lag_s(self) -> tuple[float, float]:
-        """The model's lag (:func:`~vtube_fleet.core.response.model_lag_s`) on the start step
-        over its hold H, and on the stop step that follows it: 2 lag(H) − lag(2 H) (the
-        model's start response goes on under the stop's)."""
-        h = self.hold_s
-        one = model_lag_s(h, self.delay_s, self.t63_s)
-        return one, 2.0 * one - model_lag_s(2.0 * h, self.delay_s, self.t63_s)
-
-    def tolerance_s(self, step_m_s: float) -> float:
-        """What the check cannot tell from the estimate's own drift: σ of position over the
-        step (the estimate error moves by about σ / 3 over a hold on the mock's px4-sih
-        profile)."""
-        return self.sigma_m / step_m_s
-
-    def reach_m(self, step_m_s: float) -> float:
-        """How far ahead the check may take a vehicle: the step's speed over both holds (an
-        upper bound: PX4 does not overshoot the command by more than it lags it)."""
-        return 2.0 * step_m_s * self.hold_s
-
-    def describe(self) -> str:
-        return (f"T + L + τ_d = {self.period_s:.2f} + {self.latency_s:.2f} + "
-                f"{self.dead_time_s:g} s, then t63 = {self.t63_s:g} s: tracking_dead_time_s, "
-                f"tracking_t63_s")
 
 
 @dataclass
@@ -336,6 +277,10 @@ async def run_response_check(probe: ResponseProbe, report: ResponseReport,
             report.return_s = asyncio.get_running_loop().time() - t0
         except TimeoutError:
             pass
+    except asyncio.CancelledError:  # the flight was stopped meanwhile (an abort, a signal)
+        if report.skipped is None and report.stop is None:
+            report.skipped = "interrupted before its steps were flown"
+        raise
     finally:
         attach(None)
         probe.finish()

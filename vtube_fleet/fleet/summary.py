@@ -157,6 +157,8 @@ def fleet_summary(sup: Supervisor) -> dict[str, Any]:
     if sup.response is not None:
         extra["response_check"] = sup.response.as_dict()
     watch = mes.watch
+    if watch is not None and watch.response is not None:
+        extra["response_watch"] = watch.response.as_dict()
     if sup.budget.reference and watch is not None:
         extra["reference_tracking"] = {
             "error_p50_m": finite_or_none(watch.tracking_percentile_m(50)),

@@ -53,7 +53,13 @@ from vtube_fleet.config.mission import Mission
 from vtube_fleet.core.metrics import SafetyMonitor, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError, bug_text
-from vtube_fleet.fleet.budget import LinkMeasurement, SafetyBudget, achieved_rate_hz, mission_budget
+from vtube_fleet.fleet.budget import (
+    LinkMeasurement,
+    ResponseModel,
+    SafetyBudget,
+    achieved_rate_hz,
+    mission_budget,
+)
 from vtube_fleet.fleet.flight_plan import FlightPlan, exit_queue
 from vtube_fleet.fleet.measure import FlightMeasurement, TickTrace
 from vtube_fleet.fleet.neighbour_view import NeighbourView
@@ -66,12 +72,7 @@ from vtube_fleet.fleet.preflight import (
     preflight_report,
     wait_accuracy,
 )
-from vtube_fleet.fleet.response_check import (
-    ResponseModel,
-    ResponseProbe,
-    ResponseReport,
-    run_response_check,
-)
+from vtube_fleet.fleet.response_check import ResponseProbe, ResponseReport, run_response_check
 from vtube_fleet.fleet.summary import fleet_summary, telemetry_summary
 from vtube_fleet.fleet.table import PHASE_CODE, FleetTable
 from vtube_fleet.fleet.tick import ControlClock, Tick, TickResult

@@ -1385,19 +1385,28 @@ def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_g
     vehicles' ages dropped
     (``forgotten``: the rows already dropped); once a second judge L (worst uplink latency) and
     σ (``accuracy_m(rows in the tube)``); with reference tracking, every tick, each in-tube
-    vehicle's |p̂ − r| against e (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_tracking`).
+    vehicle's |p̂ − r| against e (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_tracking`);
+    with velocity tracking, every tick, the velocities sent and the estimated paths of the
+    in-tube vehicles flying the controller's command with a fresh sample, against the budget's
+    response model (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_response`).
     Does nothing while no vehicle is in the tube.
     ``used``: :func:`used_ages` of this tick if the caller has it already.
     Returns ``(warning, hold)``."""
     ph = tab.phase
     if not (ph == _IN_TUBE).any():
         return None, None
+    rows, ages = used_ages(tab, result) if used is None else used
     if watch.budget.reference:  # every tick: |p̂ − r| against e
         tube = np.flatnonzero(ph == _IN_TUBE)
         hold = watch.check_tracking(tab.track_err_m[tube], tab.ids[tube], result.t_s)
-        if hold is not None:
-            return None, hold
-    rows, ages = used_ages(tab, result) if used is None else used
+    else:  # every tick: the estimated paths against the response model's
+        fresh = np.zeros(tab.n, bool)
+        fresh[rows] = True
+        sent = np.where(tab.cmd_set[:, None], tab.cmd, np.nan)
+        hold = watch.check_response(result.t_s, sent, tab.xy,
+                                    (ph == _IN_TUBE) & tab.cmd_in_tube & fresh, tab.ids)
+    if hold is not None:
+        return None, hold
     watch.add_tick_gap(tick_gap_s)
     watch.add_ages(result.t_s, ages, rows, tab.sample_s[rows])
     lost = set(np.flatnonzero(ph == _LOST).tolist()) - forgotten

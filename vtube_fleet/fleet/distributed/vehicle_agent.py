@@ -28,7 +28,13 @@ from vtube_fleet.config.keys import POSITIVE
 from vtube_fleet.core.metrics import finite_or_none, percentile_or_none, verdict
 from vtube_fleet.core.partition import PartitionError
 from vtube_fleet.errors import UserError, bug_text
-from vtube_fleet.fleet.budget import BudgetWatch, LinkMeasurement, SafetyBudget
+from vtube_fleet.fleet.budget import (
+    BudgetWatch,
+    LinkMeasurement,
+    ResponseModel,
+    SafetyBudget,
+    mission_budget,
+)
 from vtube_fleet.fleet.distributed import unsupported
 from vtube_fleet.fleet.distributed.coordinator import (
     ASSUMED_ACCURACY_M,
@@ -51,6 +57,7 @@ from vtube_fleet.fleet.preflight import (
     preflight_report,
     wait_accuracy,
 )
+from vtube_fleet.fleet.response_check import ResponseProbe, ResponseReport, run_response_check
 from vtube_fleet.fleet.table import FleetTable
 from vtube_fleet.fleet.tick import ControlClock, Tick, watch_budget
 from vtube_fleet.outcome import EXIT_INCOMPLETE, EXIT_OK, EXIT_UNSAFE
@@ -86,8 +93,10 @@ log = logging.getLogger(__name__)
 CLOCK_SAMPLES = 8
 CLOCK_TIMEOUT_S = 1.0
 
-#: Teammate stages that count as "at altitude or further" for the tube-entry barrier.
-_UP_STAGES = ("at_altitude", "in_tube", "exited", "done")
+#: Teammate stages that count as "at altitude or further" for the response check …
+_UP_STAGES = ("at_altitude", "checked", "in_tube", "exited", "done")
+#: … and as "checked or further" for the tube-entry barrier.
+_CHECKED_STAGES = _UP_STAGES[1:]
 
 
 #: The status stages of an agent whose vehicle waits in the tube, by how many times it was
@@ -243,6 +252,8 @@ class AgentControl:
         self.bus_holds = 0  # how many times it stood still for the bus
         self.recording: AgentRecording | None = None  # fed after every tick once flying
         self.watch: BudgetWatch | None = None  # the in-flight budget check (set when measured)
+        self.probe: ResponseProbe | None = None  # the response check's, while it flies
+        self.response: ResponseReport | None = None  # the response check, once flown
         self._forgotten: set[int] = set()
         self._aborted = False  # abort_for has run
         self._clock_task: asyncio.Task[None] | None = None
@@ -300,6 +311,8 @@ class AgentControl:
     def step(self, now_mono: float, now_wall: float, listening_since: float | None) -> None:
         try:
             result = self.tick(now_mono, now_wall, listening_since)
+            if self.probe is not None:
+                self.probe.on_tick(now_mono)
             self._bus_rule(now_mono, result.untrusted)
             self._tell_waiting()
             if result.untrusted is None and self.watch is not None:
@@ -403,7 +416,9 @@ class AgentRecording:
     ``min/max_commanded_speed_m_s`` (its tube controller's commands),
     ``bus_holds``, ``tick_gap_p99_s`` / ``tick_gap_max_s`` (the time between two of its control
     ticks; ``tick_gap_max_in_tube_s`` over the ticks in the tube, where the budget watch holds
-    the vehicle after 2 s in a row of gaps above T + L) and ``phase``.
+    the vehicle after 2 s in a row of gaps above T + L), ``response_check`` (its vehicle's, as
+    ``run``'s summary gives it), ``response_watch`` (velocity tracking, once in the tube) and
+    ``phase``.
 
     While flying, ``OUT/summary.json`` is rewritten atomically every
     :data:`~vtube_fleet.artifacts.SUMMARY_EVERY_S` with ``complete: false``
@@ -494,7 +509,12 @@ class AgentRecording:
                        tick_gap_p99_s=finite_or_none(percentile_or_none(pilot.tick_gaps_s, 99)),
                        tick_gap_max_s=finite_or_none(max(pilot.tick_gaps_s, default=math.nan)),
                        tick_gap_max_in_tube_s=None if pilot.watch is None else finite_or_none(
-                           pilot.watch.longest_tick_gap_s))
+                           pilot.watch.longest_tick_gap_s),
+                       # PX4's answer against the budget's model in the tube (velocity tracking)
+                       response_watch=None if pilot.watch is None or pilot.watch.response
+                       is None else pilot.watch.response.as_dict(),
+                       response_check=None if pilot.response is None
+                       else pilot.response.as_dict())
         own.update(
             min_commanded_speed_m_s=finite_or_none(self.cmd_speed[0]),
             max_commanded_speed_m_s=finite_or_none(self.cmd_speed[1]),
@@ -628,6 +648,7 @@ class AgentProcess:
         self.run_cfg: MissionConfigMsg | None = None
         self.pilot: VehiclePilot | None = None
         self.control: AgentControl | None = None
+        self.link_budget: SafetyBudget | None = None  # its own link's budget (no neighbours)
         self.budget: SafetyBudget | None = None
         self.fence = fence
         self._interrupt = asyncio.Event()
@@ -843,7 +864,10 @@ class AgentProcess:
         else:
             self.budget = own
         control.set_plan(self._plan(self.budget))
-        control.watch = BudgetWatch(self.mission, own)  # what THIS vehicle was measured to need
+        # PX4's answer to its own setpoints: its link's L (no neighbour age in it)
+        self.link_budget = mission_budget(self.mission, measured)
+        control.watch = BudgetWatch(self.mission, own,  # what THIS vehicle was measured to need
+                                    response_budget=self.link_budget)
         self.say(
             f"safety budget: needs {own.describe(params)} (L = link {measured.latency_s * 1000:.1f}"
             f" ms + headroom + neighbour max age {self.max_age_s * 1000:.0f} ms + clocks "
@@ -912,16 +936,72 @@ class AgentProcess:
         return [v for v in mates if not there(v)]
 
     async def _altitude_barrier(self) -> None:
+        """At altitude: wait for the teammates, fly the response check with them, wait until
+        they have flown it too, then enter the tube (announced at each stage)."""
         assert self.pilot is not None
         self.bus.announce("online", stage="at_altitude")
         late = await self._wait_teammates(_UP_STAGES, self.cfg.takeoff_timeout_s)
         if late:
             self.pilot.event(
                 f"teammates not at altitude after {self.cfg.takeoff_timeout_s:g} s "
-                f"({', '.join(map(str, late))}); entering the tube anyway",
+                f"({', '.join(map(str, late))}); flying on anyway",
                 "warning",
             )
+        await self._check_response()
+        self.bus.announce("online", stage="checked")
+        late = await self._wait_teammates(_CHECKED_STAGES, self.cfg.takeoff_timeout_s)
+        if late:
+            self.pilot.event(
+                f"teammates not through the response check after "
+                f"{self.cfg.takeoff_timeout_s:g} s ({', '.join(map(str, late))}); entering the "
+                f"tube anyway", "warning")
+        if self._abort.is_set():  # never into the tube after an abort (it lands instead)
+            raise UserError("run aborted by the coordinator")
         self.bus.announce("online", stage="in_tube")
+
+    async def _check_response(self) -> None:
+        """The response check (:mod:`~vtube_fleet.fleet.response_check`) of this agent's own
+        vehicle, as ``run`` flies it for its fleet: every agent starts it once its teammates
+        are at altitude, so the steps are flown together, the same command along the first
+        segment's n_c. Refused: the agent refuses (the coordinator aborts the run and every
+        vehicle lands). Skipped, and said, with ``response_check = false`` or when this
+        vehicle moved the step's reach ahead breaks the partition (an obstacle or a leg just
+        ahead; the pairs keep their spacing)."""
+        pilot, control = self.pilot, self.control
+        assert pilot is not None and control is not None and self.budget is not None
+        step = float(self.mission.scenario.controller.v)
+        model = ResponseModel.of(self.link_budget or self.budget, self.cfg)
+        report = ResponseReport(step, model, [self.vehicle])
+        control.response = report
+        u = np.asarray(control.tick.root.route.segments[0].tube.n_c, float)
+        if not self.cfg.response_check:
+            report.skipped = "response_check = false in the mission"
+        elif pilot.phase != Phase.TAKEOFF:
+            report.skipped = f"the vehicle is {pilot.phase.value}, not hovering"
+        else:
+            # this vehicle alone moved ahead (pairs keep their spacing: every vehicle flies
+            # the same steps; the tube's own entry judges the pairs where they are)
+            reach = model.reach_m(step)
+            flown = self.budget.inflate(self.mission.scenario.controller)
+            _, problems = await asyncio.to_thread(
+                preflight_report, self.mission, flown, (pilot.xy + reach * u)[None, :],
+                [f"vehicle {self.vehicle}"], where=f"{reach:.1f} m ahead",
+                route=control.tick.root.route)
+            if problems:
+                report.skipped = (f"this vehicle moved {reach:.1f} m ahead (the step's reach) "
+                                  f"breaks the partition: " + "; ".join(problems))
+        if report.skipped is not None:
+            pilot.event(report.describe(), "warning")
+            return
+
+        def attach(probe: ResponseProbe | None) -> None:
+            control.probe = probe
+
+        await run_response_check(ResponseProbe(pilot.table, np.array([0]), u), report, attach,
+                                 self._abort.is_set)
+        pilot.event(report.describe(), "info" if report.skipped is None else "warning")
+        if report.skipped is None and report.refused():
+            raise self.refuse(report.refusal([f"vehicle {v}" for v in range(self.vehicle + 1)]))
 
     async def _exit_barrier(self) -> None:
         """Past the finishing line: wait until every teammate is too (its status stage says
