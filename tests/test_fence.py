@@ -26,7 +26,7 @@ from vtube_fleet.config.mission import load_mission
 from vtube_fleet.core.fence import tube_fence
 from vtube_fleet.core.tube import Obstacle, Trapezoid
 from vtube_fleet.fleet.launch import fly, mock_fleet
-from vtube_fleet.fleet.onboard import fence_geometry, fence_items
+from vtube_fleet.fleet.onboard import fence_geometry, fence_items, install_fence
 from vtube_fleet.link import MavlinkLink
 from vtube_fleet.link.base import FenceItem, FenceRejected
 
@@ -220,6 +220,46 @@ async def test_fence_upload_download_clear_and_px4_error_codes(monkeypatch) -> N
         assert len(await link.download_fence()) == 5
         await link.upload_fence([])  # count 0 clears
         assert await link.download_fence() == [] and v.fence_items == []
+
+
+async def test_a_lost_final_ack_and_lost_answers_do_not_fail_the_fence(monkeypatch) -> None:
+    """The mission protocol over a lossy link (the mock's UDP, with the messages the link
+    receives dropped as a lossy wire would): the upload's final MISSION_ACK lost once — the
+    last item goes again and PX4 ACKs it again — and the download's MISSION_COUNT and an
+    item lost four times in a row each (six asks each): the fence installs, no timeout."""
+    from vtube_fleet.link import mavlink as mav_mod
+
+    lose = {mav_mod.MSG_MISSION_ACK: 1, mav_mod.MSG_MISSION_COUNT: 4}
+    item_losses = {2: 4}  # fence item 2's answer
+    lost: list[int] = []
+    real_next = mav_mod.MavlinkLink._mission_next
+
+    async def lossy_next(self, ob, timeout_s):
+        loop = asyncio.get_running_loop()
+        end = loop.time() + timeout_s
+        while True:
+            m = await real_next(self, ob, max(0.0, end - loop.time()))
+            if m is None:
+                return None
+            mid = m.get_msgId()
+            if lose.get(mid, 0) > 0:
+                lose[mid] -= 1
+                lost.append(mid)
+                continue
+            if mid == mav_mod.MSG_MISSION_ITEM_INT and item_losses.get(int(m.seq), 0) > 0:
+                item_losses[int(m.seq)] -= 1
+                lost.append(mid)
+                continue
+            return m
+
+    monkeypatch.setattr(mav_mod.MavlinkLink, "_mission_next", lossy_next)
+    async with one_vehicle() as (v, link):
+        items = square(v) + [FenceItem(5004, v.origin[0] + 5e-5, v.origin[1], 2.5)]
+        await install_fence(link, items, 2)
+        assert len(v.fence_items) == 5
+    assert lost.count(mav_mod.MSG_MISSION_ACK) == 1
+    assert lost.count(mav_mod.MSG_MISSION_COUNT) == 4
+    assert lost.count(mav_mod.MSG_MISSION_ITEM_INT) == 4
 
 
 class Streamer:
