@@ -16,6 +16,7 @@ import gc
 import json
 from itertools import pairwise
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -575,12 +576,10 @@ async def test_the_rtk_mission_flies_its_12_m_tube_judged_by_the_truth(tmp_path:
     assert b["delta_m"] < 0.85 and b["accuracy_m"] == pytest.approx(0.02, abs=0.005)
 
 
-@pytest.mark.xdist_group("heavy")
-async def test_a_vehicle_that_follows_slowly_makes_the_tube_hold(tmp_path: Path) -> None:
-    """Reference tracking; 4 s into the tube vehicle 0 starts following only 30 % of its
-    command (the mock's ``slow`` fault): it falls behind its reference beyond e, so every
-    vehicle in the tube holds, the mission aborts naming it, and every vehicle lands."""
-    mission = reference_mission(tmp_path, 4)
+async def fly_slowing(mission: Mission, tmp_path: Path) -> tuple[Any, list[float], TruthLog]:
+    """Fly 4 mock vehicles (seed 6, px4-sih) judged by the truth; 4 s into the tube vehicle 0
+    starts following only 30 % of its command (the mock's ``slow`` fault). Asserts the tube
+    started and the mission aborted; returns (result, [when it slowed], truth log)."""
     slowed: list[float] = []
     async with mock_fleet(mission, **boot(4, seed=6)) as fleet:
         log = TruthLog(fleet, mission)
@@ -596,6 +595,15 @@ async def test_a_vehicle_that_follows_slowly_makes_the_tube_hold(tmp_path: Path)
                            out_dir=tmp_path, truth=True, tick_hook=hook)
     assert slowed, "the tube never started"
     assert result.outcome == "aborted" and result.exit_code != 0
+    return result, slowed, log
+
+
+@pytest.mark.xdist_group("heavy")
+async def test_a_vehicle_that_follows_slowly_makes_the_tube_hold(tmp_path: Path) -> None:
+    """Reference tracking; 4 s into the tube vehicle 0 starts following only 30 % of its
+    command (the mock's ``slow`` fault): it falls behind its reference beyond e, so every
+    vehicle in the tube holds, the mission aborts naming it, and every vehicle lands."""
+    result, slowed, log = await fly_slowing(reference_mission(tmp_path, 4), tmp_path)
     assert "vehicle 0 is" in result.reason and "from its reference > the budgeted tracking " \
         "error e = 0.70 m" in result.reason, result.reason
     s = result.summary
@@ -612,25 +620,11 @@ async def test_a_vehicle_that_slows_in_the_tube_makes_the_response_watch_hold(
     """Velocity tracking (the shipped mission's first 4 slots, px4-sih); 4 s into the tube
     vehicle 0 starts following only 30 % of its command (the mock's ``slow`` fault: it still
     moves faster than the lost-vehicle rule's v_min / 2). Its estimated path leaves the one
-    the budget's τ_d, t63 model gives its commands by more than D H + σ, so every vehicle in
+    the budget's τ_d, t63 model gives its commands by more than D W + k σ, so every vehicle in
     the tube holds, the mission aborts naming it, and every vehicle lands; the truth stays
     clean."""
     mission = load_mission(ROOT / "configs" / "mock_fleet.toml").with_vehicles(4)
-    slowed: list[float] = []
-    async with mock_fleet(mission, **boot(4, seed=6)) as fleet:
-        log = TruthLog(fleet, mission)
-
-        def hook(tick: int, sup: Supervisor) -> None:
-            log(tick, sup)
-            late = sup.tube_start_s is not None and sup.t_s() > sup.tube_start_s + 4.0
-            if late and not slowed:
-                slowed.append(sup.t_s())
-                fleet.vehicles[0].slow(0.3)
-
-        result = await fly(mission, endpoints=fleet.endpoints, sysids=[1, 2, 3, 4],
-                           out_dir=tmp_path, truth=True, tick_hook=hook)
-    assert slowed, "the tube never started"
-    assert result.outcome == "aborted" and result.exit_code != 0
+    result, slowed, log = await fly_slowing(mission, tmp_path)
     assert "vehicle 0 flew" in result.reason and "off the path PX4's budgeted response " \
         "gives its commands" in result.reason, result.reason
     s = result.summary

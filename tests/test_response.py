@@ -17,7 +17,12 @@ from vtube_fleet.core.response import (
     step_lag_s,
     step_response,
 )
-from vtube_fleet.fleet.budget import RESPONSE_PERSIST_TICKS, ResponseModel, ResponseWatch
+from vtube_fleet.fleet.budget import (
+    RESPONSE_PERSIST_TICKS,
+    RESPONSE_WATCH_HOLDS,
+    ResponseModel,
+    ResponseWatch,
+)
 from vtube_fleet.fleet.response_check import ResponseReport
 
 
@@ -208,10 +213,10 @@ def _watch_model() -> ResponseModel:
                          sigma_m=0.29, disturbance_m_s=0.25)
 
 
-def _fly(watch: ResponseWatch, gains: list[float], *, seconds: float = 12.0,
+def _fly(watch: ResponseWatch, gains: list[float], *, seconds: float = 24.0,
          watched_from_s: float = 1.0, dead: list[float] | None = None) -> list[str]:
     """Vehicles hover, then from ``watched_from_s`` are sent 1 m/s along x (turning to y at
-    6 s); vehicle i answers as the model with a steady ``gains[i]`` (and its own dead
+    12 s); vehicle i answers as the model with a steady ``gains[i]`` (and its own dead
     time); returns the hold reasons."""
     m = watch.model
     n = len(gains)
@@ -233,7 +238,7 @@ def _fly(watch: ResponseWatch, gains: list[float], *, seconds: float = 12.0,
             xy = xy + d
         sent = np.zeros((n, 2))
         if t >= watched_from_s:
-            sent[:, 0 if t < 6.0 else 1] = 1.0
+            sent[:, 0 if t < 12.0 else 1] = 1.0
         hist.append((t, sent))
         why = watch.update(t, sent, xy, np.full(n, t >= watched_from_s), ids)
         if why:
@@ -243,8 +248,8 @@ def _fly(watch: ResponseWatch, gains: list[float], *, seconds: float = 12.0,
 
 def test_the_response_watch_leaves_a_vehicle_that_answers_as_the_model_alone() -> None:
     w = ResponseWatch(_watch_model(), 2)
-    assert w.window_s == pytest.approx(_watch_model().hold_s)
-    assert w.tolerance_m == pytest.approx(0.25 * w.window_s + 0.29)
+    assert w.window_s == pytest.approx(RESPONSE_WATCH_HOLDS * _watch_model().hold_s)
+    assert w.tolerance_m == pytest.approx(0.25 * w.window_s + 2 * 0.29)  # D W + k σ
     assert _fly(w, [1.0, 1.0]) == []
     assert w.max_m < 0.02  # one tick of the sampled delay at most
     assert w.as_dict()["max_at"]["t_s"] > 1.0 + w.window_s  # not judged before a whole window
@@ -260,10 +265,14 @@ def test_the_response_watch_holds_a_vehicle_that_follows_forty_percent() -> None
     assert w.max_at is not None and w.max_at[1] == 11
 
 
-def test_the_response_watch_holds_a_vehicle_with_a_longer_dead_time_but_not_a_bit_longer() -> None:
+def test_the_response_watch_holds_a_steady_shortfall_not_a_late_answer() -> None:
+    """Over its window a steady shortfall grows and a late answer does not: a vehicle at
+    60 % holds, one at 85 % does not, nor one that answers 1.2 s later than the model (the
+    response check before the tube judges that)."""
     m = _watch_model()
-    assert _fly(ResponseWatch(m, 1), [1.0], dead=[m.delay_s + 0.3]) == []
-    assert _fly(ResponseWatch(m, 1), [1.0], dead=[m.delay_s + 1.2]) != []
+    assert _fly(ResponseWatch(m, 1), [0.6]) != []
+    assert _fly(ResponseWatch(m, 1), [0.85]) == []
+    assert _fly(ResponseWatch(m, 1), [1.0], dead=[m.delay_s + 1.2]) == []
 
 
 def test_the_response_watch_judges_only_whole_watched_windows() -> None:

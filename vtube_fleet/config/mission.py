@@ -264,7 +264,8 @@ MISSION_KEYS: tuple[Key, ...] = (
         "check)", default=True),
     Key("response_watch", "flag", "with `tracking = \"velocity\"`, in flight: a vehicle whose "
         "estimated path leaves the path the budget's τ_d, t63 model gives its commands by more "
-        "than D H + σ over the last H holds the tube (docs/fleet.md, the response watch)",
+        "than D W + k σ over the last W = 4 H holds the tube (docs/fleet.md, the response "
+        "watch)",
         default=True),
     Key("latency_s", "number", "L of the safety budget: position age + setpoint delay",
         "s", None, bound=NON_NEGATIVE,
