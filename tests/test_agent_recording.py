@@ -21,7 +21,7 @@ from vtube_fleet.state import Phase
 def _pilot():
     return SimpleNamespace(last_state=None, mqtt=SimpleNamespace(latest=dict), cmd_xy=None,
                            cmd_in_tube=False, phase=Phase.IN_TUBE, reason="", bus_holds=0,
-                           tick_gaps_s=[], watch=None)
+                           tick_gaps_s=[], watch=None, response=None)
 
 
 @pytest.fixture()
