@@ -174,15 +174,20 @@ async def test_broker_loss_drops_connected_and_recovers_with_backoff(broker):
         await peer.wait_connected(30)
         assert events == [True, False, True]
         seen: list[int] = []
+        got_101 = asyncio.Event()
         async with aiomqtt.Client(broker.host, broker.port) as raw:
             await raw.subscribe(bus.topics.state(0))
 
             async def record():
                 async for m in raw.messages:
                     seen.append(decode_state(m.payload).seq)
+                    if seen[-1] == 101:
+                        got_101.set()
 
             rec = asyncio.create_task(record())
             await publish_until(bus, peer, 0, 101)
+            # the raw subscriber's copy may still be on its way when the peer has it
+            await asyncio.wait_for(got_101.wait(), 10)
             rec.cancel()
         assert 100 not in seen and 101 in seen
         assert peer.latest()[0].seq == 101
