@@ -156,8 +156,10 @@ class Status:
     stamp_s: float = 0.0  # 0 in a last will (its payload is fixed at connect time)
     detail: str = ""
     #: Where the agent's procedure is: "" (waiting for a mission), "joined" (accepted the
-    #: run), "at_altitude" (climbed; waits for the fleet to fly the response check together),
-    #: "checked" (flew it; waits for the fleet to enter the tube together), "done".
+    #: run), "ready", "at_altitude" (climbed; waits for the fleet to fly the response check
+    #: together), "checked" (flew it; waits for the fleet to enter the tube together),
+    #: "in_tube", "waiting" / "waiting again" (trapped in the tube, docs/fleet.md "Waiting for
+    #: a way"), "exited", "done".
     stage: str = ""
     #: The agent's clock offset to the coordinator's, as it measured it (None: not measured).
     clock: ClockOffset | None = None

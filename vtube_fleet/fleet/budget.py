@@ -327,13 +327,15 @@ class ResponseWatch:
     :meth:`ResponseModel.watch_tolerance_m` for :data:`RESPONSE_PERSIST_TICKS` ticks in a row.
 
     A vehicle is judged only on a window it was watched through (in the tube, flying the
-    controller's commands, with fresh samples: a silent vehicle is the lost-vehicle rule's);
-    the model runs for every row all the time (the hover before the tube is its start).
-    Vectorized over the ``n`` rows of a table; pure (no I/O)."""
+    controller's commands) that starts at least ``settle_s`` = T + L + τ_d + 3 t63 into the
+    watched spell, with a fresh sample at both ends (a silent vehicle is the lost-vehicle
+    rule's). The model runs for every row from the first tick the watch is fed (the first
+    vehicle in the tube). Vectorized over the ``n`` rows of a table; pure (no I/O)."""
 
     def __init__(self, model: ResponseModel, n: int) -> None:
         self.model = model
         self.window_s = model.watch_window_s
+        self.settle_s = model.delay_s + 3.0 * model.t63_s  #: a spell's start, not judged
         self.tolerance_m = model.watch_tolerance_m()
         self._cmds: deque[tuple[float, np.ndarray]] = deque()  # (time, velocities sent)
         self._y = np.zeros((n, 2))  # the model's velocity
@@ -347,29 +349,33 @@ class ResponseWatch:
         self.max_at: tuple[float, int] | None = None  #: (time, vehicle) of it
 
     def update(self, t_s: float, sent_m_s: np.ndarray, xy: np.ndarray, watched: np.ndarray,
-               vehicle_ids: np.ndarray) -> str | None:
+               vehicle_ids: np.ndarray, fresh: np.ndarray | None = None) -> str | None:
         """One tick at time ``t_s`` (s): the velocities sent (n, 2; NaN: none, flown as
-        zero: PX4 holds), the estimated positions (n, 2) and which rows are ``watched``."""
+        zero: PX4 holds), the estimated positions (n, 2), which rows are ``watched`` and which
+        of them have a ``fresh`` sample (None: all; a stale one is not compared, its spell
+        goes on). A gap of more than 2 T + 0.1 s since the last call (the watch was not fed:
+        no vehicle in the tube, an agent's untrusted tick) restarts every spell."""
+        m = self.model
         if math.isfinite(self._t) and t_s > self._t:
-            dt = t_s - self._t
-            cut = t_s - self.model.delay_s
-            while len(self._cmds) > 1 and self._cmds[1][0] <= cut:
-                self._cmds.popleft()
-            u = (self._cmds[0][1] if self._cmds and self._cmds[0][0] <= cut
-                 else np.zeros_like(self._y))
-            self._y, dx = model_follow(self._y, u, dt, self.model.t63_s)
-            self._x = self._x + dx
+            if t_s - self._t > 2.0 * m.period_s + 0.1:
+                self._since[:] = np.nan
+            self._advance(t_s)
         self._t = t_s
         self._cmds.append((t_s, np.nan_to_num(np.asarray(sent_m_s, float))))
         ok = watched & np.isfinite(xy).all(axis=1)
         self._since[~ok] = np.nan
         self._since[ok & np.isnan(self._since)] = t_s
-        self._hist.append((t_s, self._x.copy(), np.asarray(xy, float).copy()))
+        now_ok = ok if fresh is None else ok & fresh
+        self._hist.append((t_s, self._x.copy(),
+                           np.where(now_ok[:, None], np.asarray(xy, float), np.nan)))
         cut = t_s - self.window_s
         while len(self._hist) > 1 and self._hist[1][0] <= cut:
             self._hist.popleft()
         t0, x0, p0 = self._hist[0]
-        judged = ok & (self._since <= t0) & (t0 <= cut)
+        # a whole window inside the spell, after the model's start has settled (its state at
+        # a spell's start is the model's, not the vehicle's: e^-3 of it is left after 3 t63)
+        judged = (now_ok & np.isfinite(p0).all(axis=1) & (t0 <= cut)
+                  & (self._since <= t0 - self.settle_s))
         self.offset_m[:] = np.nan
         if not judged.any():
             self._over = 0
@@ -388,7 +394,6 @@ class ResponseWatch:
         self._over += 1
         if self._over < RESPONSE_PERSIST_TICKS:
             return None
-        m = self.model
         return (f"safety budget exceeded in flight: vehicle {int(vehicle_ids[rows[k]])} flew "
                 f"{worst:.2f} m off the path PX4's budgeted response gives its commands over the "
                 f"last {self.window_s:.1f} s > {self.tolerance_m:.2f} m (D·W + k σ = "
@@ -397,6 +402,22 @@ class ResponseWatch:
                 f"{RESPONSE_PERSIST_TICKS} ticks in a row; PX4 follows more slowly than "
                 f"τ_d = {m.dead_time_s:g} s, t63 = {m.t63_s:g} s, which the partition was "
                 f"built for)")
+
+    def _advance(self, t_to: float) -> None:
+        """The model from the last tick to ``t_to``: each command sent at t_k acts from
+        t_k + ``delay_s`` exactly (a tick's interval is cut where one starts to act)."""
+        cmds, d, t = self._cmds, self.model.delay_s, self._t
+        while t < t_to:
+            while len(cmds) > 1 and cmds[1][0] + d <= t:
+                cmds.popleft()
+            if cmds and cmds[0][0] + d <= t:
+                u, nxt = cmds[0][1], (cmds[1][0] + d if len(cmds) > 1 else math.inf)
+            else:  # nothing sent yet that acts: the hover
+                u, nxt = np.zeros_like(self._y), (cmds[0][0] + d if cmds else math.inf)
+            end = min(t_to, nxt)
+            self._y, dx = model_follow(self._y, u, end - t, self.model.t63_s)
+            self._x = self._x + dx
+            t = end
 
     def as_dict(self) -> dict[str, Any]:
         return {"window_s": round(self.window_s, 3), "tolerance_m": round(self.tolerance_m, 3),
@@ -603,8 +624,11 @@ class BudgetWatch:
         # watches e, and for an override, which is not second-guessed)
         # (``response_budget``: the vehicle's own link, when ``budget``'s L has more in it:
         # an MQTT agent's neighbour age)
+        # (without the estimate compensation p̂ drifts by the estimate disturbance, up to D
+        # over the whole window: the watch is off)
         self._response_model = (None if budget.reference or budget.overridden
                                 or not self.cfg.response_watch
+                                or not self.cfg.compensate_estimate
                                 else ResponseModel.of(response_budget or budget, self.cfg))
         self.response: ResponseWatch | None = None
 
@@ -722,14 +746,16 @@ class BudgetWatch:
                 f"partition was built for)")
 
     def check_response(self, t_s: float, sent_m_s: np.ndarray, xy: np.ndarray,
-                       watched: np.ndarray, vehicle_ids: np.ndarray) -> str | None:
+                       watched: np.ndarray, vehicle_ids: np.ndarray,
+                       fresh: np.ndarray | None = None) -> str | None:
         """Velocity tracking, every tick: :meth:`ResponseWatch.update` (the velocities sent,
-        the estimated positions, the rows watched, their ids); None when not watched."""
+        the estimated positions, the rows watched, their ids, the rows with a fresh sample);
+        None when not watched."""
         if self._response_model is None:
             return None
         if self.response is None:
             self.response = ResponseWatch(self._response_model, len(vehicle_ids))
-        return self.response.update(t_s, sent_m_s, xy, watched, vehicle_ids)
+        return self.response.update(t_s, sent_m_s, xy, watched, vehicle_ids, fresh)
 
     def tracking_percentile_m(self, q: float) -> float:
         """The ``q`` percentile of the tracking errors seen (to :data:`TRACKING_BIN_M`, the

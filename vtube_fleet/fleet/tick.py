@@ -1387,8 +1387,9 @@ def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_g
     σ (``accuracy_m(rows in the tube)``); with reference tracking, every tick, each in-tube
     vehicle's |p̂ − r| against e (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_tracking`);
     with velocity tracking, every tick, the velocities sent and the estimated paths of the
-    in-tube vehicles flying the controller's command with a fresh sample, against the budget's
-    response model (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_response`).
+    in-tube vehicles flying the controller's command with a live sample (compared where it is
+    no older than T + L), against the budget's response model
+    (:meth:`~vtube_fleet.fleet.budget.BudgetWatch.check_response`).
     Does nothing while no vehicle is in the tube.
     ``used``: :func:`used_ages` of this tick if the caller has it already.
     Returns ``(warning, hold)``."""
@@ -1400,11 +1401,14 @@ def watch_budget(watch: BudgetWatch, tab: FleetTable, result: TickResult, tick_g
         tube = np.flatnonzero(ph == _IN_TUBE)
         hold = watch.check_tracking(tab.track_err_m[tube], tab.ids[tube], result.t_s)
     else:  # every tick: the estimated paths against the response model's
-        fresh = np.zeros(tab.n, bool)
-        fresh[rows] = True
+        b = watch.budget
+        live = np.zeros(tab.n, bool)  # a sample the tick used as live …
+        live[rows] = True
+        fresh = np.zeros(tab.n, bool)  # … and no older than the budget's T + L
+        fresh[rows[ages <= b.period_s + b.latency_s]] = True
         sent = np.where(tab.cmd_set[:, None], tab.cmd, np.nan)
         hold = watch.check_response(result.t_s, sent, tab.xy,
-                                    (ph == _IN_TUBE) & tab.cmd_in_tube & fresh, tab.ids)
+                                    (ph == _IN_TUBE) & tab.cmd_in_tube & live, tab.ids, fresh)
     if hold is not None:
         return None, hold
     watch.add_tick_gap(tick_gap_s)

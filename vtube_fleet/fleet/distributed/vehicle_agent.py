@@ -97,6 +97,9 @@ CLOCK_TIMEOUT_S = 1.0
 _UP_STAGES = ("at_altitude", "checked", "in_tube", "exited", "done")
 #: … and as "checked or further" for the tube-entry barrier.
 _CHECKED_STAGES = _UP_STAGES[1:]
+#: A teammate refused at the tube-entry barrier: how long to wait for the coordinator's abort
+#: (one coordinator period and two broker hops, normally) before landing without it.
+REFUSAL_ABORT_WAIT_S = 5.0
 
 
 #: The status stages of an agent whose vehicle waits in the tube, by how many times it was
@@ -955,9 +958,27 @@ class AgentProcess:
                 f"teammates not through the response check after "
                 f"{self.cfg.takeoff_timeout_s:g} s ({', '.join(map(str, late))}); entering the "
                 f"tube anyway", "warning")
-        if self._abort.is_set():  # never into the tube after an abort (it lands instead)
-            raise UserError("run aborted by the coordinator")
+        refused = self._refused_teammates()
+        if refused and not self._abort.is_set():
+            # a teammate refused (its response check): the coordinator aborts the run; wait
+            # for that instead of entering the tube before it arrives
+            with contextlib.suppress(TimeoutError):
+                await self.bus.wait_for(self._abort.is_set, REFUSAL_ABORT_WAIT_S)
+        if self._abort.is_set() or refused:  # never into the tube after an abort: it lands
+            raise UserError("run aborted by the coordinator" if self._abort.is_set() else
+                            f"teammate(s) {', '.join(map(str, refused))} refused after the "
+                            f"start and no abort came within {REFUSAL_ABORT_WAIT_S:g} s")
         self.bus.announce("online", stage="in_tube")
+
+    def _refused_teammates(self) -> list[int]:
+        """The teammates whose agents refused this run (their status says so)."""
+        out = []
+        for v in self._teammates():
+            st = self.bus.statuses.get(v)
+            if (v != self.vehicle and st is not None and st.run_id == self.bus.run_id
+                    and st.status == "refused"):
+                out.append(v)
+        return out
 
     async def _check_response(self) -> None:
         """The response check (:mod:`~vtube_fleet.fleet.response_check`) of this agent's own
