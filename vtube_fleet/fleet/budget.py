@@ -73,6 +73,7 @@ __all__ = [
     "ResponseWatch",
     "SafetyBudget",
     "TRACKING_PERSIST_TICKS",
+    "WorstOver",
     "achieved_rate_hz",
     "budget_latency_s",
     "budget_problems",
@@ -315,6 +316,28 @@ class ResponseModel:
                 f"tracking_t63_s")
 
 
+class WorstOver:
+    """The worst of a per-vehicle figure, tick by tick (the response watch, the reference
+    tracking watch): its largest value with the time and vehicle (``max_m``, ``max_at``), and
+    ``over``: the ticks in a row it has been over the bound (0: not over now)."""
+
+    def __init__(self) -> None:
+        self.max_m = math.nan
+        self.max_at: tuple[float, int] | None = None  # (time, vehicle)
+        self.over = 0
+
+    def judge(self, t_s: float, values: np.ndarray, vehicle_ids: np.ndarray,
+              bound: float) -> tuple[int, float]:
+        """One tick's values (k,) of the vehicles ``vehicle_ids`` (k,) against ``bound``:
+        (index of the worst, its value)."""
+        k = int(np.argmax(values))
+        worst = float(values[k])
+        if not worst <= self.max_m:
+            self.max_m, self.max_at = worst, (t_s, int(vehicle_ids[k]))
+        self.over = 0 if worst <= bound else self.over + 1
+        return k, worst
+
+
 class ResponseWatch:
     """The response watch (velocity tracking, in flight; docs/fleet.md, "The response watch"):
     every tick, the model's answer (:class:`ResponseModel`) to the velocities each vehicle was
@@ -343,10 +366,8 @@ class ResponseWatch:
         self._t = math.nan
         self._hist: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (t, path, p̂)
         self._since = np.full(n, np.nan)  # when each row's watched spell began
-        self._over = 0
         self.offset_m = np.full(n, np.nan)  #: each row's offset at the last tick (NaN: unjudged)
-        self.max_m = math.nan  #: the largest offset judged
-        self.max_at: tuple[float, int] | None = None  #: (time, vehicle) of it
+        self.worst = WorstOver()  #: the largest offset judged, and the ticks in a row over
 
     def update(self, t_s: float, sent_m_s: np.ndarray, xy: np.ndarray, watched: np.ndarray,
                vehicle_ids: np.ndarray, fresh: np.ndarray | None = None) -> str | None:
@@ -378,21 +399,14 @@ class ResponseWatch:
                   & (self._since <= t0 - self.settle_s))
         self.offset_m[:] = np.nan
         if not judged.any():
-            self._over = 0
+            self.worst.over = 0
             return None
         rows = np.flatnonzero(judged)
         off = (xy[rows] - p0[rows]) - (self._x[rows] - x0[rows])
         dev = np.hypot(off[:, 0], off[:, 1])
         self.offset_m[rows] = dev
-        k = int(np.argmax(dev))
-        worst = float(dev[k])
-        if not worst <= self.max_m:
-            self.max_m, self.max_at = worst, (t_s, int(vehicle_ids[rows[k]]))
-        if worst <= self.tolerance_m:
-            self._over = 0
-            return None
-        self._over += 1
-        if self._over < RESPONSE_PERSIST_TICKS:
+        k, worst = self.worst.judge(t_s, dev, vehicle_ids[rows], self.tolerance_m)
+        if self.worst.over < RESPONSE_PERSIST_TICKS:
             return None
         return (f"safety budget exceeded in flight: vehicle {int(vehicle_ids[rows[k]])} flew "
                 f"{worst:.2f} m off the path PX4's budgeted response gives its commands over the "
@@ -418,6 +432,16 @@ class ResponseWatch:
             self._y, dx = model_follow(self._y, u, end - t, self.model.t63_s)
             self._x = self._x + dx
             t = end
+
+    @property
+    def max_m(self) -> float:
+        """The largest offset judged (NaN: none)."""
+        return self.worst.max_m
+
+    @property
+    def max_at(self) -> tuple[float, int] | None:
+        """(time, vehicle) of :attr:`max_m`."""
+        return self.worst.max_at
 
     def as_dict(self) -> dict[str, Any]:
         return {"window_s": round(self.window_s, 3), "tolerance_m": round(self.tolerance_m, 3),
@@ -615,10 +639,8 @@ class BudgetWatch:
         self.longest_tick_gap_s = -math.inf  # … and ever (the summaries' loop health)
         # reference tracking: ticks in a row with a vehicle beyond e, and every error seen
         # (a histogram of TRACKING_BIN_M bins: a thousand vehicles for an hour stay small)
-        self._track_over = 0
+        self._tracking = WorstOver()
         self.tracking_counts = np.zeros(TRACKING_BINS, np.int64)
-        self.tracking_max_m = math.nan
-        self.tracking_max_at: tuple[float, int] | None = None  # (mission time, vehicle)
         # velocity tracking: PX4's answer to the commands against the budget's model (created
         # at the first tick, for the table's rows; None with reference tracking, which
         # watches e, and for an override, which is not second-guessed)
@@ -724,21 +746,14 @@ class BudgetWatch:
         e = self.budget.tracking_error_m
         ok = np.isfinite(errors_m)
         if e is None or not ok.any():
-            self._track_over = 0
+            self._tracking.over = 0
             return None
         err, ids = errors_m[ok], vehicle_ids[ok]
         self.tracking_counts += np.bincount(
             np.minimum((err / TRACKING_BIN_M).astype(np.int64), TRACKING_BINS - 1),
             minlength=TRACKING_BINS)
-        k = int(np.argmax(err))
-        worst = float(err[k])
-        if not worst <= self.tracking_max_m:
-            self.tracking_max_m, self.tracking_max_at = worst, (t_s, int(ids[k]))
-        if worst <= e:
-            self._track_over = 0
-            return None
-        self._track_over += 1
-        if self._track_over < TRACKING_PERSIST_TICKS:
+        k, worst = self._tracking.judge(t_s, err, ids, e)
+        if self._tracking.over < TRACKING_PERSIST_TICKS:
             return None
         return (f"safety budget exceeded in flight: vehicle {int(ids[k])} is {worst:.2f} m "
                 f"from its reference > the budgeted tracking error e = {e:.2f} m "
@@ -756,6 +771,16 @@ class BudgetWatch:
         if self.response is None:
             self.response = ResponseWatch(self._response_model, len(vehicle_ids))
         return self.response.update(t_s, sent_m_s, xy, watched, vehicle_ids, fresh)
+
+    @property
+    def tracking_max_m(self) -> float:
+        """Reference tracking: the largest |p̂ − r| seen (NaN: none)."""
+        return self._tracking.max_m
+
+    @property
+    def tracking_max_at(self) -> tuple[float, int] | None:
+        """(mission time, vehicle) of :attr:`tracking_max_m`."""
+        return self._tracking.max_at
 
     def tracking_percentile_m(self, q: float) -> float:
         """The ``q`` percentile of the tracking errors seen (to :data:`TRACKING_BIN_M`, the
